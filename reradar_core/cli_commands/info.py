@@ -1,0 +1,31 @@
+"""``reradar info``: print a scan's metadata and statistics."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from reradar_core.errors import ReRadarError
+from reradar_core.io.scan import load_scan
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("info")
+    def info(
+        scan: Path = typer.Argument(..., help="Navtech polar PNG or .npy scan."),
+        preset: str = typer.Option(None, help="Radar preset (boreas, oxford, oord, mulran); inferred if omitted."),
+    ) -> None:
+        """Print a scan's shape, timing and power statistics."""
+        try:
+            s = load_scan(scan, preset)
+        except ReRadarError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from exc
+        sweep_ms = (s.timestamps_us[-1] - s.timestamps_us[0]) / 1000.0
+        typer.echo(f"file: {scan}")
+        typer.echo(f"preset: {s.preset}  azimuths: {s.num_azimuths}  range bins: {s.num_range_bins} "
+                   f"x {s.range_resolution_m} m (max {s.ranges_m[-1]:.1f} m)")
+        typer.echo(f"timestamp: {s.timestamp_us} us  sweep: {sweep_ms:.1f} ms  valid azimuths: {int(s.valid.sum())}")
+        typer.echo(f"power: mean {s.power.mean():.4f}  p99 {np.percentile(s.power, 99):.4f} (fraction of full scale)")

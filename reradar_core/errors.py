@@ -1,0 +1,34 @@
+"""Precise exceptions raised by the core; only the service maps them to HTTP status codes."""
+
+__all__ = [
+    "ReRadarError",
+    "ScanFormatError",
+    "PoseFileError",
+    "ConfigError",
+    "MapFormatError",
+    "ModelMismatchError",
+]
+
+
+class ReRadarError(Exception):
+    """Base class for every error the core raises on bad input or state."""
+
+
+class ScanFormatError(ReRadarError, ValueError):
+    """A radar scan file or array is corrupt, has the wrong shape, or holds non-finite values."""
+
+
+class PoseFileError(ReRadarError, ValueError):
+    """A pose file is malformed; the message names the file and line."""
+
+
+class ConfigError(ReRadarError, ValueError):
+    """A configuration value is invalid (unknown preset, negative size, ...)."""
+
+
+class MapFormatError(ReRadarError, ValueError):
+    """A keyframe map file is unreadable or has an unsupported schema."""
+
+
+class ModelMismatchError(ReRadarError, ValueError):
+    """A map was built with a different model than the one running (descriptors are incomparable)."""

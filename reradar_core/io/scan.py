@@ -1,0 +1,267 @@
+"""Navtech polar radar scans: the ``RadarScan`` dataclass and its PNG / .npy readers and writers.
+
+Navtech PNG byte layout (Oxford Radar RobotCar, Boreas, MulRan, OORD all share it), one row per azimuth:
+
+==========  =======  ===========================================================
+columns     dtype    meaning
+==========  =======  ===========================================================
+0-7         int64    UTC timestamp of the azimuth, microseconds, little-endian
+8-9         uint16   encoder value, little-endian; azimuth = encoder * pi / 2800 rad
+10          uint8    valid flag (non-zero = valid)
+11-         uint8    power per range bin, 0..255 (log-compressed by the sensor)
+==========  =======  ===========================================================
+
+The PNG is 8-bit single channel, so the metadata bytes are stored as pixel values.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from reradar_core.errors import ScanFormatError
+from reradar_core.io.presets import ENCODER_TICKS_PER_TURN, PRESETS, RadarPreset, get_preset
+
+__all__ = [
+    "RadarScan",
+    "NAVTECH_META_COLUMNS",
+    "read_navtech_png",
+    "write_navtech_png",
+    "decode_navtech_png_bytes",
+    "encode_navtech_png_bytes",
+    "read_polar_npy",
+    "load_scan",
+    "load_scan_bytes",
+    "infer_preset",
+]
+
+#: Metadata columns in front of the range bins in a Navtech PNG row.
+NAVTECH_META_COLUMNS = 11
+_RAD_PER_TICK = 2.0 * np.pi / ENCODER_TICKS_PER_TURN
+
+
+@dataclass
+class RadarScan:
+    """One polar radar sweep.
+
+    Attributes:
+        power: (A, R) float32 in [0, 1]; row a = azimuth a, column r = range bin r.
+        azimuths: (A,) float64 radians in [0, 2*pi), clockwise from the sensor's +x (forward) axis.
+        timestamps_us: (A,) int64 UTC microseconds at which each azimuth was measured.
+        range_resolution_m: metres per range bin.
+        range_offset_m: range of bin 0's centre, metres (``range = offset + bin * resolution``).
+        valid: (A,) bool, False where the sensor flagged the azimuth invalid.
+        preset: name of the radar preset the scan was read with, if known.
+    """
+
+    power: np.ndarray
+    azimuths: np.ndarray
+    timestamps_us: np.ndarray
+    range_resolution_m: float
+    range_offset_m: float = 0.0
+    valid: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    preset: str | None = None
+
+    def __post_init__(self) -> None:
+        self.power = np.asarray(self.power, dtype=np.float32)
+        if self.power.ndim != 2 or self.power.shape[0] < 2 or self.power.shape[1] < 2:
+            raise ScanFormatError(
+                f"scan power must be a 2-D (azimuths x range bins) array, got shape {self.power.shape}"
+            )
+        if not np.all(np.isfinite(self.power)):
+            raise ScanFormatError("scan power contains NaN or infinite values")
+        n_az = self.power.shape[0]
+        self.azimuths = np.asarray(self.azimuths, dtype=np.float64)
+        self.timestamps_us = np.asarray(self.timestamps_us, dtype=np.int64)
+        if self.valid.size == 0:
+            self.valid = np.ones(n_az, dtype=bool)
+        self.valid = np.asarray(self.valid, dtype=bool)
+        for name in ("azimuths", "timestamps_us", "valid"):
+            arr = getattr(self, name)
+            if arr.shape != (n_az,):
+                raise ScanFormatError(f"scan {name} must have shape ({n_az},), got {arr.shape}")
+        if not np.all(np.isfinite(self.azimuths)):
+            raise ScanFormatError("scan azimuths contain NaN or infinite values")
+        if not (self.range_resolution_m > 0 and np.isfinite(self.range_resolution_m)):
+            raise ScanFormatError(f"range resolution must be positive, got {self.range_resolution_m}")
+
+    @property
+    def num_azimuths(self) -> int:
+        return int(self.power.shape[0])
+
+    @property
+    def num_range_bins(self) -> int:
+        return int(self.power.shape[1])
+
+    @property
+    def ranges_m(self) -> np.ndarray:
+        """(R,) float64 range of each bin centre, metres."""
+        return self.range_offset_m + np.arange(self.num_range_bins) * self.range_resolution_m
+
+    @property
+    def timestamp_us(self) -> int:
+        """Scan timestamp: the first azimuth's time, microseconds (Oxford names its PNG files so)."""
+        return int(self.timestamps_us[0])
+
+    def with_power(self, power: np.ndarray) -> RadarScan:
+        """A copy with another power array (same metadata)."""
+        return replace(self, power=power)
+
+    @classmethod
+    def from_power(
+        cls,
+        power: np.ndarray,
+        preset: str | RadarPreset = "oxford",
+        start_time_us: int = 0,
+    ) -> RadarScan:
+        """Build a scan from a bare (A, R) power array with uniform azimuths and the preset's geometry."""
+        p = get_preset(preset)
+        power = np.asarray(power)
+        if power.ndim != 2:
+            raise ScanFormatError(f"polar array must be 2-D (azimuths x range bins), got shape {power.shape}")
+        n_az = power.shape[0]
+        if power.dtype == np.uint8:
+            power = power.astype(np.float32) / 255.0
+        azimuths = np.arange(n_az) * (2.0 * np.pi / n_az)
+        dt_us = int(round(p.sweep_period_s * 1e6 / n_az))
+        timestamps = start_time_us + np.arange(n_az, dtype=np.int64) * dt_us
+        return cls(power, azimuths, timestamps, p.range_resolution_m, p.range_offset_m, preset=p.name)
+
+
+def infer_preset(num_range_bins: int) -> RadarPreset:
+    """Guess the preset from the bin count (3,768 -> oxford, 3,360 -> boreas); others -> ScanFormatError."""
+    for p in PRESETS.values():
+        if p.num_range_bins == num_range_bins:
+            return p
+    raise ScanFormatError(
+        f"cannot infer the radar preset from {num_range_bins} range bins; pass the preset explicitly "
+        f"(known: {sorted(PRESETS)})"
+    )
+
+
+def _scan_from_raw(raw: np.ndarray, preset: str | RadarPreset | None, source: str) -> RadarScan:
+    if raw.ndim != 2 or raw.dtype != np.uint8:
+        raise ScanFormatError(
+            f"{source}: a Navtech PNG must be 8-bit single-channel, got dtype {raw.dtype} shape {raw.shape}"
+        )
+    if raw.shape[1] <= NAVTECH_META_COLUMNS + 1 or raw.shape[0] < 2:
+        raise ScanFormatError(
+            f"{source}: a Navtech PNG needs >= 2 rows and more than {NAVTECH_META_COLUMNS} columns "
+            f"(11 metadata + range bins), got shape {raw.shape}"
+        )
+    meta = np.ascontiguousarray(raw[:, :NAVTECH_META_COLUMNS])
+    timestamps = meta[:, 0:8].copy().view("<i8").reshape(-1)
+    encoder = meta[:, 8:10].copy().view("<u2").reshape(-1)
+    valid = meta[:, 10] != 0
+    fft = raw[:, NAVTECH_META_COLUMNS:].astype(np.float32) / 255.0
+    p = get_preset(preset) if preset is not None else infer_preset(fft.shape[1])
+    azimuths = (encoder.astype(np.float64) * _RAD_PER_TICK) % (2.0 * np.pi)
+    return RadarScan(fft, azimuths, timestamps, p.range_resolution_m, p.range_offset_m, valid, preset=p.name)
+
+
+def _raw_from_scan(scan: RadarScan) -> np.ndarray:
+    n_az = scan.num_azimuths
+    raw = np.zeros((n_az, NAVTECH_META_COLUMNS + scan.num_range_bins), dtype=np.uint8)
+    raw[:, 0:8] = scan.timestamps_us.astype("<i8").view(np.uint8).reshape(n_az, 8)
+    encoder = np.round(np.mod(scan.azimuths, 2 * np.pi) / _RAD_PER_TICK).astype(np.int64) % ENCODER_TICKS_PER_TURN
+    raw[:, 8:10] = encoder.astype("<u2").view(np.uint8).reshape(n_az, 2)
+    raw[:, 10] = np.where(scan.valid, 255, 0).astype(np.uint8)
+    raw[:, NAVTECH_META_COLUMNS:] = np.clip(np.round(scan.power * 255.0), 0, 255).astype(np.uint8)
+    return raw
+
+
+def read_navtech_png(path: str | Path, preset: str | RadarPreset | None = None) -> RadarScan:
+    """Read a Navtech polar PNG (layout in the module docstring).
+
+    Args:
+        path: the PNG file.
+        preset: radar preset giving range resolution/offset; inferred from the bin count when None.
+
+    Raises:
+        ScanFormatError: unreadable file, wrong bit depth or shape (message names the file).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ScanFormatError(f"{path}: no such scan file")
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise ScanFormatError(f"{path}: not a readable PNG image")
+    return _scan_from_raw(raw, preset, str(path))
+
+
+def decode_navtech_png_bytes(data: bytes, preset: str | RadarPreset | None = None) -> RadarScan:
+    """Decode a Navtech PNG held in memory (e.g. an upload); see ``read_navtech_png``."""
+    buf = np.frombuffer(data, dtype=np.uint8)
+    raw = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    if raw is None:
+        raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated)")
+    return _scan_from_raw(raw, preset, "upload")
+
+
+def encode_navtech_png_bytes(scan: RadarScan) -> bytes:
+    """Encode a scan as Navtech PNG bytes (power quantised to uint8)."""
+    ok, buf = cv2.imencode(".png", _raw_from_scan(scan))
+    if not ok:  # pragma: no cover - OpenCV only fails on impossible shapes
+        raise ScanFormatError("could not encode scan as PNG")
+    return buf.tobytes()
+
+
+def write_navtech_png(scan: RadarScan, path: str | Path) -> Path:
+    """Write ``scan`` as a Navtech PNG (power quantised to uint8). Returns the path written."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(encode_navtech_png_bytes(scan))
+    return path
+
+
+def read_polar_npy(path: str | Path | None = None, preset: str | RadarPreset = "oxford",
+                   array: np.ndarray | None = None) -> RadarScan:
+    """Read a plain (A, R) polar array saved with ``np.save`` (uint8 0..255 or float in [0, 1]).
+
+    Azimuths are assumed uniform from 0; range geometry comes from ``preset``.
+    """
+    if array is None:
+        if path is None:
+            raise ScanFormatError("read_polar_npy needs a path or an array")
+        try:
+            array = np.load(Path(path), allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise ScanFormatError(f"{path}: not a readable .npy array ({exc})") from exc
+    if array.dtype.kind not in "uif":
+        raise ScanFormatError(f"polar array must be numeric, got dtype {array.dtype}")
+    if array.dtype != np.uint8:
+        array = array.astype(np.float32)
+        if array.size and np.all(np.isfinite(array)) and (array.min() < 0 or array.max() > 1):
+            raise ScanFormatError("float polar arrays must hold power in [0, 1]")
+    return RadarScan.from_power(array, preset)
+
+
+def load_scan(path: str | Path, preset: str | RadarPreset | None = None) -> RadarScan:
+    """Read a scan by suffix: ``.png`` Navtech PNG, ``.npy`` polar array."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".png":
+        return read_navtech_png(path, preset)
+    if suffix == ".npy":
+        return read_polar_npy(path, preset or "oxford")
+    raise ScanFormatError(f"{path}: unsupported scan format {suffix!r} (use .png or .npy)")
+
+
+def load_scan_bytes(data: bytes, filename: str = "scan.png",
+                    preset: str | RadarPreset | None = None) -> RadarScan:
+    """Decode an uploaded scan by its filename suffix (``.png`` or ``.npy``)."""
+    suffix = Path(filename).suffix.lower()
+    if suffix == ".npy":
+        import io
+
+        try:
+            array = np.load(io.BytesIO(data), allow_pickle=False)
+        except (OSError, ValueError, EOFError) as exc:
+            raise ScanFormatError(f"upload is not a readable .npy array ({exc})") from exc
+        return read_polar_npy(array=array, preset=preset or "oxford")
+    if suffix in (".png", ""):
+        return decode_navtech_png_bytes(data, preset)
+    raise ScanFormatError(f"unsupported scan format {suffix!r} (upload a Navtech .png or a polar .npy)")

@@ -1,0 +1,18 @@
+"""Where generated data goes: an ignored cache folder, never the repository's tracked tree."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+__all__ = ["cache_dir", "PACKAGE_DIR"]
+
+PACKAGE_DIR = Path(__file__).resolve().parent
+
+
+def cache_dir(*parts: str) -> Path:
+    """``$RERADAR_CACHE_DIR`` (default ``./.cache/reradar``) joined with ``parts``; created on demand."""
+    root = Path(os.environ.get("RERADAR_CACHE_DIR", Path.cwd() / ".cache" / "reradar"))
+    path = root.joinpath(*parts)
+    path.mkdir(parents=True, exist_ok=True)
+    return path
