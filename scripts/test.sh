@@ -1,0 +1,10 @@
+#!/usr/bin/env bash
+# The project's test command (README, .ci/run): lint, type-check the service and map store, run the tests.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+echo "== ruff"
+python -m ruff check reradar_core service maps tests scripts benchmarks
+echo "== mypy (service, maps)"
+python -m mypy service maps
+echo "== pytest"
+python -m pytest "$@"
