@@ -7,6 +7,7 @@ __all__ = [
     "ConfigError",
     "MapFormatError",
     "ModelMismatchError",
+    "DatasetError",
 ]
 
 
@@ -32,3 +33,7 @@ class MapFormatError(ReRadarError, ValueError):
 
 class ModelMismatchError(ReRadarError, ValueError):
     """A map was built with a different model than the one running (descriptors are incomparable)."""
+
+
+class DatasetError(ReRadarError, ValueError):
+    """A dataset sequence folder is missing, has an unknown layout, or lacks scans or poses."""

@@ -1,0 +1,69 @@
+"""``reradar build-map`` and ``reradar map-info``: build and inspect HDF5 keyframe maps."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from reradar_core.errors import ReRadarError
+
+__all__ = ["register"]
+
+
+def build_map_command(
+    dataset: Path = typer.Option(..., "--dataset", help="Sequence folder (boreas, oxford or mulran layout)."),
+    out: Path = typer.Option(..., "--out", help="Map file to write (.h5)."),
+    layout: str | None = typer.Option(None, help="Dataset layout; detected when omitted."),
+    preset: str | None = typer.Option(None, help="Radar preset; from the dataset when omitted."),
+    batch_size: int = typer.Option(8, min=1, help="Scans per network batch."),
+    min_spacing_m: float = typer.Option(0.0, min=0.0, help="Keep a scan as keyframe only this far (m) from the last."),
+    max_keypoints: int | None = typer.Option(None, min=2, help="Cap stored keypoints per keyframe."),
+    name: str | None = typer.Option(None, help="Map name stored in the file (default: sequence name)."),
+    overwrite: bool = typer.Option(False, help="Replace an existing map file."),
+    threads: int = typer.Option(2, min=1, help="torch CPU threads."),
+) -> None:
+    """Build a keyframe map (global + local descriptors, poses) from a radar sequence folder."""
+    import torch
+
+    from maps.build import build_map_from_sequence
+    from maps.store import read_metadata
+    from reradar_core.localization.extractor import load_default_extractor
+
+    torch.set_num_threads(threads)
+    if out.exists() and not overwrite:
+        typer.echo(f"error: {out} exists; pass --overwrite to replace it", err=True)
+        raise typer.Exit(2)
+    try:
+        extractor = load_default_extractor()
+        kwargs: dict[str, object] = dict(batch_size=batch_size, max_keypoints=max_keypoints,
+                                         overwrite=overwrite, show_progress=True)
+        if name:
+            kwargs["name"] = name
+        build_map_from_sequence(dataset, out, extractor, layout=layout, preset=preset,
+                                min_spacing_m=min_spacing_m, **kwargs)
+    except ReRadarError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    meta = read_metadata(out)
+    typer.echo(f"wrote {out}: {meta.num_keyframes} keyframes, D={meta.descriptor_dim}, "
+               f"model {meta.model_id}, {out.stat().st_size / 1e6:.1f} MB")
+
+
+def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -> None:
+    """Print a map's metadata as JSON."""
+    from maps.store import read_metadata
+
+    try:
+        meta = read_metadata(path)
+    except ReRadarError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    typer.echo(json.dumps(meta.to_dict(), indent=2))
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``build-map`` and ``map-info`` to the ``reradar`` command line."""
+    app.command("build-map")(build_map_command)
+    app.command("map-info")(map_info_command)

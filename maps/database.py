@@ -1,0 +1,95 @@
+"""A loaded map: the HDF5 keyframe store plus its FAISS index, with retrieval and localization.
+
+Global descriptors (N x D float32) live in the FAISS index; keypoints and local descriptors stay on disk and
+are read only for a query's top-k candidates.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from maps.index import GlobalIndex, IndexConfig, similarity_to_distance
+from maps.store import KeyframeMap, MapMetadata, open_map
+from reradar_core.errors import ConfigError
+from reradar_core.features import ScanFeatures
+from reradar_core.localization import Candidate, LocalizationConfig, LocalizationResult, localize
+
+__all__ = ["Retrieval", "MapDatabase"]
+
+
+@dataclass(frozen=True)
+class Retrieval:
+    """One retrieved keyframe: id, timestamp (us), map pose (x m, y m, yaw rad), descriptor distance."""
+
+    keyframe_id: int
+    timestamp_us: int
+    T_map_keyframe: np.ndarray
+    descriptor_distance: float
+    rank: int
+
+
+class MapDatabase:
+    """Retrieval and localization against one keyframe map.
+
+    Attributes:
+        map: the open ``KeyframeMap``; index: the ``GlobalIndex`` over its global descriptors.
+    """
+
+    def __init__(self, kf_map: KeyframeMap, index_config: IndexConfig = IndexConfig()) -> None:
+        self.map = kf_map
+        self.index = GlobalIndex(kf_map.global_descriptors, index_config)
+
+    @classmethod
+    def open(cls, path: str | Path, model_id: str | None = None, weights_sha256: str | None = None,
+             index_config: IndexConfig = IndexConfig()) -> MapDatabase:
+        """Open the map at ``path`` (refusing another model's map when ``weights_sha256`` is given)."""
+        return cls(open_map(path, model_id, weights_sha256), index_config)
+
+    @property
+    def metadata(self) -> MapMetadata:
+        return self.map.metadata
+
+    def __len__(self) -> int:
+        return len(self.map)
+
+    def retrieve(self, global_descriptor: np.ndarray, k: int) -> list[Retrieval]:
+        """Top-``k`` keyframes by global descriptor, best first."""
+        g = np.asarray(global_descriptor, np.float32).reshape(-1)
+        if g.shape[0] != self.index.dim:
+            raise ConfigError(
+                f"query descriptor has {g.shape[0]} values but map {self.map.path.name} stores {self.index.dim}"
+            )
+        idx, sims = self.index.search(g, k)
+        dists = similarity_to_distance(sims[0])
+        out = []
+        for rank, (i, d) in enumerate(zip(idx[0], dists, strict=True)):
+            if i < 0:
+                continue
+            out.append(Retrieval(int(i), int(self.map.timestamps_us[i]), self.map.poses[i].copy(), float(d), rank))
+        return out
+
+    def localize(self, query: ScanFeatures,
+                 config: LocalizationConfig | None = None) -> tuple[list[Retrieval], LocalizationResult]:
+        """Retrieve ``config.top_k`` candidates, verify them and return (retrievals, result).
+
+        ``result.timings_ms`` gains ``retrieve_ms`` (FAISS search) and ``read_ms`` (keyframe reads from disk).
+        """
+        config = config or LocalizationConfig()
+        t0 = time.perf_counter()
+        retrievals = self.retrieve(query.global_descriptor, config.top_k)
+        t1 = time.perf_counter()
+        wanted = retrievals if config.rerank else retrievals[:1]
+        candidates = [Candidate(r.keyframe_id, r.T_map_keyframe, self.map.read_keyframe(r.keyframe_id),
+                                r.descriptor_distance, r.rank) for r in wanted]
+        t2 = time.perf_counter()
+        result = localize(query, candidates, config)
+        result.timings_ms["retrieve_ms"] = (t1 - t0) * 1e3
+        result.timings_ms["read_ms"] = (t2 - t1) * 1e3
+        return retrievals, result
+
+    def close(self) -> None:
+        self.map.close()

@@ -1,0 +1,386 @@
+"""HDF5 keyframe maps: the one module that touches h5py (schema in ``docs/MAP_FORMAT.md``).
+
+A map holds, for N keyframes of one traversal:
+
+- root attributes: ``schema_version``, ``model_id``, ``weights_sha256``, ``radar_preset``,
+  ``cartesian_width_px``, ``cartesian_resolution_m``, ``descriptor_dim``, ``local_descriptor_dim``,
+  ``num_keyframes``, ``created_utc`` (ISO 8601), ``source``, ``name``;
+- ``/timestamps_us`` (N,) int64 and ``/poses`` (N, 3) float64 ``T_map_keyframe`` = (x m, y m, yaw rad);
+- ``/global_descriptors`` (N, D) float32, L2-normalised rows;
+- ``/keyframes/<i:06d>/keypoints_xy_m`` (K_i, 2) float32 (keyframe sensor frame, metres) and
+  ``/keyframes/<i:06d>/local_descriptors`` (K_i, C) float16.
+
+Writes go to a temporary file next to the target which is flushed, fsync'ed and renamed over the target
+only when complete, so a crash mid-write never leaves a half map visible under the map's name.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import os
+import threading
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from types import TracebackType
+
+import h5py
+import numpy as np
+
+from reradar_core.errors import MapFormatError, ModelMismatchError
+from reradar_core.features import ScanFeatures
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "MapMetadata",
+    "KeyframeMap",
+    "MapWriter",
+    "open_map",
+    "write_map",
+    "check_model",
+    "read_metadata",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Version of the on-disk layout; readers refuse other versions.
+SCHEMA_VERSION = 1
+
+_ATTR_FIELDS = (
+    "schema_version",
+    "model_id",
+    "weights_sha256",
+    "radar_preset",
+    "cartesian_width_px",
+    "cartesian_resolution_m",
+    "descriptor_dim",
+    "local_descriptor_dim",
+    "num_keyframes",
+    "created_utc",
+    "source",
+    "name",
+)
+
+
+@dataclass(frozen=True)
+class MapMetadata:
+    """Root attributes of a map file.
+
+    Attributes:
+        model_id: identifier of the descriptor model that produced the descriptors.
+        weights_sha256: SHA-256 of the model weights; a running model with another hash cannot use the map.
+        radar_preset: radar preset name of the scans (``boreas``, ``oxford``, ...).
+        cartesian_width_px, cartesian_resolution_m: Cartesian image geometry the model used.
+        descriptor_dim: D, global descriptor length.
+        local_descriptor_dim: C, local descriptor length.
+        num_keyframes: N.
+        created_utc: ISO 8601 creation time (UTC).
+        source: free text saying what the map was built from (a dataset path, an upload).
+        name: human-readable map name.
+        schema_version: layout version (``SCHEMA_VERSION`` when written by this code).
+    """
+
+    model_id: str
+    weights_sha256: str
+    radar_preset: str
+    cartesian_width_px: int
+    cartesian_resolution_m: float
+    descriptor_dim: int
+    local_descriptor_dim: int
+    num_keyframes: int = 0
+    created_utc: str = ""
+    source: str = ""
+    name: str = ""
+    schema_version: int = SCHEMA_VERSION
+
+    def to_dict(self) -> dict[str, object]:
+        return asdict(self)
+
+
+def check_model(metadata: MapMetadata, model_id: str, weights_sha256: str, path: str | Path = "map") -> None:
+    """Refuse a map built by another model (its descriptors are not comparable with ours).
+
+    Raises:
+        ModelMismatchError: the map's weights hash differs from ``weights_sha256``.
+    """
+    if metadata.weights_sha256 != weights_sha256:
+        raise ModelMismatchError(
+            f"{path}: map was built with model {metadata.model_id!r} (weights sha256 "
+            f"{metadata.weights_sha256[:12]}...) but the running model is {model_id!r} "
+            f"({weights_sha256[:12]}...); its descriptors are incomparable - rebuild the map with "
+            f"`reradar build-map` using the current model"
+        )
+
+
+def _read_metadata(f: h5py.File, path: Path) -> MapMetadata:
+    attrs = f.attrs
+    if "schema_version" not in attrs:
+        raise MapFormatError(f"{path}: not a ReRadar map (no schema_version attribute)")
+    version = int(attrs["schema_version"])
+    if version != SCHEMA_VERSION:
+        raise MapFormatError(
+            f"{path}: map schema_version {version} is not supported (this build reads {SCHEMA_VERSION}); "
+            f"rebuild the map with `reradar build-map`"
+        )
+    missing = [k for k in _ATTR_FIELDS if k not in attrs]
+    if missing:
+        raise MapFormatError(f"{path}: map is missing root attributes {missing}")
+
+    def s(key: str) -> str:
+        v = attrs[key]
+        return v.decode() if isinstance(v, bytes) else str(v)
+
+    return MapMetadata(
+        model_id=s("model_id"),
+        weights_sha256=s("weights_sha256"),
+        radar_preset=s("radar_preset"),
+        cartesian_width_px=int(attrs["cartesian_width_px"]),
+        cartesian_resolution_m=float(attrs["cartesian_resolution_m"]),
+        descriptor_dim=int(attrs["descriptor_dim"]),
+        local_descriptor_dim=int(attrs["local_descriptor_dim"]),
+        num_keyframes=int(attrs["num_keyframes"]),
+        created_utc=s("created_utc"),
+        source=s("source"),
+        name=s("name"),
+        schema_version=version,
+    )
+
+
+def _open_h5(path: Path) -> h5py.File:
+    if not path.is_file():
+        raise MapFormatError(f"{path}: no such map file")
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:
+        raise MapFormatError(f"{path}: not a readable HDF5 map ({exc})") from exc
+
+
+def read_metadata(path: str | Path) -> MapMetadata:
+    """Read only the root attributes of the map at ``path`` (cheap; validates the schema version)."""
+    path = Path(path)
+    with _open_h5(path) as f:
+        return _read_metadata(f, path)
+
+
+class KeyframeMap:
+    """A map opened for reading.
+
+    Poses, timestamps and global descriptors are loaded into memory at open (they feed the FAISS index);
+    keypoints and local descriptors stay on disk and are read per keyframe by ``read_keyframe`` (only the
+    candidates of a query). Thread-safe: reads are serialised by a lock (h5py is not re-entrant).
+
+    Attributes:
+        path: the map file.
+        metadata: root attributes.
+        timestamps_us: (N,) int64.
+        poses: (N, 3) float64 ``T_map_keyframe`` (x m, y m, yaw rad).
+        global_descriptors: (N, D) float32.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._lock = threading.Lock()
+        self._file: h5py.File | None = _open_h5(self.path)
+        try:
+            self.metadata = _read_metadata(self._file, self.path)
+            self.timestamps_us, self.poses, self.global_descriptors = self._read_arrays(self._file)
+        except MapFormatError:
+            self.close()
+            raise
+        except (KeyError, OSError, ValueError, TypeError) as exc:
+            self.close()
+            raise MapFormatError(f"{self.path}: corrupt map ({exc})") from exc
+
+    def _read_arrays(self, f: h5py.File) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n = self.metadata.num_keyframes
+        d = self.metadata.descriptor_dim
+        for name in ("timestamps_us", "poses", "global_descriptors", "keyframes"):
+            if name not in f:
+                raise MapFormatError(f"{self.path}: map has no '/{name}'")
+        ts = np.asarray(f["timestamps_us"][()], dtype=np.int64)
+        poses_ds = f["poses"]
+        if poses_ds.dtype != np.float64:
+            raise MapFormatError(f"{self.path}: /poses must be float64, found {poses_ds.dtype}")
+        poses = np.asarray(poses_ds[()], dtype=np.float64)
+        g = np.asarray(f["global_descriptors"][()], dtype=np.float32)
+        if ts.shape != (n,) or poses.shape != (n, 3) or g.shape != (n, d):
+            raise MapFormatError(
+                f"{self.path}: inconsistent shapes: timestamps {ts.shape}, poses {poses.shape}, "
+                f"global descriptors {g.shape} for num_keyframes={n}, descriptor_dim={d}"
+            )
+        if not (np.all(np.isfinite(poses)) and np.all(np.isfinite(g))):
+            raise MapFormatError(f"{self.path}: poses or descriptors contain NaN/inf")
+        if len(f["keyframes"]) != n:
+            raise MapFormatError(f"{self.path}: {len(f['keyframes'])} keyframe groups for {n} keyframes")
+        return ts, poses, np.ascontiguousarray(g)
+
+    def __len__(self) -> int:
+        return self.metadata.num_keyframes
+
+    def read_keyframe(self, index: int) -> ScanFeatures:
+        """Features of keyframe ``index`` (keypoints in its sensor frame, metres; float16 descriptors).
+
+        Raises:
+            IndexError: ``index`` out of range.
+            MapFormatError: the keyframe group is damaged or the map was closed.
+        """
+        if not 0 <= index < len(self):
+            raise IndexError(f"keyframe {index} out of range [0, {len(self)})")
+        with self._lock:
+            if self._file is None:
+                raise MapFormatError(f"{self.path}: map is closed")
+            try:
+                grp = self._file[f"keyframes/{index:06d}"]
+                kps = np.asarray(grp["keypoints_xy_m"][()], dtype=np.float32)
+                desc = np.asarray(grp["local_descriptors"][()], dtype=np.float16)
+            except (KeyError, OSError, ValueError) as exc:
+                raise MapFormatError(f"{self.path}: keyframe {index} is damaged ({exc})") from exc
+        try:
+            return ScanFeatures(self.global_descriptors[index], kps, desc, int(self.timestamps_us[index]))
+        except ValueError as exc:
+            raise MapFormatError(f"{self.path}: keyframe {index}: {exc}") from exc
+
+    def close(self) -> None:
+        with self._lock:
+            if self._file is not None:
+                self._file.close()
+                self._file = None
+
+    def __enter__(self) -> KeyframeMap:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_map(path: str | Path, model_id: str | None = None, weights_sha256: str | None = None) -> KeyframeMap:
+    """Open the map at ``path``; if ``weights_sha256`` is given, refuse a map built by another model.
+
+    Raises:
+        MapFormatError: unreadable / wrong schema / inconsistent file.
+        ModelMismatchError: built with other weights.
+    """
+    kf_map = KeyframeMap(path)
+    if weights_sha256 is not None:
+        try:
+            check_model(kf_map.metadata, model_id or "?", weights_sha256, kf_map.path)
+        except ModelMismatchError:
+            kf_map.close()
+            raise
+    return kf_map
+
+
+class MapWriter:
+    """Streaming, atomic map writer.
+
+    Use as a context manager: ``add`` keyframes in batches, the file appears under ``path`` only when the
+    ``with`` block exits without an exception (temporary file + flush + fsync + rename); on error the
+    temporary file is deleted and any existing map at ``path`` is left untouched.
+    """
+
+    def __init__(self, path: str | Path, metadata: MapMetadata, overwrite: bool = False) -> None:
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            raise FileExistsError(f"{self.path}: map already exists (pass overwrite=True to replace it)")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.metadata = metadata
+        self._tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+        self._file: h5py.File | None = None
+        self._ts: list[int] = []
+        self._poses: list[np.ndarray] = []
+        self._glob: list[np.ndarray] = []
+        self._n = 0
+
+    def __enter__(self) -> MapWriter:
+        self._file = h5py.File(self._tmp, "w")
+        self._file.create_group("keyframes")
+        return self
+
+    def add(self, features: ScanFeatures, pose: np.ndarray, timestamp_us: int | None = None) -> int:
+        """Append one keyframe with its map pose ``T_map_keyframe`` (3,) (x m, y m, yaw rad); returns its id."""
+        if self._file is None:
+            raise RuntimeError("MapWriter.add outside its with-block")
+        pose = np.asarray(pose, dtype=np.float64).reshape(-1)
+        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+            raise ValueError(f"keyframe pose must be 3 finite values (x, y, yaw), got {pose}")
+        g = np.asarray(features.global_descriptor, dtype=np.float32)
+        if g.shape != (self.metadata.descriptor_dim,):
+            raise ValueError(f"global descriptor has shape {g.shape}, map expects ({self.metadata.descriptor_dim},)")
+        c = features.local_descriptors.shape[1]
+        if features.keypoints_xy_m.shape[0] and c != self.metadata.local_descriptor_dim:
+            raise ValueError(f"local descriptors have {c} channels, map expects {self.metadata.local_descriptor_dim}")
+        grp = self._file["keyframes"].create_group(f"{self._n:06d}")
+        grp.create_dataset("keypoints_xy_m", data=features.keypoints_xy_m.astype(np.float32))
+        local = features.local_descriptors.astype(np.float16)
+        if local.shape[0] == 0:
+            local = np.zeros((0, self.metadata.local_descriptor_dim), np.float16)
+        grp.create_dataset("local_descriptors", data=local)
+        self._ts.append(int(features.timestamp_us if timestamp_us is None else timestamp_us))
+        self._poses.append(pose)
+        self._glob.append(g)
+        self._n += 1
+        return self._n - 1
+
+    def __len__(self) -> int:
+        return self._n
+
+    def _finalize(self) -> None:
+        assert self._file is not None
+        f = self._file
+        d = self.metadata.descriptor_dim
+        f.create_dataset("timestamps_us", data=np.asarray(self._ts, dtype=np.int64).reshape(self._n))
+        f.create_dataset("poses", data=np.asarray(self._poses, dtype=np.float64).reshape(self._n, 3))
+        f.create_dataset("global_descriptors", data=np.asarray(self._glob, dtype=np.float32).reshape(self._n, d))
+        meta = self.metadata.to_dict()
+        meta["num_keyframes"] = self._n
+        meta["schema_version"] = SCHEMA_VERSION
+        if not meta["created_utc"]:
+            meta["created_utc"] = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+        for key in _ATTR_FIELDS:
+            f.attrs[key] = meta[key]
+        f.flush()
+        f.close()
+        self._file = None
+        with open(self._tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(self._tmp, self.path)
+        try:  # make the rename itself durable
+            dir_fd = os.open(self.path.parent, os.O_RDONLY)
+            try:
+                os.fsync(dir_fd)
+            finally:
+                os.close(dir_fd)
+        except OSError:  # pragma: no cover - some filesystems refuse directory fsync
+            pass
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        if exc_type is None:
+            try:
+                self._finalize()
+                return
+            except BaseException:
+                self._abort()
+                raise
+        self._abort()
+
+    def _abort(self) -> None:
+        if self._file is not None:
+            try:
+                self._file.close()
+            except Exception:  # noqa: BLE001 - best effort while already failing
+                logger.debug("closing temporary map %s failed", self._tmp)
+            self._file = None
+        self._tmp.unlink(missing_ok=True)
+
+
+def write_map(path: str | Path, metadata: MapMetadata, features: list[ScanFeatures], poses: np.ndarray,
+              overwrite: bool = False) -> Path:
+    """Write a whole map at once (atomic). ``poses`` (N, 3) float64 ``T_map_keyframe``. Returns ``path``."""
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    if len(features) != poses.shape[0]:
+        raise ValueError(f"{len(features)} keyframes but {poses.shape[0]} poses")
+    with MapWriter(path, metadata, overwrite=overwrite) as w:
+        for feat, pose in zip(features, poses, strict=True):
+            w.add(feat, pose)
+    return Path(path)

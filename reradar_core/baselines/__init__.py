@@ -1,0 +1,74 @@
+"""Published radar place-recognition baselines behind one interface (``PlaceRecognitionMethod``).
+
+``make_method(name)`` builds one by name: ``ringkey``, ``raplace``, ``radvlad``, ``resnet18-netvlad``,
+``referee``, and ReRadar itself as ``ours`` / ``ours-<model>`` for every name in
+``reradar_core.model.available_models()``.
+"""
+
+from __future__ import annotations
+
+from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared, Retrieval
+from reradar_core.errors import ConfigError
+
+__all__ = ["PlaceRecognitionMethod", "Prepared", "Retrieval", "BASELINES", "make_method", "ours_model_names",
+           "default_method_names"]
+
+#: Baseline method names, in the paper's table order.
+BASELINES = ("raplace", "radvlad", "resnet18-netvlad", "referee", "ringkey")
+
+
+def ours_model_names() -> list[str]:
+    """Names of the shipped ReRadar models (``reradar_core.model.available_models()``; empty if none)."""
+    try:
+        from reradar_core.model import available_models
+    except ImportError:
+        return []
+    return [str(m) for m in available_models()]
+
+
+def default_method_names() -> list[str]:
+    """Every baseline plus ReRadar with every shipped model (named by the model, e.g. ``our-3-boreas``)."""
+    return list(BASELINES) + ours_model_names()
+
+
+def make_method(name: str) -> PlaceRecognitionMethod:
+    """Build a method by name (see the module docstring).
+
+    ``ours`` is ReRadar with the default model; a shipped model's name (``our-3-boreas``) or
+    ``ours-<model>`` selects another.
+
+    Raises:
+        ConfigError: unknown name; the message lists the valid ones.
+    """
+    key = name.strip().lower()
+    if key == "ringkey":
+        from reradar_core.baselines.ringkey import RingKey
+
+        return RingKey()
+    if key == "raplace":
+        from reradar_core.baselines.raplace import RaPlace
+
+        return RaPlace()
+    if key == "radvlad":
+        from reradar_core.baselines.radvlad import RadVLAD
+
+        return RadVLAD()
+    if key in ("resnet18-netvlad", "resnet18_netvlad", "netvlad"):
+        from reradar_core.baselines.resnet_netvlad import ResNetNetVLAD
+
+        return ResNetNetVLAD()
+    if key == "referee":
+        from reradar_core.baselines.referee import ReFeree
+
+        return ReFeree()
+    known = ours_model_names()
+    if key == "ours" or key in known or key.startswith("ours-"):
+        from reradar_core.baselines.ours import Ours
+
+        if key == "ours":
+            return Ours("default", name="ours")
+        model = name.strip()[len("ours-"):] if key.startswith("ours-") and key not in known else name.strip()
+        if model not in known:
+            raise ConfigError(f"unknown ReRadar model {model!r}; shipped models: {known or 'none'}")
+        return Ours(model, name=model)
+    raise ConfigError(f"unknown method {name!r}; choose from {default_method_names()} or 'ours'")

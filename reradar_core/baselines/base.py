@@ -1,0 +1,133 @@
+"""The interface every place-recognition method implements, so the benchmark treats them all the same.
+
+A method turns a scan into a *prepared* record (a dict of numpy arrays that depends only on the scan and the
+method's fixed parameters, so the benchmark can cache it on disk), learns whatever it needs from the
+reference (database) run in ``fit`` (VLAD vocabularies, NetVLAD centres; a no-op for most), turns prepared
+records into global descriptors, and ranks a database by ``distance`` (lower = more similar).
+
+Methods that also estimate the query's heading relative to the retrieved keyframe (ReFeree, RaPlace) override
+``estimate_heading``; ours overrides ``localize`` to return a full 3-DoF pose.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from reradar_core.io.scan import RadarScan
+
+__all__ = ["Prepared", "PlaceRecognitionMethod", "Retrieval", "params_hash"]
+
+#: Scan-dependent, database-independent intermediate record: what the feature cache stores.
+Prepared = dict[str, np.ndarray]
+
+
+def params_hash(params: dict[str, Any], length: int = 10) -> str:
+    """Short stable hash of a JSON-serialisable parameter dict (cache keys)."""
+    blob = json.dumps(params, sort_keys=True, default=str).encode()
+    return hashlib.sha256(blob).hexdigest()[:length]
+
+
+@dataclass
+class Retrieval:
+    """Answer of one method for one query.
+
+    Attributes:
+        index: database index of the best candidate (after any re-ranking).
+        distance: descriptor distance of that candidate (lower = more confident; drives PR curves / F1max).
+        heading_rad: estimated yaw of the query relative to the candidate (yaw of ``T_candidate_query``),
+            radians counter-clockwise, or None when the method gives no heading.
+        pose: estimated map-frame pose ``T_map_query`` (x [m], y [m], yaw [rad]), or None.
+    """
+
+    index: int
+    distance: float
+    heading_rad: float | None = None
+    pose: np.ndarray | None = None
+
+
+class PlaceRecognitionMethod(ABC):
+    """Base class: ``prepare`` -> ``fit`` (database) -> ``describe_prepared`` -> ``build_index`` / ``distance``.
+
+    Subclasses set ``name`` and implement ``prepare``, ``describe_prepared`` and ``distance``.
+    ``provides_heading`` / ``provides_pose`` tell the benchmark which success rule applies (paper,
+    Sec. Evaluation Metrics): full pose -> translation and rotation errors; heading only -> correct retrieval
+    and rotation error below 10 degrees; neither -> SR not applicable.
+    """
+
+    name: str = "method"
+    provides_heading: bool = False
+    provides_pose: bool = False
+    #: True when ``fit`` uses the database (descriptors then depend on the reference run).
+    needs_fit: bool = False
+
+    # ------------------------------------------------------------------ identity
+    def params(self) -> dict[str, Any]:
+        """The parameters that change the prepared records (part of the cache key)."""
+        return {}
+
+    @property
+    def cache_key(self) -> str:
+        """Folder-safe key of this method + parameters for the feature cache."""
+        return f"{self.name}-{params_hash(self.params())}"
+
+    # ------------------------------------------------------------------ pipeline
+    @abstractmethod
+    def prepare(self, scan: RadarScan) -> Prepared:
+        """Scan -> database-independent record (cached by the benchmark)."""
+
+    def fit(self, database: Sequence[Prepared]) -> None:  # noqa: B027 - optional hook, no-op by default
+        """Learn from the reference run's prepared records (vocabulary, centres). No-op by default."""
+
+    @abstractmethod
+    def describe_prepared(self, prepared: Prepared) -> np.ndarray:
+        """Prepared record -> global descriptor (any shape; compared only by this method's ``distance``)."""
+
+    def describe(self, scan: RadarScan) -> np.ndarray:
+        """Scan -> global descriptor (``prepare`` then ``describe_prepared``)."""
+        return self.describe_prepared(self.prepare(scan))
+
+    def build_index(self, db_descs: Sequence[np.ndarray]) -> Any:
+        """Database descriptors -> whatever ``distance`` searches (default: a stacked array)."""
+        return np.stack([np.asarray(d) for d in db_descs])
+
+    @abstractmethod
+    def distance(self, q_desc: np.ndarray, index: Any) -> np.ndarray:
+        """(N,) float64 distances from one query descriptor to every database entry (lower = closer)."""
+
+    def estimate_heading(self, q_desc: np.ndarray, index: Any, j: int) -> float | None:
+        """Yaw [rad, CCW] of the query relative to database entry ``j``, or None if not supported."""
+        return None
+
+    def localize(self, q_prepared: Prepared, q_desc: np.ndarray, index: Any,
+                 db_prepared: Sequence[Prepared], db_poses: np.ndarray) -> Retrieval:
+        """Top-1 retrieval (+ heading where available). Ours overrides this with pose verification.
+
+        Args:
+            q_prepared: the query's prepared record.
+            q_desc: the query's global descriptor.
+            index: ``build_index`` of the database descriptors.
+            db_prepared: the database's prepared records (for methods that verify geometrically).
+            db_poses: (N, 3) map-frame database poses ``T_map_keyframe``.
+        """
+        d = self.distance(q_desc, index)
+        j = int(np.argmin(d))
+        return Retrieval(j, float(d[j]), self.estimate_heading(q_desc, index, j), None)
+
+
+def polar_resize(power: np.ndarray, num_azimuths: int, num_range: int) -> np.ndarray:
+    """Resize an (A, R) polar image to (num_azimuths, num_range) float32 with area averaging."""
+    import cv2
+
+    p = np.ascontiguousarray(power, dtype=np.float32)
+    interp = cv2.INTER_AREA if (num_range <= p.shape[1] and num_azimuths <= p.shape[0]) else cv2.INTER_LINEAR
+    return cv2.resize(p, (num_range, num_azimuths), interpolation=interp)
+
+
+__all__ += ["polar_resize"]

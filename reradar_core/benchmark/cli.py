@@ -1,0 +1,108 @@
+"""``reradar bench``: every method on the same database / query sequences -> results.json, results.md, plots.
+
+Two ways to name the data:
+  reradar bench --suite boreas-sim --out DIR                       (simulated suites, rendered and cached)
+  reradar bench --database DIR --query DIR [--query DIR ...] --preset boreas [--radius 20] --out DIR
+                                                                  (real recordings in their own layouts)
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import typer
+
+from reradar_core.errors import ReRadarError
+
+__all__ = ["register", "bench"]
+
+logger = logging.getLogger(__name__)
+
+
+def _split(values: list[str] | None) -> list[str]:
+    out: list[str] = []
+    for v in values or []:
+        out += [s.strip() for s in v.split(",") if s.strip()]
+    return out
+
+
+def bench(
+    suite: str | None = typer.Option(None, "--suite", help="Simulated suite: smoke, boreas-sim, loop-sim, "
+                                     "offroad-sim (rendered on first use, cached)."),
+    database: Path | None = typer.Option(None, "--database", help="Reference (map) sequence folder."),
+    query: list[Path] | None = typer.Option(None, "--query", help="Query sequence folder (repeatable)."),
+    preset: str | None = typer.Option(None, "--preset", help="Radar preset: boreas, boreas-2021, oxford, "
+                                      "oord, mulran (real data)."),
+    layout: str | None = typer.Option(None, "--layout", help="Dataset layout (boreas/oxford/mulran); "
+                                      "detected when omitted."),
+    methods: list[str] | None = typer.Option(None, "--methods", "-m", help="Comma-separated methods "
+                                             "(default: all baselines and every shipped ReRadar model)."),
+    out: Path | None = typer.Option(None, "--out", help="Output folder (default: cache/bench/<suite>)."),
+    radius: float | None = typer.Option(None, "--radius", help="Correct-retrieval radius, metres (default: "
+                                        "the suite's, or 25 OORD/Oxford, 20 MulRan/Boreas)."),
+    every: int | None = typer.Option(None, "--every", help="Use every N-th scan (default: suite's, else 5)."),
+    limit: int | None = typer.Option(None, "--limit", help="At most this many scans per sequence after "
+                                     "subsampling."),
+    rotation: bool = typer.Option(True, "--rotation/--no-rotation", help="Run the rotation stress test."),
+    timing: bool = typer.Option(True, "--timing/--no-timing", help="Measure ReRadar's stage timings."),
+    timing_scans: int = typer.Option(20, "--timing-scans", help="Query scans for the stage timings."),
+    yaw_curve: bool = typer.Option(True, "--yaw-curve/--no-yaw-curve", help="Yaw-consistency curve of F'."),
+    plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG figures."),
+    cache: bool = typer.Option(True, "--cache/--no-cache", help="Use the on-disk feature cache."),
+    threads: int = typer.Option(1, "--threads", help="Torch / BLAS threads (the machine is shared)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the rotation-stress heading offsets."),
+) -> None:
+    """Benchmark ReRadar against RingKey, RaPlace, RadVLAD, ResNet18-NetVLAD and ReFeree."""
+    import torch
+
+    from reradar_core.baselines import default_method_names, make_method
+    from reradar_core.benchmark.extras import add_timing, add_yaw_consistency
+    from reradar_core.benchmark.plots import make_all_plots
+    from reradar_core.benchmark.results import results_markdown, write_results
+    from reradar_core.benchmark.runner import BenchConfig, run_benchmark
+    from reradar_core.benchmark.suites import pairs_from_folders, pairs_from_suite
+    from reradar_core.paths import cache_dir
+
+    torch.set_num_threads(max(1, threads))
+    try:
+        if (suite is None) == (database is None):
+            raise typer.BadParameter("give either --suite NAME or --database DIR with --query DIR")
+        if suite is not None:
+            pairs, default_radius = pairs_from_suite(suite, every=every, limit=limit)
+            label = suite
+        else:
+            if not query:
+                raise typer.BadParameter("--database needs at least one --query DIR")
+            pairs, default_radius = pairs_from_folders(database, list(query), preset=preset, layout=layout,
+                                                       every=every or 5, limit=limit)
+            label = f"{database.name}"
+        names = _split(methods) or default_method_names()
+        method_objs = [make_method(n) for n in names]
+        out_dir = out or cache_dir("bench", label)
+        cfg = BenchConfig(radius_m=radius or default_radius, rotation_stress=rotation, rotation_seed=seed,
+                          use_cache=cache)
+        typer.echo(f"bench {label}: {len(pairs)} query sequence(s), methods {names}, radius {cfg.radius_m} m")
+        results = run_benchmark(pairs, method_objs, out_dir, cfg, suite=label)
+        results["settings"]["threads"] = threads
+        ours = [m for m in method_objs if m.provides_pose]
+        if timing and ours:
+            add_timing(results, ours[0], pairs[0], cfg, timing_scans, threads)
+        if yaw_curve and ours and plots:
+            add_yaw_consistency(results, ours, pairs[0], out_dir)
+        jpath, mpath = write_results(results, out_dir)
+        figs = make_all_plots(results, out_dir) if plots else []
+        # rewrite with the figure list (results.json is the single source for the docs)
+        results["figures"] = [str(p.name) for p in figs] + results.get("figures", [])
+        jpath.write_text(json.dumps(results, indent=2) + "\n")
+    except ReRadarError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    typer.echo(results_markdown(results))
+    typer.echo(f"wrote {jpath}, {mpath}" + (f" and {len(figs)} figures" if figs else ""))
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``reradar bench`` to the CLI."""
+    app.command("bench")(bench)

@@ -1,0 +1,86 @@
+"""Benchmark results on disk: ``results.json`` and ``results.md`` (tables laid out like the paper's)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+__all__ = ["write_results", "results_markdown", "METRIC_COLUMNS"]
+
+#: (key in results.json, column header, format) of the paper's per-sequence columns.
+METRIC_COLUMNS = (("recall@1", "Recall@1 (%)", "{:.2f}"), ("f1max", "F1max (%)", "{:.2f}"),
+                  ("sr", "SR (%)", "{:.2f}"), ("e_r_deg", "ê_r (°)", "{:.2f}"), ("e_t_m", "ê_t (m)", "{:.2f}"))
+
+
+def _fmt(v: Any, fmt: str) -> str:
+    return "–" if v is None else fmt.format(v)
+
+
+def _best(rows: dict[str, dict[str, Any]], key: str) -> set[str]:
+    vals = {m: r.get(key) for m, r in rows.items() if r.get(key) is not None}
+    if not vals:
+        return set()
+    target = max(vals.values()) if key in ("recall@1", "f1max", "sr") else min(vals.values())
+    return {m for m, v in vals.items() if abs(v - target) < 1e-9}
+
+
+def results_markdown(results: dict[str, Any]) -> str:
+    """Markdown: one table per sequence (methods as rows; Recall@1, F1max, SR, ê_r, ê_t, n, ms/query),
+    best values in bold, then the rotation-stress and stage-timing tables when present."""
+    lines = [f"# `reradar bench` results — suite `{results.get('suite')}`", ""]
+    radius = results.get("settings", {}).get("radius_m")
+    lines.append(f"Correct retrieval within {radius} m; SR: translation < {radius} m and rotation < 10° "
+                 "(ReFeree, RaPlace: correct retrieval and rotation < 10°); ê_r, ê_t over successes; "
+                 "– = not applicable.")
+    lines.append("")
+    for seq, rows in results.get("sequences", {}).items():
+        pair = results.get("settings", {}).get("pairs", {}).get(seq, {})
+        lines.append(f"### {seq}" + (f" (database `{pair['database']}`: {pair['n_database']} scans, "
+                                     f"{pair['n_query']} queries)" if pair else ""))
+        lines.append("")
+        head = "| Method | " + " | ".join(h for _, h, _ in METRIC_COLUMNS) + " | ms/query |"
+        lines += [head, "|" + "---|" * (len(METRIC_COLUMNS) + 2)]
+        best = {k: _best(rows, k) for k, _, _ in METRIC_COLUMNS}
+        for m, r in rows.items():
+            cells = []
+            for k, _, fmt in METRIC_COLUMNS:
+                s = _fmt(r.get(k), fmt)
+                cells.append(f"**{s}**" if m in best[k] and s != "–" else s)
+            cells.append(_fmt(r.get("ms_per_query"), "{:.1f}"))
+            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        lines.append("")
+    stress = results.get("rotation_stress")
+    if stress:
+        lines += ["### Rotation stress (random heading offset added to every query scan)", ""]
+        seqs = list(stress)
+        lines.append("| Method | " + " | ".join(f"{s}: R@1 → rotated (drop)" for s in seqs) + " |")
+        lines.append("|" + "---|" * (len(seqs) + 1))
+        methods = list(next(iter(stress.values())).keys())
+        for m in methods:
+            cells = []
+            for s in seqs:
+                r = stress[s].get(m)
+                cells.append("–" if r is None else
+                             f"{r['recall@1']:.2f} → {r['recall@1_rotated']:.2f} ({r['drop']:+.2f})")
+            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        lines.append("")
+    timing = results.get("timing")
+    if timing:
+        lines += [f"### Stage timings ({timing.get('model')}, {timing.get('n_scans')} scans, "
+                  f"{timing.get('threads')} thread(s), database {timing.get('n_database')} keyframes)", "",
+                  "| Stage | mean ms | median ms |", "|---|---|---|"]
+        for stage, v in timing["stages_ms"].items():
+            lines.append(f"| {stage} | {v['mean']:.2f} | {v['median']:.2f} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def write_results(results: dict[str, Any], out_dir: Path) -> tuple[Path, Path]:
+    """Write ``out_dir/results.json`` and ``out_dir/results.md``; returns both paths."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    jpath, mpath = out_dir / "results.json", out_dir / "results.md"
+    jpath.write_text(json.dumps(results, indent=2, sort_keys=False) + "\n")
+    mpath.write_text(results_markdown(results) + "\n")
+    return jpath, mpath

@@ -1,0 +1,229 @@
+"""The benchmark runner: every method on the same database / query sequences, paper metrics, JSON + per-query
+arrays for the report and the plots.
+
+Stages (each a plain function): ``prepare_sequence`` (prepared records, cached on disk, each scan read once
+for all methods) -> ``evaluate_method`` (fit on the database, describe, retrieve / localize every query) ->
+``metrics.summarise``. ``run_benchmark`` wires them for a list of (database, query) pairs and also runs the
+rotation stress test (the same queries turned by a random heading each).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence as Seq
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared
+from reradar_core.benchmark.cache import FeatureCache, sequence_key
+from reradar_core.benchmark.metrics import QueryOutcome, make_outcome, summarise
+from reradar_core.benchmark.rotation import heading_offsets, rotate_pose, rotate_scan
+from reradar_core.geometry.se2 import compose
+from reradar_core.io.datasets import Sequence
+
+__all__ = ["BenchPair", "BenchConfig", "PreparedSet", "prepare_sequence", "evaluate_method", "run_benchmark",
+           "sr_rule"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class BenchPair:
+    """One evaluation: a query sequence against a database (reference) sequence.
+
+    Attributes:
+        name: label of the pair in the results (the query sequence's name by default).
+        database: the reference run (already subsampled, e.g. every 5th scan).
+        query: the query run (already subsampled).
+    """
+
+    name: str
+    database: Sequence
+    query: Sequence
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """Benchmark settings.
+
+    Attributes:
+        radius_m: a retrieval is correct within this distance (paper: 25 m OORD, 20 m MulRan / Boreas).
+        rotation_stress: also run every query with a random heading offset (seeded) and report the drop.
+        rotation_seed: seed of the heading offsets.
+        use_cache: read / write the on-disk feature cache.
+        cache_root: feature cache folder (default ``cache_dir("bench", "features")``).
+        progress: tqdm progress bars.
+    """
+
+    radius_m: float = 20.0
+    rotation_stress: bool = True
+    rotation_seed: int = 0
+    use_cache: bool = True
+    cache_root: Path | None = None
+    progress: bool = True
+
+
+@dataclass
+class PreparedSet:
+    """Prepared records of one method on one sequence (+ how long each took to compute, ms)."""
+
+    records: list[Prepared]
+    compute_ms: np.ndarray
+
+
+@dataclass
+class MethodRun:
+    """What ``evaluate_method`` returns: the outcome arrays, the summary and timings."""
+
+    outcome: QueryOutcome
+    summary: dict[str, Any]
+    search_ms: float
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def sr_rule(method: PlaceRecognitionMethod) -> str:
+    """Success rule of the paper: full pose -> ``pose``; heading only -> ``heading``; else ``none``."""
+    if method.provides_pose:
+        return "pose"
+    return "heading" if method.provides_heading else "none"
+
+
+def prepare_sequence(methods: Seq[PlaceRecognitionMethod], seq: Sequence, config: BenchConfig,
+                     yaw_offsets: np.ndarray | None = None, variant: str = "") -> dict[str, PreparedSet]:
+    """Prepared records of every method for every scan of ``seq`` (cached; each scan read at most once).
+
+    Args:
+        yaw_offsets: optional (N,) heading offsets [rad]; scan i is turned by ``yaw_offsets[i]`` first
+            (``rotate_scan``) and cached under ``<stem>@<variant>``.
+    """
+    skey = sequence_key(seq.name, seq.root)
+    caches = {m.name: FeatureCache(m.cache_key, skey, config.cache_root, config.use_cache) for m in methods}
+    out: dict[str, PreparedSet] = {m.name: PreparedSet([], np.zeros(len(seq))) for m in methods}
+    try:
+        desc = f"{seq.name}{' ' + variant if variant else ''}: features"
+        for i in tqdm(range(len(seq)), desc=desc, disable=not config.progress, leave=False):
+            path = Path(seq.scan_paths[i])
+            key = path.stem + (f"@{variant}" if variant else "")
+            scan = None
+            for m in methods:
+                hit = caches[m.name].get(key, path)
+                if hit is None:
+                    if scan is None:
+                        scan = seq.load_scan(i)
+                        if yaw_offsets is not None:
+                            scan = rotate_scan(scan, float(yaw_offsets[i]))
+                    t0 = time.perf_counter()
+                    rec = m.prepare(scan)
+                    ms = (time.perf_counter() - t0) * 1e3
+                    caches[m.name].put(key, rec, ms, path)
+                    hit = (rec, ms)
+                out[m.name].records.append(hit[0])
+                out[m.name].compute_ms[i] = hit[1]
+    finally:
+        for c in caches.values():
+            c.close()
+    return out
+
+
+def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: np.ndarray, query: PreparedSet,
+                    query_poses: np.ndarray, radius_m: float, fit: bool = True,
+                    progress: bool = False, label: str = "") -> MethodRun:
+    """Fit (optional) on the database, then answer every query; metrics per the paper's rules.
+
+    Args:
+        db_poses: (N, 3) database poses T_map_keyframe; query_poses: (Q, 3) ground-truth T_map_query.
+    """
+    if fit:
+        method.fit(db.records)
+    index = method.build_index([method.describe_prepared(r) for r in db.records])
+    q = len(query.records)
+    retrieved = np.zeros(q, np.int64)
+    dist = np.zeros(q)
+    est = np.full((q, 3), np.nan)
+    t_total = 0.0
+    for i in tqdm(range(q), desc=f"{label}{method.name}: queries", disable=not progress, leave=False):
+        t0 = time.perf_counter()
+        q_desc = method.describe_prepared(query.records[i])
+        r = method.localize(query.records[i], q_desc, index, db.records, db_poses)
+        t_total += time.perf_counter() - t0
+        retrieved[i], dist[i] = r.index, r.distance
+        if r.pose is not None:
+            est[i] = r.pose
+        elif r.heading_rad is not None:
+            # heading-only: the keyframe's position, the estimated yaw (only the yaw is scored)
+            est[i] = compose(db_poses[r.index], np.array([0.0, 0.0, r.heading_rad]))
+    rule = sr_rule(method)
+    outcome = make_outcome(retrieved, dist, est, query_poses, db_poses, radius_m, rule)
+    summary = summarise(outcome, query_poses, db_poses, radius_m, rule)
+    search_ms = 1e3 * t_total / max(q, 1)
+    summary["ms_per_query"] = float(np.nanmean(query.compute_ms) + search_ms) if q else None
+    return MethodRun(outcome, summary, search_ms)
+
+
+def _save_outcome(path: Path, run: MethodRun, query_xy: np.ndarray, db_xy: np.ndarray) -> None:
+    o = run.outcome
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, retrieved=o.retrieved, distance=o.distance, est_pose=o.est_pose,
+                        correct=o.correct, positive=o.positive, heading_err_deg=o.heading_err_deg,
+                        trans_err_m=o.trans_err_m, query_xy=query_xy, db_xy=db_xy)
+
+
+def run_benchmark(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod], out_dir: Path,
+                  config: BenchConfig = BenchConfig(), suite: str | None = None) -> dict[str, Any]:
+    """Run every method on every pair; write per-query arrays under ``out_dir/per_query`` and return the
+    results dict (``{"suite", "settings", "sequences": {SEQ: {METHOD: metrics}}, "rotation_stress"}``)."""
+    out_dir = Path(out_dir)
+    results: dict[str, Any] = {
+        "suite": suite,
+        "settings": {"radius_m": config.radius_m, "rotation_seed": config.rotation_seed,
+                     "methods": [m.name for m in methods],
+                     "method_params": {m.name: m.params() for m in methods},
+                     "pairs": {p.name: {"database": p.database.name, "query": p.query.name,
+                                        "n_database": len(p.database), "n_query": len(p.query)}
+                               for p in pairs}},
+        "sequences": {},
+        "rotation_stress": {} if config.rotation_stress else None,
+    }
+    db_cache: dict[str, dict[str, PreparedSet]] = {}
+    fitted_on: dict[str, str] = {}
+    for pair in pairs:
+        dkey = sequence_key(pair.database.name, pair.database.root) + f"-{len(pair.database)}"
+        if dkey not in db_cache:
+            db_cache[dkey] = prepare_sequence(methods, pair.database, config)
+        dbp = db_cache[dkey]
+        qp = prepare_sequence(methods, pair.query, config)
+        db_poses = pair.database.poses.poses
+        q_poses = pair.query.poses.poses
+        seq_res: dict[str, Any] = {}
+        runs: dict[str, MethodRun] = {}
+        for m in methods:
+            need_fit = fitted_on.get(m.name) != dkey
+            run = evaluate_method(m, dbp[m.name], db_poses, qp[m.name], q_poses, config.radius_m,
+                                  fit=need_fit, progress=config.progress, label=f"{pair.name} ")
+            fitted_on[m.name] = dkey
+            runs[m.name] = run
+            seq_res[m.name] = run.summary
+            _save_outcome(out_dir / "per_query" / pair.name / f"{m.name}.npz", run, q_poses[:, :2],
+                          db_poses[:, :2])
+            logger.info("%s %s: Recall@1 %.2f%%", pair.name, m.name, run.summary["recall@1"])
+        results["sequences"][pair.name] = seq_res
+        if config.rotation_stress:
+            yaw = heading_offsets(len(pair.query), config.rotation_seed, pair.query.preset.num_azimuths)
+            rq = prepare_sequence(methods, pair.query, config, yaw_offsets=yaw,
+                                  variant=f"rot{config.rotation_seed}")
+            rq_poses = rotate_pose(q_poses, yaw)
+            stress: dict[str, Any] = {}
+            for m in methods:
+                run = evaluate_method(m, dbp[m.name], db_poses, rq[m.name], rq_poses, config.radius_m,
+                                      fit=False, progress=config.progress, label=f"{pair.name} rotated ")
+                base = runs[m.name].summary
+                stress[m.name] = {"recall@1": base["recall@1"], "recall@1_rotated": run.summary["recall@1"],
+                                  "drop": base["recall@1"] - run.summary["recall@1"],
+                                  "sr": base["sr"], "sr_rotated": run.summary["sr"]}
+            results["rotation_stress"][pair.name] = stress
+    return results

@@ -1,0 +1,346 @@
+"""Radar sequences on disk in the real dataset layouts: one reader (``load_sequence``) and matching writers.
+
+Layouts (``<seq>`` is the sequence folder):
+
+==========  ==========================================  =================================================
+layout      scans                                       poses
+==========  ==========================================  =================================================
+``boreas``  ``<seq>/radar/<t_us>.png``                  ``<seq>/applanix/radar_poses.csv`` (absolute,
+                                                        GPSTime in ns or us; interpolated at each scan)
+``oxford``  ``<seq>/radar/<t_us>.png``                  ``<seq>/gt/radar_odometry.csv`` (or
+                                                        ``<seq>/radar_odometry.csv``): relative odometry,
+                                                        integrated from the first scan (identity pose)
+``mulran``  ``<seq>/sensor_data/radar/polar/<t_ns>.png``  ``<seq>/global_pose.csv`` (absolute, t in ns,
+                                                        3x4 [R|t]; interpolated at each scan)
+==========  ==========================================  =================================================
+
+File names are the scan timestamp = the first azimuth's time (microseconds; nanoseconds for MulRan).
+
+Oxford odometry: each row ``source_timestamp,destination_timestamp,x,y,z,roll,pitch,yaw,
+source_radar_timestamp,destination_radar_timestamp`` is the pose of the source scan in the destination
+scan's frame, T_dst_src, in the Oxford RobotCar vehicle frame (x forward, y right, z down, yaw clockwise).
+We convert to this project's frame (x forward, y left, yaw counter-clockwise; docs/CONVENTIONS.md) by
+negating y and yaw. Integrated Oxford poses are relative to the first scan of the odometry chain, not a map
+frame.
+
+Simulated sequences also carry ``<seq>/reradar_sim.json`` (preset name and provenance); real readers ignore it
+and ``load_sequence`` uses its preset when none is given.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from reradar_core.errors import DatasetError, PoseFileError
+from reradar_core.geometry.se2 import compose, inverse
+from reradar_core.io.poses import (
+    PoseSequence,
+    read_boreas_radar_poses,
+    read_mulran_global_pose,
+    write_boreas_radar_poses,
+    write_mulran_global_pose,
+)
+from reradar_core.io.presets import RadarPreset, get_preset
+from reradar_core.io.scan import RadarScan, read_navtech_png, write_navtech_png
+
+__all__ = [
+    "LAYOUTS",
+    "Sequence",
+    "detect_layout",
+    "load_sequence",
+    "scan_path",
+    "write_sequence_poses",
+    "write_sequence_scan",
+    "write_sequence_meta",
+    "read_sequence_meta",
+    "read_oxford_odometry",
+    "write_oxford_odometry",
+    "SIM_META_FILE",
+]
+
+logger = logging.getLogger(__name__)
+
+LAYOUTS = ("boreas", "oxford", "mulran")
+SIM_META_FILE = "reradar_sim.json"
+_DEFAULT_PRESET = {"boreas": "boreas", "oxford": "oxford", "mulran": "mulran"}
+OXFORD_ODOMETRY_COLUMNS = (
+    "source_timestamp,destination_timestamp,x,y,z,roll,pitch,yaw,source_radar_timestamp,"
+    "destination_radar_timestamp"
+).split(",")
+
+
+@dataclass
+class Sequence:
+    """One radar traversal on disk.
+
+    Attributes:
+        name: sequence name (the folder name).
+        preset: radar preset (range resolution, bins) used to read the scans.
+        layout: ``boreas``, ``oxford`` or ``mulran``.
+        scan_paths: scan PNG files sorted by timestamp.
+        timestamps_us: (N,) int64 scan timestamps (first azimuth), microseconds.
+        poses: one pose per scan, T_world_sensor (x, y, yaw) at the scan timestamp, metres / radians.
+        root: the sequence folder.
+    """
+
+    name: str
+    preset: RadarPreset
+    layout: str
+    scan_paths: list[Path]
+    timestamps_us: np.ndarray
+    poses: PoseSequence
+    root: Path = field(default_factory=Path)
+
+    def __len__(self) -> int:
+        return len(self.scan_paths)
+
+    def load_scan(self, i: int) -> RadarScan:
+        """Read scan ``i`` (Navtech PNG) with this sequence's preset."""
+        return read_navtech_png(self.scan_paths[i], self.preset)
+
+    def subset(self, index: np.ndarray | slice | list[int]) -> Sequence:
+        """A sequence holding only the scans at ``index`` (e.g. ``slice(None, None, 5)`` for every 5th)."""
+        idx = np.arange(len(self))[index] if not isinstance(index, np.ndarray) else index
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+        return Sequence(self.name, self.preset, self.layout, [self.scan_paths[i] for i in idx],
+                        self.timestamps_us[idx], self.poses.subset(idx), self.root)
+
+
+def _scan_dir(root: Path, layout: str) -> Path:
+    return root / "sensor_data" / "radar" / "polar" if layout == "mulran" else root / "radar"
+
+
+def detect_layout(path: str | Path) -> str:
+    """Guess the layout of sequence folder ``path`` from its structure.
+
+    Raises:
+        DatasetError: the folder does not exist or matches none of the layouts.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: sequence folder does not exist")
+    if (root / "sensor_data" / "radar" / "polar").is_dir():
+        return "mulran"
+    if (root / "radar").is_dir():
+        if (root / "applanix" / "radar_poses.csv").is_file():
+            return "boreas"
+        if (root / "gt" / "radar_odometry.csv").is_file() or (root / "radar_odometry.csv").is_file():
+            return "oxford"
+        raise DatasetError(
+            f"{root}: has radar/ but no poses: expected applanix/radar_poses.csv (Boreas) or "
+            "gt/radar_odometry.csv (Oxford)"
+        )
+    raise DatasetError(
+        f"{root}: not a radar sequence: expected radar/*.png (Boreas/Oxford) or sensor_data/radar/polar/*.png "
+        "(MulRan)"
+    )
+
+
+def scan_path(root: str | Path, layout: str, timestamp_us: int) -> Path:
+    """Where the scan with first-azimuth time ``timestamp_us`` lives in ``layout`` under ``root``."""
+    root = Path(root)
+    if layout == "mulran":
+        return _scan_dir(root, layout) / f"{int(timestamp_us) * 1000}.png"
+    if layout in ("boreas", "oxford"):
+        return _scan_dir(root, layout) / f"{int(timestamp_us)}.png"
+    raise DatasetError(f"unknown dataset layout {layout!r}; choose one of {LAYOUTS}")
+
+
+def _list_scans(root: Path, layout: str) -> tuple[list[Path], np.ndarray]:
+    folder = _scan_dir(root, layout)
+    paths = []
+    stamps = []
+    for p in folder.glob("*.png"):
+        try:
+            t = int(p.stem)
+        except ValueError:
+            logger.warning("%s: skipping file whose name is not a timestamp", p)
+            continue
+        paths.append(p)
+        stamps.append(t // 1000 if layout == "mulran" else t)
+    if not paths:
+        raise DatasetError(f"{folder}: no scan PNGs named <timestamp>.png")
+    order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
+    return [paths[i] for i in order], np.asarray(stamps, dtype=np.int64)[order]
+
+
+def read_oxford_odometry(path: str | Path) -> PoseSequence:
+    """Integrate an Oxford ``radar_odometry.csv`` into poses T_first_scan (x, y, yaw) per radar timestamp.
+
+    Rows give T_dst_src in the Oxford frame (x forward, y right, yaw clockwise); they are converted to this
+    project's frame (y left, yaw counter-clockwise). The first destination scan of the chain is the origin.
+
+    Raises:
+        PoseFileError: missing file, missing columns, non-numeric values, or a chain with gaps.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise PoseFileError(f"{path}: no such odometry file")
+    with path.open(newline="") as fh:
+        reader = csv.reader(fh)
+        header = [c.strip() for c in next(reader, [])]
+        idx = {n: i for i, n in enumerate(header)}
+        need = ("x", "y", "yaw", "source_radar_timestamp", "destination_radar_timestamp")
+        missing = [n for n in need if n not in idx]
+        if missing:
+            raise PoseFileError(f"{path}:1: header lacks columns {missing} (expected {OXFORD_ODOMETRY_COLUMNS})")
+        src, dst, rel = [], [], []
+        for lineno, row in enumerate(reader, start=2):
+            if not row or all(not c.strip() for c in row):
+                continue
+            try:
+                src.append(int(row[idx["source_radar_timestamp"]]))
+                dst.append(int(row[idx["destination_radar_timestamp"]]))
+                rel.append((float(row[idx["x"]]), -float(row[idx["y"]]), -float(row[idx["yaw"]])))
+            except (ValueError, IndexError):
+                raise PoseFileError(f"{path}:{lineno}: malformed odometry row {row}") from None
+    if not src:
+        raise PoseFileError(f"{path}: no odometry rows")
+    rel_arr = np.asarray(rel, dtype=np.float64)
+    poses: dict[int, np.ndarray] = {dst[0]: np.zeros(3)}
+    pending = list(range(len(src)))
+    # Rows are normally a forward chain (row i's source = row i+1's destination); loop until no progress so
+    # out-of-order rows still integrate, and report a broken chain instead of guessing.
+    while pending:
+        left = []
+        for i in pending:
+            if dst[i] in poses and src[i] not in poses:
+                poses[src[i]] = compose(poses[dst[i]], rel_arr[i])
+            elif src[i] in poses and dst[i] not in poses:
+                poses[dst[i]] = compose(poses[src[i]], inverse(rel_arr[i]))
+            elif src[i] not in poses and dst[i] not in poses:
+                left.append(i)
+        if len(left) == len(pending):
+            raise PoseFileError(f"{path}: odometry chain is broken near radar timestamp {src[left[0]]}")
+        pending = left
+    t = np.asarray(sorted(poses), dtype=np.int64)
+    p = np.stack([poses[int(k)] for k in t])
+    return PoseSequence(t, p[:, :2], p[:, 2])
+
+
+def write_oxford_odometry(poses: PoseSequence, path: str | Path) -> Path:
+    """Write poses T_world_sensor as an Oxford ``radar_odometry.csv`` chain (row i: scan i+1 in scan i)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    p = poses.poses
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(OXFORD_ODOMETRY_COLUMNS)
+        for i in range(len(poses) - 1):
+            rel = compose(inverse(p[i]), p[i + 1])  # T_dst_src, dst = scan i, src = scan i+1
+            t_src, t_dst = int(poses.timestamps_us[i + 1]), int(poses.timestamps_us[i])
+            w.writerow([t_src, t_dst, repr(float(rel[0])), repr(float(-rel[1])), 0.0, 0.0, 0.0,
+                        repr(float(-rel[2])), t_src, t_dst])
+    return path
+
+
+def _oxford_odometry_path(root: Path) -> Path:
+    for cand in (root / "gt" / "radar_odometry.csv", root / "radar_odometry.csv"):
+        if cand.is_file():
+            return cand
+    raise DatasetError(f"{root}: no Oxford odometry: expected gt/radar_odometry.csv")
+
+
+def read_sequence_meta(root: str | Path) -> dict:
+    """The simulator's ``reradar_sim.json`` in ``root`` as a dict ({} for real data without it)."""
+    p = Path(root) / SIM_META_FILE
+    if not p.is_file():
+        return {}
+    try:
+        return json.loads(p.read_text())
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{p}: unreadable sequence metadata ({exc}); delete it or re-render") from exc
+
+
+def write_sequence_meta(root: str | Path, meta: dict) -> Path:
+    p = Path(root) / SIM_META_FILE
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(meta, indent=2, sort_keys=True))
+    return p
+
+
+def load_sequence(path: str | Path, layout: str | None = None,
+                  preset: str | RadarPreset | None = None) -> Sequence:
+    """Open a radar sequence folder in one of the real layouts (see the module docstring).
+
+    Args:
+        path: the sequence folder.
+        layout: ``boreas``, ``oxford`` or ``mulran``; detected from the folder structure when None.
+        preset: radar preset; when None, the simulator metadata's preset or the layout's default.
+
+    Returns:
+        A ``Sequence`` whose ``poses`` hold one T_world_sensor per scan at its timestamp.
+
+    Raises:
+        DatasetError: missing folder, no scans, unknown layout, scans outside the pose time span.
+        PoseFileError: malformed pose file.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: sequence folder does not exist")
+    layout = detect_layout(root) if layout is None else layout.lower()
+    if layout not in LAYOUTS:
+        raise DatasetError(f"unknown dataset layout {layout!r}; choose one of {LAYOUTS}")
+    meta = read_sequence_meta(root)
+    p = get_preset(preset if preset is not None else meta.get("preset", _DEFAULT_PRESET[layout]))
+    paths, stamps = _list_scans(root, layout)
+    if layout == "boreas":
+        pose_file = root / "applanix" / "radar_poses.csv"
+        if not pose_file.is_file():
+            raise DatasetError(f"{root}: missing applanix/radar_poses.csv")
+        track = read_boreas_radar_poses(pose_file).sorted()
+    elif layout == "mulran":
+        pose_file = root / "global_pose.csv"
+        if not pose_file.is_file():
+            raise DatasetError(f"{root}: missing global_pose.csv")
+        track = read_mulran_global_pose(pose_file).sorted()
+    else:
+        pose_file = _oxford_odometry_path(root)
+        track = read_oxford_odometry(pose_file)
+        if "oxford_T_world_origin" in meta:
+            # Simulated Oxford-layout sequences record the world pose of the odometry origin so that
+            # several traversals share one map frame; real Oxford data starts at the identity.
+            origin = np.asarray(meta["oxford_T_world_origin"], dtype=np.float64)
+            world = compose(origin[None, :], track.poses)
+            track = PoseSequence(track.timestamps_us, world[:, :2], world[:, 2])
+    if layout == "oxford":
+        known = np.isin(stamps, track.timestamps_us)
+        if not np.all(known):
+            bad = paths[int(np.argmin(known))]
+            raise DatasetError(f"{bad}: scan timestamp not in the odometry file {pose_file}")
+        lookup = np.searchsorted(track.timestamps_us, stamps)
+        poses = track.subset(lookup)
+    else:
+        # Pose files sample the trajectory at their own rate; allow 0.5 s slack at the ends, no more.
+        slack = 500_000
+        lo, hi = track.timestamps_us[0] - slack, track.timestamps_us[-1] + slack
+        outside = (stamps < lo) | (stamps > hi)
+        if np.any(outside):
+            bad = paths[int(np.argmax(outside))]
+            raise DatasetError(f"{bad}: scan time lies outside the pose file's time span ({pose_file})")
+        interp = track.interpolate(stamps)
+        poses = PoseSequence(stamps, interp[:, :2], interp[:, 2])
+    return Sequence(root.name, p, layout, paths, stamps, poses, root)
+
+
+def write_sequence_scan(root: str | Path, layout: str, scan: RadarScan) -> Path:
+    """Write ``scan`` into sequence ``root`` in ``layout``, named by its first-azimuth timestamp."""
+    return write_navtech_png(scan, scan_path(root, layout, scan.timestamp_us))
+
+
+def write_sequence_poses(root: str | Path, layout: str, poses: PoseSequence) -> Path:
+    """Write one pose per scan (T_world_sensor at each scan timestamp) in ``layout``'s pose file."""
+    root = Path(root)
+    if layout == "boreas":
+        return write_boreas_radar_poses(poses, root / "applanix" / "radar_poses.csv")
+    if layout == "mulran":
+        return write_mulran_global_pose(poses, root / "global_pose.csv")
+    if layout == "oxford":
+        return write_oxford_odometry(poses, root / "gt" / "radar_odometry.csv")
+    raise DatasetError(f"unknown dataset layout {layout!r}; choose one of {LAYOUTS}")

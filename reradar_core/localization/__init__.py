@@ -1,0 +1,28 @@
+"""Global localization: top-k retrieval candidates -> landmark matching + RANSAC -> re-ranking by inliers."""
+
+from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
+from reradar_core.localization.pipeline import (
+    REASON_NO_CANDIDATE,
+    REASON_TOO_FEW_INLIERS,
+    REASON_TOO_FEW_MATCHES,
+    Candidate,
+    CandidateVerification,
+    LocalizationConfig,
+    LocalizationResult,
+    localize,
+    verify_candidate,
+)
+
+__all__ = [
+    "FeatureExtractor",
+    "load_default_extractor",
+    "REASON_NO_CANDIDATE",
+    "REASON_TOO_FEW_INLIERS",
+    "REASON_TOO_FEW_MATCHES",
+    "Candidate",
+    "CandidateVerification",
+    "LocalizationConfig",
+    "LocalizationResult",
+    "localize",
+    "verify_candidate",
+]

@@ -1,0 +1,219 @@
+"""``DescriptorExtractor``: one radar scan -> ``ScanFeatures`` (global descriptor + landmark local descriptors).
+
+Pipeline (paper, Sec. "Method"): polar scan -> Cartesian image (``polar_to_cartesian``, the model's own
+``CartesianConfig``) -> exported network -> global descriptor (NetVLAD + PCA-whitening, L2) and F'. Cen 2018
+landmarks found on the polar scan are mapped to Cartesian pixels; those inside the image are kept (the
+strongest ``max_keypoints``), F' is sampled bilinearly at each (F' cell k is centred on input pixel
+``stride * k``, so pixel (r, c) is F' coordinate (r / stride, c / stride)), and the vectors are
+L2-normalised and stored as float16.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from reradar_core.errors import ConfigError, ModelMismatchError
+from reradar_core.features import ScanFeatures
+from reradar_core.geometry.cartesian import CartesianConfig, metric_to_pixel, polar_to_cartesian
+from reradar_core.io.scan import RadarScan
+from reradar_core.model.config import ModelConfig
+from reradar_core.model.network import DescriptorNet, fuse_batchnorm
+
+__all__ = ["DescriptorExtractor", "sample_feature_map", "DEFAULT_MAX_KEYPOINTS", "file_sha256"]
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_MAX_KEYPOINTS = 512  # strongest landmarks kept per scan: enough for RANSAC, keeps maps small
+
+
+def file_sha256(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def sample_feature_map(fmap: torch.Tensor | np.ndarray, rc_px: np.ndarray, stride: int) -> np.ndarray:
+    """Bilinearly sample F' at input-image pixel positions.
+
+    Args:
+        fmap: (C, h, w) feature map; cell (k, l) is centred on input pixel (stride * k, stride * l).
+        rc_px: (N, 2) float (row, col) input-image pixel coordinates.
+        stride: input pixels per F' cell.
+
+    Returns:
+        (N, C) float32 (not normalised). Positions outside F' are clamped to its border.
+    """
+    f = torch.as_tensor(fmap, dtype=torch.float32)
+    c, h, w = f.shape
+    rc = np.asarray(rc_px, dtype=np.float64).reshape(-1, 2)
+    if rc.shape[0] == 0:
+        return np.zeros((0, c), np.float32)
+    fr = np.clip(rc[:, 0] / stride, 0, h - 1)
+    fc = np.clip(rc[:, 1] / stride, 0, w - 1)
+    # grid_sample with align_corners=True: -1 / +1 are the centres of the first / last cells.
+    gx = fc / max(w - 1, 1) * 2 - 1
+    gy = fr / max(h - 1, 1) * 2 - 1
+    grid = torch.from_numpy(np.stack([gx, gy], axis=-1).astype(np.float32))[None, None]
+    out = F.grid_sample(f[None], grid, mode="bilinear", align_corners=True)  # (1, C, 1, N)
+    return out[0, :, 0].T.contiguous().numpy()
+
+
+class DescriptorExtractor:
+    """Inference wrapper around the exported descriptor network.
+
+    Attributes:
+        config: the architecture (``ModelConfig``).
+        model_id: architecture id, e.g. "reresnet-c8-w0.5-k32-d256-in201".
+        weights_sha256: sha256 of the weights file ("" for untrained/in-memory weights); maps store it and
+            refuse a mismatched model.
+        name: registry name ("our-3-boreas", ...) or "" when built from a network.
+        cartesian: input image geometry.
+        descriptor_dim: D of the global descriptor.
+        max_keypoints: cap on landmarks per scan (strongest kept; None = all).
+
+    ``fuse`` folds BatchNorm into the convolutions (same function, faster); the given ``net`` is not changed.
+    """
+
+    def __init__(self, net: DescriptorNet, *, weights_sha256: str = "", name: str = "",
+                 metadata: dict[str, Any] | None = None, max_keypoints: int | None = DEFAULT_MAX_KEYPOINTS,
+                 landmark_config: Any = None, fuse: bool = True) -> None:
+        self.net = fuse_batchnorm(net) if fuse else net.eval()
+        self.config: ModelConfig = net.config
+        self.weights_sha256 = weights_sha256
+        self.name = name
+        self.metadata = dict(metadata or {})
+        self.max_keypoints = max_keypoints
+        self.landmark_config = landmark_config
+        for p in self.net.parameters():
+            p.requires_grad_(False)
+
+    # ---------------------------------------------------------------- construction
+    @classmethod
+    def from_pretrained(cls, name: str = "default", **kwargs: Any) -> DescriptorExtractor:
+        """Load shipped weights by registry name (``available_models()``) or a path to a ``.pt`` file."""
+        from reradar_core.model.registry import resolve_weights
+
+        pt, meta = resolve_weights(name)
+        return cls.from_file(pt, meta=meta, **kwargs)
+
+    @classmethod
+    def from_file(cls, path: str | Path, meta: dict[str, Any] | None = None, **kwargs: Any) -> DescriptorExtractor:
+        """Load a weights file written by ``save_weights`` (JSON metadata next to it, same stem)."""
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"model weights file {path} does not exist; run `reradar train` or pick one of "
+                              "reradar_core.model.available_models()")
+        if meta is None:
+            jpath = path.with_suffix(".json")
+            if not jpath.is_file():
+                raise ConfigError(f"model metadata {jpath} is missing next to {path}")
+            meta = json.loads(jpath.read_text())
+        try:
+            config = ModelConfig.from_dict(meta["config"])
+        except (KeyError, TypeError) as exc:
+            raise ConfigError(f"model metadata for {path} has no valid 'config': {exc}") from exc
+        net = DescriptorNet(config)
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+        state = {k: v.float() if v.is_floating_point() else v for k, v in blob["state_dict"].items()}
+        try:
+            net.load_state_dict(state)
+        except RuntimeError as exc:
+            raise ModelMismatchError(f"weights {path} do not fit model {config.model_id}: {exc}") from exc
+        return cls(net, weights_sha256=file_sha256(path), name=meta.get("name", path.stem), metadata=meta,
+                   **kwargs)
+
+    # ---------------------------------------------------------------- properties
+    @property
+    def model_id(self) -> str:
+        return self.config.model_id
+
+    @property
+    def cartesian(self) -> CartesianConfig:
+        return self.config.cartesian
+
+    @property
+    def descriptor_dim(self) -> int:
+        return self.config.descriptor_dim
+
+    @property
+    def local_dim(self) -> int:
+        return self.config.feature_dim
+
+    # ---------------------------------------------------------------- inference
+    @torch.inference_mode()
+    def run_images(self, images: np.ndarray | torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """(B, W, W) Cartesian images -> ((B, D) float32 descriptors, (B, C, h, h) float32 F')."""
+        x = torch.as_tensor(np.asarray(images, dtype=np.float32))
+        if x.ndim == 2:
+            x = x[None]
+        g, f = self.net(x[:, None])
+        return g.numpy(), f.numpy()
+
+    def cartesian_image(self, scan: RadarScan) -> np.ndarray:
+        return polar_to_cartesian(scan, self.cartesian)
+
+    def _keypoints(self, scan: RadarScan, landmarks: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor-frame keypoints (N, 2) inside the image and their strengths (N,)."""
+        if landmarks is None:
+            from reradar_core.landmarks import detect_landmarks
+
+            landmarks = detect_landmarks(scan, self.landmark_config)
+        if hasattr(landmarks, "xy_m"):
+            xy = np.asarray(landmarks.xy_m, np.float64).reshape(-1, 2)
+            strength = np.asarray(getattr(landmarks, "strength", np.ones(len(xy))), np.float64).reshape(-1)
+        else:
+            xy = np.asarray(landmarks, np.float64).reshape(-1, 2)
+            strength = np.ones(len(xy))
+        rc = metric_to_pixel(xy, self.cartesian)
+        w = self.cartesian.width_px
+        inside = np.all((rc >= 0) & (rc <= w - 1), axis=1)
+        xy, strength = xy[inside], strength[inside]
+        if self.max_keypoints is not None and len(xy) > self.max_keypoints:
+            keep = np.sort(np.argsort(-strength, kind="stable")[: self.max_keypoints])
+            xy, strength = xy[keep], strength[keep]
+        return xy, strength
+
+    def _features(self, scan: RadarScan, g: np.ndarray, fmap: np.ndarray, landmarks: Any) -> ScanFeatures:
+        xy, _ = self._keypoints(scan, landmarks)
+        local = sample_feature_map(fmap, metric_to_pixel(xy, self.cartesian), self.config.stride)
+        local /= np.maximum(np.linalg.norm(local, axis=1, keepdims=True), 1e-12)
+        return ScanFeatures(global_descriptor=g, keypoints_xy_m=xy.astype(np.float32),
+                            local_descriptors=local.astype(np.float16), timestamp_us=int(scan.timestamp_us))
+
+    def describe(self, scan: RadarScan, landmarks: Any = None) -> ScanFeatures:
+        """One scan -> ``ScanFeatures`` (landmarks detected with Cen 2018 unless given as ``Landmarks`` or
+        an (N, 2) array of sensor-frame metres)."""
+        g, f = self.run_images(self.cartesian_image(scan)[None])
+        return self._features(scan, g[0], f[0], landmarks)
+
+    def describe_batch(self, scans: Sequence[RadarScan], landmarks: Sequence[Any] | None = None,
+                       batch_size: int = 16) -> list[ScanFeatures]:
+        """Many scans, network batched ``batch_size`` at a time (map building)."""
+        out: list[ScanFeatures] = []
+        for start in range(0, len(scans), batch_size):
+            chunk = scans[start:start + batch_size]
+            imgs = np.stack([self.cartesian_image(s) for s in chunk])
+            g, f = self.run_images(imgs)
+            for i, s in enumerate(chunk):
+                lm = None if landmarks is None else landmarks[start + i]
+                out.append(self._features(s, g[i], f[i], lm))
+        return out
+
+    def global_descriptors(self, scans: Sequence[RadarScan], batch_size: int = 16) -> np.ndarray:
+        """(N, D) global descriptors only (no landmarks) — for retrieval benchmarks."""
+        out = []
+        for start in range(0, len(scans), batch_size):
+            imgs = np.stack([self.cartesian_image(s) for s in scans[start:start + batch_size]])
+            out.append(self.run_images(imgs)[0])
+        return np.concatenate(out) if out else np.zeros((0, self.descriptor_dim), np.float32)

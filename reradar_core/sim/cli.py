@@ -1,0 +1,108 @@
+"""``reradar sim``, ``reradar sim-suite`` and ``reradar sim-report`` commands."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from reradar_core.errors import ReRadarError
+
+__all__ = ["register"]
+
+
+def _fail(exc: Exception) -> typer.Exit:
+    typer.echo(f"error: {exc}", err=True)
+    return typer.Exit(2)
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("sim")
+    def sim(
+        trajectory: Path = typer.Option(..., help="Pose file: Boreas radar_poses.csv, MulRan global_pose.csv or "
+                                                  "a t,x,y,yaw CSV (t seconds, metres, radians)."),
+        out: Path = typer.Option(..., help="Output sequence folder."),
+        preset: str = typer.Option("boreas", help="Radar preset: boreas, boreas-2021, oxford, oord, mulran."),
+        layout: str = typer.Option(None, help="Dataset layout boreas/oxford/mulran (default: the preset's)."),
+        profile: str = typer.Option("urban", help="World profile: urban or offroad."),
+        condition: str = typer.Option("clear", help="Weather: clear, rain, snow_cover, falling_snow."),
+        seed: int = typer.Option(0, help="World seed (same seed + same roads = same world)."),
+        traversal_seed: int = typer.Option(None, help="Traversal seed (traffic, parked cars, noise); "
+                                                      "default seed + 1."),
+        road: list[Path] = typer.Option(None, help="Extra pose files whose paths are roads of the world "
+                                                   "(give the other traversals' files to share one world)."),
+        lateral: float = typer.Option(0.0, help="Drive this many metres left of the trajectory."),
+        every: int = typer.Option(1, help="Keep every K-th scan."),
+        limit: int = typer.Option(None, help="Render at most N scans."),
+        sweep_from_poses: bool = typer.Option(True, help="Scan times = pose times (4 Hz radar pose files); "
+                                                         "off: tile the time span at 4 Hz."),
+    ) -> None:
+        """Render a simulated radar sequence along a trajectory, in a real dataset layout."""
+        from reradar_core.sim.sensor import SensorConfig
+        from reradar_core.sim.trajectories import load_trajectory, offset_trajectory, scan_times
+        from reradar_core.sim.traversal import Traversal
+        from reradar_core.sim.world import RoadNetwork, World
+        from reradar_core.sim.writer import render_sequence
+
+        try:
+            traj = load_trajectory(trajectory)
+            roads = [traj.xy] + [load_trajectory(r).xy for r in (road or [])]
+            world = World(RoadNetwork(roads), seed=seed, profile=profile)
+            trav = Traversal(world, traversal_seed if traversal_seed is not None else seed + 1, condition)
+            if lateral:
+                traj = offset_trajectory(traj, lateral)
+            all_t = scan_times(traj, every=1, use_pose_times=sweep_from_poses)
+            idx = list(range(0, len(all_t), every))
+            if limit is not None:
+                idx = idx[:limit]
+            render_sequence(out, trav, traj, all_t[idx], idx, preset, layout, SensorConfig(), True,
+                            meta={"trajectory": str(trajectory)})
+        except ReRadarError as exc:
+            raise _fail(exc) from exc
+        typer.echo(f"wrote {len(idx)} scans to {out}")
+
+    @app.command("sim-suite")
+    def sim_suite(
+        name: str = typer.Argument(..., help="Suite: smoke, boreas-sim, loop-sim, offroad-sim, train-source, "
+                                             "train-target-boreas, train-target-loop, train-target-offroad."),
+        root: Path = typer.Option(None, help="Output folder (default: the cache, sim/<name>)."),
+        every: int = typer.Option(None, help="Override the suite's frame step."),
+        limit: int = typer.Option(None, help="Cap scans per sequence."),
+        trajectory_dir: Path = typer.Option(None, help="Folder with the real Boreas trajectories."),
+    ) -> None:
+        """Render a named benchmark suite or training split (skips sequences already complete)."""
+        from reradar_core.sim.suites import build_suite
+
+        try:
+            data = build_suite(name, root, True, every, limit, trajectory_dir)
+        except ReRadarError as exc:
+            raise _fail(exc) from exc
+        typer.echo(json.dumps({"name": data.name, "root": str(data.root), "preset": data.preset,
+                               "layout": data.layout, "radius_m": data.radius_m,
+                               "database": [str(p) for p in data.database],
+                               "queries": [str(p) for p in data.queries],
+                               "query_conditions": data.query_conditions,
+                               "training": [str(p) for p in data.training]}, indent=2))
+
+    @app.command("sim-report")
+    def sim_report(
+        real: Path = typer.Option(..., help="Folder of real scans (a sequence folder or *.png)."),
+        sim: list[Path] = typer.Option(..., help="Simulated sequence folder(s); repeat for several conditions."),
+        limit: int = typer.Option(12, help="Scans per folder."),
+        images: Path = typer.Option(None, help="Write preview PNGs (polar + Cartesian) with this prefix."),
+    ) -> None:
+        """Print real vs simulated scan statistics side by side (Markdown table)."""
+        from reradar_core.sim.report import collect_scans, compare_table, folder_statistics, save_preview
+
+        try:
+            cols = {"real": folder_statistics(real, limit)}
+            for s in sim:
+                cols[s.name] = folder_statistics(s, limit)
+            if images is not None:
+                save_preview(collect_scans(real, 1)[0], Path(str(images) + "_real"))
+                for s in sim:
+                    save_preview(collect_scans(s, 1)[0], Path(str(images) + f"_{s.name}"))
+        except ReRadarError as exc:
+            raise _fail(exc) from exc
+        typer.echo(compare_table(cols))

@@ -1,0 +1,380 @@
+"""Scanning FMCW radar sensor model (Navtech CIR204 / CTS350-like), rendered directly in the polar domain.
+
+Per scan (400 azimuths, 4 Hz, range bins per preset):
+
+1. Each azimuth is cast from the sensor pose at its own timestamp (motion distortion), with ``oversample``
+   sub-rays per azimuth cell so that thin gaps and edges are resolved.
+2. Rays are intersected with the world's segments and discs, vectorised over (sub-ray, nearby primitive)
+   pairs chosen by each primitive's azimuth interval. Every hit returns power (reflectivity x incidence
+   factor); opaque hits shadow everything behind them, vegetation and fences only attenuate (transmission
+   accumulated along the ray in a coarse range map).
+3. Point scatterers (poles, leaves, façade details, ground clutter) project to (azimuth, range) from the
+   pose at their azimuth's time and are attenuated by the same transmission map.
+4. Power falls with range; a range-spread kernel and the antenna's two-way beam pattern (main lobe +
+   sidelobes, circular across azimuth) blur the impulses; diffuse ground backscatter, the receiver noise
+   floor and the bright near-field ring are added; multiplicative speckle (gamma); occasional multipath
+   ghosts and interference (saturation) streaks; log compression to 8 bits.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from reradar_core.io.poses import PoseSequence
+from reradar_core.io.presets import RadarPreset, get_preset
+from reradar_core.io.scan import RadarScan
+from reradar_core.sim.traversal import Traversal
+from reradar_core.sim.world import Primitives, stable_seed
+
+__all__ = ["SensorConfig", "render_scan", "sweep_poses"]
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """Sensor model parameters (defaults calibrated against real Oxford Navtech scans; docs/SIMULATOR.md).
+
+    Attributes:
+        oversample: sub-rays per azimuth cell for ray casting.
+        beam_fwhm_deg: two-way main-lobe width (Navtech CTS350-X: ~1.8 deg).
+        sidelobe_db: sidelobe pedestal relative to the main lobe peak, dB.
+        sidelobe_halfwidth_bins: azimuth extent of the sidelobe pedestal on each side, in azimuth cells.
+        range_sigma_m: Gaussian range spread of a point return, metres.
+        range_tail_m: exponential tail of the range spread (multi-bounce / pulse tail), metres.
+        range_exponent: received power of a target falls as (r_ref / r)^range_exponent.
+        ref_range_m: reference range of the fall-off.
+        noise_floor: receiver noise power (linear units of the same scale as the returns).
+        ground_level: diffuse ground backscatter at its peak range.
+        ground_peak_m: range of the ground clutter maximum (elevation beam pattern meets the ground).
+        near_field_level: vehicle self-return power at range 0 (decays over ``near_field_m``).
+        speckle_looks: looks summed in the multiplicative speckle (1 = exponential intensity).
+        speckle_range_cell: range bins per independent speckle cell (real scans: ~4-10 bins correlation).
+        speckle_az_coupling: weight of neighbouring azimuths in the speckle (overlapping beams).
+        db_floor, db_span: log compression: value = (10 log10(P) - db_floor) / db_span, clipped to [0, 1].
+        streak_rate: mean interference streaks (saturated azimuths) per scan.
+        ghost_prob: probability that one of the strongest returns produces a multipath ghost.
+        min_range_m: returns nearer than this are ignored (the radome).
+    """
+
+    oversample: int = 2
+    beam_fwhm_deg: float = 1.8
+    sidelobe_db: float = -26.0
+    sidelobe_halfwidth_bins: int = 10
+    range_sigma_m: float = 0.12
+    range_tail_m: float = 0.8
+    range_exponent: float = 1.2
+    ref_range_m: float = 20.0
+    noise_floor: float = 1.0
+    ground_level: float = 0.6
+    ground_peak_m: float = 30.0
+    near_field_level: float = 40.0
+    near_field_m: float = 0.5
+    speckle_looks: float = 1.0
+    speckle_range_cell: int = 10
+    speckle_az_coupling: float = 0.25
+    db_floor: float = -2.9
+    db_span: float = 100.0
+    streak_rate: float = 0.8
+    ghost_prob: float = 0.15
+    min_range_m: float = 0.5
+    target_gain: float = 1200.0
+
+
+def sweep_poses(trajectory: PoseSequence, t0_us: int, preset: RadarPreset, oversample: int = 1
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Sensor poses along one sweep starting at ``t0_us``.
+
+    Returns:
+        (A,) int64 azimuth timestamps [us] and (A * oversample, 3) world poses (x, y, yaw) of the sub-rays.
+    """
+    n_az = preset.num_azimuths
+    dt_us = preset.sweep_period_s * 1e6 / n_az
+    az_t = t0_us + np.round(np.arange(n_az) * dt_us).astype(np.int64)
+    sub_t = t0_us + (np.arange(n_az * oversample) / oversample) * dt_us
+    return az_t, trajectory.interpolate(sub_t)
+
+
+@lru_cache(maxsize=8)
+def _kernels(cfg: SensorConfig, range_res: float) -> tuple[np.ndarray, np.ndarray]:
+    # range: Gaussian core + one-sided exponential tail (returns smear away from the sensor)
+    half = int(np.ceil((3 * cfg.range_sigma_m + 4 * cfg.range_tail_m) / range_res))
+    x = np.arange(-half, half + 1) * range_res
+    k_r = np.exp(-0.5 * (x / cfg.range_sigma_m) ** 2)
+    tail = np.where(x > 0, np.exp(-x / max(cfg.range_tail_m, 1e-6)), 0.0) * 0.25
+    k_r = k_r + tail
+    k_r /= k_r.max()
+    # azimuth: Gaussian main lobe (two-way FWHM) + flat sidelobe pedestal
+    dth = 360.0 / 400.0
+    hb = cfg.sidelobe_halfwidth_bins
+    a = np.arange(-hb, hb + 1) * dth
+    sigma = cfg.beam_fwhm_deg / 2.3548
+    k_a = np.exp(-0.5 * (a / sigma) ** 2) + 10 ** (cfg.sidelobe_db / 10) * (1 + 0.5 * np.cos(np.pi * a / (hb * dth)))
+    k_a /= k_a.max()
+    return k_r.astype(np.float32), k_a.astype(np.float32)
+
+
+def _elevation_gain(r: np.ndarray, cfg: SensorConfig) -> np.ndarray:
+    """Fraction of the elevation beam on the ground at range r (0 next to the vehicle, 1 beyond the peak)."""
+    return 1.0 / (1.0 + np.exp(-(r - 0.4 * cfg.ground_peak_m) / (0.15 * cfg.ground_peak_m)))
+
+
+def _intervals(rel: np.ndarray, lo_ang: np.ndarray, span: np.ndarray, n_fine: int, dth_fine: float,
+               margin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(pair primitive index, pair fine-ray index) for primitives spanning [lo_ang, lo_ang + span] (clockwise)."""
+    lo = np.floor(lo_ang / dth_fine - 0.5).astype(np.int64) - margin
+    cnt = np.minimum(np.ceil(span / dth_fine).astype(np.int64) + 2 * margin + 2, n_fine)
+    owner = np.repeat(np.arange(len(lo)), cnt)
+    start = np.repeat(np.cumsum(cnt) - cnt, cnt)
+    ray = (lo[owner] + (np.arange(len(owner)) - start)) % n_fine
+    del rel
+    return owner, ray
+
+
+def _to_sensor(xy: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World xy -> (clockwise azimuth in [0, 2pi), range) in the sensor frame of ``pose``."""
+    dx, dy = xy[..., 0] - pose[..., 0], xy[..., 1] - pose[..., 1]
+    c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
+    x = c * dx + s * dy
+    y = -s * dx + c * dy
+    return np.mod(np.arctan2(-y, x), 2 * np.pi), np.hypot(x, y)
+
+
+def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, preset: str | RadarPreset,
+                scan_seed: int, config: SensorConfig = SensorConfig(), extra: Primitives | None = None
+                ) -> RadarScan:
+    """Render one sweep starting at ``t0_us`` (first azimuth) along ``trajectory``.
+
+    Args:
+        traversal: world + per-traversal state (condition, traffic, parked cars).
+        trajectory: T_world_sensor poses; interpolated at every sub-ray's time.
+        t0_us: sweep start time, microseconds.
+        preset: radar preset (range resolution, bin count, azimuths, sweep period).
+        scan_seed: seed of this scan's noise (derive it from (traversal seed, scan index)).
+        config: sensor model parameters.
+        extra: additional primitives (tests place known targets with it).
+
+    Returns:
+        RadarScan with power in [0, 1] quantised to 1/255, per-azimuth timestamps, uniform azimuths.
+    """
+    p = get_preset(preset)
+    cfg = config
+    cond = traversal.condition
+    rng = np.random.default_rng(scan_seed)
+    n_az, n_r, K = p.num_azimuths, p.num_range_bins, cfg.oversample
+    n_fine = n_az * K
+    dth = 2 * np.pi / n_az
+    dth_f = dth / K
+    res, off = p.range_resolution_m, p.range_offset_m
+    max_r = p.max_range_m
+    az_t, poses = sweep_poses(trajectory, t0_us, p, K)
+    theta = (np.arange(n_fine) + 0.5) * dth_f - dth / 2  # sub-ray sensor azimuths (clockwise)
+    phi = poses[:, 2] - theta  # world direction angle of each sub-ray
+    ox, oy = poses[:, 0], poses[:, 1]
+    dx, dy = np.cos(phi), np.sin(phi)
+    mid = poses[n_fine // 2]
+    motion = float(np.hypot(*(poses[-1, :2] - poses[0, :2]))) + 1e-3
+    dyaw = float(abs(np.angle(np.exp(1j * (poses[-1, 2] - poses[0, 2])))))
+    t_mid_s = (t0_us + 0.5 * p.sweep_period_s * 1e6) / 1e6
+
+    prim = traversal.world.query(mid[:2], max_r + motion + 5.0)
+    dyn = traversal.dynamic_primitives(t_mid_s, mid[:2], max_r, prim)
+    prim = Primitives.concat([prim, dyn] + ([extra] if extra is not None else []))
+
+    # ---------------- ray casting against segments
+    hit_ray, hit_t, hit_amp, hit_tr = [], [], [], []
+    if len(prim.seg):
+        s = prim.seg
+        a0, r0 = _to_sensor(s[:, :2], mid)
+        a1, r1 = _to_sensor(s[:, 2:], mid)
+        near_enough = np.minimum(r0, r1) < max_r + motion + 5
+        s, a0, a1, r0, r1 = s[near_enough], a0[near_enough], a1[near_enough], r0[near_enough], r1[near_enough]
+        refl, tr, rough = (prim.seg_refl[near_enough], prim.seg_trans[near_enough], prim.seg_rough[near_enough])
+        low = prim.seg_low[near_enough]
+        d = np.angle(np.exp(1j * (a1 - a0)))  # clockwise signed span
+        lo_ang = np.where(d >= 0, a0, a1)
+        span = np.abs(d)
+        ev = s[:, 2:] - s[:, :2]
+        seg_len = np.maximum(np.hypot(ev[:, 0], ev[:, 1]), 1e-9)
+        # distance from the mid pose to the segment bounds how far motion moves its azimuth interval
+        w = mid[:2] - s[:, :2]
+        u = np.clip((w[:, 0] * ev[:, 0] + w[:, 1] * ev[:, 1]) / seg_len ** 2, 0, 1)
+        dist = np.hypot(*(s[:, :2] + u[:, None] * ev - mid[:2]).T)
+        margin = np.ceil((motion / np.maximum(dist, 0.5) + dyaw) / dth_f).astype(np.int64) + 1
+        margin = np.minimum(margin, n_fine // 2)
+        si, ri = _intervals(None, lo_ang, span, n_fine, dth_f, margin)
+        ex, ey = ev[si, 0], ev[si, 1]
+        wx, wy = s[si, 0] - ox[ri], s[si, 1] - oy[ri]
+        rdx, rdy = dx[ri], dy[ri]
+        den = rdx * ey - rdy * ex
+        ok = np.abs(den) > 1e-9
+        den = np.where(ok, den, 1.0)
+        t = (wx * ey - wy * ex) / den
+        uu = (wx * rdy - wy * rdx) / den
+        ok &= (t > cfg.min_range_m) & (t < max_r) & (uu >= 0) & (uu <= 1)
+        si, ri, t, den = si[ok], ri[ok], t[ok], den[ok]
+        cos_inc = np.abs(den) / seg_len[si]
+        amp = refl[si] * (rough[si] * cos_inc + (1 - rough[si]) * cos_inc ** 8) / K
+        # objects at ground level are lit only where the elevation beam reaches the ground
+        amp = np.where(low[si] > 0, amp * _elevation_gain(t, cfg), amp)
+        hit_ray.append(ri)
+        hit_t.append(t)
+        hit_amp.append(amp)
+        hit_tr.append(tr[si])
+    # ---------------- discs (tree canopies, pole shadows)
+    if len(prim.disc):
+        c = prim.disc
+        ac, rc = _to_sensor(c[:, :2], mid)
+        keep = (rc < max_r + motion + 5) & (rc > c[:, 2] + 0.3)
+        c, ac, rc = c[keep], ac[keep], rc[keep]
+        refl, tr = prim.disc_refl[keep], prim.disc_trans[keep]
+        half = np.arcsin(np.clip(c[:, 2] / rc, 0, 1))
+        margin = np.ceil((motion / np.maximum(rc, 0.5) + dyaw) / dth_f).astype(np.int64) + 1
+        margin = np.minimum(margin, n_fine // 2)
+        di, ri = _intervals(None, ac - half, 2 * half, n_fine, dth_f, margin)
+        wx, wy = c[di, 0] - ox[ri], c[di, 1] - oy[ri]
+        proj = wx * dx[ri] + wy * dy[ri]
+        perp2 = wx * wx + wy * wy - proj * proj
+        rad2 = c[di, 2] ** 2
+        ok = (perp2 < rad2) & (proj > 0)
+        t = proj[ok] - np.sqrt(rad2[ok] - perp2[ok])
+        ok2 = (t > cfg.min_range_m) & (t < max_r)
+        hit_ray.append(ri[ok][ok2])
+        hit_t.append(t[ok2])
+        hit_amp.append(refl[di[ok][ok2]] * cond.leaf_factor / K)
+        hit_tr.append(1 - (1 - tr[di[ok][ok2]]) * min(1.0, cond.leaf_factor))
+    if hit_ray:
+        h_ray = np.concatenate(hit_ray)
+        h_t = np.concatenate(hit_t)
+        h_amp = np.concatenate(hit_amp)
+        h_tr = np.concatenate(hit_tr)
+    else:
+        h_ray = np.zeros(0, np.int64)
+        h_t = h_amp = h_tr = np.zeros(0)
+
+    # ---------------- transmission map on a coarse range grid (two-way, log domain, cumulative)
+    coarse = 8
+    n_c = (n_r + coarse - 1) // coarse
+    cb = np.floor((h_t - off) / (res * coarse)).astype(np.int64) + 1
+    okc = cb < n_c
+    lt = 2.0 * np.log(np.maximum(h_tr, 1e-4))
+    tmap = np.bincount(h_ray[okc] * n_c + cb[okc], weights=lt[okc], minlength=n_fine * n_c)
+    tmap = np.exp(np.cumsum(tmap.reshape(n_fine, n_c), axis=1)).astype(np.float32)
+    # hits are shadowed by what lies before them (not by themselves: their own term starts one cell later)
+    hb = np.clip(np.floor((h_t - off) / (res * coarse)).astype(np.int64), 0, n_c - 1)
+    h_pow = h_amp * tmap[h_ray, hb]
+
+    # ---------------- point scatterers (persistent + this scan's precipitation clutter)
+    pts, rcs, kind = prim.pts, prim.pts_rcs, prim.pts_kind
+    if cond.volume_clutter_per_m2 > 0:
+        n_v = rng.poisson(cond.volume_clutter_per_m2 * np.pi * 60.0 ** 2)
+        rr = 60.0 * np.sqrt(rng.uniform(0.0004, 1, n_v))
+        aa = rng.uniform(0, 2 * np.pi, n_v)
+        vxy = mid[:2] + rr[:, None] * np.stack([np.cos(aa), np.sin(aa)], axis=1)
+        pts = np.concatenate([pts, vxy])
+        rcs = np.concatenate([rcs, rng.exponential(cond.volume_clutter_rcs, n_v)])
+        kind = np.concatenate([kind, np.full(n_v, 3, np.int8)])
+    if len(pts):
+        ap, rp = _to_sensor(pts, mid)
+        sel = rp < max_r + motion + 2
+        pts, rcs, kind, ap = pts[sel], rcs[sel], kind[sel], ap[sel]
+        j = np.floor(ap / dth_f + K / 2).astype(np.int64) % n_fine
+        ap, rp = _to_sensor(pts, poses[j])  # re-project from the pose at that azimuth's time
+        j = np.floor(ap / dth_f + K / 2).astype(np.int64) % n_fine
+        ok = (rp > cfg.min_range_m) & (rp < max_r)
+        j, rp, rcs, kind = j[ok], rp[ok], rcs[ok], kind[ok]
+        rcs = np.where(kind == 1, rcs * cond.leaf_factor, rcs)
+        rcs = np.where(kind == 2, rcs * cond.ground_factor * _elevation_gain(rp, cfg), rcs)
+        pb = np.clip(np.floor((rp - off) / (res * coarse)).astype(np.int64), 0, n_c - 1)
+        p_pow = rcs * tmap[j, pb]
+    else:
+        j = np.zeros(0, np.int64)
+        rp = p_pow = np.zeros(0)
+
+    # ---------------- impulses -> (A, R) target power
+    all_ray = np.concatenate([h_ray, j]) // K
+    all_r = np.concatenate([h_t, rp])
+    all_p = np.concatenate([h_pow, p_pow])
+    atten = 10 ** (-2 * cond.attenuation_db_per_km * all_r / 1e4)
+    all_p = all_p * cfg.target_gain * (cfg.ref_range_m / np.maximum(all_r, 1.0)) ** cfg.range_exponent * atten
+    # multipath ghosts: a fraction of the strongest returns reappear farther out along the same azimuth
+    if len(all_p) and cfg.ghost_prob > 0:
+        strong = np.nonzero(all_p > np.quantile(all_p, 0.995))[0]
+        g = strong[rng.random(len(strong)) < cfg.ghost_prob]
+        if len(g):
+            all_ray = np.concatenate([all_ray, all_ray[g]])
+            all_r = np.concatenate([all_r, all_r[g] + rng.uniform(3.0, 25.0, len(g))])
+            all_p = np.concatenate([all_p, all_p[g] * 0.02])
+    fb = (all_r - off) / res
+    okb = (fb >= 0) & (fb < n_r - 1)
+    fb, all_ray, all_p = fb[okb], all_ray[okb], all_p[okb]
+    b0 = np.floor(fb).astype(np.int64)
+    wb = fb - b0
+    flat = np.concatenate([all_ray * n_r + b0, all_ray * n_r + b0 + 1])
+    wts = np.concatenate([all_p * (1 - wb), all_p * wb])
+    target = np.bincount(flat, weights=wts, minlength=n_az * n_r).astype(np.float32).reshape(n_az, n_r)
+
+    k_r, k_a = _kernels(cfg, res)
+    pad = len(k_a) // 2
+    padded = np.concatenate([target[-pad:], target, target[:pad]], axis=0)
+    blurred = cv2.sepFilter2D(padded, cv2.CV_32F, k_r, k_a, borderType=cv2.BORDER_CONSTANT)[pad:-pad]
+
+    # ---------------- diffuse ground, noise floor, near field
+    ranges = (off + np.arange(n_r) * res).astype(np.float32)
+    rr = np.maximum(ranges, 0.5)
+    ground = (cfg.ground_level * cond.ground_factor * _elevation_gain(rr, cfg)
+              * (cfg.ground_peak_m / np.maximum(rr, cfg.ground_peak_m)) ** 2.5).astype(np.float32)
+    ground *= (10 ** (-2 * cond.attenuation_db_per_km * rr / 1e4)).astype(np.float32)
+    near = (cfg.near_field_level * np.exp(-np.maximum(ranges, 0) / cfg.near_field_m)).astype(np.float32)
+    floor = cfg.noise_floor * 10 ** (cond.noise_floor_db / 10)
+    # ground is shadowed like everything else: average the sub-ray transmission into azimuth cells
+    tm = tmap.reshape(n_az, K, n_c).mean(axis=1)
+    tm_full = cv2.resize(tm, (n_r, n_az), interpolation=cv2.INTER_NEAREST) if n_c != n_r else tm
+    power = blurred + ground[None, :] * tm_full + (near + floor)[None, :]
+
+    # interference streaks: a few azimuths saturated across range (another radar / the vehicle's own)
+    n_st = rng.poisson(cfg.streak_rate)
+    for _ in range(n_st):
+        row = int(rng.integers(0, n_az))
+        width = int(rng.integers(1, 3))
+        lvl = 10 ** rng.uniform(2.0, 3.5)
+        prof = (lvl * (10.0 / np.maximum(ranges, 10.0)) ** rng.uniform(0.5, 1.5)).astype(np.float32)
+        for k in range(width):
+            power[(row + k) % n_az] += prof
+
+    power *= _speckle(rng, n_az, n_r, cfg)
+    np.maximum(power, 1e-12, out=power)
+    db = 10.0 * np.log10(power)
+    val = np.clip((db - cfg.db_floor) / cfg.db_span, 0.0, 1.0)
+    val = np.round(val * 255.0) / np.float32(255.0)
+    azimuths = np.arange(n_az) * dth
+    return RadarScan(val.astype(np.float32), azimuths, az_t, res, off, preset=p.name)
+
+
+def _speckle(rng: np.random.Generator, n_az: int, n_r: int, cfg: SensorConfig) -> np.ndarray:
+    """(A, R) float32 multiplicative speckle with mean 1, correlated along range and azimuth like real scans.
+
+    The complex echo is drawn on a grid ``speckle_range_cell`` bins coarse in range, interpolated (the
+    sensor's FFT bins oversample its range resolution) and smoothed over neighbouring azimuths (overlapping
+    beams); the intensity |z|^2 is exponential (one look) per cell, summed over ``speckle_looks`` looks.
+    """
+    cell = cfg.speckle_range_cell
+    n_c = n_r // cell + 2
+    out = np.zeros((n_az, n_r), np.float32)
+    looks = max(1, int(round(cfg.speckle_looks)))
+    k_az = np.array([cfg.speckle_az_coupling, 1.0, cfg.speckle_az_coupling], np.float32)
+    for _ in range(looks):
+        for _part in range(2):
+            g = rng.standard_normal((n_az, n_c), dtype=np.float32)
+            g = cv2.filter2D(np.concatenate([g[-1:], g, g[:1]]), cv2.CV_32F, k_az[:, None])[1:-1]
+            up = cv2.resize(g, (n_c * cell, n_az), interpolation=cv2.INTER_CUBIC)[:, :n_r]
+            out += up * up
+    out *= np.float32(1.0 / out.mean())
+    return out
+
+
+def scan_seed(traversal_seed: int, scan_index: int) -> int:
+    """Seed of one scan's noise, from the traversal seed and the scan index (renders alone identically)."""
+    return stable_seed(traversal_seed, "scan", scan_index)

@@ -1,0 +1,379 @@
+"""Named benchmark suites and training splits, defined in one place, rendered on demand into the cache.
+
+Evaluation suites mirror the paper's protocols:
+
+- ``boreas-sim``: database = the real Boreas 2021-08-05 trajectory in clear weather; queries = the real
+  2021-09-02 trajectory (four weeks later, real GNSS drift) under ``snow_cover`` and ``falling_snow``.
+  Boreas preset / layout, recall radius 20 m.
+- ``loop-sim``: single session (MulRan protocol): one drive around a street grid, three laps; the first
+  lap is the database, the later laps are the queries. MulRan preset / layout, 20 m.
+- ``offroad-sim``: OORD-like vegetation/terrain route, two drives on different days (clear / rain),
+  every 5th frame as in the OORD benchmark. OORD preset, Oxford layout, 25 m.
+- ``smoke``: tiny (two traversals of a small loop, 20 scans each), for tests; renders in seconds.
+
+Training splits (never query sequences): ``train-source`` (synthetic looped routes in other worlds, mixed
+profiles and conditions), ``train-target-boreas`` (a third traversal of the Boreas route, laterally offset,
+own seed, ``snow_cover``), ``train-target-loop`` (another session on the loop-sim grid),
+``train-target-offroad`` (a third drive on the off-road route).
+
+``build_suite(name)`` renders what is missing into ``cache_dir("sim", name)`` (a sequence is complete when
+its marker file exists) and returns a ``SuiteData``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, field, replace
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from reradar_core.errors import ConfigError, DatasetError
+from reradar_core.io.datasets import Sequence, load_sequence
+from reradar_core.io.poses import PoseSequence
+from reradar_core.paths import PACKAGE_DIR, cache_dir
+from reradar_core.sim.sensor import SensorConfig
+from reradar_core.sim.trajectories import (
+    drive_route,
+    load_trajectory,
+    offset_trajectory,
+    scan_times,
+    synthetic_loop_route,
+)
+from reradar_core.sim.traversal import Traversal
+from reradar_core.sim.world import RoadNetwork, World
+from reradar_core.sim.writer import is_complete, render_sequence
+
+__all__ = [
+    "SUITES",
+    "SequenceDef",
+    "SuiteDef",
+    "SuiteData",
+    "build_suite",
+    "boreas_trajectory_dir",
+    "suite_names",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Environment variable overriding where the real Boreas trajectories are.
+TRAJECTORY_DIR_ENV = "RERADAR_TRAJECTORY_DIR"
+BOREAS_MAP_FILE = "boreas-2021-08-05-13-34.radar_poses.csv"
+BOREAS_QUERY_FILE = "boreas-2021-09-02-11-42.radar_poses.csv"
+
+
+def boreas_trajectory_dir(path: str | Path | None = None) -> Path:
+    """Folder holding the two real Boreas pose files: ``path``, else ``$RERADAR_TRAJECTORY_DIR``, else
+    ``../shared/data/trajectories`` next to the repository."""
+    if path is not None:
+        return Path(path)
+    env = os.environ.get(TRAJECTORY_DIR_ENV)
+    if env:
+        return Path(env)
+    return PACKAGE_DIR.parent.parent / "shared" / "data" / "trajectories"
+
+
+@dataclass(frozen=True)
+class RouteDef:
+    """Where a traversal drives.
+
+    Attributes:
+        kind: ``boreas-map`` / ``boreas-query`` (real pose files) or ``loop`` (synthetic street grid).
+        seed: route seed (loop routes).
+        laps: laps of the loop route.
+        block_m: block size range of the loop grid.
+        n_blocks: blocks along the loop grid.
+        lateral_m: lateral offset (another lane), metres.
+        time_fraction: (start, end) fraction of the drive's duration to use (single-session splits).
+        speed_seed: seed of the speed profile (loop routes: a new session drives at other speeds).
+    """
+
+    kind: str
+    seed: int = 0
+    laps: int = 2
+    block_m: tuple[float, float] = (70.0, 140.0)
+    n_blocks: int = 3
+    lateral_m: float = 0.0
+    time_fraction: tuple[float, float] = (0.0, 1.0)
+    speed_seed: int = 0
+
+
+@dataclass(frozen=True)
+class SequenceDef:
+    """One rendered sequence of a suite."""
+
+    name: str
+    role: str  # "database", "query" or "train"
+    route: RouteDef
+    traversal_seed: int
+    condition: str = "clear"
+    every: int = 1
+    limit: int | None = None
+    offset: int = 0  # first scan index before taking every ``every``-th
+
+
+@dataclass(frozen=True)
+class SuiteDef:
+    """A named suite: the world, its sequences and the evaluation settings."""
+
+    name: str
+    description: str
+    preset: str
+    layout: str
+    profile: str
+    world_seed: int
+    road_routes: tuple[RouteDef, ...]
+    sequences: tuple[SequenceDef, ...]
+    radius_m: float = 20.0
+    single_session: bool = False
+
+
+@dataclass
+class SuiteData:
+    """A rendered suite on disk.
+
+    Attributes:
+        name: suite name.
+        root: folder holding one sub-folder per sequence.
+        preset: radar preset name.
+        layout: dataset layout of every sequence.
+        radius_m: recall radius (a retrieval is correct within this distance), metres.
+        database: sequence folders forming the map.
+        queries: query sequence folders.
+        query_conditions: condition of each query folder.
+        training: training sequence folders (never queries).
+        single_session: database and queries come from one drive (MulRan-style split).
+    """
+
+    name: str
+    root: Path
+    preset: str
+    layout: str
+    radius_m: float
+    database: list[Path] = field(default_factory=list)
+    queries: list[Path] = field(default_factory=list)
+    query_conditions: list[str] = field(default_factory=list)
+    training: list[Path] = field(default_factory=list)
+    single_session: bool = False
+
+    def load(self, path: Path) -> Sequence:
+        return load_sequence(path, self.layout, self.preset)
+
+    def database_sequences(self) -> list[Sequence]:
+        return [self.load(p) for p in self.database]
+
+    def query_sequences(self) -> list[Sequence]:
+        return [self.load(p) for p in self.queries]
+
+    def training_sequences(self) -> list[Sequence]:
+        return [self.load(p) for p in self.training]
+
+
+# ---------------------------------------------------------------------------------------------- definitions
+_BOREAS_MAP = RouteDef("boreas-map")
+_BOREAS_QUERY = RouteDef("boreas-query")
+_LOOP = RouteDef("loop", seed=11, laps=3, block_m=(90.0, 160.0), n_blocks=3)
+_OFFROAD = RouteDef("loop", seed=21, laps=1, block_m=(250.0, 400.0), n_blocks=2)
+_SMOKE = RouteDef("loop", seed=3, laps=1, block_m=(50.0, 70.0), n_blocks=2)
+
+SUITES: dict[str, SuiteDef] = {
+    "smoke": SuiteDef(
+        "smoke", "tiny two-traversal loop for tests (boreas format, 20 + 20 scans)",
+        preset="boreas", layout="boreas", profile="urban", world_seed=3, road_routes=(_SMOKE,),
+        sequences=(
+            SequenceDef("database", "database", _SMOKE, traversal_seed=31, condition="clear", every=8,
+                        limit=20),
+            SequenceDef("query", "query", replace(_SMOKE, lateral_m=1.5), traversal_seed=32,
+                        condition="snow_cover", every=8, limit=20, offset=4),
+        ),
+    ),
+    "boreas-sim": SuiteDef(
+        "boreas-sim", "real Boreas route: map 2021-08-05 clear, queries 2021-09-02 snow_cover / falling_snow",
+        preset="boreas", layout="boreas", profile="urban", world_seed=2021,
+        road_routes=(_BOREAS_MAP, _BOREAS_QUERY),
+        sequences=(
+            SequenceDef("2021-08-05-clear", "database", _BOREAS_MAP, traversal_seed=805, condition="clear",
+                        every=8),
+            SequenceDef("2021-09-02-snow_cover", "query", _BOREAS_QUERY, traversal_seed=902,
+                        condition="snow_cover", every=8),
+            SequenceDef("2021-09-02-falling_snow", "query", _BOREAS_QUERY, traversal_seed=903,
+                        condition="falling_snow", every=8, offset=4),
+        ),
+    ),
+    "loop-sim": SuiteDef(
+        "loop-sim", "single session, three laps of a street grid: lap 1 = database, laps 2-3 = queries",
+        preset="mulran", layout="mulran", profile="urban", world_seed=11, road_routes=(_LOOP,),
+        sequences=(
+            SequenceDef("lap1", "database", replace(_LOOP, time_fraction=(0.0, 1 / 3)), traversal_seed=111,
+                        every=3),
+            SequenceDef("laps2-3", "query", replace(_LOOP, time_fraction=(1 / 3, 1.0)), traversal_seed=111,
+                        every=3),
+        ),
+        single_session=True,
+    ),
+    "offroad-sim": SuiteDef(
+        "offroad-sim", "OORD-like off-road route: map drive clear, query drive another day in rain",
+        preset="oord", layout="oxford", profile="offroad", world_seed=21, road_routes=(_OFFROAD,),
+        sequences=(
+            SequenceDef("day1-clear", "database", _OFFROAD, traversal_seed=211, every=5),
+            SequenceDef("day2-rain", "query", replace(_OFFROAD, lateral_m=0.8, speed_seed=2),
+                        traversal_seed=212, condition="rain", every=5, offset=2),
+        ),
+        radius_m=25.0,
+    ),
+    # ------------------------------------------------------------------------------ training splits
+    "train-target-boreas": SuiteDef(
+        "train-target-boreas", "third traversal of the Boreas route (2021-08-05 shifted 2 m left, own seed)",
+        preset="boreas", layout="boreas", profile="urban", world_seed=2021,
+        road_routes=(_BOREAS_MAP, _BOREAS_QUERY),
+        sequences=(
+            SequenceDef("2021-08-05-lane2-snow_cover", "train", replace(_BOREAS_MAP, lateral_m=2.0),
+                        traversal_seed=8051, condition="snow_cover", every=6),
+        ),
+    ),
+    "train-target-loop": SuiteDef(
+        "train-target-loop", "another session on the loop-sim street grid (other speeds, own seed, rain)",
+        preset="mulran", layout="mulran", profile="urban", world_seed=11, road_routes=(_LOOP,),
+        sequences=(
+            SequenceDef("session2", "train", replace(_LOOP, speed_seed=7, lateral_m=-1.0), traversal_seed=112,
+                        condition="rain", every=3),
+        ),
+        single_session=True,
+    ),
+    "train-target-offroad": SuiteDef(
+        "train-target-offroad", "third drive on the off-road route (falling snow)",
+        preset="oord", layout="oxford", profile="offroad", world_seed=21, road_routes=(_OFFROAD,),
+        sequences=(
+            SequenceDef("day3-falling_snow", "train", replace(_OFFROAD, lateral_m=-0.8, speed_seed=3),
+                        traversal_seed=213, condition="falling_snow", every=4),
+        ),
+        radius_m=25.0,
+    ),
+}
+
+
+def _train_source() -> SuiteDef:
+    seqs = []
+    plan = [("urban", "clear"), ("urban", "rain"), ("offroad", "clear"), ("urban", "snow_cover"),
+            ("urban", "falling_snow"), ("offroad", "rain")]
+    for k, (profile, cond) in enumerate(plan):
+        route = RouteDef("loop", seed=500 + k, laps=2, block_m=(60.0, 110.0), n_blocks=2)
+        seqs.append(SequenceDef(f"src{k}-{profile}-{cond}", "train", route, traversal_seed=5000 + k,
+                                condition=cond, every=2, limit=300))
+    # each source sequence lives in its own world: the profile is per sequence, encoded in the name
+    return SuiteDef("train-source", "synthetic looped routes in six other worlds, mixed profiles and conditions",
+                    preset="boreas", layout="boreas", profile="mixed", world_seed=500, road_routes=(),
+                    sequences=tuple(seqs))
+
+
+SUITES["train-source"] = _train_source()
+
+
+def suite_names() -> list[str]:
+    return sorted(SUITES)
+
+
+# ---------------------------------------------------------------------------------------------- rendering
+@lru_cache(maxsize=16)
+def _loop_drive(route_seed: int, laps: int, block_m: tuple[float, float], n_blocks: int,
+                speed_seed: int) -> PoseSequence:
+    wp = synthetic_loop_route(route_seed, block_m=block_m, n_blocks=n_blocks, laps=laps)
+    return drive_route(wp, seed=route_seed * 1000 + speed_seed,
+                       start_time_us=1_600_000_000_000_000 + speed_seed * 86_400_000_000)
+
+
+def _route_trajectory(route: RouteDef, traj_dir: Path | None) -> PoseSequence:
+    if route.kind in ("boreas-map", "boreas-query"):
+        folder = boreas_trajectory_dir(traj_dir)
+        f = folder / (BOREAS_MAP_FILE if route.kind == "boreas-map" else BOREAS_QUERY_FILE)
+        if not f.is_file():
+            raise DatasetError(
+                f"{f}: real Boreas trajectory not found; pass trajectory_dir=..., set ${TRAJECTORY_DIR_ENV}, "
+                "or use a suite that needs no real data (smoke, loop-sim, offroad-sim)"
+            )
+        traj = load_trajectory(f)
+    elif route.kind == "loop":
+        traj = _loop_drive(route.seed, route.laps, route.block_m, route.n_blocks, route.speed_seed)
+    else:
+        raise ConfigError(f"unknown route kind {route.kind!r}")
+    if route.lateral_m:
+        traj = offset_trajectory(traj, route.lateral_m)
+    return traj
+
+
+def _world_for(suite: SuiteDef, seq: SequenceDef, traj_dir: Path | None) -> World:
+    if suite.profile == "mixed":  # train-source: one world per sequence, from its own route
+        profile = seq.name.split("-")[1]
+        road = RoadNetwork([_route_trajectory(replace(seq.route, lateral_m=0.0, speed_seed=0), traj_dir).xy])
+        return World(road, seed=suite.world_seed + seq.route.seed, profile=profile)
+    return _shared_world(suite.name, traj_dir)
+
+
+@lru_cache(maxsize=4)
+def _shared_world(suite_name: str, traj_dir: Path | None) -> World:
+    suite = SUITES[suite_name]
+    road = RoadNetwork([_route_trajectory(replace(r, lateral_m=0.0), traj_dir).xy for r in suite.road_routes])
+    return World(road, seed=suite.world_seed, profile=suite.profile)
+
+
+def _sequence_times(traj: PoseSequence, seq: SequenceDef, use_pose_times: bool) -> tuple[np.ndarray, np.ndarray]:
+    all_t = scan_times(traj, every=1, use_pose_times=use_pose_times)
+    t0, t1 = traj.timestamps_us[0], traj.timestamps_us[-1]
+    lo = t0 + seq.route.time_fraction[0] * (t1 - t0)
+    hi = t0 + seq.route.time_fraction[1] * (t1 - t0)
+    idx = np.nonzero((all_t >= lo) & (all_t < hi))[0]
+    idx = idx[seq.offset::seq.every]
+    if seq.limit is not None:
+        idx = idx[: seq.limit]
+    return all_t[idx], idx
+
+
+def build_suite(name: str, root: str | Path | None = None, progress: bool = True,
+                every: int | None = None, limit: int | None = None, trajectory_dir: str | Path | None = None,
+                config: SensorConfig = SensorConfig()) -> SuiteData:
+    """Render (if missing) and return suite ``name``.
+
+    Args:
+        name: one of ``SUITES``.
+        root: output folder; default ``cache_dir("sim", name)``. ``every``/``limit`` overrides go into a
+            sub-folder name so differently sized renders never mix.
+        progress: show progress bars.
+        every: override every sequence's frame step.
+        limit: cap every sequence's scan count.
+        trajectory_dir: folder of the real Boreas trajectories (boreas suites); see ``boreas_trajectory_dir``.
+        config: sensor model.
+
+    Raises:
+        ConfigError: unknown suite. DatasetError: real trajectories missing for a Boreas suite.
+    """
+    if name not in SUITES:
+        raise ConfigError(f"unknown suite {name!r}; choose one of {suite_names()}")
+    suite = SUITES[name]
+    if root is None:
+        tag = "" if every is None and limit is None else f"every{every or 'def'}-limit{limit or 'all'}"
+        root = cache_dir("sim", name, tag) if tag else cache_dir("sim", name)
+    root = Path(root)
+    traj_dir = Path(trajectory_dir) if trajectory_dir is not None else None
+    data = SuiteData(name, root, suite.preset, suite.layout, suite.radius_m, single_session=suite.single_session)
+    for seq in suite.sequences:
+        if every is not None or limit is not None:
+            seq = replace(seq, every=every or seq.every, limit=limit if limit is not None else seq.limit)
+        out = root / seq.name
+        if not is_complete(out):
+            traj = _route_trajectory(seq.route, traj_dir)
+            world = _world_for(suite, seq, traj_dir)
+            traversal = Traversal(world, seq.traversal_seed, seq.condition)
+            times, idx = _sequence_times(traj, seq, use_pose_times=seq.route.kind != "loop")
+            render_sequence(out, traversal, traj, times, idx, suite.preset, suite.layout, config, progress,
+                            meta={"suite": name, "sequence": seq.name, "role": seq.role},
+                            desc=f"{name}/{seq.name}")
+        if seq.role == "database":
+            data.database.append(out)
+        elif seq.role == "query":
+            data.queries.append(out)
+            data.query_conditions.append(seq.condition)
+        else:
+            data.training.append(out)
+    return data

@@ -1,0 +1,142 @@
+"""Trajectories for the simulator: real pose files, lateral offsets / time shifts, synthetic looped routes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from reradar_core.errors import ConfigError
+from reradar_core.io.poses import PoseSequence, read_poses
+from reradar_core.sim.world import stable_seed
+
+__all__ = [
+    "load_trajectory",
+    "offset_trajectory",
+    "synthetic_loop_route",
+    "drive_route",
+    "scan_times",
+]
+
+
+def load_trajectory(path: str | Path) -> PoseSequence:
+    """Read any pose file ``read_poses`` understands (Boreas radar_poses.csv, MulRan, t,x,y,yaw CSV)."""
+    return read_poses(path).sorted()
+
+
+def offset_trajectory(traj: PoseSequence, lateral_m: float = 0.0, time_shift_us: int = 0) -> PoseSequence:
+    """The same drive shifted ``lateral_m`` to the vehicle's left (another lane) and in time."""
+    n = np.stack([-np.sin(traj.yaw), np.cos(traj.yaw)], axis=1)
+    return PoseSequence(traj.timestamps_us + int(time_shift_us), traj.xy + lateral_m * n, traj.yaw)
+
+
+def drive_route(waypoints: np.ndarray, seed: int, start_time_us: int = 1_600_000_000_000_000,
+                speed_mps: tuple[float, float] = (6.0, 12.0), rate_hz: float = 20.0,
+                corner_radius_m: float = 8.0) -> PoseSequence:
+    """Drive along a waypoint polyline with rounded corners and a smoothly varying speed (plus short stops).
+
+    Args:
+        waypoints: (N, 2) metres.
+        seed: speed profile seed.
+        start_time_us: time of the first pose.
+        speed_mps: range of cruise speeds.
+        rate_hz: pose rate of the output.
+        corner_radius_m: corner rounding (Chaikin cuts), metres.
+
+    Returns:
+        PoseSequence with yaw along the direction of travel.
+    """
+    wp = np.asarray(waypoints, dtype=np.float64)
+    if len(wp) < 2:
+        raise ConfigError("a route needs at least two waypoints")
+    # corner cutting
+    line = wp
+    for _ in range(4):
+        a, b = line[:-1], line[1:]
+        seg = np.linalg.norm(b - a, axis=1, keepdims=True)
+        frac = np.minimum(0.25, corner_radius_m / np.maximum(seg, 1e-9) / 2)
+        q = a + frac * (b - a)
+        r = b - frac * (b - a)
+        line = np.concatenate([line[:1], np.stack([q, r], axis=1).reshape(-1, 2), line[-1:]])
+    d = np.linalg.norm(np.diff(line, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(d)])
+    rng = np.random.default_rng(stable_seed(seed, "speed"))
+    # speed: smooth random profile over arc length; slow down in curves; occasional stops
+    knots = np.arange(0, s[-1] + 100, 100.0)
+    v_knots = rng.uniform(*speed_mps, len(knots))
+    dt = 1.0 / rate_hz
+    t_list, s_list = [0.0], [0.0]
+    stops = set(np.nonzero(rng.random(len(knots)) < 0.08)[0].tolist())
+    cur_s, cur_t, last_knot = 0.0, 0.0, 0
+    while cur_s < s[-1]:
+        k = int(cur_s // 100.0)
+        if k in stops and k != last_knot:
+            last_knot = k
+            for _ in range(int(rng.uniform(2, 6) / dt)):  # a 2-6 s stop
+                cur_t += dt
+                t_list.append(cur_t)
+                s_list.append(cur_s)
+        v = float(np.interp(cur_s, knots, v_knots))
+        cur_s = min(s[-1], cur_s + v * dt)
+        cur_t += dt
+        t_list.append(cur_t)
+        s_list.append(cur_s)
+    t = np.asarray(t_list)
+    sa = np.asarray(s_list)
+    x = np.interp(sa, s, line[:, 0])
+    y = np.interp(sa, s, line[:, 1])
+    # heading from the path tangent at each arc position (stable while stopped)
+    eps = 0.5
+    x2 = np.interp(np.minimum(sa + eps, s[-1]), s, line[:, 0]) - np.interp(np.maximum(sa - eps, 0), s, line[:, 0])
+    y2 = np.interp(np.minimum(sa + eps, s[-1]), s, line[:, 1]) - np.interp(np.maximum(sa - eps, 0), s, line[:, 1])
+    yaw = np.arctan2(y2, x2)
+    return PoseSequence(start_time_us + np.round(t * 1e6).astype(np.int64), np.column_stack([x, y]), yaw)
+
+
+def synthetic_loop_route(seed: int, block_m: tuple[float, float] = (70.0, 140.0), n_blocks: int = 3,
+                         laps: int = 2, origin: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """Waypoints of a route around a small street grid that is driven ``laps`` times (revisits for the
+    single-session protocol): a rectangular circuit with an inner cross street taken on alternate laps.
+
+    Returns:
+        (N, 2) waypoints, metres.
+    """
+    rng = np.random.default_rng(stable_seed(seed, "route"))
+    widths = rng.uniform(*block_m, n_blocks)
+    heights = rng.uniform(*block_m, 2)
+    xs = np.concatenate([[0.0], np.cumsum(widths)]) + origin[0]
+    ys = np.concatenate([[0.0], np.cumsum(heights)]) + origin[1]
+    outer = [(xs[0], ys[0]), (xs[-1], ys[0]), (xs[-1], ys[-1]), (xs[0], ys[-1])]
+    pts: list[tuple[float, float]] = []
+    for lap in range(laps):
+        if lap % 2 == 0:
+            pts += outer
+        else:
+            # figure-eight-ish: go along the middle street, then around
+            k = int(rng.integers(1, n_blocks))
+            pts += [(xs[0], ys[0]), (xs[k], ys[0]), (xs[k], ys[1]), (xs[-1], ys[1]), (xs[-1], ys[-1]),
+                    (xs[0], ys[-1])]
+    pts.append(pts[0])
+    return np.asarray(pts, dtype=np.float64)
+
+
+def scan_times(traj: PoseSequence, sweep_period_s: float = 0.25, every: int = 1, limit: int | None = None,
+               use_pose_times: bool = True) -> np.ndarray:
+    """Scan start times (first azimuth), microseconds.
+
+    With ``use_pose_times`` (real 4 Hz radar pose files) the pose timestamps themselves are the scan times
+    (one pose per scan); otherwise scans tile the trajectory's time span at the sweep period. Every
+    ``every``-th scan is kept, at most ``limit`` of them; a full sweep must fit before the last pose.
+    """
+    if every < 1:
+        raise ConfigError(f"every must be >= 1, got {every}")
+    t = traj.timestamps_us
+    period = int(round(sweep_period_s * 1e6))
+    if use_pose_times:
+        times = t[t + period <= t[-1]]
+    else:
+        times = np.arange(t[0], t[-1] - period, period, dtype=np.int64)
+    times = times[::every]
+    if limit is not None:
+        times = times[:limit]
+    return times

@@ -1,0 +1,151 @@
+"""Per-traversal state: weather condition, season, parked cars that came or went, moving traffic, snow banks.
+
+A traversal is one drive through a ``World``. Two traversals of one world share every static structure;
+what a real revisit changes is drawn here from the traversal seed, deterministically.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from reradar_core.errors import ConfigError
+from reradar_core.sim.world import Primitives, World, _hash_uniform, car_segments, stable_seed
+
+__all__ = ["CONDITIONS", "Condition", "Traversal", "get_condition"]
+
+
+@dataclass(frozen=True)
+class Condition:
+    """Weather / season effects on the radar image.
+
+    Attributes:
+        name: ``clear``, ``rain``, ``snow_cover`` or ``falling_snow``.
+        noise_floor_db: added to the receiver noise floor, dB.
+        attenuation_db_per_km: one-way atmospheric attenuation (two-way applied), dB/km.
+        volume_clutter_per_m2: random per-scan backscatter points (rain drops / snow flakes) within 60 m.
+        volume_clutter_rcs: their median cross-section.
+        leaf_factor: scales foliage returns (0.35 = bare winter trees); canopy transparency rises with it.
+        snow_banks: ploughed snow banks along the kerbs.
+        ground_factor: scales diffuse ground backscatter (wet asphalt brighter, snow-covered ground smoother).
+    """
+
+    name: str
+    noise_floor_db: float = 0.0
+    attenuation_db_per_km: float = 0.0
+    volume_clutter_per_m2: float = 0.0
+    volume_clutter_rcs: float = 0.0
+    leaf_factor: float = 1.0
+    snow_banks: bool = False
+    ground_factor: float = 1.0
+
+
+CONDITIONS: dict[str, Condition] = {
+    "clear": Condition("clear"),
+    "rain": Condition("rain", noise_floor_db=2.5, attenuation_db_per_km=10.0, volume_clutter_per_m2=0.03,
+                      volume_clutter_rcs=0.02, leaf_factor=1.1, ground_factor=1.4),
+    "snow_cover": Condition("snow_cover", noise_floor_db=1.0, attenuation_db_per_km=2.0, leaf_factor=0.35,
+                            snow_banks=True, ground_factor=0.6),
+    "falling_snow": Condition("falling_snow", noise_floor_db=4.0, attenuation_db_per_km=12.0,
+                              volume_clutter_per_m2=0.06, volume_clutter_rcs=0.03, leaf_factor=0.35,
+                              snow_banks=True, ground_factor=0.6),
+}
+
+
+def get_condition(name: str | Condition) -> Condition:
+    if isinstance(name, Condition):
+        return name
+    try:
+        return CONDITIONS[name]
+    except KeyError:
+        raise ConfigError(f"unknown weather condition {name!r}; choose one of {sorted(CONDITIONS)}") from None
+
+
+class Traversal:
+    """One drive through ``world`` with its own seed and condition.
+
+    Args:
+        world: the persistent world.
+        seed: traversal seed (traffic, parked cars, foliage, per-scan noise).
+        condition: weather condition name or ``Condition``.
+        traffic_per_km: moving vehicles per km of road.
+    """
+
+    #: Fraction of parked-car slots holding a long-term parked car (same on every traversal) and the
+    #: probability that any other slot is occupied on a given traversal.
+    PERSISTENT_CAR_FRACTION = 0.35
+    TRANSIENT_CAR_PROB = 0.3
+
+    def __init__(self, world: World, seed: int, condition: str | Condition = "clear", traffic_per_km: float = 12.0):
+        self.world = world
+        self.seed = int(seed)
+        self.condition = get_condition(condition)
+        road = world.road
+        rng = np.random.default_rng(stable_seed(self.seed, "traffic"))
+        n = max(1, int(len(road.points) * road.spacing_m / 1000.0 * traffic_per_km))
+        self._veh_idx0 = rng.uniform(0, len(road.points), n)
+        self._veh_speed = rng.uniform(4.0, 14.0, n) * rng.choice([-1.0, 1.0], n)
+        self._veh_lane = np.where(self._veh_speed > 0, -1.0, 1.0) * world.profile.road_half_width_m * 0.4
+        self._veh_size = np.column_stack([rng.uniform(4.2, 12.0, n), rng.uniform(1.8, 2.6, n)])
+        self._veh_size[rng.random(n) < 0.8] = (4.6, 1.85)  # mostly cars, some buses / trucks
+
+    def parked_cars(self, prim: Primitives) -> np.ndarray:
+        """(C, 3) x, y, yaw of the parked cars present on this traversal among ``prim``'s slots."""
+        if len(prim.car_ids) == 0:
+            return np.zeros((0, 3))
+        persistent = _hash_uniform(prim.car_ids, 0x51A7) < self.PERSISTENT_CAR_FRACTION
+        today = _hash_uniform(prim.car_ids, stable_seed(self.seed, "parked")) < self.TRANSIENT_CAR_PROB
+        return prim.car_slots[persistent | today]
+
+    def moving_vehicles(self, t_s: float, center_xy: np.ndarray, radius_m: float,
+                        ego_clearance_m: float = 7.0) -> np.ndarray:
+        """(V, 5) x, y, yaw, length, width of moving vehicles near ``center_xy`` at time ``t_s``."""
+        road = self.world.road
+        n_road = len(road.points)
+        idx = np.mod(self._veh_idx0 + self._veh_speed * t_s / road.spacing_m, n_road - 1)
+        i = idx.astype(np.int64)
+        p = road.points[i]
+        near = np.hypot(*(p - center_xy).T)
+        ok = (near < radius_m) & (near > ego_clearance_m)
+        if not np.any(ok):
+            return np.zeros((0, 5))
+        i, p = i[ok], p[ok]
+        tan = road.tangents[i]
+        nrm = np.stack([-tan[:, 1], tan[:, 0]], axis=1)
+        xy = p + self._veh_lane[ok, None] * nrm
+        yaw = np.arctan2(tan[:, 1], tan[:, 0]) + np.where(self._veh_speed[ok] < 0, np.pi, 0.0)
+        return np.column_stack([xy, yaw, self._veh_size[ok]])
+
+    def dynamic_primitives(self, t_s: float, center_xy: np.ndarray, radius_m: float,
+                           static: Primitives) -> Primitives:
+        """Traversal-specific geometry near ``center_xy``: parked cars, moving vehicles, snow banks."""
+        out = Primitives()
+        cars = self.parked_cars(static)
+        if len(cars):
+            out.add_segments(car_segments(cars), 4.0, 0.0, 0.5)
+        veh = self.moving_vehicles(t_s, center_xy, radius_m)
+        if len(veh):
+            from reradar_core.sim.world import rectangle_segments
+
+            segs = np.concatenate([rectangle_segments(x, y, ln, wd, yaw) for x, y, yaw, ln, wd in veh])
+            out.add_segments(segs, 4.0, 0.0, 0.5)
+        if self.condition.snow_banks and self.world.profile.kerb_reflectivity > 0:
+            road = self.world.road
+            idx = np.asarray(road.tree.query_ball_point(center_xy, radius_m), dtype=np.int64)
+            if len(idx):
+                idx = idx[idx + 1 < len(road.points)]
+                idx = idx[road.chain[idx] == road.chain[idx + 1]]
+                w = self.world.profile.road_half_width_m + 0.3
+                for side in (1.0, -1.0):
+                    present = _hash_uniform(idx.astype(np.uint64) * np.uint64(2) + np.uint64(side > 0),
+                                            stable_seed(self.seed, "snowbank")) < 0.7
+                    j = idx[present]
+                    tan_a, tan_b = road.tangents[j], road.tangents[j + 1]
+                    na = np.stack([-tan_a[:, 1], tan_a[:, 0]], axis=1)
+                    nb = np.stack([-tan_b[:, 1], tan_b[:, 0]], axis=1)
+                    seg = np.concatenate([road.points[j] + side * w * na, road.points[j + 1] + side * w * nb], axis=1)
+                    d, _ = road.nearest(0.5 * (seg[:, :2] + seg[:, 2:]))
+                    seg = seg[d > w - 0.8]
+                    out.add_segments(seg, 0.6, 0.6, 1.0, low=True)
+        return out

@@ -1,0 +1,522 @@
+"""A persistent, tile-based 2-D radar world laid out around a road network.
+
+The world is a function of (world seed, profile, road network) only: tile (ix, iy) is generated from a random
+generator seeded with those three and the tile index, so any traversal of the same roads sees the same
+buildings, walls, poles and trees, and the world can be arbitrarily long (tiles are generated lazily and
+cached). Per-traversal changes (parked cars that came or went, seasonal foliage, snow banks, moving traffic)
+are applied on top by ``Traversal`` from a traversal seed.
+
+Geometry primitives (world frame, metres):
+
+- segments ``(S, 4)`` x0, y0, x1, y1 with reflectivity (linear, relative radar cross-section per hit),
+  one-way transmission (0 = opaque wall, 1 = no occlusion; vegetation and fences in between) and roughness
+  (1 = diffuse, returns at any incidence; 0 = specular, returns only near normal incidence).
+- discs ``(D, 3)`` x, y, radius: occluders with transmission (tree canopies), hit surface returns.
+- points ``(P, 2)`` with a radar cross-section: poles, sign posts, leaves, ground clutter; not occluders.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from reradar_core.errors import ConfigError
+
+__all__ = [
+    "PROFILES",
+    "Primitives",
+    "RoadNetwork",
+    "World",
+    "WorldProfile",
+    "stable_seed",
+]
+
+_MASK64 = (1 << 64) - 1
+#: One-way transmission of building outlines: real scans show taller structures behind low façades.
+BUILDING_TRANSMISSION = 0.05
+
+
+def stable_seed(*parts: int | str) -> int:
+    """A 63-bit seed from integers / strings, stable across runs and platforms (no Python ``hash``)."""
+    h = 0x9E3779B97F4A7C15
+    for p in parts:
+        if isinstance(p, str):
+            vals = [b for b in p.encode()]
+        else:
+            vals = [int(p) & _MASK64]
+        for v in vals:
+            h ^= v + 0x9E3779B97F4A7C15 + ((h << 6) & _MASK64) + (h >> 2)
+            h &= _MASK64
+            h = (h * 0xBF58476D1CE4E5B9) & _MASK64
+            h ^= h >> 31
+    return h & ((1 << 63) - 1)
+
+
+def _hash_uniform(ids: np.ndarray, salt: int) -> np.ndarray:
+    """Deterministic uniform [0, 1) per uint64 id and salt (splitmix64), vectorised."""
+    with np.errstate(over="ignore"):
+        z = ids.astype(np.uint64) ^ np.uint64(salt & _MASK64)
+        z = z + np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        z = z ^ (z >> np.uint64(31))
+    return (z >> np.uint64(11)).astype(np.float64) / float(1 << 53)
+
+
+@dataclass(frozen=True)
+class WorldProfile:
+    """Densities and materials of one kind of environment. Densities are per 100 m of road or per hectare."""
+
+    name: str
+    road_half_width_m: float = 6.0
+    building_prob_per_tile: float = 1.6      # mean buildings per 40 m tile near roads
+    building_far_prob: float = 1.2           # mean buildings per tile far (> 45 m) from roads
+    wall_per_tile: float = 0.8
+    fence_per_tile: float = 0.8
+    pole_spacing_m: float = 9.0
+    street_tree_prob: float = 0.35           # per 8 m of roadside
+    tree_per_tile: float = 1.0               # free-standing trees / bushes per tile
+    hedge_per_tile: float = 0.5
+    guard_rail_prob: float = 0.15            # per tile side
+    parked_car_slot_prob: float = 0.5        # per 6.5 m of kerb
+    ground_clutter_per_m2: float = 0.12
+    ground_clutter_rcs: float = 0.02
+    terrain_ridges_per_tile: float = 0.0     # off-road: rough terrain slopes
+    kerb_reflectivity: float = 0.25
+
+
+PROFILES: dict[str, WorldProfile] = {
+    "urban": WorldProfile("urban"),
+    "offroad": WorldProfile(
+        "offroad", road_half_width_m=3.5, building_prob_per_tile=0.05, building_far_prob=0.02,
+        wall_per_tile=0.05, fence_per_tile=0.3, pole_spacing_m=150.0, street_tree_prob=0.25,
+        tree_per_tile=4.0, hedge_per_tile=1.2, guard_rail_prob=0.0, parked_car_slot_prob=0.0,
+        ground_clutter_per_m2=0.25, ground_clutter_rcs=0.035, terrain_ridges_per_tile=3.0,
+        kerb_reflectivity=0.0,
+    ),
+}
+
+
+@dataclass
+class Primitives:
+    """World geometry in one area (see the module docstring for the arrays' meaning)."""
+
+    seg: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    seg_refl: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    seg_trans: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    seg_rough: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    seg_low: np.ndarray = field(default_factory=lambda: np.zeros(0))  # 1 = at ground level (kerb, bank)
+    disc: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    disc_refl: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    disc_trans: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    pts: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    pts_rcs: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    pts_kind: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int8))  # 0 hard, 1 leaf, 2 ground
+    # parked car slots: (C, 3) x, y, yaw and a persistent id each
+    car_slots: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    car_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.uint64))
+
+    @staticmethod
+    def concat(parts: list[Primitives]) -> Primitives:
+        out = Primitives()
+        if not parts:
+            return out
+        for name in out.__dataclass_fields__:
+            setattr(out, name, np.concatenate([getattr(p, name) for p in parts], axis=0))
+        return out
+
+    def add_segments(self, seg: np.ndarray, refl: np.ndarray | float, trans: np.ndarray | float,
+                     rough: np.ndarray | float, low: bool = False) -> None:
+        seg = np.asarray(seg, dtype=np.float64).reshape(-1, 4)
+        n = len(seg)
+        self.seg = np.concatenate([self.seg, seg])
+        self.seg_refl = np.concatenate([self.seg_refl, np.broadcast_to(refl, (n,))])
+        self.seg_trans = np.concatenate([self.seg_trans, np.broadcast_to(trans, (n,))])
+        self.seg_rough = np.concatenate([self.seg_rough, np.broadcast_to(rough, (n,))])
+        self.seg_low = np.concatenate([self.seg_low, np.full(n, 1.0 if low else 0.0)])
+
+    def add_points(self, xy: np.ndarray, rcs: np.ndarray | float, kind: int) -> None:
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        n = len(xy)
+        self.pts = np.concatenate([self.pts, xy])
+        self.pts_rcs = np.concatenate([self.pts_rcs, np.broadcast_to(rcs, (n,))])
+        self.pts_kind = np.concatenate([self.pts_kind, np.full(n, kind, dtype=np.int8)])
+
+    def add_discs(self, disc: np.ndarray, refl: np.ndarray | float, trans: np.ndarray | float) -> None:
+        disc = np.asarray(disc, dtype=np.float64).reshape(-1, 3)
+        n = len(disc)
+        self.disc = np.concatenate([self.disc, disc])
+        self.disc_refl = np.concatenate([self.disc_refl, np.broadcast_to(refl, (n,))])
+        self.disc_trans = np.concatenate([self.disc_trans, np.broadcast_to(trans, (n,))])
+
+
+def rectangle_segments(cx: float, cy: float, length: float, width: float, yaw: float) -> np.ndarray:
+    """(4, 4) segments of a rectangle centred at (cx, cy), ``length`` along ``yaw``."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    hl, hw = length / 2, width / 2
+    corners = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]])
+    xy = corners @ np.array([[c, s], [-s, c]]) + [cx, cy]
+    return np.concatenate([xy, np.roll(xy, -1, axis=0)], axis=1)
+
+
+def car_segments(slots: np.ndarray) -> np.ndarray:
+    """(C, 3) x, y, yaw -> (4C, 4) outline segments of 4.6 m x 1.85 m cars."""
+    if len(slots) == 0:
+        return np.zeros((0, 4))
+    return np.concatenate([rectangle_segments(x, y, 4.6, 1.85, yaw) for x, y, yaw in slots])
+
+
+class RoadNetwork:
+    """Road centrelines sampled every ``spacing_m`` with tangents; repeated passes are merged.
+
+    Args:
+        polylines: list of (N, 2) world-frame xy arrays (e.g. trajectories).
+        spacing_m: resampling step along each polyline.
+        merge_radius_m: samples closer than this to an earlier kept sample of another pass are dropped, so
+            a road driven twice is one road.
+    """
+
+    def __init__(self, polylines: list[np.ndarray], spacing_m: float = 2.0, merge_radius_m: float = 4.0):
+        pts, tans, chain = [], [], []
+        kept_tree: cKDTree | None = None
+        kept: list[np.ndarray] = []
+        chain_id = 0
+        for line in polylines:
+            line = np.asarray(line, dtype=np.float64).reshape(-1, 2)
+            rs = _resample(line, spacing_m)
+            if len(rs) < 2:
+                continue
+            tan = np.gradient(rs, axis=0)
+            tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-9)
+            # Drop samples that revisit an already-kept road (within this pass too, beyond 30 m of arc).
+            keep = np.ones(len(rs), dtype=bool)
+            own = cKDTree(rs)
+            pairs = own.query_pairs(merge_radius_m, output_type="ndarray")
+            if len(pairs):
+                far = np.abs(pairs[:, 0] - pairs[:, 1]) * spacing_m > 30.0
+                later = np.maximum(pairs[far, 0], pairs[far, 1])
+                keep[later] = False
+            if kept_tree is not None:
+                d, _ = kept_tree.query(rs, distance_upper_bound=merge_radius_m)
+                keep &= ~np.isfinite(d)
+            # a new chain id after every gap so kerbs are not drawn across dropped stretches
+            breaks = np.concatenate([[True], ~keep[:-1]])
+            ids = chain_id + np.cumsum(breaks & keep)
+            chain_id = int(ids.max()) + 1
+            pts.append(rs[keep])
+            tans.append(tan[keep])
+            chain.append(ids[keep])
+            kept.append(rs[keep])
+            kept_tree = cKDTree(np.concatenate(kept))
+        if not pts:
+            raise ConfigError("road network needs at least one polyline with two distinct points")
+        self.points = np.concatenate(pts)
+        self.tangents = np.concatenate(tans)
+        self.chain = np.concatenate(chain)
+        self.spacing_m = spacing_m
+        self.tree = cKDTree(self.points)
+
+    def nearest(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance to and index of the nearest road sample for (N, 2) points."""
+        d, i = self.tree.query(np.asarray(xy).reshape(-1, 2))
+        return d, i
+
+
+def _resample(line: np.ndarray, step: float) -> np.ndarray:
+    d = np.linalg.norm(np.diff(line, axis=0), axis=1)
+    keep = np.concatenate([[True], d > 1e-6])
+    line = line[keep]
+    if len(line) < 2:
+        return line
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
+    q = np.arange(0.0, s[-1], step)
+    return np.stack([np.interp(q, s, line[:, 0]), np.interp(q, s, line[:, 1])], axis=1)
+
+
+class World:
+    """Deterministic tile-based world around ``road``.
+
+    Args:
+        road: the road network (shared by every traversal of this world).
+        seed: world seed.
+        profile: ``urban`` / ``offroad`` or a ``WorldProfile``.
+        tile_m: tile side, metres.
+        cache_tiles: how many generated tiles to keep in memory.
+    """
+
+    def __init__(self, road: RoadNetwork, seed: int = 0, profile: str | WorldProfile = "urban",
+                 tile_m: float = 40.0, cache_tiles: int = 6000):
+        if isinstance(profile, str):
+            if profile not in PROFILES:
+                raise ConfigError(f"unknown world profile {profile!r}; choose one of {sorted(PROFILES)}")
+            profile = PROFILES[profile]
+        self.road = road
+        self.seed = int(seed)
+        self.profile = profile
+        self.tile_m = float(tile_m)
+        self._cache: OrderedDict[tuple[int, int], Primitives] = OrderedDict()
+        self._cache_tiles = cache_tiles
+
+    def tile(self, ix: int, iy: int) -> Primitives:
+        key = (ix, iy)
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
+        prim = self._generate(ix, iy)
+        self._cache[key] = prim
+        if len(self._cache) > self._cache_tiles:
+            self._cache.popitem(last=False)
+        return prim
+
+    def query(self, center_xy: np.ndarray, radius_m: float) -> Primitives:
+        """All static primitives of tiles within ``radius_m`` of ``center_xy`` (world frame)."""
+        cx, cy = float(center_xy[0]), float(center_xy[1])
+        t = self.tile_m
+        ix0, ix1 = int(np.floor((cx - radius_m) / t)), int(np.floor((cx + radius_m) / t))
+        iy0, iy1 = int(np.floor((cy - radius_m) / t)), int(np.floor((cy + radius_m) / t))
+        parts = []
+        for ix in range(ix0, ix1 + 1):
+            for iy in range(iy0, iy1 + 1):
+                # skip tiles entirely outside the circle
+                nx = min(max(cx, ix * t), (ix + 1) * t)
+                ny = min(max(cy, iy * t), (iy + 1) * t)
+                if (nx - cx) ** 2 + (ny - cy) ** 2 <= radius_m ** 2:
+                    parts.append(self.tile(ix, iy))
+        return Primitives.concat(parts)
+
+    # ------------------------------------------------------------------ generation
+    def _generate(self, ix: int, iy: int) -> Primitives:
+        pr = self.profile
+        rng = np.random.default_rng(stable_seed(self.seed, pr.name, ix, iy))
+        t = self.tile_m
+        x0, y0 = ix * t, iy * t
+        prim = Primitives()
+        road = self.road
+        w = pr.road_half_width_m
+        # road samples inside this tile
+        in_tile = np.nonzero(
+            (road.points[:, 0] >= x0) & (road.points[:, 0] < x0 + t)
+            & (road.points[:, 1] >= y0) & (road.points[:, 1] < y0 + t)
+        )[0]
+        area_ha = (t * t) / 1e4
+
+        def far_from_road(xy: np.ndarray, clearance: float) -> np.ndarray:
+            d, _ = road.nearest(xy)
+            return d >= clearance
+
+        # --- roadside structure driven by the road samples in this tile
+        if len(in_tile):
+            p = road.points[in_tile]
+            tan = road.tangents[in_tile]
+            nrm = np.stack([-tan[:, 1], tan[:, 0]], axis=1)  # left normal
+            nxt = in_tile + 1
+            ok = (nxt < len(road.points))
+            ok[ok] &= road.chain[nxt[ok]] == road.chain[in_tile[ok]]
+            a_idx, b_idx = in_tile[ok], nxt[ok]
+            pa, pb = road.points[a_idx], road.points[b_idx]
+            na = np.stack([-road.tangents[a_idx, 1], road.tangents[a_idx, 0]], axis=1)
+            nb = np.stack([-road.tangents[b_idx, 1], road.tangents[b_idx, 0]], axis=1)
+            for side in (1.0, -1.0):
+                if pr.kerb_reflectivity > 0:
+                    kerb = np.concatenate([pa + side * w * na, pb + side * w * nb], axis=1)
+                    kerb = kerb[far_from_road(0.5 * (kerb[:, :2] + kerb[:, 2:]), w - 0.5)]
+                    # kerbs are low: they return weakly and do not block the view
+                    prim.add_segments(kerb, pr.kerb_reflectivity * rng.uniform(0.5, 1.5, len(kerb)), 0.97, 1.0, low=True)
+                if rng.random() < pr.guard_rail_prob:
+                    off = w + 0.8
+                    rail = np.concatenate([pa + side * off * na, pb + side * off * nb], axis=1)
+                    rail = rail[far_from_road(0.5 * (rail[:, :2] + rail[:, 2:]), off - 0.5)]
+                    prim.add_segments(rail, 1.5, 0.55, 0.35)
+                    prim.add_points(rail[::1, :2], 1.2, 0)  # posts every sample
+            # poles and signs
+            n_poles = rng.poisson(len(in_tile) * road.spacing_m / pr.pole_spacing_m)
+            if n_poles:
+                j = rng.integers(0, len(p), n_poles)
+                side = rng.choice([-1.0, 1.0], n_poles)
+                off = w + rng.uniform(0.4, 2.0, n_poles)
+                xy = p[j] + (side * off)[:, None] * nrm[j]
+                xy = xy[far_from_road(xy, w + 0.2)]
+                prim.add_points(xy, rng.lognormal(np.log(4.0), 0.5, len(xy)), 0)
+                prim.add_discs(np.column_stack([xy, np.full(len(xy), 0.15)]), 0.0, 0.0)
+                # a sign plate next to some poles: a short strong segment
+                sgn = xy[rng.random(len(xy)) < 0.3]
+                if len(sgn):
+                    ang = rng.uniform(0, np.pi, len(sgn))
+                    d = 0.4 * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+                    prim.add_segments(np.concatenate([sgn - d, sgn + d], axis=1), 5.0, 0.3, 0.2)
+            # street trees
+            n_st = rng.poisson(len(in_tile) * road.spacing_m / 8.0 * pr.street_tree_prob)
+            if n_st:
+                j = rng.integers(0, len(p), n_st)
+                side = rng.choice([-1.0, 1.0], n_st)
+                off = w + rng.uniform(1.5, 4.5, n_st)
+                xy = p[j] + (side * off)[:, None] * nrm[j]
+                xy = xy[far_from_road(xy, w + 1.0)]
+                self._add_trees(prim, rng, xy, rng.uniform(1.2, 3.0, len(xy)))
+            # parked car slots along the kerb, inside the road edge
+            if pr.parked_car_slot_prob > 0:
+                n_slots = rng.binomial(len(in_tile) * 2, pr.parked_car_slot_prob * road.spacing_m / 6.5)
+                if n_slots:
+                    j = rng.integers(0, len(p), n_slots)
+                    side = rng.choice([-1.0, 1.0], n_slots)
+                    xy = p[j] + (side * (w - 1.3))[:, None] * nrm[j]
+                    yaw = np.arctan2(tan[j, 1], tan[j, 0])
+                    # avoid slots too close to another road's centreline (intersections)
+                    okc = far_from_road(xy, w - 1.6)
+                    slots = np.column_stack([xy, yaw])[okc]
+                    # thin slots closer than 6 m to an earlier one
+                    keep = []
+                    for k in range(len(slots)):
+                        if all(np.hypot(*(slots[k, :2] - slots[m, :2])) > 6.0 for m in keep):
+                            keep.append(k)
+                    slots = slots[keep]
+                    prim.car_slots = np.concatenate([prim.car_slots, slots])
+                    ids = rng.integers(0, np.iinfo(np.int64).max, len(slots), dtype=np.int64).astype(np.uint64)
+                    prim.car_ids = np.concatenate([prim.car_ids, ids])
+
+        # --- buildings (rectangles with façade recesses), oriented along the nearest road
+        for far, lam in ((False, pr.building_prob_per_tile), (True, pr.building_far_prob)):
+            for _ in range(rng.poisson(lam)):
+                c = np.array([x0, y0]) + rng.uniform(0, t, 2)
+                d, i = road.nearest(c)
+                d, i = float(d[0]), int(i[0])
+                if far != (d > 45.0):
+                    continue
+                tan = road.tangents[i]
+                yaw = np.arctan2(tan[1], tan[0]) + rng.normal(0, 0.04)
+                length, depth = rng.uniform(8, 32), rng.uniform(8, 20)
+                setback = w + rng.uniform(2.5, 14.0)
+                nrm = np.array([-tan[1], tan[0]])
+                side = np.sign(np.dot(c - road.points[i], nrm)) or 1.0
+                if d < setback + depth / 2:
+                    c = road.points[i] + side * (setback + depth / 2) * nrm + rng.uniform(-t / 2, t / 2) * tan
+                segs = _building_segments(rng, c, length, depth, yaw)
+                ends = np.concatenate([segs[:, :2], 0.5 * (segs[:, :2] + segs[:, 2:])])
+                if not np.all(far_from_road(ends, w + 1.5)):
+                    continue
+                # a little transmission stands for what the elevation beam sees over low buildings
+                prim.add_segments(segs, rng.lognormal(np.log(2.0), 0.4, len(segs)), BUILDING_TRANSMISSION,
+                                  rng.uniform(0.5, 0.95, len(segs)))
+                # façade details (windows, pipes, balconies): strong points on the walls
+                n_det = int(rng.poisson(length * 1.5))
+                if n_det:
+                    k = rng.integers(0, len(segs), n_det)
+                    u = rng.uniform(0, 1, n_det)[:, None]
+                    xy = segs[k, :2] + u * (segs[k, 2:] - segs[k, :2])
+                    prim.add_points(xy, rng.lognormal(np.log(2.0), 1.0, n_det), 0)
+
+        # --- walls and fences, roughly parallel to the nearest road
+        for kind, lam in (("wall", pr.wall_per_tile), ("fence", pr.fence_per_tile)):
+            for _ in range(rng.poisson(lam)):
+                c = np.array([x0, y0]) + rng.uniform(0, t, 2)
+                d, i = road.nearest(c)
+                if d[0] < w + 1.0:
+                    continue
+                tan = road.tangents[int(i[0])]
+                ang = np.arctan2(tan[1], tan[0]) + (rng.normal(0, 0.05) if rng.random() < 0.7
+                                                    else np.pi / 2)
+                length = rng.uniform(5, 30)
+                n = max(1, int(length / 3.0))
+                u = np.linspace(-length / 2, length / 2, n + 1)
+                dirv = np.array([np.cos(ang), np.sin(ang)])
+                pts = c + u[:, None] * dirv
+                segs = np.concatenate([pts[:-1], pts[1:]], axis=1)
+                segs = segs[far_from_road(0.5 * (segs[:, :2] + segs[:, 2:]), w + 0.8)]
+                if kind == "wall":
+                    prim.add_segments(segs, rng.lognormal(np.log(1.5), 0.3), 0.0, 0.5)
+                else:
+                    prim.add_segments(segs, rng.lognormal(np.log(0.8), 0.3), 0.5, 0.9)
+                    prim.add_points(segs[:, :2], 1.0, 0)  # fence posts
+
+        # --- free-standing trees / bushes and hedges
+        n_tr = rng.poisson(pr.tree_per_tile)
+        if n_tr:
+            xy = np.array([x0, y0]) + rng.uniform(0, t, (n_tr, 2))
+            xy = xy[far_from_road(xy, w + 2.0)]
+            self._add_trees(prim, rng, xy, rng.uniform(1.0, 4.0, len(xy)))
+        for _ in range(rng.poisson(pr.hedge_per_tile)):
+            c = np.array([x0, y0]) + rng.uniform(0, t, 2)
+            ang = rng.uniform(0, np.pi)
+            length = rng.uniform(4, 20)
+            dirv = np.array([np.cos(ang), np.sin(ang)])
+            n = max(1, int(length / 2.0))
+            u = np.linspace(-length / 2, length / 2, n + 1)
+            pts = c + u[:, None] * dirv
+            segs = np.concatenate([pts[:-1], pts[1:]], axis=1)
+            segs = segs[far_from_road(0.5 * (segs[:, :2] + segs[:, 2:]), w + 1.0)]
+            prim.add_segments(segs, 0.35, 0.35, 1.0)
+            if len(segs):
+                m = int(length * 3)
+                k = rng.integers(0, len(segs), m)
+                uu = rng.uniform(0, 1, m)[:, None]
+                leaf = segs[k, :2] + uu * (segs[k, 2:] - segs[k, :2]) + rng.normal(0, 0.4, (m, 2))
+                prim.add_points(leaf, rng.lognormal(np.log(0.15), 0.8, m), 1)
+
+        # --- off-road terrain: rough slopes facing random directions (diffuse, semi-transparent)
+        for _ in range(rng.poisson(pr.terrain_ridges_per_tile)):
+            c = np.array([x0, y0]) + rng.uniform(0, t, 2)
+            if not far_from_road(c[None], w + 3.0)[0]:
+                continue
+            ang = rng.uniform(0, np.pi)
+            length = rng.uniform(8, 35)
+            n = max(2, int(length / 2.5))
+            u = np.linspace(-length / 2, length / 2, n + 1)
+            dirv = np.array([np.cos(ang), np.sin(ang)])
+            wob = np.cumsum(rng.normal(0, 0.5, n + 1))
+            pts = c + u[:, None] * dirv + wob[:, None] * np.array([-dirv[1], dirv[0]])
+            segs = np.concatenate([pts[:-1], pts[1:]], axis=1)
+            prim.add_segments(segs, rng.lognormal(np.log(0.3), 0.5, len(segs)), 0.45, 1.0, low=True)
+
+        # --- diffuse ground clutter (persistent texture), weaker on the asphalt
+        n_g = rng.poisson(pr.ground_clutter_per_m2 * t * t)
+        if n_g:
+            xy = np.array([x0, y0]) + rng.uniform(0, t, (n_g, 2))
+            d, _ = road.nearest(xy)
+            rcs = rng.lognormal(np.log(pr.ground_clutter_rcs), 1.0, n_g)
+            rcs = np.where(d < w, rcs * 0.25, rcs)
+            prim.add_points(xy, rcs, 2)
+        del area_ha
+        return prim
+
+    @staticmethod
+    def _add_trees(prim: Primitives, rng: np.random.Generator, xy: np.ndarray, radius: np.ndarray) -> None:
+        """Trees: a trunk point, a partly transparent canopy disc and leaf/branch scatterers inside it."""
+        if len(xy) == 0:
+            return
+        prim.add_points(xy, rng.lognormal(np.log(1.0), 0.4, len(xy)), 0)
+        prim.add_discs(np.column_stack([xy, radius]), 0.25, rng.uniform(0.3, 0.6, len(xy)))
+        m = (radius * radius * 6).astype(int) + 4
+        owner = np.repeat(np.arange(len(xy)), m)
+        ang = rng.uniform(0, 2 * np.pi, len(owner))
+        rad = radius[owner] * np.sqrt(rng.uniform(0, 1, len(owner)))
+        leaf = xy[owner] + rad[:, None] * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+        prim.add_points(leaf, rng.lognormal(np.log(0.12), 0.9, len(owner)), 1)
+
+
+def _building_segments(rng: np.random.Generator, c: np.ndarray, length: float, depth: float,
+                       yaw: float) -> np.ndarray:
+    """Outline of a building with door recesses / bays on its long sides, (S, 4) world segments."""
+    hl, hd = length / 2, depth / 2
+    pts: list[tuple[float, float]] = []
+    # front side (y = -hd, facing the road when rotated), from left to right with recesses
+    for side_y, xs in ((-hd, (-hl, hl)), (hd, (hl, -hl))):
+        n = int(rng.integers(1, 4))
+        cuts = np.sort(rng.uniform(xs[0], xs[1], 2 * n)) if xs[0] < xs[1] else \
+            np.sort(rng.uniform(xs[1], xs[0], 2 * n))[::-1]
+        pts.append((xs[0], side_y))
+        for k in range(n):
+            a, b = cuts[2 * k], cuts[2 * k + 1]
+            if abs(b - a) < 1.0 or rng.random() < 0.4:
+                continue
+            depth_in = rng.uniform(0.4, 1.5) * (1 if side_y < 0 else -1)
+            pts += [(a, side_y), (a, side_y + depth_in), (b, side_y + depth_in), (b, side_y)]
+        pts.append((xs[1], side_y))
+    poly = np.asarray(pts)
+    cc, ss = np.cos(yaw), np.sin(yaw)
+    world = poly @ np.array([[cc, ss], [-ss, cc]]) + c
+    segs = np.concatenate([world, np.roll(world, -1, axis=0)], axis=1)
+    length_ok = np.linalg.norm(segs[:, 2:] - segs[:, :2], axis=1) > 1e-3
+    return segs[length_ok]

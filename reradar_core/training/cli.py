@@ -1,0 +1,126 @@
+"""``reradar train``: InfoNCE training of the descriptor network on simulated (or real) sequences."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import typer
+
+from reradar_core.errors import ConfigError
+
+__all__ = ["register", "train_main"]
+
+logger = logging.getLogger(__name__)
+
+
+def train_main(name: str, sequences: list[Path], val_pairs: list[tuple[Path, Path]], *, backbone: str = "reresnet",
+               width: float = 0.5, clusters: int = 32, dim: int | None = 256, init: str | None = None,
+               lr: float | None = None, steps: int = 1500, minutes: float = 60.0, seed: int = 0,
+               threads: int = 2, out_dir: Path | None = None, run_dir: Path | None = None, resume: bool = True,
+               data_note: str = "", progress: bool = True, **train_kwargs) -> Path:
+    """Train (or adapt, with ``init``) a model and write ``<out_dir>/<name>.pt`` + ``.json``; returns the path."""
+    import torch
+
+    from reradar_core.io.datasets import load_sequence
+    from reradar_core.model.config import ModelConfig
+    from reradar_core.model.registry import WEIGHTS_DIR, resolve_weights, save_weights
+    from reradar_core.paths import cache_dir
+    from reradar_core.training.data import cache_sequence
+    from reradar_core.training.trainer import TrainConfig, Trainer
+
+    init_state = None
+    if init is not None:
+        pt, meta = resolve_weights(init)
+        blob = torch.load(pt, map_location="cpu", weights_only=True)
+        if "train_state_dict" not in blob:
+            raise ConfigError(f"{pt} has no training state; it cannot initialise `reradar train --init`")
+        init_state = blob["train_state_dict"]
+        model = ModelConfig.from_dict(meta["config"])
+        if model.backbone != backbone:
+            raise ConfigError(f"--init {init} is a {model.backbone} model but --backbone is {backbone}")
+    else:
+        model = ModelConfig(backbone=backbone, width=width, num_clusters=clusters, output_dim=dim)
+    if lr is None:
+        lr = 1e-5 if init is not None else 1e-4  # paper: 1e-4 from scratch, 1e-5 when adapting
+    cfg = TrainConfig(model=model, lr=lr, max_steps=steps, max_minutes=minutes, seed=seed, num_threads=threads,
+                      **train_kwargs)
+    t0 = time.monotonic()
+    w = model.cartesian_width_px
+    train = [cache_sequence(load_sequence(p), w, model.cartesian_resolution_m, progress=progress) for p in sequences]
+    vals = [(cache_sequence(load_sequence(a), w, model.cartesian_resolution_m, progress=progress),
+             cache_sequence(load_sequence(b), w, model.cartesian_resolution_m, progress=progress))
+            for a, b in val_pairs]
+    cache_s = time.monotonic() - t0
+    run_dir = run_dir or cache_dir("training", "runs", name)
+    trainer = Trainer(cfg, train, vals, run_dir=run_dir, init_state=init_state, progress=progress)
+    plain, summary = trainer.run(resume=resume)
+    out = (out_dir or WEIGHTS_DIR) / f"{name}.pt"
+    from reradar_core.training.trainer import trainable_state
+
+    meta = {
+        "description": data_note,
+        "training_data": {"sequences": [str(p) for p in sequences], "num_scans": sum(len(s) for s in train),
+                          "validation": [[str(a), str(b)] for a, b in val_pairs]},
+        "init": init,
+        "command": "reradar train " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 1 else "",
+        "cache_time_s": round(cache_s, 1),
+        "torch_threads": threads,
+        **summary,
+    }
+    path = save_weights(plain, out, meta, train_state_dict=trainable_state(trainer.net))
+    logger.info("wrote %s (val Recall@1 %s)", path, summary.get("val_recall_at_1"))
+    return path
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("train")
+    def train_cmd(
+        name: str = typer.Option(..., help="Model name: writes <out-dir>/<name>.pt and .json."),
+        suite: str | None = typer.Option(None, help="Simulator suite providing the data (reradar_core.sim.suites)."),
+        split: str = typer.Option("train-source", help="Training split of the suite (see docs/MODEL.md)."),
+        sequence: list[Path] = typer.Option([], "--sequence", help="Training sequence folder (repeatable)."),
+        val_db: Path | None = typer.Option(None, help="Validation database sequence folder."),
+        val_query: Path | None = typer.Option(None, help="Validation query sequence folder."),
+        backbone: str = typer.Option("reresnet", help="reresnet (C8, e2cnn) or resnet (ablation)."),
+        width: float = typer.Option(0.5, help="Width multiplier on ResNet-50 channel counts."),
+        clusters: int = typer.Option(32, help="NetVLAD clusters K."),
+        dim: int = typer.Option(256, help="PCA-whitening output dimension D (0 = raw NetVLAD)."),
+        init: str | None = typer.Option(None, help="Adapt from this shipped model (name or .pt path)."),
+        lr: float | None = typer.Option(None, help="AdamW learning rate (default 1e-4, 1e-5 with --init)."),
+        steps: int = typer.Option(1500, help="Maximum optimisation steps."),
+        minutes: float = typer.Option(60.0, help="Wall-clock budget in minutes."),
+        seed: int = typer.Option(0, help="Random seed (sampling, augmentation, initialisation)."),
+        threads: int = typer.Option(2, help="torch CPU threads."),
+        out_dir: Path | None = typer.Option(None, help="Where to write the weights (default: the package)."),
+        no_resume: bool = typer.Option(False, "--no-resume", help="Ignore an existing checkpoint."),
+    ) -> None:
+        """Train the descriptor network with InfoNCE (tau 0.1, 14 negatives) and save shipped weights."""
+        seqs = list(sequence)
+        vals: list[tuple[Path, Path]] = []
+        note = ""
+        if suite is not None:
+            from reradar_core.training.suites import suite_training_data
+
+            seqs_s, vals_s, note = suite_training_data(suite, split)
+            seqs += seqs_s
+            vals += vals_s
+        if val_db is not None and val_query is not None:
+            vals.append((val_db, val_query))
+        if not seqs:
+            raise typer.BadParameter("give --suite (and --split) or at least one --sequence")
+        try:
+            path = train_main(name, seqs, vals, backbone=backbone, width=width, clusters=clusters,
+                              dim=dim or None, init=init, lr=lr, steps=steps, minutes=minutes, seed=seed,
+                              threads=threads, out_dir=out_dir, run_dir=None, resume=not no_resume,
+                              data_note=note)
+        except ConfigError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from exc
+        meta = json.loads(path.with_suffix(".json").read_text())
+        typer.echo(f"wrote {path} ({meta['model_id']}, {meta['steps']} steps, {meta['train_time_s']} s, "
+                   f"val Recall@1 {meta.get('val_recall_at_1')})")

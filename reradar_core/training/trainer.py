@@ -1,0 +1,307 @@
+"""InfoNCE training of the descriptor network (paper, Sec. "Network Training").
+
+Recipe: L2-normalised global descriptors, InfoNCE with tau = 0.1, one positive within ``pos_radius_m`` and
+14 negatives outside ``neg_radius_m`` (in-batch: 8 far-apart anchor/positive pairs per batch), random-yaw and
+small translation augmentation, AdamW with lr 1e-4 from scratch and 1e-5 when adapting a trained model. The
+NetVLAD centres are initialised by k-means on F' features and the projection by PCA-whitening of raw NetVLAD
+vectors, then everything trains end to end. Checkpoints (model, optimizer, step, history) resume exactly:
+the batch of step s is drawn from ``default_rng([seed, s])``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from reradar_core.errors import ConfigError, ModelMismatchError
+from reradar_core.model.config import ModelConfig
+from reradar_core.model.network import DescriptorNet
+from reradar_core.training.data import CachedSequence, TrainingSet, TupleSampler
+from reradar_core.training.loss import info_nce_in_batch
+
+__all__ = ["TrainConfig", "Trainer", "recall_at_1_from_descriptors", "trainable_state", "load_trainable_state"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Training hyper-parameters; defaults are the paper's where it gives them.
+
+    Attributes:
+        lr: AdamW learning rate (paper: 1e-4 from scratch, 1e-5 when adapting).
+        tau: InfoNCE temperature (paper: 0.1). num_negatives: per query (paper: 14) -> num_negatives/2 + 1
+            anchor/positive pairs per batch.
+        pos_radius_m / neg_radius_m: positive within, negatives beyond (our defaults: 5 m / 25 m).
+        yaw_augment: random heading in [0, 2 pi) per image; trans_augment_m: uniform shift in [-t, t] m.
+        max_steps / max_minutes: stop at whichever comes first.
+        val_every / checkpoint_every: in steps. recall_radius_m: a retrieval is correct within this distance.
+    """
+
+    model: ModelConfig = field(default_factory=ModelConfig)
+    lr: float = 1e-4
+    weight_decay: float = 1e-4
+    tau: float = 0.1
+    num_negatives: int = 14
+    pos_radius_m: float = 5.0
+    neg_radius_m: float = 25.0
+    yaw_augment: bool = True
+    trans_augment_m: float = 2.0
+    max_steps: int = 1500
+    max_minutes: float = 60.0
+    val_every: int = 100
+    checkpoint_every: int = 25
+    recall_radius_m: float = 25.0
+    val_max_database: int = 300
+    val_max_queries: int = 150
+    kmeans_images: int = 48
+    whiten_images: int = 192
+    seed: int = 0
+    num_threads: int = 2
+
+    @property
+    def batch_pairs(self) -> int:
+        return self.num_negatives // 2 + 1
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["model"] = self.model.to_dict()
+        return d
+
+
+_BASIS_KEYS = ("sampled_basis", ".filter", "expanded_bias")
+
+
+def trainable_state(net: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """State dict without e2cnn's derived buffers (sampled bases, expanded filters): small and sufficient."""
+    return {k: v.detach().cpu().clone() for k, v in net.state_dict().items()
+            if not any(s in k for s in _BASIS_KEYS)}
+
+
+def load_trainable_state(net: torch.nn.Module, state: dict[str, torch.Tensor]) -> None:
+    """Load a ``trainable_state`` dict; only derived buffers may be missing."""
+    missing, unexpected = net.load_state_dict(state, strict=False)
+    bad = [k for k in missing if not any(s in k for s in _BASIS_KEYS)]
+    if bad or unexpected:
+        raise ModelMismatchError(f"training state does not fit the network: missing {bad[:5]}, "
+                                 f"unexpected {list(unexpected)[:5]}")
+    mode = net.training
+    net.train(True)  # e2cnn recomputes its cached expanded filters on the next switch to eval mode
+    net.train(mode)
+
+
+def recall_at_1_from_descriptors(db_desc: np.ndarray, db_xy: np.ndarray, q_desc: np.ndarray,
+                                 q_xy: np.ndarray, radius_m: float) -> tuple[float, int]:
+    """Recall@1 (fraction, #evaluated queries) by inner product; queries with no database scan within
+    ``radius_m`` are not evaluated."""
+    d = np.hypot(q_xy[:, None, 0] - db_xy[None, :, 0], q_xy[:, None, 1] - db_xy[None, :, 1])
+    valid = d.min(axis=1) <= radius_m
+    if not valid.any():
+        return float("nan"), 0
+    top = np.argmax(q_desc @ db_desc.T, axis=1)
+    hit = d[np.arange(len(q_xy)), top] <= radius_m
+    return float(hit[valid].mean()), int(valid.sum())
+
+
+def _subsample(n: int, k: int) -> np.ndarray:
+    return np.arange(n) if n <= k else np.unique(np.linspace(0, n - 1, k).round().astype(int))
+
+
+class Trainer:
+    """Trains one network on cached sequences; ``run()`` returns the exported plain network and a summary."""
+
+    def __init__(self, config: TrainConfig, train: list[CachedSequence],
+                 val_pairs: list[tuple[CachedSequence, CachedSequence]] | None = None,
+                 run_dir: str | Path | None = None, init_state: dict[str, torch.Tensor] | None = None,
+                 progress: bool = True) -> None:
+        from reradar_core.model.equivariant import build_training_net
+
+        self.config = config
+        torch.manual_seed(config.seed)
+        torch.set_num_threads(max(1, config.num_threads))
+        self.data = TrainingSet(train)
+        self.sampler = TupleSampler(self.data, config.pos_radius_m, config.neg_radius_m, config.batch_pairs)
+        self.val_pairs = val_pairs or []
+        self.run_dir = Path(run_dir) if run_dir is not None else None
+        self.progress = progress
+        self.net: DescriptorNet = build_training_net(config.model)
+        self.adapted = init_state is not None
+        if init_state is not None:
+            load_trainable_state(self.net, init_state)
+        self.opt = torch.optim.AdamW(self.net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+        self.step = 0
+        self.elapsed_s = 0.0
+        self.history: list[dict[str, Any]] = []
+        self.initialised = self.adapted
+
+    # ------------------------------------------------------------------ batches
+    def _views(self, items: np.ndarray, rng: np.random.Generator, augment: bool = True) -> torch.Tensor:
+        c = self.config
+        w = c.model.cartesian_width_px
+        out = np.empty((len(items), 1, w, w), np.float32)
+        for k, it in enumerate(items):
+            if augment:
+                t = rng.uniform(-c.trans_augment_m, c.trans_augment_m, 2) if c.trans_augment_m > 0 else (0, 0)
+                yaw = rng.uniform(0, 2 * math.pi) if c.yaw_augment else 0.0
+                T = np.array([t[0], t[1], yaw])
+            else:
+                T = np.zeros(3)
+            out[k, 0] = self.data.view(int(it), w, T)
+        return torch.from_numpy(out)
+
+    @torch.no_grad()
+    def initialise_heads(self) -> None:
+        """k-means NetVLAD centres on F' features, then PCA-whitening of raw NetVLAD vectors."""
+        import faiss
+
+        c = self.config
+        rng = np.random.default_rng([c.seed, 10_000_019])
+        self.net.train()  # batch statistics: BN running stats are still at their initial values
+        items = rng.choice(len(self.data), size=min(c.kmeans_images, len(self.data)), replace=False)
+        feats = []
+        for chunk in np.array_split(items, max(1, len(items) // 16)):
+            f = self.net.backbone(self._views(chunk, rng))
+            f = torch.nn.functional.normalize(f, dim=1)
+            feats.append(f.permute(0, 2, 3, 1).reshape(-1, f.shape[1]))
+        x = torch.cat(feats).numpy().astype(np.float32)
+        x = x[rng.choice(len(x), size=min(len(x), 50_000), replace=False)]
+        km = faiss.Kmeans(x.shape[1], c.model.num_clusters, niter=25, seed=c.seed, verbose=False)
+        km.train(np.ascontiguousarray(x))
+        self.net.netvlad.init_from_centroids(torch.from_numpy(km.centroids))
+        if self.net.proj is not None:
+            items = rng.choice(len(self.data), size=min(c.whiten_images, len(self.data)), replace=False)
+            vl = [self.net.netvlad(self.net.backbone(self._views(ch, rng)))
+                  for ch in np.array_split(items, max(1, len(items) // 16))]
+            self.net.init_whitening(torch.cat(vl))
+        self.initialised = True
+
+    # ------------------------------------------------------------------ validation
+    @torch.no_grad()
+    def validate(self) -> dict[str, float]:
+        """Recall@1 on the validation pairs, with the projection ("r1") and on raw NetVLAD ("r1_raw")."""
+        if not self.val_pairs:
+            return {}
+        c = self.config
+        was = self.net.training
+        self.net.eval()
+        hits, hits_raw, total = 0.0, 0.0, 0
+        w = c.model.cartesian_width_px
+        for db, q in self.val_pairs:
+            res = []
+            for seq, cap in ((db, c.val_max_database), (q, c.val_max_queries)):
+                idx = _subsample(len(seq), cap)
+                g_all, v_all = [], []
+                for chunk in np.array_split(idx, max(1, math.ceil(len(idx) / 32))):
+                    s = seq.images.shape[1]
+                    o = (s - w) // 2
+                    x = torch.from_numpy(np.asarray(seq.images[chunk, o:o + w, o:o + w], np.float32))[:, None]
+                    fmap = self.net.backbone(x)
+                    v = self.net.netvlad(fmap)
+                    g = torch.nn.functional.normalize(self.net.proj(v), dim=1) if self.net.proj is not None else v
+                    g_all.append(g.numpy())
+                    v_all.append(v.numpy())
+                res.append((np.concatenate(g_all), np.concatenate(v_all), seq.poses[idx, :2]))
+            (gd, vd, xd), (gq, vq, xq) = res
+            r, n = recall_at_1_from_descriptors(gd, xd, gq, xq, c.recall_radius_m)
+            rr, _ = recall_at_1_from_descriptors(vd, xd, vq, xq, c.recall_radius_m)
+            if n:
+                hits += r * n
+                hits_raw += rr * n
+                total += n
+        self.net.train(was)
+        if total == 0:
+            return {"r1": float("nan"), "r1_raw": float("nan"), "val_queries": 0}
+        return {"r1": hits / total, "r1_raw": hits_raw / total, "val_queries": total}
+
+    # ------------------------------------------------------------------ checkpoints
+    @property
+    def checkpoint_path(self) -> Path | None:
+        return self.run_dir / "checkpoint.pt" if self.run_dir is not None else None
+
+    def save_checkpoint(self) -> None:
+        path = self.checkpoint_path
+        if path is None:
+            return
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        torch.save({"net": trainable_state(self.net), "opt": self.opt.state_dict(), "step": self.step,
+                    "elapsed_s": self.elapsed_s, "history": self.history, "initialised": self.initialised,
+                    "config": self.config.to_dict()}, tmp)
+        tmp.replace(path)
+
+    def load_checkpoint(self) -> bool:
+        path = self.checkpoint_path
+        if path is None or not path.is_file():
+            return False
+        ck = torch.load(path, map_location="cpu", weights_only=False)
+        if ck.get("config", {}).get("model") != self.config.model.to_dict():
+            raise ConfigError(f"checkpoint {path} was written for another model config; use a new run dir")
+        load_trainable_state(self.net, ck["net"])
+        self.opt.load_state_dict(ck["opt"])
+        self.step, self.elapsed_s = int(ck["step"]), float(ck["elapsed_s"])
+        self.history, self.initialised = list(ck["history"]), bool(ck["initialised"])
+        logger.info("resumed %s at step %d", path, self.step)
+        return True
+
+    # ------------------------------------------------------------------ training
+    def train_step(self) -> float:
+        c = self.config
+        rng = np.random.default_rng([c.seed, self.step])
+        anchors, positives = self.sampler.sample(rng)
+        x = self._views(np.concatenate([anchors, positives]), rng)
+        self.net.train()
+        g, _ = self.net(x)
+        b = len(anchors)
+        loss = info_nce_in_batch(g[:b], g[b:], tau=c.tau)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        self.step += 1
+        return float(loss.detach())
+
+    def run(self, resume: bool = True) -> tuple[DescriptorNet, dict[str, Any]]:
+        """Train until ``max_steps`` or ``max_minutes``; returns (exported plain net, summary dict)."""
+        from reradar_core.model.equivariant import export_plain
+
+        c = self.config
+        if resume:
+            self.load_checkpoint()
+        if not self.initialised:
+            self.initialise_heads()
+        if self.step == 0 and self.val_pairs:
+            v0 = self.validate()
+            self.history.append({"step": 0, **v0})
+            logger.info("initial validation: %s", v0)
+        bar = tqdm(total=c.max_steps, initial=self.step, desc="train", disable=not self.progress)
+        losses: list[float] = []
+        last_val = self.history[-1] if self.history else {}
+        t0 = time.monotonic() - self.elapsed_s
+        while self.step < c.max_steps and (time.monotonic() - t0) < c.max_minutes * 60:
+            losses.append(self.train_step())
+            self.elapsed_s = time.monotonic() - t0
+            if self.val_pairs and self.step % c.val_every == 0:
+                last_val = {"step": self.step, "loss": float(np.mean(losses[-c.val_every:])), **self.validate()}
+                self.history.append(last_val)
+                logger.info("step %d: %s", self.step, last_val)
+            if self.step % c.checkpoint_every == 0:
+                self.save_checkpoint()
+            bar.update(1)
+            bar.set_postfix(loss=f"{np.mean(losses[-20:]):.3f}", r1=f"{last_val.get('r1', float('nan')):.3f}")
+        bar.close()
+        final = self.validate() if self.val_pairs else {}
+        self.history.append({"step": self.step, "final": True,
+                             "loss": float(np.mean(losses[-50:])) if losses else None, **final})
+        self.save_checkpoint()
+        summary = {"steps": self.step, "train_time_s": round(self.elapsed_s, 1),
+                   "val_recall_at_1": final.get("r1"), "val_recall_at_1_raw_netvlad": final.get("r1_raw"),
+                   "val_queries": final.get("val_queries"), "history": self.history,
+                   "train_config": c.to_dict(), "adapted": self.adapted}
+        return export_plain(self.net), summary

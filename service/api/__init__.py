@@ -1,0 +1,1 @@
+"""HTTP API: schemas, dependencies, one router per resource."""

@@ -1,0 +1,40 @@
+"""Liveness, readiness and Prometheus metrics."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request, Response
+from fastapi.responses import JSONResponse, PlainTextResponse
+
+from service.api.schemas import HealthResponse, ReadyResponse
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/healthz", response_model=HealthResponse, operation_id="healthz")
+def healthz() -> HealthResponse:
+    """The process is up (does not check the model or maps)."""
+    return HealthResponse()
+
+
+@router.get("/readyz", response_model=ReadyResponse, operation_id="readyz",
+            responses={503: {"model": ReadyResponse, "description": "Model or maps still loading."}})
+def readyz(request: Request) -> Response | ReadyResponse:
+    """200 once the model and the maps in the maps directory are loaded, 503 before."""
+    state = getattr(request.app.state, "reradar", None)
+    if state is None:
+        return JSONResponse(ReadyResponse(status="not_ready").model_dump(), status_code=503)
+    return ReadyResponse(status="ready", model_id=state.extractor.model_id,
+                         weights_sha256=state.extractor.weights_sha256,
+                         maps_ready=state.registry.num_ready, maps_total=len(state.registry.entries()))
+
+
+@router.get("/metrics", response_class=PlainTextResponse, operation_id="metrics",
+            responses={200: {"content": {"text/plain": {}}, "description": "Prometheus text format 0.0.4."}})
+def metrics(request: Request) -> PlainTextResponse:
+    """Request counts, request latencies and pipeline stage timings (Prometheus text format)."""
+    state = getattr(request.app.state, "reradar", None)
+    if state is None:
+        return PlainTextResponse("", media_type="text/plain; version=0.0.4")
+    state.metrics.set_gauge("reradar_maps_loaded", state.registry.num_ready)
+    state.metrics.set_gauge("reradar_scan_cache_entries", len(state.cache))
+    return PlainTextResponse(state.metrics.render(), media_type="text/plain; version=0.0.4")

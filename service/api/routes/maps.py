@@ -1,0 +1,182 @@
+"""Map registration, listing, deletion and retrieval (``/maps``)."""
+
+from __future__ import annotations
+
+import shutil
+import time
+import uuid
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+from fastapi import APIRouter, File, Form, Request, Response, UploadFile, status
+from starlette.concurrency import run_in_threadpool
+
+from reradar_core.errors import PoseFileError
+from reradar_core.io.poses import read_poses
+from reradar_core.io.presets import PRESETS
+from service.api.deps import ApiKeyDep, MapIdPath, StateDep
+from service.api.scan_input import read_scan_input, scan_request_body
+from service.api.schemas import (
+    ErrorResponse,
+    MapInfo,
+    MapList,
+    Pose2D,
+    RetrievedKeyframe,
+    RetrieveRequest,
+    RetrieveResponse,
+)
+from service.core.archive import SCAN_NAME_PATTERN, extract_scan_archive
+from service.core.config import MAP_ID_PATTERN
+from service.core.errors import BadRequestError, ConflictError
+from service.core.registry import MapEntry
+from service.core.state import ServiceState
+
+router = APIRouter(prefix="/maps", tags=["maps"])
+
+_E = {"model": ErrorResponse}
+
+
+def map_info(entry: MapEntry) -> MapInfo:
+    info = MapInfo(id=entry.map_id, state=entry.state, progress=entry.progress, error=entry.error,
+                   scans_done=entry.scans_done, scans_total=entry.scans_total,
+                   registered_utc=entry.registered_utc)
+    if entry.db is not None:
+        m = entry.db.metadata
+        info.num_keyframes = len(entry.db)
+        info.model_id, info.weights_sha256 = m.model_id, m.weights_sha256
+        info.radar_preset, info.descriptor_dim = m.radar_preset, m.descriptor_dim
+        info.created_utc, info.source = m.created_utc, m.source
+        info.index_kind = entry.db.index.kind
+    return info
+
+
+@router.get("", response_model=MapList, operation_id="list_maps")
+def list_maps(state: StateDep) -> MapList:
+    """All registered maps with their state."""
+    data = [map_info(e) for e in state.registry.entries()]
+    return MapList(data=data, count=len(data))
+
+
+@router.get("/{map_id}", response_model=MapInfo, operation_id="get_map", responses={404: _E, 422: _E})
+def get_map(state: StateDep, map_id: MapIdPath) -> MapInfo:
+    """One map's state, build progress and metadata."""
+    return map_info(state.registry.get(map_id))
+
+
+def _save_upload(upload: UploadFile, target: Path) -> int:
+    size = 0
+    upload.file.seek(0)
+    with open(target, "wb") as out:
+        while chunk := upload.file.read(1 << 20):
+            out.write(chunk)
+            size += len(chunk)
+    return size
+
+
+def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, archive: UploadFile | None,
+              poses: UploadFile | None, preset: str | None) -> tuple[MapEntry, bool]:
+    registry = state.registry
+    registry.validate_id(map_id)
+    registry.path_for(map_id)
+    if (map_file is None) == (archive is None):
+        raise BadRequestError("send either 'map_file' (a prebuilt .h5 map) or 'archive' + 'poses' (scans to build from)")
+    if map_file is not None:
+        if poses is not None:
+            raise BadRequestError("'poses' goes with 'archive', not with 'map_file'")
+        staged = registry.staging_dir() / f"{uuid.uuid4().hex}.h5"
+        if _save_upload(map_file, staged) == 0:
+            staged.unlink(missing_ok=True)
+            raise BadRequestError("the uploaded map file is empty")
+        return registry.register_file(map_id, staged), False
+    if poses is None:
+        raise BadRequestError("'archive' needs a 'poses' file (Boreas radar_poses.csv, MulRan global_pose.csv or t,x,y,yaw CSV)")
+    if preset is not None and preset.lower() not in PRESETS:
+        raise BadRequestError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+    # early check so a large archive is not unpacked for a taken id; start_build re-checks atomically
+    if any(e.map_id == map_id for e in registry.entries()) or registry.path_for(map_id).exists():
+        raise ConflictError(f"map {map_id!r} already exists; DELETE /maps/{map_id} first or pick another id")
+    work = registry.staging_dir() / f"job-{uuid.uuid4().hex}"
+    work.mkdir()
+    try:
+        arch = work / "archive.bin"
+        _save_upload(archive, arch)  # type: ignore[arg-type]
+        scan_paths = extract_scan_archive(arch, work / "scans", state.settings.max_archive_scans,
+                                          state.settings.max_map_upload_bytes * 4)
+        arch.unlink()
+        pose_path = work / "poses.csv"
+        _save_upload(poses, pose_path)
+        try:
+            track = read_poses(pose_path).sorted()
+        except UnicodeDecodeError as exc:
+            raise PoseFileError(f"poses upload is not a text CSV file ({exc})") from exc
+        if len(track) < 1:
+            raise PoseFileError("poses upload holds no poses")
+        stamps = np.array([int(SCAN_NAME_PATTERN.match(p.name).group(1)) for p in scan_paths],  # type: ignore[union-attr]
+                          dtype=np.int64)
+        slack = 500_000  # pose files sample at their own rate; 0.5 s slack at the ends, as load_sequence
+        outside = (stamps < track.timestamps_us[0] - slack) | (stamps > track.timestamps_us[-1] + slack)
+        if np.any(outside):
+            bad = scan_paths[int(np.argmax(outside))].name
+            raise BadRequestError(f"scan {bad} lies outside the time span of the poses file; scan files must be "
+                                  f"named by their timestamp in microseconds")
+        pose_arr = track.interpolate(stamps)
+        entry = state.registry.start_build(map_id, scan_paths, pose_arr, preset, work,
+                                           source=f"upload:{archive.filename or 'archive'}")  # type: ignore[union-attr]
+        return entry, True
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+
+
+@router.post("", response_model=MapInfo, status_code=status.HTTP_201_CREATED, operation_id="register_map",
+             responses={202: {"model": MapInfo, "description": "Build job started; poll GET /maps/{id}."},
+                        400: _E, 401: _E, 409: _E, 413: _E, 422: _E})
+def register_map(
+    state: StateDep,
+    _auth: ApiKeyDep,
+    response: Response,
+    map_id: Annotated[str, Form(pattern=MAP_ID_PATTERN, description="New map id.")],
+    map_file: Annotated[UploadFile | None, File(description="A prebuilt HDF5 map (docs/MAP_FORMAT.md).")] = None,
+    archive: Annotated[UploadFile | None, File(description="zip/tar(.gz) of <timestamp_us>.png|.npy scans.")] = None,
+    poses: Annotated[UploadFile | None, File(description="Pose file covering the scans' timestamps.")] = None,
+    preset: Annotated[str | None, Form(description="Radar preset of the archive's scans.")] = None,
+) -> MapInfo:
+    """Register a route database: upload a prebuilt map (201, ready) or a scan archive + poses (202: the map
+    is built in the background; poll ``GET /maps/{id}``). Needs the API key."""
+    entry, building = _register(state, map_id, map_file, archive, poses, preset)
+    if building:
+        response.status_code = status.HTTP_202_ACCEPTED
+    return map_info(entry)
+
+
+@router.delete("/{map_id}", response_model=MapInfo, operation_id="delete_map",
+               responses={401: _E, 404: _E, 409: _E, 422: _E})
+def delete_map(state: StateDep, _auth: ApiKeyDep, map_id: MapIdPath) -> MapInfo:
+    """Unregister a map and delete its file. Needs the API key."""
+    return map_info(state.registry.delete(map_id))
+
+
+@router.post("/{map_id}/retrieve", response_model=RetrieveResponse, operation_id="retrieve",
+             responses={400: _E, 404: _E, 409: _E, 413: _E, 415: _E, 422: _E},
+             openapi_extra=scan_request_body(RetrieveRequest, {
+                 "top_k": {"type": "integer", "minimum": 1, "maximum": 100}}))
+async def retrieve(request: Request, state: StateDep, map_id: MapIdPath) -> RetrieveResponse:
+    """Top-k keyframes of the map by global descriptor, for a cached ``scan_id`` (JSON) or an inline scan
+    (multipart)."""
+    t0 = time.perf_counter()
+    db = state.registry.ready(map_id)
+    inp = await read_scan_input(request, state, RetrieveRequest, ("top_k",))
+    k = inp.fields.get("top_k") or state.settings.top_k
+    t1 = time.perf_counter()
+    hits = await run_in_threadpool(db.retrieve, inp.features.global_descriptor, k)
+    timings = dict(inp.timings_ms)
+    timings["retrieve_ms"] = (time.perf_counter() - t1) * 1e3
+    state.metrics.observe_stages(timings)
+    timings["total_ms"] = (time.perf_counter() - t0) * 1e3
+    return RetrieveResponse(
+        map_id=map_id, scan_id=inp.scan_id, timings_ms=timings,
+        keyframes=[RetrievedKeyframe(keyframe_id=h.keyframe_id, timestamp_us=h.timestamp_us,
+                                     descriptor_distance=h.descriptor_distance, rank=h.rank,
+                                     pose=Pose2D.from_array(h.T_map_keyframe)) for h in hits],
+    )

@@ -1,0 +1,42 @@
+"""``POST /scans``: upload one scan; its features are computed once and cached under a ``scan_id``."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, File, Form, UploadFile, status
+from starlette.concurrency import run_in_threadpool
+
+from service.api.deps import StateDep
+from service.api.schemas import ErrorResponse, ScanInfo
+from service.core.errors import BadRequestError
+
+router = APIRouter(prefix="/scans", tags=["scans"])
+
+_ERRORS: dict[int | str, dict[str, Any]] = {400: {"model": ErrorResponse}, 413: {"model": ErrorResponse}, 422: {"model": ErrorResponse}}
+
+
+@router.post("", response_model=ScanInfo, status_code=status.HTTP_201_CREATED, operation_id="upload_scan",
+             responses=_ERRORS)
+async def upload_scan(
+    state: StateDep,
+    scan: Annotated[UploadFile, File(description="Navtech polar PNG or (A, R) .npy array.")],
+    preset: Annotated[str | None, Form(description="Radar preset (default: inferred from the bin count).")] = None,
+) -> ScanInfo:
+    """Decode the scan, compute its global and local features, cache them and return a ``scan_id``."""
+    from reradar_core.io.presets import PRESETS
+
+    if preset is not None and preset.lower() not in PRESETS:
+        raise BadRequestError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+    data = await scan.read()
+    filename = scan.filename or "scan.png"
+    if not filename.lower().endswith((".png", ".npy")):
+        filename = "scan.png"
+    timings: dict[str, float] = {}
+    features, scan_preset = await run_in_threadpool(state.describe_upload, data, filename, preset, timings)
+    state.metrics.observe_stages(timings)
+    entry = state.cache.put(features, scan_preset)
+    return ScanInfo(scan_id=entry.scan_id, timestamp_us=int(features.timestamp_us), preset=scan_preset,
+                    num_keypoints=int(features.keypoints_xy_m.shape[0]),
+                    descriptor_dim=int(features.global_descriptor.shape[0]),
+                    expires_in_s=state.settings.scan_cache_ttl_s, timings_ms=timings)

@@ -1,0 +1,110 @@
+"""Parse a request that carries a scan either inline (multipart/form-data) or by reference (JSON)."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from typing import Any
+
+from fastapi import Request
+from fastapi.exceptions import RequestValidationError
+from pydantic import BaseModel, ValidationError
+from starlette.concurrency import run_in_threadpool
+from starlette.datastructures import UploadFile
+
+from reradar_core.features import ScanFeatures
+from reradar_core.io.presets import PRESETS
+from service.core.errors import BadRequestError, NotFoundError, ServiceError
+from service.core.state import ServiceState
+
+__all__ = ["ScanInput", "read_scan_input", "scan_request_body", "UnsupportedMediaError"]
+
+
+class UnsupportedMediaError(ServiceError):
+    status_code = 415
+    code = "unsupported_media_type"
+
+
+@dataclass
+class ScanInput:
+    """The request's scan features plus its other fields (validated by the route's model)."""
+
+    features: ScanFeatures
+    scan_id: str | None
+    fields: dict[str, Any]
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+def scan_request_body(json_model: type[BaseModel], form_fields: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """OpenAPI ``requestBody`` documenting both encodings (for ``openapi_extra``)."""
+    props: dict[str, Any] = {"scan": {"type": "string", "format": "binary",
+                                      "description": "Navtech polar PNG or (A, R) .npy array"}}
+    props.update(form_fields)
+    props["preset"] = {"type": "string", "enum": sorted(PRESETS),
+                       "description": "Radar preset (default: inferred from the PNG's bin count)"}
+    required = ["scan"] + [k for k, v in form_fields.items() if v.pop("x-required", False)]
+    return {"requestBody": {"required": True, "content": {
+        "application/json": {"schema": json_model.model_json_schema()},
+        "multipart/form-data": {"schema": {"type": "object", "properties": props, "required": required}},
+    }}}
+
+
+async def read_scan_input(request: Request, state: ServiceState, json_model: type[BaseModel],
+                          form_keys: tuple[str, ...]) -> ScanInput:
+    """Features of the request's scan and its validated fields.
+
+    JSON bodies are validated with ``json_model`` and must name a cached ``scan_id``; multipart bodies carry a
+    ``scan`` file (decoded and described here) and the fields in ``form_keys``.
+
+    Raises:
+        RequestValidationError (422), NotFoundError (404, unknown/expired scan id), ScanFormatError (422),
+        UnsupportedMediaError (415).
+    """
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if ctype == "application/json":
+        raw = await request.body()
+        try:
+            model = json_model.model_validate_json(raw or b"{}")
+        except ValidationError as exc:
+            raise RequestValidationError(exc.errors(include_url=False)) from None
+        fields = model.model_dump()
+        scan_id = fields.pop("scan_id")
+        cached = state.cache.get(scan_id)
+        if cached is None:
+            raise NotFoundError(f"unknown or expired scan_id {scan_id!r}; upload the scan again with POST /scans")
+        return ScanInput(cached.features, scan_id, fields)
+    if ctype == "multipart/form-data":
+        try:
+            form = await request.form(max_files=1, max_fields=16)
+        except Exception as exc:  # noqa: BLE001 - the multipart parser raises several types on bad input
+            raise BadRequestError(f"malformed multipart body ({exc})") from exc
+        upload = form.get("scan")
+        if not isinstance(upload, UploadFile):
+            raise BadRequestError("multipart request needs a file field named 'scan' (a Navtech PNG or .npy)")
+        raw_fields = {k: v for k, v in form.items() if k in form_keys and isinstance(v, str) and v != ""}
+        unknown = sorted(set(form.keys()) - set(form_keys) - {"scan", "preset"})
+        if unknown:
+            raise BadRequestError(f"unexpected form fields {unknown}; allowed: scan, preset, {', '.join(form_keys)}")
+        preset = form.get("preset")
+        preset = preset if isinstance(preset, str) and preset else None
+        if preset is not None and preset.lower() not in PRESETS:
+            raise BadRequestError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+        try:
+            model = json_model.model_validate({"scan_id": "inline", **raw_fields})
+        except ValidationError as exc:
+            raise RequestValidationError(exc.errors(include_url=False)) from None
+        fields = model.model_dump()
+        fields.pop("scan_id")
+        data = await upload.read()
+        await upload.close()
+        filename = upload.filename or "scan.png"
+        if not re.search(r"\.(png|npy)$", filename.lower()):
+            filename = "scan.png"  # content decides: a non-PNG body fails to decode with a clear message
+        timings: dict[str, float] = {}
+        features, _ = await run_in_threadpool(state.describe_upload, data, filename, preset, timings)
+        return ScanInput(features, None, fields, timings)
+    raise UnsupportedMediaError(
+        f"unsupported Content-Type {ctype or '(none)'!r}: send application/json with a scan_id or "
+        f"multipart/form-data with a 'scan' file"
+    )
+

@@ -1,0 +1,166 @@
+"""Request and response models. Angles in degrees, distances in metres, times in us/ms (field names say so);
+poses are in the map frame unless the field is named ``relative_*``."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.core.config import MAP_ID_PATTERN
+
+__all__ = [
+    "ErrorResponse",
+    "Pose2D",
+    "HealthResponse",
+    "ReadyResponse",
+    "MapInfo",
+    "MapList",
+    "ScanInfo",
+    "ScanRef",
+    "RetrieveRequest",
+    "RetrievedKeyframe",
+    "RetrieveResponse",
+    "LocalizeRequest",
+    "CandidateResult",
+    "LocalizeResponse",
+]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ErrorResponse(_Model):
+    """Every 4xx/5xx body."""
+
+    detail: str = Field(description="What is wrong and what to do.")
+    error: str = Field(description="Machine-readable error code, e.g. `scan_format`, `not_found`.")
+
+
+class Pose2D(_Model):
+    """A 3-DoF pose: position in metres, heading in degrees (counter-clockwise from the frame's +x)."""
+
+    x_m: float
+    y_m: float
+    yaw_deg: float
+
+    @classmethod
+    def from_array(cls, pose: np.ndarray) -> Pose2D:
+        """From (x m, y m, yaw rad)."""
+        return cls(x_m=float(pose[0]), y_m=float(pose[1]), yaw_deg=math.degrees(float(pose[2])))
+
+
+class HealthResponse(_Model):
+    status: Literal["ok"] = "ok"
+
+
+class ReadyResponse(_Model):
+    status: Literal["ready", "not_ready"]
+    model_id: str | None = None
+    weights_sha256: str | None = None
+    maps_ready: int = 0
+    maps_total: int = 0
+
+
+class MapInfo(_Model):
+    """A registered map and its state."""
+
+    id: str = Field(description="Map id (also the file name `<id>.h5`).")
+    state: Literal["ready", "building", "failed"]
+    progress: float = Field(ge=0, le=1, description="Build progress, fraction of scans described.")
+    num_keyframes: int = 0
+    scans_done: int = 0
+    scans_total: int = 0
+    error: str | None = Field(default=None, description="Why building or loading failed.")
+    model_id: str | None = None
+    weights_sha256: str | None = None
+    radar_preset: str | None = None
+    descriptor_dim: int | None = None
+    index_kind: str | None = Field(default=None, description="FAISS index type: flat (exact), hnsw or ivf.")
+    created_utc: str | None = None
+    registered_utc: str
+    source: str | None = None
+
+
+class MapList(_Model):
+    data: list[MapInfo]
+    count: int
+
+
+class ScanInfo(_Model):
+    """An uploaded scan whose features are cached."""
+
+    scan_id: str
+    timestamp_us: int
+    preset: str | None
+    num_keypoints: int
+    descriptor_dim: int
+    expires_in_s: float
+    timings_ms: dict[str, float]
+
+
+class ScanRef(_Model):
+    scan_id: str = Field(min_length=1, max_length=64, description="Id returned by POST /scans.")
+
+
+class RetrieveRequest(ScanRef):
+    """Retrieve by reference (JSON). Inline scans use multipart/form-data: `scan` file, optional `top_k`,
+    `preset`."""
+
+    top_k: int | None = Field(default=None, ge=1, le=100, description="Keyframes to return (default: service top_k).")
+
+
+class RetrievedKeyframe(_Model):
+    keyframe_id: int
+    timestamp_us: int
+    descriptor_distance: float = Field(description="Euclidean distance between unit global descriptors, [0, 2].")
+    rank: int
+    pose: Pose2D = Field(description="Keyframe pose in the map frame.")
+
+
+class RetrieveResponse(_Model):
+    map_id: str
+    scan_id: str | None
+    keyframes: list[RetrievedKeyframe]
+    timings_ms: dict[str, float]
+
+
+class LocalizeRequest(ScanRef):
+    """Localize by reference (JSON). Inline scans use multipart/form-data: `map_id` field, `scan` file,
+    optional `top_k`, `preset`."""
+
+    map_id: str = Field(pattern=MAP_ID_PATTERN)
+    top_k: int | None = Field(default=None, ge=1, le=100, description="Candidates verified (default: service top_k).")
+
+
+class CandidateResult(_Model):
+    """Geometric verification of one retrieved candidate."""
+
+    keyframe_id: int
+    timestamp_us: int
+    rank: int
+    descriptor_distance: float
+    num_matches: int
+    num_inliers: int
+    inlier_ratio: float
+    relative_pose: Pose2D | None = Field(default=None, description="Query pose in the keyframe's sensor frame.")
+
+
+class LocalizeResponse(_Model):
+    """Where the vehicle is. `pose` is set only when `status` is `localized`."""
+
+    status: Literal["localized", "not_localized"]
+    reason: str | None = Field(default=None, description="Why not localized: no_candidate, too_few_matches, too_few_inliers.")
+    map_id: str
+    scan_id: str | None
+    pose: Pose2D | None = Field(default=None, description="Query pose in the map frame (keyframe pose o relative pose).")
+    relative_pose: Pose2D | None = Field(default=None, description="Query pose in the matched keyframe's sensor frame.")
+    keyframe: RetrievedKeyframe | None = Field(default=None, description="The keyframe the query was registered to.")
+    num_matches: int = 0
+    num_inliers: int = 0
+    inlier_ratio: float = 0.0
+    candidates: list[CandidateResult] = Field(default_factory=list)
+    timings_ms: dict[str, float]

@@ -1,0 +1,1 @@
+"""Service infrastructure: settings, map registry, scan cache, metrics, errors."""

@@ -1,0 +1,66 @@
+"""Service settings from environment variables (prefix ``RERADAR_``), documented in ``docs/SERVICE.md``."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, SecretStr, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+__all__ = ["Settings", "DEV_API_KEY", "MAP_ID_PATTERN"]
+
+#: API key accepted in ``development`` when none is configured; refused in ``production``.
+DEV_API_KEY = "reradar-dev-key"
+
+#: Map ids: lower-case letters, digits, ``_`` and ``-``; no dots or slashes, so an id can never escape
+#: the maps directory.
+MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,63}$"
+
+
+def _default_maps_dir() -> Path:
+    return Path(os.environ.get("RERADAR_CACHE_DIR", Path.cwd() / ".cache" / "reradar")) / "maps"
+
+
+class Settings(BaseSettings):
+    """Service configuration. Every field can be set as ``RERADAR_<FIELD>`` (e.g. ``RERADAR_API_KEY``)."""
+
+    model_config = SettingsConfigDict(env_prefix="RERADAR_", extra="ignore")
+
+    environment: Literal["development", "production"] = Field(
+        default="development", description="`production` refuses the development API key.")
+    api_key: SecretStr = Field(default=SecretStr(DEV_API_KEY),
+                               description="Key required in the X-API-Key header of mutating endpoints.")
+    maps_dir: Path = Field(default_factory=_default_maps_dir,
+                           description="Folder holding the registered maps (<map_id>.h5).")
+    load_demo_map: bool = Field(default=True, description="Copy the shipped demo map into maps_dir as map `demo`.")
+    max_upload_mb: float = Field(default=20.0, gt=0, description="Largest scan upload / request body, MB.")
+    max_map_upload_mb: float = Field(default=512.0, gt=0, description="Largest map or scan-archive upload, MB.")
+    max_archive_scans: int = Field(default=20_000, gt=0, description="Most scans accepted in one scan archive.")
+    scan_cache_size: int = Field(default=256, gt=0, description="Uploaded scans whose features are kept.")
+    scan_cache_ttl_s: float = Field(default=600.0, gt=0, description="Seconds an uploaded scan's features are kept.")
+    top_k: int = Field(default=5, ge=1, le=100, description="Default number of retrieved candidates.")
+    min_inliers: int = Field(default=12, ge=2, description="RANSAC inliers needed to report `localized`.")
+    index_kind: Literal["auto", "flat", "hnsw", "ivf"] = Field(default="auto", description="FAISS index type.")
+    index_exact_max_size: int = Field(default=20_000, ge=0, description="`auto` uses exact search up to this size.")
+    torch_threads: int = Field(default=2, ge=1, description="torch CPU threads for feature extraction.")
+    build_batch_size: int = Field(default=8, ge=1, description="Scans per network batch when building maps.")
+
+    @model_validator(mode="after")
+    def _refuse_unsafe_defaults(self) -> Settings:
+        key = self.api_key.get_secret_value()
+        if self.environment == "production" and (key == DEV_API_KEY or len(key) < 16):
+            raise ValueError(
+                "RERADAR_API_KEY must be set to a secret of at least 16 characters when "
+                "RERADAR_ENVIRONMENT=production (the development key is refused)"
+            )
+        return self
+
+    @property
+    def max_upload_bytes(self) -> int:
+        return int(self.max_upload_mb * 1024 * 1024)
+
+    @property
+    def max_map_upload_bytes(self) -> int:
+        return int(self.max_map_upload_mb * 1024 * 1024)

@@ -1,0 +1,269 @@
+"""The registry of maps served: ``<maps_dir>/<map_id>.h5`` files, loaded maps, and background build jobs.
+
+Invariants: a map file appears under its final name only when complete (uploads are validated in a hidden
+staging folder and renamed; builds use the atomic ``MapWriter``); a failed upload or build never touches
+another map; map ids match ``MAP_ID_PATTERN`` and resolved paths must stay inside ``maps_dir``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import os
+import re
+import shutil
+import threading
+import uuid
+from concurrent.futures import ThreadPoolExecutor
+import builtins
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from maps import DEMO_MAP_PATH
+from maps.build import build_map
+from maps.database import MapDatabase
+from maps.index import IndexConfig
+from maps.store import open_map
+from reradar_core.errors import MapFormatError, ModelMismatchError, ReRadarError
+from reradar_core.io.scan import RadarScan, read_navtech_png, read_polar_npy
+from reradar_core.localization.extractor import FeatureExtractor
+from service.core.config import MAP_ID_PATTERN, Settings
+from service.core.errors import BadRequestError, ConflictError, NotFoundError
+
+__all__ = ["MapEntry", "MapRegistry", "MapState", "DEMO_MAP_ID"]
+
+logger = logging.getLogger(__name__)
+
+MapState = Literal["ready", "building", "failed"]
+DEMO_MAP_ID = "demo"
+_ID_RE = re.compile(MAP_ID_PATTERN)
+_STAGING = ".staging"
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+@dataclass
+class MapEntry:
+    """One registered map and its state (``ready``, ``building`` or ``failed`` with ``error``)."""
+
+    map_id: str
+    path: Path
+    state: MapState
+    db: MapDatabase | None = None
+    error: str | None = None
+    scans_done: int = 0
+    scans_total: int = 0
+    registered_utc: str = field(default_factory=_now)
+
+    @property
+    def progress(self) -> float:
+        if self.state == "ready":
+            return 1.0
+        return self.scans_done / self.scans_total if self.scans_total else 0.0
+
+
+class MapRegistry:
+    """Thread-safe registry; one background worker builds maps from uploaded scan archives."""
+
+    def __init__(self, settings: Settings, extractor: FeatureExtractor) -> None:
+        self.settings = settings
+        self.extractor = extractor
+        self.maps_dir = settings.maps_dir.resolve()
+        self.maps_dir.mkdir(parents=True, exist_ok=True)
+        self.index_config = IndexConfig(kind=settings.index_kind, exact_max_size=settings.index_exact_max_size)
+        self._entries: dict[str, MapEntry] = {}
+        self._lock = threading.RLock()
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-build")
+
+    # ---- paths and ids -------------------------------------------------------------------------------------
+    def validate_id(self, map_id: str) -> str:
+        if not isinstance(map_id, str) or not _ID_RE.match(map_id):
+            raise BadRequestError(
+                f"invalid map id {map_id!r}: use 1-64 lower-case letters, digits, '_' or '-', "
+                f"starting with a letter or digit"
+            )
+        return map_id
+
+    def path_for(self, map_id: str) -> Path:
+        self.validate_id(map_id)
+        path = (self.maps_dir / f"{map_id}.h5").resolve()
+        if not path.is_relative_to(self.maps_dir):  # defence in depth; the regex already forbids this
+            raise BadRequestError(f"map id {map_id!r} resolves outside the maps directory")
+        return path
+
+    def staging_dir(self) -> Path:
+        d = self.maps_dir / _STAGING
+        d.mkdir(exist_ok=True)
+        return d
+
+    # ---- loading -------------------------------------------------------------------------------------------
+    def _open(self, path: Path) -> MapDatabase:
+        return MapDatabase(open_map(path, self.extractor.model_id, self.extractor.weights_sha256),
+                           self.index_config)
+
+    def install_demo_map(self) -> None:
+        """Copy the shipped demo map to ``<maps_dir>/demo.h5`` unless a map ``demo`` exists already."""
+        target = self.path_for(DEMO_MAP_ID)
+        if target.exists() or not DEMO_MAP_PATH.is_file():
+            if not DEMO_MAP_PATH.is_file():
+                logger.warning("demo map %s is not installed; run scripts/build_demo_map.py", DEMO_MAP_PATH)
+            return
+        tmp = self.staging_dir() / f"{uuid.uuid4().hex}.h5"
+        shutil.copyfile(DEMO_MAP_PATH, tmp)
+        os.replace(tmp, target)
+
+    def load_all(self) -> None:
+        """Clean stale staging files and load every ``*.h5`` map in ``maps_dir``."""
+        shutil.rmtree(self.maps_dir / _STAGING, ignore_errors=True)
+        for stale in self.maps_dir.glob(".*.tmp"):
+            stale.unlink(missing_ok=True)
+        for path in sorted(self.maps_dir.glob("*.h5")):
+            map_id = path.stem
+            if not _ID_RE.match(map_id):
+                logger.warning("ignoring %s: file name is not a valid map id", path)
+                continue
+            entry = MapEntry(map_id, path, "failed")
+            try:
+                entry.db = self._open(path)
+                entry.state = "ready"
+                entry.scans_total = entry.scans_done = len(entry.db)
+            except (MapFormatError, ModelMismatchError) as exc:
+                entry.error = str(exc)
+                logger.error("map %s not served: %s", map_id, exc)
+            with self._lock:
+                self._entries[map_id] = entry
+
+    # ---- queries -------------------------------------------------------------------------------------------
+    def entries(self) -> list[MapEntry]:
+        with self._lock:
+            return sorted(self._entries.values(), key=lambda e: e.map_id)
+
+    def get(self, map_id: str) -> MapEntry:
+        self.validate_id(map_id)
+        with self._lock:
+            entry = self._entries.get(map_id)
+        if entry is None:
+            raise NotFoundError(f"unknown map {map_id!r}; GET /maps lists the registered maps")
+        return entry
+
+    def ready(self, map_id: str) -> MapDatabase:
+        entry = self.get(map_id)
+        if entry.state != "ready" or entry.db is None:
+            detail = f": {entry.error}" if entry.error else f" ({entry.progress:.0%} built)"
+            raise ConflictError(f"map {map_id!r} is not ready for queries, state {entry.state}{detail}")
+        return entry.db
+
+    @property
+    def num_ready(self) -> int:
+        with self._lock:
+            return sum(e.state == "ready" for e in self._entries.values())
+
+    # ---- mutation ------------------------------------------------------------------------------------------
+    def _reserve(self, map_id: str, scans_total: int = 0) -> MapEntry:
+        path = self.path_for(map_id)
+        with self._lock:
+            if map_id in self._entries or path.exists():
+                raise ConflictError(f"map {map_id!r} already exists; DELETE /maps/{map_id} first or pick another id")
+            entry = MapEntry(map_id, path, "building", scans_total=scans_total)
+            self._entries[map_id] = entry
+            return entry
+
+    def _release(self, map_id: str) -> None:
+        with self._lock:
+            self._entries.pop(map_id, None)
+
+    def register_file(self, map_id: str, staged: Path) -> MapEntry:
+        """Validate the uploaded map at ``staged`` (schema, model hash) and install it as ``map_id``.
+
+        ``staged`` must be inside the staging folder; it is moved (renamed) on success, deleted on failure.
+
+        Raises:
+            ConflictError: the id is taken. MapFormatError / ModelMismatchError: invalid map (nothing stored).
+        """
+        try:
+            entry = self._reserve(map_id)
+        except BaseException:
+            staged.unlink(missing_ok=True)
+            raise
+        try:
+            probe = open_map(staged, self.extractor.model_id, self.extractor.weights_sha256)
+            probe.close()
+            os.replace(staged, entry.path)
+            entry.db = self._open(entry.path)
+            entry.scans_total = entry.scans_done = len(entry.db)
+            entry.state = "ready"
+            return entry
+        except BaseException:
+            staged.unlink(missing_ok=True)
+            if entry.db is None and entry.path.exists():
+                entry.path.unlink(missing_ok=True)
+            self._release(map_id)
+            raise
+
+    def start_build(self, map_id: str, scan_paths: builtins.list[Path], poses: np.ndarray, preset: str | None,
+                    workdir: Path, source: str) -> MapEntry:
+        """Reserve ``map_id`` and build its map from ``scan_paths`` in the background.
+
+        ``poses`` (N, 3) float64 ``T_map_sensor`` per scan. ``workdir`` (extracted scans) is removed when the
+        job ends. Progress is visible through ``get(map_id)``.
+        """
+        entry = self._reserve(map_id, scans_total=len(scan_paths))
+        first = self._load_scan(scan_paths[0], preset)  # fail fast, synchronously, on unreadable scans
+        preset_name = preset or first.preset or "unknown"
+
+        def progress(done: int, total: int) -> None:
+            entry.scans_done = done
+
+        def job() -> None:
+            try:
+                build_map(entry.path, self.extractor, lambda i: self._load_scan(scan_paths[i], preset), poses,
+                          radar_preset=preset_name, name=map_id, source=source,
+                          batch_size=self.settings.build_batch_size, progress=progress)
+                db = self._open(entry.path)
+                with self._lock:
+                    entry.db = db
+                    entry.state = "ready"
+                logger.info("map %s built: %d keyframes", map_id, len(db))
+            except Exception as exc:  # noqa: BLE001 - a failed job is reported through GET /maps/{id}
+                logger.exception("building map %s failed", map_id)
+                entry.error = f"{type(exc).__name__}: {exc}"
+                entry.state = "failed"
+            finally:
+                shutil.rmtree(workdir, ignore_errors=True)
+
+        self._executor.submit(job)
+        return entry
+
+    @staticmethod
+    def _load_scan(path: Path, preset: str | None) -> RadarScan:
+        try:
+            if path.suffix == ".npy":
+                return read_polar_npy(path, preset or "oxford")
+            return read_navtech_png(path, preset)
+        except ReRadarError as exc:
+            raise type(exc)(f"{path.name}: {exc}") from exc
+
+    def delete(self, map_id: str) -> MapEntry:
+        """Unregister ``map_id`` and delete its file (refused while it is being built)."""
+        with self._lock:
+            entry = self.get(map_id)
+            if entry.state == "building":
+                raise ConflictError(f"map {map_id!r} is being built; wait for the job to finish")
+            del self._entries[map_id]
+        if entry.db is not None:
+            entry.db.close()
+        entry.path.unlink(missing_ok=True)
+        return entry
+
+    def close(self) -> None:
+        self._executor.shutdown(wait=True, cancel_futures=True)
+        with self._lock:
+            for entry in self._entries.values():
+                if entry.db is not None:
+                    entry.db.close()
+            self._entries.clear()

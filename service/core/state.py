@@ -1,0 +1,59 @@
+"""Everything the routes share, created in the app's lifespan handler (never at import)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from reradar_core.errors import ScanFormatError
+from reradar_core.features import ScanFeatures
+from reradar_core.io.scan import load_scan_bytes
+from reradar_core.localization import LocalizationConfig
+from reradar_core.localization.extractor import FeatureExtractor
+from service.core.config import Settings
+from service.core.metrics import Metrics
+from service.core.registry import MapRegistry
+from service.core.scan_cache import ScanCache
+
+__all__ = ["ServiceState"]
+
+
+@dataclass
+class ServiceState:
+    """Loaded model, maps, scan cache and metrics of one running service."""
+
+    settings: Settings
+    extractor: FeatureExtractor
+    registry: MapRegistry
+    cache: ScanCache
+    metrics: Metrics
+    started_at: float = field(default_factory=time.time)
+
+    def localization_config(self, top_k: int | None = None) -> LocalizationConfig:
+        return LocalizationConfig(top_k=top_k or self.settings.top_k, min_inliers=self.settings.min_inliers)
+
+    def describe_upload(self, data: bytes, filename: str, preset: str | None,
+                        timings_ms: dict[str, float]) -> tuple[ScanFeatures, str | None]:
+        """Decode an uploaded scan (PNG / .npy) and compute its features; adds ``decode_ms``/``extract_ms``.
+
+        Raises:
+            ScanFormatError: empty, corrupt or wrongly shaped scans, non-finite features.
+        """
+        if not data:
+            raise ScanFormatError("the uploaded scan file is empty")
+        t0 = time.perf_counter()
+        scan = load_scan_bytes(data, filename or "scan.png", preset)
+        t1 = time.perf_counter()
+        try:
+            features = self.extractor.describe(scan)
+        except (ValueError, RuntimeError) as exc:
+            # shape/size problems surface as errors inside the network; they are input errors
+            raise ScanFormatError(f"could not compute features for this scan ({exc})") from exc
+        t2 = time.perf_counter()
+        if not np.all(np.isfinite(features.global_descriptor)):
+            raise ScanFormatError("the scan produced a non-finite descriptor (empty or saturated scan?)")
+        timings_ms["decode_ms"] = (t1 - t0) * 1e3
+        timings_ms["extract_ms"] = (t2 - t1) * 1e3
+        return features, scan.preset

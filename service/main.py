@@ -1,0 +1,125 @@
+"""Builds the FastAPI app. The model and maps load in the lifespan handler, never at import.
+
+Run with ``reradar serve`` or ``uvicorn service.main:app``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+from starlette.concurrency import run_in_threadpool
+
+from reradar_core.errors import ModelMismatchError, ReRadarError
+from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
+from service.api.middleware import BodyLimitMiddleware, MetricsMiddleware
+from service.api.routes import health, localize, maps, scans
+from service.core.config import Settings
+from service.core.errors import ServiceError
+from service.core.metrics import Metrics
+from service.core.registry import MapRegistry
+from service.core.scan_cache import ScanCache
+from service.core.state import ServiceState
+
+__all__ = ["create_app", "app"]
+
+logger = logging.getLogger("service")
+
+API_VERSION = "1.0.0"
+
+
+def _error(status: int, detail: str, code: str) -> JSONResponse:
+    return JSONResponse({"detail": detail, "error": code}, status_code=status)
+
+
+def _error_code(exc: ReRadarError) -> str:
+    name = type(exc).__name__.removesuffix("Error")
+    return "".join("_" + c.lower() if c.isupper() else c for c in name).lstrip("_") or "invalid_input"
+
+
+def create_app(settings: Settings | None = None, extractor: FeatureExtractor | None = None) -> FastAPI:
+    """The ReRadar service.
+
+    Args:
+        settings: configuration (default: ``Settings()`` from ``RERADAR_*`` environment variables, read when
+            the app starts).
+        extractor: feature extractor to use (default: the shipped ``DescriptorExtractor``, loaded at startup).
+    """
+    metrics = Metrics()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        cfg = settings or Settings()
+        app.state.settings = cfg
+
+        def load() -> ServiceState:
+            import torch
+
+            torch.set_num_threads(cfg.torch_threads)
+            ext = extractor or load_default_extractor()
+            registry = MapRegistry(cfg, ext)
+            if cfg.load_demo_map:
+                registry.install_demo_map()
+            registry.load_all()
+            return ServiceState(cfg, ext, registry, ScanCache(cfg.scan_cache_size, cfg.scan_cache_ttl_s), metrics)
+
+        state = await run_in_threadpool(load)
+        app.state.reradar = state
+        logger.info("ReRadar ready: model %s, %d map(s) in %s", state.extractor.model_id,
+                    state.registry.num_ready, cfg.maps_dir)
+        try:
+            yield
+        finally:
+            app.state.reradar = None
+            state.registry.close()
+
+    app = FastAPI(
+        title="ReRadar",
+        version=API_VERSION,
+        summary="Radar global localization as a service: one Navtech scan in, map keyframe and 3-DoF pose out.",
+        description=(
+            "Units: distances in metres, angles in degrees, times in microseconds (`*_us`) or milliseconds "
+            "(`*_ms`). Poses are in the map frame (x, y, counter-clockwise yaw) unless named `relative_*`. "
+            "Mutating endpoints (`POST /maps`, `DELETE /maps/{id}`) need the `X-API-Key` header."
+        ),
+        lifespan=lifespan,
+    )
+    app.state.reradar = None
+
+    def limit_for(method: str, path: str) -> int:
+        cfg: Settings | None = getattr(app.state, "settings", None) or settings
+        if cfg is None:
+            cfg = Settings()
+        if method == "POST" and path.rstrip("/") == "/maps":
+            return cfg.max_map_upload_bytes
+        return cfg.max_upload_bytes
+
+    app.add_middleware(BodyLimitMiddleware, limit_for=limit_for)
+    app.add_middleware(MetricsMiddleware, metrics=metrics)
+
+    @app.exception_handler(ServiceError)
+    async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
+        return _error(exc.status_code, exc.message, exc.code)
+
+    @app.exception_handler(ModelMismatchError)
+    async def _model_mismatch(request: Request, exc: ModelMismatchError) -> JSONResponse:
+        return _error(409, str(exc), "model_mismatch")
+
+    @app.exception_handler(ReRadarError)
+    async def _core_error(request: Request, exc: ReRadarError) -> JSONResponse:
+        return _error(422, str(exc), _error_code(exc))
+
+    @app.exception_handler(Exception)
+    async def _bug(request: Request, exc: Exception) -> JSONResponse:
+        logger.exception("internal error on %s %s", request.method, request.url.path)
+        return _error(500, "internal server error (logged); please report it", "internal")
+
+    for module in (health, maps, scans, localize):
+        app.include_router(module.router)
+    return app
+
+
+app = create_app()

@@ -1,0 +1,73 @@
+"""Metric adapter, rotation stress helpers and the feature cache, with known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from reradar_core.benchmark.cache import FeatureCache
+from reradar_core.benchmark.metrics import make_outcome, summarise
+from reradar_core.benchmark.rotation import heading_offsets, rotate_pose, rotate_scan
+from reradar_core.benchmark.synthetic import render_scan, synthetic_world
+from reradar_core.geometry.se2 import compose
+from reradar_core.landmarks import detect_landmarks
+
+DB = np.array([[0.0, 0.0, 0.0], [50.0, 0.0, 0.0], [100.0, 0.0, 0.0], [150.0, 0.0, 0.0]])
+QUERY = np.array([[1.0, 0.0, 0.1], [52.0, 0.0, 0.0], [99.0, 0.0, 0.0], [148.0, 0.0, -0.05]])
+
+
+def test_summary_known_answer_for_pose_methods():
+    retrieved = np.array([0, 1, 3, 3])  # third query wrong (50 m away)
+    est = np.array([[1.5, 0.0, 0.1 + np.deg2rad(2.0)], [52.0, 3.0, 0.0], [np.nan] * 3,
+                    [148.0, 0.0, -0.05 + np.deg2rad(20.0)]])  # last: rotation 20 deg -> failure
+    out = make_outcome(retrieved, np.array([0.1, 0.2, 0.9, 0.3]), est, QUERY, DB, 20.0, "pose")
+    s = summarise(out, QUERY, DB, 20.0, "pose")
+    assert s["recall@1"] == pytest.approx(75.0)
+    assert s["sr"] == pytest.approx(50.0)
+    assert s["e_t_m"] == pytest.approx((0.5 + 3.0) / 2)
+    assert s["e_r_deg"] == pytest.approx(1.0)
+    # threshold at 0.3 accepts three queries, all correct; the wrong one (0.9) is rejected -> P=1, R=3/4
+    assert s["f1max"] == pytest.approx(100 * 2 * 0.75 / 1.75)
+
+
+def test_summary_heading_rule_and_not_applicable():
+    retrieved = np.array([0, 1, 3, 3])
+    est = np.array([compose(DB[j], [0.0, 0.0, QUERY[i, 2] - DB[j, 2] + np.deg2rad(e)])
+                    for i, (j, e) in enumerate(zip(retrieved, [3.0, 1.0, 0.0, 12.0], strict=True))])
+    out = make_outcome(retrieved, np.zeros(4), est, QUERY, DB, 20.0, "heading")
+    s = summarise(out, QUERY, DB, 20.0, "heading")
+    assert s["sr"] == pytest.approx(50.0)  # queries 0, 1 (query 2 wrong place, query 3 rotation 12 deg)
+    assert s["e_r_deg"] == pytest.approx(2.0)
+    assert s["e_t_m"] is None
+    s2 = summarise(make_outcome(retrieved, np.zeros(4), np.full((4, 3), np.nan), QUERY, DB, 20.0, "none"),
+                   QUERY, DB, 20.0, "none")
+    assert s2["sr"] is None and s2["e_r_deg"] is None and s2["recall@1"] == pytest.approx(75.0)
+
+
+def test_rotated_scan_sees_landmarks_turned_by_the_heading_offset():
+    """A sensor turned by +yaw sees a point p at R(-yaw) p; the rotated ground truth is compose(T, yaw)."""
+    world = synthetic_world(seed=2)
+    pose = np.array([10.0, -5.0, 0.7])
+    yaw = heading_offsets(1, seed=4, num_azimuths=400)[0]
+    assert np.isclose(np.mod(yaw / (2 * np.pi / 400), 1.0), 0.0, atol=1e-9)
+    turned = rotate_scan(render_scan(world, pose, noise_seed=0), yaw)
+    direct = render_scan(world, rotate_pose(pose, yaw), noise_seed=0)
+    a = detect_landmarks(turned)
+    b = detect_landmarks(direct)
+    # same landmarks up to the sensor's noise (rotate_scan rolls the noise too): compare point sets
+    d = np.linalg.norm(a.xy_m[:, None] - b.xy_m[None], axis=-1).min(axis=1)
+    assert np.median(d) < 0.5
+    assert np.allclose(rotate_pose(pose, yaw), compose(pose, [0, 0, yaw]))
+
+
+def test_feature_cache_round_trip_and_staleness(tmp_path):
+    src = tmp_path / "scan.png"
+    src.write_bytes(b"abc")
+    with FeatureCache("m-1", "seq", root=tmp_path / "c") as c:
+        assert c.get("scan", src) is None
+        c.put("scan", {"a": np.arange(3.0), "b": np.ones((2, 2), np.float16)}, 12.5, src)
+    with FeatureCache("m-1", "seq", root=tmp_path / "c") as c:
+        rec, ms = c.get("scan", src)
+        assert ms == 12.5 and rec["b"].dtype == np.float16 and np.allclose(rec["a"], [0, 1, 2])
+        src.write_bytes(b"abcd")  # the scan changed -> recompute
+        assert c.get("scan", src) is None

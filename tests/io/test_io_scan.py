@@ -1,0 +1,170 @@
+"""Navtech PNG / .npy scan I/O: exact round trips and clear errors on bad input."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from reradar_core.errors import ScanFormatError
+from reradar_core.io.presets import ENCODER_TICKS_PER_TURN
+from reradar_core.io.scan import (
+    NAVTECH_META_COLUMNS,
+    RadarScan,
+    decode_navtech_png_bytes,
+    encode_navtech_png_bytes,
+    load_scan,
+    load_scan_bytes,
+    read_navtech_png,
+    read_polar_npy,
+    write_navtech_png,
+)
+
+N_AZ, N_BINS = 16, 3768  # Oxford bin count so the preset is inferred from the width
+
+
+def _quantised_scan(seed: int = 0, n_bins: int = N_BINS) -> RadarScan:
+    """A scan whose power is exactly representable in the PNG (k / 255) and whose azimuths are on encoder ticks."""
+    rng = np.random.default_rng(seed)
+    power = rng.integers(0, 256, size=(N_AZ, n_bins)).astype(np.float32) / 255.0
+    encoder = (np.arange(N_AZ) * (ENCODER_TICKS_PER_TURN // N_AZ) + 7) % ENCODER_TICKS_PER_TURN
+    azimuths = encoder * (2 * np.pi / ENCODER_TICKS_PER_TURN)
+    timestamps = 1547131046353776 + np.arange(N_AZ, dtype=np.int64) * 625
+    valid = np.ones(N_AZ, dtype=bool)
+    valid[3] = False
+    return RadarScan(power, azimuths, timestamps, 0.0432, 0.0, valid, preset="oxford")
+
+
+def _assert_same(a: RadarScan, b: RadarScan) -> None:
+    np.testing.assert_array_equal(a.power, b.power)
+    np.testing.assert_allclose(a.azimuths, b.azimuths, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(a.timestamps_us, b.timestamps_us)
+    np.testing.assert_array_equal(a.valid, b.valid)
+    assert a.range_resolution_m == b.range_resolution_m
+    assert a.range_offset_m == b.range_offset_m
+
+
+def test_png_file_round_trip_is_exact(tmp_path):
+    scan = _quantised_scan()
+    path = write_navtech_png(scan, tmp_path / "sub" / f"{scan.timestamp_us}.png")
+    back = read_navtech_png(path)
+    _assert_same(scan, back)
+    assert back.preset == "oxford"
+    assert back.timestamp_us == 1547131046353776
+    assert back.power.dtype == np.float32
+
+
+def test_png_bytes_round_trip_and_load_helpers(tmp_path):
+    scan = _quantised_scan(1)
+    data = encode_navtech_png_bytes(scan)
+    _assert_same(scan, decode_navtech_png_bytes(data))
+    _assert_same(scan, load_scan_bytes(data, "upload.png"))
+    path = write_navtech_png(scan, tmp_path / "s.png")
+    _assert_same(scan, load_scan(path))
+
+
+def test_png_byte_layout_matches_navtech(tmp_path):
+    """Columns 0-7 int64 timestamp, 8-9 uint16 encoder, 10 valid, then power bytes."""
+    scan = _quantised_scan(2)
+    path = write_navtech_png(scan, tmp_path / "s.png")
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert raw.dtype == np.uint8 and raw.shape == (N_AZ, NAVTECH_META_COLUMNS + N_BINS)
+    ts = raw[:, :8].copy().view("<i8").ravel()
+    enc = raw[:, 8:10].copy().view("<u2").ravel()
+    np.testing.assert_array_equal(ts, scan.timestamps_us)
+    np.testing.assert_array_equal(enc, np.round(scan.azimuths / (2 * np.pi / ENCODER_TICKS_PER_TURN)))
+    assert raw[3, 10] == 0 and raw[0, 10] != 0
+    np.testing.assert_array_equal(raw[:, 11:], np.round(scan.power * 255).astype(np.uint8))
+
+
+def test_boreas_width_infers_boreas_preset(tmp_path):
+    scan = _quantised_scan(3, n_bins=3360)
+    back = read_navtech_png(write_navtech_png(scan, tmp_path / "b.png"))
+    assert back.preset == "boreas"
+    assert back.range_resolution_m == pytest.approx(0.0596)
+    assert back.range_offset_m == pytest.approx(-0.31)
+
+
+def test_npy_uint8_and_float(tmp_path):
+    rng = np.random.default_rng(4)
+    arr8 = rng.integers(0, 256, size=(400, 3768), dtype=np.uint8)
+    np.save(tmp_path / "a.npy", arr8)
+    scan = load_scan(tmp_path / "a.npy")
+    np.testing.assert_array_equal(scan.power, arr8.astype(np.float32) / 255.0)
+    assert scan.num_azimuths == 400
+    np.testing.assert_allclose(np.diff(scan.azimuths), 2 * np.pi / 400)
+    arrf = rng.random((400, 3360), dtype=np.float32)
+    np.save(tmp_path / "b.npy", arrf)
+    scan_b = read_polar_npy(tmp_path / "b.npy", preset="boreas")
+    np.testing.assert_array_equal(scan_b.power, arrf)
+    assert scan_b.range_resolution_m == pytest.approx(0.0596)
+
+
+def test_corrupt_png_bytes_raise_scan_format_error():
+    data = encode_navtech_png_bytes(_quantised_scan())
+    with pytest.raises(ScanFormatError, match="corrupt or truncated"):
+        decode_navtech_png_bytes(b"\x89PNG\r\n\x1a\n garbage")
+    with pytest.raises(ScanFormatError, match="corrupt or truncated"):
+        decode_navtech_png_bytes(data[:40])
+    with pytest.raises(ScanFormatError):
+        decode_navtech_png_bytes(b"")
+
+
+def test_16bit_png_rejected_with_reason(tmp_path):
+    img = np.zeros((8, NAVTECH_META_COLUMNS + 3768), dtype=np.uint16)
+    path = tmp_path / "deep.png"
+    assert cv2.imwrite(str(path), img)
+    with pytest.raises(ScanFormatError, match="8-bit") as info:
+        read_navtech_png(path)
+    assert "deep.png" in str(info.value)
+
+
+def test_colour_png_rejected(tmp_path):
+    path = tmp_path / "rgb.png"
+    cv2.imwrite(str(path), np.zeros((8, 3779, 3), dtype=np.uint8))
+    with pytest.raises(ScanFormatError, match="single-channel"):
+        read_navtech_png(path)
+
+
+def test_wrong_shapes_rejected(tmp_path):
+    path = tmp_path / "narrow.png"
+    cv2.imwrite(str(path), np.zeros((8, NAVTECH_META_COLUMNS), dtype=np.uint8))
+    with pytest.raises(ScanFormatError, match="metadata"):
+        read_navtech_png(path)
+    path2 = tmp_path / "odd.png"
+    cv2.imwrite(str(path2), np.zeros((8, NAVTECH_META_COLUMNS + 1000), dtype=np.uint8))
+    with pytest.raises(ScanFormatError, match="cannot infer the radar preset"):
+        read_navtech_png(path2)
+    with pytest.raises(ScanFormatError, match="2-D"):
+        RadarScan(np.zeros(10), np.zeros(10), np.zeros(10), 0.04)
+    with pytest.raises(ScanFormatError, match="azimuths must have shape"):
+        RadarScan(np.zeros((4, 10)), np.zeros(3), np.zeros(4), 0.04)
+    with pytest.raises(ScanFormatError, match="2-D"):
+        read_polar_npy(array=np.zeros((3, 4, 5), dtype=np.uint8))
+
+
+def test_nan_power_rejected(tmp_path):
+    power = np.zeros((4, 10), dtype=np.float32)
+    power[1, 2] = np.nan
+    with pytest.raises(ScanFormatError, match="NaN"):
+        RadarScan(power, np.zeros(4), np.zeros(4), 0.04)
+    arr = np.zeros((400, 3768), dtype=np.float32)
+    arr[0, 0] = np.nan
+    np.save(tmp_path / "nan.npy", arr)
+    with pytest.raises(ScanFormatError, match="NaN"):
+        load_scan(tmp_path / "nan.npy")
+
+
+def test_missing_and_unsupported_files(tmp_path):
+    with pytest.raises(ScanFormatError, match="no such scan file"):
+        read_navtech_png(tmp_path / "missing.png")
+    (tmp_path / "x.jpg").write_bytes(b"123")
+    with pytest.raises(ScanFormatError, match="unsupported scan format"):
+        load_scan(tmp_path / "x.jpg")
+    (tmp_path / "bad.npy").write_bytes(b"not numpy")
+    with pytest.raises(ScanFormatError, match="not a readable .npy"):
+        load_scan(tmp_path / "bad.npy")
+    with pytest.raises(ScanFormatError, match="not a readable .npy"):
+        load_scan_bytes(b"not numpy", "scan.npy")
+    with pytest.raises(ScanFormatError, match=r"\[0, 1\]"):
+        read_polar_npy(array=np.full((400, 3768), 2.0, dtype=np.float32))

@@ -1,0 +1,112 @@
+"""Localization over synthetic ScanFeatures: known transforms recovered, unknown places rejected."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from reradar_core.errors import ConfigError
+from reradar_core.features import ScanFeatures
+from reradar_core.geometry.se2 import compose, inverse, transform_points, wrap_angle
+from reradar_core.localization import (
+    REASON_NO_CANDIDATE,
+    REASON_TOO_FEW_INLIERS,
+    Candidate,
+    LocalizationConfig,
+    localize,
+)
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+
+def _keyframe(rng: np.random.Generator, n: int = 120, c: int = 32, ts: int = 0) -> ScanFeatures:
+    kps = rng.uniform(-60, 60, size=(n, 2))
+    return ScanFeatures(_unit(rng.normal(size=16)), kps, _unit(rng.normal(size=(n, c))), ts)
+
+
+def _query_from(kf: ScanFeatures, T_kf_query: np.ndarray, rng: np.random.Generator, keep: float = 0.7,
+                noise_m: float = 0.1, outliers: int = 30) -> ScanFeatures:
+    """The keyframe's landmarks seen from pose T_kf_query: p_query = inverse(T_kf_query) * p_kf."""
+    n = kf.keypoints_xy_m.shape[0]
+    sel = np.sort(rng.choice(n, int(keep * n), replace=False))
+    pts = transform_points(inverse(T_kf_query), kf.keypoints_xy_m[sel].astype(np.float64))
+    pts += rng.normal(scale=noise_m, size=pts.shape)
+    desc = kf.local_descriptors[sel].astype(np.float32) + rng.normal(scale=0.05, size=(len(sel), kf.local_descriptors.shape[1]))
+    out_pts = rng.uniform(-60, 60, size=(outliers, 2))
+    out_desc = rng.normal(size=(outliers, desc.shape[1]))
+    return ScanFeatures(kf.global_descriptor, np.vstack([pts, out_pts]), _unit(np.vstack([desc, out_desc])), 99)
+
+
+def _candidates(kfs: list[ScanFeatures], poses: np.ndarray, order: list[int]) -> list[Candidate]:
+    return [Candidate(i, poses[i], kfs[i], 0.1 * r, r) for r, i in enumerate(order)]
+
+
+def test_known_transform_recovered_and_absolute_pose_composed() -> None:
+    rng = np.random.default_rng(0)
+    kfs = [_keyframe(rng, ts=1000 * i) for i in range(5)]
+    poses = np.column_stack([np.arange(5) * 50.0, np.zeros(5) + 10.0, np.linspace(0, 1, 5)])
+    T_kf_query = np.array([4.0, -2.5, np.deg2rad(25.0)])
+    query = _query_from(kfs[2], T_kf_query, rng)
+    res = localize(query, _candidates(kfs, poses, [2, 0, 1, 3, 4]))
+    assert res.status == "localized" and res.reason is None
+    assert res.best is not None and res.best.keyframe_id == 2
+    assert res.best.T_keyframe_query is not None
+    np.testing.assert_allclose(res.best.T_keyframe_query[:2], T_kf_query[:2], atol=0.1)
+    assert abs(wrap_angle(res.best.T_keyframe_query[2] - T_kf_query[2])) < np.deg2rad(0.5)
+    expected = compose(poses[2], T_kf_query)
+    assert res.T_map_query is not None
+    np.testing.assert_allclose(res.T_map_query[:2], expected[:2], atol=0.15)
+    assert res.best.num_inliers >= 70 and 0 < res.best.inlier_ratio <= 1
+    assert len(res.candidates) == 5
+
+
+def test_geometric_reranking_picks_true_keyframe_over_wrong_top1() -> None:
+    rng = np.random.default_rng(1)
+    kfs = [_keyframe(rng) for _ in range(4)]
+    poses = np.zeros((4, 3))
+    poses[:, 0] = [0, 100, 200, 300]
+    query = _query_from(kfs[3], np.array([1.0, 1.0, 0.3]), rng)
+    order = [0, 1, 3, 2]  # retrieval put the true keyframe at rank 2
+    reranked = localize(query, _candidates(kfs, poses, order), LocalizationConfig(top_k=5))
+    assert reranked.localized and reranked.best is not None
+    assert reranked.best.keyframe_id == 3 and reranked.best.rank == 2
+    plain = localize(query, _candidates(kfs, poses, order), LocalizationConfig(rerank=False))
+    assert plain.status == "not_localized" and plain.reason == REASON_TOO_FEW_INLIERS
+    assert plain.best is not None and plain.best.keyframe_id == 0
+
+
+def test_unknown_place_is_not_localized() -> None:
+    rng = np.random.default_rng(2)
+    kfs = [_keyframe(rng) for _ in range(5)]
+    poses = np.zeros((5, 3))
+    unknown = _keyframe(rng)  # a place that is not in the map
+    res = localize(unknown, _candidates(kfs, poses, [0, 1, 2, 3, 4]))
+    assert res.status == "not_localized"
+    assert res.reason == REASON_TOO_FEW_INLIERS
+    assert res.T_map_query is None
+    assert res.best is not None and res.best.num_inliers < LocalizationConfig().min_inliers
+
+
+def test_no_candidates_and_empty_query() -> None:
+    rng = np.random.default_rng(3)
+    res = localize(_keyframe(rng), [])
+    assert res.status == "not_localized" and res.reason == REASON_NO_CANDIDATE and res.best is None
+    empty = ScanFeatures(_unit(rng.normal(size=16)), np.zeros((0, 2)), np.zeros((0, 32)), 0)
+    res = localize(empty, _candidates([_keyframe(rng)], np.zeros((1, 3)), [0]))
+    assert res.status == "not_localized" and res.best is not None and res.best.num_matches == 0
+
+
+def test_top_k_limits_verified_candidates() -> None:
+    rng = np.random.default_rng(4)
+    kfs = [_keyframe(rng) for _ in range(6)]
+    query = _query_from(kfs[5], np.array([0.0, 0.0, 0.0]), rng)
+    res = localize(query, _candidates(kfs, np.zeros((6, 3)), list(range(6))), LocalizationConfig(top_k=3))
+    assert len(res.candidates) == 3 and res.status == "not_localized"
+
+
+@pytest.mark.parametrize("kwargs", [{"top_k": 0}, {"min_inliers": 1}, {"min_inlier_ratio": 1.5}])
+def test_config_validation(kwargs: dict) -> None:
+    with pytest.raises(ConfigError):
+        LocalizationConfig(**kwargs)

@@ -1,0 +1,124 @@
+"""HDF5 map store: round trip, dtypes, atomic writes, schema and model checks."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from maps.store import SCHEMA_VERSION, MapMetadata, MapWriter, check_model, open_map, read_metadata, write_map
+from reradar_core.errors import MapFormatError, ModelMismatchError
+from reradar_core.features import ScanFeatures
+
+D, C = 16, 8
+
+
+def _meta(**kw: object) -> MapMetadata:
+    base = dict(model_id="test-model", weights_sha256="a" * 64, radar_preset="boreas", cartesian_width_px=201,
+                cartesian_resolution_m=0.64, descriptor_dim=D, local_descriptor_dim=C, source="unit test",
+                name="t")
+    base.update(kw)
+    return MapMetadata(**base)  # type: ignore[arg-type]
+
+
+def _features(rng: np.random.Generator, n: int) -> list[ScanFeatures]:
+    out = []
+    for i in range(n):
+        k = int(rng.integers(0, 30))
+        g = rng.normal(size=D)
+        loc = rng.normal(size=(k, C))
+        loc /= np.maximum(np.linalg.norm(loc, axis=1, keepdims=True), 1e-9)
+        out.append(ScanFeatures(g / np.linalg.norm(g), rng.uniform(-80, 80, (k, 2)), loc, 1_000_000 + i * 250_000))
+    return out
+
+
+def test_round_trip_preserves_values_and_dtypes(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    feats = _features(rng, 7)
+    # poses far from the origin with sub-millimetre detail: float16/float32 would lose them
+    poses = np.column_stack([6.2e5 + rng.uniform(0, 1, 7), 4.8e6 + rng.uniform(0, 1, 7), rng.uniform(-3, 3, 7)])
+    path = write_map(tmp_path / "m.h5", _meta(), feats, poses)
+    with open_map(path, "test-model", "a" * 64) as m:
+        assert len(m) == 7 and m.metadata.schema_version == SCHEMA_VERSION
+        assert m.metadata.num_keyframes == 7 and m.metadata.created_utc.endswith("Z")
+        assert m.poses.dtype == np.float64
+        np.testing.assert_array_equal(m.poses, poses)
+        np.testing.assert_array_equal(m.timestamps_us, [f.timestamp_us for f in feats])
+        np.testing.assert_allclose(m.global_descriptors, np.stack([f.global_descriptor for f in feats]), atol=0)
+        for i in (0, 3, 6):
+            kf = m.read_keyframe(i)
+            np.testing.assert_array_equal(kf.keypoints_xy_m, feats[i].keypoints_xy_m)
+            assert kf.local_descriptors.dtype == np.float16
+            np.testing.assert_array_equal(kf.local_descriptors, feats[i].local_descriptors)
+        with pytest.raises(IndexError):
+            m.read_keyframe(7)
+    with h5py.File(path) as f:
+        assert f["poses"].dtype == np.float64 and f["global_descriptors"].dtype == np.float32
+        assert f["keyframes/000002/local_descriptors"].dtype == np.float16
+
+
+def test_crash_mid_write_leaves_no_map_and_keeps_old_one(tmp_path: Path) -> None:
+    rng = np.random.default_rng(1)
+    path = write_map(tmp_path / "m.h5", _meta(), _features(rng, 3), np.zeros((3, 3)))
+    before = path.read_bytes()
+    with pytest.raises(RuntimeError, match="boom"):
+        with MapWriter(path, _meta(), overwrite=True) as w:
+            for f in _features(rng, 5):
+                w.add(f, np.zeros(3))
+            raise RuntimeError("boom")
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["m.h5"]  # no temporary left behind
+    new = tmp_path / "new.h5"
+    with pytest.raises(RuntimeError):
+        with MapWriter(new, _meta()) as w:
+            w.add(_features(rng, 1)[0], np.zeros(3))
+            raise RuntimeError("crash")
+    assert not new.exists()
+
+
+def test_refuses_existing_without_overwrite_and_bad_keyframes(tmp_path: Path) -> None:
+    rng = np.random.default_rng(2)
+    path = write_map(tmp_path / "m.h5", _meta(), _features(rng, 1), np.zeros((1, 3)))
+    with pytest.raises(FileExistsError):
+        MapWriter(path, _meta())
+    with pytest.raises(ValueError, match="pose"):
+        with MapWriter(tmp_path / "x.h5", _meta()) as w:
+            w.add(_features(rng, 1)[0], np.array([0.0, np.nan, 0.0]))
+    with pytest.raises(ValueError, match="global descriptor"):
+        with MapWriter(tmp_path / "y.h5", _meta(descriptor_dim=D + 1)) as w:
+            w.add(_features(rng, 1)[0], np.zeros(3))
+    assert not (tmp_path / "x.h5").exists() and not (tmp_path / "y.h5").exists()
+
+
+def test_model_mismatch_is_refused(tmp_path: Path) -> None:
+    path = write_map(tmp_path / "m.h5", _meta(), _features(np.random.default_rng(3), 2), np.zeros((2, 3)))
+    with pytest.raises(ModelMismatchError, match="rebuild the map"):
+        open_map(path, "other-model", "b" * 64)
+    check_model(read_metadata(path), "test-model", "a" * 64)  # same hash: accepted
+
+
+def test_bad_files_raise_map_format_error(tmp_path: Path) -> None:
+    garbage = tmp_path / "garbage.h5"
+    garbage.write_bytes(b"not an hdf5 file at all")
+    with pytest.raises(MapFormatError, match="not a readable HDF5"):
+        open_map(garbage)
+    with pytest.raises(MapFormatError, match="no such map"):
+        open_map(tmp_path / "missing.h5")
+    empty = tmp_path / "empty.h5"
+    with h5py.File(empty, "w"):
+        pass
+    with pytest.raises(MapFormatError, match="schema_version"):
+        open_map(empty)
+    path = write_map(tmp_path / "v.h5", _meta(), _features(np.random.default_rng(4), 2), np.zeros((2, 3)))
+    with h5py.File(path, "r+") as f:
+        f.attrs["schema_version"] = 99
+    with pytest.raises(MapFormatError, match="schema_version 99"):
+        open_map(path)
+    path = write_map(tmp_path / "p.h5", _meta(), _features(np.random.default_rng(5), 2), np.zeros((2, 3)))
+    with h5py.File(path, "r+") as f:
+        del f["poses"]
+        f.create_dataset("poses", data=np.zeros((2, 3), np.float16))
+    with pytest.raises(MapFormatError, match="float64"):
+        open_map(path)

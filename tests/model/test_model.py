@@ -1,0 +1,214 @@
+"""Descriptor network: export agreement, exact 90-degree equivariance, NetVLAD, F' sampling, extractor."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from reradar_core.io.scan import RadarScan
+from reradar_core.model import (
+    DescriptorExtractor,
+    DescriptorNet,
+    ModelConfig,
+    NetVLAD,
+    group_max_pool,
+    sample_feature_map,
+    save_weights,
+)
+
+# Small widths keep the tests fast; the layout (and hence the equivariance argument) is the default one.
+SMALL = ModelConfig(width=0.25, num_clusters=8, output_dim=32)
+
+
+def _randomise_bn(net: torch.nn.Module, seed: int) -> None:
+    """Non-trivial BN statistics so that export must copy them correctly."""
+    g = torch.Generator().manual_seed(seed)
+    for m in net.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.copy_(torch.randn(m.running_mean.shape, generator=g) * 0.1)
+            m.running_var.copy_(torch.rand(m.running_var.shape, generator=g) + 0.5)
+
+
+@pytest.fixture(scope="module")
+def eq_pair():
+    """(e2cnn training net in eval mode, its export); built once (basis expansion is slow)."""
+    from reradar_core.model.equivariant import EquivariantDescriptorNet
+
+    torch.manual_seed(0)
+    net = EquivariantDescriptorNet(SMALL)
+    # Give every InnerBatchNorm running statistics by a few training-mode passes on random images.
+    net.train()
+    with torch.no_grad():
+        for _ in range(2):
+            net(torch.rand(2, 1, 201, 201))
+    net.eval()
+    return net, net.export()
+
+
+@pytest.fixture(scope="module")
+def image() -> torch.Tensor:
+    g = torch.Generator().manual_seed(1)
+    return torch.rand(2, 1, 201, 201, generator=g)
+
+
+def test_export_matches_equivariant_net(eq_pair, image):
+    net, plain = eq_pair
+    assert not any("e2cnn" in type(m).__module__ for m in plain.modules())
+    with torch.no_grad():
+        g1, f1 = net(image)
+        g2, f2 = plain(image)
+    assert g1.shape == (2, 32) and f1.shape == (2, SMALL.feature_dim, 26, 26)
+    assert torch.max(torch.abs(g1 - g2)) <= 1e-4
+    assert torch.max(torch.abs(f1 - f2)) <= 1e-4 * max(1.0, float(f1.abs().max()))
+
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_rot90_invariant_descriptor_and_equivariant_fmap_201(eq_pair, image, k):
+    _, plain = eq_pair
+    with torch.no_grad():
+        g, f = plain(image)
+        gr, fr = plain(torch.rot90(image, k, dims=(2, 3)))
+    cos = (g * gr).sum(dim=1)
+    assert torch.all(cos >= 0.99), cos
+    err = torch.max(torch.abs(torch.rot90(f, k, dims=(2, 3)) - fr)) / torch.max(torch.abs(f))
+    assert err < 1e-4
+
+
+def _rot_error(plain: DescriptorNet, width: int) -> tuple[float, float]:
+    g = torch.Generator().manual_seed(2)
+    x = torch.rand(2, 1, width, width, generator=g)
+    with torch.no_grad():
+        d, f = plain(x)
+        dr, fr = plain(torch.rot90(x, 1, dims=(2, 3)))
+    rel = float(torch.max(torch.abs(torch.rot90(f, 1, dims=(2, 3)) - fr)) / torch.max(torch.abs(f)))
+    return rel, float((d * dr).sum(dim=1).min())
+
+
+def test_even_input_200_breaks_exact_equivariance(eq_pair):
+    """The paper's 200 x 200 input: strided layers sample a grid that rot90 does not map onto itself."""
+    _, plain = eq_pair
+    rel_201, cos_201 = _rot_error(plain, 201)
+    rel_200, cos_200 = _rot_error(plain, 200)
+    assert rel_201 < 1e-4 and cos_201 > 0.9999
+    assert rel_200 > 1e-2  # F' no longer rotates exactly with the input (measured ~0.3-1 with random weights)
+
+
+def test_group_max_pool_matches_e2cnn():
+    from e2cnn import gspaces
+    from e2cnn import nn as enn
+
+    gs = gspaces.Rot2dOnR2(8)
+    ft = enn.FieldType(gs, [gs.regular_repr] * 3)
+    x = torch.randn(2, 24, 5, 5)
+    ref = enn.GroupPooling(ft)(enn.GeometricTensor(x, ft)).tensor
+    assert torch.equal(group_max_pool(x, 8), ref)
+
+
+def test_netvlad_shape_and_normalisation():
+    torch.manual_seed(0)
+    vlad = NetVLAD(dim=16, num_clusters=8)
+    out = vlad(torch.randn(3, 16, 7, 7))
+    assert out.shape == (3, 128)
+    assert torch.allclose(out.norm(dim=1), torch.ones(3), atol=1e-5)
+    # intra-normalisation: all K blocks have equal norm 1/sqrt(K) before nothing is zero
+    blocks = out.view(3, 8, 16).norm(dim=2)
+    assert torch.allclose(blocks, torch.full_like(blocks, 1 / np.sqrt(8)), atol=1e-4)
+
+
+def test_netvlad_centroid_init_assigns_to_nearest_centre():
+    c = torch.eye(4)
+    vlad = NetVLAD(dim=4, num_clusters=4, alpha=50.0)
+    vlad.init_from_centroids(c)
+    x = torch.zeros(1, 4, 1, 1)
+    x[0, 2] = 1.0  # exactly centre 2
+    a = torch.softmax(vlad.assign(x).flatten(2), dim=1)[0, :, 0]
+    assert int(a.argmax()) == 2 and a[2] > 0.99
+
+
+def test_sample_feature_map_reads_the_right_cell():
+    c, h = 3, 26
+    ch, rr, cc = np.meshgrid(np.arange(c), np.arange(h), np.arange(h), indexing="ij")
+    fmap = torch.from_numpy((ch * 1000 + rr * 26 + cc).astype(np.float32))
+    # cell (3, 5) is centred on input pixel (24, 40); halfway to (4, 5) is pixel (28, 40)
+    out = sample_feature_map(fmap, np.array([[24.0, 40.0], [28.0, 40.0], [200.0, 0.0]]), stride=8)
+    np.testing.assert_allclose(out[0], [3 * 26 + 5 + 1000 * k for k in range(c)], atol=1e-4)
+    np.testing.assert_allclose(out[1], [3.5 * 26 + 5 + 1000 * k for k in range(c)], atol=1e-4)
+    np.testing.assert_allclose(out[2], [25 * 26 + 0 + 1000 * k for k in range(c)], atol=1e-4)
+
+
+def _scan(seed: int = 0, n_az: int = 400, n_bins: int = 400) -> RadarScan:
+    rng = np.random.default_rng(seed)
+    power = (rng.random((n_az, n_bins)) ** 4).astype(np.float32)
+    power[:, 150:160] += 0.5  # a ring and a few blobs
+    power[40:60, 200:230] = 1.0
+    power[210:220, 90:110] = 1.0
+    return RadarScan.from_power(np.clip(power, 0, 1), preset="oxford")
+
+
+@pytest.fixture(scope="module")
+def extractor(eq_pair) -> DescriptorExtractor:
+    return DescriptorExtractor(eq_pair[1], max_keypoints=3)
+
+
+def test_describe_samples_fmap_at_landmarks(extractor):
+    scan = _scan()
+    xy = np.array([[10.0, 5.0], [-30.0, 20.0], [0.0, -40.0], [500.0, 0.0]])  # the last is outside the image
+    feats = extractor.describe(scan, landmarks=xy)
+    assert feats.global_descriptor.shape == (32,) and feats.global_descriptor.dtype == np.float32
+    assert abs(np.linalg.norm(feats.global_descriptor) - 1) < 1e-5
+    assert feats.keypoints_xy_m.shape == (3, 2) and feats.local_descriptors.dtype == np.float16
+    np.testing.assert_allclose(np.linalg.norm(feats.local_descriptors.astype(np.float32), axis=1), 1, atol=2e-3)
+    # local descriptor of keypoint 0 = normalised F' at its pixel (x=10 m -> row 100 - 15.625, col 100 - 7.8)
+    _, fmap = extractor.run_images(extractor.cartesian_image(scan)[None])
+    ref = sample_feature_map(fmap[0], np.array([[100 - 10 / 0.64, 100 - 5 / 0.64]]), 8)[0]
+    ref /= np.linalg.norm(ref)
+    np.testing.assert_allclose(feats.local_descriptors[0].astype(np.float32), ref, atol=2e-3)
+
+
+def test_describe_is_rotation_invariant_for_90_degree_scan_rotation(extractor):
+    scan = _scan(3)
+    rolled = scan.with_power(np.roll(scan.power, scan.num_azimuths // 4, axis=0))
+    a = extractor.describe(scan, landmarks=np.zeros((0, 2)))
+    b = extractor.describe(rolled, landmarks=np.zeros((0, 2)))
+    assert float(a.global_descriptor @ b.global_descriptor) >= 0.99
+
+
+def test_describe_batch_equals_describe(extractor):
+    scans = [_scan(4), _scan(5)]
+    lms = [np.array([[5.0, 5.0]]), np.array([[-5.0, 12.0]])]
+    batch = extractor.describe_batch(scans, landmarks=lms)
+    for s, lm, f in zip(scans, lms, batch, strict=True):
+        single = extractor.describe(s, landmarks=lm)
+        np.testing.assert_allclose(f.global_descriptor, single.global_descriptor, atol=1e-5)
+        np.testing.assert_allclose(f.local_descriptors.astype(np.float32),
+                                   single.local_descriptors.astype(np.float32), atol=2e-3)
+
+
+def test_keypoint_cap_keeps_strongest(extractor):
+    class _Lm:
+        xy_m = np.array([[1.0, 0.0], [2.0, 0.0], [3.0, 0.0], [4.0, 0.0], [5.0, 0.0]])
+        strength = np.array([0.1, 0.9, 0.5, 0.8, 0.2], np.float32)
+
+    feats = extractor.describe(_scan(), landmarks=_Lm())
+    np.testing.assert_allclose(feats.keypoints_xy_m[:, 0], [2.0, 3.0, 4.0])
+
+
+def test_save_and_load_roundtrip(tmp_path, eq_pair, image):
+    _, plain = eq_pair
+    path = save_weights(plain, tmp_path / "tiny.pt", {"note": "test"})
+    ex = DescriptorExtractor.from_file(path)
+    assert ex.model_id == SMALL.model_id and len(ex.weights_sha256) == 64
+    assert ex.metadata["sha256"] == ex.weights_sha256
+    g, f = ex.run_images(image[:, 0].numpy())
+    with torch.no_grad():
+        g0, _ = plain(image)
+    np.testing.assert_allclose(g, g0.numpy(), atol=1e-6)
+
+
+def test_standard_resnet_variant_same_layout():
+    cfg = ModelConfig(backbone="resnet", width=0.25, num_clusters=8, output_dim=None)
+    net = DescriptorNet(cfg).eval()
+    with torch.no_grad():
+        g, f = net(torch.rand(1, 1, 201, 201))
+    assert f.shape == (1, 128, 26, 26) and g.shape == (1, 8 * 128) and cfg.stride == 8

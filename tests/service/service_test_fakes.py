@@ -1,0 +1,58 @@
+"""Shared fakes for the service tests: a fast deterministic feature extractor and synthetic scans."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from reradar_core.features import ScanFeatures
+from reradar_core.geometry.cartesian import CartesianConfig, polar_to_metric
+from reradar_core.io.scan import RadarScan
+
+API_KEY = "test-key-0123456789abcdef"
+N_KEYFRAMES = 6
+
+
+class FakeExtractor:
+    """Deterministic stand-in for the network (the HTTP layer is under test, not the model).
+
+    Global descriptor: the scan's range profile (rotation invariant). Keypoints: returns above 0.5.
+    Local descriptors: sin/cos of the keypoint's range at several frequencies (rotation invariant, distinct per
+    range), so a scan matches itself and rotated copies of itself.
+    """
+
+    model_id = "fake-extractor"
+    weights_sha256 = "f" * 64
+    descriptor_dim = 32
+    cartesian = CartesianConfig()
+
+    def describe(self, scan: RadarScan) -> ScanFeatures:
+        prof = scan.power.mean(axis=0)
+        g = np.add.reduceat(prof, np.linspace(0, prof.size, 33).astype(int)[:-1]) + 1e-6
+        az, rb = np.nonzero(scan.power > 0.5)
+        r = scan.ranges_m[rb]
+        xy = polar_to_metric(scan.azimuths[az], r)
+        freqs = np.linspace(0.05, 2.0, 8)
+        loc = np.concatenate([np.sin(r[:, None] * freqs), np.cos(r[:, None] * freqs)], axis=1)
+        return ScanFeatures(g / np.linalg.norm(g), xy, loc / np.sqrt(8.0), scan.timestamp_us)
+
+    def describe_batch(self, scans: list[RadarScan]) -> list[ScanFeatures]:
+        return [self.describe(s) for s in scans]
+
+
+def make_scan(seed: int, t_us: int, n_targets: int = 40, preset: str = "boreas") -> RadarScan:
+    """A (400, 3360) boreas scan with ``n_targets`` bright point returns at distinct ranges."""
+    rng = np.random.default_rng(seed)
+    power = np.zeros((400, 3360), np.float32)
+    bins = rng.choice(np.arange(100, 3300), n_targets, replace=False)
+    az = rng.integers(0, 400, n_targets)
+    power[az, bins] = 1.0
+    return RadarScan.from_power(power, preset, start_time_us=t_us)
+
+
+def keyframe_poses() -> np.ndarray:
+    return np.column_stack([np.arange(N_KEYFRAMES) * 40.0, np.arange(N_KEYFRAMES) * -3.0,
+                            np.linspace(0.0, 1.0, N_KEYFRAMES)])
+
+
+def keyframe_time(i: int) -> int:
+    return 1_600_000_000_000_000 + i * 250_000
