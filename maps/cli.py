@@ -23,6 +23,7 @@ def build_map_command(
     name: str | None = typer.Option(None, help="Map name stored in the file (default: sequence name)."),
     overwrite: bool = typer.Option(False, help="Replace an existing map file."),
     threads: int = typer.Option(2, min=1, help="torch CPU threads."),
+    model: str = typer.Option("default", help="Descriptor model: registry name or .pt weights path."),
 ) -> None:
     """Build a keyframe map (global + local descriptors, poses) from a radar sequence folder."""
     import torch
@@ -36,7 +37,7 @@ def build_map_command(
         typer.echo(f"error: {out} exists; pass --overwrite to replace it", err=True)
         raise typer.Exit(2)
     try:
-        extractor = load_default_extractor()
+        extractor = load_default_extractor(model)
         kwargs: dict[str, object] = dict(batch_size=batch_size, max_keypoints=max_keypoints,
                                          overwrite=overwrite, show_progress=True)
         if name:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import logging
 import math
 import socket
 import tempfile
@@ -112,11 +113,12 @@ def run_demo(map_path: Path = DEMO_MAP_PATH, queries_dir: Path = DEMO_QUERIES_DI
         echo(f"error: demo map {map_path} not found; build it with `python scripts/build_demo_map.py`")
         return 2
     truth = read_queries_csv(queries_dir / QUERIES_CSV)
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request would bury the table
     with tempfile.TemporaryDirectory(prefix="reradar-demo-") as tmp:
         maps_dir = Path(tmp) / "maps"
         maps_dir.mkdir()
         (maps_dir / f"{DEMO_MAP_ID}.h5").write_bytes(map_path.read_bytes())
-        settings = Settings(maps_dir=maps_dir, load_demo_map=False, torch_threads=threads)
+        settings = Settings(maps_dir=maps_dir, load_demo_map=False, torch_threads=threads)  # model: RERADAR_MODEL
         echo("starting the ReRadar service (uvicorn, loopback) on the demo map ...")
         t_start = time.perf_counter()
         with serve_in_thread(settings) as url, ReRadarClient(url) as client:

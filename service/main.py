@@ -59,7 +59,7 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
             import torch
 
             torch.set_num_threads(cfg.torch_threads)
-            ext = extractor or load_default_extractor()
+            ext = extractor or load_default_extractor(cfg.model)
             registry = MapRegistry(cfg, ext)
             if cfg.load_demo_map:
                 registry.install_demo_map()

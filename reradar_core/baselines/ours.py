@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared, Retrieval
+from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared, Retrieval, landmarks_for
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import relative_pose
 from reradar_core.io.scan import RadarScan
@@ -64,7 +64,8 @@ class Ours(PlaceRecognitionMethod):
                 "sha": str(getattr(self.extractor, "weights_sha256", "")), "v": 1}
 
     def prepare(self, scan: RadarScan) -> Prepared:
-        return features_to_prepared(self.extractor.describe(scan))
+        lm = landmarks_for(scan, getattr(self.extractor, "landmark_config", None))
+        return features_to_prepared(self.extractor.describe(scan, landmarks=lm))
 
     def describe_prepared(self, prepared: Prepared) -> np.ndarray:
         return np.asarray(prepared["global"], dtype=np.float32)

@@ -20,9 +20,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared
+from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared, landmarks_for
 from reradar_core.io.scan import RadarScan
-from reradar_core.landmarks import Cen2018Config, detect_landmarks
+from reradar_core.landmarks import Cen2018Config
 
 __all__ = ["ReFereeConfig", "ReFeree", "free_space_ranges"]
 
@@ -41,7 +41,7 @@ def free_space_ranges(scan: RadarScan, config: ReFereeConfig = ReFereeConfig()) 
     """Per-azimuth free-space extent: (A,) int64 first-feature range bin (R where a beam has no feature),
     and the detector's minimum range bin (free space starts there)."""
     cen = Cen2018Config(z_q=config.z_q, sigma_bins=config.sigma_bins)
-    lm = detect_landmarks(scan, cen)
+    lm = landmarks_for(scan, cen)
     n_az, n_bins = scan.power.shape
     first = np.full(n_az, n_bins, dtype=np.int64)
     if len(lm):

@@ -26,35 +26,49 @@ def _best(rows: dict[str, dict[str, Any]], key: str) -> set[str]:
 
 
 def results_markdown(results: dict[str, Any]) -> str:
-    """Markdown: one table per sequence (methods as rows; Recall@1, F1max, SR, ê_r, ê_t, n, ms/query),
-    best values in bold, then the rotation-stress and stage-timing tables when present."""
+    """Markdown like the paper's tables: methods as rows, per-sequence Recall@1 / F1max / SR / ê_r / ê_t
+    column groups, best values in bold; then time per query, rotation stress and stage timings."""
     lines = [f"# `reradar bench` results — suite `{results.get('suite')}`", ""]
     radius = results.get("settings", {}).get("radius_m")
-    lines.append(f"Correct retrieval within {radius} m; SR: translation < {radius} m and rotation < 10° "
-                 "(ReFeree, RaPlace: correct retrieval and rotation < 10°); ê_r, ê_t over successes; "
-                 "– = not applicable.")
+    lines.append(f"Correct retrieval within {radius} m; Recall@1 and SR over all queries; SR: translation < "
+                 f"{radius} m and rotation < 10° (heading-only methods ReFeree, RaPlace: correct retrieval and "
+                 "rotation < 10°); ê_r, ê_t over successes; – = not applicable; ms/query = features + "
+                 "retrieval (+ verification) per query on this machine.")
     lines.append("")
-    for seq, rows in results.get("sequences", {}).items():
-        pair = results.get("settings", {}).get("pairs", {}).get(seq, {})
-        lines.append(f"### {seq}" + (f" (database `{pair['database']}`: {pair['n_database']} scans, "
-                                     f"{pair['n_query']} queries)" if pair else ""))
-        lines.append("")
-        head = "| Method | " + " | ".join(h for _, h, _ in METRIC_COLUMNS) + " | ms/query |"
-        lines += [head, "|" + "---|" * (len(METRIC_COLUMNS) + 2)]
-        best = {k: _best(rows, k) for k, _, _ in METRIC_COLUMNS}
-        for m, r in rows.items():
-            cells = []
+    seqs = results.get("sequences", {})
+    pairs = results.get("settings", {}).get("pairs", {})
+    for seq in seqs:
+        p = pairs.get(seq)
+        if p:
+            lines.append(f"- `{seq}`: {p['n_query']} queries against database `{p['database']}` "
+                         f"({p['n_database']} keyframes)")
+    lines.append("")
+    methods: list[str] = []
+    for rows in seqs.values():
+        methods += [m for m in rows if m not in methods]
+    head = "| Method | " + " | ".join(f"{seq}: {h}" for seq in seqs for _, h, _ in METRIC_COLUMNS) + " |"
+    lines += [head, "|" + "---|" * (1 + len(seqs) * len(METRIC_COLUMNS))]
+    best = {(seq, k): _best(rows, k) for seq, rows in seqs.items() for k, _, _ in METRIC_COLUMNS}
+    for m in methods:
+        cells = []
+        for seq, rows in seqs.items():
+            r = rows.get(m, {})
             for k, _, fmt in METRIC_COLUMNS:
-                s = _fmt(r.get(k), fmt)
-                cells.append(f"**{s}**" if m in best[k] and s != "–" else s)
-            cells.append(_fmt(r.get("ms_per_query"), "{:.1f}"))
-            lines.append(f"| {m} | " + " | ".join(cells) + " |")
-        lines.append("")
+                c = _fmt(r.get(k), fmt)
+                cells.append(f"**{c}**" if m in best[(seq, k)] and c != "–" else c)
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    lines.append("")
+    lines += ["Time per query (features + retrieval + verification, ms, this machine):", "",
+              "| Method | " + " | ".join(seqs) + " |", "|" + "---|" * (1 + len(seqs))]
+    for m in methods:
+        lines.append(f"| {m} | " + " | ".join(_fmt(rows.get(m, {}).get("ms_per_query"), "{:.1f}")
+                                             for rows in seqs.values()) + " |")
+    lines.append("")
     stress = results.get("rotation_stress")
     if stress:
         lines += ["### Rotation stress (random heading offset added to every query scan)", ""]
         seqs = list(stress)
-        lines.append("| Method | " + " | ".join(f"{s}: R@1 → rotated (drop)" for s in seqs) + " |")
+        lines.append("| Method | " + " | ".join(f"{s}: Recall@1 → rotated (Δ points)" for s in seqs) + " |")
         lines.append("|" + "---|" * (len(seqs) + 1))
         methods = list(next(iter(stress.values())).keys())
         for m in methods:
@@ -62,7 +76,7 @@ def results_markdown(results: dict[str, Any]) -> str:
             for s in seqs:
                 r = stress[s].get(m)
                 cells.append("–" if r is None else
-                             f"{r['recall@1']:.2f} → {r['recall@1_rotated']:.2f} ({r['drop']:+.2f})")
+                             f"{r['recall@1']:.2f} → {r['recall@1_rotated']:.2f} (Δ {-r['drop']:+.2f})")
             lines.append(f"| {m} | " + " | ".join(cells) + " |")
         lines.append("")
     timing = results.get("timing")

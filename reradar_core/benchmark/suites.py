@@ -44,8 +44,19 @@ def pairs_from_folders(database: Path, queries: list[Path], preset: str | None =
 
 def pairs_from_suite(name: str, every: int | None = None, limit: int | None = None,
                      progress: bool = True) -> tuple[list[BenchPair], float]:
-    """A simulated suite: render (cached) and pair its database with each of its query sequences."""
+    """A simulated suite: render (cached) and pair its database with each of its query sequences.
+
+    Suites are already rendered at their protocol's frame spacing (e.g. every 5th frame off-road), so
+    ``every`` defaults to 1 here. Returns the pairs and the suite's radius.
+    """
     from reradar_core.sim.suites import build_suite
 
     data = build_suite(name, progress=progress)
-    raise NotImplementedError(data)
+    if not data.database or not data.queries:
+        raise ConfigError(f"suite {name!r} has no database/query sequences (training split?); "
+                          "choose an evaluation suite: smoke, boreas-sim, loop-sim, offroad-sim")
+    if len(data.database) > 1:
+        raise ConfigError(f"suite {name!r} has {len(data.database)} database sequences; one is supported")
+    db = subsample(data.load(data.database[0]), every or 1, limit)
+    pairs = [BenchPair(qp.name, db, subsample(data.load(qp), every or 1, limit)) for qp in data.queries]
+    return pairs, float(data.radius_m)

@@ -3,7 +3,8 @@ Evaluation").
 
 For a scan's Cartesian image I and a yaw theta: F = f(I), F_theta = f(R_theta I), and the inverse-aligned
 map F~ = R_-theta(F_theta). S(theta) is the mean cosine similarity between F(p) and F~(p) over locations p
-inside the inscribed disc (rotation padding and cropping excluded), averaged over scans. A score near 1 means
+inside the inscribed disc (rotation padding and cropping excluded) where F(p) is not zero, averaged over
+scans. A score near 1 means
 the feature map is rotation-equivariant.
 """
 
@@ -38,11 +39,14 @@ def yaw_consistency(extractor: Any, scans: Sequence[RadarScan], angles_deg: np.n
     cc = (h - 1) / 2.0
     yy, xx = torch.meshgrid(torch.arange(h), torch.arange(h), indexing="ij")
     mask = ((yy - cc) ** 2 + (xx - cc) ** 2) <= (cc - 1.0) ** 2
+    # cosine is undefined where the unrotated map is zero (no signal at all): leave those locations out
+    norm = f0.norm(dim=1)
+    valid = mask[None] & (norm > 1e-6 * float(norm.max()))
     out = np.zeros(len(angles_deg))
     for i, a in enumerate(angles_deg):
         th = float(np.deg2rad(a))
         _, ft = extractor.run_images(rotate_image(imgs, th)[:, 0].numpy())
         back = rotate_image(torch.from_numpy(ft), -th)
         cos = F.cosine_similarity(f0, back, dim=1, eps=1e-8)  # (B, h, w)
-        out[i] = float(cos[:, mask].mean())
+        out[i] = float(cos[valid].mean())
     return out

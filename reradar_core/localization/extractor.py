@@ -36,8 +36,8 @@ class FeatureExtractor(Protocol):
     def describe_batch(self, scans: list[RadarScan]) -> list[ScanFeatures]: ...
 
 
-def load_default_extractor() -> FeatureExtractor:
-    """The shipped descriptor model (``DescriptorExtractor.from_pretrained()``)."""
+def load_default_extractor(name: str = "default") -> FeatureExtractor:
+    """A shipped descriptor model by registry name (``default``: the shipped default) or a ``.pt`` path."""
     from reradar_core.model import DescriptorExtractor
 
-    return DescriptorExtractor.from_pretrained()
+    return DescriptorExtractor.from_pretrained(name)

@@ -49,8 +49,8 @@ class SensorConfig:
         noise_floor: receiver noise power (linear units of the same scale as the returns).
         ground_level: diffuse ground backscatter at its peak range.
         ground_peak_m: range of the ground clutter maximum (elevation beam pattern meets the ground).
-        near_field_level: vehicle self-return power at range 0 (decays over ``near_field_m``).
-        speckle_looks: looks summed in the multiplicative speckle (1 = exponential intensity).
+        near_field_level: vehicle self-return power out to ``near_field_m`` (then a 0.2 m roll-off).
+        speckle_looks: looks summed in the multiplicative speckle (1 = exponential intensity; 0 = none).
         speckle_range_cell: range bins per independent speckle cell (real scans: ~4-10 bins correlation).
         speckle_az_coupling: weight of neighbouring azimuths in the speckle (overlapping beams).
         db_floor, db_span: log compression: value = (10 log10(P) - db_floor) / db_span, clipped to [0, 1].
@@ -61,26 +61,26 @@ class SensorConfig:
 
     oversample: int = 2
     beam_fwhm_deg: float = 1.8
-    sidelobe_db: float = -26.0
+    sidelobe_db: float = -20.0
     sidelobe_halfwidth_bins: int = 10
     range_sigma_m: float = 0.12
-    range_tail_m: float = 0.8
-    range_exponent: float = 1.2
+    range_tail_m: float = 0.4
+    range_exponent: float = 0.6
     ref_range_m: float = 20.0
     noise_floor: float = 1.0
-    ground_level: float = 0.6
-    ground_peak_m: float = 30.0
-    near_field_level: float = 40.0
-    near_field_m: float = 0.5
+    ground_level: float = 2.0
+    ground_peak_m: float = 40.0
+    near_field_level: float = 11.0
+    near_field_m: float = 1.6
     speckle_looks: float = 1.0
     speckle_range_cell: int = 10
     speckle_az_coupling: float = 0.25
-    db_floor: float = -2.9
+    db_floor: float = -3.5
     db_span: float = 100.0
     streak_rate: float = 0.8
     ghost_prob: float = 0.15
     min_range_m: float = 0.5
-    target_gain: float = 1200.0
+    target_gain: float = 2500.0
 
 
 def sweep_poses(trajectory: PoseSequence, t0_us: int, preset: RadarPreset, oversample: int = 1
@@ -287,7 +287,9 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
         j, rp, rcs, kind = j[ok], rp[ok], rcs[ok], kind[ok]
         rcs = np.where(kind == 1, rcs * cond.leaf_factor, rcs)
         rcs = np.where(kind == 2, rcs * cond.ground_factor * _elevation_gain(rp, cfg), rcs)
-        pb = np.clip(np.floor((rp - off) / (res * coarse)).astype(np.int64), 0, n_c - 1)
+        # 1 m tolerance: a scatterer on a wall (façade detail) is not shadowed by the wall it sits on, even
+        # when its sub-ray meets the wall a little earlier at grazing incidence
+        pb = np.clip(np.floor((rp - 1.0 - off) / (res * coarse)).astype(np.int64), 0, n_c - 1)
         p_pow = rcs * tmap[j, pb]
     else:
         j = np.zeros(0, np.int64)
@@ -327,7 +329,8 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
     ground = (cfg.ground_level * cond.ground_factor * _elevation_gain(rr, cfg)
               * (cfg.ground_peak_m / np.maximum(rr, cfg.ground_peak_m)) ** 2.5).astype(np.float32)
     ground *= (10 ** (-2 * cond.attenuation_db_per_km * rr / 1e4)).astype(np.float32)
-    near = (cfg.near_field_level * np.exp(-np.maximum(ranges, 0) / cfg.near_field_m)).astype(np.float32)
+    # vehicle / radome self-returns: a plateau out to near_field_m, then a fast (0.2 m) roll-off
+    near = (cfg.near_field_level * np.exp(-np.maximum(ranges - cfg.near_field_m, 0) / 0.2)).astype(np.float32)
     floor = cfg.noise_floor * 10 ** (cond.noise_floor_db / 10)
     # ground is shadowed like everything else: average the sub-ray transmission into azimuth cells
     tm = tmap.reshape(n_az, K, n_c).mean(axis=1)
@@ -344,7 +347,8 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
         for k in range(width):
             power[(row + k) % n_az] += prof
 
-    power *= _speckle(rng, n_az, n_r, cfg)
+    if cfg.speckle_looks > 0:
+        power *= _speckle(rng, n_az, n_r, cfg)
     np.maximum(power, 1e-12, out=power)
     db = 10.0 * np.log10(power)
     val = np.clip((db - cfg.db_floor) / cfg.db_span, 0.0, 1.0)

@@ -9,6 +9,8 @@ Evaluation suites mirror the paper's protocols:
   lap is the database, the later laps are the queries. MulRan preset / layout, 20 m.
 - ``offroad-sim``: OORD-like vegetation/terrain route, two drives on different days (clear / rain),
   every 5th frame as in the OORD benchmark. OORD preset, Oxford layout, 25 m.
+- ``calib-oxford``: Oxford-format city drive, 12 scans per weather condition, for ``reradar sim-report``
+  against the real Oxford scans.
 - ``smoke``: tiny (two traversals of a small loop, 20 scans each), for tests; renders in seconds.
 
 Training splits (never query sequences): ``train-source`` (synthetic looped routes in other worlds, mixed
@@ -177,6 +179,7 @@ _BOREAS_QUERY = RouteDef("boreas-query")
 _LOOP = RouteDef("loop", seed=11, laps=3, block_m=(90.0, 160.0), n_blocks=3)
 _OFFROAD = RouteDef("loop", seed=21, laps=1, block_m=(250.0, 400.0), n_blocks=2)
 _SMOKE = RouteDef("loop", seed=3, laps=1, block_m=(50.0, 70.0), n_blocks=2)
+_CALIB = RouteDef("loop", seed=7, laps=1)
 
 SUITES: dict[str, SuiteDef] = {
     "smoke": SuiteDef(
@@ -222,6 +225,19 @@ SUITES: dict[str, SuiteDef] = {
                         traversal_seed=212, condition="rain", every=5, offset=2),
         ),
         radius_m=25.0,
+    ),
+    "calib-oxford": SuiteDef(
+        "calib-oxford", "Oxford-format city drive under each weather condition (realism report vs real scans)",
+        preset="oxford", layout="oxford", profile="urban", world_seed=7, road_routes=(_CALIB,),
+        sequences=(
+            SequenceDef("clear", "database", _CALIB, traversal_seed=71, condition="clear", every=24, limit=12),
+            SequenceDef("rain", "query", _CALIB, traversal_seed=72, condition="rain", every=24, limit=12,
+                        offset=6),
+            SequenceDef("snow_cover", "query", _CALIB, traversal_seed=73, condition="snow_cover", every=24,
+                        limit=12, offset=12),
+            SequenceDef("falling_snow", "query", _CALIB, traversal_seed=74, condition="falling_snow", every=24,
+                        limit=12, offset=18),
+        ),
     ),
     # ------------------------------------------------------------------------------ training splits
     "train-target-boreas": SuiteDef(

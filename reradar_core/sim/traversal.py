@@ -83,7 +83,7 @@ class Traversal:
         self.condition = get_condition(condition)
         road = world.road
         rng = np.random.default_rng(stable_seed(self.seed, "traffic"))
-        n = max(1, int(len(road.points) * road.spacing_m / 1000.0 * traffic_per_km))
+        n = int(round(len(road.points) * road.spacing_m / 1000.0 * traffic_per_km))
         self._veh_idx0 = rng.uniform(0, len(road.points), n)
         self._veh_speed = rng.uniform(4.0, 14.0, n) * rng.choice([-1.0, 1.0], n)
         self._veh_lane = np.where(self._veh_speed > 0, -1.0, 1.0) * world.profile.road_half_width_m * 0.4
@@ -103,6 +103,8 @@ class Traversal:
         """(V, 5) x, y, yaw, length, width of moving vehicles near ``center_xy`` at time ``t_s``."""
         road = self.world.road
         n_road = len(road.points)
+        if len(self._veh_idx0) == 0 or n_road < 2:
+            return np.zeros((0, 5))
         idx = np.mod(self._veh_idx0 + self._veh_speed * t_s / road.spacing_m, n_road - 1)
         i = idx.astype(np.int64)
         p = road.points[i]
@@ -123,13 +125,13 @@ class Traversal:
         out = Primitives()
         cars = self.parked_cars(static)
         if len(cars):
-            out.add_segments(car_segments(cars), 4.0, 0.0, 0.5)
+            out.add_segments(car_segments(cars), 2.5, 0.0, 0.5)
         veh = self.moving_vehicles(t_s, center_xy, radius_m)
         if len(veh):
             from reradar_core.sim.world import rectangle_segments
 
             segs = np.concatenate([rectangle_segments(x, y, ln, wd, yaw) for x, y, yaw, ln, wd in veh])
-            out.add_segments(segs, 4.0, 0.0, 0.5)
+            out.add_segments(segs, 2.5, 0.0, 0.5)
         if self.condition.snow_banks and self.world.profile.kerb_reflectivity > 0:
             road = self.world.road
             idx = np.asarray(road.tree.query_ball_point(center_xy, radius_m), dtype=np.int64)

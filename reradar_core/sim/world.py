@@ -36,7 +36,7 @@ __all__ = [
 
 _MASK64 = (1 << 64) - 1
 #: One-way transmission of building outlines: real scans show taller structures behind low façades.
-BUILDING_TRANSMISSION = 0.05
+BUILDING_TRANSMISSION = 0.0
 
 
 def stable_seed(*parts: int | str) -> int:
@@ -72,8 +72,8 @@ class WorldProfile:
 
     name: str
     road_half_width_m: float = 6.0
-    building_prob_per_tile: float = 1.6      # mean buildings per 40 m tile near roads
-    building_far_prob: float = 1.2           # mean buildings per tile far (> 45 m) from roads
+    building_prob_per_tile: float = 1.0      # mean buildings per 40 m tile near roads
+    building_far_prob: float = 2.0           # mean buildings per tile far (> 45 m) from roads
     wall_per_tile: float = 0.8
     fence_per_tile: float = 0.8
     pole_spacing_m: float = 9.0
@@ -81,21 +81,28 @@ class WorldProfile:
     tree_per_tile: float = 1.0               # free-standing trees / bushes per tile
     hedge_per_tile: float = 0.5
     guard_rail_prob: float = 0.15            # per tile side
-    parked_car_slot_prob: float = 0.5        # per 6.5 m of kerb
+    parked_car_slot_prob: float = 0.7        # per 6.5 m of kerb
     ground_clutter_per_m2: float = 0.12
     ground_clutter_rcs: float = 0.02
     terrain_ridges_per_tile: float = 0.0     # off-road: rough terrain slopes
-    kerb_reflectivity: float = 0.25
+    kerb_reflectivity: float = 0.06
+    frontage_prob: float = 0.8               # per tile and road side: a continuous row of façades
 
 
 PROFILES: dict[str, WorldProfile] = {
+    # nothing but the road: tests place known targets in it
+    "empty": WorldProfile(
+        "empty", building_prob_per_tile=0.0, building_far_prob=0.0, wall_per_tile=0.0, fence_per_tile=0.0,
+        pole_spacing_m=1e12, street_tree_prob=0.0, tree_per_tile=0.0, hedge_per_tile=0.0, guard_rail_prob=0.0,
+        parked_car_slot_prob=0.0, ground_clutter_per_m2=0.0, kerb_reflectivity=0.0, frontage_prob=0.0,
+    ),
     "urban": WorldProfile("urban"),
     "offroad": WorldProfile(
         "offroad", road_half_width_m=3.5, building_prob_per_tile=0.05, building_far_prob=0.02,
         wall_per_tile=0.05, fence_per_tile=0.3, pole_spacing_m=150.0, street_tree_prob=0.25,
         tree_per_tile=4.0, hedge_per_tile=1.2, guard_rail_prob=0.0, parked_car_slot_prob=0.0,
         ground_clutter_per_m2=0.25, ground_clutter_rcs=0.035, terrain_ridges_per_tile=3.0,
-        kerb_reflectivity=0.0,
+        kerb_reflectivity=0.0, frontage_prob=0.0,
     ),
 }
 
@@ -331,6 +338,36 @@ class World:
                     rail = rail[far_from_road(0.5 * (rail[:, :2] + rail[:, 2:]), off - 0.5)]
                     prim.add_segments(rail, 1.5, 0.55, 0.35)
                     prim.add_points(rail[::1, :2], 1.2, 0)  # posts every sample
+            # terraced façades: a continuous building line at a per-tile setback, with recesses and gaps
+            for side in (1.0, -1.0):
+                if len(a_idx) == 0 or rng.random() >= pr.frontage_prob:
+                    continue
+                sb = w + rng.uniform(2.5, 7.0)
+                off = np.full(len(a_idx), sb)
+                recess = rng.random(len(a_idx)) < 0.15
+                off[recess] += rng.uniform(0.5, 1.5, int(recess.sum()))
+                fa = pa + side * off[:, None] * na
+                fb = pb + side * off[:, None] * nb
+                seg = np.concatenate([fa, fb], axis=1)
+                # gaps between buildings / side alleys: runs of 2-8 samples (4-16 m) missing
+                keep = np.ones(len(seg), dtype=bool)
+                k = 0
+                while k < len(seg):
+                    if rng.random() < 0.08:
+                        n_gap = int(rng.integers(2, 9))
+                        keep[k:k + n_gap] = False
+                        k += n_gap
+                    k += 1
+                keep &= far_from_road(0.5 * (fa + fb), sb - 0.5)
+                seg = seg[keep]
+                prim.add_segments(seg, rng.lognormal(np.log(2.0), 0.4, len(seg)), BUILDING_TRANSMISSION,
+                                  rng.uniform(0.5, 0.95, len(seg)))
+                if len(seg):
+                    n_det = int(rng.poisson(len(seg) * 3.0))
+                    k = rng.integers(0, len(seg), n_det)
+                    u = rng.uniform(0, 1, n_det)[:, None]
+                    prim.add_points(seg[k, :2] + u * (seg[k, 2:] - seg[k, :2]),
+                                    rng.lognormal(np.log(2.0), 1.0, n_det), 0)
             # poles and signs
             n_poles = rng.poisson(len(in_tile) * road.spacing_m / pr.pole_spacing_m)
             if n_poles:

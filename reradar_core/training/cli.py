@@ -12,13 +12,23 @@ from pathlib import Path
 import typer
 
 from reradar_core.errors import ConfigError
+from reradar_core.training.suites import SeqSpec
 
 __all__ = ["register", "train_main"]
 
 logger = logging.getLogger(__name__)
 
 
-def train_main(name: str, sequences: list[Path], val_pairs: list[tuple[Path, Path]], *, backbone: str = "reresnet",
+def _cached(spec: SeqSpec, width_px: int, resolution_m: float, progress: bool):
+    from reradar_core.io.datasets import load_sequence
+    from reradar_core.training.data import cache_sequence
+
+    seq = cache_sequence(load_sequence(spec.path), width_px, resolution_m, group=spec.group, progress=progress)
+    return seq.fraction(spec.start, spec.stop)
+
+
+def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpec, SeqSpec]], *,
+               backbone: str = "reresnet",
                width: float = 0.5, clusters: int = 32, dim: int | None = 256, init: str | None = None,
                lr: float | None = None, steps: int = 1500, minutes: float = 60.0, seed: int = 0,
                threads: int = 2, out_dir: Path | None = None, run_dir: Path | None = None, resume: bool = True,
@@ -26,12 +36,10 @@ def train_main(name: str, sequences: list[Path], val_pairs: list[tuple[Path, Pat
     """Train (or adapt, with ``init``) a model and write ``<out_dir>/<name>.pt`` + ``.json``; returns the path."""
     import torch
 
-    from reradar_core.io.datasets import load_sequence
     from reradar_core.model.config import ModelConfig
     from reradar_core.model.registry import WEIGHTS_DIR, resolve_weights, save_weights
     from reradar_core.paths import cache_dir
-    from reradar_core.training.data import cache_sequence
-    from reradar_core.training.trainer import TrainConfig, Trainer
+    from reradar_core.training.trainer import TrainConfig, Trainer, trainable_state
 
     init_state = None
     if init is not None:
@@ -51,21 +59,23 @@ def train_main(name: str, sequences: list[Path], val_pairs: list[tuple[Path, Pat
                       **train_kwargs)
     t0 = time.monotonic()
     w = model.cartesian_width_px
-    train = [cache_sequence(load_sequence(p), w, model.cartesian_resolution_m, progress=progress) for p in sequences]
-    vals = [(cache_sequence(load_sequence(a), w, model.cartesian_resolution_m, progress=progress),
-             cache_sequence(load_sequence(b), w, model.cartesian_resolution_m, progress=progress))
-            for a, b in val_pairs]
+    res = model.cartesian_resolution_m
+    train = [_cached(s, w, res, progress) for s in sequences]
+    vals = [(_cached(a, w, res, progress), _cached(b, w, res, progress)) for a, b in val_pairs]
     cache_s = time.monotonic() - t0
     run_dir = run_dir or cache_dir("training", "runs", name)
     trainer = Trainer(cfg, train, vals, run_dir=run_dir, init_state=init_state, progress=progress)
     plain, summary = trainer.run(resume=resume)
     out = (out_dir or WEIGHTS_DIR) / f"{name}.pt"
-    from reradar_core.training.trainer import trainable_state
+
+    def _desc(s: SeqSpec) -> str:
+        part = "" if (s.start, s.stop) == (0.0, 1.0) else f" [{s.start:.2f}, {s.stop:.2f})"
+        return f"{s.path.parent.name}/{s.path.name}{part}"
 
     meta = {
         "description": data_note,
-        "training_data": {"sequences": [str(p) for p in sequences], "num_scans": sum(len(s) for s in train),
-                          "validation": [[str(a), str(b)] for a, b in val_pairs]},
+        "training_data": {"sequences": [_desc(s) for s in sequences], "num_scans": sum(len(s) for s in train),
+                          "validation": [[_desc(a), _desc(b)] for a, b in val_pairs]},
         "init": init,
         "command": "reradar train " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 1 else "",
         "cache_time_s": round(cache_s, 1),
@@ -81,8 +91,8 @@ def register(app: typer.Typer) -> None:
     @app.command("train")
     def train_cmd(
         name: str = typer.Option(..., help="Model name: writes <out-dir>/<name>.pt and .json."),
-        suite: str | None = typer.Option(None, help="Simulator suite providing the data (reradar_core.sim.suites)."),
-        split: str = typer.Option("train-source", help="Training split of the suite (see docs/MODEL.md)."),
+        split: str | None = typer.Option(None, help="Simulated training split: train-source, "
+                                         "train-target-boreas|loop|offroad, smoke (see docs/MODEL.md)."),
         sequence: list[Path] = typer.Option([], "--sequence", help="Training sequence folder (repeatable)."),
         val_db: Path | None = typer.Option(None, help="Validation database sequence folder."),
         val_query: Path | None = typer.Option(None, help="Validation query sequence folder."),
@@ -100,24 +110,27 @@ def register(app: typer.Typer) -> None:
         no_resume: bool = typer.Option(False, "--no-resume", help="Ignore an existing checkpoint."),
     ) -> None:
         """Train the descriptor network with InfoNCE (tau 0.1, 14 negatives) and save shipped weights."""
-        seqs = list(sequence)
-        vals: list[tuple[Path, Path]] = []
+        seqs = [SeqSpec(p, f"seq:{p.resolve()}") for p in sequence]
+        vals: list[tuple[SeqSpec, SeqSpec]] = []
         note = ""
-        if suite is not None:
+        extra = {}
+        if split is not None:
             from reradar_core.training.suites import suite_training_data
 
-            seqs_s, vals_s, note = suite_training_data(suite, split)
-            seqs += seqs_s
-            vals += vals_s
+            plan = suite_training_data(split)
+            seqs += plan.train
+            vals += plan.val
+            note = plan.note
+            extra["recall_radius_m"] = plan.radius_m
         if val_db is not None and val_query is not None:
-            vals.append((val_db, val_query))
+            vals.append((SeqSpec(val_db, "val"), SeqSpec(val_query, "val")))
         if not seqs:
-            raise typer.BadParameter("give --suite (and --split) or at least one --sequence")
+            raise typer.BadParameter("give --split or at least one --sequence")
         try:
             path = train_main(name, seqs, vals, backbone=backbone, width=width, clusters=clusters,
                               dim=dim or None, init=init, lr=lr, steps=steps, minutes=minutes, seed=seed,
                               threads=threads, out_dir=out_dir, run_dir=None, resume=not no_resume,
-                              data_note=note)
+                              data_note=note, **extra)
         except ConfigError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from exc

@@ -54,6 +54,17 @@ class CachedSequence:
     def __len__(self) -> int:
         return len(self.poses)
 
+    def fraction(self, start: float, stop: float) -> CachedSequence:
+        """The scans in [start, stop) of the sequence (fractions of its length; a memory-mapped view)."""
+        n = len(self.poses)
+        a, b = int(round(start * n)), int(round(stop * n))
+        if b <= a:
+            raise ConfigError(f"empty fraction [{start}, {stop}) of sequence {self.name} ({n} scans)")
+        if (a, b) == (0, n):
+            return self
+        return CachedSequence(f"{self.name}[{a}:{b}]", self.group, self.images[a:b], self.poses[a:b],
+                              self.resolution_m)
+
     def centre_crop(self, width_px: int) -> np.ndarray:
         """(N, W, W) float32 centre crops (identical to rendering at width W)."""
         s = self.images.shape[1]
@@ -84,13 +95,13 @@ def _cache_key(seq, big: CartesianConfig) -> str:
     return h.hexdigest()[:16]
 
 
-def cache_sequence(seq, width_px: int = 201, resolution_m: float = 0.64, margin_px: int = 50,
+def cache_sequence(seq, width_px: int = 201, resolution_m: float = 0.64, margin_px: int = 80,
                    group: str | None = None, progress: bool = True) -> CachedSequence:
     """Render (once) and memory-map the oversized Cartesian images of ``seq`` (``io.datasets.Sequence``).
 
     Args:
-        width_px: the model's input side; the cache side is ``width_px + 2 * margin_px`` (margin 50 covers
-            any rotation of a 201 px crop: its half-diagonal is 142 px < 150).
+        width_px: the model's input side; the cache side is ``width_px + 2 * margin_px`` (margin 80: any
+            rotation of a 201 px crop (half-diagonal 142 px) shifted by up to 38 px = 24 m stays inside).
     """
     if len(seq) == 0:
         raise ConfigError(f"sequence {seq.name} at {seq.root} has no scans")
@@ -164,14 +175,14 @@ class TrainingSet:
 class TupleSampler:
     """Batches of (anchor, positive) pairs whose anchors are far apart, for InfoNCE with in-batch negatives.
 
-    Positive: same group, world distance <= ``pos_radius_m`` (another sequence preferred, never the anchor
-    itself). Anchors of one batch are pairwise farther than ``neg_radius_m + pos_radius_m`` apart (or in
+    Positive: same group, world distance <= ``pos_radius_m`` (a revisit — another sequence or > 40 frames
+    apart — preferred with probability ``prefer_other_sequence``; never the anchor itself). Anchors of one batch are pairwise farther than ``neg_radius_m + pos_radius_m`` apart (or in
     different groups), so every other image of the batch — the other anchors and their positives — is
     farther than ``neg_radius_m`` from each anchor: with ``batch_pairs = num_negatives / 2 + 1`` (8 for the
     paper's 14 negatives) each anchor gets exactly ``num_negatives`` in-batch negatives.
     """
 
-    def __init__(self, data: TrainingSet, pos_radius_m: float = 5.0, neg_radius_m: float = 25.0,
+    def __init__(self, data: TrainingSet, pos_radius_m: float = 10.0, neg_radius_m: float = 25.0,
                  batch_pairs: int = 8, prefer_other_sequence: float = 0.75) -> None:
         if not (0 < pos_radius_m < neg_radius_m):
             raise ConfigError(f"need 0 < pos_radius ({pos_radius_m}) < neg_radius ({neg_radius_m})")
@@ -207,7 +218,8 @@ class TupleSampler:
         positives = []
         for a in anchors:
             cand = self.positives[a]
-            other = cand[d.seq_index[cand] != d.seq_index[a]]
+            # prefer a revisit (another sequence, or the same sequence much later) over the next frame
+            other = cand[(d.seq_index[cand] != d.seq_index[a]) | (np.abs(d.scan_index[cand] - d.scan_index[a]) > 40)]
             if len(other) and rng.random() < self.prefer_other:
                 cand = other
             positives.append(int(rng.choice(cand)))

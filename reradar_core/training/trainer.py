@@ -40,7 +40,7 @@ class TrainConfig:
         lr: AdamW learning rate (paper: 1e-4 from scratch, 1e-5 when adapting).
         tau: InfoNCE temperature (paper: 0.1). num_negatives: per query (paper: 14) -> num_negatives/2 + 1
             anchor/positive pairs per batch.
-        pos_radius_m / neg_radius_m: positive within, negatives beyond (our defaults: 5 m / 25 m).
+        pos_radius_m / neg_radius_m: positive within, negatives beyond (our defaults: 10 m / 25 m; the simulated sequences are sampled every 8-15 m, so 5 m would leave most scans without a positive).
         yaw_augment: random heading in [0, 2 pi) per image; trans_augment_m: uniform shift in [-t, t] m.
         max_steps / max_minutes: stop at whichever comes first.
         val_every / checkpoint_every: in steps. recall_radius_m: a retrieval is correct within this distance.
@@ -51,7 +51,7 @@ class TrainConfig:
     weight_decay: float = 1e-4
     tau: float = 0.1
     num_negatives: int = 14
-    pos_radius_m: float = 5.0
+    pos_radius_m: float = 10.0
     neg_radius_m: float = 25.0
     yaw_augment: bool = True
     trans_augment_m: float = 2.0

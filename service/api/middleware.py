@@ -21,6 +21,17 @@ async def _reject(send: Send, status: int, detail: str, code: str) -> None:
     await send({"type": "http.response.body", "body": body})
 
 
+#: Oversized bodies up to this many bytes above the limit are read and discarded before the 413 is sent.
+_DRAIN_MAX_BYTES = 64 * 2**20
+
+
+async def _drain(receive: Receive) -> None:
+    while True:
+        message = await receive()
+        if message["type"] == "http.disconnect" or not message.get("more_body", False):
+            return
+
+
 class BodyLimitMiddleware:
     """Refuse bodies above a limit with 413 before the app parses them.
 
@@ -47,6 +58,8 @@ class BodyLimitMiddleware:
                 await _reject(send, 400, "invalid Content-Length header", "bad_request")
                 return
             if size > limit:
+                if size <= limit + _DRAIN_MAX_BYTES:
+                    await _drain(receive)  # a client still sending would miss the answer on a reset socket
                 await _reject(send, 413, msg, "payload_too_large")
                 return
             await self.app(scope, receive, send)
@@ -63,6 +76,9 @@ class BodyLimitMiddleware:
             chunk = message.get("body", b"")
             total += len(chunk)
             if total > limit:
+                while message.get("more_body", False) and total <= limit + _DRAIN_MAX_BYTES:
+                    message = await receive()
+                    total += len(message.get("body", b""))
                 await _reject(send, 413, msg, "payload_too_large")
                 return
             chunks.append(chunk)

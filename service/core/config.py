@@ -32,6 +32,8 @@ class Settings(BaseSettings):
         default="development", description="`production` refuses the development API key.")
     api_key: SecretStr = Field(default=SecretStr(DEV_API_KEY),
                                description="Key required in the X-API-Key header of mutating endpoints.")
+    model: str = Field(default="default",
+                       description="Descriptor model: registry name (`default` = shipped default) or a .pt path.")
     maps_dir: Path = Field(default_factory=_default_maps_dir,
                            description="Folder holding the registered maps (<map_id>.h5).")
     load_demo_map: bool = Field(default=True, description="Copy the shipped demo map into maps_dir as map `demo`.")

@@ -15,7 +15,6 @@ import shutil
 import threading
 import uuid
 from concurrent.futures import ThreadPoolExecutor
-import builtins
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -205,7 +204,7 @@ class MapRegistry:
             self._release(map_id)
             raise
 
-    def start_build(self, map_id: str, scan_paths: builtins.list[Path], poses: np.ndarray, preset: str | None,
+    def start_build(self, map_id: str, scan_paths: list[Path], poses: np.ndarray, preset: str | None,
                     workdir: Path, source: str) -> MapEntry:
         """Reserve ``map_id`` and build its map from ``scan_paths`` in the background.
 

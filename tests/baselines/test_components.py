@@ -81,3 +81,18 @@ def test_resnet18_shapes_and_parameter_count():
     assert f.shape == (1, 512, 4, 4)
     n = sum(p.numel() for p in net.parameters())
     assert n == 11_176_512  # torchvision resnet18 without the fc layer
+
+
+def test_landmarks_are_memoised_per_scan_object():
+    from reradar_core.baselines.base import landmarks_for
+    from reradar_core.benchmark.synthetic import render_scan, synthetic_world
+    from reradar_core.landmarks import Cen2018Config, detect_landmarks
+
+    w = synthetic_world(seed=1)
+    a = render_scan(w, np.zeros(3), noise_seed=0)
+    b = render_scan(w, np.array([5.0, 0.0, 0.0]), noise_seed=1)
+    la = landmarks_for(a)
+    assert landmarks_for(a, Cen2018Config()) is la  # None and the default config are the same detector
+    assert np.array_equal(la.xy_m, detect_landmarks(a).xy_m)
+    lb = landmarks_for(b)
+    assert lb is not la and np.array_equal(lb.xy_m, detect_landmarks(b).xy_m)

@@ -12,8 +12,8 @@ from reradar_core.benchmark.synthetic import loop_poses, synthetic_world, write_
 def loop_sequences(tmp_path_factory):
     root = tmp_path_factory.mktemp("bench_seq")
     world = synthetic_world(seed=5)
-    db = write_synthetic_sequence(root / "db-run", world, loop_poses(16), seed=1)
-    q = write_synthetic_sequence(root / "query-run", world, loop_poses(16, phase=0.06, lateral_m=2.0), seed=2,
+    db = write_synthetic_sequence(root / "db-run", world, loop_poses(12), seed=1)
+    q = write_synthetic_sequence(root / "query-run", world, loop_poses(12, phase=0.08, lateral_m=2.0), seed=2,
                                  t0_us=1_700_000_000_000_000)
     return root, db, q
 

@@ -184,3 +184,20 @@ def test_config_validation():
         Cen2018Config(max_keypoints=-5)
     cfg = Cen2018Config()
     assert (cfg.z_q, cfg.sigma_bins, cfg.min_range_bins, cfg.max_keypoints) == (3.0, 17, None, None)
+
+
+def test_concurrent_calls_agree_with_sequential():
+    """The shared scratch workspace must not leak results between threads (threaded service)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    scans = [_noise_scan(10 + i) for i in range(4)]
+    for i, s in enumerate(scans):
+        _add_target(s, i, 900 + 100 * i)
+    expected = [detect_landmarks(s) for s in scans]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        results = list(pool.map(detect_landmarks, scans * 3))
+    for k, got in enumerate(results):
+        want = expected[k % 4]
+        np.testing.assert_array_equal(got.azimuth_index, want.azimuth_index)
+        np.testing.assert_array_equal(got.range_bin, want.range_bin)
+        np.testing.assert_array_equal(got.strength, want.strength)

@@ -29,7 +29,7 @@ def test_flat_matches_brute_force_and_auto_switches() -> None:
     brute = np.argsort(-(q @ x.T), axis=1)[:, :5]
     np.testing.assert_array_equal(ids, brute)
     np.testing.assert_allclose(sims[:, 0], np.sum(q * x[brute[:, 0]], axis=1), rtol=1e-5)
-    assert GlobalIndex(x, IndexConfig(kind="auto", exact_max_size=100)).kind == "hnsw"
+    assert GlobalIndex(x, IndexConfig(kind="auto", exact_max_size=100)).kind == "ivf"
 
 
 @pytest.mark.parametrize("kind", ["hnsw", "ivf"])

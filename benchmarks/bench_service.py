@@ -1,0 +1,305 @@
+#!/usr/bin/env python3
+"""Service benchmarks: POST /localize latency over HTTP, FAISS retrieval on a 100,000-keyframe map,
+resident memory per keyframe, and what geometric re-ranking adds over plain top-1.
+
+    python benchmarks/bench_service.py --all              # everything (a few minutes on 2 cores)
+    python benchmarks/bench_service.py --http --requests 100
+    python benchmarks/bench_service.py --faiss --memory
+    python benchmarks/bench_service.py --rerank --suite smoke
+
+Results print as Markdown and are saved as JSON under the cache (``bench/service``); copy the numbers into
+docs/BENCHMARKS.md with the command used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import math
+import os
+import platform
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def _pct(values: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values), q))
+
+
+def _rss_bytes() -> int:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+
+def _load_avg() -> str:
+    try:
+        return " ".join(f"{v:.1f}" for v in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+# ---------------------------------------------------------------------------------------------- FAISS
+def bench_faiss(n: int, dim: int, queries: int, seed: int = 0) -> dict:
+    """Per-query search latency (1 thread, k=5) of exact and HNSW indexes over n unit descriptors."""
+    from maps.index import GlobalIndex, IndexConfig
+
+    rng = np.random.default_rng(seed)
+    # route-like descriptors: a random walk on the sphere (neighbouring places look alike) plus per-scan noise;
+    # queries = keyframes seen again with noise of norm 0.3 (a revisit in other weather)
+    walk = _unit(np.cumsum(_unit(rng.normal(size=(max(1, n // 20), dim))), axis=0))
+    x = _unit(np.repeat(walk, 20, axis=0)[:n] + 0.5 * _unit(rng.normal(size=(n, dim))))
+    targets = rng.integers(0, n, queries)
+    q = _unit(x[targets] + 0.3 * _unit(rng.normal(size=(queries, dim))))
+    out: dict = {"num_keyframes": n, "dim": dim, "queries": queries}
+    exact_top1 = None
+    for kind in ("flat", "auto", "hnsw"):
+        t0 = time.perf_counter()
+        idx = GlobalIndex(x, IndexConfig(kind=kind))
+        build_s = time.perf_counter() - t0
+        lat = []
+        top1 = np.empty(queries, np.int64)
+        for i in range(queries):
+            t = time.perf_counter()
+            ids, _ = idx.search(q[i], 5)
+            lat.append((time.perf_counter() - t) * 1e3)
+            top1[i] = ids[0, 0]
+        res = {"index": idx.kind, "build_s": build_s, "p50_ms": _pct(lat, 50), "p99_ms": _pct(lat, 99),
+               "mean_ms": float(np.mean(lat)), "index_bytes_per_keyframe": idx.memory_bytes / n}
+        if kind == "flat":
+            exact_top1 = top1
+        else:
+            res["top1_agreement_with_exact"] = float(np.mean(top1 == exact_top1))
+        out[kind] = res
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- memory
+def bench_memory(n: int, dim: int, local_dim: int, keypoints: int, seed: int = 0) -> dict:
+    """RSS growth from opening an n-keyframe map (descriptors + poses in RAM, FAISS index built)."""
+    from maps.database import MapDatabase
+    from maps.index import IndexConfig
+    from maps.store import MapMetadata, MapWriter
+    from reradar_core.features import ScanFeatures
+
+    rng = np.random.default_rng(seed)
+    tmp = Path(tempfile.mkdtemp(prefix="reradar-bench-mem-"))
+    try:
+        path = tmp / "big.h5"
+        meta = MapMetadata("bench", "0" * 64, "boreas", 201, 0.64, dim, local_dim, name="bench")
+        t0 = time.perf_counter()
+        kps = rng.uniform(-80, 80, (keypoints, 2)).astype(np.float32)
+        loc = _unit(rng.normal(size=(keypoints, local_dim))).astype(np.float16)
+        g = _unit(rng.normal(size=(n, dim)))
+        with MapWriter(path, meta) as w:
+            for i in range(n):
+                w.add(ScanFeatures(g[i], kps, loc, i), np.array([i * 2.0, 0.0, 0.0]))
+        write_s = time.perf_counter() - t0
+        del g
+        gc.collect()
+        out = {"num_keyframes": n, "dim": dim, "local_dim": local_dim, "keypoints_per_keyframe": keypoints,
+               "file_mb": path.stat().st_size / 1e6, "write_s": write_s}
+        for kind, exact_max in (("flat", n), ("auto", 20_000)):
+            gc.collect()
+            before = _rss_bytes()
+            t0 = time.perf_counter()
+            db = MapDatabase.open(path, index_config=IndexConfig(exact_max_size=exact_max))
+            load_s = time.perf_counter() - t0
+            after = _rss_bytes()
+            t0 = time.perf_counter()
+            db.map.read_keyframe(n // 2)
+            read_ms = (time.perf_counter() - t0) * 1e3
+            out[kind] = {"index": db.index.kind, "load_s": load_s, "rss_mb": (after - before) / 1e6,
+                         "rss_bytes_per_keyframe": (after - before) / n, "read_keyframe_ms": read_ms}
+            db.close()
+            del db
+        return out
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+# ---------------------------------------------------------------------------------------------- HTTP
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def bench_http(requests: int, warmup: int, threads: int) -> dict:
+    """Sequential POST /localize (inline PNG, multipart) against `reradar serve` in a subprocess."""
+    from maps import DEMO_MAP_PATH, DEMO_QUERIES_DIR
+    from service.client import ReRadarClient
+    from service.demo import QUERIES_CSV, read_queries_csv
+
+    truth = read_queries_csv(DEMO_QUERIES_DIR / QUERIES_CSV)
+    blobs = [(q.file, (DEMO_QUERIES_DIR / q.file).read_bytes()) for q in truth]
+    tmp = Path(tempfile.mkdtemp(prefix="reradar-bench-http-"))
+    port = _free_port()
+    env = dict(os.environ, RERADAR_MAPS_DIR=str(tmp / "maps"), RERADAR_LOAD_DEMO_MAP="false",
+               RERADAR_TORCH_THREADS=str(threads))
+    (tmp / "maps").mkdir()
+    shutil.copyfile(DEMO_MAP_PATH, tmp / "maps" / "demo.h5")
+    log = open(tmp / "server.log", "w")
+    proc = subprocess.Popen([sys.executable, "-m", "reradar_core.cli", "serve", "--port", str(port),
+                             "--log-level", "warning"], env=env, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        with ReRadarClient(f"http://127.0.0.1:{port}") as client:
+            client.wait_ready(timeout_s=300)
+            for i in range(warmup):
+                name, data = blobs[i % len(blobs)]
+                client.localize("demo", scan_bytes=data, filename=name)
+            lat, stages, statuses = [], {}, {}
+            for i in range(requests):
+                name, data = blobs[i % len(blobs)]
+                t0 = time.perf_counter()
+                res = client.localize("demo", scan_bytes=data, filename=name)
+                lat.append((time.perf_counter() - t0) * 1e3)
+                statuses[res.status] = statuses.get(res.status, 0) + 1
+                for k, v in res.timings_ms.items():
+                    stages.setdefault(k, []).append(v)
+            sid = client.upload_scan(scan_bytes=blobs[0][1], filename=blobs[0][0]).scan_id
+            lat_ref = []
+            for _ in range(min(requests, 50)):
+                t0 = time.perf_counter()
+                client.localize("demo", scan_id=sid)
+                lat_ref.append((time.perf_counter() - t0) * 1e3)
+            server_rss = 0
+            try:
+                with open(f"/proc/{proc.pid}/status") as fh:
+                    server_rss = next(int(ln.split()[1]) * 1024 for ln in fh if ln.startswith("VmRSS:"))
+            except (OSError, StopIteration):
+                pass
+        return {
+            "requests": requests, "torch_threads": threads, "statuses": statuses,
+            "inline_p50_ms": _pct(lat, 50), "inline_p99_ms": _pct(lat, 99), "inline_mean_ms": float(np.mean(lat)),
+            "by_scan_id_p50_ms": _pct(lat_ref, 50), "by_scan_id_p99_ms": _pct(lat_ref, 99),
+            "server_stage_mean_ms": {k: float(np.mean(v)) for k, v in sorted(stages.items())},
+            "server_stage_p99_ms": {k: _pct(v, 99) for k, v in sorted(stages.items())},
+            "server_rss_mb": server_rss / 1e6,
+        }
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        log.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+# ---------------------------------------------------------------------------------------------- re-ranking
+def bench_rerank(suite_name: str, threads: int, top_k: int) -> dict:
+    """Success rate of plain top-1 (retrieve, verify only the best) vs top-k geometric re-ranking."""
+    import torch
+    from tqdm import tqdm
+
+    from maps.build import build_map_from_sequence
+    from maps.database import MapDatabase
+    from reradar_core.geometry.se2 import angle_diff
+    from reradar_core.localization import LocalizationConfig
+    from reradar_core.model import DescriptorExtractor
+    from reradar_core.paths import cache_dir
+    from reradar_core.sim.suites import build_suite
+
+    torch.set_num_threads(threads)
+    suite = build_suite(suite_name, progress=True)
+    ext = DescriptorExtractor.from_pretrained()
+    map_path = cache_dir("bench", "service") / f"{suite_name}-{ext.weights_sha256[:12]}.h5"
+    if not map_path.exists():
+        build_map_from_sequence(suite.database[0], map_path, ext, layout=suite.layout, preset=suite.preset,
+                                show_progress=True)
+    db = MapDatabase.open(map_path, ext.model_id, ext.weights_sha256)
+    radius = suite.radius_m
+    out: dict = {"suite": suite_name, "radius_m": radius, "top_k": top_k, "num_keyframes": len(db)}
+    modes = {"top1": LocalizationConfig(top_k=top_k, rerank=False), "rerank": LocalizationConfig(top_k=top_k)}
+    counts = {m: {"localized": 0, "success": 0, "correct_place": 0, "et": [], "er": []} for m in modes}
+    retrieval_top1_correct = 0
+    n = 0
+    for qpath in suite.queries:
+        seq = suite.load(qpath)
+        for i in tqdm(range(len(seq)), desc=f"queries {qpath.name}"):
+            feat = ext.describe(seq.load_scan(i))
+            gt = seq.poses.poses[i]
+            n += 1
+            for mode, cfg in modes.items():
+                retr, res = db.localize(feat, cfg)
+                if mode == "top1" and retr:
+                    retrieval_top1_correct += np.hypot(*(retr[0].T_map_keyframe[:2] - gt[:2])) <= radius
+                c = counts[mode]
+                if res.best is not None and np.hypot(*(res.best.T_map_keyframe[:2] - gt[:2])) <= radius:
+                    c["correct_place"] += 1
+                if res.localized and res.T_map_query is not None:
+                    c["localized"] += 1
+                    et = float(np.hypot(*(res.T_map_query[:2] - gt[:2])))
+                    er = float(abs(np.degrees(angle_diff(res.T_map_query[2], gt[2]))))
+                    if et <= radius and er <= 10.0:
+                        c["success"] += 1
+                        c["et"].append(et)
+                        c["er"].append(er)
+    out["num_queries"] = n
+    out["retrieval_recall_at_1"] = retrieval_top1_correct / max(n, 1)
+    for mode, c in counts.items():
+        out[mode] = {"localized_fraction": c["localized"] / max(n, 1), "success_rate": c["success"] / max(n, 1),
+                     "chosen_keyframe_correct": c["correct_place"] / max(n, 1),
+                     "mean_translation_error_m": float(np.mean(c["et"])) if c["et"] else math.nan,
+                     "mean_rotation_error_deg": float(np.mean(c["er"])) if c["er"] else math.nan}
+    db.close()
+    return out
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--all", action="store_true")
+    p.add_argument("--http", action="store_true")
+    p.add_argument("--faiss", action="store_true")
+    p.add_argument("--memory", action="store_true")
+    p.add_argument("--rerank", action="store_true")
+    p.add_argument("--requests", type=int, default=100)
+    p.add_argument("--warmup", type=int, default=5)
+    p.add_argument("--threads", type=int, default=2, help="torch threads of the service")
+    p.add_argument("--keyframes", type=int, default=100_000)
+    p.add_argument("--dim", type=int, default=256, help="global descriptor length (the default model's D)")
+    p.add_argument("--local-dim", type=int, default=32)
+    p.add_argument("--queries", type=int, default=1000)
+    p.add_argument("--suite", default="smoke")
+    p.add_argument("--top-k", type=int, default=5)
+    args = p.parse_args()
+    results: dict = {"host": platform.node(), "cpus": os.cpu_count(), "load_avg_start": _load_avg(),
+                     "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    if args.all or args.faiss:
+        results["faiss"] = bench_faiss(args.keyframes, args.dim, args.queries)
+    if args.all or args.memory:
+        results["memory"] = bench_memory(args.keyframes, args.dim, args.local_dim, keypoints=8)
+    if args.all or args.http:
+        results["http"] = bench_http(args.requests, args.warmup, args.threads)
+    if args.all or args.rerank:
+        results["rerank"] = bench_rerank(args.suite, args.threads, args.top_k)
+    results["load_avg_end"] = _load_avg()
+    from reradar_core.paths import cache_dir
+
+    out = cache_dir("bench", "service") / f"bench-{time.strftime('%Y%m%dT%H%M%S')}.json"
+    out.write_text(json.dumps(results, indent=2))
+    print(json.dumps(results, indent=2))
+    print(f"saved {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,142 @@
+"""Sequence reader/writers in the Boreas, Oxford and MulRan layouts (tiny scans made by the tests)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from reradar_core.errors import DatasetError, PoseFileError
+from reradar_core.geometry.se2 import compose, inverse
+from reradar_core.io.datasets import (
+    detect_layout,
+    load_sequence,
+    read_oxford_odometry,
+    scan_path,
+    write_sequence_meta,
+    write_sequence_poses,
+    write_sequence_scan,
+)
+from reradar_core.io.poses import PoseSequence, write_boreas_radar_poses, write_mulran_global_pose
+from reradar_core.io.scan import RadarScan
+
+T0 = 1_600_000_000_000_000
+
+
+def _scan(t0_us: int, value: float) -> RadarScan:
+    power = np.full((400, 32), value, dtype=np.float32)
+    return RadarScan.from_power(power, "boreas", start_time_us=t0_us)
+
+
+def _write_scans(root, layout: str, times: list[int]) -> None:
+    for k, t in enumerate(times):
+        write_sequence_scan(root, layout, _scan(t, (k + 1) / 255.0))
+
+
+def _track(times_us: np.ndarray) -> PoseSequence:
+    t = np.asarray(times_us, dtype=np.int64)
+    s = (t - t[0]) / 1e6
+    return PoseSequence(t, np.column_stack([10.0 * s, 2.0 * s]), 0.1 * s)
+
+
+def test_boreas_layout_interpolates_poses_at_scan_times(tmp_path):
+    root = tmp_path / "seq"
+    scan_times = [T0 + 100_000, T0 + 350_000, T0 + 600_000]
+    _write_scans(root, "boreas", scan_times)
+    # poses at 10 Hz, not at the scan times: the reader must interpolate
+    write_boreas_radar_poses(_track(T0 + np.arange(0, 1_000_001, 100_000)), root / "applanix" / "radar_poses.csv")
+    seq = load_sequence(root, preset="boreas")
+    assert seq.layout == "boreas" and seq.preset.name == "boreas" and len(seq) == 3
+    assert seq.timestamps_us.tolist() == scan_times
+    expect_x = 10.0 * (np.asarray(scan_times) - T0) / 1e6
+    np.testing.assert_allclose(seq.poses.xy[:, 0], expect_x, atol=1e-6)
+    np.testing.assert_allclose(seq.poses.yaw, 0.1 * (np.asarray(scan_times) - T0) / 1e6, atol=1e-9)
+    scan = seq.load_scan(1)
+    assert scan.timestamp_us == scan_times[1]
+    assert scan.power[0, 0] == pytest.approx(2 / 255.0)
+
+
+def test_mulran_layout_nanosecond_names(tmp_path):
+    root = tmp_path / "mul"
+    times = [T0, T0 + 250_000]
+    _write_scans(root, "mulran", times)
+    assert scan_path(root, "mulran", T0).name == f"{T0 * 1000}.png"
+    write_mulran_global_pose(_track(np.asarray([T0 - 50_000, T0 + 500_000])), root / "global_pose.csv")
+    seq = load_sequence(root, preset="boreas")
+    assert seq.layout == "mulran"
+    assert seq.timestamps_us.tolist() == times
+    np.testing.assert_allclose(seq.poses.xy[:, 0], [0.5, 3.0], atol=1e-6)
+
+
+def test_oxford_layout_integrates_odometry_and_uses_sim_origin(tmp_path):
+    root = tmp_path / "ox"
+    times = [T0, T0 + 250_000, T0 + 500_000, T0 + 750_000]
+    _write_scans(root, "oxford", times)
+    world = np.array([[5.0, 1.0, 0.3], [7.0, 2.0, 0.5], [8.0, 4.0, 1.2], [8.5, 7.0, 1.6]])
+    gt = PoseSequence(np.asarray(times), world[:, :2], world[:, 2])
+    write_sequence_poses(root, "oxford", gt)
+    seq = load_sequence(root, preset="oxford")
+    assert seq.layout == "oxford"
+    # real Oxford data: poses relative to the first scan of the chain
+    rel = compose(inverse(world[0])[None], world)
+    np.testing.assert_allclose(seq.poses.poses, rel, atol=1e-9)
+    # simulated data records the world origin so traversals share one map frame
+    write_sequence_meta(root, {"preset": "oxford", "oxford_T_world_origin": world[0].tolist()})
+    seq = load_sequence(root)
+    np.testing.assert_allclose(seq.poses.poses, world, atol=1e-9)
+    assert seq.preset.name == "oxford"
+
+
+def test_oxford_odometry_frame_convention(tmp_path):
+    """Oxford rows are T_dst_src with y to the right and yaw clockwise: converted to y left, yaw CCW."""
+    f = tmp_path / "radar_odometry.csv"
+    f.write_text(
+        "source_timestamp,destination_timestamp,x,y,z,roll,pitch,yaw,source_radar_timestamp,"
+        "destination_radar_timestamp\n"
+        "2,1,1.0,0.5,0,0,0,0.1,20,10\n"
+    )
+    track = read_oxford_odometry(f)
+    assert track.timestamps_us.tolist() == [10, 20]
+    np.testing.assert_allclose(track.poses[0], [0, 0, 0])
+    np.testing.assert_allclose(track.poses[1], [1.0, -0.5, -0.1])
+
+
+def test_detect_layout_and_errors(tmp_path):
+    with pytest.raises(DatasetError, match="does not exist"):
+        load_sequence(tmp_path / "missing")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(DatasetError, match="not a radar sequence"):
+        detect_layout(empty)
+    no_poses = tmp_path / "nop"
+    _write_scans(no_poses, "boreas", [T0])
+    with pytest.raises(DatasetError, match="no poses"):
+        load_sequence(no_poses)
+    with pytest.raises(DatasetError, match="unknown dataset layout"):
+        load_sequence(no_poses, layout="kitti")
+    # scans outside the pose file's time span are refused, not extrapolated
+    write_boreas_radar_poses(_track(np.asarray([T0 + 10_000_000, T0 + 11_000_000])),
+                             no_poses / "applanix" / "radar_poses.csv")
+    with pytest.raises(DatasetError, match="outside the pose file"):
+        load_sequence(no_poses, preset="boreas")
+
+
+def test_broken_oxford_chain_is_reported(tmp_path):
+    f = tmp_path / "radar_odometry.csv"
+    f.write_text(
+        "source_timestamp,destination_timestamp,x,y,z,roll,pitch,yaw,source_radar_timestamp,"
+        "destination_radar_timestamp\n"
+        "2,1,1.0,0,0,0,0,0,20,10\n"
+        "4,3,1.0,0,0,0,0,0,40,30\n"
+    )
+    with pytest.raises(PoseFileError, match="broken"):
+        read_oxford_odometry(f)
+
+
+def test_subset_every_kth(tmp_path):
+    root = tmp_path / "seq"
+    times = [T0 + k * 250_000 for k in range(6)]
+    _write_scans(root, "boreas", times)
+    write_boreas_radar_poses(_track(np.asarray(times)), root / "applanix" / "radar_poses.csv")
+    seq = load_sequence(root, preset="boreas").subset(slice(None, None, 2))
+    assert len(seq) == 3 and seq.timestamps_us.tolist() == times[::2]
+    assert seq.scan_paths[1].stem == str(times[2])

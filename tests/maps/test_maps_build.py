@@ -1,0 +1,90 @@
+"""Map building from a sequence folder: poses, timestamps, keyframe spacing, keypoint cap, batching."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from maps.build import build_map, build_map_from_sequence, cap_keypoints, select_keyframes
+from maps.store import open_map
+from reradar_core.errors import ConfigError
+from reradar_core.features import ScanFeatures
+from reradar_core.geometry.cartesian import CartesianConfig
+from reradar_core.io.datasets import write_sequence_poses, write_sequence_scan
+from reradar_core.io.poses import PoseSequence
+from reradar_core.io.scan import RadarScan
+
+
+class CountingExtractor:
+    """Fake model: global descriptor from the scan's mean power per range block; counts batch calls."""
+
+    model_id = "counting"
+    weights_sha256 = "c" * 64
+    descriptor_dim = 8
+    cartesian = CartesianConfig()
+
+    def __init__(self) -> None:
+        self.batches: list[int] = []
+
+    def describe(self, scan: RadarScan) -> ScanFeatures:
+        g = np.add.reduceat(scan.power.mean(axis=0), np.linspace(0, scan.num_range_bins, 9).astype(int)[:-1]) + 1e-3
+        k = 5
+        return ScanFeatures(g / np.linalg.norm(g), np.arange(2 * k).reshape(k, 2), np.eye(k, 4), scan.timestamp_us)
+
+    def describe_batch(self, scans: list[RadarScan]) -> list[ScanFeatures]:
+        self.batches.append(len(scans))
+        return [self.describe(s) for s in scans]
+
+
+def _sequence(root: Path, n: int = 7) -> PoseSequence:
+    ts = 1_600_000_000_000_000 + np.arange(n, dtype=np.int64) * 250_000
+    for i, t in enumerate(ts):
+        power = np.zeros((400, 3360), np.float32)
+        power[:, 200 + 300 * i] = 0.8
+        write_sequence_scan(root, "boreas", RadarScan.from_power(power, "boreas", start_time_us=int(t)))
+    poses = PoseSequence(ts, np.column_stack([np.arange(n) * 4.0, np.full(n, 2.0)]), np.linspace(0, 0.6, n))
+    write_sequence_poses(root, "boreas", poses)
+    return poses
+
+
+def test_build_from_boreas_sequence(tmp_path: Path) -> None:
+    truth = _sequence(tmp_path / "seq")
+    ext = CountingExtractor()
+    out = build_map_from_sequence(tmp_path / "seq", tmp_path / "m.h5", ext, batch_size=3)
+    assert ext.batches == [3, 3, 1]
+    with open_map(out, "counting", "c" * 64) as m:
+        assert len(m) == 7 and m.metadata.radar_preset == "boreas" and m.metadata.name == "seq"
+        assert m.metadata.source.startswith("boreas:")
+        np.testing.assert_array_equal(m.timestamps_us, truth.timestamps_us)
+        np.testing.assert_allclose(m.poses, truth.poses, atol=1e-6)
+        assert m.read_keyframe(6).keypoints_xy_m.shape == (5, 2)
+
+
+def test_keyframe_spacing_and_keypoint_cap(tmp_path: Path) -> None:
+    _sequence(tmp_path / "seq")
+    out = build_map_from_sequence(tmp_path / "seq", tmp_path / "m.h5", CountingExtractor(), min_spacing_m=7.0,
+                                  max_keypoints=3)
+    with open_map(out) as m:
+        np.testing.assert_allclose(m.poses[:, 0], [0.0, 8.0, 16.0, 24.0])
+        assert m.read_keyframe(0).keypoints_xy_m.shape == (3, 2)
+    poses = np.array([[0, 0, 0], [1, 0, 0], [5, 0, 0], [5.5, 0, 0], [10, 0, 0]], float)
+    np.testing.assert_array_equal(select_keyframes(poses, 4.0), [0, 2, 4])
+    np.testing.assert_array_equal(select_keyframes(poses, 0.0), np.arange(5))
+    f = ScanFeatures(np.ones(4), np.arange(20).reshape(10, 2), np.eye(10, 4), 0)
+    capped = cap_keypoints(f, 4)
+    np.testing.assert_array_equal(capped.keypoints_xy_m[:, 0], [0, 6, 12, 18])
+
+
+def test_failed_build_leaves_nothing(tmp_path: Path) -> None:
+    def load(i: int) -> RadarScan:
+        if i == 4:
+            raise OSError("disk error while reading scan 4")
+        return RadarScan.from_power(np.zeros((400, 3360), np.float32), "boreas", start_time_us=i)
+
+    with pytest.raises(OSError):
+        build_map(tmp_path / "m.h5", CountingExtractor(), load, np.zeros((6, 3)), radar_preset="boreas", batch_size=2)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(ConfigError):
+        build_map(tmp_path / "m.h5", CountingExtractor(), load, np.zeros((0, 3)), radar_preset="boreas")

@@ -1,0 +1,93 @@
+"""Suites: the smoke suite renders in the real layout, resumes, re-renders identically; definitions are sane."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from reradar_core.errors import ConfigError, DatasetError
+from reradar_core.io.datasets import load_sequence
+from reradar_core.io.poses import PoseSequence, write_txyyaw_csv
+from reradar_core.io.scan import read_navtech_png
+from reradar_core.sim.suites import SUITES, build_suite
+from reradar_core.sim.writer import COMPLETE_MARKER
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory):
+    return build_suite("smoke", root=tmp_path_factory.mktemp("smoke"), progress=False)
+
+
+def test_smoke_suite_layout_and_poses(smoke):
+    assert smoke.layout == "boreas" and smoke.preset == "boreas" and smoke.radius_m == 20.0
+    assert len(smoke.database) == 1 and len(smoke.queries) == 1 and smoke.query_conditions == ["snow_cover"]
+    db = load_sequence(smoke.database[0])  # the generic reader, no hints: layout + preset detected
+    q = smoke.query_sequences()[0]
+    assert db.layout == "boreas" and db.preset.name == "boreas"
+    assert len(db) == 20 and len(q) == 20
+    scan = db.load_scan(0)
+    assert scan.power.shape == (400, 3360) and scan.timestamp_us == db.timestamps_us[0]
+    # every query has a database scan within the recall radius (a place-recognition-ready split)
+    d = np.linalg.norm(q.poses.xy[:, None] - db.poses.xy[None], axis=2).min(axis=1)
+    assert np.all(d < smoke.radius_m)
+    # and the query runs in another lane, not on the database poses
+    assert np.all(d > 0.5)
+    assert (smoke.root / "database" / COMPLETE_MARKER).is_file()
+
+
+def test_smoke_suite_resumes_and_renders_identically(smoke, tmp_path):
+    again = build_suite("smoke", root=smoke.root, progress=False)  # complete: nothing re-rendered
+    assert again.database == smoke.database
+    db = load_sequence(smoke.database[0])
+    first = db.scan_paths[3]
+    mtime = first.stat().st_mtime_ns
+    build_suite("smoke", root=smoke.root, progress=False)
+    assert first.stat().st_mtime_ns == mtime
+    # an interrupted render (marker missing, one scan deleted) is completed, and the scan comes back identical
+    ref = read_navtech_png(first).power.copy()
+    (smoke.root / "database" / COMPLETE_MARKER).unlink()
+    first.unlink()
+    build_suite("smoke", root=smoke.root, progress=False)
+    np.testing.assert_array_equal(read_navtech_png(first).power, ref)
+
+
+def test_suite_definitions():
+    for name in ("smoke", "boreas-sim", "loop-sim", "offroad-sim", "train-source", "train-target-boreas",
+                 "train-target-loop", "train-target-offroad"):
+        assert name in SUITES
+    # training splits never contain query sequences, evaluation suites always do
+    for name, suite in SUITES.items():
+        roles = {s.role for s in suite.sequences}
+        if name.startswith("train-"):
+            assert roles == {"train"}
+        else:
+            assert {"database", "query"} <= roles
+    assert SUITES["offroad-sim"].radius_m == 25.0 and SUITES["boreas-sim"].radius_m == 20.0
+    # the Boreas training traversal is never one of the query traversals
+    q_seeds = {s.traversal_seed for s in SUITES["boreas-sim"].sequences}
+    assert not q_seeds & {s.traversal_seed for s in SUITES["train-target-boreas"].sequences}
+    with pytest.raises(ConfigError, match="unknown suite"):
+        build_suite("nope")
+
+
+def test_boreas_suite_needs_trajectories_with_clear_error(tmp_path):
+    with pytest.raises(DatasetError, match="real Boreas trajectory not found"):
+        build_suite("boreas-sim", root=tmp_path, progress=False, trajectory_dir=tmp_path / "none")
+
+
+def test_cli_sim_renders_a_trajectory(tmp_path):
+    from reradar_core.cli import app
+
+    t = 1_600_000_000_000_000 + np.arange(0, 3_000_001, 250_000)
+    s = (t - t[0]) / 1e6
+    traj = write_txyyaw_csv(PoseSequence(t, np.column_stack([8.0 * s, 0 * s]), 0 * s), tmp_path / "traj.csv")
+    out = tmp_path / "seq"
+    res = CliRunner().invoke(app, ["sim", "--trajectory", str(traj), "--out", str(out), "--preset", "mulran",
+                                   "--condition", "rain", "--seed", "3", "--every", "2", "--limit", "3"])
+    assert res.exit_code == 0, res.output
+    seq = load_sequence(out)
+    assert seq.layout == "mulran" and len(seq) == 3
+    np.testing.assert_allclose(seq.poses.xy[:, 0], [0.0, 4.0, 8.0], atol=1e-6)
+    bad = CliRunner().invoke(app, ["sim", "--trajectory", str(traj), "--out", str(out), "--condition", "fog"])
+    assert bad.exit_code == 2 and "condition" in bad.output

@@ -1,0 +1,75 @@
+"""World generation: determinism, persistence across traversals, road clearance, profiles, traversal changes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from reradar_core.errors import ConfigError
+from reradar_core.sim.traversal import Traversal, get_condition
+from reradar_core.sim.world import World, stable_seed
+
+from .conftest import straight_road
+
+
+def test_tiles_are_deterministic_and_independent_of_query_order(road):
+    a = World(road, seed=3)
+    b = World(road, seed=3)
+    # query b in another order / other area first: tile content must not depend on it
+    b.query(np.array([300.0, 0.0]), 150.0)
+    ta, tb = a.tile(0, 0), b.tile(0, 0)
+    np.testing.assert_array_equal(ta.seg, tb.seg)
+    np.testing.assert_array_equal(ta.pts, tb.pts)
+    c = World(road, seed=4).tile(0, 0)
+    assert not (c.seg.shape == ta.seg.shape and np.allclose(c.seg, ta.seg))
+
+
+def test_urban_world_is_rich_and_keeps_the_road_clear(road):
+    world = World(road, seed=1, profile="urban")
+    prim = world.query(np.array([0.0, 0.0]), 160.0)
+    opaque = prim.seg_trans < 0.1
+    # hundreds of reflectors within range
+    assert opaque.sum() > 200 and len(prim.pts) > 2000 and len(prim.disc) > 20 and len(prim.car_slots) > 10
+    # nothing opaque on the carriageway (|y| < half width - 1 m), except nothing at all
+    mid = 0.5 * (prim.seg[opaque, :2] + prim.seg[opaque, 2:])
+    near_x = np.abs(mid[:, 0]) < 500
+    assert np.all(np.abs(mid[near_x, 1]) > world.profile.road_half_width_m - 1.0)
+
+
+def test_offroad_profile_is_vegetation_dominated(road):
+    urban = World(road, seed=1, profile="urban").query(np.array([0.0, 0.0]), 160.0)
+    off = World(road, seed=1, profile="offroad").query(np.array([0.0, 0.0]), 160.0)
+    assert (off.seg_trans < 0.1).sum() < 0.2 * (urban.seg_trans < 0.1).sum()
+    assert len(off.disc) > len(urban.disc)
+    with pytest.raises(ConfigError, match="profile"):
+        World(road, profile="moon")
+
+
+def test_parked_cars_change_between_traversals_but_some_stay(road):
+    world = World(road, seed=2)
+    prim = world.query(np.array([0.0, 0.0]), 300.0)
+    a = Traversal(world, seed=1).parked_cars(prim)
+    b = Traversal(world, seed=2).parked_cars(prim)
+    a2 = Traversal(world, seed=1).parked_cars(prim)
+    np.testing.assert_array_equal(a, a2)
+    sa = {tuple(np.round(r, 3)) for r in a}
+    sb = {tuple(np.round(r, 3)) for r in b}
+    assert sa & sb, "long-term parked cars should be on both traversals"
+    assert sa ^ sb, "some parked cars should have come or gone"
+
+
+def test_moving_vehicles_move_along_the_road():
+    road = straight_road(3000.0)
+    trav = Traversal(World(road, seed=0, profile="empty"), seed=5, traffic_per_km=30.0)
+    v0 = trav.moving_vehicles(0.0, np.array([0.0, 0.0]), 1500.0, ego_clearance_m=0.0)
+    v1 = trav.moving_vehicles(1.0, np.array([0.0, 0.0]), 1500.0, ego_clearance_m=0.0)
+    assert len(v0) > 20
+    assert np.all(np.abs(v0[:, 1]) < road.points[:, 1].max() + 6.0)  # in a lane of the road
+    assert not np.allclose(v0[: min(len(v0), len(v1)), :2], v1[: min(len(v0), len(v1)), :2])
+
+
+def test_conditions_and_seeds():
+    assert get_condition("falling_snow").noise_floor_db > get_condition("clear").noise_floor_db
+    with pytest.raises(ConfigError, match="condition"):
+        get_condition("fog")
+    assert stable_seed(1, "a", 2) == stable_seed(1, "a", 2) != stable_seed(1, "a", 3)
