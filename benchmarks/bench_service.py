@@ -94,8 +94,6 @@ def bench_faiss(n: int, dim: int, queries: int, seed: int = 0) -> dict:
 # ---------------------------------------------------------------------------------------------- memory
 def bench_memory(n: int, dim: int, local_dim: int, keypoints: int, seed: int = 0) -> dict:
     """RSS growth from opening an n-keyframe map (descriptors + poses in RAM, FAISS index built)."""
-    from maps.database import MapDatabase
-    from maps.index import IndexConfig
     from maps.store import MapMetadata, MapWriter
     from reradar_core.features import ScanFeatures
 
@@ -116,26 +114,37 @@ def bench_memory(n: int, dim: int, local_dim: int, keypoints: int, seed: int = 0
         gc.collect()
         out = {"num_keyframes": n, "dim": dim, "local_dim": local_dim, "keypoints_per_keyframe": keypoints,
                "file_mb": path.stat().st_size / 1e6, "write_s": write_s}
-        for kind, exact_max in (("flat", n), ("auto", 20_000)):
-            gc.collect()
-            before = _rss_bytes()
-            t0 = time.perf_counter()
-            db = MapDatabase.open(path, index_config=IndexConfig(exact_max_size=exact_max))
-            load_s = time.perf_counter() - t0
-            after = _rss_bytes()
-            t0 = time.perf_counter()
-            db.map.read_keyframe(n // 2)
-            read_ms = (time.perf_counter() - t0) * 1e3
-            out[kind] = {"index": db.index.kind, "load_s": load_s, "rss_mb": (after - before) / 1e6,
-                         "rss_bytes_per_keyframe": (after - before) / n, "read_keyframe_ms": read_ms}
-            db.close()
-            del db
+        for kind in ("flat", "auto"):
+            # a fresh process per index kind: RSS deltas in one process are blurred by allocator reuse
+            proc = subprocess.run([sys.executable, __file__, "--measure-open", str(path), kind],
+                                  capture_output=True, text=True, check=True)
+            res = json.loads(proc.stdout.strip().splitlines()[-1])
+            res["rss_bytes_per_keyframe"] = res["rss_bytes"] / n
+            out[kind] = res
         return out
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
 # ---------------------------------------------------------------------------------------------- HTTP
+def measure_open(path: str, kind: str) -> dict:
+    """RSS growth of this (fresh) process from opening the map at ``path`` with index ``kind``."""
+    from maps.database import MapDatabase
+    from maps.index import IndexConfig
+
+    gc.collect()
+    before = _rss_bytes()
+    t0 = time.perf_counter()
+    db = MapDatabase.open(path, index_config=IndexConfig(kind=kind))
+    load_s = time.perf_counter() - t0
+    gc.collect()
+    after = _rss_bytes()
+    t0 = time.perf_counter()
+    db.map.read_keyframe(len(db) // 2)
+    read_ms = (time.perf_counter() - t0) * 1e3
+    return {"index": db.index.kind, "load_s": load_s, "rss_bytes": after - before, "read_keyframe_ms": read_ms}
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -280,7 +289,11 @@ def main() -> int:
     p.add_argument("--queries", type=int, default=1000)
     p.add_argument("--suite", default="smoke")
     p.add_argument("--top-k", type=int, default=5)
+    p.add_argument("--measure-open", nargs=2, metavar=("MAP", "KIND"), help=argparse.SUPPRESS)
     args = p.parse_args()
+    if args.measure_open:
+        print(json.dumps(measure_open(*args.measure_open)))
+        return 0
     results: dict = {"host": platform.node(), "cpus": os.cpu_count(), "load_avg_start": _load_avg(),
                      "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     if args.all or args.faiss:

@@ -6,12 +6,14 @@ Usage:
         [--trajectory FILE]      # default: a synthetic looped city route (no external data needed)
 
 Prints a Markdown line for docs/BENCHMARKS.md. Render = world query + ray casting + sensor model;
-write = PNG encoding + disk write of the Navtech PNG.
+write = PNG encoding + disk write of the Navtech PNG. Columns: render mean / median / p95, write mean,
+total mean (wall ms), CPU ms per scan (render + write, less sensitive to other load), 1-min load average.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -49,22 +51,25 @@ def main() -> None:
     world = World(RoadNetwork([traj.xy]), seed=1, profile=args.profile)
     trav = Traversal(world, seed=2, condition=args.condition)
     preset = get_preset(args.preset)
-    render_ms, write_ms = [], []
+    render_ms, write_ms, cpu_ms = [], [], []
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(args.warmup + args.scans):
+            c0 = time.process_time()
             t0 = time.perf_counter()
             scan = render_scan(trav, traj, int(times[k]), preset, scan_seed(2, k))
             t1 = time.perf_counter()
             write_sequence_scan(Path(tmp), preset.dataset_layout, scan)
             t2 = time.perf_counter()
+            c2 = time.process_time()
             if k >= args.warmup:
+                cpu_ms.append(1e3 * (c2 - c0))
                 render_ms.append(1e3 * (t1 - t0))
                 write_ms.append(1e3 * (t2 - t1))
     r, w = np.asarray(render_ms), np.asarray(write_ms)
     tot = r + w
     print(f"| {args.preset} {preset.num_azimuths}x{preset.num_range_bins} | {args.profile} / {args.condition} | "
           f"{args.scans} | {np.mean(r):.0f} | {np.median(r):.0f} | {np.percentile(r, 95):.0f} | {np.mean(w):.0f} | "
-          f"{np.mean(tot):.0f} |")
+          f"{np.mean(tot):.0f} | {np.mean(cpu_ms):.0f} | {os.getloadavg()[0]:.1f} |")
 
 
 if __name__ == "__main__":

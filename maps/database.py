@@ -41,7 +41,10 @@ class MapDatabase:
 
     def __init__(self, kf_map: KeyframeMap, index_config: IndexConfig = IndexConfig()) -> None:
         self.map = kf_map
+        if kf_map.global_descriptors is None:
+            raise ConfigError(f"{kf_map.path}: global descriptors were released; reopen the map")
         self.index = GlobalIndex(kf_map.global_descriptors, index_config)
+        kf_map.release_global_descriptors()  # the index holds its own copy
 
     @classmethod
     def open(cls, path: str | Path, model_id: str | None = None, weights_sha256: str | None = None,

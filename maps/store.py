@@ -181,6 +181,7 @@ class KeyframeMap:
         self.path = Path(path)
         self._lock = threading.Lock()
         self._file: h5py.File | None = _open_h5(self.path)
+        self.global_descriptors: np.ndarray | None
         try:
             self.metadata = _read_metadata(self._file, self.path)
             self.timestamps_us, self.poses, self.global_descriptors = self._read_arrays(self._file)
@@ -233,12 +234,21 @@ class KeyframeMap:
                 grp = self._file[f"keyframes/{index:06d}"]
                 kps = np.asarray(grp["keypoints_xy_m"][()], dtype=np.float32)
                 desc = np.asarray(grp["local_descriptors"][()], dtype=np.float16)
+                if self.global_descriptors is not None:
+                    g = self.global_descriptors[index]
+                else:  # released after indexing: read the one row from disk
+                    g = np.asarray(self._file["global_descriptors"][index], dtype=np.float32)
             except (KeyError, OSError, ValueError) as exc:
                 raise MapFormatError(f"{self.path}: keyframe {index} is damaged ({exc})") from exc
         try:
-            return ScanFeatures(self.global_descriptors[index], kps, desc, int(self.timestamps_us[index]))
+            return ScanFeatures(g, kps, desc, int(self.timestamps_us[index]))
         except ValueError as exc:
             raise MapFormatError(f"{self.path}: keyframe {index}: {exc}") from exc
+
+    def release_global_descriptors(self) -> None:
+        """Drop the in-memory (N, D) global descriptors once an index holds them (halves resident memory);
+        ``read_keyframe`` then reads a keyframe's row from disk."""
+        self.global_descriptors = None
 
     def close(self) -> None:
         with self._lock:

@@ -43,9 +43,17 @@ def _polar(scan, max_m=80.0, size=(640, 400)):
 
 
 def _label(img, text):
-    out = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img.copy()
-    cv2.putText(out, text, (10, 28), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (0, 220, 255), 2, cv2.LINE_AA)
+    out = img.copy()
+    cv2.putText(out, text, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, 255, 1, cv2.LINE_AA)
     return out
+
+
+def _small(img, side=400):
+    return cv2.resize(img, (side, side), interpolation=cv2.INTER_AREA)
+
+
+def _write(path: Path, img) -> None:
+    cv2.imwrite(str(path), img, [cv2.IMWRITE_PNG_COMPRESSION, 9])
 
 
 def main() -> None:
@@ -53,6 +61,7 @@ def main() -> None:
     ap.add_argument("--real", type=Path, required=True)
     ap.add_argument("--out", type=Path, default=Path("docs/img"))
     ap.add_argument("--table", type=Path, default=None)
+    ap.add_argument("--sim-index", type=int, default=8, help="which simulated clear scan to show (a straight street)")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
 
@@ -67,12 +76,13 @@ def main() -> None:
         args.table.write_text(table + "\n")
 
     real = collect_scans(args.real, 11)[5]
-    sim = load_sequence(folders[0]).load_scan(5)
-    top = np.hstack([_label(_cart(real), "real (Oxford)"), _label(_cart(sim), "simulated (clear)")])
-    bot = np.hstack([_label(_polar(real), "real polar 0-80 m"), _label(_polar(sim), "sim polar 0-80 m")])
-    cv2.imwrite(str(args.out / "sim_real_vs_sim.png"), np.vstack([top, cv2.resize(bot, (top.shape[1], 400))]))
-    cv2.imwrite(str(args.out / "sim_polar.png"), _polar(sim, 165.0, (900, 400)))
-    cv2.imwrite(str(args.out / "sim_cart.png"), _cart(sim, 100.0, 801))
+    sim = load_sequence(folders[0]).load_scan(args.sim_index)
+    top = np.hstack([_label(_small(_cart(real)), "real (Oxford)"), _label(_small(_cart(sim)), "simulated (clear)")])
+    bot = np.hstack([_label(_polar(real, 80.0, (400, 250)), "real polar 0-80 m"),
+                     _label(_polar(sim, 80.0, (400, 250)), "sim polar 0-80 m")])
+    _write(args.out / "sim_real_vs_sim.png", np.vstack([top, bot]))
+    _write(args.out / "sim_polar.png", _polar(sim, 165.0, (800, 400)))
+    _write(args.out / "sim_cart.png", _cart(sim, 100.0, 601))
 
     # one place, four conditions (same world, same pose, one traversal per condition)
     traj = drive_route(synthetic_loop_route(7, laps=1), seed=7)
@@ -81,15 +91,15 @@ def main() -> None:
     tiles = []
     for k, cond in enumerate(("clear", "rain", "snow_cover", "falling_snow")):
         scan = render_scan(Traversal(world, 71 + k, cond), traj, t0, "oxford", scan_seed(71 + k, 0))
-        tiles.append(_label(cv2.resize(_cart(scan), (480, 480), interpolation=cv2.INTER_AREA), cond))
-    cv2.imwrite(str(args.out / "sim_conditions.png"), np.vstack([np.hstack(tiles[:2]), np.hstack(tiles[2:])]))
+        tiles.append(_label(_small(_cart(scan)), cond))
+    _write(args.out / "sim_conditions.png", np.vstack([np.hstack(tiles[:2]), np.hstack(tiles[2:])]))
 
     off = drive_route(synthetic_loop_route(21, laps=1, block_m=(250.0, 400.0), n_blocks=2), seed=21)
     ow = World(RoadNetwork([off.xy]), seed=21, profile="offroad")
     scan = render_scan(Traversal(ow, 211), off, int(off.timestamps_us[0] + 60_000_000), "oord", scan_seed(211, 0))
-    cv2.imwrite(str(args.out / "sim_offroad.png"),
-                np.hstack([_label(_cart(scan, 100.0, 641), "off-road (oord preset)"),
-                           _label(cv2.resize(_polar(scan, 100.0), (641, 641)), "polar 0-100 m")]))
+    _write(args.out / "sim_offroad.png",
+           np.hstack([_label(_small(_cart(scan, 100.0)), "off-road (oord preset)"),
+                      _label(_polar(scan, 100.0, (400, 400)), "polar 0-100 m")]))
 
 
 if __name__ == "__main__":

@@ -121,6 +121,24 @@ class PlaceRecognitionMethod(ABC):
         return Retrieval(j, float(d[j]), self.estimate_heading(q_desc, index, j), None)
 
 
+class EuclideanIndex:
+    """Stacked (N, D) float32 descriptors with cached squared norms: Euclidean distances by one mat-vec
+    (no per-query (N, D) temporaries, which dominate the search time of long VLAD descriptors)."""
+
+    def __init__(self, descs: Sequence[np.ndarray] | np.ndarray) -> None:
+        self.matrix = np.ascontiguousarray(np.stack([np.asarray(d, np.float32).reshape(-1) for d in descs]))
+        self.sq_norms = np.einsum("nd,nd->n", self.matrix, self.matrix, dtype=np.float64)
+
+    def __len__(self) -> int:
+        return int(self.matrix.shape[0])
+
+    def distances(self, q: np.ndarray) -> np.ndarray:
+        """(N,) float64 Euclidean distances to ``q`` (D,)."""
+        q = np.asarray(q, np.float32).reshape(-1)
+        d2 = self.sq_norms - 2.0 * (self.matrix @ q).astype(np.float64) + float(np.dot(q, q))
+        return np.sqrt(np.maximum(d2, 0.0))
+
+
 def polar_resize(power: np.ndarray, num_azimuths: int, num_range: int) -> np.ndarray:
     """Resize an (A, R) polar image to (num_azimuths, num_range) float32 with area averaging."""
     import cv2
@@ -130,7 +148,7 @@ def polar_resize(power: np.ndarray, num_azimuths: int, num_range: int) -> np.nda
     return cv2.resize(p, (num_range, num_azimuths), interpolation=interp)
 
 
-__all__ += ["polar_resize"]
+__all__ += ["polar_resize", "EuclideanIndex"]
 
 
 _LANDMARK_MEMO: list[tuple[np.ndarray, object, object]] = []

@@ -13,7 +13,13 @@ from typing import Any
 
 import numpy as np
 
-from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared, Retrieval, landmarks_for
+from reradar_core.baselines.base import (
+    EuclideanIndex,
+    PlaceRecognitionMethod,
+    Prepared,
+    Retrieval,
+    landmarks_for,
+)
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import relative_pose
 from reradar_core.io.scan import RadarScan
@@ -70,8 +76,11 @@ class Ours(PlaceRecognitionMethod):
     def describe_prepared(self, prepared: Prepared) -> np.ndarray:
         return np.asarray(prepared["global"], dtype=np.float32)
 
+    def build_index(self, db_descs: Any) -> Any:
+        return EuclideanIndex(db_descs)
+
     def distance(self, q_desc: np.ndarray, index: Any) -> np.ndarray:
-        return np.linalg.norm(np.asarray(index, dtype=np.float64) - q_desc[None].astype(np.float64), axis=1)
+        return index.distances(q_desc)
 
     def localize(self, q_prepared: Prepared, q_desc: np.ndarray, index: Any,
                  db_prepared: Sequence[Prepared], db_poses: np.ndarray) -> Retrieval:

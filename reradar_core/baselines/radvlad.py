@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared, polar_resize
+from reradar_core.baselines.base import EuclideanIndex, PlaceRecognitionMethod, Prepared, polar_resize
 from reradar_core.baselines.kmeans import kmeans
 from reradar_core.errors import ConfigError
 from reradar_core.io.scan import RadarScan
@@ -84,5 +84,8 @@ class RadVLAD(PlaceRecognitionMethod):
             raise ConfigError("RadVLAD.fit(database) must run before describing scans")
         return vlad(prepared["beams"], self.centres)
 
+    def build_index(self, db_descs: Any) -> Any:
+        return EuclideanIndex(db_descs)
+
     def distance(self, q_desc: np.ndarray, index: Any) -> np.ndarray:
-        return np.linalg.norm(np.asarray(index, dtype=np.float64) - q_desc[None].astype(np.float64), axis=1)
+        return index.distances(q_desc)

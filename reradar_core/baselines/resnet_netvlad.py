@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared, polar_resize
+from reradar_core.baselines.base import EuclideanIndex, PlaceRecognitionMethod, Prepared, polar_resize
 from reradar_core.baselines.kmeans import kmeans
 from reradar_core.baselines.resnet18 import ResNet18
 from reradar_core.errors import ConfigError
@@ -118,5 +118,8 @@ class ResNetNetVLAD(PlaceRecognitionMethod):
             raise ConfigError("ResNetNetVLAD.fit(database) must run before describing scans")
         return netvlad_numpy(prepared["local"], self.centres, self.alpha)
 
+    def build_index(self, db_descs: Any) -> Any:
+        return EuclideanIndex(db_descs)
+
     def distance(self, q_desc: np.ndarray, index: Any) -> np.ndarray:
-        return np.linalg.norm(np.asarray(index, dtype=np.float64) - q_desc[None].astype(np.float64), axis=1)
+        return index.distances(q_desc)

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared, polar_resize
+from reradar_core.baselines.base import EuclideanIndex, PlaceRecognitionMethod, Prepared, polar_resize
 from reradar_core.io.scan import RadarScan
 
 __all__ = ["RingKeyConfig", "RingKey", "ring_key"]
@@ -52,5 +52,8 @@ class RingKey(PlaceRecognitionMethod):
     def describe_prepared(self, prepared: Prepared) -> np.ndarray:
         return np.asarray(prepared["key"], dtype=np.float32)
 
+    def build_index(self, db_descs: Any) -> Any:
+        return EuclideanIndex(db_descs)
+
     def distance(self, q_desc: np.ndarray, index: Any) -> np.ndarray:
-        return np.linalg.norm(np.asarray(index, dtype=np.float64) - q_desc[None].astype(np.float64), axis=1)
+        return index.distances(q_desc)

@@ -46,6 +46,8 @@ def bench(
     limit: int | None = typer.Option(None, "--limit", help="At most this many scans per sequence after "
                                      "subsampling."),
     rotation: bool = typer.Option(True, "--rotation/--no-rotation", help="Run the rotation stress test."),
+    rotation_limit: int | None = typer.Option(None, "--rotation-limit", help="Rotation stress on at most "
+                                              "this many queries per sequence (evenly spread)."),
     timing: bool = typer.Option(True, "--timing/--no-timing", help="Measure ReRadar's stage timings."),
     timing_scans: int = typer.Option(20, "--timing-scans", help="Query scans for the stage timings."),
     yaw_curve: bool = typer.Option(True, "--yaw-curve/--no-yaw-curve", help="Yaw-consistency curve of F'."),
@@ -82,6 +84,7 @@ def bench(
         method_objs = [make_method(n) for n in names]
         out_dir = out or cache_dir("bench", label)
         cfg = BenchConfig(radius_m=radius or default_radius, rotation_stress=rotation, rotation_seed=seed,
+                          rotation_limit=rotation_limit,
                           use_cache=cache)
         typer.echo(f"bench {label}: {len(pairs)} query sequence(s), methods {names}, radius {cfg.radius_m} m")
         results = run_benchmark(pairs, method_objs, out_dir, cfg, suite=label)

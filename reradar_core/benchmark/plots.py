@@ -82,6 +82,7 @@ def plot_trajectory_links(results: dict[str, Any], per_query: Path, seq: str, pa
         segs = np.stack([q, db[d["retrieved"]]], axis=1)
         colors = np.where(d["correct"][:, None], [[0.1, 0.65, 0.2, 0.8]], [[0.85, 0.1, 0.1, 0.8]])
         ax.add_collection(LineCollection(segs, colors=colors, linewidths=0.8))
+        ax.scatter(q[:, 0], q[:, 1], s=6, c=colors, zorder=3)  # short correct links are hard to see
         r1 = results["sequences"][seq][m]["recall@1"]
         ax.set_title(f"{m}: Recall@1 {r1:.1f}% ({int(d['correct'].sum())}/{len(q)})", fontsize=9)
         ax.set_aspect("equal", adjustable="datalim")

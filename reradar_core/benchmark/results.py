@@ -40,7 +40,10 @@ def results_markdown(results: dict[str, Any]) -> str:
     for seq in seqs:
         p = pairs.get(seq)
         if p:
-            lines.append(f"- `{seq}`: {p['n_query']} queries against database `{p['database']}` "
+            rev = next((r.get("n_with_revisit") for r in seqs[seq].values() if "n_with_revisit" in r), None)
+            note = (f" ({rev} with a database keyframe within {radius} m: Recall@1 and SR are at most "
+                    f"{100.0 * rev / max(p['n_query'], 1):.2f}%)") if rev is not None and rev < p["n_query"] else ""
+            lines.append(f"- `{seq}`: {p['n_query']} queries{note} against database `{p['database']}` "
                          f"({p['n_database']} keyframes)")
     lines.append("")
     methods: list[str] = []
@@ -82,7 +85,9 @@ def results_markdown(results: dict[str, Any]) -> str:
     timing = results.get("timing")
     if timing:
         lines += [f"### Stage timings ({timing.get('model')}, {timing.get('n_scans')} scans, "
-                  f"{timing.get('threads')} thread(s), database {timing.get('n_database')} keyframes)", "",
+                  f"{timing.get('threads')} thread(s), database {timing.get('n_database')} keyframes, "
+                  f"1-min load average {timing.get('load_average_1min', float('nan')):.1f} on "
+                  f"{results.get('settings', {}).get('cpu_count')} cores)", "",
                   "| Stage | mean ms | median ms |", "|---|---|---|"]
         for stage, v in timing["stages_ms"].items():
             lines.append(f"| {stage} | {v['mean']:.2f} | {v['median']:.2f} |")

@@ -10,6 +10,7 @@ rotation stress test (the same queries turned by a random heading each).
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Sequence as Seq
 from dataclasses import dataclass, field
@@ -55,6 +56,8 @@ class BenchConfig:
         radius_m: a retrieval is correct within this distance (paper: 25 m OORD, 20 m MulRan / Boreas).
         rotation_stress: also run every query with a random heading offset (seeded) and report the drop.
         rotation_seed: seed of the heading offsets.
+        rotation_limit: run the rotation stress on at most this many queries per sequence (evenly spread;
+            the unrotated Recall@1 it is compared with is taken on the same queries); None = all.
         use_cache: read / write the on-disk feature cache.
         cache_root: feature cache folder (default ``cache_dir("bench", "features")``).
         progress: tqdm progress bars.
@@ -63,6 +66,7 @@ class BenchConfig:
     radius_m: float = 20.0
     rotation_stress: bool = True
     rotation_seed: int = 0
+    rotation_limit: int | None = None
     use_cache: bool = True
     cache_root: Path | None = None
     progress: bool = True
@@ -99,7 +103,7 @@ def prepare_sequence(methods: Seq[PlaceRecognitionMethod], seq: Sequence, config
 
     Args:
         yaw_offsets: optional (N,) heading offsets [rad]; scan i is turned by ``yaw_offsets[i]`` first
-            (``rotate_scan``) and cached under ``<stem>@<variant>``.
+            (``rotate_scan``) and cached under ``<stem>@<variant>@yaw<offset>``.
     """
     skey = sequence_key(seq.name, seq.root)
     caches = {m.name: FeatureCache(m.cache_key, skey, config.cache_root, config.use_cache) for m in methods}
@@ -109,6 +113,8 @@ def prepare_sequence(methods: Seq[PlaceRecognitionMethod], seq: Sequence, config
         for i in tqdm(range(len(seq)), desc=desc, disable=not config.progress, leave=False):
             path = Path(seq.scan_paths[i])
             key = path.stem + (f"@{variant}" if variant else "")
+            if yaw_offsets is not None:  # the offset itself is part of the key: a record is one exact input
+                key += f"@yaw{float(yaw_offsets[i]):.9f}"
             scan = None
             for m in methods:
                 hit = caches[m.name].get(key, path)
@@ -173,6 +179,31 @@ def _save_outcome(path: Path, run: MethodRun, query_xy: np.ndarray, db_xy: np.nd
                         trans_err_m=o.trans_err_m, query_xy=query_xy, db_xy=db_xy)
 
 
+def _rotation_stress(pair: BenchPair, methods: Seq[PlaceRecognitionMethod], dbp: dict[str, PreparedSet],
+                     qp: dict[str, PreparedSet], config: BenchConfig) -> dict[str, Any]:
+    """Recall@1 of the same queries with and without a random heading offset, per method."""
+    n = len(pair.query)
+    idx = np.arange(n)
+    if config.rotation_limit is not None and 0 < config.rotation_limit < n:
+        idx = np.linspace(0, n - 1, config.rotation_limit).round().astype(np.int64)
+    query = pair.query.subset(idx)
+    yaw = heading_offsets(n, config.rotation_seed, pair.query.preset.num_azimuths)[idx]
+    rq = prepare_sequence(methods, query, config, yaw_offsets=yaw, variant=f"rot{config.rotation_seed}")
+    q_poses = query.poses.poses
+    rq_poses = rotate_pose(q_poses, yaw)
+    db_poses = pair.database.poses.poses
+    stress: dict[str, Any] = {}
+    for m in methods:
+        base_set = PreparedSet([qp[m.name].records[i] for i in idx], qp[m.name].compute_ms[idx])
+        base = evaluate_method(m, dbp[m.name], db_poses, base_set, q_poses, config.radius_m, fit=False).summary
+        run = evaluate_method(m, dbp[m.name], db_poses, rq[m.name], rq_poses, config.radius_m, fit=False,
+                              progress=config.progress, label=f"{pair.name} rotated ").summary
+        stress[m.name] = {"n_queries": int(len(idx)), "recall@1": base["recall@1"],
+                          "recall@1_rotated": run["recall@1"], "drop": base["recall@1"] - run["recall@1"],
+                          "sr": base["sr"], "sr_rotated": run["sr"]}
+    return stress
+
+
 def run_benchmark(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod], out_dir: Path,
                   config: BenchConfig = BenchConfig(), suite: str | None = None) -> dict[str, Any]:
     """Run every method on every pair; write per-query arrays under ``out_dir/per_query`` and return the
@@ -185,9 +216,13 @@ def run_benchmark(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod], o
                      "method_params": {m.name: m.params() for m in methods},
                      "pairs": {p.name: {"database": p.database.name, "query": p.query.name,
                                         "n_database": len(p.database), "n_query": len(p.query)}
-                               for p in pairs}},
+                               for p in pairs},
+                     # the reference machine is shared: timings are only comparable at similar load
+                     "load_average_1min_at_start": os.getloadavg()[0], "cpu_count": os.cpu_count()},
         "sequences": {},
         "rotation_stress": {} if config.rotation_stress else None,
+        "rotation_stress_settings": {"seed": config.rotation_seed, "limit": config.rotation_limit,
+                                     "offsets": "uniform [0, 360) deg, whole azimuth steps"},
     }
     db_cache: dict[str, dict[str, PreparedSet]] = {}
     fitted_on: dict[str, str] = {}
@@ -213,17 +248,6 @@ def run_benchmark(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod], o
             logger.info("%s %s: Recall@1 %.2f%%", pair.name, m.name, run.summary["recall@1"])
         results["sequences"][pair.name] = seq_res
         if config.rotation_stress:
-            yaw = heading_offsets(len(pair.query), config.rotation_seed, pair.query.preset.num_azimuths)
-            rq = prepare_sequence(methods, pair.query, config, yaw_offsets=yaw,
-                                  variant=f"rot{config.rotation_seed}")
-            rq_poses = rotate_pose(q_poses, yaw)
-            stress: dict[str, Any] = {}
-            for m in methods:
-                run = evaluate_method(m, dbp[m.name], db_poses, rq[m.name], rq_poses, config.radius_m,
-                                      fit=False, progress=config.progress, label=f"{pair.name} rotated ")
-                base = runs[m.name].summary
-                stress[m.name] = {"recall@1": base["recall@1"], "recall@1_rotated": run.summary["recall@1"],
-                                  "drop": base["recall@1"] - run.summary["recall@1"],
-                                  "sr": base["sr"], "sr_rotated": run.summary["sr"]}
-            results["rotation_stress"][pair.name] = stress
+            results["rotation_stress"][pair.name] = _rotation_stress(pair, methods, dbp, qp, config)
+    results["settings"]["load_average_1min_at_end"] = os.getloadavg()[0]
     return results

@@ -8,6 +8,7 @@ search with FAISS over the map's global descriptors).
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -62,7 +63,8 @@ def stage_timings(extractor: Any, query_scans: Sequence[RadarScan], db_features:
         if n >= warmup:
             rows.append([(t1 - t0) * 1e3, (t2 - t1) * 1e3, (t4 - t3) * 1e3, (t3 - t2) * 1e3, (t4 - t0) * 1e3])
     arr = np.asarray(rows)
+    load = os.getloadavg()[0]
     return {"stages_ms": {s: {"mean": float(arr[:, i].mean()), "median": float(np.median(arr[:, i]))}
                           for i, s in enumerate(STAGES)},
-            "n_scans": len(rows), "n_database": len(db_features),
+            "n_scans": len(rows), "n_database": len(db_features), "load_average_1min": load,
             "model": getattr(extractor, "name", "") or getattr(extractor, "model_id", "")}

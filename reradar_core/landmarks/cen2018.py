@@ -117,8 +117,13 @@ def _gaussian_kernel(sigma_bins: int) -> np.ndarray:
     return (k / k.sum()).astype(np.float32)
 
 
+#: Rows (azimuths) processed together: ~15 KB per row per buffer, so one block's scratch arrays stay in the
+#: L2 cache between the ~15 element-wise passes (measured ~20 % less CPU than whole-scan passes).
+_BLOCK_ROWS = 64
+
+
 class _Workspace:
-    """Scratch arrays reused across calls (~42 MB for a 400 x 3,768 scan).
+    """Scratch arrays reused across calls (~14 MB for a 400 x 3,768 scan).
 
     Fresh multi-megabyte temporaries cost more in page faults than the arithmetic itself (~4,000 minor
     faults and ~2x the run time per Oxford scan measured without reuse), so the hot path writes into
@@ -128,13 +133,14 @@ class _Workspace:
     def __init__(self, shape: tuple[int, int]) -> None:
         n_az, n_bins = shape
         self.shape = shape
-        self.q = np.empty(shape, np.float32)
-        self.p = np.empty(shape, np.float32)
-        self.d = np.empty(shape, np.float32)
-        self.e = np.empty(shape, np.float32)
-        self.f = np.empty(shape, np.float32)
+        block = (min(_BLOCK_ROWS, n_az), n_bins)
+        self.q = np.empty(block, np.float32)
+        self.p = np.empty(block, np.float32)
+        self.d = np.empty(block, np.float32)
+        self.e = np.empty(block, np.float32)
+        self.f = np.empty(block, np.float32)
+        self.mask_u8 = np.empty(block, np.uint8)
         self.y = np.empty(shape, np.float32)
-        self.mask_u8 = np.empty(shape, np.uint8)
         self.kept = np.empty(shape, bool)
         self.padded = np.zeros((n_az, n_bins + 2), np.int8)
         self.edges = np.empty(n_az * (n_bins + 2) - 1, np.int8)
@@ -165,9 +171,22 @@ def _response_into(s: np.ndarray, config: Cen2018Config, ws: _Workspace) -> np.n
 
     The published formulas are evaluated on q / sigma_q and p / sigma_q (p is linear in q, so p / sigma_q is
     the filtered q / sigma_q): every term then has unit scale, y / sigma_q > z_q is the detection test, and
-    no per-row broadcasting is needed after the first two steps. ``ws.q`` ends up holding q / sigma_q.
+    no per-row broadcasting is needed after the first two steps. Rows are processed in blocks of
+    ``_BLOCK_ROWS`` (every step is per row, so blocking changes no result).
     """
-    q, p, d, nqp, npp, y = ws.q, ws.p, ws.d, ws.e, ws.f, ws.y
+    kernel = _gaussian_kernel(config.sigma_bins).reshape(1, -1)
+    sigma_all = np.empty(s.shape[0], dtype=np.float64)
+    for r0 in range(0, s.shape[0], _BLOCK_ROWS):
+        r1 = min(r0 + _BLOCK_ROWS, s.shape[0])
+        n = r1 - r0
+        sigma_all[r0:r1] = _response_block(s[r0:r1], kernel, ws.q[:n], ws.p[:n], ws.d[:n], ws.e[:n], ws.f[:n],
+                                           ws.mask_u8[:n], ws.y[r0:r1])
+    return sigma_all
+
+
+def _response_block(s: np.ndarray, kernel: np.ndarray, q: np.ndarray, p: np.ndarray, d: np.ndarray,
+                    nqp: np.ndarray, npp: np.ndarray, mask_u8: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """One block of rows: y / sigma_q into ``y`` using the scratch arrays; returns the rows' sigma_q."""
     # float64 accumulation for the row means; everything per bin stays float32 (as the reference code).
     mean = cv2.reduce(s, 1, cv2.REDUCE_AVG, dtype=cv2.CV_64F).astype(np.float32)
     np.subtract(s, mean, out=q)
@@ -175,14 +194,13 @@ def _response_into(s: np.ndarray, config: Cen2018Config, ws: _Workspace) -> np.n
     # sigma_q = sqrt(sum_{q<0} 2 q^2 / count(q<0)) per azimuth; 0.034 where no bin is negative (reference).
     cv2.threshold(q, 0.0, 0.0, cv2.THRESH_TOZERO_INV, dst=d)  # min(q, 0)
     sum_sq = 2.0 * np.einsum("ij,ij->i", d, d).astype(np.float64)
-    cv2.compare(q, 0.0, cv2.CMP_LT, dst=ws.mask_u8)  # type: ignore[call-overload]  # scalar src2 is valid
-    n_neg = cv2.reduce(ws.mask_u8, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S).ravel() // 255
+    cv2.compare(q, 0.0, cv2.CMP_LT, dst=mask_u8)  # type: ignore[call-overload]  # scalar src2 is valid
+    n_neg = cv2.reduce(mask_u8, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S).ravel() // 255
     sigma_q = np.full(q.shape[0], _SIGMA_Q_FALLBACK, dtype=np.float64)
     has_neg = (n_neg > 0) & (sum_sq > 0)
     sigma_q[has_neg] = np.sqrt(sum_sq[has_neg] / n_neg[has_neg])
 
     np.multiply(q, (1.0 / sigma_q).astype(np.float32)[:, None], out=q)  # q / sigma_q
-    kernel = _gaussian_kernel(config.sigma_bins).reshape(1, -1)
     # Anchor at index len // 2 as the reference (OpenCV's default anchor for odd lengths such as 51).
     cv2.filter2D(q, cv2.CV_32F, kernel, dst=p, anchor=(kernel.shape[1] // 2, 0), delta=0.0,
                  borderType=cv2.BORDER_REFLECT_101)  # p / sigma_q

@@ -35,8 +35,9 @@ def register(app: typer.Typer) -> None:
         lateral: float = typer.Option(0.0, help="Drive this many metres left of the trajectory."),
         every: int = typer.Option(1, help="Keep every K-th scan."),
         limit: int = typer.Option(None, help="Render at most N scans."),
-        sweep_from_poses: bool = typer.Option(True, help="Scan times = pose times (4 Hz radar pose files); "
-                                                         "off: tile the time span at 4 Hz."),
+        sweep_from_poses: bool = typer.Option(None, "--sweep-from-poses/--tile-sweeps",
+                                              help="Scan times = the pose times (4 Hz radar pose files) or "
+                                                   "sweeps tiling the time span at 4 Hz; default: by pose rate."),
     ) -> None:
         """Render a simulated radar sequence along a trajectory, in a real dataset layout."""
         from reradar_core.sim.sensor import SensorConfig

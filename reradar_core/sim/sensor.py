@@ -77,7 +77,7 @@ class SensorConfig:
     speckle_az_coupling: float = 0.25
     db_floor: float = -3.5
     db_span: float = 100.0
-    streak_rate: float = 0.8
+    streak_rate: float = 0.5
     ghost_prob: float = 0.15
     min_range_m: float = 0.5
     target_gain: float = 2500.0
@@ -98,22 +98,29 @@ def sweep_poses(trajectory: PoseSequence, t0_us: int, preset: RadarPreset, overs
 
 
 @lru_cache(maxsize=8)
-def _kernels(cfg: SensorConfig, range_res: float) -> tuple[np.ndarray, np.ndarray]:
-    # range: Gaussian core + one-sided exponential tail (returns smear away from the sensor)
-    half = int(np.ceil((3 * cfg.range_sigma_m + 4 * cfg.range_tail_m) / range_res))
-    x = np.arange(-half, half + 1) * range_res
+def _kernels(cfg: SensorConfig, range_res: float) -> tuple[np.ndarray, int, np.ndarray]:
+    """(range kernel, its anchor index, azimuth kernel), float32, peak 1.
+
+    Range: Gaussian core (+-3 sigma) plus a one-sided exponential tail out to 3 tau (returns smear away
+    from the sensor); the kernel is asymmetric, so it is applied with its anchor at the core's centre.
+    Azimuth: Gaussian main lobe (two-way FWHM) plus a raised sidelobe pedestal.
+    """
+    before = int(np.ceil(3 * cfg.range_sigma_m / range_res))
+    after = int(np.ceil((3 * cfg.range_sigma_m + 3 * cfg.range_tail_m) / range_res))
+    x = np.arange(-before, after + 1) * range_res
     k_r = np.exp(-0.5 * (x / cfg.range_sigma_m) ** 2)
-    tail = np.where(x > 0, np.exp(-x / max(cfg.range_tail_m, 1e-6)), 0.0) * 0.25
-    k_r = k_r + tail
+    k_r = k_r + np.where(x > 0, np.exp(-x / max(cfg.range_tail_m, 1e-6)), 0.0) * 0.25
     k_r /= k_r.max()
-    # azimuth: Gaussian main lobe (two-way FWHM) + flat sidelobe pedestal
+    # OpenCV filters correlate (dst[x] = sum k[i] src[x + i - anchor]): flip so the tail trails the return
+    k_r = k_r[::-1].copy()
+    anchor = len(k_r) - 1 - before
     dth = 360.0 / 400.0
     hb = cfg.sidelobe_halfwidth_bins
     a = np.arange(-hb, hb + 1) * dth
     sigma = cfg.beam_fwhm_deg / 2.3548
     k_a = np.exp(-0.5 * (a / sigma) ** 2) + 10 ** (cfg.sidelobe_db / 10) * (1 + 0.5 * np.cos(np.pi * a / (hb * dth)))
     k_a /= k_a.max()
-    return k_r.astype(np.float32), k_a.astype(np.float32)
+    return k_r.astype(np.float32), anchor, k_a.astype(np.float32)
 
 
 def _elevation_gain(r: np.ndarray, cfg: SensorConfig) -> np.ndarray:
@@ -318,10 +325,11 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
     wts = np.concatenate([all_p * (1 - wb), all_p * wb])
     target = np.bincount(flat, weights=wts, minlength=n_az * n_r).astype(np.float32).reshape(n_az, n_r)
 
-    k_r, k_a = _kernels(cfg, res)
+    k_r, anchor_r, k_a = _kernels(cfg, res)
     pad = len(k_a) // 2
     padded = np.concatenate([target[-pad:], target, target[:pad]], axis=0)
-    blurred = cv2.sepFilter2D(padded, cv2.CV_32F, k_r, k_a, borderType=cv2.BORDER_CONSTANT)[pad:-pad]
+    blurred = cv2.sepFilter2D(padded, cv2.CV_32F, k_r, k_a, anchor=(anchor_r, pad),
+                              borderType=cv2.BORDER_CONSTANT)[pad:-pad]
 
     # ---------------- diffuse ground, noise floor, near field
     ranges = (off + np.arange(n_r) * res).astype(np.float32)
@@ -342,17 +350,19 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
     for _ in range(n_st):
         row = int(rng.integers(0, n_az))
         width = int(rng.integers(1, 3))
-        lvl = 10 ** rng.uniform(2.0, 3.5)
-        prof = (lvl * (10.0 / np.maximum(ranges, 10.0)) ** rng.uniform(0.5, 1.5)).astype(np.float32)
+        lvl = 10 ** rng.uniform(1.5, 3.0)
+        prof = (lvl * (10.0 / np.maximum(ranges, 10.0)) ** rng.uniform(1.0, 2.0)).astype(np.float32)
         for k in range(width):
             power[(row + k) % n_az] += prof
 
     if cfg.speckle_looks > 0:
         power *= _speckle(rng, n_az, n_r, cfg)
     np.maximum(power, 1e-12, out=power)
-    db = 10.0 * np.log10(power)
-    val = np.clip((db - cfg.db_floor) / cfg.db_span, 0.0, 1.0)
-    val = np.round(val * 255.0) / np.float32(255.0)
+    # value = (10 log10 P - db_floor) / db_span, quantised to 8 bits (cv2.log: ~5x faster than np.log10)
+    scale = np.float32(255.0 * 10.0 / np.log(10.0) / cfg.db_span)
+    val = cv2.log(power) * scale - np.float32(255.0 * cfg.db_floor / cfg.db_span)
+    np.clip(val, 0.0, 255.0, out=val)
+    val = np.round(val) / np.float32(255.0)
     azimuths = np.arange(n_az) * dth
     return RadarScan(val.astype(np.float32), azimuths, az_t, res, off, preset=p.name)
 
@@ -373,9 +383,9 @@ def _speckle(rng: np.random.Generator, n_az: int, n_r: int, cfg: SensorConfig) -
         for _part in range(2):
             g = rng.standard_normal((n_az, n_c), dtype=np.float32)
             g = cv2.filter2D(np.concatenate([g[-1:], g, g[:1]]), cv2.CV_32F, k_az[:, None])[1:-1]
-            up = cv2.resize(g, (n_c * cell, n_az), interpolation=cv2.INTER_CUBIC)[:, :n_r]
-            out += up * up
-    out *= np.float32(1.0 / out.mean())
+            up = np.ascontiguousarray(cv2.resize(g, (n_c * cell, n_az), interpolation=cv2.INTER_CUBIC)[:, :n_r])
+            cv2.accumulateSquare(up, out)
+    out *= np.float32(1.0 / cv2.mean(out)[0])
     return out
 
 

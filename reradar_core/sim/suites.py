@@ -130,6 +130,7 @@ class SuiteDef:
     sequences: tuple[SequenceDef, ...]
     radius_m: float = 20.0
     single_session: bool = False
+    purpose: str = "benchmark"  # "benchmark", "training", "calibration" or "test"
 
 
 @dataclass
@@ -147,6 +148,7 @@ class SuiteData:
         query_conditions: condition of each query folder.
         training: training sequence folders (never queries).
         single_session: database and queries come from one drive (MulRan-style split).
+        purpose: ``benchmark`` (paper protocols), ``training``, ``calibration`` or ``test`` (smoke).
     """
 
     name: str
@@ -159,6 +161,7 @@ class SuiteData:
     query_conditions: list[str] = field(default_factory=list)
     training: list[Path] = field(default_factory=list)
     single_session: bool = False
+    purpose: str = "benchmark"
 
     def load(self, path: Path) -> Sequence:
         return load_sequence(path, self.layout, self.preset)
@@ -191,6 +194,7 @@ SUITES: dict[str, SuiteDef] = {
             SequenceDef("query", "query", replace(_SMOKE, lateral_m=1.5), traversal_seed=32,
                         condition="snow_cover", every=8, limit=20, offset=4),
         ),
+        purpose="test",
     ),
     "boreas-sim": SuiteDef(
         "boreas-sim", "real Boreas route: map 2021-08-05 clear, queries 2021-09-02 snow_cover / falling_snow",
@@ -238,6 +242,7 @@ SUITES: dict[str, SuiteDef] = {
             SequenceDef("falling_snow", "query", _CALIB, traversal_seed=74, condition="falling_snow", every=24,
                         limit=12, offset=18),
         ),
+        purpose="calibration",
     ),
     # ------------------------------------------------------------------------------ training splits
     "train-target-boreas": SuiteDef(
@@ -248,6 +253,7 @@ SUITES: dict[str, SuiteDef] = {
             SequenceDef("2021-08-05-lane2-snow_cover", "train", replace(_BOREAS_MAP, lateral_m=2.0),
                         traversal_seed=8051, condition="snow_cover", every=6),
         ),
+        purpose="training",
     ),
     "train-target-loop": SuiteDef(
         "train-target-loop", "another session on the loop-sim street grid (other speeds, own seed, rain)",
@@ -257,6 +263,7 @@ SUITES: dict[str, SuiteDef] = {
                         condition="rain", every=3),
         ),
         single_session=True,
+        purpose="training",
     ),
     "train-target-offroad": SuiteDef(
         "train-target-offroad", "third drive on the off-road route (falling snow)",
@@ -266,6 +273,7 @@ SUITES: dict[str, SuiteDef] = {
                         traversal_seed=213, condition="falling_snow", every=4),
         ),
         radius_m=25.0,
+        purpose="training",
     ),
 }
 
@@ -281,14 +289,15 @@ def _train_source() -> SuiteDef:
     # each source sequence lives in its own world: the profile is per sequence, encoded in the name
     return SuiteDef("train-source", "synthetic looped routes in six other worlds, mixed profiles and conditions",
                     preset="boreas", layout="boreas", profile="mixed", world_seed=500, road_routes=(),
-                    sequences=tuple(seqs))
+                    sequences=tuple(seqs), purpose="training")
 
 
 SUITES["train-source"] = _train_source()
 
 
-def suite_names() -> list[str]:
-    return sorted(SUITES)
+def suite_names(purpose: str | None = None) -> list[str]:
+    """Suite names, optionally only those with ``purpose`` (e.g. ``benchmark``: boreas-sim, loop-sim, ...)."""
+    return sorted(n for n, s in SUITES.items() if purpose is None or s.purpose == purpose)
 
 
 # ---------------------------------------------------------------------------------------------- rendering
@@ -372,7 +381,8 @@ def build_suite(name: str, root: str | Path | None = None, progress: bool = True
         root = cache_dir("sim", name, tag) if tag else cache_dir("sim", name)
     root = Path(root)
     traj_dir = Path(trajectory_dir) if trajectory_dir is not None else None
-    data = SuiteData(name, root, suite.preset, suite.layout, suite.radius_m, single_session=suite.single_session)
+    data = SuiteData(name, root, suite.preset, suite.layout, suite.radius_m, single_session=suite.single_session,
+                     purpose=suite.purpose)
     for seq in suite.sequences:
         if every is not None or limit is not None:
             seq = replace(seq, every=every or seq.every, limit=limit if limit is not None else seq.limit)

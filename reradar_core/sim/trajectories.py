@@ -121,17 +121,21 @@ def synthetic_loop_route(seed: int, block_m: tuple[float, float] = (70.0, 140.0)
 
 
 def scan_times(traj: PoseSequence, sweep_period_s: float = 0.25, every: int = 1, limit: int | None = None,
-               use_pose_times: bool = True) -> np.ndarray:
+               use_pose_times: bool | None = None) -> np.ndarray:
     """Scan start times (first azimuth), microseconds.
 
-    With ``use_pose_times`` (real 4 Hz radar pose files) the pose timestamps themselves are the scan times
-    (one pose per scan); otherwise scans tile the trajectory's time span at the sweep period. Every
-    ``every``-th scan is kept, at most ``limit`` of them; a full sweep must fit before the last pose.
+    With ``use_pose_times`` the pose timestamps themselves are the scan times (real radar pose files hold one
+    pose per scan); otherwise scans tile the trajectory's time span at the sweep period. ``None`` decides by
+    the pose rate: pose files at the sweep rate (median interval within 20 % of the period) use their times.
+    Every ``every``-th scan is kept, at most ``limit`` of them; a full sweep must fit before the last pose.
     """
     if every < 1:
         raise ConfigError(f"every must be >= 1, got {every}")
     t = traj.timestamps_us
     period = int(round(sweep_period_s * 1e6))
+    if use_pose_times is None:
+        dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+        use_pose_times = abs(dt - period) <= 0.2 * period
     if use_pose_times:
         times = t[t + period <= t[-1]]
     else:

@@ -22,16 +22,36 @@ from reradar_core.io.presets import get_preset
 from reradar_core.sim.sensor import SensorConfig, render_scan, scan_seed
 from reradar_core.sim.traversal import Traversal
 
-__all__ = ["COMPLETE_MARKER", "render_sequence", "is_complete"]
+__all__ = ["COMPLETE_MARKER", "SIM_VERSION", "render_sequence", "is_complete"]
 
 logger = logging.getLogger(__name__)
 
 #: Written last into a sequence folder once every scan and the pose file are on disk.
 COMPLETE_MARKER = ".reradar_complete"
+#: Bumped whenever the world or sensor model changes what is rendered: cached sequences rendered by another
+#: version are re-rendered instead of being reused.
+SIM_VERSION = "1"
+_STARTED = ".reradar_render_version"
 
 
 def is_complete(root: str | Path) -> bool:
-    return (Path(root) / COMPLETE_MARKER).is_file()
+    """True when ``root`` holds a finished render made by this simulator version."""
+    marker = Path(root) / COMPLETE_MARKER
+    return marker.is_file() and marker.read_text().split()[:1] == [SIM_VERSION]
+
+
+def _clear_stale(out: Path, layout: str) -> None:
+    """Remove scans a different simulator version left in ``out`` (only the layout's scan PNGs)."""
+    started = out / _STARTED
+    if started.is_file() and started.read_text().strip() == SIM_VERSION:
+        return
+    scan_dir = scan_path(out, layout, 0).parent
+    stale = list(scan_dir.glob("*.png")) if scan_dir.is_dir() else []
+    if stale:
+        logger.info("%s: removing %d scans rendered by another simulator version", out, len(stale))
+    for f in stale:
+        f.unlink()
+    started.write_text(SIM_VERSION + "\n")
 
 
 def render_sequence(out_dir: str | Path, traversal: Traversal, trajectory: PoseSequence, times_us: np.ndarray,
@@ -70,6 +90,7 @@ def render_sequence(out_dir: str | Path, traversal: Traversal, trajectory: PoseS
     marker = out / COMPLETE_MARKER
     if marker.exists():
         marker.unlink()
+    _clear_stale(out, layout)
     t_start = time.perf_counter()
     rendered = 0
     bar = tqdm(list(zip(times_us, idx, strict=True)), desc=desc or out.name, unit="scan", disable=not progress)
@@ -90,11 +111,12 @@ def render_sequence(out_dir: str | Path, traversal: Traversal, trajectory: PoseS
         "profile": traversal.world.profile.name,
         "traversal_seed": traversal.seed,
         "condition": traversal.condition.name,
+        "sim_version": SIM_VERSION,
         "oxford_T_world_origin": [float(v) for v in poses[0]],
     }
     info.update(meta or {})
     write_sequence_meta(out, info)
-    marker.write_text(f"{len(times_us)}\n")
+    marker.write_text(f"{SIM_VERSION} {len(times_us)}\n")
     dt = time.perf_counter() - t_start
     if rendered:
         logger.info("%s: rendered %d scans in %.1f s (%.0f ms/scan)", out, rendered, dt, 1e3 * dt / rendered)

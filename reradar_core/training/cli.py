@@ -31,7 +31,7 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
                backbone: str = "reresnet",
                width: float = 0.5, clusters: int = 32, dim: int | None = 256, init: str | None = None,
                lr: float | None = None, steps: int = 1500, minutes: float = 60.0, seed: int = 0,
-               threads: int = 2, out_dir: Path | None = None, run_dir: Path | None = None, resume: bool = True,
+               threads: int = 1, out_dir: Path | None = None, run_dir: Path | None = None, resume: bool = True,
                data_note: str = "", progress: bool = True, **train_kwargs) -> Path:
     """Train (or adapt, with ``init``) a model and write ``<out_dir>/<name>.pt`` + ``.json``; returns the path."""
     import torch
@@ -105,7 +105,7 @@ def register(app: typer.Typer) -> None:
         steps: int = typer.Option(1500, help="Maximum optimisation steps."),
         minutes: float = typer.Option(60.0, help="Wall-clock budget in minutes."),
         seed: int = typer.Option(0, help="Random seed (sampling, augmentation, initialisation)."),
-        threads: int = typer.Option(2, help="torch CPU threads."),
+        threads: int = typer.Option(1, help="torch CPU threads (1 is fastest on a busy shared CPU)."),
         out_dir: Path | None = typer.Option(None, help="Where to write the weights (default: the package)."),
         no_resume: bool = typer.Option(False, "--no-resume", help="Ignore an existing checkpoint."),
     ) -> None:

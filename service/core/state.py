@@ -17,7 +17,12 @@ from service.core.metrics import Metrics
 from service.core.registry import MapRegistry
 from service.core.scan_cache import ScanCache
 
-__all__ = ["ServiceState"]
+__all__ = ["ServiceState", "MIN_SCAN_SIDE", "MAX_SCAN_SIDE"]
+
+#: Accepted polar scan sizes (azimuths and range bins): anything smaller is not a radar sweep; larger ones
+#: would make one request monopolise the CPU.
+MIN_SCAN_SIDE = 64
+MAX_SCAN_SIDE = 8192
 
 
 @dataclass
@@ -45,10 +50,16 @@ class ServiceState:
             raise ScanFormatError("the uploaded scan file is empty")
         t0 = time.perf_counter()
         scan = load_scan_bytes(data, filename or "scan.png", preset)
+        a, r = scan.power.shape
+        if not (MIN_SCAN_SIDE <= a <= MAX_SCAN_SIDE and MIN_SCAN_SIDE <= r <= MAX_SCAN_SIDE):
+            raise ScanFormatError(
+                f"scan has {a} azimuths x {r} range bins; expected a full sweep with {MIN_SCAN_SIDE}.."
+                f"{MAX_SCAN_SIDE} of each (e.g. 400 x 3360 Boreas, 400 x 3768 Oxford)"
+            )
         t1 = time.perf_counter()
         try:
             features = self.extractor.describe(scan)
-        except (ValueError, RuntimeError) as exc:
+        except (ValueError, RuntimeError, IndexError, FloatingPointError) as exc:
             # shape/size problems surface as errors inside the network; they are input errors
             raise ScanFormatError(f"could not compute features for this scan ({exc})") from exc
         t2 = time.perf_counter()

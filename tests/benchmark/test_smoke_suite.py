@@ -31,13 +31,15 @@ def test_smoke_suite_bench_with_ours(tmp_path, monkeypatch, untrained_extractor)
     assert radius == 20.0 and len(pairs) == 1 and len(pairs[0].query) == 10
     ours = Ours(untrained_extractor, name="ours-untrained")
     methods = [ours, make_method("ringkey"), make_method("raplace")]
-    cfg = BenchConfig(radius_m=radius, progress=False)
+    cfg = BenchConfig(radius_m=radius, progress=False, rotation_limit=5)
     res = run_benchmark(pairs, methods, tmp_path / "out", cfg, suite="smoke")
     row = res["sequences"][pairs[0].name]["ours-untrained"]
     assert row["n_queries"] == 10 and row["sr"] is not None  # pose method -> SR applicable
     if row["sr"] > 0:
         assert row["e_r_deg"] < 10.0 and row["e_t_m"] < radius
-    assert set(res["rotation_stress"][pairs[0].name]) == {"ours-untrained", "ringkey", "raplace"}
+    stress = res["rotation_stress"][pairs[0].name]
+    assert set(stress) == {"ours-untrained", "ringkey", "raplace"}
+    assert all(v["n_queries"] == 5 for v in stress.values())
 
     t = add_timing(res, ours, pairs[0], cfg, n_scans=2, threads=1)
     assert list(t["stages_ms"]) == list(STAGES)

@@ -76,4 +76,6 @@ def test_map_database_localizes_a_keyframe_seen_from_a_known_offset(tmp_path: Pa
     assert res.localized and res.T_map_query is not None
     np.testing.assert_allclose(res.T_map_query, compose(poses[7], T_kf_q), atol=1e-3)
     assert {"retrieve_ms", "read_ms", "verify_ms"} <= set(res.timings_ms)
+    assert db.map.global_descriptors is None  # released to the index; rows come from disk
+    np.testing.assert_allclose(db.map.read_keyframe(7).global_descriptor, feats[7].global_descriptor, atol=1e-7)
     db.close()

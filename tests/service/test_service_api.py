@@ -157,6 +157,10 @@ def test_bad_scan_inputs_get_4xx(client: httpx.Client) -> None:
     np.save(buf, np.full((400, 1000), np.nan, np.float32))
     assert post({"scan": ("q.npy", buf.getvalue())}).status_code == 422
     buf = io.BytesIO()
+    np.save(buf, np.zeros((4, 4), np.uint8))
+    r = post({"scan": ("q.npy", buf.getvalue())})
+    assert r.status_code == 422 and "4 azimuths x 4 range bins" in r.json()["detail"]
+    buf = io.BytesIO()
     np.save(buf, np.array(["a", "b"]))
     assert post({"scan": ("q.npy", buf.getvalue())}).status_code == 422
     assert post({"scan": ("q.png", b"0" * (4 * 2**20))}).status_code == 413

@@ -64,6 +64,10 @@ def test_suite_definitions():
         else:
             assert {"database", "query"} <= roles
     assert SUITES["offroad-sim"].radius_m == 25.0 and SUITES["boreas-sim"].radius_m == 20.0
+    from reradar_core.sim.suites import suite_names
+
+    assert suite_names("benchmark") == ["boreas-sim", "loop-sim", "offroad-sim"]
+    assert all(n.startswith("train-") for n in suite_names("training"))
     # the Boreas training traversal is never one of the query traversals
     q_seeds = {s.traversal_seed for s in SUITES["boreas-sim"].sequences}
     assert not q_seeds & {s.traversal_seed for s in SUITES["train-target-boreas"].sequences}
@@ -91,3 +95,31 @@ def test_cli_sim_renders_a_trajectory(tmp_path):
     np.testing.assert_allclose(seq.poses.xy[:, 0], [0.0, 4.0, 8.0], atol=1e-6)
     bad = CliRunner().invoke(app, ["sim", "--trajectory", str(traj), "--out", str(out), "--condition", "fog"])
     assert bad.exit_code == 2 and "condition" in bad.output
+
+
+def test_renders_of_another_simulator_version_are_redone(smoke, monkeypatch):
+    from reradar_core.sim import writer
+
+    db = load_sequence(smoke.database[0])
+    first = db.scan_paths[0]
+    mtime = first.stat().st_mtime_ns
+    monkeypatch.setattr(writer, "SIM_VERSION", "other-version")
+    assert not writer.is_complete(smoke.database[0])
+    build_suite("smoke", root=smoke.root, progress=False)
+    assert writer.is_complete(smoke.database[0])
+    assert first.stat().st_mtime_ns != mtime
+
+
+def test_scan_times_follow_radar_pose_files_or_tile_dense_trajectories():
+    from reradar_core.sim.trajectories import scan_times
+
+    t4 = 1_600_000_000_000_000 + np.arange(0, 5_000_001, 250_000)  # one pose per sweep (Boreas radar poses)
+    p4 = PoseSequence(t4, np.zeros((len(t4), 2)), np.zeros(len(t4)))
+    np.testing.assert_array_equal(scan_times(p4), t4[:-1])
+    t20 = 1_600_000_000_000_000 + np.arange(0, 5_000_001, 50_000)  # 20 Hz poses: sweeps tile the span
+    p20 = PoseSequence(t20, np.zeros((len(t20), 2)), np.zeros(len(t20)))
+    st = scan_times(p20, every=2, limit=5)
+    np.testing.assert_array_equal(np.diff(st), 500_000)
+    assert len(st) == 5
+    with pytest.raises(ConfigError):
+        scan_times(p20, every=0)

@@ -1,0 +1,103 @@
+"""Service infrastructure: settings validation, scan cache bounds/expiry, metrics text, archive safety."""
+
+from __future__ import annotations
+
+import io
+import tarfile
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from reradar_core.features import ScanFeatures
+from service.core.archive import extract_scan_archive
+from service.core.config import DEV_API_KEY, Settings
+from service.core.errors import BadRequestError, PayloadTooLargeError
+from service.core.metrics import Metrics
+from service.core.scan_cache import ScanCache
+
+
+def test_production_refuses_development_key(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    with pytest.raises(ValidationError, match="RERADAR_API_KEY"):
+        Settings(environment="production", maps_dir=tmp_path)
+    with pytest.raises(ValidationError):
+        Settings(environment="production", api_key="short", maps_dir=tmp_path)
+    ok = Settings(environment="production", api_key="x" * 32, maps_dir=tmp_path)
+    assert ok.api_key.get_secret_value() == "x" * 32
+    assert Settings(maps_dir=tmp_path).api_key.get_secret_value() == DEV_API_KEY
+    monkeypatch.setenv("RERADAR_TOP_K", "7")
+    monkeypatch.setenv("RERADAR_MAX_UPLOAD_MB", "1.5")
+    s = Settings(maps_dir=tmp_path)
+    assert s.top_k == 7 and s.max_upload_bytes == int(1.5 * 2**20)
+    monkeypatch.setenv("RERADAR_TOP_K", "0")
+    with pytest.raises(ValidationError):
+        Settings(maps_dir=tmp_path)
+
+
+def _feat(i: int) -> ScanFeatures:
+    return ScanFeatures(np.ones(4) / 2, np.zeros((0, 2)), np.zeros((0, 8)), i)
+
+
+def test_scan_cache_is_bounded_lru_with_expiry() -> None:
+    now = [0.0]
+    cache = ScanCache(max_entries=2, ttl_s=10.0, clock=lambda: now[0])
+    a, b = cache.put(_feat(1), "boreas"), cache.put(_feat(2), None)
+    assert a.scan_id != b.scan_id and len(a.scan_id) == 32
+    assert cache.get(a.scan_id) is not None  # a is now most recently used
+    c = cache.put(_feat(3), None)  # evicts b (least recently used)
+    assert cache.get(b.scan_id) is None and cache.get(c.scan_id) is not None and len(cache) == 2
+    now[0] = 10.5
+    assert cache.get(a.scan_id) is None and len(cache) == 0
+    assert cache.get("nope") is None
+
+
+def test_metrics_prometheus_text() -> None:
+    m = Metrics()
+    m.inc("reradar_http_requests_total", method="GET", route="/maps", status="200")
+    m.inc("reradar_http_requests_total", method="GET", route="/maps", status="200")
+    m.observe("reradar_http_request_duration_seconds", 0.004, method="GET", route="/maps")
+    m.observe_stages({"extract_ms": 30.0, "total_ms": 50.0})
+    m.set_gauge("reradar_maps_loaded", 3)
+    text = m.render()
+    assert 'reradar_http_requests_total{method="GET",route="/maps",status="200"} 2' in text
+    assert 'reradar_http_request_duration_seconds_bucket{method="GET",route="/maps",le="0.005"} 1' in text
+    assert 'reradar_http_request_duration_seconds_bucket{method="GET",route="/maps",le="0.0025"} 0' in text
+    assert 'reradar_stage_duration_seconds_count{stage="extract"} 1' in text
+    assert 'stage="total"' not in text
+    assert "reradar_maps_loaded 3" in text and "# TYPE reradar_maps_loaded gauge" in text
+
+
+def test_archive_extraction_is_flat_and_bounded(tmp_path: Path) -> None:
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w:gz") as tf:
+        for name, data in [("a/b/1000.png", b"x" * 10), ("../../2000.npy", b"y" * 10), ("notes.txt", b"z"),
+                           ("3000.png.exe", b"w")]:
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tf.addfile(info, io.BytesIO(data))
+        link = tarfile.TarInfo("4000.png")
+        link.type = tarfile.SYMTYPE
+        link.linkname = "/etc/passwd"
+        tf.addfile(link)
+    arch = tmp_path / "a.tgz"
+    arch.write_bytes(buf.getvalue())
+    out = extract_scan_archive(arch, tmp_path / "out", max_files=10, max_total_bytes=1000)
+    assert [p.name for p in out] == ["1000.png", "2000.npy"]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["1000.png", "2000.npy"]
+    assert not (tmp_path.parent / "2000.npy").exists()
+    with pytest.raises(PayloadTooLargeError):
+        extract_scan_archive(arch, tmp_path / "o2", max_files=1, max_total_bytes=1000)
+    with pytest.raises(PayloadTooLargeError):
+        extract_scan_archive(arch, tmp_path / "o3", max_files=10, max_total_bytes=15)
+    zbuf = io.BytesIO()
+    with zipfile.ZipFile(zbuf, "w") as zf:
+        zf.writestr("x/5.png", b"1")
+        zf.writestr("y/5.png", b"2")
+    (tmp_path / "d.zip").write_bytes(zbuf.getvalue())
+    with pytest.raises(BadRequestError, match="two files"):
+        extract_scan_archive(tmp_path / "d.zip", tmp_path / "o4", 10, 1000)
+    (tmp_path / "bad.zip").write_bytes(b"PK\x03\x04 broken")
+    with pytest.raises(BadRequestError):
+        extract_scan_archive(tmp_path / "bad.zip", tmp_path / "o5", 10, 1000)
