@@ -153,7 +153,7 @@ def _free_port() -> int:
 
 def bench_http(requests: int, warmup: int, threads: int) -> dict:
     """Sequential POST /localize (inline PNG, multipart) against `reradar serve` in a subprocess."""
-    from maps import DEMO_MAP_PATH, DEMO_QUERIES_DIR
+    from maps.paths import DEMO_MAP_PATH, DEMO_QUERIES_DIR
     from service.client import ReRadarClient
     from service.demo import QUERIES_CSV, read_queries_csv
 
@@ -226,8 +226,10 @@ def bench_rerank(suite_name: str, threads: int, top_k: int) -> dict:
     from reradar_core.model import DescriptorExtractor
     from reradar_core.paths import cache_dir
     from reradar_core.sim.suites import build_suite
+    from service.core.blas import limit_blas_threads
 
     torch.set_num_threads(threads)
+    limit_blas_threads(1)
     suite = build_suite(suite_name, progress=True)
     ext = DescriptorExtractor.from_pretrained()
     map_path = cache_dir("bench", "service") / f"{suite_name}-{ext.weights_sha256[:12]}.h5"
@@ -282,7 +284,7 @@ def main() -> int:
     p.add_argument("--rerank", action="store_true")
     p.add_argument("--requests", type=int, default=100)
     p.add_argument("--warmup", type=int, default=5)
-    p.add_argument("--threads", type=int, default=2, help="torch threads of the service")
+    p.add_argument("--threads", type=int, default=1, help="torch threads of the service")
     p.add_argument("--keyframes", type=int, default=100_000)
     p.add_argument("--dim", type=int, default=256, help="global descriptor length (the default model's D)")
     p.add_argument("--local-dim", type=int, default=32)

@@ -22,7 +22,7 @@ def build_map_command(
     max_keypoints: int | None = typer.Option(None, min=2, help="Cap stored keypoints per keyframe."),
     name: str | None = typer.Option(None, help="Map name stored in the file (default: sequence name)."),
     overwrite: bool = typer.Option(False, help="Replace an existing map file."),
-    threads: int = typer.Option(2, min=1, help="torch CPU threads."),
+    threads: int = typer.Option(1, min=1, help="torch CPU threads."),
     model: str = typer.Option("default", help="Descriptor model: registry name or .pt weights path."),
 ) -> None:
     """Build a keyframe map (global + local descriptors, poses) from a radar sequence folder."""

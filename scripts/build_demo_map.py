@@ -26,8 +26,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from maps import DEMO_DIR, DEMO_MAP_PATH, DEMO_QUERIES_DIR  # noqa: E402
 from maps.build import build_map_from_sequence  # noqa: E402
+from maps.paths import DEMO_DIR, DEMO_MAP_PATH, DEMO_QUERIES_DIR  # noqa: E402
 from maps.store import read_metadata  # noqa: E402
 from service.demo import QUERIES_CSV, QueryTruth, write_queries_csv  # noqa: E402
 
@@ -41,7 +41,7 @@ def main() -> int:
     parser.add_argument("--suite", default="smoke", help="simulator suite (database -> map, query -> queries)")
     parser.add_argument("--num-queries", type=int, default=8, help="demo query scans to ship")
     parser.add_argument("--max-keypoints", type=int, default=400, help="cap stored keypoints per keyframe")
-    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     args = parser.parse_args()
 
     import torch

@@ -63,7 +63,7 @@ def localize_command(
     raise typer.Exit(0 if res.status == "localized" else 1)
 
 
-def demo_command(threads: int = typer.Option(2, min=1, help="torch CPU threads.")) -> None:
+def demo_command(threads: int = typer.Option(1, min=1, help="torch CPU threads.")) -> None:
     """Serve the shipped demo map on localhost, localize the demo queries over HTTP and print poses + errors."""
     from service.demo import run_demo
 

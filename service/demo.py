@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import uvicorn
 
-from maps import DEMO_MAP_PATH, DEMO_QUERIES_DIR
+from maps.paths import DEMO_MAP_PATH, DEMO_QUERIES_DIR
 from reradar_core.localization.extractor import FeatureExtractor
 from service.client import ReRadarClient
 from service.core.config import Settings
@@ -106,7 +106,7 @@ def _yaw_err_deg(a: float, b: float) -> float:
 
 
 def run_demo(map_path: Path = DEMO_MAP_PATH, queries_dir: Path = DEMO_QUERIES_DIR,
-             echo: Callable[[str], None] = print, threads: int = 2) -> int:
+             echo: Callable[[str], None] = print, threads: int = 1) -> int:
     """Serve ``map_path`` as map ``demo``, localize every query in ``queries_dir/queries.csv`` over HTTP and
     print the results. Returns 0 when every query was localized within the SR thresholds, else 1."""
     if not map_path.is_file():

@@ -17,6 +17,7 @@ from reradar_core.errors import ModelMismatchError, ReRadarError
 from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
 from service.api.middleware import BodyLimitMiddleware, MetricsMiddleware
 from service.api.routes import health, localize, maps, scans
+from service.core.blas import limit_blas_threads
 from service.core.config import Settings
 from service.core.errors import ServiceError
 from service.core.metrics import Metrics
@@ -59,6 +60,7 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
             import torch
 
             torch.set_num_threads(cfg.torch_threads)
+            limit_blas_threads(cfg.blas_threads)
             ext = extractor or load_default_extractor(cfg.model)
             registry = MapRegistry(cfg, ext)
             if cfg.load_demo_map:

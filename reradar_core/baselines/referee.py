@@ -1,15 +1,20 @@
 """ReFeree: free-space descriptor for place recognition plus an initial-heading estimate.
 
-Reference:
-    H. Kim, B. Choi, E. Choi and A. Kim, "ReFeree: Radar-Based Lightweight and Robust Localization Using
-    Feature and Free Space", IEEE RA-L 2024. Features are Cen 2018 detections on the polar scan; along every
-    azimuth the *free space* is the range between the sensor (after the detector's minimum range) and the
-    first feature. The place descriptor counts free space per range block (80 blocks, rotation-invariant);
-    the heading comes from the per-sector free-space ratios, compared by circular cross-correlation.
-    ReFeree estimates no translation, so the paper (Sec. Evaluation Metrics) counts a success as a correct
-    retrieval with rotation error below 10 degrees.
+References:
+    B. Choi, H. Kim and Y. Cho, "ReFeree: Radar-based efficient global descriptor using a Feature and Free
+    space for Place Recognition", ICRA 2024 workshop; H. Kim, B. Choi, E. Choi and Y. Cho, RA-L 2024
+    (journal version with initial-heading estimation). Layout as the authors' reference implementation
+    (github.com/sparolab/referee, ``referee.cpp``):
 
-Beams with no feature are free up to the maximum range. Distances are Euclidean on the ring descriptor.
+    - Features: Cen 2018 detections drawn into a binary polar image (A azimuths x R range bins).
+    - ReFeree-R (place): per range bin the free-space count (azimuths without a feature), summed over
+      windows of 80 range bins -> R // 80 values; similarity = cosine.
+    - ReFeree-A (heading): A / 8 azimuth sectors (50 for 400 azimuths, 7.2 degrees each); per sector the
+      fraction of range bins up to the farthest feature of each ray; the heading is the circular shift of
+      the sectors that maximises the cosine similarity.
+
+ReFeree estimates no translation, so the paper (Sec. Evaluation Metrics) counts a success as a correct
+retrieval with rotation error below 10 degrees.
 """
 
 from __future__ import annotations
@@ -17,43 +22,35 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import numpy as np
 
 from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared, landmarks_for
 from reradar_core.io.scan import RadarScan
 from reradar_core.landmarks import Cen2018Config
 
-__all__ = ["ReFereeConfig", "ReFeree", "free_space_ranges"]
+__all__ = ["ReFereeConfig", "ReFeree", "feature_image"]
 
 
 @dataclass(frozen=True)
 class ReFereeConfig:
-    """ReFeree settings: 80 range blocks for the place descriptor, sectors for the heading (1 degree each)."""
+    """Reference-implementation settings: 80-bin range windows, 8 azimuth rows per heading sector."""
 
-    num_range_blocks: int = 80
-    num_sectors: int = 360
+    range_window_bins: int = 80
+    rows_per_sector: int = 8
     z_q: float = 3.0
     sigma_bins: int = 17
 
 
-def free_space_ranges(scan: RadarScan, config: ReFereeConfig = ReFereeConfig()) -> tuple[np.ndarray, int]:
-    """Per-azimuth free-space extent: (A,) int64 first-feature range bin (R where a beam has no feature),
-    and the detector's minimum range bin (free space starts there)."""
-    cen = Cen2018Config(z_q=config.z_q, sigma_bins=config.sigma_bins)
-    lm = landmarks_for(scan, cen)
-    n_az, n_bins = scan.power.shape
-    first = np.full(n_az, n_bins, dtype=np.int64)
-    if len(lm):
-        np.minimum.at(first, lm.azimuth_index.astype(np.int64), lm.range_bin.astype(np.int64))
-    from reradar_core.io.presets import get_preset
-
-    min_range = get_preset(scan.preset).landmark_min_range_bins if scan.preset else 0
-    return first, int(min(min_range, n_bins))
+def feature_image(scan: RadarScan, config: ReFereeConfig = ReFereeConfig()) -> np.ndarray:
+    """(A, R) bool polar image: True at every Cen 2018 feature of the scan."""
+    lm = landmarks_for(scan, Cen2018Config(z_q=config.z_q, sigma_bins=config.sigma_bins))
+    img = np.zeros(scan.power.shape, dtype=bool)
+    img[np.asarray(lm.azimuth_index, np.int64), np.asarray(lm.range_bin, np.int64)] = True
+    return img
 
 
 class ReFeree(PlaceRecognitionMethod):
-    """Free-space ring descriptor (retrieval) + sector free-space ratios (heading)."""
+    """Free-space range descriptor (retrieval, cosine) + sector free-space ratios (heading)."""
 
     name = "referee"
     provides_heading = True
@@ -63,40 +60,45 @@ class ReFeree(PlaceRecognitionMethod):
 
     def params(self) -> dict[str, Any]:
         c = self.config
-        return {"blocks": c.num_range_blocks, "sectors": c.num_sectors, "z_q": c.z_q, "sigma": c.sigma_bins,
-                "v": 1}
+        return {"window": c.range_window_bins, "rows": c.rows_per_sector, "z_q": c.z_q, "sigma": c.sigma_bins,
+                "v": 2}
 
     def prepare(self, scan: RadarScan) -> Prepared:
-        first, lo = free_space_ranges(scan, self.config)
-        n_az, n_bins = scan.power.shape
-        edges = np.linspace(0, n_bins, self.config.num_range_blocks + 1)
-        # free bins of each beam inside each block [e0, e1): overlap of [lo, first) with the block
-        e0, e1 = edges[:-1][None], edges[1:][None]
-        start = np.full((n_az, 1), float(lo))
-        stop = np.maximum(first[:, None].astype(np.float64), start)
-        overlap = np.clip(np.minimum(stop, e1) - np.maximum(start, e0), 0.0, None)
-        ring = (overlap.sum(0) / (n_az * (e1 - e0)[0])).astype(np.float32)  # free fraction per block
-        ratio = ((first - lo).clip(0) / max(n_bins - lo, 1)).astype(np.float32)  # (A,) per-azimuth ratio
-        sectors = cv2.resize(ratio[:, None], (1, self.config.num_sectors), interpolation=cv2.INTER_AREA)[:, 0]
-        return {"ring": ring, "sectors": sectors.astype(np.float32)}
+        c = self.config
+        img = feature_image(scan, c)
+        n_az, n_bins = img.shape
+        free = (n_az - img.sum(axis=0)).astype(np.float64)  # free azimuths per range bin
+        n_win = max(n_bins // c.range_window_bins, 1)
+        ring = free[: n_win * c.range_window_bins].reshape(n_win, -1).sum(axis=1)
+        # per ray: bins up to (and including) the farthest feature; 0 for rays without a feature
+        has = img.any(axis=1)
+        far = np.where(has, n_bins - 1 - np.argmax(img[:, ::-1], axis=1), 0).astype(np.float64)
+        n_sec = max(n_az // c.rows_per_sector, 1)
+        rows = n_sec * c.rows_per_sector
+        sectors = far[:rows].reshape(n_sec, -1).sum(axis=1) / (c.rows_per_sector * n_bins)
+        return {"ring": ring.astype(np.float32), "sectors": sectors.astype(np.float32)}
 
     def describe_prepared(self, prepared: Prepared) -> np.ndarray:
-        return np.concatenate([prepared["ring"], prepared["sectors"]]).astype(np.float32)
+        """[n_ring, unit ring descriptor (n_ring), sector ratios]: one flat float32 vector; the leading count
+        says where the heading part starts."""
+        ring = np.asarray(prepared["ring"], dtype=np.float64)
+        ring = ring / max(float(np.linalg.norm(ring)), 1e-12)  # cosine similarity = dot of unit vectors
+        return np.concatenate([[ring.size], ring, prepared["sectors"]]).astype(np.float32)
 
-    def build_index(self, db_descs: Any) -> Any:
-        return np.stack([np.asarray(d, dtype=np.float32) for d in db_descs])
+    @staticmethod
+    def _split(desc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = int(desc[0])
+        return desc[1 : 1 + n], desc[1 + n :]
 
     def distance(self, q_desc: np.ndarray, index: Any) -> np.ndarray:
-        nb = self.config.num_range_blocks
-        diff = np.asarray(index[:, :nb], dtype=np.float64) - q_desc[None, :nb].astype(np.float64)
-        return np.linalg.norm(diff, axis=1)
+        ring, _ = self._split(q_desc)
+        n = ring.size
+        return 1.0 - np.asarray(index[:, 1 : 1 + n], np.float64) @ ring.astype(np.float64)
 
     def estimate_heading(self, q_desc: np.ndarray, index: Any, j: int) -> float | None:
-        nb = self.config.num_range_blocks
-        q = q_desc[nb:].astype(np.float64)
-        d = np.asarray(index[j, nb:], dtype=np.float64)
-        q, d = q - q.mean(), d - d.mean()
-        # c[s] = sum_a q[a] d[a - s]: a yaw of +theta (CCW) shifts azimuths (clockwise) by +theta
-        corr = np.fft.irfft(np.fft.rfft(q) * np.conj(np.fft.rfft(d)), n=q.size)
-        s = int(np.argmax(corr))
+        _, q = self._split(np.asarray(q_desc, np.float64))
+        _, d = self._split(np.asarray(index[j], np.float64))
+        # score[s] = sum_a q[a] d[a - s]: a yaw of +theta (CCW) moves azimuths (clockwise) by +theta
+        score = np.fft.irfft(np.fft.rfft(q) * np.conj(np.fft.rfft(d)), n=q.size)
+        s = int(np.argmax(score))
         return float(np.mod(s * 2.0 * np.pi / q.size + np.pi, 2.0 * np.pi) - np.pi)

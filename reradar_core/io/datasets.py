@@ -106,8 +106,7 @@ class Sequence:
 
     def subset(self, index: np.ndarray | slice | list[int]) -> Sequence:
         """A sequence holding only the scans at ``index`` (e.g. ``slice(None, None, 5)`` for every 5th)."""
-        idx = np.arange(len(self))[index] if not isinstance(index, np.ndarray) else index
-        idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+        idx = np.asarray(np.arange(len(self))[index], dtype=np.int64).reshape(-1)  # slices, int or bool masks
         return Sequence(self.name, self.preset, self.layout, [self.scan_paths[i] for i in idx],
                         self.timestamps_us[idx], self.poses.subset(idx), self.root)
 

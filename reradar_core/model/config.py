@@ -59,7 +59,7 @@ class ModelConfig:
     """
 
     backbone: str = "reresnet"
-    width: float = 0.5
+    width: float = 0.25
     group_order: int = 8
     stem_kernel: int = 7
     num_clusters: int = 32

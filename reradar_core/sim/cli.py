@@ -80,7 +80,7 @@ def register(app: typer.Typer) -> None:
         except ReRadarError as exc:
             raise _fail(exc) from exc
         typer.echo(json.dumps({"name": data.name, "root": str(data.root), "preset": data.preset,
-                               "layout": data.layout, "radius_m": data.radius_m,
+                               "layout": data.layout, "radius_m": data.radius_m, "purpose": data.purpose,
                                "database": [str(p) for p in data.database],
                                "queries": [str(p) for p in data.queries],
                                "query_conditions": data.query_conditions,

@@ -28,7 +28,7 @@ from reradar_core.io.poses import PoseSequence
 from reradar_core.io.presets import RadarPreset, get_preset
 from reradar_core.io.scan import RadarScan
 from reradar_core.sim.traversal import Traversal
-from reradar_core.sim.world import Primitives, stable_seed
+from reradar_core.sim.world import Primitives, _hash_uniform, stable_seed
 
 __all__ = ["SensorConfig", "render_scan", "sweep_poses"]
 
@@ -57,6 +57,11 @@ class SensorConfig:
         streak_rate: mean interference streaks (saturated azimuths) per scan.
         ghost_prob: probability that one of the strongest returns produces a multipath ghost.
         min_range_m: returns nearer than this are ignored (the radome).
+        target_gain: overall scale of target returns relative to the noise floor.
+        glint_db: amplitude (dB) of the aspect-dependent fluctuation of every scatterer's cross-section
+            (persistent per scatterer: 2..``glint_max_lobes`` lobes over a full turn); surfaces also vary
+            along their length with period ``glint_length_m``. Makes returns change with the viewpoint
+            as real ones do, so appearance matching degrades with the baseline.
     """
 
     oversample: int = 2
@@ -81,6 +86,9 @@ class SensorConfig:
     ghost_prob: float = 0.15
     min_range_m: float = 0.5
     target_gain: float = 2500.0
+    glint_db: float = 6.0
+    glint_max_lobes: int = 8
+    glint_length_m: float = 3.0
 
 
 def sweep_poses(trajectory: PoseSequence, t0_us: int, preset: RadarPreset, oversample: int = 1
@@ -123,12 +131,28 @@ def _kernels(cfg: SensorConfig, range_res: float) -> tuple[np.ndarray, int, np.n
     return k_r.astype(np.float32), anchor, k_a.astype(np.float32)
 
 
+def _point_ids(xy: np.ndarray) -> np.ndarray:
+    """Persistent uint64 ids of world positions (millimetre grid), so glint phases are the same on every
+    traversal."""
+    q = np.round(np.asarray(xy, dtype=np.float64) * 1000.0).astype(np.int64)
+    return (q[:, 0].astype(np.uint64) * np.uint64(73856093)) ^ (q[:, 1].astype(np.uint64) * np.uint64(19349663))
+
+
+def _aspect_gain(ids: np.ndarray, angle: np.ndarray, cfg: SensorConfig) -> np.ndarray:
+    """Multiplicative glint 10^(g sin(k angle + phase) / 10) with per-scatterer lobe count k and phase."""
+    if cfg.glint_db <= 0 or len(ids) == 0:
+        return np.ones(len(ids))
+    k = 2.0 + np.floor(_hash_uniform(ids, 0x6C1) * (cfg.glint_max_lobes - 1))
+    phase = 2 * np.pi * _hash_uniform(ids, 0x6C2)
+    return 10.0 ** (cfg.glint_db / 10.0 * np.sin(k * angle + phase))
+
+
 def _elevation_gain(r: np.ndarray, cfg: SensorConfig) -> np.ndarray:
     """Fraction of the elevation beam on the ground at range r (0 next to the vehicle, 1 beyond the peak)."""
     return 1.0 / (1.0 + np.exp(-(r - 0.4 * cfg.ground_peak_m) / (0.15 * cfg.ground_peak_m)))
 
 
-def _intervals(rel: np.ndarray, lo_ang: np.ndarray, span: np.ndarray, n_fine: int, dth_fine: float,
+def _intervals(lo_ang: np.ndarray, span: np.ndarray, n_fine: int, dth_fine: float,
                margin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(pair primitive index, pair fine-ray index) for primitives spanning [lo_ang, lo_ang + span] (clockwise)."""
     lo = np.floor(lo_ang / dth_fine - 0.5).astype(np.int64) - margin
@@ -136,7 +160,6 @@ def _intervals(rel: np.ndarray, lo_ang: np.ndarray, span: np.ndarray, n_fine: in
     owner = np.repeat(np.arange(len(lo)), cnt)
     start = np.repeat(np.cumsum(cnt) - cnt, cnt)
     ray = (lo[owner] + (np.arange(len(owner)) - start)) % n_fine
-    del rel
     return owner, ray
 
 
@@ -211,7 +234,7 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
         dist = np.hypot(*(s[:, :2] + u[:, None] * ev - mid[:2]).T)
         margin = np.ceil((motion / np.maximum(dist, 0.5) + dyaw) / dth_f).astype(np.int64) + 1
         margin = np.minimum(margin, n_fine // 2)
-        si, ri = _intervals(None, lo_ang, span, n_fine, dth_f, margin)
+        si, ri = _intervals(lo_ang, span, n_fine, dth_f, margin)
         ex, ey = ev[si, 0], ev[si, 1]
         wx, wy = s[si, 0] - ox[ri], s[si, 1] - oy[ri]
         rdx, rdy = dx[ri], dy[ri]
@@ -226,6 +249,10 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
         amp = refl[si] * (rough[si] * cos_inc + (1 - rough[si]) * cos_inc ** 8) / K
         # objects at ground level are lit only where the elevation beam reaches the ground
         amp = np.where(low[si] > 0, amp * _elevation_gain(t, cfg), amp)
+        # glint along the surface and with the viewing direction (windows, seams, ribs of a façade)
+        seg_ids = _point_ids(0.5 * (s[:, :2] + s[:, 2:]))
+        view = np.arctan2(rdy, rdx)[ok] + uu[ok] * seg_len[si] * (2 * np.pi / cfg.glint_length_m)
+        amp = amp * _aspect_gain(seg_ids[si], view, cfg)
         hit_ray.append(ri)
         hit_t.append(t)
         hit_amp.append(amp)
@@ -240,7 +267,7 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
         half = np.arcsin(np.clip(c[:, 2] / rc, 0, 1))
         margin = np.ceil((motion / np.maximum(rc, 0.5) + dyaw) / dth_f).astype(np.int64) + 1
         margin = np.minimum(margin, n_fine // 2)
-        di, ri = _intervals(None, ac - half, 2 * half, n_fine, dth_f, margin)
+        di, ri = _intervals(ac - half, 2 * half, n_fine, dth_f, margin)
         wx, wy = c[di, 0] - ox[ri], c[di, 1] - oy[ri]
         proj = wx * dx[ri] + wy * dy[ri]
         perp2 = wx * wx + wy * wy - proj * proj
@@ -291,7 +318,11 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
         ap, rp = _to_sensor(pts, poses[j])  # re-project from the pose at that azimuth's time
         j = np.floor(ap / dth_f + K / 2).astype(np.int64) % n_fine
         ok = (rp > cfg.min_range_m) & (rp < max_r)
+        pts = pts[ok]
         j, rp, rcs, kind = j[ok], rp[ok], rcs[ok], kind[ok]
+        # aspect-dependent glint: a real scatterer's cross-section changes with the viewing direction
+        bearing = np.arctan2(poses[j, 1] - pts[:, 1], poses[j, 0] - pts[:, 0])
+        rcs = rcs * _aspect_gain(_point_ids(pts), bearing, cfg)
         rcs = np.where(kind == 1, rcs * cond.leaf_factor, rcs)
         rcs = np.where(kind == 2, rcs * cond.ground_factor * _elevation_gain(rp, cfg), rcs)
         # 1 m tolerance: a scatterer on a wall (façade detail) is not shadowed by the wall it sits on, even

@@ -18,8 +18,8 @@ profiles and conditions), ``train-target-boreas`` (a third traversal of the Bore
 own seed, ``snow_cover``), ``train-target-loop`` (another session on the loop-sim grid),
 ``train-target-offroad`` (a third drive on the off-road route).
 
-``build_suite(name)`` renders what is missing into ``cache_dir("sim", name)`` (a sequence is complete when
-its marker file exists) and returns a ``SuiteData``.
+``build_suite(name)`` renders what is missing into ``cache_dir("sim", "v<SIM_VERSION>", name)`` (a sequence
+is complete when its marker file holds the current simulator version) and returns a ``SuiteData``.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ from reradar_core.sim.trajectories import (
 )
 from reradar_core.sim.traversal import Traversal
 from reradar_core.sim.world import RoadNetwork, World
-from reradar_core.sim.writer import is_complete, render_sequence
+from reradar_core.sim.writer import SIM_VERSION, is_complete, render_sequence
 
 __all__ = [
     "SUITES",
@@ -362,8 +362,8 @@ def build_suite(name: str, root: str | Path | None = None, progress: bool = True
 
     Args:
         name: one of ``SUITES``.
-        root: output folder; default ``cache_dir("sim", name)``. ``every``/``limit`` overrides go into a
-            sub-folder name so differently sized renders never mix.
+        root: output folder; default ``cache_dir("sim", "v<SIM_VERSION>", name)``. ``every``/``limit``
+            overrides go into a sub-folder name so differently sized renders never mix.
         progress: show progress bars.
         every: override every sequence's frame step.
         limit: cap every sequence's scan count.
@@ -377,8 +377,11 @@ def build_suite(name: str, root: str | Path | None = None, progress: bool = True
         raise ConfigError(f"unknown suite {name!r}; choose one of {suite_names()}")
     suite = SUITES[name]
     if root is None:
+        # the simulator version is part of the path: renders by different versions (possibly running at the
+        # same time in other processes) never share a folder
         tag = "" if every is None and limit is None else f"every{every or 'def'}-limit{limit or 'all'}"
-        root = cache_dir("sim", name, tag) if tag else cache_dir("sim", name)
+        parts = ("sim", f"v{SIM_VERSION}", name) + ((tag,) if tag else ())
+        root = cache_dir(*parts)
     root = Path(root)
     traj_dir = Path(trajectory_dir) if trajectory_dir is not None else None
     data = SuiteData(name, root, suite.preset, suite.layout, suite.radius_m, single_session=suite.single_session,

@@ -308,7 +308,6 @@ class World:
             (road.points[:, 0] >= x0) & (road.points[:, 0] < x0 + t)
             & (road.points[:, 1] >= y0) & (road.points[:, 1] < y0 + t)
         )[0]
-        area_ha = (t * t) / 1e4
 
         def far_from_road(xy: np.ndarray, clearance: float) -> np.ndarray:
             d, _ = road.nearest(xy)
@@ -515,7 +514,6 @@ class World:
             rcs = rng.lognormal(np.log(pr.ground_clutter_rcs), 1.0, n_g)
             rcs = np.where(d < w, rcs * 0.25, rcs)
             prim.add_points(xy, rcs, 2)
-        del area_ha
         return prim
 
     @staticmethod

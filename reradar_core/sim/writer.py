@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -15,10 +16,10 @@ from reradar_core.io.datasets import (
     scan_path,
     write_sequence_meta,
     write_sequence_poses,
-    write_sequence_scan,
 )
 from reradar_core.io.poses import PoseSequence
 from reradar_core.io.presets import get_preset
+from reradar_core.io.scan import encode_navtech_png_bytes
 from reradar_core.sim.sensor import SensorConfig, render_scan, scan_seed
 from reradar_core.sim.traversal import Traversal
 
@@ -30,7 +31,7 @@ logger = logging.getLogger(__name__)
 COMPLETE_MARKER = ".reradar_complete"
 #: Bumped whenever the world or sensor model changes what is rendered: cached sequences rendered by another
 #: version are re-rendered instead of being reused.
-SIM_VERSION = "1"
+SIM_VERSION = "2"
 _STARTED = ".reradar_render_version"
 
 
@@ -52,6 +53,15 @@ def _clear_stale(out: Path, layout: str) -> None:
     for f in stale:
         f.unlink()
     started.write_text(SIM_VERSION + "\n")
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    """Write via a temporary file + rename, so an interrupted render never leaves a truncated scan that a
+    resumed render would skip."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
 
 
 def render_sequence(out_dir: str | Path, traversal: Traversal, trajectory: PoseSequence, times_us: np.ndarray,
@@ -98,7 +108,7 @@ def render_sequence(out_dir: str | Path, traversal: Traversal, trajectory: PoseS
         if scan_path(out, layout, int(t0)).is_file():
             continue
         scan = render_scan(traversal, trajectory, int(t0), p, scan_seed(traversal.seed, int(k)), config)
-        write_sequence_scan(out, layout, scan)
+        _write_atomic(scan_path(out, layout, int(t0)), encode_navtech_png_bytes(scan))
         rendered += 1
     poses = trajectory.interpolate(times_us)
     gt = PoseSequence(times_us, poses[:, :2], poses[:, 2])

@@ -20,19 +20,26 @@ logger = logging.getLogger(__name__)
 
 
 def _cached(spec: SeqSpec, width_px: int, resolution_m: float, progress: bool):
-    from reradar_core.io.datasets import load_sequence
-    from reradar_core.training.data import cache_sequence
+    """A sequence folder, or an already rendered Cartesian cache folder (images.npy + poses.npy)."""
+    import numpy as np
 
+    from reradar_core.io.datasets import load_sequence
+    from reradar_core.training.data import CachedSequence, cache_sequence
+
+    if (spec.path / "images.npy").is_file() and (spec.path / "poses.npy").is_file():
+        seq = CachedSequence(spec.path.name, spec.group, np.load(spec.path / "images.npy", mmap_mode="r"),
+                             np.load(spec.path / "poses.npy"), resolution_m)
+        return seq.fraction(spec.start, spec.stop)
     seq = cache_sequence(load_sequence(spec.path), width_px, resolution_m, group=spec.group, progress=progress)
     return seq.fraction(spec.start, spec.stop)
 
 
 def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpec, SeqSpec]], *,
                backbone: str = "reresnet",
-               width: float = 0.5, clusters: int = 32, dim: int | None = 256, init: str | None = None,
+               width: float = 0.25, clusters: int = 32, dim: int | None = 256, init: str | None = None,
                lr: float | None = None, steps: int = 1500, minutes: float = 60.0, seed: int = 0,
                threads: int = 1, out_dir: Path | None = None, run_dir: Path | None = None, resume: bool = True,
-               data_note: str = "", progress: bool = True, **train_kwargs) -> Path:
+               data_note: str = "", progress: bool = True, command: str | None = None, **train_kwargs) -> Path:
     """Train (or adapt, with ``init``) a model and write ``<out_dir>/<name>.pt`` + ``.json``; returns the path."""
     import torch
 
@@ -77,7 +84,7 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
         "training_data": {"sequences": [_desc(s) for s in sequences], "num_scans": sum(len(s) for s in train),
                           "validation": [[_desc(a), _desc(b)] for a, b in val_pairs]},
         "init": init,
-        "command": "reradar train " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 1 else "",
+        "command": command if command is not None else " ".join(shlex.quote(a) for a in sys.argv),
         "cache_time_s": round(cache_s, 1),
         "torch_threads": threads,
         **summary,
@@ -97,7 +104,7 @@ def register(app: typer.Typer) -> None:
         val_db: Path | None = typer.Option(None, help="Validation database sequence folder."),
         val_query: Path | None = typer.Option(None, help="Validation query sequence folder."),
         backbone: str = typer.Option("reresnet", help="reresnet (C8, e2cnn) or resnet (ablation)."),
-        width: float = typer.Option(0.5, help="Width multiplier on ResNet-50 channel counts."),
+        width: float = typer.Option(0.25, help="Width multiplier on ResNet-50 channel counts."),
         clusters: int = typer.Option(32, help="NetVLAD clusters K."),
         dim: int = typer.Option(256, help="PCA-whitening output dimension D (0 = raw NetVLAD)."),
         init: str | None = typer.Option(None, help="Adapt from this shipped model (name or .pt path)."),

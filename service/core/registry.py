@@ -21,10 +21,10 @@ from typing import Literal
 
 import numpy as np
 
-from maps import DEMO_MAP_PATH
 from maps.build import build_map
 from maps.database import MapDatabase
 from maps.index import IndexConfig
+from maps.paths import DEMO_MAP_PATH
 from maps.store import open_map
 from reradar_core.errors import MapFormatError, ModelMismatchError, ReRadarError
 from reradar_core.io.scan import RadarScan, read_navtech_png, read_polar_npy

@@ -39,9 +39,12 @@ def test_rotation_invariant_methods_still_find_a_turned_revisit(name, scans):
     assert int(np.argmin(d)) == 0, f"{name}: distances {np.round(d, 4)}"
 
 
-@pytest.mark.parametrize(("name", "yaw_deg"), [("referee", 40.5), ("referee", -117.0), ("raplace", 36.0),
-                                                ("raplace", -63.0)])
-def test_heading_estimate_recovers_a_known_turn(name, yaw_deg, scans):
+# ReFeree's heading comes in 7.2 degree sectors (50 for 400 azimuths): exact on sector multiples, within half
+# a sector otherwise; RaPlace's in 1 degree projection steps.
+@pytest.mark.parametrize(("name", "yaw_deg", "tol_deg"), [("referee", 43.2, 0.5), ("referee", -115.2, 0.5),
+                                                          ("referee", 40.5, 3.6), ("raplace", 36.0, 1.0),
+                                                          ("raplace", -63.0, 1.0)])
+def test_heading_estimate_recovers_a_known_turn(name, yaw_deg, tol_deg, scans):
     """Query = database scan 1 turned by yaw (CCW): the estimated yaw of T_db_query is that yaw."""
     scan_list, _ = scans
     method = make_method(name)
@@ -49,7 +52,7 @@ def test_heading_estimate_recovers_a_known_turn(name, yaw_deg, scans):
     d, q, index = _rank(method, scan_list[:5], turned)
     assert int(np.argmin(d)) == 1
     est = np.rad2deg(method.estimate_heading(q, index, 1))
-    assert abs((est - yaw_deg + 180) % 360 - 180) <= 1.5, est
+    assert abs((est - yaw_deg + 180) % 360 - 180) <= tol_deg, est
 
 
 def test_methods_without_heading_return_none(scans):

@@ -140,3 +140,6 @@ def test_subset_every_kth(tmp_path):
     seq = load_sequence(root, preset="boreas").subset(slice(None, None, 2))
     assert len(seq) == 3 and seq.timestamps_us.tolist() == times[::2]
     assert seq.scan_paths[1].stem == str(times[2])
+    full = load_sequence(root, preset="boreas")
+    masked = full.subset(full.timestamps_us >= times[4])
+    assert masked.timestamps_us.tolist() == times[4:] and len(masked.poses) == 2

@@ -11,7 +11,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from maps import DEMO_MAP_PATH, DEMO_QUERIES_DIR
+from maps.paths import DEMO_MAP_PATH, DEMO_QUERIES_DIR
 from service.core.config import Settings
 from service.demo import (
     QUERIES_CSV,

@@ -1,0 +1,62 @@
+"""Scan statistics and the real-vs-simulated report (known-answer arrays; folders made by the tests)."""
+
+from __future__ import annotations
+
+import numpy as np
+from typer.testing import CliRunner
+
+from reradar_core.io.datasets import write_sequence_scan
+from reradar_core.io.scan import RadarScan
+from reradar_core.sim.report import compare_table, folder_statistics
+from reradar_core.sim.stats import RANGE_BANDS_M, scan_statistics
+
+
+def _scan(power: np.ndarray, t0: int = 1_600_000_000_000_000) -> RadarScan:
+    return RadarScan.from_power(power.astype(np.float32), "oxford", start_time_us=t0)
+
+
+def test_scan_statistics_known_answers():
+    power = np.zeros((400, 3768), np.float32)
+    power[:, ::2] = 0.5  # half the bins at 0.5, half at 0
+    st = scan_statistics(_scan(power), with_keypoints=False)
+    assert st.mean == 0.25 and st.frac_zero == 0.5 and st.p50 == 0.25
+    assert st.p99 == 0.5
+    assert len(st.band_mean) == len(RANGE_BANDS_M)
+    np.testing.assert_allclose(st.band_mean, 0.25, atol=0.01)
+    assert abs(sum(st.hist) - 1.0) < 1e-9 and st.hist[0] == 0.5 and st.hist[8] == 0.5
+    # the far quarter sets the floor: nothing lies above it here
+    assert st.frac_above_floor == 0.0
+
+
+def test_scan_statistics_counts_a_bright_target():
+    rng = np.random.default_rng(0)
+    power = (rng.random((400, 3768)) * 0.05).astype(np.float32)
+    power[100:103, 1000:1010] = 0.9  # one strong reflector at ~43 m
+    st = scan_statistics(_scan(power))
+    assert st.keypoints >= 1
+    assert st.frac_above_floor > 0
+    assert st.band_mean[4] > st.band_mean[5]  # 25-50 m band holds the target
+
+
+def test_sim_report_cli_on_generated_folders(tmp_path):
+    from reradar_core.cli import app
+
+    rng = np.random.default_rng(1)
+    for name, level in (("a", 0.05), ("b", 0.1)):
+        folder = tmp_path / name
+        for k in range(2):
+            power = (rng.random((400, 3768)) * level).astype(np.float32)
+            write_sequence_scan(folder, "oxford", _scan(power, 1_600_000_000_000_000 + k * 250_000))
+    # a folder of PNGs without poses is accepted as the "real" side
+    res = CliRunner().invoke(app, ["sim-report", "--real", str(tmp_path / "a" / "radar"), "--sim",
+                                   str(tmp_path / "b" / "radar"), "--limit", "2",
+                                   "--images", str(tmp_path / "img" / "prev")])
+    assert res.exit_code == 0, res.output
+    assert "| mean power |" in res.output and "| statistic | real | radar |" in res.output
+    assert (tmp_path / "img" / "prev_real_cart.png").is_file()
+    stats = folder_statistics(tmp_path / "b" / "radar", limit=2)
+    assert stats["num_scans"] == 2 and 0.04 < stats["mean"] < 0.06
+    table = compare_table({"x": stats})
+    assert table.splitlines()[0] == "| statistic | x |"
+    missing = CliRunner().invoke(app, ["sim-report", "--real", str(tmp_path / "nothing"), "--sim", str(tmp_path)])
+    assert missing.exit_code == 2
