@@ -25,6 +25,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--suites", nargs="+", default=["boreas-sim", "loop-sim", "offroad-sim"])
     ap.add_argument("--methods", default=None, help="comma-separated (default: all)")
+    ap.add_argument("--collect-only", action="store_true", help="do not run; collect existing outputs")
     ap.add_argument("--extra", nargs=argparse.REMAINDER, default=[], help="more `reradar bench` options")
     args = ap.parse_args()
     parts = []
@@ -34,16 +35,22 @@ def main() -> int:
         if args.methods:
             cmd += ["--methods", args.methods]
         cmd += args.extra
-        print("$", " ".join(cmd), flush=True)
-        rc = subprocess.call(cmd)
-        if rc != 0:
-            print(f"{suite}: reradar bench failed with exit code {rc}", file=sys.stderr)
-            return rc
+        if not args.collect_only:
+            print("$", " ".join(cmd), flush=True)
+            rc = subprocess.call(cmd)
+            if rc != 0:
+                print(f"{suite}: reradar bench failed with exit code {rc}", file=sys.stderr)
+                return rc
         img = REPO / "docs" / "img"
         img.mkdir(parents=True, exist_ok=True)
+        links = []
         for png in sorted(out.glob("*.png")):
-            shutil.copyfile(png, img / f"bench_{suite}_{png.name}")
-        parts.append((out / "results.md").read_text())
+            target = img / f"bench_{suite}_{png.name}"
+            shutil.copyfile(png, target)
+            links.append(f"![{suite} {png.stem}](img/{target.name})")
+        md = (out / "results.md").read_text().replace("# `reradar bench` results", "#### `reradar bench` results")
+        md = md.replace("\n### ", "\n##### ")
+        parts.append(md + "\n" + "\n".join(links) + "\n")
     (cache_dir("bench") / "ALL.md").write_text("\n\n".join(parts))
     print(f"wrote {cache_dir('bench') / 'ALL.md'} and docs/img/bench_*.png")
     return 0

@@ -112,6 +112,25 @@ def check_model(metadata: MapMetadata, model_id: str, weights_sha256: str, path:
         )
 
 
+def _dataset(group: h5py.Group, name: str, path: Path) -> h5py.Dataset:
+    """``group[name]`` if it is a plain dataset stored in this file.
+
+    Uploaded maps are untrusted: soft/external links, external raw storage and virtual datasets could make
+    the server read other files, so they are refused.
+    """
+    link = group.get(name, getlink=True)
+    if link is None:
+        raise MapFormatError(f"{path}: map has no '{group.name.rstrip('/')}/{name}'")
+    if not isinstance(link, h5py.HardLink):
+        raise MapFormatError(f"{path}: '{group.name.rstrip('/')}/{name}' is a link; maps must be self-contained")
+    ds = group[name]
+    if not isinstance(ds, h5py.Dataset):
+        raise MapFormatError(f"{path}: '{ds.name}' is not a dataset")
+    if ds.external or ds.is_virtual:
+        raise MapFormatError(f"{path}: '{ds.name}' uses external or virtual storage; maps must be self-contained")
+    return ds
+
+
 def _read_metadata(f: h5py.File, path: Path) -> MapMetadata:
     attrs = f.attrs
     if "schema_version" not in attrs:
@@ -195,15 +214,14 @@ class KeyframeMap:
     def _read_arrays(self, f: h5py.File) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n = self.metadata.num_keyframes
         d = self.metadata.descriptor_dim
-        for name in ("timestamps_us", "poses", "global_descriptors", "keyframes"):
-            if name not in f:
-                raise MapFormatError(f"{self.path}: map has no '/{name}'")
-        ts = np.asarray(f["timestamps_us"][()], dtype=np.int64)
-        poses_ds = f["poses"]
+        if not isinstance(f.get("keyframes", getlink=True), h5py.HardLink) or not isinstance(f["keyframes"], h5py.Group):
+            raise MapFormatError(f"{self.path}: map has no '/keyframes' group")
+        ts = np.asarray(_dataset(f, "timestamps_us", self.path)[()], dtype=np.int64)
+        poses_ds = _dataset(f, "poses", self.path)
         if poses_ds.dtype != np.float64:
             raise MapFormatError(f"{self.path}: /poses must be float64, found {poses_ds.dtype}")
         poses = np.asarray(poses_ds[()], dtype=np.float64)
-        g = np.asarray(f["global_descriptors"][()], dtype=np.float32)
+        g = np.asarray(_dataset(f, "global_descriptors", self.path)[()], dtype=np.float32)
         if ts.shape != (n,) or poses.shape != (n, 3) or g.shape != (n, d):
             raise MapFormatError(
                 f"{self.path}: inconsistent shapes: timestamps {ts.shape}, poses {poses.shape}, "
@@ -231,13 +249,17 @@ class KeyframeMap:
             if self._file is None:
                 raise MapFormatError(f"{self.path}: map is closed")
             try:
-                grp = self._file[f"keyframes/{index:06d}"]
-                kps = np.asarray(grp["keypoints_xy_m"][()], dtype=np.float32)
-                desc = np.asarray(grp["local_descriptors"][()], dtype=np.float16)
+                kgroup = self._file["keyframes"]
+                name = f"{index:06d}"
+                if not isinstance(kgroup.get(name, getlink=True), h5py.HardLink):
+                    raise MapFormatError(f"{self.path}: keyframe {index} is missing or a link")
+                grp = kgroup[name]
+                kps = np.asarray(_dataset(grp, "keypoints_xy_m", self.path)[()], dtype=np.float32)
+                desc = np.asarray(_dataset(grp, "local_descriptors", self.path)[()], dtype=np.float16)
                 if self.global_descriptors is not None:
                     g = self.global_descriptors[index]
                 else:  # released after indexing: read the one row from disk
-                    g = np.asarray(self._file["global_descriptors"][index], dtype=np.float32)
+                    g = np.asarray(_dataset(self._file, "global_descriptors", self.path)[index], dtype=np.float32)
             except (KeyError, OSError, ValueError) as exc:
                 raise MapFormatError(f"{self.path}: keyframe {index} is damaged ({exc})") from exc
         try:

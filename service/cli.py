@@ -39,10 +39,13 @@ def localize_command(
     as_json: bool = typer.Option(False, "--json", help="Print the full JSON response."),
 ) -> None:
     """Localize one scan with a running service; prints the map-frame pose (metres, degrees)."""
+    import logging
+
     import httpx
 
     from service.client import ReRadarAPIError, ReRadarClient
 
+    logging.getLogger("httpx").setLevel(logging.WARNING)
     try:
         with ReRadarClient(server) as client:
             res = client.localize(map_id, scan_path=scan, top_k=top_k)

@@ -35,7 +35,7 @@ def make_method(name: str) -> PlaceRecognitionMethod:
     """Build a method by name (see the module docstring).
 
     ``ours`` is ReRadar with the default model; a shipped model's name (``our-3-boreas``) or
-    ``ours-<model>`` selects another.
+    ``ours-<model>`` selects another; a path to a ``.pt`` weights file (JSON next to it) loads that file.
 
     Raises:
         ConfigError: unknown name; the message lists the valid ones.
@@ -62,6 +62,15 @@ def make_method(name: str) -> PlaceRecognitionMethod:
 
         return ReFeree()
     known = ours_model_names()
+    if name.strip().endswith(".pt"):  # a weights file (with its .json) outside the registry, e.g. a training run
+        from pathlib import Path
+
+        from reradar_core.baselines.ours import Ours
+
+        path = Path(name.strip())
+        if not path.is_file():
+            raise ConfigError(f"model weights {path} not found")
+        return Ours(str(path), name=path.stem)
     if key == "ours" or key in known or key.startswith("ours-"):
         from reradar_core.baselines.ours import Ours
 

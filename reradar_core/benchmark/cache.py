@@ -55,6 +55,10 @@ class FeatureCache:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             try:
                 self._file = h5py.File(self.path, "a")
+            except BlockingIOError:  # another run holds the file: never touch it, compute in memory
+                logger.warning("feature cache %s is in use by another run; not caching this time", self.path)
+                self.enabled = False
+                return
             except OSError as exc:  # corrupt file from an interrupted run: start over
                 logger.warning("feature cache %s unreadable (%s); recreating it", self.path, exc)
                 self.path.unlink(missing_ok=True)

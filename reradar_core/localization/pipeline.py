@@ -165,7 +165,8 @@ def verify_candidate(query: ScanFeatures, candidate: Candidate, config: Localiza
     est = estimate_rigid_2d(src, dst, config.ransac)
     if timings_ms is not None:
         timings_ms["ransac_ms"] = timings_ms.get("ransac_ms", 0.0) + (time.perf_counter() - t1) * 1e3
-    n_in = int(est.num_inliers) if est.success else 0
+    # inliers are reported even for a failed fit (diagnostics); only a successful fit yields a pose
+    n_in = int(est.num_inliers)
     return CandidateVerification(
         **base,
         num_inliers=n_in,

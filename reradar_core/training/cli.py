@@ -52,10 +52,11 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
     if init is not None:
         pt, meta = resolve_weights(init)
         blob = torch.load(pt, map_location="cpu", weights_only=True)
-        if "train_state_dict" not in blob:
-            raise ConfigError(f"{pt} has no training state; it cannot initialise `reradar train --init`")
-        init_state = blob["train_state_dict"]
         model = ModelConfig.from_dict(meta["config"])
+        # the plain ResNet trains as it runs; the ReResNet needs its e2cnn (basis-coefficient) state
+        init_state = blob.get("train_state_dict") or (blob["state_dict"] if model.backbone == "resnet" else None)
+        if init_state is None:
+            raise ConfigError(f"{pt} has no training state; it cannot initialise `reradar train --init`")
         if model.backbone != backbone:
             raise ConfigError(f"--init {init} is a {model.backbone} model but --backbone is {backbone}")
     else:
@@ -89,7 +90,8 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
         "torch_threads": threads,
         **summary,
     }
-    path = save_weights(plain, out, meta, train_state_dict=trainable_state(trainer.net))
+    train_state = trainable_state(trainer.net) if model.backbone == "reresnet" else None
+    path = save_weights(plain, out, meta, train_state_dict=train_state)
     logger.info("wrote %s (val Recall@1 %s)", path, summary.get("val_recall_at_1"))
     return path
 

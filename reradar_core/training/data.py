@@ -179,11 +179,13 @@ class TupleSampler:
     apart — preferred with probability ``prefer_other_sequence``; never the anchor itself). Anchors of one batch are pairwise farther than ``neg_radius_m + pos_radius_m`` apart (or in
     different groups), so every other image of the batch — the other anchors and their positives — is
     farther than ``neg_radius_m`` from each anchor: with ``batch_pairs = num_negatives / 2 + 1`` (8 for the
-    paper's 14 negatives) each anchor gets exactly ``num_negatives`` in-batch negatives.
+    paper's 14 negatives) each anchor gets exactly ``num_negatives`` in-batch negatives. With ``same_group``
+    the anchors come from one place group whenever it has room for them, so negatives are other places of the
+    same world and weather, not other worlds.
     """
 
     def __init__(self, data: TrainingSet, pos_radius_m: float = 10.0, neg_radius_m: float = 25.0,
-                 batch_pairs: int = 8, prefer_other_sequence: float = 0.75) -> None:
+                 batch_pairs: int = 8, prefer_other_sequence: float = 0.75, same_group: bool = True) -> None:
         if not (0 < pos_radius_m < neg_radius_m):
             raise ConfigError(f"need 0 < pos_radius ({pos_radius_m}) < neg_radius ({neg_radius_m})")
         if batch_pairs < 2:
@@ -191,7 +193,7 @@ class TupleSampler:
         from scipy.spatial import cKDTree
 
         self.data, self.pos_r, self.neg_r = data, pos_radius_m, neg_radius_m
-        self.batch_pairs, self.prefer_other = batch_pairs, prefer_other_sequence
+        self.batch_pairs, self.prefer_other, self.same_group = batch_pairs, prefer_other_sequence, same_group
         self.positives: list[np.ndarray] = [np.zeros(0, np.int64)] * len(data)
         for g in range(len(data.groups)):
             idx = np.flatnonzero(data.group == g)
@@ -208,7 +210,14 @@ class TupleSampler:
         d = self.data
         min_sep = self.neg_r + self.pos_r
         anchors: list[int] = []
-        for a in rng.permutation(self.anchors):
+        order = rng.permutation(self.anchors)
+        if self.same_group:
+            # all anchors from one place group first (the group of a random anchor, so groups are drawn in
+            # proportion to their size): negatives from other worlds / weather could be told apart by their
+            # global appearance alone, a shortcut that does not teach place recognition.
+            g = d.group[order[0]]
+            order = np.concatenate([order[d.group[order] == g], order[d.group[order] != g]])
+        for a in order:
             same = [b for b in anchors if d.group[b] == d.group[a]]
             if same and np.min(np.hypot(*(d.xy[same] - d.xy[a]).T)) <= min_sep:
                 continue

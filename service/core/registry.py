@@ -25,7 +25,7 @@ from maps.build import build_map
 from maps.database import MapDatabase
 from maps.index import IndexConfig
 from maps.paths import DEMO_MAP_PATH
-from maps.store import open_map
+from maps.store import open_map, read_metadata
 from reradar_core.errors import MapFormatError, ModelMismatchError, ReRadarError
 from reradar_core.io.scan import RadarScan, read_navtech_png, read_polar_npy
 from reradar_core.localization.extractor import FeatureExtractor
@@ -106,12 +106,23 @@ class MapRegistry:
                            self.index_config)
 
     def install_demo_map(self) -> None:
-        """Copy the shipped demo map to ``<maps_dir>/demo.h5`` unless a map ``demo`` exists already."""
+        """Copy the shipped demo map to ``<maps_dir>/demo.h5`` unless a map ``demo`` exists already; an
+        installed demo map built with older weights is replaced when the shipped one fits the running model
+        (a maps volume outlives image upgrades)."""
         target = self.path_for(DEMO_MAP_ID)
-        if target.exists() or not DEMO_MAP_PATH.is_file():
-            if not DEMO_MAP_PATH.is_file():
-                logger.warning("demo map %s is not installed; run scripts/build_demo_map.py", DEMO_MAP_PATH)
+        if not DEMO_MAP_PATH.is_file():
+            logger.warning("demo map %s is not installed; run scripts/build_demo_map.py", DEMO_MAP_PATH)
             return
+        if target.exists():
+            try:
+                installed, shipped = read_metadata(target), read_metadata(DEMO_MAP_PATH)
+            except MapFormatError:
+                return
+            current = self.extractor.weights_sha256
+            if not (installed.name == DEMO_MAP_ID and installed.weights_sha256 != current
+                    and shipped.weights_sha256 == current):
+                return
+            logger.info("replacing the installed demo map (built with other weights) by the shipped one")
         tmp = self.staging_dir() / f"{uuid.uuid4().hex}.h5"
         shutil.copyfile(DEMO_MAP_PATH, tmp)
         os.replace(tmp, target)
@@ -211,9 +222,9 @@ class MapRegistry:
         ``poses`` (N, 3) float64 ``T_map_sensor`` per scan. ``workdir`` (extracted scans) is removed when the
         job ends. Progress is visible through ``get(map_id)``.
         """
-        entry = self._reserve(map_id, scans_total=len(scan_paths))
         first = self._load_scan(scan_paths[0], preset)  # fail fast, synchronously, on unreadable scans
         preset_name = preset or first.preset or "unknown"
+        entry = self._reserve(map_id, scans_total=len(scan_paths))
 
         def progress(done: int, total: int) -> None:
             entry.scans_done = done

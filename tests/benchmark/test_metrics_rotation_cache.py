@@ -71,3 +71,30 @@ def test_feature_cache_round_trip_and_staleness(tmp_path):
         assert ms == 12.5 and rec["b"].dtype == np.float16 and np.allclose(rec["a"], [0, 1, 2])
         src.write_bytes(b"abcd")  # the scan changed -> recompute
         assert c.get("scan", src) is None
+
+
+def test_feature_cache_in_use_by_another_run_is_left_alone(tmp_path):
+    """HDF5 locks a file open for writing against other processes: that file must not be touched."""
+    import subprocess
+    import sys
+
+    src = tmp_path / "scan.png"
+    src.write_bytes(b"abc")
+    with FeatureCache("m-1", "seq", root=tmp_path / "c") as first:
+        first.put("scan", {"a": np.ones(2)}, 1.0, src)
+        path = first.path
+    holder = subprocess.Popen([sys.executable, "-c", "import h5py, sys, time; f = h5py.File(sys.argv[1], 'a'); "
+                               "print('held', flush=True); time.sleep(60)", str(path)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        other = FeatureCache("m-1", "seq", root=tmp_path / "c")
+        assert not other.enabled and other.get("scan", src) is None
+        other.put("scan", {"a": np.zeros(2)}, 2.0, src)  # no-op
+        other.close()
+    finally:
+        holder.kill()
+        holder.wait()
+    with FeatureCache("m-1", "seq", root=tmp_path / "c") as c:
+        rec, ms = c.get("scan", src)
+        assert ms == 1.0 and np.allclose(rec["a"], 1.0)  # the other run's file survived intact

@@ -122,3 +122,29 @@ def test_bad_files_raise_map_format_error(tmp_path: Path) -> None:
         f.create_dataset("poses", data=np.zeros((2, 3), np.float16))
     with pytest.raises(MapFormatError, match="float64"):
         open_map(path)
+
+
+def test_links_and_external_storage_are_refused(tmp_path: Path) -> None:
+    secret = tmp_path / "secret.bin"
+    secret.write_bytes(np.arange(6, dtype=np.float64).tobytes())
+    path = write_map(tmp_path / "x.h5", _meta(), _features(np.random.default_rng(6), 2), np.zeros((2, 3)))
+    with h5py.File(path, "r+") as f:  # poses read from another file through external raw storage
+        del f["poses"]
+        f.create_dataset("poses", shape=(2, 3), dtype=np.float64, external=[(str(secret), 0, 48)])
+    with pytest.raises(MapFormatError, match="external"):
+        open_map(path)
+    other = write_map(tmp_path / "o.h5", _meta(), _features(np.random.default_rng(7), 2), np.zeros((2, 3)))
+    path = write_map(tmp_path / "y.h5", _meta(), _features(np.random.default_rng(8), 2), np.zeros((2, 3)))
+    with h5py.File(path, "r+") as f:
+        del f["global_descriptors"]
+        f["global_descriptors"] = h5py.ExternalLink(str(other), "/global_descriptors")
+    with pytest.raises(MapFormatError, match="link"):
+        open_map(path)
+    path = write_map(tmp_path / "z.h5", _meta(), _features(np.random.default_rng(9), 2), np.zeros((2, 3)))
+    with h5py.File(path, "r+") as f:
+        del f["keyframes/000001"]
+        f["keyframes/000001"] = h5py.ExternalLink(str(other), "/keyframes/000000")
+    with open_map(path) as m:
+        m.read_keyframe(0)
+        with pytest.raises(MapFormatError, match="link"):
+            m.read_keyframe(1)

@@ -212,6 +212,13 @@ def test_build_map_from_scan_archive_then_delete(client: httpx.Client, server: t
     assert client.post("/maps", data={"map_id": "bad2"}, files=bad, headers=AUTH).status_code == 422
     bad = {"archive": ("scans.zip", buf.getvalue())}
     assert client.post("/maps", data={"map_id": "bad3"}, files=bad, headers=AUTH).status_code == 400
+    zbad = io.BytesIO()
+    with zipfile.ZipFile(zbad, "w") as zf:
+        zf.writestr(f"{keyframe_time(0)}.png", b"not a png")
+    bad = {"archive": ("scans.zip", zbad.getvalue()), "poses": ("poses.csv", pose_file.read_bytes())}
+    r = client.post("/maps", data={"map_id": "bad4"}, files=bad, headers=AUTH)
+    assert r.status_code == 422 and f"{keyframe_time(0)}.png" in r.json()["detail"]
+    assert client.get("/maps/bad4").status_code == 404  # nothing registered
     assert client.get("/maps/bad1").status_code == 404
     # delete
     assert client.delete("/maps/built", headers=AUTH).status_code == 200

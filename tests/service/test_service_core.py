@@ -101,3 +101,41 @@ def test_archive_extraction_is_flat_and_bounded(tmp_path: Path) -> None:
     (tmp_path / "bad.zip").write_bytes(b"PK\x03\x04 broken")
     with pytest.raises(BadRequestError):
         extract_scan_archive(tmp_path / "bad.zip", tmp_path / "o5", 10, 1000)
+
+
+def test_demo_map_installed_and_refreshed_after_weight_change(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    import service.core.registry as reg
+    from maps.store import MapMetadata, read_metadata, write_map
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from service_test_fakes import FakeExtractor
+
+    ext = FakeExtractor()
+    feats = [ScanFeatures(np.ones(32) / np.sqrt(32), np.zeros((3, 2)), np.eye(3, 16), 0)]
+
+    def demo_file(path: Path, sha: str, name: str = "demo") -> Path:
+        meta = MapMetadata("fake-extractor", sha, "boreas", 201, 0.64, 32, 16, name=name)
+        return write_map(path, meta, feats, np.zeros((1, 3)), overwrite=True)
+
+    shipped = demo_file(tmp_path / "shipped.h5", ext.weights_sha256)
+    monkeypatch.setattr(reg, "DEMO_MAP_PATH", shipped)
+    maps_dir = tmp_path / "maps"
+    registry = reg.MapRegistry(Settings(maps_dir=maps_dir), ext)
+    registry.install_demo_map()
+    registry.load_all()
+    assert registry.get("demo").state == "ready"
+    registry.close()
+    demo_file(maps_dir / "demo.h5", "0" * 64)  # installed by an older image with other weights
+    registry = reg.MapRegistry(Settings(maps_dir=maps_dir), ext)
+    registry.install_demo_map()
+    assert read_metadata(maps_dir / "demo.h5").weights_sha256 == ext.weights_sha256
+    registry.close()
+    demo_file(maps_dir / "demo.h5", "0" * 64, name="users-own-map")  # not ours: left alone (and refused)
+    registry = reg.MapRegistry(Settings(maps_dir=maps_dir), ext)
+    registry.install_demo_map()
+    registry.load_all()
+    entry = registry.get("demo")
+    assert entry.state == "failed" and "rebuild the map" in (entry.error or "")
+    registry.close()

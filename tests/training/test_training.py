@@ -41,11 +41,11 @@ def test_in_batch_info_nce_equals_explicit_negatives():
 
 
 def _fake_sequences(side: int = 61, n: int = 120, seed: int = 0) -> list[CachedSequence]:
-    """Two traversals of one straight route (2 m spacing, 1 m lateral offset) plus an unrelated route."""
+    """Two traversals of one straight route (4 m spacing, 1 m lateral offset) plus an unrelated route."""
     rng = np.random.default_rng(seed)
     seqs = []
     for k, (group, dy) in enumerate((("route-a", 0.0), ("route-a", 1.0), ("route-b", 0.0))):
-        x = np.arange(n) * 2.0
+        x = np.arange(n) * 4.0
         poses = np.stack([x, np.full(n, dy), np.zeros(n)], axis=1)
         imgs = rng.random((n, side, side)).astype(np.float16)
         seqs.append(CachedSequence(f"seq{k}", group, imgs, poses, 0.64))
@@ -66,6 +66,7 @@ def test_sampler_respects_radii():
                 if j in (a[i], p[i]) or data.group[j] != data.group[a[i]]:
                     continue
                 assert np.hypot(*(data.xy[j] - data.xy[a[i]])) > 25.0
+        assert len(set(data.group[a])) == 1  # a group with room for 8 anchors fills the batch alone
 
 
 def test_crop_view_moves_a_point_target_as_the_pose_says():
@@ -136,3 +137,28 @@ def test_training_reduces_the_loss_on_a_fixed_batch():
         tr.opt.step()
         losses.append(float(loss.detach()))
     assert losses[-1] < losses[0] - 0.1
+
+
+def test_train_main_writes_loadable_weights_and_adapts_from_them(tmp_path):
+    """End to end: train from Cartesian cache folders, save, load for inference, and adapt with --init."""
+    from reradar_core.model import DescriptorExtractor
+    from reradar_core.training.cli import train_main
+    from reradar_core.training.suites import SeqSpec
+
+    rng = np.random.default_rng(0)
+    specs = []
+    for k in range(2):
+        d = tmp_path / f"cache{k}"
+        d.mkdir()
+        np.save(d / "images.npy", rng.random((24, 361, 361)).astype(np.float16))
+        np.save(d / "poses.npy", np.stack([np.arange(24) * 4.0, np.full(24, k * 1.0), np.zeros(24)], axis=1))
+        specs.append(SeqSpec(d, "route"))
+    kw = dict(width=0.125, clusters=4, dim=8, steps=1, threads=1, out_dir=tmp_path / "w", progress=False,
+              num_negatives=2, kmeans_images=4, whiten_images=8, val_max_database=8, val_max_queries=4)
+    path = train_main("tiny", specs, [(specs[0], specs[1])], run_dir=tmp_path / "run1", **kw)
+    ex = DescriptorExtractor.from_file(path)
+    assert ex.model_id == "reresnet-c8-w0.125-k4-d8-in201" and ex.metadata["steps"] == 1
+    assert 0.0 <= ex.metadata["val_recall_at_1"] <= 1.0
+    path2 = train_main("tiny-adapted", specs, [], run_dir=tmp_path / "run2", init=str(path), **kw)
+    ex2 = DescriptorExtractor.from_file(path2)
+    assert ex2.metadata["init"] == str(path) and ex2.metadata["train_config"]["lr"] == pytest.approx(1e-5)

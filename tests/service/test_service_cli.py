@@ -1,0 +1,54 @@
+"""`reradar localize --server URL SCAN.png` against a live server (fake extractor)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import httpx
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from reradar_core.io.scan import encode_navtech_png_bytes
+from service.cli import register
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from service_test_fakes import API_KEY, keyframe_poses, make_scan  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def app_and_url(server: tuple[str, Path], fake_map: Path) -> tuple[typer.Typer, str]:
+    url, _ = server
+    with fake_map.open("rb") as fh:
+        r = httpx.post(f"{url}/maps", data={"map_id": "cli-map"}, files={"map_file": ("m.h5", fh)},
+                       headers={"X-API-Key": API_KEY})
+    assert r.status_code == 201, r.text
+    app = typer.Typer()
+    register(app)
+    return app, url
+
+
+def test_localize_command_prints_map_pose(app_and_url: tuple[typer.Typer, str], tmp_path: Path) -> None:
+    app, url = app_and_url
+    scan = tmp_path / "q.png"
+    scan.write_bytes(encode_navtech_png_bytes(make_scan(2, 0)))
+    res = CliRunner().invoke(app, ["localize", str(scan), "--server", url, "--map", "cli-map"])
+    assert res.exit_code == 0, res.output
+    x, y, _ = keyframe_poses()[2]
+    assert res.output.startswith("localized: ") and f"x={x:.2f} m" in res.output and f"y={y:.2f} m" in res.output
+    res = CliRunner().invoke(app, ["localize", str(scan), "--server", url, "--map", "cli-map", "--json"])
+    assert json.loads(res.output)["keyframe"]["keyframe_id"] == 2
+
+
+def test_localize_command_errors(app_and_url: tuple[typer.Typer, str], tmp_path: Path) -> None:
+    app, url = app_and_url
+    unknown = tmp_path / "u.png"
+    unknown.write_bytes(encode_navtech_png_bytes(make_scan(12345, 0)))
+    res = CliRunner().invoke(app, ["localize", str(unknown), "--server", url, "--map", "cli-map"])
+    assert res.exit_code == 1 and "not localized" in res.output
+    res = CliRunner().invoke(app, ["localize", str(unknown), "--server", url, "--map", "nope"])
+    assert res.exit_code == 2 and "unknown map" in res.output
+    res = CliRunner().invoke(app, ["localize", str(unknown), "--server", "http://127.0.0.1:9", "--map", "x"])
+    assert res.exit_code == 3 and "cannot reach" in res.output
