@@ -45,6 +45,8 @@ def bench(
     every: int | None = typer.Option(None, "--every", help="Use every N-th scan (default: suite's, else 5)."),
     limit: int | None = typer.Option(None, "--limit", help="At most this many scans per sequence after "
                                      "subsampling."),
+    query_limit: int | None = typer.Option(None, "--query-limit", help="At most this many queries per query "
+                                           "sequence (evenly spread; the database keeps its frames)."),
     rotation: bool = typer.Option(True, "--rotation/--no-rotation", help="Run the rotation stress test."),
     rotation_limit: int | None = typer.Option(None, "--rotation-limit", help="Rotation stress on at most "
                                               "this many queries per sequence (evenly spread)."),
@@ -72,13 +74,13 @@ def bench(
         if (suite is None) == (database is None):
             raise typer.BadParameter("give either --suite NAME or --database DIR with --query DIR")
         if suite is not None:
-            pairs, default_radius = pairs_from_suite(suite, every=every, limit=limit)
+            pairs, default_radius = pairs_from_suite(suite, every=every, limit=limit, query_limit=query_limit)
             label = suite
         else:
             if not query:
                 raise typer.BadParameter("--database needs at least one --query DIR")
             pairs, default_radius = pairs_from_folders(database, list(query), preset=preset, layout=layout,
-                                                       every=every or 5, limit=limit)
+                                                       every=every or 5, limit=limit, query_limit=query_limit)
             label = f"{database.name}"
         names = _split(methods) or default_method_names()
         method_objs = [make_method(n) for n in names]
@@ -88,7 +90,7 @@ def bench(
                           use_cache=cache)
         typer.echo(f"bench {label}: {len(pairs)} query sequence(s), methods {names}, radius {cfg.radius_m} m")
         results = run_benchmark(pairs, method_objs, out_dir, cfg, suite=label)
-        results["settings"]["threads"] = threads
+        results["settings"].update(threads=threads, every=every, limit=limit, query_limit=query_limit)
         ours = [m for m in method_objs if m.provides_pose]
         if timing and ours:
             add_timing(results, _primary(ours), pairs[0], cfg, timing_scans, threads)

@@ -71,12 +71,13 @@ def plot_trajectory_links(results: dict[str, Any], per_query: Path, seq: str, pa
     wrong; one panel per method (default: the best of ours and the strongest baseline)."""
     if methods is None:
         methods = [m for m in (strongest(results, seq, True), strongest(results, seq, False)) if m]
-    fig, axes = plt.subplots(1, len(methods), figsize=(5.0 * len(methods), 4.8), squeeze=False)
+    fig, axes = plt.subplots(1, len(methods), figsize=(5.4 * len(methods), 5.0), squeeze=False)
     for ax, m in zip(axes[0], methods, strict=True):
         d = _load(per_query, seq, m)
         if d is None:
             continue
-        q, db = d["query_xy"], d["db_xy"]
+        origin = d["db_xy"].min(axis=0)  # UTM-sized coordinates are unreadable on the axes
+        q, db = d["query_xy"] - origin, d["db_xy"] - origin
         ax.plot(db[:, 0], db[:, 1], "k-", lw=1.2, label="database")
         ax.plot(q[:, 0], q[:, 1], "k--", lw=1.0, label="query")
         segs = np.stack([q, db[d["retrieved"]]], axis=1)
@@ -86,10 +87,10 @@ def plot_trajectory_links(results: dict[str, Any], per_query: Path, seq: str, pa
         r1 = results["sequences"][seq][m]["recall@1"]
         ax.set_title(f"{m}: Recall@1 {r1:.1f}% ({int(d['correct'].sum())}/{len(q)})", fontsize=9)
         ax.set_aspect("equal", adjustable="datalim")
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
+        ax.set_xlabel(f"x − {origin[0]:.0f} [m]")
+        ax.set_ylabel(f"y − {origin[1]:.0f} [m]")
         ax.legend(fontsize=7, loc="best")
-    fig.suptitle(f"Retrieval links — {seq} (green: correct, red: wrong)", fontsize=10)
+    fig.suptitle(f"Retrieval links — {seq} (green: correct, red: wrong)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=_DPI)
     plt.close(fig)

@@ -31,19 +31,22 @@ def default_radius(preset_name: str) -> float:
 
 
 def pairs_from_folders(database: Path, queries: list[Path], preset: str | None = None, layout: str | None = None,
-                       every: int = 5, limit: int | None = None) -> tuple[list[BenchPair], float]:
-    """Real recordings: one database folder and query folders in their dataset layouts."""
+                       every: int = 5, limit: int | None = None,
+                       query_limit: int | None = None) -> tuple[list[BenchPair], float]:
+    """Real recordings: one database folder and query folders in their dataset layouts.
+
+    ``limit`` caps every sequence, ``query_limit`` only the query sequences (evenly spread)."""
     db = subsample(load_sequence(database, layout, preset), every, limit)
     pairs = []
     for q in queries:
-        qs = subsample(load_sequence(q, layout, preset or db.preset.name), every, limit)
+        qs = subsample(load_sequence(q, layout, preset or db.preset.name), every, query_limit or limit)
         name = qs.name if qs.name != db.name else f"{qs.name}-query"
         pairs.append(BenchPair(name, db, qs))
     return pairs, default_radius(db.preset.name)
 
 
 def pairs_from_suite(name: str, every: int | None = None, limit: int | None = None,
-                     progress: bool = True) -> tuple[list[BenchPair], float]:
+                     progress: bool = True, query_limit: int | None = None) -> tuple[list[BenchPair], float]:
     """A simulated suite: render (cached) and pair its database with each of its query sequences.
 
     Suites are already rendered at their protocol's frame spacing (e.g. every 5th frame off-road), so
@@ -58,5 +61,6 @@ def pairs_from_suite(name: str, every: int | None = None, limit: int | None = No
     if len(data.database) > 1:
         raise ConfigError(f"suite {name!r} has {len(data.database)} database sequences; one is supported")
     db = subsample(data.load(data.database[0]), every or 1, limit)
-    pairs = [BenchPair(qp.name, db, subsample(data.load(qp), every or 1, limit)) for qp in data.queries]
+    pairs = [BenchPair(qp.name, db, subsample(data.load(qp), every or 1, query_limit or limit))
+             for qp in data.queries]
     return pairs, float(data.radius_m)

@@ -17,23 +17,40 @@ from reradar_core.model import DescriptorExtractor
 __all__ = ["suite_recall_at_1"]
 
 
-def suite_recall_at_1(ex: DescriptorExtractor, suite: str, progress: bool = False) -> dict[str, float]:
-    """Recall@1 of ``ex``'s global descriptors per query sequence of ``suite`` (all queries in the
-    denominator, the suite's radius), plus the count of queries with a database scan within the radius."""
+def suite_recall_at_1(extractors: list[DescriptorExtractor], suite: str,
+                      progress: bool = False) -> list[dict[str, float]]:
+    """Recall@1 of each extractor's global descriptors per query sequence of ``suite`` (all queries in the
+    denominator, the suite's radius) plus, per query sequence, the fraction of queries that have a database
+    scan within the radius. Cartesian images are rendered once and shared (all models must use the same
+    ``CartesianConfig``)."""
+    from reradar_core.geometry.cartesian import polar_to_cartesian
     from reradar_core.sim.suites import build_suite
 
+    cart = extractors[0].cartesian
+    if any(e.cartesian != cart for e in extractors):
+        raise ValueError("all extractors must share one Cartesian configuration")
     data = build_suite(suite, progress=progress)
-    db_seqs = data.database_sequences()
-    db_desc = np.concatenate([ex.global_descriptors([s.load_scan(i) for i in range(len(s))]) for s in db_seqs])
-    db_xy = np.concatenate([s.poses.xy for s in db_seqs])
-    out: dict[str, float] = {}
-    for qpath in data.queries:
-        q = data.load(qpath)
-        qd = ex.global_descriptors([q.load_scan(i) for i in range(len(q))])
-        top = np.argmax(qd @ db_desc.T, axis=1)
-        out[f"{qpath.name}"] = recall_at_1(q.poses.xy, db_xy[top], data.radius_m)
-        d = np.hypot(q.poses.xy[:, None, 0] - db_xy[None, :, 0], q.poses.xy[:, None, 1] - db_xy[None, :, 1])
-        out[f"{qpath.name}:with_revisit"] = float((d.min(axis=1) <= data.radius_m).mean())
+
+    def images(path):
+        seq = data.load(path)
+        return np.stack([polar_to_cartesian(seq.load_scan(i), cart) for i in range(len(seq))]), seq.poses.xy
+
+    db = [images(p) for p in data.database]
+    db_img, db_xy = np.concatenate([d[0] for d in db]), np.concatenate([d[1] for d in db])
+    queries = {p.name: images(p) for p in data.queries}
+    out: list[dict[str, float]] = []
+    for ex in extractors:
+        def desc(imgs, ex=ex):
+            return np.concatenate([ex.run_images(imgs[i:i + 16])[0] for i in range(0, len(imgs), 16)])
+
+        dd = desc(db_img)
+        res: dict[str, float] = {}
+        for name, (qi, qxy) in queries.items():
+            top = np.argmax(desc(qi) @ dd.T, axis=1)
+            res[name] = recall_at_1(qxy, db_xy[top], data.radius_m)
+            dist = np.hypot(qxy[:, None, 0] - db_xy[None, :, 0], qxy[:, None, 1] - db_xy[None, :, 1])
+            res[f"{name}:with_revisit"] = float((dist.min(axis=1) <= data.radius_m).mean())
+        out.append(res)
     return out
 
 
@@ -42,11 +59,9 @@ def main() -> None:
     ap.add_argument("--suite", default="smoke")
     ap.add_argument("--models", nargs="+", default=["default"])
     args = ap.parse_args()
-    res = {}
-    for m in args.models:
-        ex = DescriptorExtractor.from_pretrained(m)
-        res[m] = suite_recall_at_1(ex, args.suite)
-        print(m, ex.model_id, json.dumps(res[m]), flush=True)
+    exs = [DescriptorExtractor.from_pretrained(m) for m in args.models]
+    for m, ex, r in zip(args.models, exs, suite_recall_at_1(exs, args.suite), strict=True):
+        print(m, ex.model_id, json.dumps(r), flush=True)
 
 
 if __name__ == "__main__":
