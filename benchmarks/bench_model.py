@@ -62,9 +62,9 @@ def main() -> None:
     print(f"torch {torch.__version__}, {args.threads} threads, {platform.processor() or platform.machine()}")
     configs = [ModelConfig()]
     if not args.quick:
-        configs = [ModelConfig(width=0.25), ModelConfig(), ModelConfig(width=1.0),
+        configs = [ModelConfig(width=0.25), ModelConfig(width=0.5), ModelConfig(width=1.0),
                    ModelConfig(cartesian_width_px=200), ModelConfig(backbone="resnet"),
-                   ModelConfig(backbone="resnet", width=1.0)]
+                   ModelConfig(backbone="resnet", width=0.5), ModelConfig(backbone="resnet", width=1.0)]
     print("| model | input | params | batch 1 (ms) | batch 16 (ms / image) |")
     print("|---|---|---|---|---|")
     for cfg in configs:
