@@ -214,7 +214,7 @@ def bench_http(requests: int, warmup: int, threads: int) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------- re-ranking
-def bench_rerank(suite_name: str, threads: int, top_k: int) -> dict:
+def bench_rerank(suite_name: str, threads: int, top_k: int, ransac_threshold_m: float | None = None) -> dict:
     """Success rate of plain top-1 (retrieve, verify only the best) vs top-k geometric re-ranking."""
     import torch
     from tqdm import tqdm
@@ -239,7 +239,12 @@ def bench_rerank(suite_name: str, threads: int, top_k: int) -> dict:
     db = MapDatabase.open(map_path, ext.model_id, ext.weights_sha256)
     radius = suite.radius_m
     out: dict = {"suite": suite_name, "radius_m": radius, "top_k": top_k, "num_keyframes": len(db)}
-    modes = {"top1": LocalizationConfig(top_k=top_k, rerank=False), "rerank": LocalizationConfig(top_k=top_k)}
+    from reradar_core.matching import RansacConfig
+
+    ransac = RansacConfig() if ransac_threshold_m is None else RansacConfig(inlier_threshold_m=ransac_threshold_m)
+    out["ransac_inlier_threshold_m"] = ransac.inlier_threshold_m
+    modes = {"top1": LocalizationConfig(top_k=top_k, rerank=False, ransac=ransac),
+             "rerank": LocalizationConfig(top_k=top_k, ransac=ransac)}
     counts = {m: {"localized": 0, "success": 0, "correct_place": 0, "et": [], "er": []} for m in modes}
     retrieval_top1_correct = 0
     n = 0
@@ -291,6 +296,7 @@ def main() -> int:
     p.add_argument("--queries", type=int, default=1000)
     p.add_argument("--suite", default="smoke")
     p.add_argument("--top-k", type=int, default=5)
+    p.add_argument("--ransac-threshold-m", type=float, default=None, help="RANSAC inlier threshold (default: RansacConfig)")
     p.add_argument("--measure-open", nargs=2, metavar=("MAP", "KIND"), help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.measure_open:
@@ -305,7 +311,7 @@ def main() -> int:
     if args.all or args.http:
         results["http"] = bench_http(args.requests, args.warmup, args.threads)
     if args.all or args.rerank:
-        results["rerank"] = bench_rerank(args.suite, args.threads, args.top_k)
+        results["rerank"] = bench_rerank(args.suite, args.threads, args.top_k, args.ransac_threshold_m)
     results["load_avg_end"] = _load_avg()
     from reradar_core.paths import cache_dir
 

@@ -40,7 +40,8 @@ def main() -> int:
     parser.add_argument("--weights", default="default", help="model registry name or .pt path")
     parser.add_argument("--suite", default="smoke", help="simulator suite (database -> map, query -> queries)")
     parser.add_argument("--num-queries", type=int, default=8, help="demo query scans to ship")
-    parser.add_argument("--max-keypoints", type=int, default=400, help="cap stored keypoints per keyframe")
+    parser.add_argument("--max-keypoints", type=int, default=0,
+                        help="cap stored keypoints per keyframe (0: keep the extractor's keypoints, as queries get)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     args = parser.parse_args()
 
@@ -58,7 +59,7 @@ def main() -> int:
 
     DEMO_DIR.mkdir(parents=True, exist_ok=True)
     build_map_from_sequence(suite.database[0], DEMO_MAP_PATH, extractor, layout=suite.layout, preset=suite.preset,
-                            batch_size=8, max_keypoints=args.max_keypoints, overwrite=True, show_progress=True,
+                            batch_size=8, max_keypoints=args.max_keypoints or None, overwrite=True, show_progress=True,
                             name="demo", source=f"reradar sim suite '{args.suite}' / {suite.database[0].name}")
 
     query = load_sequence(suite.queries[0], suite.layout, suite.preset)

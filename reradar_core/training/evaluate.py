@@ -10,6 +10,7 @@ import argparse
 import json
 
 import numpy as np
+import torch
 
 from reradar_core.evaluation.metrics import recall_at_1
 from reradar_core.model import DescriptorExtractor
@@ -41,13 +42,22 @@ def suite_recall_at_1(extractors: list[DescriptorExtractor], suite: str,
     out: list[dict[str, float]] = []
     for ex in extractors:
         def desc(imgs, ex=ex):
-            return np.concatenate([ex.run_images(imgs[i:i + 16])[0] for i in range(0, len(imgs), 16)])
+            """(projected global descriptors, raw NetVLAD vectors)."""
+            g, v = [], []
+            with torch.inference_mode():
+                for i in range(0, len(imgs), 16):
+                    fmap = ex.net.backbone(torch.from_numpy(imgs[i:i + 16].astype(np.float32))[:, None])
+                    g.append(ex.net.aggregate(fmap).numpy())
+                    v.append(ex.net.netvlad(fmap).numpy())
+            return np.concatenate(g), np.concatenate(v)
 
-        dd = desc(db_img)
+        dd, dv = desc(db_img)
         res: dict[str, float] = {}
         for name, (qi, qxy) in queries.items():
-            top = np.argmax(desc(qi) @ dd.T, axis=1)
+            qd, qv = desc(qi)
+            top = np.argmax(qd @ dd.T, axis=1)
             res[name] = recall_at_1(qxy, db_xy[top], data.radius_m)
+            res[f"{name}:raw_netvlad"] = recall_at_1(qxy, db_xy[np.argmax(qv @ dv.T, axis=1)], data.radius_m)
             dist = np.hypot(qxy[:, None, 0] - db_xy[None, :, 0], qxy[:, None, 1] - db_xy[None, :, 1])
             res[f"{name}:with_revisit"] = float((dist.min(axis=1) <= data.radius_m).mean())
         out.append(res)
