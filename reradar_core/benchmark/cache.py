@@ -74,6 +74,8 @@ class FeatureCache:
         if self._file is None or name not in self._file:
             return None
         g = self._file[name]
+        if "compute_ms" not in g.attrs:  # written last: a record interrupted mid-write is recomputed
+            return None
         if source is not None and source.exists():
             size, mtime = _stamp(source)
             if int(g.attrs.get("size", -1)) != size or int(g.attrs.get("mtime_ns", -1)) != mtime:
