@@ -212,3 +212,25 @@ def test_standard_resnet_variant_same_layout():
     with torch.no_grad():
         g, f = net(torch.rand(1, 1, 201, 201))
     assert f.shape == (1, 128, 26, 26) and g.shape == (1, 8 * 128) and cfg.stride == 8
+
+
+def test_shipped_default_model_loads_and_is_invariant_to_90_degrees():
+    from reradar_core.model import DEFAULT_MODEL, available_models
+
+    assert DEFAULT_MODEL in available_models()
+    ex = DescriptorExtractor.from_pretrained()
+    assert ex.name == DEFAULT_MODEL and ex.weights_sha256 == ex.metadata["sha256"]
+    assert ex.descriptor_dim == 256 and ex.cartesian.width_px == 201
+    scan = _scan(7)
+    rolled = scan.with_power(np.roll(scan.power, scan.num_azimuths // 4, axis=0))
+    a = ex.describe(scan, landmarks=np.array([[10.0, 0.0]]))
+    b = ex.describe(rolled, landmarks=np.zeros((0, 2)))
+    assert float(a.global_descriptor @ b.global_descriptor) >= 0.99
+    assert a.local_descriptors.shape == (1, ex.local_dim)
+
+
+def test_unknown_model_name_is_a_clear_error():
+    from reradar_core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="unknown model"):
+        DescriptorExtractor.from_pretrained("no-such-model")
