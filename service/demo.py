@@ -108,7 +108,11 @@ def _yaw_err_deg(a: float, b: float) -> float:
 def run_demo(map_path: Path = DEMO_MAP_PATH, queries_dir: Path = DEMO_QUERIES_DIR,
              echo: Callable[[str], None] = print, threads: int = 1) -> int:
     """Serve ``map_path`` as map ``demo``, localize every query in ``queries_dir/queries.csv`` over HTTP and
-    print the results. Returns 0 when every query was localized within the SR thresholds, else 1."""
+    print the results.
+
+    Returns 0 when the run completed and no query was reported ``localized`` at a wrong pose (beyond the SR
+    thresholds): ``not_localized`` is an honest answer and is counted in the printed success rate, a wrong
+    pose claimed as localized is a failure (exit 1). 2 when the demo map is missing."""
     if not map_path.is_file():
         echo(f"error: demo map {map_path} not found; build it with `python scripts/build_demo_map.py`")
         return 2
@@ -131,7 +135,7 @@ def run_demo(map_path: Path = DEMO_MAP_PATH, queries_dir: Path = DEMO_QUERIES_DI
                     f"{'gt_y_m':>8} {'gt_yaw':>8} | {'err_m':>6} {'err_deg':>7} {'inl':>4} {'ms':>6}")
             echo(head)
             echo("-" * len(head))
-            errs_t, errs_r, lat, ok = [], [], [], 0
+            errs_t, errs_r, lat, ok, wrong = [], [], [], 0, 0
             for q in truth:
                 t0 = time.perf_counter()
                 res = client.localize(DEMO_MAP_ID, scan_path=queries_dir / q.file)
@@ -142,6 +146,7 @@ def run_demo(map_path: Path = DEMO_MAP_PATH, queries_dir: Path = DEMO_QUERIES_DI
                     er = _yaw_err_deg(res.pose.yaw_deg, q.yaw_deg)
                     success = et <= SR_TRANSLATION_M and er <= SR_ROTATION_DEG
                     ok += success
+                    wrong += not success
                     if success:
                         errs_t.append(et)
                         errs_r.append(er)
@@ -159,5 +164,6 @@ def run_demo(map_path: Path = DEMO_MAP_PATH, queries_dir: Path = DEMO_QUERIES_DI
                  f"({100.0 * ok / max(n, 1):.0f}%); mean error over successes: {mean_t}, {mean_r}; "
                  f"latency per POST /localize (inline PNG, client side): p50 {np.percentile(lat, 50):.0f} ms, "
                  f"max {np.max(lat):.0f} ms")
+            echo(f"not localized: {n - ok - wrong}/{n}; localized at a wrong pose: {wrong}/{n}")
         echo("server stopped.")
-    return 0 if ok == len(truth) else 1
+    return 0 if wrong == 0 else 1
