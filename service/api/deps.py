@@ -9,21 +9,10 @@ from fastapi import Depends, Path, Request, Security
 from fastapi.security import APIKeyHeader
 
 from service.core.config import MAP_ID_PATTERN
-from service.core.errors import ServiceError
+from service.core.errors import ServiceUnavailableError, UnauthorizedError
 from service.core.state import ServiceState
 
-__all__ = ["StateDep", "ApiKeyDep", "MapIdPath", "get_state", "require_api_key", "ServiceUnavailableError",
-           "UnauthorizedError"]
-
-
-class ServiceUnavailableError(ServiceError):
-    status_code = 503
-    code = "not_ready"
-
-
-class UnauthorizedError(ServiceError):
-    status_code = 401
-    code = "unauthorized"
+__all__ = ["StateDep", "ApiKeyDep", "MapIdPath", "get_state", "require_api_key"]
 
 
 def get_state(request: Request) -> ServiceState:

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-__all__ = ["ServiceError", "NotFoundError", "ConflictError", "PayloadTooLargeError", "BadRequestError"]
+__all__ = ["ServiceError", "NotFoundError", "ConflictError", "PayloadTooLargeError", "BadRequestError",
+           "ServiceUnavailableError", "UnauthorizedError"]
 
 
 class ServiceError(Exception):
@@ -34,3 +35,13 @@ class ConflictError(ServiceError):
 class PayloadTooLargeError(ServiceError):
     status_code = 413
     code = "payload_too_large"
+
+
+class ServiceUnavailableError(ServiceError):
+    status_code = 503
+    code = "not_ready"
+
+
+class UnauthorizedError(ServiceError):
+    status_code = 401
+    code = "unauthorized"
