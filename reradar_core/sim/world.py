@@ -318,6 +318,16 @@ class World:
             p = road.points[in_tile]
             tan = road.tangents[in_tile]
             nrm = np.stack([-tan[:, 1], tan[:, 0]], axis=1)  # left normal
+
+            def roadside_points(n: int, off_min: float, off_max: float, clearance: float) -> np.ndarray:
+                """n points on either side of this tile's road, w + U(off_min, off_max) m from the
+                centreline, dropping those within w + clearance of any road (intersections)."""
+                j = rng.integers(0, len(p), n)
+                side = rng.choice([-1.0, 1.0], n)
+                off = w + rng.uniform(off_min, off_max, n)
+                xy = p[j] + (side * off)[:, None] * nrm[j]
+                return xy[far_from_road(xy, w + clearance)]
+
             nxt = in_tile + 1
             ok = (nxt < len(road.points))
             ok[ok] &= road.chain[nxt[ok]] == road.chain[in_tile[ok]]
@@ -370,11 +380,7 @@ class World:
             # poles and signs
             n_poles = rng.poisson(len(in_tile) * road.spacing_m / pr.pole_spacing_m)
             if n_poles:
-                j = rng.integers(0, len(p), n_poles)
-                side = rng.choice([-1.0, 1.0], n_poles)
-                off = w + rng.uniform(0.4, 2.0, n_poles)
-                xy = p[j] + (side * off)[:, None] * nrm[j]
-                xy = xy[far_from_road(xy, w + 0.2)]
+                xy = roadside_points(n_poles, 0.4, 2.0, 0.2)
                 prim.add_points(xy, rng.lognormal(np.log(4.0), 0.5, len(xy)), 0)
                 prim.add_discs(np.column_stack([xy, np.full(len(xy), 0.15)]), 0.0, 0.0)
                 # a sign plate next to some poles: a short strong segment
@@ -386,11 +392,7 @@ class World:
             # street trees
             n_st = rng.poisson(len(in_tile) * road.spacing_m / 8.0 * pr.street_tree_prob)
             if n_st:
-                j = rng.integers(0, len(p), n_st)
-                side = rng.choice([-1.0, 1.0], n_st)
-                off = w + rng.uniform(1.5, 4.5, n_st)
-                xy = p[j] + (side * off)[:, None] * nrm[j]
-                xy = xy[far_from_road(xy, w + 1.0)]
+                xy = roadside_points(n_st, 1.5, 4.5, 1.0)
                 self._add_trees(prim, rng, xy, rng.uniform(1.2, 3.0, len(xy)))
             # parked car slots along the kerb, inside the road edge
             if pr.parked_car_slot_prob > 0:
