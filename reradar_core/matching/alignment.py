@@ -67,8 +67,8 @@ class AlignmentConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.top_k_matches < 1 or self.num_hypotheses < 1 or self.score_points < 2:
-            raise ConfigError("top_k_matches, num_hypotheses must be >= 1 and score_points >= 2")
+        if self.top_k_matches < 1 or self.num_hypotheses < 1 or self.refine_candidates < 1 or self.score_points < 2:
+            raise ConfigError("top_k_matches, num_hypotheses, refine_candidates must be >= 1 and score_points >= 2")
         if not self.refine_thresholds_m or min(self.refine_thresholds_m) <= 0:
             raise ConfigError("refine_thresholds_m must be a non-empty sequence of positive radii")
         if self.grid_cell_m <= 0 or self.score_threshold_m <= 0 or self.min_inliers < 2:
@@ -209,15 +209,12 @@ def estimate_pose_guided(points_src: np.ndarray, desc_src: np.ndarray, points_ds
         return fail("no_consistent_hypothesis")
     step = max(1, n // config.score_points)
     scores = _score(hyp, src[::step], grid, config.score_threshold_m)
-    best_pose, best_mask = hyp[int(np.argmax(scores))], empty
-    first = True
-    for h in np.argsort(-scores, kind="stable")[: config.refine_candidates]:
-        pose, mask = _refine(src, grid, hyp[h], config.refine_thresholds_m)
-        if first or mask.sum() > best_mask.sum():
-            best_pose, best_mask, first = pose, mask, False
+    refined = [_refine(src, grid, hyp[h], config.refine_thresholds_m)
+               for h in np.argsort(-scores, kind="stable")[: config.refine_candidates]]
+    pose, best_mask = max(refined, key=lambda r: int(r[1].sum()))  # first of equals: best-scored hypothesis
+    best_pose = np.array([pose[0], pose[1], wrap_angle(pose[2])])
     k = int(best_mask.sum())
     if k < config.min_inliers:
         return fail("too_few_inliers", best_pose, best_mask)
-    best_pose = np.array([best_pose[0], best_pose[1], wrap_angle(best_pose[2])])
     residual, _ = grid.tree.query(_apply(best_pose, src[best_mask]))
     return RigidEstimate(True, best_pose, k, k / n, best_mask, None, len(hyp), float(np.sqrt(np.mean(residual**2))))
