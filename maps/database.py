@@ -6,6 +6,7 @@ are read only for a query's top-k candidates.
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +18,7 @@ from maps.store import KeyframeMap, MapMetadata, open_map
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.localization import Candidate, LocalizationConfig, LocalizationResult, localize
+from reradar_core.matching import LandmarkGrid, build_landmark_grid
 
 __all__ = ["Retrieval", "MapDatabase"]
 
@@ -37,10 +39,17 @@ class MapDatabase:
 
     Attributes:
         map: the open ``KeyframeMap``; index: the ``GlobalIndex`` over its global descriptors.
+
+    Args:
+        keyframe_cache_size: keyframes whose features and landmark distance grid stay in memory between
+            queries (LRU; about 0.33 MB each). Re-reading a keyframe and rebuilding its grid costs ~2 ms, and
+            with 20 candidates per query that is most of the verification time on a revisited route.
     """
 
-    def __init__(self, kf_map: KeyframeMap, index_config: IndexConfig = IndexConfig()) -> None:
+    def __init__(self, kf_map: KeyframeMap, index_config: IndexConfig = IndexConfig(),
+                 keyframe_cache_size: int = 128) -> None:
         self.map = kf_map
+        self._keyframe = functools.lru_cache(maxsize=keyframe_cache_size)(self._load_keyframe)
         if kf_map.global_descriptors is None:
             raise ConfigError(f"{kf_map.path}: global descriptors were released; reopen the map")
         self.index = GlobalIndex(kf_map.global_descriptors, index_config)
@@ -79,20 +88,29 @@ class MapDatabase:
                  config: LocalizationConfig | None = None) -> tuple[list[Retrieval], LocalizationResult]:
         """Retrieve ``config.top_k`` candidates, verify them and return (retrievals, result).
 
-        ``result.timings_ms`` gains ``retrieve_ms`` (FAISS search) and ``read_ms`` (keyframe reads from disk).
+        ``result.timings_ms`` gains ``retrieve_ms`` (FAISS search) and ``read_ms`` (keyframe reads from disk and
+        landmark grids, both cached per keyframe).
         """
         config = config or LocalizationConfig()
         t0 = time.perf_counter()
         retrievals = self.retrieve(query.global_descriptor, config.top_k)
         t1 = time.perf_counter()
         wanted = retrievals if config.rerank else retrievals[:1]
-        candidates = [Candidate(r.keyframe_id, r.T_map_keyframe, self.map.read_keyframe(r.keyframe_id),
-                                r.descriptor_distance, r.rank) for r in wanted]
+        candidates = []
+        for r in wanted:
+            features, grid = self._keyframe(r.keyframe_id)
+            candidates.append(Candidate(r.keyframe_id, r.T_map_keyframe, features, r.descriptor_distance, r.rank,
+                                        grid))
         t2 = time.perf_counter()
         result = localize(query, candidates, config)
         result.timings_ms["retrieve_ms"] = (t1 - t0) * 1e3
         result.timings_ms["read_ms"] = (t2 - t1) * 1e3
         return retrievals, result
 
+    def _load_keyframe(self, keyframe_id: int) -> tuple[ScanFeatures, LandmarkGrid]:
+        features = self.map.read_keyframe(keyframe_id)
+        return features, build_landmark_grid(features.keypoints_xy_m)
+
     def close(self) -> None:
+        self._keyframe.cache_clear()
         self.map.close()

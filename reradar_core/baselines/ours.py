@@ -1,8 +1,8 @@
 """ReRadar itself behind the baseline interface: learned global descriptor + landmark pose verification.
 
 Retrieval: Euclidean distance between unit global descriptors (``DescriptorExtractor``); localization: the
-top-k candidates go through ``reradar_core.localization.localize`` (mutual-NN matching of local descriptors,
-RANSAC 2-D rigid fit, re-ranking by inliers), which gives the answer keyframe and ``T_map_query``.
+top-k candidates go through ``reradar_core.localization.localize`` (landmark-alignment screen of the top 20, full
+guided pose estimation of the best 3, re-ranking by inliers), which gives the answer keyframe and ``T_map_query``.
 Model names come from ``reradar_core.model.available_models()`` (e.g. ``default``, ``our-1``, ``our-3-...``).
 """
 
@@ -64,6 +64,8 @@ class Ours(PlaceRecognitionMethod):
         self.model_name = model if isinstance(model, str) else str(getattr(model, "model_id", "custom"))
         self.name = name or ("ours" if self.model_name == "default" else f"ours-{self.model_name}")
         self.localization = localization or LocalizationConfig()
+        self._grids: dict[int, Any] = {}  # landmark grid per database index, for the current database
+        self._grids_of: int | None = None
 
     def params(self) -> dict[str, Any]:
         return {"model": str(getattr(self.extractor, "model_id", self.model_name)),
@@ -85,11 +87,19 @@ class Ours(PlaceRecognitionMethod):
     def localize(self, q_prepared: Prepared, q_desc: np.ndarray, index: Any,
                  db_prepared: Sequence[Prepared], db_poses: np.ndarray) -> Retrieval:
         from reradar_core.localization import Candidate, localize
+        from reradar_core.matching import build_landmark_grid
 
+        if self._grids_of != id(db_prepared):  # as the service does: each keyframe's grid is built once
+            self._grids, self._grids_of = {}, id(db_prepared)
         d = self.distance(q_desc, index)
         order = np.argsort(d, kind="stable")[: self.localization.top_k]
-        cands = [Candidate(int(j), np.asarray(db_poses[j], np.float64), prepared_to_features(db_prepared[j]),
-                           float(d[j]), rank) for rank, j in enumerate(order)]
+        cands = []
+        for rank, j in enumerate(order):
+            feats = prepared_to_features(db_prepared[j])
+            if int(j) not in self._grids:
+                self._grids[int(j)] = build_landmark_grid(feats.keypoints_xy_m, self.localization.alignment.grid_cell_m)
+            cands.append(Candidate(int(j), np.asarray(db_poses[j], np.float64), feats, float(d[j]), rank,
+                                   self._grids[int(j)]))
         res = localize(prepared_to_features(q_prepared), cands, self.localization)
         j = int(res.best.keyframe_id) if res.best is not None else int(order[0])
         if res.localized and res.T_map_query is not None:

@@ -1,8 +1,9 @@
-"""Global localization: top-k retrieval candidates -> landmark matching + RANSAC -> re-ranking by inliers."""
+"""Global localization: top-k retrieval candidates -> landmark-alignment screen -> guided pose -> re-ranking."""
 
 from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
 from reradar_core.localization.pipeline import (
     REASON_NO_CANDIDATE,
+    REASON_SCREENED_OUT,
     REASON_TOO_FEW_INLIERS,
     REASON_TOO_FEW_MATCHES,
     Candidate,
@@ -17,6 +18,7 @@ __all__ = [
     "FeatureExtractor",
     "load_default_extractor",
     "REASON_NO_CANDIDATE",
+    "REASON_SCREENED_OUT",
     "REASON_TOO_FEW_INLIERS",
     "REASON_TOO_FEW_MATCHES",
     "Candidate",

@@ -5,6 +5,7 @@ from reradar_core.matching.alignment import (
     LandmarkGrid,
     build_landmark_grid,
     estimate_pose_guided,
+    screen_alignment,
 )
 from reradar_core.matching.descriptors import cosine_similarity, match_descriptors
 from reradar_core.matching.ransac import RansacConfig, RigidEstimate, estimate_rigid_2d, fit_rigid_2d
@@ -14,6 +15,7 @@ __all__ = [
     "LandmarkGrid",
     "build_landmark_grid",
     "estimate_pose_guided",
+    "screen_alignment",
     "RansacConfig",
     "RigidEstimate",
     "cosine_similarity",

@@ -21,7 +21,7 @@ The estimator:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -31,7 +31,7 @@ from reradar_core.errors import ConfigError
 from reradar_core.geometry.se2 import wrap_angle
 from reradar_core.matching.ransac import RigidEstimate, fit_rigid_2d
 
-__all__ = ["AlignmentConfig", "LandmarkGrid", "build_landmark_grid", "estimate_pose_guided"]
+__all__ = ["AlignmentConfig", "LandmarkGrid", "build_landmark_grid", "estimate_pose_guided", "screen_alignment"]
 
 
 @dataclass(frozen=True)
@@ -49,6 +49,8 @@ class AlignmentConfig:
         score_points: source landmarks used for scoring (evenly subsampled; speed).
         refine_thresholds_m: association radii of the refinement iterations (coarse to fine).
         refine_candidates: best-scoring hypotheses that are refined.
+        screen_hypotheses: minimal sets drawn by ``screen_alignment`` (the cheap candidate screen).
+        screen_source_points: source landmarks (evenly subsampled) paired by descriptor in the screen.
         min_inliers: landmarks associated at the final radius for the pose to count.
         grid_cell_m: cell of the destination distance grid.
         seed: seed of the hypothesis sampler (deterministic results).
@@ -62,13 +64,17 @@ class AlignmentConfig:
     score_points: int = 128
     refine_thresholds_m: tuple[float, ...] = (2.0, 1.0, 0.75, 0.75)
     refine_candidates: int = 5
+    screen_hypotheses: int = 1500
+    screen_source_points: int = 256
     min_inliers: int = 12
     grid_cell_m: float = 0.5
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.top_k_matches < 1 or self.num_hypotheses < 1 or self.refine_candidates < 1 or self.score_points < 2:
-            raise ConfigError("top_k_matches, num_hypotheses, refine_candidates must be >= 1 and score_points >= 2")
+        if (self.top_k_matches < 1 or self.num_hypotheses < 1 or self.refine_candidates < 1
+                or self.screen_hypotheses < 1 or self.score_points < 2 or self.screen_source_points < 2):
+            raise ConfigError("top_k_matches, num_hypotheses, refine_candidates, screen_hypotheses must be >= 1 "
+                              "and score_points, screen_source_points >= 2")
         if not self.refine_thresholds_m or min(self.refine_thresholds_m) <= 0:
             raise ConfigError("refine_thresholds_m must be a non-empty sequence of positive radii")
         if self.grid_cell_m <= 0 or self.score_threshold_m <= 0 or self.min_inliers < 2:
@@ -167,6 +173,38 @@ def _refine(src: np.ndarray, grid: LandmarkGrid, pose: np.ndarray,
     return pose, mask
 
 
+def screen_alignment(points_src: np.ndarray, desc_src: np.ndarray, points_dst: np.ndarray,
+                     desc_dst: np.ndarray, config: AlignmentConfig = AlignmentConfig(),
+                     grid: LandmarkGrid | None = None) -> float:
+    """Cheap alignment score of two landmark sets: steps 1-3 of ``estimate_pose_guided`` without refinement.
+
+    Uses ``screen_source_points`` source landmarks for descriptor pairing and ``screen_hypotheses`` minimal
+    sets; returns the best hypothesis' fraction of (``score_points`` subsampled) source landmarks within
+    ``score_threshold_m`` of a destination landmark, in [0, 1] (0 for degenerate input). Used to re-rank
+    many retrieved keyframes before the full estimator runs on the best few (``localization.localize``).
+    Arguments as ``estimate_pose_guided``.
+    """
+    src = np.asarray(points_src, dtype=np.float64).reshape(-1, 2)
+    dst = np.asarray(points_dst, dtype=np.float64).reshape(-1, 2)
+    n = len(src)
+    if n < 2 or len(dst) < 2 or not (np.all(np.isfinite(src)) and np.all(np.isfinite(dst))):
+        return 0.0
+    if desc_src.shape[0] != n or desc_dst.shape[0] != len(dst) or desc_src.shape[1] != desc_dst.shape[1]:
+        raise ConfigError(f"descriptor shapes {desc_src.shape}, {desc_dst.shape} do not match the landmarks")
+    if grid is None or grid.cell_m != config.grid_cell_m:  # a cached grid built with another cell is rebuilt
+        grid = build_landmark_grid(dst, config.grid_cell_m)
+    sub = np.arange(0, n, max(1, n // config.screen_source_points))
+    pairs = _topk_pairs(desc_src[sub], desc_dst, config.top_k_matches)
+    pairs[:, 0] = sub[pairs[:, 0]]
+    rng = np.random.default_rng(config.seed)
+    cfg = replace(config, num_hypotheses=config.screen_hypotheses)
+    hyp = _hypotheses(src, dst, pairs, cfg, rng)
+    if len(hyp) == 0:
+        return 0.0
+    scored = src[:: max(1, n // config.score_points)]
+    return float(_score(hyp, scored, grid, config.score_threshold_m).max() / len(scored))
+
+
 def estimate_pose_guided(points_src: np.ndarray, desc_src: np.ndarray, points_dst: np.ndarray,
                          desc_dst: np.ndarray, config: AlignmentConfig = AlignmentConfig(),
                          grid: LandmarkGrid | None = None) -> RigidEstimate:
@@ -202,7 +240,8 @@ def estimate_pose_guided(points_src: np.ndarray, desc_src: np.ndarray, points_ds
         return fail("non_finite_input")
     if desc_src.shape[0] != n or desc_dst.shape[0] != len(dst) or desc_src.shape[1] != desc_dst.shape[1]:
         raise ConfigError(f"descriptor shapes {desc_src.shape}, {desc_dst.shape} do not match the landmarks")
-    grid = grid if grid is not None else build_landmark_grid(dst, config.grid_cell_m)
+    if grid is None or grid.cell_m != config.grid_cell_m:  # a cached grid built with another cell is rebuilt
+        grid = build_landmark_grid(dst, config.grid_cell_m)
     rng = np.random.default_rng(config.seed)
     hyp = _hypotheses(src, dst, _topk_pairs(desc_src, desc_dst, config.top_k_matches), config, rng)
     if len(hyp) == 0:

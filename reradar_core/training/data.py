@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -109,7 +110,14 @@ def cache_sequence(seq, width_px: int = 201, resolution_m: float = 0.64, margin_
     folder = cache_dir("training", "cartesian", _cache_key(seq, big))
     img_path, pose_path = folder / "images.npy", folder / "poses.npy"
     if not (img_path.is_file() and pose_path.is_file()):
-        tmp = folder / "images.tmp.npy"
+        # Process-unique temporary names + atomic renames: two trainers started together may render the same
+        # sequence; each finishes its own copy and the last rename wins (identical content). Poses land first
+        # so that a visible images.npy always has its poses.
+        tag = f"{os.getpid()}.tmp"
+        tmp_poses = folder / f"poses.{tag}.npy"
+        np.save(tmp_poses, np.asarray(seq.poses.poses, dtype=np.float64))
+        tmp_poses.replace(pose_path)
+        tmp = folder / f"images.{tag}.npy"
         arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16,
                                         shape=(len(seq), big.width_px, big.width_px))
         for i in tqdm(range(len(seq)), desc=f"cartesian {seq.name}", disable=not progress, leave=False):
@@ -117,7 +125,6 @@ def cache_sequence(seq, width_px: int = 201, resolution_m: float = 0.64, margin_
         arr.flush()
         del arr
         tmp.replace(img_path)
-        np.save(pose_path, np.asarray(seq.poses.poses, dtype=np.float64))
     images = np.load(img_path, mmap_mode="r")
     poses = np.load(pose_path)
     return CachedSequence(str(seq.name), group or sequence_group(seq), images, poses, resolution_m)

@@ -133,7 +133,8 @@ class LocalizeRequest(ScanRef):
     optional `top_k`, `preset`."""
 
     map_id: str = Field(pattern=MAP_ID_PATTERN)
-    top_k: int | None = Field(default=None, ge=1, le=100, description="Candidates verified (default: service top_k).")
+    top_k: int | None = Field(default=None, ge=1, le=100, description=(
+        "Candidates retrieved and screened (default: service top_k; the best verify_k are verified in full)."))
 
 
 class CandidateResult(_Model):
@@ -146,6 +147,10 @@ class CandidateResult(_Model):
     num_matches: int
     num_inliers: int
     inlier_ratio: float
+    screen_score: float | None = Field(default=None, description=(
+        "Fraction of query landmarks aligned by the cheap landmark-alignment screen, 0-1 (null if not screened)."))
+    reason: str | None = Field(default=None, description=(
+        "Why this candidate gave no pose: screened_out (not among the best verify_k), too_few_inliers, ..."))
     relative_pose: Pose2D | None = Field(default=None, description="Query pose in the keyframe's sensor frame.")
 
 

@@ -42,7 +42,10 @@ class Settings(BaseSettings):
     max_archive_scans: int = Field(default=20_000, gt=0, description="Most scans accepted in one scan archive.")
     scan_cache_size: int = Field(default=256, gt=0, description="Uploaded scans whose features are kept.")
     scan_cache_ttl_s: float = Field(default=600.0, gt=0, description="Seconds an uploaded scan's features are kept.")
-    top_k: int = Field(default=5, ge=1, le=100, description="Default number of retrieved candidates.")
+    top_k: int = Field(default=20, ge=1, le=100, description=(
+        "Default number of retrieved candidates; all are screened by landmark alignment and the best "
+        "`verify_k` get the full pose estimate."))
+    verify_k: int = Field(default=3, ge=1, le=100, description="Screened candidates verified in full.")
     min_inliers: int = Field(default=12, ge=2, description="Inliers (aligned query landmarks) needed to report `localized`; at least 40 % of the query's landmarks must align too.")
     index_kind: Literal["auto", "flat", "hnsw", "ivf"] = Field(default="auto", description="FAISS index type.")
     index_exact_max_size: int = Field(default=20_000, ge=0, description="`auto` uses exact search up to this size.")

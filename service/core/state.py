@@ -37,7 +37,8 @@ class ServiceState:
     started_at: float = field(default_factory=time.time)
 
     def localization_config(self, top_k: int | None = None) -> LocalizationConfig:
-        return LocalizationConfig(top_k=top_k or self.settings.top_k, min_inliers=self.settings.min_inliers)
+        return LocalizationConfig(top_k=top_k or self.settings.top_k, verify_k=self.settings.verify_k,
+                                  min_inliers=self.settings.min_inliers)
 
     def describe_upload(self, data: bytes, filename: str, preset: str | None,
                         timings_ms: dict[str, float]) -> tuple[ScanFeatures, str | None]:

@@ -10,6 +10,7 @@ from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose, inverse, transform_points, wrap_angle
 from reradar_core.localization import (
     REASON_NO_CANDIDATE,
+    REASON_SCREENED_OUT,
     REASON_TOO_FEW_INLIERS,
     Candidate,
     LocalizationConfig,
@@ -75,6 +76,27 @@ def test_geometric_reranking_picks_true_keyframe_over_wrong_top1() -> None:
     plain = localize(query, _candidates(kfs, poses, order), LocalizationConfig(rerank=False))
     assert plain.status == "not_localized" and plain.reason == REASON_TOO_FEW_INLIERS
     assert plain.best is not None and plain.best.keyframe_id == 0
+
+
+def test_screen_keeps_true_keyframe_from_deep_in_the_retrieval_list() -> None:
+    """12 candidates, the true one at rank 9: the alignment screen must pass it to full verification (3)."""
+    rng = np.random.default_rng(5)
+    kfs = [_keyframe(rng, ts=i) for i in range(12)]
+    poses = np.column_stack([np.arange(12) * 40.0, np.zeros(12), np.zeros(12)])
+    T_kf_query = np.array([-3.0, 2.0, np.deg2rad(-140.0)])
+    query = _query_from(kfs[7], T_kf_query, rng)
+    order = [0, 1, 2, 3, 4, 5, 6, 8, 9, 7, 10, 11]
+    res = localize(query, _candidates(kfs, poses, order), LocalizationConfig(top_k=12, verify_k=3))
+    assert res.localized and res.best is not None and res.best.keyframe_id == 7 and res.best.rank == 9
+    assert res.T_map_query is not None
+    np.testing.assert_allclose(res.T_map_query[:2], compose(poses[7], T_kf_query)[:2], atol=0.15)
+    assert len(res.candidates) == 12 and [c.rank for c in res.candidates] == list(range(12))
+    screened_out = [c for c in res.candidates if c.reason == REASON_SCREENED_OUT]
+    assert len(screened_out) == 9 and all(c.num_inliers == 0 for c in screened_out)
+    scores = {c.keyframe_id: c.screen_score for c in res.candidates}
+    assert all(v is not None for v in scores.values())
+    assert scores[7] == max(scores.values()) and scores[7] > 0.5
+    assert "screen_ms" in res.timings_ms
 
 
 def test_unknown_place_is_not_localized() -> None:

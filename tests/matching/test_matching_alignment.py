@@ -75,3 +75,21 @@ def test_non_finite_input_is_rejected_with_a_reason():
     pts = np.array([[0.0, 0.0], [np.nan, 1.0], [2.0, 2.0]])
     est = estimate_pose_guided(pts, np.ones((3, 4)), pts[[0, 2, 0]] + 1, np.ones((3, 4)))
     assert not est.success and est.reason == "non_finite_input"
+
+
+def test_screen_scores_the_true_place_above_a_different_place():
+    from reradar_core.matching import screen_alignment
+
+    T = np.array([2.0, 4.0, np.radians(75.0)])
+    src, dsrc, dst, ddst = _scene(T, seed=1)
+    rng = np.random.default_rng(3)  # another place: walls at other offsets, other poles
+    walls = [np.column_stack([np.linspace(-50, 50, 120), np.full(120, y)]) for y in (-4.0, 27.0)]
+    walls.append(np.column_stack([np.full(60, -21.0), np.linspace(-40, 40, 60)]))
+    other = np.vstack(walls + [rng.uniform(-55, 55, size=(80, 2))])
+    dother = _coarse_descriptors(other, rng_seed=11)
+    right = screen_alignment(src, dsrc, dst, ddst)
+    wrong = screen_alignment(src, dsrc, other, dother)
+    cached = screen_alignment(src, dsrc, dst, ddst, grid=build_landmark_grid(dst))
+    assert right == cached  # a cached grid gives the same score
+    assert right > 0.6 and wrong < right - 0.2
+    assert screen_alignment(src[:1], dsrc[:1], dst, ddst) == 0.0  # degenerate input scores 0, never raises

@@ -68,6 +68,7 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         candidates=[CandidateResult(keyframe_id=c.keyframe_id, timestamp_us=c.timestamp_us, rank=c.rank,
                                     descriptor_distance=c.descriptor_distance, num_matches=c.num_matches,
                                     num_inliers=c.num_inliers, inlier_ratio=c.inlier_ratio,
+                                    screen_score=c.screen_score, reason=c.reason,
                                     relative_pose=Pose2D.from_array(c.T_keyframe_query)
                                     if c.T_keyframe_query is not None else None)
                     for c in result.candidates],

@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# Train every shipped model from a clean checkout, exactly as the committed weights were made
+# (docs/MODEL.md, "Shipped models"). The simulator renders the training splits into the cache first.
+#
+#   bash scripts/train_models.sh            # all six models, in dependency order
+#   bash scripts/train_models.sh our-1 our-3-boreas     # just these (stage 2 needs its stage-1 model)
+#
+# Step counts, not wall-clock budgets, end every run, so the same command gives the same weights on any
+# machine (1 torch thread, seed 0). On the 2-core CPU: stage 1 ~22 min, each stage 2 ~7 min when run alone.
+# Weights go to reradar_core/model/weights/ unless OUT_DIR is set; runs resume from their checkpoints
+# unless FRESH=1.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+export OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1
+
+STAGE1_STEPS=3000   # stage 1 (source domain, from random weights), lr 1e-3
+STAGE2_STEPS=800    # stage 2 (adaptation from a stage-1 model), lr 1e-4
+
+extra=()
+[[ -n "${OUT_DIR:-}" ]] && extra+=(--out-dir "$OUT_DIR")
+[[ "${FRESH:-0}" == "1" ]] && extra+=(--no-resume)
+if [[ -n "${OUT_DIR:-}" ]]; then init_dir="$OUT_DIR/"; else init_dir=""; fi
+init() { if [[ -n "$init_dir" ]]; then echo "${init_dir}$1.pt"; else echo "$1"; fi; }
+
+train_one() {
+  case "$1" in
+    our-1)
+      reradar train --name our-1 --split train-source --lr 1e-3 --steps "$STAGE1_STEPS" --minutes 600 "${extra[@]}" ;;
+    our-1-resnet)
+      reradar train --name our-1-resnet --backbone resnet --split train-source --lr 1e-3 \
+        --steps "$STAGE1_STEPS" --minutes 600 "${extra[@]}" ;;
+    our-3-boreas)
+      reradar train --name our-3-boreas --split train-target-boreas --init "$(init our-1)" --lr 1e-4 \
+        --steps "$STAGE2_STEPS" --minutes 600 "${extra[@]}" ;;
+    our-3-loop)
+      reradar train --name our-3-loop --split train-target-loop --init "$(init our-1)" --lr 1e-4 \
+        --steps "$STAGE2_STEPS" --minutes 600 "${extra[@]}" ;;
+    our-2-boreas)
+      reradar train --name our-2-boreas --split train-target-offroad --init "$(init our-1)" --lr 1e-4 \
+        --steps "$STAGE2_STEPS" --minutes 600 "${extra[@]}" ;;
+    our-3-boreas-resnet)
+      reradar train --name our-3-boreas-resnet --backbone resnet --split train-target-boreas \
+        --init "$(init our-1-resnet)" --lr 1e-4 --steps "$STAGE2_STEPS" --minutes 600 "${extra[@]}" ;;
+    *) echo "unknown model $1 (choose: our-1 our-1-resnet our-3-boreas our-3-loop our-2-boreas our-3-boreas-resnet)" >&2
+       exit 2 ;;
+  esac
+}
+
+models=("$@")
+[[ ${#models[@]} -eq 0 ]] && models=(our-1 our-1-resnet our-3-boreas our-3-loop our-2-boreas our-3-boreas-resnet)
+for m in "${models[@]}"; do
+  echo "== training $m"
+  train_one "$m"
+done
