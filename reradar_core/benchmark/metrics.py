@@ -15,6 +15,7 @@ import numpy as np
 from reradar_core.evaluation import (
     has_revisit,
     localization_errors,
+    localization_success,
     precision_recall_curve,
     retrieval_correct,
     summarize,
@@ -65,6 +66,7 @@ def summarise(out: QueryOutcome, query_poses: np.ndarray, db_poses: np.ndarray, 
 
     ``sr_rule``: ``pose`` (translation < R and rotation < 10 deg), ``heading`` (correct retrieval and
     rotation < 10 deg, the paper's rule for ReFeree) or ``none`` (SR, ê_r, ê_t not applicable).
+    ``wrong_pose_pct`` (``pose`` rule only): queries answered with a pose that misses the SR rule, percent.
     """
     m = summarize(query_poses, db_poses[out.retrieved, :2], out.distance, db_poses[:, :2], radius_m,
                   T_map_query_est=None if sr_rule == "none" else out.est_pose,
@@ -76,9 +78,15 @@ def summarise(out: QueryOutcome, query_poses: np.ndarray, db_poses: np.ndarray, 
     def val(v: float) -> float | None:
         return None if not np.isfinite(v) else float(v)
 
+    wrong = None
+    if sr_rule == "pose" and len(out.retrieved):
+        # answered with a pose (the method said "localized") that misses the SR rule: what a user must not get
+        answered = np.isfinite(out.est_pose[:, 0])
+        good = localization_success(out.trans_err_m, out.heading_err_deg, radius_m)
+        wrong = 100.0 * float(np.mean(answered & ~good))
     return {"recall@1": pct(m.recall_at_1), "f1max": pct(m.f1_max), "sr": pct(m.sr),
             "e_r_deg": val(m.e_r_deg), "e_t_m": val(m.e_t_m), "n_queries": int(m.n_queries),
-            "n_with_revisit": int(np.count_nonzero(out.positive))}
+            "n_with_revisit": int(np.count_nonzero(out.positive)), "wrong_pose_pct": wrong}
 
 
 def pr_curve(distance: np.ndarray, correct: np.ndarray, positive: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

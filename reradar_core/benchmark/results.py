@@ -67,6 +67,14 @@ def results_markdown(results: dict[str, Any]) -> str:
         lines.append(f"| {m} | " + " | ".join(_fmt(rows.get(m, {}).get("ms_per_query"), "{:.1f}")
                                              for rows in seqs.values()) + " |")
     lines.append("")
+    posed = [m for m in methods if any(rows.get(m, {}).get("wrong_pose_pct") is not None for rows in seqs.values())]
+    if posed:
+        lines += ["Wrong poses (% of queries answered `localized` with a pose that misses the SR rule; methods "
+                  "that report a full pose):", "", "| Method | " + " | ".join(seqs) + " |", "|" + "---|" * (1 + len(seqs))]
+        for m in posed:
+            lines.append(f"| {m} | " + " | ".join(_fmt(rows.get(m, {}).get("wrong_pose_pct"), "{:.2f}")
+                                                 for rows in seqs.values()) + " |")
+        lines.append("")
     stress = results.get("rotation_stress")
     if stress:
         lines += ["### Rotation stress (random heading offset added to every query scan)", ""]

@@ -46,7 +46,7 @@ class Settings(BaseSettings):
         "Default number of retrieved candidates; all are screened by landmark alignment and the best "
         "`verify_k` get the full pose estimate."))
     verify_k: int = Field(default=3, ge=1, le=100, description="Screened candidates verified in full.")
-    min_inliers: int = Field(default=12, ge=2, description="Inliers (aligned query landmarks) needed to report `localized`; at least 40 % of the query's landmarks must align too.")
+    min_inliers: int = Field(default=12, ge=2, description="Inliers (aligned query landmarks) needed to report `localized`; at least 50 % of the query's landmarks must align too.")
     index_kind: Literal["auto", "flat", "hnsw", "ivf"] = Field(default="auto", description="FAISS index type.")
     index_exact_max_size: int = Field(default=20_000, ge=0, description="`auto` uses exact search up to this size.")
     torch_threads: int = Field(default=1, ge=1, description=(

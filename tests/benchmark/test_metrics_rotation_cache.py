@@ -28,6 +28,7 @@ def test_summary_known_answer_for_pose_methods():
     assert s["e_r_deg"] == pytest.approx(1.0)
     # threshold at 0.3 accepts three queries, all correct; the wrong one (0.9) is rejected -> P=1, R=3/4
     assert s["f1max"] == pytest.approx(100 * 2 * 0.75 / 1.75)
+    assert s["wrong_pose_pct"] == pytest.approx(25.0)  # the last query was answered with a 20-deg-off pose
 
 
 def test_summary_heading_rule_and_not_applicable():
@@ -38,7 +39,7 @@ def test_summary_heading_rule_and_not_applicable():
     s = summarise(out, QUERY, DB, 20.0, "heading")
     assert s["sr"] == pytest.approx(50.0)  # queries 0, 1 (query 2 wrong place, query 3 rotation 12 deg)
     assert s["e_r_deg"] == pytest.approx(2.0)
-    assert s["e_t_m"] is None
+    assert s["e_t_m"] is None and s["wrong_pose_pct"] is None
     s2 = summarise(make_outcome(retrieved, np.zeros(4), np.full((4, 3), np.nan), QUERY, DB, 20.0, "none"),
                    QUERY, DB, 20.0, "none")
     assert s2["sr"] is None and s2["e_r_deg"] is None and s2["recall@1"] == pytest.approx(75.0)
