@@ -34,6 +34,14 @@ def _cached(spec: SeqSpec, width_px: int, resolution_m: float, progress: bool):
     return seq.fraction(spec.start, spec.stop)
 
 
+def _command_line() -> str:
+    """This process's command line, with the console script named as a user types it (``reradar ...``)."""
+    argv = list(sys.argv)
+    if argv and Path(argv[0]).name == "reradar":
+        argv[0] = "reradar"
+    return " ".join(shlex.quote(a) for a in argv)
+
+
 def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpec, SeqSpec]], *,
                backbone: str = "reresnet",
                width: float = 0.25, clusters: int = 32, dim: int | None = 256, init: str | None = None,
@@ -85,7 +93,7 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
         "training_data": {"sequences": [_desc(s) for s in sequences], "num_scans": sum(len(s) for s in train),
                           "validation": [[_desc(a), _desc(b)] for a, b in val_pairs]},
         "init": init,
-        "command": command if command is not None else " ".join(shlex.quote(a) for a in sys.argv),
+        "command": command if command is not None else _command_line(),
         "cache_time_s": round(cache_s, 1),
         "torch_threads": threads,
         **summary,
