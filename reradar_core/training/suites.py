@@ -76,12 +76,13 @@ def suite_training_data(split: str, holdout: float = 0.15, progress: bool = True
     bench = build_suite(TRAINING_SPLITS[split], progress=progress)
     g = f"world:{bench.name}"
     cut = 1.0 - holdout
-    own = data.training[0]
+    own = sorted(data.training)
     db = bench.database[0]
-    plan.train = [SeqSpec(own, g, 0.0, cut), SeqSpec(db, g, 0.0, cut)]
-    plan.val = [(SeqSpec(db, g, cut, 1.0), SeqSpec(own, g, cut, 1.0))]
+    plan.train = [SeqSpec(t, g, 0.0, cut) for t in own] + [SeqSpec(db, g, 0.0, cut)]
+    plan.val = [(SeqSpec(db, g, cut, 1.0), SeqSpec(t, g, cut, 1.0)) for t in own]
     plan.radius_m = bench.radius_m
-    plan.note = (f"stage 2 target domain {bench.name}: {own.name} + the map sequence {db.name} (first "
-                 f"{cut:.0%} of both); validation on the held-out last {holdout:.0%} (map tail vs {own.name} tail); "
-                 "query sequences never used")
+    names = ", ".join(t.name for t in own)
+    plan.note = (f"stage 2 target domain {bench.name}: {names} + the map sequence {db.name} (first "
+                 f"{cut:.0%} of each); validation on the held-out last {holdout:.0%} (map tail vs each "
+                 "traversal's tail); query sequences never used")
     return plan
