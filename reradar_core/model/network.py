@@ -160,7 +160,7 @@ class DescriptorNet(nn.Module):
         w = comps * scale[:, None]
         if n < d:
             g = torch.Generator().manual_seed(0)
-            extra = torch.randn(d - n, v.shape[1], generator=g, dtype=torch.float64)
+            extra = torch.randn(d - n, v.shape[1], generator=g, dtype=torch.float64).to(v.device)
             extra -= extra @ comps.T @ comps
             extra = F.normalize(extra, dim=1) * scale[-1]
             w = torch.cat([w, extra], dim=0)

@@ -46,7 +46,8 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
                backbone: str = "reresnet",
                width: float = 0.25, clusters: int = 32, dim: int | None = 256, init: str | None = None,
                lr: float | None = None, steps: int = 1500, minutes: float = 60.0, seed: int = 0,
-               threads: int = 1, out_dir: Path | None = None, run_dir: Path | None = None, resume: bool = True,
+               threads: int = 1, device: str = "auto", out_dir: Path | None = None, run_dir: Path | None = None,
+               resume: bool = True,
                data_note: str = "", progress: bool = True, command: str | None = None, **train_kwargs) -> Path:
     """Train (or adapt, with ``init``) a model and write ``<out_dir>/<name>.pt`` + ``.json``; returns the path."""
     import torch
@@ -72,7 +73,7 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
     if lr is None:
         lr = 1e-5 if init is not None else 1e-4  # paper: 1e-4 from scratch, 1e-5 when adapting
     cfg = TrainConfig(model=model, lr=lr, max_steps=steps, max_minutes=minutes, seed=seed, num_threads=threads,
-                      **train_kwargs)
+                      device=device, **train_kwargs)
     t0 = time.monotonic()
     w = model.cartesian_width_px
     res = model.cartesian_resolution_m
@@ -96,6 +97,7 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
         "command": command if command is not None else _command_line(),
         "cache_time_s": round(cache_s, 1),
         "torch_threads": threads,
+        "device": str(trainer.device),
         **summary,
     }
     train_state = trainable_state(trainer.net) if model.backbone == "reresnet" else None
@@ -123,6 +125,7 @@ def register(app: typer.Typer) -> None:
         minutes: float = typer.Option(60.0, help="Wall-clock budget in minutes."),
         seed: int = typer.Option(0, help="Random seed (sampling, augmentation, initialisation)."),
         threads: int = typer.Option(1, help="torch CPU threads (1 is fastest on a busy shared CPU)."),
+        device: str = typer.Option("auto", help="auto (CUDA GPU when available, else CPU), cpu or cuda."),
         out_dir: Path | None = typer.Option(None, help="Where to write the weights (default: the package)."),
         no_resume: bool = typer.Option(False, "--no-resume", help="Ignore an existing checkpoint."),
     ) -> None:
@@ -146,7 +149,7 @@ def register(app: typer.Typer) -> None:
         try:
             path = train_main(name, seqs, vals, backbone=backbone, width=width, clusters=clusters,
                               dim=dim or None, init=init, lr=lr, steps=steps, minutes=minutes, seed=seed,
-                              threads=threads, out_dir=out_dir, run_dir=None, resume=not no_resume,
+                              threads=threads, device=device, out_dir=out_dir, run_dir=None, resume=not no_resume,
                               data_note=note, **extra)
         except ConfigError as exc:
             typer.echo(f"error: {exc}", err=True)

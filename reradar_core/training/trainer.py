@@ -44,6 +44,8 @@ class TrainConfig:
         yaw_augment: random heading in [0, 2 pi) per image; trans_augment_m: uniform shift in [-t, t] m.
         max_steps / max_minutes: stop at whichever comes first.
         val_every / checkpoint_every: in steps. recall_radius_m: a retrieval is correct within this distance.
+        device: ``auto`` (CUDA when available, else CPU), ``cpu`` or ``cuda``. On CUDA the same seed gives
+            close but not bit-identical weights (cuDNN kernels are not deterministic).
         num_threads: torch CPU threads. Default 1: on the shared 2-core machine two threads ran 3-6x slower
             per step than one whenever other processes competed for the cores (OpenMP threads waiting on
             each other), while on an idle machine two threads gain only ~1.6x.
@@ -69,6 +71,7 @@ class TrainConfig:
     whiten_images: int = 192
     seed: int = 0
     num_threads: int = 1
+    device: str = "auto"
 
     @property
     def batch_pairs(self) -> int:
@@ -99,6 +102,21 @@ def load_trainable_state(net: torch.nn.Module, state: dict[str, torch.Tensor]) -
     mode = net.training
     net.train(True)  # e2cnn recomputes its cached expanded filters on the next switch to eval mode
     net.train(mode)
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> CUDA when available else CPU; ``cpu``; ``cuda`` (ConfigError when CUDA is missing)."""
+    key = name.strip().lower()
+    if key == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if key == "cpu":
+        return torch.device("cpu")
+    if key.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device {name!r} requested but this torch build sees no CUDA GPU "
+                              f"(torch {torch.__version__}); use --device cpu or auto")
+        return torch.device(key)
+    raise ConfigError(f"unknown device {name!r}; choose auto, cpu or cuda")
 
 
 def recall_at_1_from_descriptors(db_desc: np.ndarray, db_xy: np.ndarray, q_desc: np.ndarray,
@@ -135,10 +153,12 @@ class Trainer:
         self.val_pairs = val_pairs or []
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.progress = progress
+        self.device = resolve_device(config.device)
         self.net: DescriptorNet = build_training_net(config.model)
         self.adapted = init_state is not None
         if init_state is not None:
             load_trainable_state(self.net, init_state)
+        self.net.to(self.device)
         self.opt = torch.optim.AdamW(self.net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
         self.step = 0
         self.elapsed_s = 0.0
@@ -158,7 +178,7 @@ class Trainer:
             else:
                 T = np.zeros(3)
             out[k, 0] = self.data.view(int(it), w, T)
-        return torch.from_numpy(out)
+        return torch.from_numpy(out).to(self.device)
 
     @torch.no_grad()
     def initialise_heads(self) -> None:
@@ -174,11 +194,11 @@ class Trainer:
             f = self.net.backbone(self._views(chunk, rng))
             f = torch.nn.functional.normalize(f, dim=1)
             feats.append(f.permute(0, 2, 3, 1).reshape(-1, f.shape[1]))
-        x = torch.cat(feats).numpy().astype(np.float32)
+        x = torch.cat(feats).cpu().numpy().astype(np.float32)
         x = x[rng.choice(len(x), size=min(len(x), 50_000), replace=False)]
         km = faiss.Kmeans(x.shape[1], c.model.num_clusters, niter=25, seed=c.seed, verbose=False)
         km.train(np.ascontiguousarray(x))
-        self.net.netvlad.init_from_centroids(torch.from_numpy(km.centroids))
+        self.net.netvlad.init_from_centroids(torch.from_numpy(km.centroids).to(self.device))
         if self.net.proj is not None:
             items = rng.choice(len(self.data), size=min(c.whiten_images, len(self.data)), replace=False)
             vl = [self.net.netvlad(self.net.backbone(self._views(ch, rng)))
@@ -206,11 +226,12 @@ class Trainer:
                     s = seq.images.shape[1]
                     o = (s - w) // 2
                     x = torch.from_numpy(np.asarray(seq.images[chunk, o:o + w, o:o + w], np.float32))[:, None]
+                    x = x.to(self.device)
                     fmap = self.net.backbone(x)
                     v = self.net.netvlad(fmap)
                     g = torch.nn.functional.normalize(self.net.proj(v), dim=1) if self.net.proj is not None else v
-                    g_all.append(g.numpy())
-                    v_all.append(v.numpy())
+                    g_all.append(g.cpu().numpy())
+                    v_all.append(v.cpu().numpy())
                 res.append((np.concatenate(g_all), np.concatenate(v_all), seq.poses[idx, :2]))
             (gd, vd, xd), (gq, vq, xq) = res
             r, n = recall_at_1_from_descriptors(gd, xd, gq, xq, c.recall_radius_m)
@@ -307,4 +328,5 @@ class Trainer:
                    "val_recall_at_1": final.get("r1"), "val_recall_at_1_raw_netvlad": final.get("r1_raw"),
                    "val_queries": final.get("val_queries"), "history": self.history,
                    "train_config": c.to_dict(), "adapted": self.adapted}
+        self.net.to("cpu")  # shipped weights and the e2cnn export live on the CPU
         return export_plain(self.net), summary

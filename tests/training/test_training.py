@@ -162,3 +162,32 @@ def test_train_main_writes_loadable_weights_and_adapts_from_them(tmp_path):
     path2 = train_main("tiny-adapted", specs, [], run_dir=tmp_path / "run2", init=str(path), **kw)
     ex2 = DescriptorExtractor.from_file(path2)
     assert ex2.metadata["init"] == str(path) and ex2.metadata["train_config"]["lr"] == pytest.approx(1e-5)
+
+
+def test_device_resolution_and_clear_error_without_cuda():
+    from reradar_core.errors import ConfigError
+    from reradar_core.training.trainer import resolve_device
+
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(ConfigError, match="unknown device"):
+        resolve_device("tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="no CUDA GPU"):
+            resolve_device("cuda")
+        with pytest.raises(ConfigError, match="no CUDA GPU"):
+            Trainer(_tiny_config(device="cuda"), _fake_sequences(side=61, n=60), progress=False)
+
+
+def test_two_identical_runs_give_identical_weights(tmp_path):
+    """Same command, same weights (CPU): the claim `reradar train` reproduces the shipped weights rests on it."""
+    seqs = _fake_sequences(side=61, n=60)
+    val = [(seqs[0], seqs[1])]
+    runs = [Trainer(_tiny_config(max_steps=3, device="cpu"), seqs, val, run_dir=tmp_path / name, progress=False).run()
+            for name in ("a", "b")]
+    (net_a, sum_a), (net_b, sum_b) = runs
+    sa, sb = net_a.state_dict(), net_b.state_dict()
+    assert sa.keys() == sb.keys()
+    for k in sa:
+        assert torch.equal(sa[k], sb[k]), k
+    assert sum_a["history"][-1]["loss"] == sum_b["history"][-1]["loss"]
