@@ -86,26 +86,33 @@ class MapDatabase:
 
     def localize(self, query: ScanFeatures,
                  config: LocalizationConfig | None = None) -> tuple[list[Retrieval], LocalizationResult]:
-        """Retrieve ``config.top_k`` candidates, verify them and return (retrievals, result).
+        """Retrieve ``config.num_to_retrieve`` candidates, screen / verify them and return (the retrievals that
+        were screened, result).
 
         ``result.timings_ms`` gains ``retrieve_ms`` (FAISS search) and ``read_ms`` (keyframe reads from disk and
         landmark grids, both cached per keyframe).
         """
         config = config or LocalizationConfig()
         t0 = time.perf_counter()
-        retrievals = self.retrieve(query.global_descriptor, config.top_k)
+        retrievals = self.retrieve(query.global_descriptor, config.num_to_retrieve)
         t1 = time.perf_counter()
         wanted = retrievals if config.rerank else retrievals[:1]
-        candidates = []
-        for r in wanted:
-            features, grid = self._keyframe(r.keyframe_id)
-            candidates.append(Candidate(r.keyframe_id, r.T_map_keyframe, features, r.descriptor_distance, r.rank,
-                                        grid))
-        t2 = time.perf_counter()
+        read_s = [0.0]
+
+        def loader(keyframe_id: int):  # features + grid from the LRU cache, read on first use only
+            def load() -> tuple[ScanFeatures, LandmarkGrid]:
+                t = time.perf_counter()
+                out = self._keyframe(keyframe_id)
+                read_s[0] += time.perf_counter() - t
+                return out
+            return load
+
+        candidates = [Candidate(r.keyframe_id, r.T_map_keyframe, None, r.descriptor_distance, r.rank,
+                                loader=loader(r.keyframe_id)) for r in wanted]
         result = localize(query, candidates, config)
         result.timings_ms["retrieve_ms"] = (t1 - t0) * 1e3
-        result.timings_ms["read_ms"] = (t2 - t1) * 1e3
-        return retrievals, result
+        result.timings_ms["read_ms"] = read_s[0] * 1e3
+        return retrievals[: max(len(result.candidates), 1)], result
 
     def _load_keyframe(self, keyframe_id: int) -> tuple[ScanFeatures, LandmarkGrid]:
         features = self.map.read_keyframe(keyframe_id)

@@ -1,8 +1,9 @@
 """ReRadar itself behind the baseline interface: learned global descriptor + landmark pose verification.
 
 Retrieval: Euclidean distance between unit global descriptors (``DescriptorExtractor``); localization: the
-top-k candidates go through ``reradar_core.localization.localize`` (landmark-alignment screen of the top 20, full
-guided pose estimation of the best 3, re-ranking by inliers), which gives the answer keyframe and ``T_map_query``.
+top-k candidates go through ``reradar_core.localization.localize`` (landmark-alignment screen of the top 20, and
+of up to 60 when none aligns well, full guided pose estimation of the best 3, re-ranking by inliers), which
+gives the answer keyframe and ``T_map_query``.
 Model names come from ``reradar_core.model.available_models()`` (e.g. ``default``, ``our-1``, ``our-3-...``).
 """
 
@@ -92,14 +93,19 @@ class Ours(PlaceRecognitionMethod):
         if self._grids_of != id(db_prepared):  # as the service does: each keyframe's grid is built once
             self._grids, self._grids_of = {}, id(db_prepared)
         d = self.distance(q_desc, index)
-        order = np.argsort(d, kind="stable")[: self.localization.top_k]
-        cands = []
-        for rank, j in enumerate(order):
-            feats = prepared_to_features(db_prepared[j])
-            if int(j) not in self._grids:
-                self._grids[int(j)] = build_landmark_grid(feats.keypoints_xy_m, self.localization.alignment.grid_cell_m)
-            cands.append(Candidate(int(j), np.asarray(db_poses[j], np.float64), feats, float(d[j]), rank,
-                                   self._grids[int(j)]))
+        order = np.argsort(d, kind="stable")[: self.localization.num_to_retrieve]
+        cell_m = self.localization.alignment.grid_cell_m
+
+        def loader(j: int):  # features + grid on first use (most retrieved candidates are never screened)
+            def load():
+                feats = prepared_to_features(db_prepared[j])
+                if j not in self._grids:
+                    self._grids[j] = build_landmark_grid(feats.keypoints_xy_m, cell_m)
+                return feats, self._grids[j]
+            return load
+
+        cands = [Candidate(int(j), np.asarray(db_poses[j], np.float64), None, float(d[j]), rank, loader=loader(int(j)))
+                 for rank, j in enumerate(order)]
         res = localize(prepared_to_features(q_prepared), cands, self.localization)
         j = int(res.best.keyframe_id) if res.best is not None else int(order[0])
         if res.localized and res.T_map_query is not None:

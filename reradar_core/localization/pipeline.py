@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
@@ -67,6 +68,12 @@ class LocalizationConfig:
             (5 verified in full), 0.61 with 20 screened / 3 verified and 0.69 with 40 / 3 - the landmark
             alignment ranks places far better than the global descriptor alone (docs/BENCHMARKS.md).
         verify_k: screened candidates verified in full by the ``guided`` estimator (default 3).
+        max_candidates / expand_below_screen_score: ``guided`` only: while no screened candidate aligns at
+            least ``expand_below_screen_score`` (0.6) of the query's landmarks, the next ``top_k`` retrieved
+            candidates are screened too, up to ``max_candidates`` (60; callers retrieve that many, features are
+            loaded lazily). Confident queries stop after ``top_k``; on offroad-sim every query the default
+            settings missed had its right keyframe at retrieval rank 21-56 and a best screen score <= 0.59.
+            ``max_candidates <= top_k`` disables the expansion.
         min_inliers: RANSAC inliers the best candidate needs to count as localized. Random
             correspondences between unrelated scans rarely agree on more than a handful of points under a
             2 m threshold, so 12 rejects unknown places while real revisits have tens of inliers.
@@ -91,6 +98,8 @@ class LocalizationConfig:
 
     top_k: int = 20
     verify_k: int = 3
+    max_candidates: int = 60
+    expand_below_screen_score: float = 0.6
     min_inliers: int = 12
     min_inlier_ratio: float | None = None
     match_ratio: float | None = None
@@ -98,6 +107,14 @@ class LocalizationConfig:
     pose_method: PoseMethod = "guided"
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     ransac: RansacConfig = field(default_factory=RansacConfig)
+
+    @property
+    def num_to_retrieve(self) -> int:
+        """How many keyframes a caller should retrieve: ``max_candidates`` for ``guided`` (the expansion may
+        screen that many), else ``top_k``."""
+        if self.pose_method == "guided" and self.rerank:
+            return max(self.top_k, self.max_candidates)
+        return self.top_k
 
     @property
     def effective_min_inlier_ratio(self) -> float:
@@ -109,6 +126,9 @@ class LocalizationConfig:
     def __post_init__(self) -> None:
         if self.top_k < 1 or self.verify_k < 1:
             raise ConfigError(f"top_k and verify_k must be >= 1, got {self.top_k} and {self.verify_k}")
+        if self.max_candidates < 1 or not 0.0 <= self.expand_below_screen_score <= 1.0:
+            raise ConfigError("max_candidates must be >= 1 and expand_below_screen_score in [0, 1], got "
+                              f"{self.max_candidates} and {self.expand_below_screen_score}")
         if self.min_inliers < 2:
             raise ConfigError(f"min_inliers must be >= 2 (a 2-D rigid fit needs two points), got {self.min_inliers}")
         if self.min_inlier_ratio is not None and not 0.0 <= self.min_inlier_ratio <= 1.0:
@@ -129,14 +149,26 @@ class Candidate:
         rank: 0-based position in the retrieval list.
         landmark_grid: ``build_landmark_grid(features.keypoints_xy_m)`` when the caller caches it per keyframe
             (built on the fly otherwise).
+        loader: instead of ``features`` (None): returns (features, landmark grid or None) when the candidate is
+            first needed, so retrieving many candidates costs nothing for those never screened.
     """
 
     keyframe_id: int
     T_map_keyframe: np.ndarray
-    features: ScanFeatures
+    features: ScanFeatures | None
     descriptor_distance: float
     rank: int
     landmark_grid: LandmarkGrid | None = None
+    loader: Callable[[], tuple[ScanFeatures, LandmarkGrid | None]] | None = None
+
+    def resolve(self) -> ScanFeatures:
+        """The keyframe's features, loading them (and the grid) through ``loader`` on first use."""
+        if self.features is None:
+            if self.loader is None:
+                raise ConfigError(f"candidate keyframe {self.keyframe_id} has neither features nor a loader")
+            self.features, grid = self.loader()
+            self.landmark_grid = self.landmark_grid if grid is None else grid
+        return self.features
 
 
 @dataclass
@@ -176,7 +208,7 @@ class LocalizationResult:
         best: the chosen candidate's verification (the best one tried even when not localized; None when
             there was no candidate).
         T_map_query: (3,) float64 absolute pose (x m, y m, yaw rad) when localized, else None.
-        candidates: every candidate in retrieval order (screened-out ones with reason ``screened_out``).
+        candidates: every screened candidate in retrieval order (not verified in full: reason ``screened_out``).
         timings_ms: stage timings (``screen_ms``, ``pose_ms`` or ``match_ms`` + ``ransac_ms``, ``verify_ms``
             = all of it), milliseconds.
     """
@@ -196,7 +228,7 @@ class LocalizationResult:
 def verify_candidate(query: ScanFeatures, candidate: Candidate, config: LocalizationConfig,
                      timings_ms: dict[str, float] | None = None) -> CandidateVerification:
     """Estimate ``T_keyframe_query`` for one candidate with ``config.pose_method``."""
-    kf = candidate.features
+    kf = candidate.resolve()
     base = dict(keyframe_id=candidate.keyframe_id, rank=candidate.rank,
                 descriptor_distance=float(candidate.descriptor_distance), timestamp_us=int(kf.timestamp_us),
                 T_map_keyframe=np.asarray(candidate.T_map_keyframe, np.float64))
@@ -240,7 +272,7 @@ def verify_candidate(query: ScanFeatures, candidate: Candidate, config: Localiza
 def _screened_out(candidate: Candidate) -> CandidateVerification:
     return CandidateVerification(keyframe_id=candidate.keyframe_id, rank=candidate.rank,
                                  descriptor_distance=float(candidate.descriptor_distance),
-                                 timestamp_us=int(candidate.features.timestamp_us),
+                                 timestamp_us=int(candidate.resolve().timestamp_us),
                                  T_map_keyframe=np.asarray(candidate.T_map_keyframe, np.float64), num_matches=0,
                                  num_inliers=0, inlier_ratio=0.0, T_keyframe_query=None, reason=REASON_SCREENED_OUT)
 
@@ -251,20 +283,30 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
 
     Args:
         query: the query scan's features.
-        candidates: retrieved keyframes, best retrieval first (``rank`` 0 first).
+        candidates: retrieved keyframes (``rank`` 0 = best); the first ``top_k`` are screened, more up to
+            ``max_candidates`` only when none of those aligns well (see ``LocalizationConfig``).
         config: settings; default ``LocalizationConfig()``.
     """
     config = config or LocalizationConfig()
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    ordered = sorted(candidates, key=lambda c: c.rank)[: config.top_k]
-    if not config.rerank:
-        ordered = ordered[:1]
+    pool = sorted(candidates, key=lambda c: c.rank)
+    ordered = pool[: config.top_k] if config.rerank else pool[:1]
     scores: dict[int, float] = {}
+
+    def screen(batch: list[Candidate]) -> None:
+        for c in batch:
+            f = c.resolve()
+            scores[c.rank] = screen_alignment(query.keypoints_xy_m, query.local_descriptors, f.keypoints_xy_m,
+                                              f.local_descriptors, config.alignment, c.landmark_grid)
+
     if config.pose_method == "guided" and len(ordered) > config.verify_k:
-        scores = {c.rank: screen_alignment(query.keypoints_xy_m, query.local_descriptors, c.features.keypoints_xy_m,
-                                           c.features.local_descriptors, config.alignment, c.landmark_grid)
-                  for c in ordered}
+        screen(ordered)
+        limit = min(len(pool), max(config.max_candidates, config.top_k))
+        while max(scores.values()) < config.expand_below_screen_score and len(ordered) < limit:
+            batch = pool[len(ordered): min(limit, len(ordered) + config.top_k)]
+            screen(batch)
+            ordered += batch
         timings["screen_ms"] = (time.perf_counter() - t0) * 1e3
         keep = {c.rank for c in sorted(ordered, key=lambda c: (-scores[c.rank], c.rank))[: config.verify_k]}
     else:

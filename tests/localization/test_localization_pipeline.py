@@ -132,3 +132,38 @@ def test_top_k_limits_verified_candidates() -> None:
 def test_config_validation(kwargs: dict) -> None:
     with pytest.raises(ConfigError):
         LocalizationConfig(**kwargs)
+
+
+def test_expansion_screens_further_only_when_no_candidate_aligns() -> None:
+    """True keyframe at rank 25: screening 10 finds nothing good, so the next blocks of 10 are screened (lazily
+    loaded); with the expansion disabled the query is not localized. A confident query loads only 10."""
+    rng = np.random.default_rng(7)
+    kfs = [_keyframe(rng, ts=i) for i in range(40)]
+    poses = np.column_stack([np.arange(40) * 50.0, np.zeros(40), np.zeros(40)])
+    T_kf_query = np.array([2.0, -1.0, np.deg2rad(60.0)])
+    query = _query_from(kfs[33], T_kf_query, rng)
+    order = [i for i in range(40) if i != 33]
+    order.insert(25, 33)
+    loaded: list[int] = []
+
+    def lazy(order_: list[int]) -> list[Candidate]:
+        def loader(i: int):
+            def load():
+                loaded.append(i)
+                return kfs[i], None
+            return load
+        return [Candidate(i, poses[i], None, 0.1 * r, r, loader=loader(i)) for r, i in enumerate(order_)]
+
+    cfg = LocalizationConfig(top_k=10, verify_k=2, max_candidates=40)
+    assert cfg.num_to_retrieve == 40
+    res = localize(query, lazy(order), cfg)
+    assert res.localized and res.best is not None and res.best.keyframe_id == 33 and res.best.rank == 25
+    assert len(res.candidates) == 30 and len(loaded) == 30  # three blocks of 10 screened, the rest never read
+    np.testing.assert_allclose(res.T_map_query[:2], compose(poses[33], T_kf_query)[:2], atol=0.15)
+
+    off = localize(query, lazy(order), LocalizationConfig(top_k=10, verify_k=2, max_candidates=10))
+    assert off.status == "not_localized" and len(off.candidates) == 10
+
+    loaded.clear()
+    confident = localize(query, lazy([33] + order[:25] + order[26:]), cfg)
+    assert confident.localized and confident.best.keyframe_id == 33 and len(loaded) == 10
