@@ -2,7 +2,8 @@
 
 Pipeline: the caller retrieves the top-k keyframes by global descriptor (``maps.database``). With the default
 ``guided`` pose method every candidate is first screened by a cheap landmark-alignment score
-(``screen_alignment``) and the best ``verify_k`` are verified in full (``estimate_pose_guided``); with
+(``screen_alignment``; further blocks of ``top_k`` up to ``max_candidates`` while none aligns well) and the best
+``verify_k`` are verified in full (``estimate_pose_guided``); with
 ``mutual_nn`` every candidate is verified by mutual-nearest-neighbour matching of local descriptors and a
 RANSAC 2-D rigid fit. The verified candidate with the most inliers wins (geometric re-ranking) and the
 absolute pose is ``T_map_query = compose(T_map_keyframe, T_keyframe_query)``. A query is reported ``localized`` only when

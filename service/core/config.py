@@ -46,6 +46,11 @@ class Settings(BaseSettings):
         "Default number of retrieved candidates; all are screened by landmark alignment and the best "
         "`verify_k` get the full pose estimate."))
     verify_k: int = Field(default=3, ge=1, le=100, description="Screened candidates verified in full.")
+    max_candidates: int = Field(default=60, ge=1, le=500, description=(
+        "When no screened candidate aligns `expand_below_screen_score` of the query's landmarks, the next "
+        "`top_k` retrieved keyframes are screened too, up to this many."))
+    expand_below_screen_score: float = Field(default=0.6, ge=0.0, le=1.0, description=(
+        "Screen score (fraction of query landmarks aligned) under which screening continues."))
     min_inliers: int = Field(default=12, ge=2, description="Inliers (aligned query landmarks) needed to report `localized`; at least 50 % of the query's landmarks must align too.")
     index_kind: Literal["auto", "flat", "hnsw", "ivf"] = Field(default="auto", description="FAISS index type.")
     index_exact_max_size: int = Field(default=20_000, ge=0, description="`auto` uses exact search up to this size.")

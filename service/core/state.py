@@ -38,6 +38,8 @@ class ServiceState:
 
     def localization_config(self, top_k: int | None = None) -> LocalizationConfig:
         return LocalizationConfig(top_k=top_k or self.settings.top_k, verify_k=self.settings.verify_k,
+                                  max_candidates=self.settings.max_candidates,
+                                  expand_below_screen_score=self.settings.expand_below_screen_score,
                                   min_inliers=self.settings.min_inliers)
 
     def describe_upload(self, data: bytes, filename: str, preset: str | None,
