@@ -65,8 +65,8 @@ class Ours(PlaceRecognitionMethod):
         self.model_name = model if isinstance(model, str) else str(getattr(model, "model_id", "custom"))
         self.name = name or ("ours" if self.model_name == "default" else f"ours-{self.model_name}")
         self.localization = localization or LocalizationConfig()
-        self._grids: dict[int, Any] = {}  # landmark grid per database index, for the current database
-        self._grids_of: int | None = None
+        self._keyframes: Any = None  # KeyframeCandidates of the current database (grids built once)
+        self._keyframes_of: int | None = None
 
     def params(self) -> dict[str, Any]:
         return {"model": str(getattr(self.extractor, "model_id", self.model_name)),
@@ -87,25 +87,15 @@ class Ours(PlaceRecognitionMethod):
 
     def localize(self, q_prepared: Prepared, q_desc: np.ndarray, index: Any,
                  db_prepared: Sequence[Prepared], db_poses: np.ndarray) -> Retrieval:
-        from reradar_core.localization import Candidate, localize
-        from reradar_core.matching import build_landmark_grid
+        from reradar_core.localization import KeyframeCandidates, localize
 
-        if self._grids_of != id(db_prepared):  # as the service does: each keyframe's grid is built once
-            self._grids, self._grids_of = {}, id(db_prepared)
+        if self._keyframes_of != id(db_prepared):  # as the service does: each keyframe's grid is built once
+            self._keyframes = KeyframeCandidates(lambda j: prepared_to_features(db_prepared[j]),
+                                                 self.localization.alignment.grid_cell_m)
+            self._keyframes_of = id(db_prepared)
         d = self.distance(q_desc, index)
         order = np.argsort(d, kind="stable")[: self.localization.num_to_retrieve]
-        cell_m = self.localization.alignment.grid_cell_m
-
-        def loader(j: int):  # features + grid on first use (most retrieved candidates are never screened)
-            def load():
-                feats = prepared_to_features(db_prepared[j])
-                if j not in self._grids:
-                    self._grids[j] = build_landmark_grid(feats.keypoints_xy_m, cell_m)
-                return feats, self._grids[j]
-            return load
-
-        cands = [Candidate(int(j), np.asarray(db_poses[j], np.float64), None, float(d[j]), rank, loader=loader(int(j)))
-                 for rank, j in enumerate(order)]
+        cands = [self._keyframes.candidate(int(j), db_poses[j], float(d[j]), rank) for rank, j in enumerate(order)]
         res = localize(prepared_to_features(q_prepared), cands, self.localization)
         j = int(res.best.keyframe_id) if res.best is not None else int(order[0])
         if res.localized and res.T_map_query is not None:

@@ -37,22 +37,14 @@ def stage_timings(extractor: Any, query_scans: Sequence[RadarScan], db_features:
     import faiss
 
     from reradar_core.landmarks import detect_landmarks
-    from reradar_core.localization import Candidate, LocalizationConfig, localize
-    from reradar_core.matching import build_landmark_grid
+    from reradar_core.localization import KeyframeCandidates, LocalizationConfig, localize
 
     cfg = localization or LocalizationConfig()
     db = np.ascontiguousarray(np.stack([f.global_descriptor for f in db_features]).astype(np.float32))
     index = faiss.IndexFlatIP(db.shape[1])
     index.add(db)
     k = min(cfg.num_to_retrieve, len(db_features))
-    grids: dict[int, Any] = {}  # per-keyframe landmark grids, built once as the service's map cache does
-
-    def loader(j: int):
-        def load():
-            if j not in grids:
-                grids[j] = build_landmark_grid(db_features[j].keypoints_xy_m, cfg.alignment.grid_cell_m)
-            return db_features[j], grids[j]
-        return load
+    keyframes = KeyframeCandidates(db_features.__getitem__, cfg.alignment.grid_cell_m)  # grids kept, as the service
 
     rows: list[list[float]] = []
     scans = list(query_scans[:warmup]) + list(query_scans)
@@ -66,7 +58,7 @@ def stage_timings(extractor: Any, query_scans: Sequence[RadarScan], db_features:
         t3 = time.perf_counter()
         lm = detect_landmarks(scan, extractor.landmark_config)
         feats = extractor._features(scan, g[0], fmap[0], lm)  # keypoints + local descriptors from F'
-        cands = [Candidate(int(j), db_poses[j], None, float(np.linalg.norm(db[j] - g[0])), r, loader=loader(int(j)))
+        cands = [keyframes.candidate(int(j), db_poses[j], float(np.linalg.norm(db[j] - g[0])), r)
                  for r, j in enumerate(idx[0]) if j >= 0]
         localize(feats, cands, cfg)
         t4 = time.perf_counter()

@@ -16,6 +16,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Literal
 
 import numpy as np
@@ -27,6 +28,7 @@ from reradar_core.matching import (
     AlignmentConfig,
     LandmarkGrid,
     RansacConfig,
+    build_landmark_grid,
     estimate_pose_guided,
     estimate_rigid_2d,
     match_descriptors,
@@ -36,6 +38,7 @@ from reradar_core.matching import (
 __all__ = [
     "LocalizationConfig",
     "Candidate",
+    "KeyframeCandidates",
     "CandidateVerification",
     "LocalizationResult",
     "verify_candidate",
@@ -268,6 +271,31 @@ def verify_candidate(query: ScanFeatures, candidate: Candidate, config: Localiza
         T_keyframe_query=np.asarray(est.pose, np.float64) if est.success else None,
         reason=None if est.success else (est.reason or REASON_TOO_FEW_INLIERS),
     )
+
+
+class KeyframeCandidates:
+    """Lazy ``Candidate`` s over keyframes held in memory, each keyframe's landmark grid built once and kept.
+
+    Args:
+        features_of: keyframe index -> its ``ScanFeatures``.
+        grid_cell_m: cell of the landmark grids (``AlignmentConfig.grid_cell_m``).
+    """
+
+    def __init__(self, features_of: Callable[[int], ScanFeatures], grid_cell_m: float) -> None:
+        self.features_of = features_of
+        self.grid_cell_m = grid_cell_m
+        self.grids: dict[int, LandmarkGrid] = {}
+
+    def load(self, keyframe_id: int) -> tuple[ScanFeatures, LandmarkGrid]:
+        features = self.features_of(keyframe_id)
+        if keyframe_id not in self.grids:
+            self.grids[keyframe_id] = build_landmark_grid(features.keypoints_xy_m, self.grid_cell_m)
+        return features, self.grids[keyframe_id]
+
+    def candidate(self, keyframe_id: int, T_map_keyframe: np.ndarray, descriptor_distance: float,
+                  rank: int) -> Candidate:
+        return Candidate(keyframe_id, np.asarray(T_map_keyframe, np.float64), None, float(descriptor_distance),
+                         rank, loader=partial(self.load, keyframe_id))
 
 
 def _screened_out(candidate: Candidate) -> CandidateVerification:
