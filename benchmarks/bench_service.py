@@ -4,6 +4,7 @@ resident memory per keyframe, and what geometric re-ranking adds over plain top-
 
     python benchmarks/bench_service.py --all              # everything (a few minutes on 2 cores)
     python benchmarks/bench_service.py --http --requests 100
+    python benchmarks/bench_service.py --http --http-map MAP.h5 --http-queries SEQ/radar   # a bigger map
     python benchmarks/bench_service.py --faiss --memory
     python benchmarks/bench_service.py --rerank --suite smoke
 
@@ -151,20 +152,32 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def bench_http(requests: int, warmup: int, threads: int) -> dict:
-    """Sequential POST /localize (inline PNG, multipart) against `reradar serve` in a subprocess."""
+def bench_http(requests: int, warmup: int, threads: int, map_path: Path | None = None,
+               queries_dir: Path | None = None) -> dict:
+    """Sequential POST /localize (inline PNG, multipart) against `reradar serve` in a subprocess.
+
+    Default: the demo map and its 8 queries. ``map_path`` + ``queries_dir``: another map (e.g. 560 keyframes
+    built with `reradar build-map`) and ``requests`` PNG scans evenly spread over a query folder.
+    """
     from maps.paths import DEMO_MAP_PATH, DEMO_QUERIES_DIR
     from service.client import ReRadarClient
     from service.demo import QUERIES_CSV, read_queries_csv
 
-    truth = read_queries_csv(DEMO_QUERIES_DIR / QUERIES_CSV)
-    blobs = [(q.file, (DEMO_QUERIES_DIR / q.file).read_bytes()) for q in truth]
+    if queries_dir is not None:
+        files = sorted(Path(queries_dir).glob("*.png"))
+        pick = np.unique(np.linspace(0, len(files) - 1, max(requests, warmup)).round().astype(int)) if files else []
+        blobs = [(files[i].name, files[i].read_bytes()) for i in pick]
+        if not blobs:
+            raise SystemExit(f"no .png scans in {queries_dir}")
+    else:
+        truth = read_queries_csv(DEMO_QUERIES_DIR / QUERIES_CSV)
+        blobs = [(q.file, (DEMO_QUERIES_DIR / q.file).read_bytes()) for q in truth]
     tmp = Path(tempfile.mkdtemp(prefix="reradar-bench-http-"))
     port = _free_port()
     env = dict(os.environ, RERADAR_MAPS_DIR=str(tmp / "maps"), RERADAR_LOAD_DEMO_MAP="false",
                RERADAR_TORCH_THREADS=str(threads))
     (tmp / "maps").mkdir()
-    shutil.copyfile(DEMO_MAP_PATH, tmp / "maps" / "demo.h5")
+    shutil.copyfile(map_path or DEMO_MAP_PATH, tmp / "maps" / "demo.h5")
     log = open(tmp / "server.log", "w")
     proc = subprocess.Popen([sys.executable, "-m", "reradar_core.cli", "serve", "--port", str(port),
                              "--log-level", "warning"], env=env, stdout=log, stderr=subprocess.STDOUT)
@@ -196,6 +209,7 @@ def bench_http(requests: int, warmup: int, threads: int) -> dict:
             except (OSError, StopIteration):
                 pass
         return {
+            "map": str(map_path or DEMO_MAP_PATH), "queries": str(queries_dir or DEMO_QUERIES_DIR),
             "requests": requests, "torch_threads": threads, "statuses": statuses,
             "inline_p50_ms": _pct(lat, 50), "inline_p99_ms": _pct(lat, 99), "inline_mean_ms": float(np.mean(lat)),
             "by_scan_id_p50_ms": _pct(lat_ref, 50), "by_scan_id_p99_ms": _pct(lat_ref, 99),
@@ -288,6 +302,8 @@ def main() -> int:
     p.add_argument("--memory", action="store_true")
     p.add_argument("--rerank", action="store_true")
     p.add_argument("--requests", type=int, default=100)
+    p.add_argument("--http-map", type=Path, default=None, help="--http against this map instead of the demo map")
+    p.add_argument("--http-queries", type=Path, default=None, help="folder of query PNGs for --http-map")
     p.add_argument("--warmup", type=int, default=5)
     p.add_argument("--threads", type=int, default=1, help="torch threads of the service")
     p.add_argument("--keyframes", type=int, default=100_000)
@@ -309,7 +325,9 @@ def main() -> int:
     if args.all or args.memory:
         results["memory"] = bench_memory(args.keyframes, args.dim, args.local_dim, keypoints=8)
     if args.all or args.http:
-        results["http"] = bench_http(args.requests, args.warmup, args.threads)
+        if (args.http_map is None) != (args.http_queries is None):
+            p.error("--http-map and --http-queries go together")
+        results["http"] = bench_http(args.requests, args.warmup, args.threads, args.http_map, args.http_queries)
     if args.all or args.rerank:
         results["rerank"] = bench_rerank(args.suite, args.threads, args.top_k, args.ransac_threshold_m)
     results["load_avg_end"] = _load_avg()
