@@ -6,7 +6,6 @@ are read only for a query's top-k candidates.
 
 from __future__ import annotations
 
-import functools
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,8 +16,14 @@ from maps.index import GlobalIndex, IndexConfig, similarity_to_distance
 from maps.store import KeyframeMap, MapMetadata, open_map
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
-from reradar_core.localization import Candidate, LocalizationConfig, LocalizationResult, localize
-from reradar_core.matching import LandmarkGrid, build_landmark_grid
+from reradar_core.localization import (
+    Candidate,
+    KeyframeCandidates,
+    LocalizationConfig,
+    LocalizationResult,
+    localize,
+)
+from reradar_core.matching import AlignmentConfig, LandmarkGrid
 
 __all__ = ["Retrieval", "MapDatabase"]
 
@@ -49,7 +54,8 @@ class MapDatabase:
     def __init__(self, kf_map: KeyframeMap, index_config: IndexConfig = IndexConfig(),
                  keyframe_cache_size: int = 128) -> None:
         self.map = kf_map
-        self._keyframe = functools.lru_cache(maxsize=keyframe_cache_size)(self._load_keyframe)
+        self._keyframes = KeyframeCandidates(kf_map.read_keyframe, AlignmentConfig().grid_cell_m,
+                                             max_cached=keyframe_cache_size)
         if kf_map.global_descriptors is None:
             raise ConfigError(f"{kf_map.path}: global descriptors were released; reopen the map")
         self.index = GlobalIndex(kf_map.global_descriptors, index_config)
@@ -102,7 +108,7 @@ class MapDatabase:
         def loader(keyframe_id: int):  # features + grid from the LRU cache, read on first use only
             def load() -> tuple[ScanFeatures, LandmarkGrid]:
                 t = time.perf_counter()
-                out = self._keyframe(keyframe_id)
+                out = self._keyframes.load(keyframe_id)
                 read_s[0] += time.perf_counter() - t
                 return out
             return load
@@ -114,10 +120,6 @@ class MapDatabase:
         result.timings_ms["read_ms"] = read_s[0] * 1e3
         return retrievals[: max(len(result.candidates), 1)], result
 
-    def _load_keyframe(self, keyframe_id: int) -> tuple[ScanFeatures, LandmarkGrid]:
-        features = self.map.read_keyframe(keyframe_id)
-        return features, build_landmark_grid(features.keypoints_xy_m)
-
     def close(self) -> None:
-        self._keyframe.cache_clear()
+        self._keyframes.clear()
         self.map.close()

@@ -16,7 +16,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from functools import partial
+from functools import lru_cache, partial
 from typing import Literal
 
 import numpy as np
@@ -274,23 +274,27 @@ def verify_candidate(query: ScanFeatures, candidate: Candidate, config: Localiza
 
 
 class KeyframeCandidates:
-    """Lazy ``Candidate`` s over keyframes held in memory, each keyframe's landmark grid built once and kept.
+    """Lazy ``Candidate`` s over a map's keyframes; each keyframe's features and landmark grid are loaded once
+    and kept (thread-safe LRU).
 
     Args:
-        features_of: keyframe index -> its ``ScanFeatures``.
+        features_of: keyframe index -> its ``ScanFeatures`` (e.g. a read from the map file).
         grid_cell_m: cell of the landmark grids (``AlignmentConfig.grid_cell_m``).
+        max_cached: keyframes kept (least recently used dropped first); None = all.
     """
 
-    def __init__(self, features_of: Callable[[int], ScanFeatures], grid_cell_m: float) -> None:
+    def __init__(self, features_of: Callable[[int], ScanFeatures], grid_cell_m: float,
+                 max_cached: int | None = None) -> None:
         self.features_of = features_of
         self.grid_cell_m = grid_cell_m
-        self.grids: dict[int, LandmarkGrid] = {}
+        self.load: Callable[[int], tuple[ScanFeatures, LandmarkGrid]] = lru_cache(maxsize=max_cached)(self._load)
 
-    def load(self, keyframe_id: int) -> tuple[ScanFeatures, LandmarkGrid]:
+    def _load(self, keyframe_id: int) -> tuple[ScanFeatures, LandmarkGrid]:
         features = self.features_of(keyframe_id)
-        if keyframe_id not in self.grids:
-            self.grids[keyframe_id] = build_landmark_grid(features.keypoints_xy_m, self.grid_cell_m)
-        return features, self.grids[keyframe_id]
+        return features, build_landmark_grid(features.keypoints_xy_m, self.grid_cell_m)
+
+    def clear(self) -> None:
+        self.load.cache_clear()  # type: ignore[attr-defined]
 
     def candidate(self, keyframe_id: int, T_map_keyframe: np.ndarray, descriptor_distance: float,
                   rank: int) -> Candidate:
@@ -331,7 +335,7 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
 
     if config.pose_method == "guided" and len(ordered) > config.verify_k:
         screen(ordered)
-        limit = min(len(pool), max(config.max_candidates, config.top_k))
+        limit = min(len(pool), config.num_to_retrieve)
         while max(scores.values()) < config.expand_below_screen_score and len(ordered) < limit:
             batch = pool[len(ordered): min(limit, len(ordered) + config.top_k)]
             screen(batch)
