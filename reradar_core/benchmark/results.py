@@ -68,11 +68,14 @@ def results_markdown(results: dict[str, Any]) -> str:
                  "rotation < 10°); ê_r, ê_t over successes; F1max by the RaPlace protocol over all queries; "
                  "– = not applicable; ms/query = features + retrieval (+ verification) per query on this machine.")
     lines.append("")
-    split = settings.get("split")
-    if split:
-        lines.append(f"Single-session split: `{split.get('sequence')}` at {split.get('spec')} — database = scans "
-                     f"before scan index {split.get('index')}, queries = scans from it on (before subsampling).")
-        lines.append("")
+    for name, p in settings.get("pairs", {}).items():
+        split = p.get("split")
+        if split:
+            lines.append(f"Single-session split `{name}`: sequence `{split.get('sequence')}` ({split.get('n_scans')} "
+                         f"scans) cut at `--split-at {split.get('spec')}` = scan index {split.get('index')} "
+                         f"(timestamp {split.get('timestamp_us')} µs): database = scans before it, queries = "
+                         "scans from it on (indices before subsampling).")
+            lines.append("")
     if settings.get("every_note"):
         lines.append(f"Frame spacing: {settings['every_note']}.")
         lines.append("")
@@ -131,7 +134,8 @@ def results_markdown(results: dict[str, Any]) -> str:
         lines.append("")
     stress = results.get("rotation_stress")
     if stress:
-        lines += ["### Rotation stress (random heading offset added to every query scan)", ""]
+        lines += ["### Rotation stress (random heading offset added to every query scan; Recall@1 over the "
+                  "revisit queries among them)", ""]
         seqs = list(stress)
         lines.append("| Method | " + " | ".join(f"{s}: Recall@1 → rotated (Δ points)" for s in seqs) + " |")
         lines.append("|" + "---|" * (len(seqs) + 1))
@@ -140,7 +144,7 @@ def results_markdown(results: dict[str, Any]) -> str:
             cells = []
             for s in seqs:
                 r = stress[s].get(m)
-                cells.append("–" if r is None else
+                cells.append("–" if r is None or r.get("drop") is None else
                              f"{r['recall@1']:.2f} → {r['recall@1_rotated']:.2f} (Δ {-r['drop']:+.2f})")
             lines.append(f"| {m} | " + " | ".join(cells) + " |")
         lines.append("")
