@@ -86,8 +86,8 @@ def results_markdown(results: dict[str, Any]) -> str:
         if p:
             row = next((r for r in seqs[seq].values() if "n_queries" in r), {})
             rev = row.get("n_revisit", row.get("n_with_revisit"))
-            kinds = (f": {rev} revisit queries, {p['n_query'] - rev} without a database keyframe within "
-                     f"{radius} m") if rev is not None else ""
+            kinds = (f": {rev} revisit {'query' if rev == 1 else 'queries'}, {p['n_query'] - rev} without a "
+                     f"database keyframe within {radius} m") if rev is not None else ""
             lines.append(f"- `{seq}`: {p['n_query']} queries{kinds}; database `{p['database']}` "
                          f"({p['n_database']} keyframes)")
     lines.append("")
