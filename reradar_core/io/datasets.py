@@ -293,7 +293,9 @@ def load_sequence(path: str | Path, layout: str | None = None,
         pose_file = root / "applanix" / "radar_poses.csv"
         if not pose_file.is_file():
             raise DatasetError(f"{root}: missing applanix/radar_poses.csv")
-        track = read_boreas_radar_poses(pose_file).sorted()
+        # our simulator writes GPSTime in µs, also for trajectories whose time starts at 0 (no magnitude rule
+        # can tell those apart); real files must hold absolute times or the reader refuses to guess
+        track = read_boreas_radar_poses(pose_file, "us" if meta else None).sorted()
     elif layout == "mulran":
         pose_file = root / "global_pose.csv"
         if not pose_file.is_file():
