@@ -9,7 +9,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.core.config import MAP_ID_PATTERN
+from service.core.ids import MAP_ID_PATTERN
 
 __all__ = [
     "ErrorResponse",

@@ -9,14 +9,18 @@ from typing import Literal
 from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from reradar_core.localization.pipeline import LocalizationConfig
+from service.core.ids import MAP_ID_PATTERN
+
 __all__ = ["Settings", "DEV_API_KEY", "MAP_ID_PATTERN"]
 
 #: API key accepted in ``development`` when none is configured; refused in ``production``.
 DEV_API_KEY = "reradar-dev-key"
 
-#: Map ids: lower-case letters, digits, ``_`` and ``-``; no dots or slashes, so an id can never escape
-#: the maps directory.
-MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,63}$"
+
+
+#: ``LocalizationConfig`` fields that were flat ``RERADAR_<FIELD>`` settings before they were nested.
+_RENAMED_LOCALIZATION_FIELDS = ("TOP_K", "VERIFY_K", "MAX_CANDIDATES", "EXPAND_BELOW_SCREEN_SCORE", "MIN_INLIERS")
 
 
 def _default_maps_dir() -> Path:
@@ -26,7 +30,7 @@ def _default_maps_dir() -> Path:
 class Settings(BaseSettings):
     """Service configuration. Every field can be set as ``RERADAR_<FIELD>`` (e.g. ``RERADAR_API_KEY``)."""
 
-    model_config = SettingsConfigDict(env_prefix="RERADAR_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="RERADAR_", extra="ignore", env_nested_delimiter="__")
 
     environment: Literal["development", "production"] = Field(
         default="development", description="`production` refuses the development API key.")
@@ -42,19 +46,13 @@ class Settings(BaseSettings):
     max_archive_scans: int = Field(default=20_000, gt=0, description="Most scans accepted in one scan archive.")
     scan_cache_size: int = Field(default=256, gt=0, description="Uploaded scans whose features are kept.")
     scan_cache_ttl_s: float = Field(default=600.0, gt=0, description="Seconds an uploaded scan's features are kept.")
-    top_k: int = Field(default=20, ge=1, le=100, description=(
-        "Default number of retrieved candidates; all are screened by landmark alignment and the best "
-        "`verify_k` get the full pose estimate."))
-    verify_k: int = Field(default=3, ge=1, le=100, description="Screened candidates verified in full.")
-    max_candidates: int = Field(default=60, ge=1, le=500, description=(
-        "When no screened candidate aligns `expand_below_screen_score` of the query's landmarks, the next "
-        "`top_k` retrieved keyframes are screened too, up to this many."))
-    expand_below_screen_score: float = Field(default=0.6, ge=0.0, le=1.0, description=(
-        "Screen score (fraction of query landmarks aligned) under which screening continues."))
+    localization: LocalizationConfig = Field(default_factory=LocalizationConfig, description=(
+        "Localization settings (`reradar_core.localization.LocalizationConfig`, defaults documented there); "
+        "each field is `RERADAR_LOCALIZATION__<FIELD>`, nested ones e.g. "
+        "`RERADAR_LOCALIZATION__ALIGNMENT__SCREEN_HYPOTHESES`. `top_k` is also the default of `retrieve`."))
     keyframe_cache_size: int = Field(default=128, ge=1, description=(
         "Keyframes per map whose features and landmark grid stay in memory (LRU, ~0.33 MB each). A cold "
         "keyframe costs ~1.3 ms per candidate; maps queried all over benefit from a cache as large as the map."))
-    min_inliers: int = Field(default=12, ge=2, description="Inliers (aligned query landmarks) needed to report `localized`; at least 50 % of the query's landmarks must align too.")
     index_kind: Literal["auto", "flat", "hnsw", "ivf"] = Field(default="auto", description="FAISS index type.")
     index_exact_max_size: int = Field(default=20_000, ge=0, description="`auto` uses exact search up to this size.")
     torch_threads: int = Field(default=1, ge=1, description=(
@@ -63,6 +61,15 @@ class Settings(BaseSettings):
         "pipeline (measured: network 28 ms with 1 thread vs 0.3-1.9 s with 2 on the loaded 2-core box)."))
     blas_threads: int = Field(default=1, ge=1, description="OpenBLAS threads of numpy, scipy and opencv (1: small products stay fast).")
     build_batch_size: int = Field(default=8, ge=1, description="Scans per network batch when building maps.")
+
+    @model_validator(mode="after")
+    def _refuse_renamed_localization_variables(self) -> Settings:
+        # the localization fields used to be flat settings; a stale variable would otherwise be ignored silently
+        stale = [f"RERADAR_{name}" for name in _RENAMED_LOCALIZATION_FIELDS if f"RERADAR_{name}" in os.environ]
+        if stale:
+            raise ValueError(", ".join(f"{v} is now RERADAR_LOCALIZATION__{v.removeprefix('RERADAR_')}"
+                                       for v in stale))
+        return self
 
     @model_validator(mode="after")
     def _refuse_unsafe_defaults(self) -> Settings:

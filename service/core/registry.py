@@ -23,12 +23,12 @@ import numpy as np
 
 from maps.build import build_map
 from maps.database import MapDatabase
-from maps.index import IndexConfig
 from maps.paths import DEMO_MAP_PATH
 from maps.store import open_map, read_metadata
 from reradar_core.errors import MapFormatError, ModelMismatchError, ReRadarError
 from reradar_core.io.scan import RadarScan, read_navtech_png, read_polar_npy
 from reradar_core.localization.extractor import FeatureExtractor
+from reradar_core.retrieval import IndexConfig
 from service.core.config import MAP_ID_PATTERN, Settings
 from service.core.errors import BadRequestError, ConflictError, NotFoundError
 
@@ -103,7 +103,8 @@ class MapRegistry:
     # ---- loading -------------------------------------------------------------------------------------------
     def _open(self, path: Path) -> MapDatabase:
         return MapDatabase(open_map(path, self.extractor.model_id, self.extractor.weights_sha256),
-                           self.index_config, keyframe_cache_size=self.settings.keyframe_cache_size)
+                           self.index_config, keyframe_cache_size=self.settings.keyframe_cache_size,
+                           config=self.settings.localization)
 
     def install_demo_map(self) -> None:
         """Copy the shipped demo map to ``<maps_dir>/demo.h5`` unless a map ``demo`` exists already; an

@@ -72,7 +72,7 @@ def test_markdown_marks_best_and_not_applicable():
 
 
 def test_cli_bench_on_real_layout_folders(loop_sequences, tmp_path, cache_env):
-    from reradar_core.cli import app
+    from reradar_cli import app
 
     root, _, _ = loop_sequences
     out = tmp_path / "bench-out"
@@ -89,7 +89,7 @@ def test_cli_bench_on_real_layout_folders(loop_sequences, tmp_path, cache_env):
 
 
 def test_cli_rejects_ambiguous_input(tmp_path):
-    from reradar_core.cli import app
+    from reradar_cli import app
 
     r = CliRunner().invoke(app, ["bench", "--out", str(tmp_path)])
     assert r.exit_code != 0

@@ -27,12 +27,18 @@ def test_production_refuses_development_key(monkeypatch: pytest.MonkeyPatch, tmp
     ok = Settings(environment="production", api_key="x" * 32, maps_dir=tmp_path)
     assert ok.api_key.get_secret_value() == "x" * 32
     assert Settings(maps_dir=tmp_path).api_key.get_secret_value() == DEV_API_KEY
-    monkeypatch.setenv("RERADAR_TOP_K", "7")
+    monkeypatch.setenv("RERADAR_LOCALIZATION__TOP_K", "7")
+    monkeypatch.setenv("RERADAR_LOCALIZATION__ALIGNMENT__SCREEN_HYPOTHESES", "700")
     monkeypatch.setenv("RERADAR_MAX_UPLOAD_MB", "1.5")
     s = Settings(maps_dir=tmp_path)
-    assert s.top_k == 7 and s.max_upload_bytes == int(1.5 * 2**20)
-    monkeypatch.setenv("RERADAR_TOP_K", "0")
+    assert s.localization.top_k == 7 and s.max_upload_bytes == int(1.5 * 2**20)
+    assert s.localization.alignment.screen_hypotheses == 700 and s.localization.verify_k == 3
+    monkeypatch.setenv("RERADAR_LOCALIZATION__TOP_K", "0")
     with pytest.raises(ValidationError):
+        Settings(maps_dir=tmp_path)
+    monkeypatch.delenv("RERADAR_LOCALIZATION__TOP_K")
+    monkeypatch.setenv("RERADAR_TOP_K", "7")  # the old flat name is refused, not silently ignored
+    with pytest.raises(ValidationError, match="RERADAR_LOCALIZATION__TOP_K"):
         Settings(maps_dir=tmp_path)
 
 

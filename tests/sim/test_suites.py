@@ -81,7 +81,7 @@ def test_boreas_suite_needs_trajectories_with_clear_error(tmp_path):
 
 
 def test_cli_sim_renders_a_trajectory(tmp_path):
-    from reradar_core.cli import app
+    from reradar_cli import app
 
     t = 1_600_000_000_000_000 + np.arange(0, 3_000_001, 250_000)
     s = (t - t[0]) / 1e6
