@@ -17,6 +17,7 @@ from fastapi.openapi.utils import get_openapi
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import Response
+from starlette.routing import Match, Route
 
 from reradar_core.errors import ModelMismatchError, ReRadarError
 from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
@@ -188,13 +189,19 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> Response:
         code = _HTTP_CODES.get(exc.status_code, f"http_{exc.status_code}")
-        if exc.status_code == 404 and exc.detail == "Not Found":
-            detail = f"no endpoint at {request.url.path}; the API is listed at /docs and /openapi.json"
-        elif exc.status_code == 405:
-            detail = f"{request.method} is not allowed on {request.url.path}; allowed: {next((v for k, v in (exc.headers or {}).items() if k.lower() == 'allow'), '?')}"
-        else:
+        detail = f"no endpoint at {request.url.path}; the API is listed at /docs and /openapi.json"
+        headers = dict(exc.headers or {})
+        if exc.status_code == 405:
+            # Starlette's Allow names the methods of the first route on the path only (GET /maps and POST /maps
+            # are two routes): list them all
+            allowed = sorted({m for route in app.routes if isinstance(route, Route)
+                              and route.matches(request.scope)[0] != Match.NONE for m in (route.methods or ())})
+            headers = {k: v for k, v in headers.items() if k.lower() != "allow"}
+            headers["Allow"] = ", ".join(allowed)
+            detail = f"{request.method} is not allowed on {request.url.path}; allowed: {headers['Allow']}"
+        elif exc.status_code != 404 or exc.detail != "Not Found":
             detail = str(exc.detail)
-        return problem(request, exc.status_code, code, detail, dict(exc.headers or {}))
+        return problem(request, exc.status_code, code, detail, headers)
 
     @app.exception_handler(Exception)
     async def _bug(request: Request, exc: Exception) -> Response:
