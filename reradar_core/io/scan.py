@@ -12,10 +12,16 @@ columns     dtype    meaning
 ==========  =======  ===========================================================
 
 The PNG is 8-bit single channel, so the metadata bytes are stored as pixel values.
+
+Uploads are sized from their header before anything is decoded (``scan_header``): a PNG's IHDR chunk and an
+.npy file's header state the image / array shape, so a 1 KB file that declares 60000 x 60000 pixels is refused
+without allocating them. Lossy images (JPEG, WebP, ...) are not radar scans and are refused by name.
 """
 
 from __future__ import annotations
 
+import io
+import struct
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -36,6 +42,12 @@ __all__ = [
     "load_scan",
     "load_scan_bytes",
     "infer_preset",
+    "ScanHeader",
+    "sniff_scan_format",
+    "read_png_header",
+    "read_npy_header",
+    "scan_header",
+    "LOSSY_FORMATS",
 ]
 
 #: Metadata columns in front of the range bins in a Navtech PNG row.
@@ -142,6 +154,144 @@ def infer_preset(num_range_bins: int) -> RadarPreset:
     )
 
 
+# ---- headers: sizes before decoding --------------------------------------------------------------------------
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_NPY_MAGIC = b"\x93NUMPY"
+
+#: Image formats recognised by their magic bytes that are refused as scans because they are lossy: their
+#: compression artefacts would be read as radar returns.
+LOSSY_FORMATS = ("jpeg", "jpeg2000", "webp", "gif", "heif/avif")
+
+_MAGIC: tuple[tuple[bytes, int, str], ...] = (
+    (PNG_SIGNATURE, 0, "png"),
+    (_NPY_MAGIC, 0, "npy"),
+    (b"\xff\xd8\xff", 0, "jpeg"),
+    (b"\x00\x00\x00\x0cjP  ", 0, "jpeg2000"),
+    (b"\xff\x4f\xff\x51", 0, "jpeg2000"),
+    (b"WEBP", 8, "webp"),
+    (b"GIF8", 0, "gif"),
+    (b"ftypheic", 4, "heif/avif"),
+    (b"ftypavif", 4, "heif/avif"),
+    (b"ftypmif1", 4, "heif/avif"),
+    (b"BM", 0, "bmp"),
+    (b"II*\x00", 0, "tiff"),
+    (b"MM\x00*", 0, "tiff"),
+)
+
+
+@dataclass(frozen=True)
+class ScanHeader:
+    """What a scan file's header declares, read without decoding it.
+
+    Attributes:
+        format: ``png`` or ``npy``.
+        shape: (rows, columns) of the image / array (PNG rows = azimuths, columns = 11 metadata + range bins).
+        itemsize: bytes per decoded element (1 for 8-bit PNG, the dtype's size for .npy).
+        dtype: numpy dtype string of the decoded array (``|u1`` for PNG).
+    """
+
+    format: str
+    shape: tuple[int, int]
+    itemsize: int
+    dtype: str
+
+    @property
+    def num_pixels(self) -> int:
+        return self.shape[0] * self.shape[1]
+
+    @property
+    def decoded_bytes(self) -> int:
+        """Bytes the decoded image / array takes in memory."""
+        return self.num_pixels * self.itemsize
+
+
+def sniff_scan_format(data: bytes) -> str:
+    """The file format named by ``data``'s magic bytes: ``png``, ``npy``, one of ``LOSSY_FORMATS``, ``bmp``,
+    ``tiff`` or ``unknown``."""
+    for magic, offset, name in _MAGIC:
+        if data[offset:offset + len(magic)] == magic:
+            return name
+    return "unknown"
+
+
+def read_png_header(data: bytes) -> ScanHeader:
+    """Shape and bit depth from a PNG's IHDR chunk (the first 33 bytes); refuses anything but an 8-bit
+    single-channel (greyscale) PNG, the Navtech layout.
+
+    Raises:
+        ScanFormatError: not a PNG, truncated header, zero or non-greyscale / non-8-bit image.
+    """
+    if data[:8] != PNG_SIGNATURE:
+        raise ScanFormatError("upload is not a PNG image (no PNG signature)")
+    if len(data) < 33 or data[12:16] != b"IHDR":
+        raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated header)")
+    length, = struct.unpack(">I", data[8:12])
+    width, height, bit_depth, color_type = struct.unpack(">IIBB", data[16:26])
+    if length != 13 or width == 0 or height == 0:
+        raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated header)")
+    if bit_depth != 8 or color_type != 0:
+        kinds = {0: "greyscale", 2: "colour", 3: "palette", 4: "greyscale+alpha", 6: "colour+alpha"}
+        raise ScanFormatError(
+            f"a Navtech PNG must be 8-bit single-channel (greyscale); this one is {bit_depth}-bit "
+            f"{kinds.get(color_type, f'colour type {color_type}')}"
+        )
+    return ScanHeader("png", (int(height), int(width)), 1, "|u1")
+
+
+def read_npy_header(data: bytes) -> ScanHeader:
+    """Shape and dtype from an .npy file's header (numpy's own parser; the header is at most 10 kB).
+
+    Raises:
+        ScanFormatError: not an .npy file, not a 2-D numeric array, Fortran order, or fewer data bytes than the
+        header declares.
+    """
+    from numpy.lib import format as npy_format
+
+    if data[:6] != _NPY_MAGIC:
+        raise ScanFormatError("upload is not a readable .npy array (no .npy magic)")
+    fp = io.BytesIO(data)
+    try:
+        version = npy_format.read_magic(fp)
+        if version == (1, 0):
+            shape, fortran, dtype = npy_format.read_array_header_1_0(fp)
+        elif version in ((2, 0), (3, 0)):
+            shape, fortran, dtype = npy_format.read_array_header_2_0(fp)
+        else:
+            raise ValueError(f"unsupported .npy version {version}")
+    except (ValueError, SyntaxError, TypeError, EOFError, struct.error) as exc:
+        raise ScanFormatError(f"upload is not a readable .npy array ({exc})") from None
+    if len(shape) != 2:
+        raise ScanFormatError(f"polar array must be 2-D (azimuths x range bins), got shape {tuple(shape)}")
+    if dtype.kind not in "uif" or dtype.hasobject:
+        raise ScanFormatError(f"polar array must be numeric, got dtype {dtype}")
+    if fortran:
+        raise ScanFormatError("polar array must be C-ordered (np.save of a regular array), not Fortran-ordered")
+    rows, cols = int(shape[0]), int(shape[1])
+    if rows * cols * dtype.itemsize > len(data) - fp.tell():
+        raise ScanFormatError(f"upload is not a readable .npy array (header declares {rows} x {cols} "
+                              f"{dtype} but the file is shorter: truncated?)")
+    return ScanHeader("npy", (rows, cols), int(dtype.itemsize), dtype.str)
+
+
+def scan_header(data: bytes) -> ScanHeader:
+    """The header of an uploaded scan (PNG or .npy, told apart by content, not by file name).
+
+    Raises:
+        ScanFormatError: a lossy image (JPEG, WebP, ...), another format, or a bad PNG / .npy header.
+    """
+    kind = sniff_scan_format(data)
+    if kind == "png":
+        return read_png_header(data)
+    if kind == "npy":
+        return read_npy_header(data)
+    if kind in LOSSY_FORMATS:
+        raise ScanFormatError(f"{kind.upper()} images are lossy and are not accepted as radar scans: send the "
+                              "radar's lossless Navtech PNG or an (A, R) .npy array")
+    what = "empty file" if not data else (kind.upper() if kind != "unknown" else "unrecognised format")
+    raise ScanFormatError(f"upload is not a Navtech PNG or .npy array ({what})")
+
+
 def _scan_from_raw(raw: np.ndarray, preset: str | RadarPreset | None, source: str) -> RadarScan:
     if raw.ndim != 2 or raw.dtype != np.uint8:
         raise ScanFormatError(
@@ -193,7 +343,10 @@ def read_navtech_png(path: str | Path, preset: str | RadarPreset | None = None) 
 
 
 def decode_navtech_png_bytes(data: bytes, preset: str | RadarPreset | None = None) -> RadarScan:
-    """Decode a Navtech PNG held in memory (e.g. an upload); see ``read_navtech_png``."""
+    """Decode a Navtech PNG held in memory (e.g. an upload); see ``read_navtech_png``. Only PNG is decoded:
+    OpenCV would read JPEG and other lossy images too."""
+    if data[:8] != PNG_SIGNATURE:
+        raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated: no PNG signature)")
     buf = np.frombuffer(data, dtype=np.uint8)
     raw = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
     if raw is None:
@@ -255,8 +408,6 @@ def load_scan_bytes(data: bytes, filename: str = "scan.png",
     """Decode an uploaded scan by its filename suffix (``.png`` or ``.npy``)."""
     suffix = Path(filename).suffix.lower()
     if suffix == ".npy":
-        import io
-
         try:
             array = np.load(io.BytesIO(data), allow_pickle=False)
         except (OSError, ValueError, EOFError) as exc:
