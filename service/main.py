@@ -20,6 +20,7 @@ from service.api.routes import health, localize, maps, scans
 from service.core.blas import limit_blas_threads
 from service.core.config import Settings
 from service.core.errors import ServiceError
+from service.core.logs import configure_logging
 from service.core.metrics import Metrics
 from service.core.registry import MapRegistry
 from service.core.scan_cache import ScanCache
@@ -55,6 +56,7 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         cfg = settings or Settings()
         app.state.settings = cfg
+        configure_logging(cfg.log_level, cfg.log_format)  # ops: one log format
 
         def load() -> ServiceState:
             import torch
@@ -69,6 +71,7 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
             return ServiceState(cfg, ext, registry, ScanCache(cfg.scan_cache_size, cfg.scan_cache_ttl_s), metrics)
 
         state = await run_in_threadpool(load)
+        metrics.set_model(state.extractor.model_id, state.extractor.weights_sha256)  # ops: reradar_model_info
         app.state.reradar = state
         logger.info("ReRadar ready: model %s, %d map(s) in %s", state.extractor.model_id,
                     state.registry.num_ready, cfg.maps_dir)

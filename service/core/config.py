@@ -63,6 +63,25 @@ class Settings(BaseSettings):
         "pipeline (measured: network 28 ms with 1 thread vs 0.3-1.9 s with 2 on the loaded 2-core box)."))
     blas_threads: int = Field(default=1, ge=1, description="OpenBLAS threads of numpy, scipy and opencv (1: small products stay fast).")
     build_batch_size: int = Field(default=8, ge=1, description="Scans per network batch when building maps.")
+    # ---- operations (docs/OPERATIONS.md) ---------------------------------------------------------------
+    log_format: Literal["json", "text"] = Field(default="json", description=(
+        "Log line format of the service and worker: `json` (one JSON object per line) or `text`."))
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(default="INFO", description="Log level.")
+    redis_url: str | None = Field(default=None, description=(
+        "Redis shared by every replica (e.g. `redis://redis:6379/0`): uploaded scans, map registry events, "
+        "recent localizations and the map build queue. Unset = one process keeps all of it in memory."))
+    redis_namespace: str = Field(default="reradar", pattern=r"^[a-z0-9_-]{1,32}$", description=(
+        "Prefix of every Redis key (`<namespace>:v1:...`), so several deployments can share one Redis."))
+    map_sync_interval_s: float = Field(default=5.0, gt=0, description=(
+        "With Redis, every replica re-checks the shared maps folder this often in case a registry event "
+        "was missed (events themselves apply within a second)."))
+    recent_localizations: int = Field(default=200, ge=1, le=10_000, description=(
+        "Latest localizations per map kept for the operator page."))
+    build_job_timeout_s: float = Field(default=3600.0, gt=0, description=(
+        "Longest a queued map build may run before the worker gives up on it."))
+    build_heartbeat_stale_s: float = Field(default=15.0, gt=0, description=(
+        "A running build whose worker sent no heartbeat for this long is taken as crashed and retried."))
+    build_max_tries: int = Field(default=3, ge=1, description="Attempts of a queued map build before it fails.")
 
     @model_validator(mode="after")
     def _refuse_unsafe_defaults(self) -> Settings:
