@@ -33,6 +33,7 @@ from service.core.errors import (
     scrub_paths,
     validation_detail,
 )
+from service.core.logs import configure_logging
 from service.core.metrics import Metrics
 from service.core.registry import MapRegistry
 from service.core.scan_cache import ScanCache
@@ -113,6 +114,7 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         cfg = settings or Settings()
         app.state.settings = cfg
+        configure_logging(cfg.log_level, cfg.log_format)  # ops: one log format
 
         def load() -> ServiceState:
             import torch
@@ -128,6 +130,7 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
 
         state = await run_in_threadpool(load)
         app.state.guard = build_guard(cfg, spool_dir=state.registry.staging_dir())
+        metrics.set_model(state.extractor.model_id, state.extractor.weights_sha256)  # ops: reradar_model_info
         app.state.reradar = state
         logger.info("ReRadar ready: model %s, %d map(s) in %s", state.extractor.model_id,
                     state.registry.num_ready, cfg.maps_dir)

@@ -107,6 +107,25 @@ class Settings(BaseSettings):
         "Longest time to receive a whole scan request body, seconds (408 after)."))
     map_upload_timeout_s: float = Field(default=900.0, gt=0, description=(
         "Longest time to receive a whole POST /maps body, seconds (408 after)."))
+    # ---- operations (docs/OPERATIONS.md) ---------------------------------------------------------------
+    log_format: Literal["json", "text"] = Field(default="json", description=(
+        "Log line format of the service and worker: `json` (one JSON object per line) or `text`."))
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(default="INFO", description="Log level.")
+    redis_url: str | None = Field(default=None, description=(
+        "Redis shared by every replica (e.g. `redis://redis:6379/0`): uploaded scans, map registry events, "
+        "recent localizations and the map build queue. Unset = one process keeps all of it in memory."))
+    redis_namespace: str = Field(default="reradar", pattern=r"^[a-z0-9_-]{1,32}$", description=(
+        "Prefix of every Redis key (`<namespace>:v1:...`), so several deployments can share one Redis."))
+    map_sync_interval_s: float = Field(default=5.0, gt=0, description=(
+        "With Redis, every replica re-checks the shared maps folder this often in case a registry event "
+        "was missed (events themselves apply within a second)."))
+    recent_localizations: int = Field(default=200, ge=1, le=10_000, description=(
+        "Latest localizations per map kept for the operator page."))
+    build_job_timeout_s: float = Field(default=3600.0, gt=0, description=(
+        "Longest a queued map build may run before the worker gives up on it."))
+    build_heartbeat_stale_s: float = Field(default=15.0, gt=0, description=(
+        "A running build whose worker sent no heartbeat for this long is taken as crashed and retried."))
+    build_max_tries: int = Field(default=3, ge=1, description="Attempts of a queued map build before it fails.")
 
     @model_validator(mode="after")
     def _refuse_renamed_localization_variables(self) -> Settings:

@@ -1,22 +1,32 @@
-"""Bounded, expiring cache of uploaded scans' features (``POST /scans`` -> ``scan_id``)."""
+"""Bounded, expiring cache of uploaded scans' features (``POST /scans`` -> ``scan_id``), in this process.
+
+A ``cachetools.TTLCache`` (least recently used out first, every entry expires ``ttl_s`` after it was put).
+With several replicas the shared Redis store (``service.core.shared_state.RedisScanStore``) replaces it.
+"""
 
 from __future__ import annotations
 
 import secrets
 import threading
 import time
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from cachetools import TTLCache
+
 from reradar_core.features import ScanFeatures
 
-__all__ = ["CachedScan", "ScanCache"]
+__all__ = ["CachedScan", "ScanCache", "new_scan_id"]
+
+
+def new_scan_id() -> str:
+    """A fresh random scan id: 32 lower-case hex characters (128 bits)."""
+    return secrets.token_hex(16)
 
 
 @dataclass(frozen=True)
 class CachedScan:
-    """Features of one uploaded scan with its id, radar preset and expiry (``time.monotonic`` seconds)."""
+    """Features of one uploaded scan with its id, radar preset and expiry (seconds of the cache's clock)."""
 
     scan_id: str
     features: ScanFeatures
@@ -31,39 +41,22 @@ class ScanCache:
         self.max_entries = max_entries
         self.ttl_s = ttl_s
         self._clock = clock
-        self._items: OrderedDict[str, CachedScan] = OrderedDict()
-        self._lock = threading.Lock()
-
-    def _purge(self, now: float) -> None:
-        expired = [k for k, v in self._items.items() if v.expires_at <= now]
-        for k in expired:
-            del self._items[k]
+        self._items: TTLCache[str, CachedScan] = TTLCache(maxsize=max_entries, ttl=ttl_s, timer=clock)
+        self._lock = threading.Lock()  # cachetools caches are not thread-safe
 
     def put(self, features: ScanFeatures, preset: str | None) -> CachedScan:
         """Store ``features`` under a new random id (evicting the least recently used beyond the bound)."""
-        now = self._clock()
-        entry = CachedScan(secrets.token_hex(16), features, preset, now + self.ttl_s)
+        entry = CachedScan(new_scan_id(), features, preset, self._clock() + self.ttl_s)
         with self._lock:
-            self._purge(now)
             self._items[entry.scan_id] = entry
-            while len(self._items) > self.max_entries:
-                self._items.popitem(last=False)
         return entry
 
     def get(self, scan_id: str) -> CachedScan | None:
         """The entry for ``scan_id`` or None when unknown or expired."""
-        now = self._clock()
         with self._lock:
-            entry = self._items.get(scan_id)
-            if entry is None:
-                return None
-            if entry.expires_at <= now:
-                del self._items[scan_id]
-                return None
-            self._items.move_to_end(scan_id)
-            return entry
+            return self._items.get(scan_id)
 
     def __len__(self) -> int:
         with self._lock:
-            self._purge(self._clock())
+            self._items.expire()
             return len(self._items)

@@ -76,19 +76,29 @@ def test_scan_cache_is_bounded_lru_with_expiry() -> None:
 
 
 def test_metrics_prometheus_text() -> None:
+    from prometheus_client.parser import text_string_to_metric_families
+
     m = Metrics()
     m.inc("reradar_http_requests_total", method="GET", route="/maps", status="200")
     m.inc("reradar_http_requests_total", method="GET", route="/maps", status="200")
     m.observe("reradar_http_request_duration_seconds", 0.004, method="GET", route="/maps")
     m.observe_stages({"extract_ms": 30.0, "total_ms": 50.0})
     m.set_gauge("reradar_maps_loaded", 3)
+    m.set_model("fake-model", "ab" * 32)
     text = m.render()
-    assert 'reradar_http_requests_total{method="GET",route="/maps",status="200"} 2' in text
-    assert 'reradar_http_request_duration_seconds_bucket{method="GET",route="/maps",le="0.005"} 1' in text
-    assert 'reradar_http_request_duration_seconds_bucket{method="GET",route="/maps",le="0.0025"} 0' in text
-    assert 'reradar_stage_duration_seconds_count{stage="extract"} 1' in text
+    samples = {(s.name, tuple(sorted(s.labels.items()))): s.value
+               for fam in text_string_to_metric_families(text) for s in fam.samples}
+    route = (("method", "GET"), ("route", "/maps"))
+    assert samples[("reradar_http_requests_total", (*route, ("status", "200")))] == 2
+    assert samples[("reradar_http_request_duration_seconds_bucket", (("le", "0.005"), *route))] == 1
+    assert samples[("reradar_http_request_duration_seconds_bucket", (("le", "0.0025"), *route))] == 0
+    assert samples[("reradar_stage_duration_seconds_count", (("stage", "extract"),))] == 1
     assert 'stage="total"' not in text
-    assert "reradar_maps_loaded 3" in text and "# TYPE reradar_maps_loaded gauge" in text
+    assert samples[("reradar_maps_loaded", ())] == 3 and "# TYPE reradar_maps_loaded gauge" in text
+    # process, build and model info come from prometheus-client's collectors and our Info metrics
+    assert ("process_resident_memory_bytes", ()) in samples
+    assert samples[("reradar_model_info", (("model_id", "fake-model"), ("weights_sha256", "ab" * 32)))] == 1
+    assert any(name == "reradar_build_info" and dict(labels).get("version") for name, labels in samples)
 
 
 def test_archive_extraction_is_flat_and_bounded(tmp_path: Path) -> None:

@@ -1,0 +1,89 @@
+"""Operations plumbing: BLAS thread limits (threadpoolctl), JSON log lines, faiss' loader kept quiet."""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import subprocess
+import sys
+
+import pytest
+
+from service.core.blas import limit_blas_threads
+from service.core.logs import JsonFormatter, configure_logging
+
+
+def test_limit_blas_threads_sets_every_loaded_blas() -> None:
+    import scipy.linalg  # noqa: F401 - loads scipy's own OpenBLAS next to numpy's
+    from threadpoolctl import threadpool_info
+
+    assert limit_blas_threads(1)
+    blas = [i for i in threadpool_info() if i["user_api"] == "blas"]
+    assert len(blas) >= 2 and all(i["num_threads"] == 1 for i in blas)
+
+
+def test_json_formatter_one_object_per_line_with_extras_and_traceback() -> None:
+    stream = io.StringIO()
+    handler = logging.StreamHandler(stream)
+    handler.setFormatter(JsonFormatter())
+    log = logging.getLogger("reradar.test_ops")
+    log.addHandler(handler)
+    log.propagate = False
+    try:
+        log.warning("map %s loaded", "demo", extra={"map_id": "demo", "keyframes": 20})
+        try:
+            raise ValueError("boom")
+        except ValueError:
+            log.exception("failed\nwith a newline")
+    finally:
+        log.removeHandler(handler)
+    lines = stream.getvalue().splitlines()
+    assert len(lines) == 2  # the newline in the message and the traceback stay inside one JSON line
+    first, second = (json.loads(line) for line in lines)
+    assert first["msg"] == "map demo loaded" and first["level"] == "WARNING" and first["keyframes"] == 20
+    assert first["logger"] == "reradar.test_ops" and first["ts"].endswith("Z")
+    assert second["msg"] == "failed\nwith a newline" and "ValueError: boom" in second["exc"]
+
+
+def test_uvicorn_access_line_is_structured() -> None:
+    record = logging.LogRecord("uvicorn.access", logging.INFO, __file__, 1, '%s - "%s %s HTTP/%s" %d',
+                               ("127.0.0.1:5000", "GET", "/maps", "1.1", 200), None)
+    doc = json.loads(JsonFormatter().format(record))
+    assert (doc["method"], doc["path"], doc["status"]) == ("GET", "/maps", 200)
+
+
+def test_service_start_logs_json_and_no_faiss_probe_lines() -> None:
+    """A fresh interpreter that configures logging like the CLI, then imports the app (which imports faiss)."""
+    code = (
+        "import logging; logging.basicConfig(level=logging.INFO)\n"
+        "import service.main\n"
+        "from service.core.logs import configure_logging\n"
+        "configure_logging('INFO', 'json')\n"
+        "logging.getLogger('service').info('started')\n"
+        "logging.getLogger('uvicorn.error').info('uvicorn line')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert "faiss" not in out.stderr and "ModuleNotFoundError" not in out.stderr
+    lines = [json.loads(line) for line in out.stderr.splitlines()]
+    assert [d["msg"] for d in lines] == ["started", "uvicorn line"]
+
+
+@pytest.fixture
+def _restore_root_logging():  # type: ignore[no-untyped-def]
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    yield
+    root.handlers[:] = handlers
+    root.setLevel(level)
+
+
+@pytest.mark.usefixtures("_restore_root_logging")
+def test_configure_logging_replaces_its_own_handler_not_others() -> None:
+    root = logging.getLogger()
+    other = logging.Handler()
+    root.addHandler(other)
+    configure_logging("INFO", "json")
+    configure_logging("WARNING", "text")
+    ours = [h for h in root.handlers if type(h).__name__ == "_OurHandler"]
+    assert len(ours) == 1 and other in root.handlers and root.level == logging.WARNING
