@@ -48,6 +48,7 @@ __all__ = [
     "read_npy_header",
     "scan_header",
     "LOSSY_FORMATS",
+    "check_navtech_layout",
 ]
 
 #: Metadata columns in front of the range bins in a Navtech PNG row.
@@ -150,7 +151,8 @@ def infer_preset(num_range_bins: int) -> RadarPreset:
             return p
     raise ScanFormatError(
         f"cannot infer the radar preset from {num_range_bins} range bins; pass the preset explicitly "
-        f"(known: {sorted(PRESETS)})"
+        f"(known: {sorted(PRESETS)}), or convert scans of another layout or resolution with "
+        f"`reradar import-scans`"
     )
 
 
@@ -306,10 +308,66 @@ def _scan_from_raw(raw: np.ndarray, preset: str | RadarPreset | None, source: st
     timestamps = meta[:, 0:8].copy().view("<i8").reshape(-1)
     encoder = meta[:, 8:10].copy().view("<u2").reshape(-1)
     valid = meta[:, 10] != 0
+    num_bins = raw.shape[1] - NAVTECH_META_COLUMNS
+    p = get_preset(preset) if preset is not None else infer_preset(num_bins)
+    check_navtech_layout(encoder, timestamps, valid, num_bins, p, source)
     fft = raw[:, NAVTECH_META_COLUMNS:].astype(np.float32) / 255.0
-    p = get_preset(preset) if preset is not None else infer_preset(fft.shape[1])
     azimuths = (encoder.astype(np.float64) * _RAD_PER_TICK) % (2.0 * np.pi)
     return RadarScan(fft, azimuths, timestamps, p.range_resolution_m, p.range_offset_m, valid, preset=p.name)
+
+
+#: A row's encoder step may differ from the nominal 2*pi/A by this fraction (real Navtech scans: < 1 %).
+_ENCODER_STEP_TOLERANCE = 0.5
+#: Fraction of valid rows whose encoder step must be nominal (dropped azimuths leave a few double steps).
+_MIN_NOMINAL_STEP_FRACTION = 0.8
+#: Longest plausible sweep, seconds (Navtech sensors turn at 4 Hz; a 4x margin).
+_MAX_SWEEP_S = 1.0
+
+
+def check_navtech_layout(encoder: np.ndarray, timestamps_us: np.ndarray, valid: np.ndarray, num_range_bins: int,
+                         preset: RadarPreset, source: str = "scan", strict_bins: bool = False) -> None:
+    """Refuse a Navtech PNG whose geometry or metadata contradict its preset.
+
+    A scan of another layout (no metadata columns, transposed, other range-bin count) decodes into garbage
+    azimuths and ranges without any error and then localizes confidently at a wrong pose, so the reader checks:
+    the scan has no more range bins than the preset (exactly as many with ``strict_bins``: the service, which
+    only takes whole sweeps; cropped scans are fine in the library); the encoder column advances by about ``5600 / A`` ticks per row
+    (azimuths evenly spaced around one turn); the azimuth timestamps do not decrease and span at most one
+    second. Rows flagged invalid are ignored.
+
+    Args:
+        encoder: (A,) uint16 encoder ticks (columns 8-9). timestamps_us: (A,) int64 (columns 0-7).
+        valid: (A,) bool (column 10). num_range_bins: range-bin columns. preset: the scan's preset.
+        source: file name or "upload", used in messages.
+        strict_bins: require exactly the preset's range-bin count.
+
+    Raises:
+        ScanFormatError: with what is wrong and what to do (``reradar import-scans`` for foreign layouts).
+    """
+    hint = ("scans of another layout or resolution can be converted with `reradar import-scans` "
+            "(docs/CONVENTIONS.md, 'Importing scans')")
+    if num_range_bins > preset.num_range_bins or (strict_bins and num_range_bins != preset.num_range_bins):
+        raise ScanFormatError(
+            f"{source}: {num_range_bins} range bins, but preset {preset.name!r} has {preset.num_range_bins} "
+            f"bins of {preset.range_resolution_m} m; pass the preset this scan was recorded with, or {hint}")
+    rows = np.flatnonzero(np.asarray(valid, dtype=bool))
+    if len(rows) < 2:
+        raise ScanFormatError(f"{source}: fewer than 2 azimuth rows are flagged valid (column 10); {hint}")
+    nominal = ENCODER_TICKS_PER_TURN / len(encoder)
+    ticks = encoder[rows].astype(np.int64)
+    step = np.diff(ticks) % ENCODER_TICKS_PER_TURN / np.diff(rows)
+    nominal_rows = np.abs(step - nominal) <= _ENCODER_STEP_TOLERANCE * nominal
+    if nominal_rows.mean() < _MIN_NOMINAL_STEP_FRACTION:
+        raise ScanFormatError(
+            f"{source}: the encoder column (8-9) does not advance by ~{nominal:.0f} ticks per azimuth row as a "
+            f"Navtech sweep of {len(encoder)} azimuths does (only {nominal_rows.mean():.0%} of rows do): the image "
+            f"has no Navtech metadata columns or is transposed; {hint}")
+    t = np.asarray(timestamps_us, dtype=np.int64)[rows]
+    span_s = (int(t[-1]) - int(t[0])) / 1e6
+    if np.any(np.diff(t) < 0) or not 0 <= span_s <= _MAX_SWEEP_S:
+        raise ScanFormatError(
+            f"{source}: the azimuth timestamps (columns 0-7) are not a sweep of at most {_MAX_SWEEP_S:.0f} s in "
+            f"increasing time; {hint}")
 
 
 def _raw_from_scan(scan: RadarScan) -> np.ndarray:
