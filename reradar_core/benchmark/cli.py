@@ -53,6 +53,8 @@ def bench(
                                         "index (765, 0-based, before --every), seconds after the first scan "
                                         "(120s) or a scan timestamp in µs (t=1566535872045000). With --database "
                                         "(no --query) or --suite."),
+    time_unit: str | None = typer.Option(None, "--time-unit", help="Unit of the folders' pose-file timestamps "
+                                         "(s, ms, us, ns) when they are not absolute UTC times; never guessed."),
     split_sequence: str | None = typer.Option(None, "--split-sequence", help="Suite sequence to split with "
                                               "--split-at (default: the suite's database sequence)."),
     limit: int | None = typer.Option(None, "--limit", help="At most this many scans per sequence after "
@@ -88,8 +90,8 @@ def bench(
         if every is not None and every < 1:
             raise typer.BadParameter(f"--every must be >= 1, got {every}")
         if suite is not None:
-            if query:
-                raise typer.BadParameter("--query is for folders; a suite names its own query sequences")
+            if query or time_unit:
+                raise typer.BadParameter("--query and --time-unit are for folders; a suite names its own sequences")
             pairs, default_radius = pairs_from_suite(suite, every=every, limit=limit, query_limit=query_limit,
                                                      split_at=split_at, split_sequence=split_sequence)
             label = suite if split_at is None else f"{suite}-split"
@@ -103,7 +105,7 @@ def bench(
                 raise typer.BadParameter("--split-sequence is for suites; a folder is split as a whole")
             pairs, default_radius = pairs_from_folders(database, list(query or []), preset=preset, layout=layout,
                                                        every=every or 1, limit=limit, query_limit=query_limit,
-                                                       split_at=split_at)
+                                                       split_at=split_at, time_unit=time_unit)
             label = f"{database.name}" + ("" if split_at is None else "-split")
             every_note = (f"every {every or 1} scan(s) of the folders"
                           + (" (default 1: pass --every N to subsample)" if every is None else ""))
