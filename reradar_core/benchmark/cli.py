@@ -32,6 +32,11 @@ def _split(values: list[str] | None) -> list[str]:
     return out
 
 
+def _safe(text: str) -> str:
+    """``text`` as a folder-name part (the default output folder names the split)."""
+    return "".join(c if c.isalnum() else "_" for c in text.strip())
+
+
 def bench(
     suite: str | None = typer.Option(None, "--suite", help="Simulated suite: smoke, boreas-sim, loop-sim, "
                                      "offroad-sim (rendered on first use, cached)."),
@@ -53,6 +58,8 @@ def bench(
                                         "index (765, 0-based, before --every), seconds after the first scan "
                                         "(120s) or a scan timestamp in µs (t=1566535872045000). With --database "
                                         "(no --query) or --suite."),
+    time_unit: str | None = typer.Option(None, "--time-unit", help="Unit of the folders' pose-file timestamps "
+                                         "(s, ms, us, ns) when they are not absolute UTC times; never guessed."),
     split_sequence: str | None = typer.Option(None, "--split-sequence", help="Suite sequence to split with "
                                               "--split-at (default: the suite's database sequence)."),
     limit: int | None = typer.Option(None, "--limit", help="At most this many scans per sequence after "
@@ -88,11 +95,11 @@ def bench(
         if every is not None and every < 1:
             raise typer.BadParameter(f"--every must be >= 1, got {every}")
         if suite is not None:
-            if query:
-                raise typer.BadParameter("--query is for folders; a suite names its own query sequences")
+            if query or time_unit:
+                raise typer.BadParameter("--query and --time-unit are for folders; a suite names its own sequences")
             pairs, default_radius = pairs_from_suite(suite, every=every, limit=limit, query_limit=query_limit,
                                                      split_at=split_at, split_sequence=split_sequence)
-            label = suite if split_at is None else f"{suite}-split"
+            label = suite if split_at is None else f"{suite}-{split_sequence or 'database'}-split-{_safe(split_at)}"
             spacing = suite_spacing(suite)
             rendered = ", ".join(f"{k} every {v}" for k, v in spacing.items())
             every_note = (f"suite protocol spacing (rendered: {rendered})" if every is None else
@@ -103,8 +110,8 @@ def bench(
                 raise typer.BadParameter("--split-sequence is for suites; a folder is split as a whole")
             pairs, default_radius = pairs_from_folders(database, list(query or []), preset=preset, layout=layout,
                                                        every=every or 1, limit=limit, query_limit=query_limit,
-                                                       split_at=split_at)
-            label = f"{database.name}" + ("" if split_at is None else "-split")
+                                                       split_at=split_at, time_unit=time_unit)
+            label = f"{database.name}" + ("" if split_at is None else f"-split-{_safe(split_at)}")
             every_note = (f"every {every or 1} scan(s) of the folders"
                           + (" (default 1: pass --every N to subsample)" if every is None else ""))
         names = _split(methods) or default_method_names()

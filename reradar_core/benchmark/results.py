@@ -84,7 +84,7 @@ def results_markdown(results: dict[str, Any]) -> str:
     for seq in seqs:
         p = pairs.get(seq)
         if p:
-            row = next((r for r in seqs[seq].values() if "n_queries" in r), {})
+            row: dict[str, Any] = next((r for r in seqs[seq].values() if "n_queries" in r), {})
             rev = row.get("n_revisit", row.get("n_with_revisit"))
             kinds = (f": {rev} revisit {'query' if rev == 1 else 'queries'}, {p['n_query'] - rev} without a "
                      f"database keyframe within {radius} m") if rev is not None else ""

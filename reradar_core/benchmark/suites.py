@@ -126,13 +126,14 @@ def default_radius(preset_name: str) -> float:
 
 def pairs_from_folders(database: Path, queries: list[Path], preset: str | None = None, layout: str | None = None,
                        every: int = 1, limit: int | None = None, query_limit: int | None = None,
-                       split_at: str | None = None) -> tuple[list[BenchPair], float]:
+                       split_at: str | None = None, time_unit: str | None = None) -> tuple[list[BenchPair], float]:
     """Real recordings: one database folder and query folders in their dataset layouts, or, with
     ``split_at``, one folder split into database and queries (single-session protocol).
 
-    ``limit`` caps every sequence, ``query_limit`` only the query sequences (evenly spread). Returns the pairs
-    and the preset's radius."""
-    full = load_sequence(database, layout, preset)
+    ``limit`` caps every sequence, ``query_limit`` only the query sequences (evenly spread); ``time_unit`` is
+    the pose files' timestamp unit where it cannot be told (``load_sequence``). Returns the pairs and the
+    preset's radius."""
+    full = load_sequence(database, layout, preset, time_unit)
     if split_at is not None:
         if queries:
             raise ConfigError("--split-at takes database and queries from one sequence: give --database DIR "
@@ -143,7 +144,7 @@ def pairs_from_folders(database: Path, queries: list[Path], preset: str | None =
     db = subsample(full, every, limit)
     pairs = []
     for q in queries:
-        qs = subsample(load_sequence(q, layout, preset or db.preset.name), every, query_limit or limit)
+        qs = subsample(load_sequence(q, layout, preset or db.preset.name, time_unit), every, query_limit or limit)
         name = qs.name if qs.name != db.name else f"{qs.name}-query"
         pairs.append(BenchPair(name, db, qs))
     return pairs, default_radius(db.preset.name)

@@ -138,9 +138,16 @@ def to_microseconds(values: np.ndarray | list, unit: str) -> np.ndarray:
 
     Integer inputs convert exactly (ns values of ~1.6e18 do not fit a float64 mantissa): ns are truncated
     to whole µs, s / ms multiplied. Float inputs are rounded to the nearest µs.
+
+    Raises:
+        PoseFileError: unknown unit, or values that overflow int64 µs in that unit (a wrong unit).
     """
     u = _check_unit(unit)
     v = np.asarray(values)
+    peak = float(np.max(np.abs(v.astype(np.float64)))) if v.size else 0.0
+    if peak * TIME_UNITS[u] >= 2.0**63:  # int64 would wrap around silently
+        raise PoseFileError(f"timestamps up to {peak:.6g} {u} overflow int64 microseconds; is the time unit "
+                            f"{u!r} right?")
     if np.issubdtype(v.dtype, np.integer):
         v = v.astype(np.int64)
         if u == "ns":

@@ -46,7 +46,12 @@ def register(app: typer.Typer) -> None:
         """Render a simulated radar sequence along a trajectory, in a real dataset layout."""
         from reradar_core.io.poses import TIME_UNITS
         from reradar_core.sim.sensor import SensorConfig
-        from reradar_core.sim.trajectories import load_trajectory, offset_trajectory, scan_times
+        from reradar_core.sim.trajectories import (
+            load_road_xy,
+            load_trajectory,
+            offset_trajectory,
+            scan_times,
+        )
         from reradar_core.sim.traversal import Traversal
         from reradar_core.sim.world import RoadNetwork, World
         from reradar_core.sim.writer import render_sequence
@@ -55,7 +60,7 @@ def register(app: typer.Typer) -> None:
             if time_unit is not None and time_unit.strip().lower() not in TIME_UNITS:
                 raise typer.BadParameter(f"--time-unit must be one of {sorted(TIME_UNITS)}, got {time_unit!r}")
             traj = load_trajectory(trajectory, time_unit)
-            roads = [traj.xy] + [load_trajectory(r, time_unit).xy for r in (road or [])]
+            roads = [traj.xy] + [load_road_xy(r, time_unit) for r in (road or [])]
             world = World(RoadNetwork(roads), seed=seed, profile=profile)
             trav = Traversal(world, traversal_seed if traversal_seed is not None else seed + 1, condition)
             if lateral:

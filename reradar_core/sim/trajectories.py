@@ -12,6 +12,7 @@ from reradar_core.sim.world import stable_seed
 
 __all__ = [
     "load_trajectory",
+    "load_road_xy",
     "offset_trajectory",
     "synthetic_loop_route",
     "drive_route",
@@ -35,6 +36,20 @@ def load_trajectory(path: str | Path, time_unit: str | None = None) -> PoseSeque
         raise PoseFileError(f"{path}: timestamps repeat after conversion to microseconds; is the time unit "
                             "right? (--time-unit s|ms|us|ns)")
     return traj
+
+
+def load_road_xy(path: str | Path, time_unit: str | None = None) -> np.ndarray:
+    """(N, 2) positions of a pose file used only as a road of the world (metres, in time order).
+
+    A road needs no timing, so the file is read on its own terms first (absolute UTC times, the format's
+    unit) and ``time_unit`` (the main trajectory's) is applied only where the file's times are ambiguous.
+    """
+    try:
+        return load_trajectory(path).xy
+    except PoseFileError:
+        if time_unit is None:
+            raise
+        return load_trajectory(path, time_unit).xy
 
 
 def offset_trajectory(traj: PoseSequence, lateral_m: float = 0.0, time_shift_us: int = 0) -> PoseSequence:

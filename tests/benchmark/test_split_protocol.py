@@ -132,3 +132,43 @@ def test_cli_split_at_on_a_folder_uses_every_scan_by_default(one_session, tmp_pa
 def test_pairs_without_split_keep_separate_runs(one_session):
     pair = BenchPair("q", one_session, one_session)
     assert pair.split is None
+
+
+def test_a_suite_sequence_can_be_split(tmp_path, monkeypatch):
+    from reradar_core.benchmark.suites import pairs_from_suite
+
+    monkeypatch.setenv("RERADAR_CACHE_DIR", str(tmp_path / "cache"))
+    pairs, radius = pairs_from_suite("smoke", split_at="8", split_sequence="query", progress=False)
+    assert radius == 20.0 and [p.name for p in pairs] == ["query@8"]
+    p = pairs[0]
+    assert (len(p.database), len(p.query)) == (8, 12)  # the smoke query sequence has 20 scans
+    assert p.database.timestamps_us.max() < p.query.timestamps_us.min()
+    assert p.split["sequence"] == "query" and p.split["index"] == 8
+    # default: the suite's database sequence
+    assert pairs_from_suite("smoke", split_at="10", progress=False)[0][0].name == "database@10"
+    with pytest.raises(ConfigError, match="not a sequence of suite 'smoke'"):
+        pairs_from_suite("smoke", split_at="8", split_sequence="nope", progress=False)
+    with pytest.raises(ConfigError, match="needs --split-at"):
+        pairs_from_suite("smoke", split_sequence="query", progress=False)
+
+
+def test_cli_bench_refuses_relative_pose_times_until_the_unit_is_given(tmp_path, cache_env):
+    from reradar_core.cli import app
+    from reradar_core.errors import PoseFileError
+
+    # a Boreas-layout folder whose GPSTime starts at 0 µs (no absolute UTC time: the unit cannot be told)
+    with pytest.raises(PoseFileError, match="ambiguous"):
+        write_synthetic_sequence(tmp_path / "rel", synthetic_world(seed=5), loop_poses(8), seed=1, t0_us=0)
+    args = ["bench", "--database", str(tmp_path / "rel"), "--split-at", "4", "--preset", "boreas",
+            "--methods", "ringkey", "--no-timing", "--no-yaw-curve", "--rotation-limit", "2",
+            "--out", str(tmp_path / "out")]  # plots and rotation stress on: both must cope with no revisit
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 2 and "--time-unit" in r.output
+    r = CliRunner().invoke(app, args + ["--time-unit", "us"])
+    assert r.exit_code == 0, r.output
+    res = json.loads((tmp_path / "out" / "results.json").read_text())
+    row = res["sequences"]["rel@4"]["ringkey"]
+    # 8 poses on a 60 m circle are 45.9 m apart: no query of the second half has a keyframe within 20 m, so
+    # the headline is undefined (null), never a misleading 0, and the all-query Recall@1 is 0
+    assert (row["n_queries"], row["n_revisit"], row["n_no_match"]) == (4, 0, 4)
+    assert row["recall@1"] is None and row["recall@1_all"] == 0.0

@@ -154,6 +154,9 @@ def test_to_microseconds_is_exact_for_nanosecond_integers():
     np.testing.assert_array_equal(to_microseconds(np.array([0, 250]), "ms"), [0, 250_000])
     with pytest.raises(PoseFileError, match="unknown time unit 'min'"):
         to_microseconds(np.array([1]), "min")
+    # Boreas ns stamps taken for seconds would wrap around int64: refused, not wrapped
+    with pytest.raises(PoseFileError, match="overflow int64 microseconds; is the time unit 's' right"):
+        to_microseconds(ns, "s")
 
 
 def test_relative_txyyaw_times_are_refused_without_a_unit(tmp_path):

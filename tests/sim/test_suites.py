@@ -157,3 +157,20 @@ def test_cli_sim_trajectory_with_time_from_zero_needs_a_unit_and_then_renders_tr
     np.testing.assert_allclose(load_sequence(out_ms).poses.xy, seq.poses.xy, atol=1e-6)
     bad_unit = CliRunner().invoke(app, base + ["--time-unit", "minutes"])
     assert bad_unit.exit_code == 2 and "--time-unit" in bad_unit.output
+
+
+def test_road_files_are_read_on_their_own_terms(tmp_path):
+    """--time-unit is for the trajectory; a road file with absolute times keeps its own unit."""
+    from reradar_core.errors import PoseFileError
+    from reradar_core.io.poses import write_boreas_radar_poses
+    from reradar_core.sim.trajectories import load_road_xy
+
+    t = 1_630_597_331_060_160 + np.arange(3) * 250_000  # absolute µs: would overflow if read as seconds
+    absolute = write_boreas_radar_poses(PoseSequence(t, [[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]], np.zeros(3)),
+                                        tmp_path / "radar_poses.csv")
+    np.testing.assert_allclose(load_road_xy(absolute, "s")[:, 0], [0.0, 1.0, 2.0])
+    relative = tmp_path / "rel.csv"
+    relative.write_text("t,x,y,yaw\n0.5,5,0,0\n0,4,0,0\n")
+    np.testing.assert_allclose(load_road_xy(relative, "s")[:, 0], [4.0, 5.0])  # in time order
+    with pytest.raises(PoseFileError, match="ambiguous"):
+        load_road_xy(relative)
