@@ -102,7 +102,7 @@ def test_overall_progress_bar_counts_every_step(one_session, tmp_path, monkeypat
 
 
 def test_cli_split_at_on_a_folder_uses_every_scan_by_default(one_session, tmp_path, cache_env):
-    from reradar_core.cli import app
+    from reradar_cli import app
 
     out = tmp_path / "bench-split"
     r = CliRunner().invoke(app, ["bench", "--database", str(one_session.root), "--split-at", "3s",
@@ -153,7 +153,7 @@ def test_a_suite_sequence_can_be_split(tmp_path, monkeypatch):
 
 
 def test_cli_bench_refuses_relative_pose_times_until_the_unit_is_given(tmp_path, cache_env):
-    from reradar_core.cli import app
+    from reradar_cli import app
     from reradar_core.errors import PoseFileError
 
     # a Boreas-layout folder whose GPSTime starts at 0 µs (no absolute UTC time: the unit cannot be told)

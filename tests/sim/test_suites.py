@@ -127,7 +127,7 @@ def test_scan_times_follow_radar_pose_files_or_tile_dense_trajectories():
 
 def test_cli_sim_trajectory_with_time_from_zero_needs_a_unit_and_then_renders_true_poses(tmp_path):
     """Regression: a t,x,y,yaw CSV whose t starts at 0 s used to put every scan at the origin silently."""
-    from reradar_core.cli import app
+    from reradar_cli import app
 
     t_s = np.arange(0.0, 3.01, 0.25)  # 4 Hz poses, relative seconds from 0
     rows = "\n".join(f"{t:.2f},{8.0 * t:.3f},{-2.0 * t:.3f},0.1" for t in t_s)
