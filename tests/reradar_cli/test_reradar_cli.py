@@ -67,9 +67,10 @@ from fastapi.testclient import TestClient
 from service.core.config import Settings
 from service.main import create_app
 q = sorted(Path({str(ROOT / 'maps' / 'demo' / 'queries')!r}).glob('*.png'))[0]
-s = Settings(maps_dir=Path(tempfile.mkdtemp()) / 'maps', load_demo_map=True)
+s = Settings(maps_dir=Path(tempfile.mkdtemp()) / 'maps', load_demo_map=True, vehicle_keys='v' * 20)
 with TestClient(create_app(s)) as c:
-    r = c.post('/localize', data={{'map_id': 'demo'}}, files={{'scan': (q.name, q.read_bytes(), 'image/png')}})
+    r = c.post('/localize', data={{'map_id': 'demo'}}, files={{'scan': (q.name, q.read_bytes(), 'image/png')}},
+               headers={{'X-API-Key': 'v' * 20}})
     assert r.status_code == 200, r.text
 """
     loaded = _loaded_after(code)
