@@ -43,7 +43,7 @@ def oord_polar_image(power: np.ndarray, num_azis: int, num_bins: int, min_bin: i
     The resize is Pillow's ``Image.resize`` with its default filter (bicubic; Pillow widens the kernel by
     the shrink factor, so every input bin contributes) on a 32-bit float image.
     """
-    img = Image.fromarray(suppress_range(power, min_bin, max_bin), mode=None)
+    img = Image.fromarray(suppress_range(power, min_bin, max_bin))  # 32-bit float image (mode "F")
     return np.asarray(img.resize((num_bins, num_azis), Image.Resampling.BICUBIC), dtype=np.float32)
 
 

@@ -57,7 +57,7 @@ logger = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class ResNetNetVLADConfig:
     """OORD settings: 128 x 128 polar input, bins [60, 3768), 64 NetVLAD clusters (k-means on the reference
-    run, to convergence)."""
+    run, to convergence). ``seed``: backbone initialisation; ``kmeans_seed``: the centres' k-means."""
 
     input_px: int = 128
     min_bin: int = MIN_BIN
@@ -65,6 +65,7 @@ class ResNetNetVLADConfig:
     num_clusters: int = 64
     seed: int = 0
     weights_path: str | None = None
+    kmeans_seed: int = 0
     kmeans_tol: float = 1e-4
     kmeans_max_iter: int = 300
 
@@ -151,7 +152,7 @@ class ResNetNetVLAD(PlaceRecognitionMethod):
             raise ConfigError("ResNet18-NetVLAD needs a non-empty reference run to fit its NetVLAD centres")
         feats = np.concatenate([normalise_positions(p["local"]) for p in database])
         k = min(self.config.num_clusters, feats.shape[0])
-        self.centres = kmeans_to_convergence(feats, k, self.config.seed, self.config.kmeans_tol,
+        self.centres = kmeans_to_convergence(feats, k, self.config.kmeans_seed, self.config.kmeans_tol,
                                              self.config.kmeans_max_iter)
         self.alpha = reference_alpha(self.centres, feats)
         logger.info("resnet18-netvlad: alpha %.3g from %d calibration descriptors", self.alpha, feats.shape[0])
