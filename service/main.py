@@ -57,6 +57,19 @@ _PUBLIC_ERRORS = (503,)
 _HTTP_CODES = {404: "not_found", 405: "method_not_allowed", 400: "bad_request", 413: "payload_too_large"}
 
 
+def _leaf_routes(routes: list[Any]) -> list[Route]:
+    """The plain routes, looking inside included routers (FastAPI wraps each ``include_router``)."""
+    out: list[Route] = []
+    for route in routes:
+        if isinstance(route, Route):
+            out.append(route)
+        elif hasattr(route, "original_router"):
+            out.extend(_leaf_routes(route.original_router.routes))
+        elif hasattr(route, "routes"):
+            out.extend(_leaf_routes(route.routes))
+    return out
+
+
 def _problem_openapi(doc: dict[str, Any]) -> dict[str, Any]:
     """Document the one error model: every 4xx/5xx response of every operation is
     ``application/problem+json`` with the ``ErrorResponse`` schema; add the statuses the request guard can
@@ -194,8 +207,8 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
         if exc.status_code == 405:
             # Starlette's Allow names the methods of the first route on the path only (GET /maps and POST /maps
             # are two routes): list them all
-            allowed = sorted({m for route in app.routes if isinstance(route, Route)
-                              and route.matches(request.scope)[0] != Match.NONE for m in (route.methods or ())})
+            allowed = sorted({m for route in _leaf_routes(app.routes)
+                              if route.matches(request.scope)[0] != Match.NONE for m in (route.methods or ())})
             headers = {k: v for k, v in headers.items() if k.lower() != "allow"}
             headers["Allow"] = ", ".join(allowed)
             detail = f"{request.method} is not allowed on {request.url.path}; allowed: {headers['Allow']}"
