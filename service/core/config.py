@@ -8,7 +8,7 @@ import secrets
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr, model_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 __all__ = ["Settings", "DEV_API_KEY", "MAP_ID_PATTERN", "MIN_KEY_LENGTH", "OPERATOR_KEY_FILE",
@@ -111,6 +111,14 @@ class Settings(BaseSettings):
         "Longest time to receive a whole scan request body, seconds (408 after)."))
     map_upload_timeout_s: float = Field(default=900.0, gt=0, description=(
         "Longest time to receive a whole POST /maps body, seconds (408 after)."))
+
+    @field_validator("api_key", "vehicle_keys", mode="before")
+    @classmethod
+    def _empty_is_unset(cls, value: object) -> object:
+        # compose passes unset variables as empty strings
+        if isinstance(value, str) and not value.strip():
+            return None
+        return value
 
     @model_validator(mode="after")
     def _refuse_unsafe_keys(self) -> Settings:
