@@ -19,19 +19,17 @@ import pytest
 
 from maps.store import MapWriter, read_metadata, remove_stale_temp_files
 from reradar_core.io.poses import PoseSequence, write_txyyaw_csv
+from reradar_core.io.scan import encode_navtech_png_bytes
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from attacks import ServerProcess, normal_png  # noqa: E402
-from service_test_fakes import API_KEY, N_KEYFRAMES, keyframe_poses, keyframe_time  # noqa: E402
+from service_test_fakes import API_KEY, N_KEYFRAMES, keyframe_poses, keyframe_time, make_scan  # noqa: E402
 
 AUTH = {"X-API-Key": API_KEY}
 SEED = 13
 
 
 def _archive(tmp_path: Path, n: int = N_KEYFRAMES) -> dict[str, tuple[str, bytes]]:
-    from reradar_core.io.scan import encode_navtech_png_bytes
-    from service_test_fakes import make_scan
-
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as zf:
         for i in range(n):
