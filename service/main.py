@@ -51,9 +51,9 @@ def _error_code(exc: ReRadarError) -> str:
 
 
 #: Error statuses every operation may answer, by route class (documented in the OpenAPI document).
-_VEHICLE_ERRORS = (400, 401, 403, 404, 408, 409, 413, 415, 422, 503)
-_OPERATOR_ERRORS = (400, 401, 403, 404, 408, 409, 413, 415, 422, 503)
-_PUBLIC_ERRORS = (503,)
+_VEHICLE_ERRORS: tuple[int, ...] = (400, 401, 403, 404, 408, 409, 413, 415, 422, 503)
+_OPERATOR_ERRORS: tuple[int, ...] = (400, 401, 403, 404, 408, 409, 413, 415, 422, 503)
+_PUBLIC_ERRORS: tuple[int, ...] = (503,)
 _HTTP_CODES = {404: "not_found", 405: "method_not_allowed", 400: "bad_request", 413: "payload_too_large"}
 
 
@@ -85,6 +85,7 @@ def _problem_openapi(doc: dict[str, Any]) -> dict[str, Any]:
     for path, ops in doc.get("paths", {}).items():
         for method, op in ops.items():
             kind = route_class(method.upper(), path.replace("{map_id}", "x"))
+            extra: tuple[int, ...]
             if kind == "operator":
                 op["security"] = [{"ApiKey": []}]
                 extra = _OPERATOR_ERRORS

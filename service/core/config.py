@@ -98,9 +98,10 @@ class Settings(BaseSettings):
         "pipeline (measured: network 28 ms with 1 thread vs 0.3-1.9 s with 2 on the loaded 2-core box)."))
     blas_threads: int = Field(default=1, ge=1, description="OpenBLAS threads of numpy, scipy and opencv (1: small products stay fast).")
     build_batch_size: int = Field(default=8, ge=1, description="Scans per network batch when building maps.")
-    max_scan_pixels: int = Field(default=3_100_000, ge=4096, description=(
+    max_scan_pixels: int = Field(default=1_600_000, ge=4096, description=(
         "Largest scan accepted, in pixels (azimuths x columns), read from the PNG / .npy header before "
-        "decoding: about twice an Oxford sweep (400 x 3,779), so one request costs at most ~2x a normal one."))
+        "decoding: 6 % above an Oxford sweep (400 x 3,779 PNG pixels), so no request costs much more memory "
+        "than a normal one (measured in docs/SERVICE.md); raise it for sensors with more range bins."))
     max_concurrent_requests: int = Field(default=4, ge=1, description=(
         "Scan and map requests (POST /scans, /localize, /maps/{id}/retrieve, /maps) in progress at once; "
         "more are answered 503 with Retry-After at once instead of queueing."))

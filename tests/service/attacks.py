@@ -291,6 +291,12 @@ def main() -> None:
                 resp, dt, peak = server.measure(lambda: normal_localize(server.url, map_id, png))
                 peaks.append(peak)
             rows.append(("normal POST /localize (inline PNG)", resp.status_code, dt, max(peaks)))
+            big = io.BytesIO()
+            np.save(big, np.random.default_rng(0).integers(0, 256, (400, 4000), dtype=np.uint8))
+            resp, dt, peak = server.measure(lambda: httpx.post(
+                f"{server.url}/localize", data={"map_id": map_id}, files={"scan": ("big.npy", big.getvalue())},
+                timeout=120))
+            rows.append(("largest accepted scan: random .npy 400 x 4000 (1.6 M pixels)", resp.status_code, dt, peak))
             for a in attacks(map_id):
                 resp, dt, peak = server.measure(
                     lambda a=a: httpx.request(a.method, server.url + a.path, timeout=120, **a.kwargs))
@@ -303,7 +309,8 @@ def main() -> None:
             rows.append((f"{len(statuses)} clients declaring 1 MB, sending 6 bytes (all closed)",
                          "/".join(f"{n} x {c}" for c, n in sorted(_count(statuses).items())),
                          time.perf_counter() - t0, 0))
-        print(json.dumps({"real_model": args.real_model}))
+            idle_rss = server._status()["VmRSS"]
+        print(json.dumps({"real_model": args.real_model, "server_rss_mib": round(idle_rss / 2**20)}))
         print("| attack | status | time | server peak above idle |")
         print("|---|---|---|---|")
         for name, status, dt, peak in rows:
