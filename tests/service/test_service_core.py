@@ -163,5 +163,5 @@ def test_unset_keys_from_compose_and_loopback_binding(monkeypatch: pytest.Monkey
     s = Settings(maps_dir=tmp_path)
     assert s.api_key is None and s.vehicle_key_list == []
     compose = (Path(__file__).resolve().parents[2] / "docker" / "compose.yaml").read_text()
-    assert 'host_ip: "${RERADAR_BIND:-127.0.0.1}"' in compose
+    assert "${RERADAR_BIND:-127.0.0.1}:${RERADAR_PORT:-8080}:8080" in compose
     assert DEV_API_KEY not in compose and 'RERADAR_API_KEY: "${RERADAR_API_KEY:-}"' in compose

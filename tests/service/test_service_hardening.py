@@ -233,3 +233,24 @@ def test_slow_clients_are_cut_off(process_server) -> None:  # type: ignore[no-un
 def test_map_metadata_unchanged_by_attacks(process_server) -> None:  # type: ignore[no-untyped-def]
     _, maps_dir = process_server
     assert read_metadata(maps_dir / "route-a.h5").num_keyframes == len(keyframe_poses())
+
+
+def test_archive_scans_are_sized_from_their_header(live: tuple[str, Path], tmp_path: Path) -> None:
+    import io
+    import zipfile
+
+    from attacks import png_declaring
+
+    from reradar_core.io.poses import PoseSequence, write_txyyaw_csv
+
+    url, maps_dir = live
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        zf.writestr(f"{keyframe_time(0)}.png", png_declaring(60000, 60000))
+    poses = keyframe_poses()[:1]
+    pose_file = write_txyyaw_csv(PoseSequence([keyframe_time(0)], poses[:, :2], poses[:, 2]), tmp_path / "p.csv")
+    files = {"archive": ("a.zip", buf.getvalue()), "poses": ("p.csv", pose_file.read_bytes())}
+    r = httpx.post(f"{url}/maps", data={"map_id": "bomb"}, files=files, headers=AUTH, timeout=30)
+    body = assert_problem(r, 422, maps_dir)
+    assert "RERADAR_MAX_SCAN_PIXELS" in body["detail"] and f"{keyframe_time(0)}.png" in body["detail"]
+    assert httpx.get(f"{url}/maps/bomb").status_code == 404
