@@ -103,6 +103,8 @@ class _Body:
                 more = self.spool.tell() < self.size
             else:
                 data = self.chunks[index] if index < len(self.chunks) else b""
+                if index < len(self.chunks):
+                    self.chunks[index] = b""  # the app holds (or has parsed) it now: do not keep a copy
                 index += 1
                 more = index < len(self.chunks)
             done = not more

@@ -205,6 +205,8 @@ def attacks(map_id: str) -> list[Attack]:
                {**inline, "files": {"scan": ("q.png", valid_png_bomb(30000))}}, 413),
         Attack(".npy declaring (100000, 100000)", "POST", "/localize",
                {**inline, "files": {"scan": ("q.npy", npy_declaring((100000, 100000)))}}, 422),
+        Attack("19.9 MB of random bytes as a scan (body limit 20 MB)", "POST", "/localize",
+               {**inline, "files": {"scan": ("q.png", np.random.default_rng(1).bytes(19_900_000))}}, 422),
         Attack("JPEG sent as a scan", "POST", "/localize", {**inline, "files": {"scan": ("q.jpg", jpeg_scan())}}, 415),
         Attack("16-bit PNG", "POST", "/scans", {"files": {"scan": ("q.png", png_declaring(3371, 400, 16))}}, 422),
         Attack("POST /maps without a key, 100 MB body", "POST", "/maps",
@@ -291,12 +293,6 @@ def main() -> None:
                 resp, dt, peak = server.measure(lambda: normal_localize(server.url, map_id, png))
                 peaks.append(peak)
             rows.append(("normal POST /localize (inline PNG)", resp.status_code, dt, max(peaks)))
-            big = io.BytesIO()
-            np.save(big, np.random.default_rng(0).integers(0, 256, (400, 4000), dtype=np.uint8))
-            resp, dt, peak = server.measure(lambda: httpx.post(
-                f"{server.url}/localize", data={"map_id": map_id}, files={"scan": ("big.npy", big.getvalue())},
-                timeout=120))
-            rows.append(("largest accepted scan: random .npy 400 x 4000 (1.6 M pixels)", resp.status_code, dt, peak))
             for a in attacks(map_id):
                 resp, dt, peak = server.measure(
                     lambda a=a: httpx.request(a.method, server.url + a.path, timeout=120, **a.kwargs))
@@ -304,6 +300,14 @@ def main() -> None:
                 rows.append((a.name, resp.status_code, dt, peak))
                 if resp.status_code != a.expect:
                     print(f"UNEXPECTED {a.name}: {resp.status_code} {body}", file=sys.stderr)
+            if args.real_model:  # last: its memory would be reused by the attacks after it (the fake extractor
+                # makes every bright pixel of random data a keypoint, so this row means nothing with it)
+                big = io.BytesIO()
+                np.save(big, np.random.default_rng(0).integers(0, 256, (400, 4000), dtype=np.uint8))
+                resp, dt, peak = server.measure(lambda: httpx.post(
+                    f"{server.url}/localize", data={"map_id": map_id}, files={"scan": ("big.npy", big.getvalue())},
+                    timeout=120))
+                rows.append(("largest accepted scan: random .npy 400 x 4000 (1.6 M pixels)", resp.status_code, dt, peak))
             t0 = time.perf_counter()
             statuses = close_slow_clients(slow_clients(server.url))
             rows.append((f"{len(statuses)} clients declaring 1 MB, sending 6 bytes (all closed)",
