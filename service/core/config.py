@@ -72,7 +72,10 @@ class Settings(BaseSettings):
     maps_dir: Path = Field(default_factory=_default_maps_dir,
                            description="Folder holding the registered maps (<map_id>.h5).")
     load_demo_map: bool = Field(default=True, description="Copy the shipped demo map into maps_dir as map `demo`.")
-    max_upload_mb: float = Field(default=20.0, gt=0, description="Largest scan upload / request body, MB.")
+    max_upload_mb: float = Field(default=8.0, gt=0, description=(
+        "Largest scan upload / request body, MB: a Navtech PNG is ~1.3 MB, a float32 .npy of the largest "
+        "accepted scan 6.4 MB. The guard holds a scan request's body in memory, so this bounds what a junk body "
+        "costs (measured in docs/SERVICE.md); send float64 arrays as float32 or uint8."))
     max_map_upload_mb: float = Field(default=512.0, gt=0, description="Largest map or scan-archive upload, MB.")
     max_archive_scans: int = Field(default=20_000, gt=0, description="Most scans accepted in one scan archive.")
     scan_cache_size: int = Field(default=256, gt=0, description="Uploaded scans whose features are kept.")
