@@ -142,6 +142,9 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
 
         state = await run_in_threadpool(load)
         app.state.guard = build_guard(cfg, spool_dir=state.registry.staging_dir())
+        if not app.state.guard.policy.vehicle_keys:
+            logger.info("no RERADAR_VEHICLE_KEYS configured: scans, retrieve and localize answer loopback clients "
+                        "only (and callers with the operator key)")
         app.state.reradar = state
         logger.info("ReRadar ready: model %s, %d map(s) in %s", state.extractor.model_id,
                     state.registry.num_ready, cfg.maps_dir)

@@ -254,3 +254,14 @@ def test_archive_scans_are_sized_from_their_header(live: tuple[str, Path], tmp_p
     body = assert_problem(r, 422, maps_dir)
     assert "RERADAR_MAX_SCAN_PIXELS" in body["detail"] and f"{keyframe_time(0)}.png" in body["detail"]
     assert httpx.get(f"{url}/maps/bomb").status_code == 404
+
+
+def test_route_classes_are_safe_by_default() -> None:
+    from service.api.security import route_class
+
+    assert route_class("POST", "/maps") == route_class("DELETE", "/maps/x") == "operator"
+    assert route_class("PUT", "/maps/x") == "operator"
+    assert route_class("POST", "/maps/x/retrieve") == route_class("POST", "/localize") == "vehicle"
+    assert route_class("POST", "/scans/") == "vehicle"
+    assert route_class("POST", "/localize/track") == "vehicle"  # a route added later is guarded too
+    assert route_class("GET", "/maps") == route_class("GET", "/metrics") == route_class("OPTIONS", "/maps") == "public"
