@@ -177,6 +177,8 @@ class RequestGuardMiddleware:
         headers = dict(scope.get("headers") or [])
         declared = headers.get(b"content-length")
         no_body = declared in (None, b"0") and b"transfer-encoding" not in headers
+        # a client that waits for "100 Continue" has sent nothing yet: refuse it without asking for the body
+        skip_drain = no_body or headers.get(b"expect", b"").lower() == b"100-continue"
         if kind != "public":
             try:
                 if guard is None:
@@ -185,7 +187,7 @@ class RequestGuardMiddleware:
                 client = scope.get("client")
                 principal = guard.policy.authorize(kind, key, client[0] if client else None)
             except ServiceError as exc:
-                await _drain(receive, no_body)
+                await _drain(receive, skip_drain)
                 await _reply(send, path, exc)
                 return
             scope.setdefault("state", {})["principal"] = principal
@@ -201,14 +203,14 @@ class RequestGuardMiddleware:
                 await _reply(send, path, ServiceError("invalid Content-Length header"))
                 return
             if size > limit:
-                await _drain(receive, False)
+                await _drain(receive, skip_drain)
                 await _reply(send, path, PayloadTooLargeError(
                     f"request body larger than the limit of {limit / 2**20:.1f} MB"))
                 return
         heavy = kind != "public" and method in _BODY_METHODS
         if heavy:
             if self.in_flight >= limits.max_concurrent:
-                await _drain(receive, no_body)
+                await _drain(receive, skip_drain)
                 await _reply(send, path, OverloadedError(
                     f"the server is busy with {limits.max_concurrent} scan / map requests; retry in "
                     f"{limits.retry_after_s} s", retry_after_s=limits.retry_after_s))

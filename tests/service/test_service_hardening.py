@@ -265,3 +265,14 @@ def test_route_classes_are_safe_by_default() -> None:
     assert route_class("POST", "/scans/") == "vehicle"
     assert route_class("POST", "/localize/track") == "vehicle"  # a route added later is guarded too
     assert route_class("GET", "/maps") == route_class("GET", "/metrics") == route_class("OPTIONS", "/maps") == "public"
+
+
+def test_unauthenticated_client_waiting_for_continue_is_refused_at_once(process_server) -> None:  # type: ignore[no-untyped-def]
+    import socket
+
+    server, _ = process_server
+    with socket.create_connection(("127.0.0.1", server.port), timeout=10) as s:
+        s.sendall(b"POST /maps HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\n"
+                  b"Content-Length: 200000000\r\nExpect: 100-continue\r\n\r\n")
+        head = s.recv(4096)
+    assert head.startswith(b"HTTP/1.1 401"), head[:80]  # no "100 Continue": the body is never asked for
