@@ -20,7 +20,10 @@ fi
 echo "== ${COMPOSE[*]} config (docker/compose.yaml)"
 "${COMPOSE[@]}" --project-directory docker -f docker/compose.yaml config -q
 rendered=$("${COMPOSE[@]}" --project-directory docker -f docker/compose.yaml config)
-grep -q "target: 8080" <<<"$rendered" || { echo "compose: service port 8080 not published" >&2; exit 1; }
+# Compose v2 renders ports in the long syntax, v1 as host_ip:published:target/protocol strings
+grep -Eq "target: 8080|:8080/tcp" <<<"$rendered" || { echo "compose: service port 8080 not published" >&2; exit 1; }
+grep -Eq "host_ip: 127\.0\.0\.1|127\.0\.0\.1:[0-9]+:8080" <<<"$rendered" \
+    || { echo "compose: port 8080 must be published on 127.0.0.1 unless RERADAR_BIND says otherwise" >&2; exit 1; }
 grep -q "reradar-maps:/data/maps" <<<"$rendered" || { echo "compose: maps volume missing" >&2; exit 1; }
 
 echo "== Dockerfile checks"
