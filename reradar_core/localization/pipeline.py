@@ -16,7 +16,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Literal, Protocol
 
 import numpy as np
 
@@ -30,8 +30,8 @@ from reradar_core.matching import (
     estimate_pose_guided,
     estimate_rigid_2d,
     match_descriptors,
-    screen_alignment,
 )
+from reradar_core.localization.screening import ScreenKeyframe, screen_candidates, screen_keyframe
 
 __all__ = [
     "LocalizationConfig",
@@ -138,6 +138,13 @@ class LocalizationConfig:
             raise ConfigError(f"pose_method must be 'guided' or 'mutual_nn', got {self.pose_method!r}")
 
 
+class _Prepared(Protocol):
+    """What a candidate's ``loader`` returns (``keyframes.CachedKeyframe``): features + screen data."""
+
+    features: ScanFeatures
+    screen: ScreenKeyframe
+
+
 @dataclass
 class Candidate:
     """A retrieved map keyframe.
@@ -149,9 +156,12 @@ class Candidate:
         descriptor_distance: Euclidean distance between unit global descriptors, in [0, 2].
         rank: 0-based position in the retrieval list.
         landmark_grid: ``build_landmark_grid(features.keypoints_xy_m)`` when the caller caches it per keyframe
-            (built on the fly otherwise).
-        loader: instead of ``features`` (None): returns (features, landmark grid or None) when the candidate is
-            first needed, so retrieving many candidates costs nothing for those never screened.
+            (else ``grid_loader`` or built on the fly).
+        loader: instead of ``features`` (None): returns the keyframe's features and screen data
+            (``keyframes.CachedKeyframe``) when the candidate is first needed, so retrieving many candidates
+            costs nothing for those never screened.
+        screen: the keyframe's ``ScreenKeyframe`` (built from ``features`` when neither it nor a loader is given).
+        grid_loader: returns the keyframe's ``LandmarkGrid`` for the full pose estimate (e.g. from a cache).
     """
 
     keyframe_id: int
@@ -160,16 +170,31 @@ class Candidate:
     descriptor_distance: float
     rank: int
     landmark_grid: LandmarkGrid | None = None
-    loader: Callable[[], tuple[ScanFeatures, LandmarkGrid | None]] | None = None
+    loader: Callable[[], _Prepared] | None = None
+    screen: ScreenKeyframe | None = None
+    grid_loader: Callable[[], LandmarkGrid] | None = None
 
     def resolve(self) -> ScanFeatures:
-        """The keyframe's features, loading them (and the grid) through ``loader`` on first use."""
+        """The keyframe's features, loading them (and the screen data) through ``loader`` on first use."""
         if self.features is None:
             if self.loader is None:
                 raise ConfigError(f"candidate keyframe {self.keyframe_id} has neither features nor a loader")
-            self.features, grid = self.loader()
-            self.landmark_grid = self.landmark_grid if grid is None else grid
+            prepared = self.loader()
+            self.features, self.screen = prepared.features, self.screen or prepared.screen
         return self.features
+
+    def screen_data(self, config: AlignmentConfig) -> ScreenKeyframe:
+        """The keyframe's ``ScreenKeyframe`` (loaded, or built from its features)."""
+        features = self.resolve()
+        if self.screen is None:
+            self.screen = screen_keyframe(features.keypoints_xy_m, features.local_descriptors, config)
+        return self.screen
+
+    def grid(self) -> LandmarkGrid | None:
+        """The keyframe's ``LandmarkGrid`` when one is given or loadable, else None (built by the estimator)."""
+        if self.landmark_grid is None and self.grid_loader is not None:
+            self.landmark_grid = self.grid_loader()
+        return self.landmark_grid
 
 
 @dataclass
@@ -244,7 +269,7 @@ def verify_candidate(query: ScanFeatures, candidate: Candidate, config: Localiza
     if config.pose_method == "guided":
         est = estimate_pose_guided(query.keypoints_xy_m, query.local_descriptors, kf.keypoints_xy_m,
                                    kf.local_descriptors, replace(config.alignment, min_inliers=config.min_inliers),
-                                   grid=candidate.landmark_grid)
+                                   grid=candidate.grid())
         num_matches = int(query.keypoints_xy_m.shape[0])
         if timings_ms is not None:
             timings_ms["pose_ms"] = timings_ms.get("pose_ms", 0.0) + (time.perf_counter() - t0) * 1e3
@@ -302,11 +327,10 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
     ordered = pool[: config.top_k] if config.rerank else pool[:1]
     scores: dict[int, float] = {}
 
-    def screen(batch: list[Candidate]) -> None:
-        for c in batch:
-            f = c.resolve()
-            scores[c.rank] = screen_alignment(query.keypoints_xy_m, query.local_descriptors, f.keypoints_xy_m,
-                                              f.local_descriptors, config.alignment, c.landmark_grid)
+    def screen(batch: list[Candidate]) -> None:  # all candidates of a block at once (``screening``)
+        values = screen_candidates(query.keypoints_xy_m, query.local_descriptors,
+                                   [c.screen_data(config.alignment) for c in batch], config.alignment)
+        scores.update({c.rank: float(v) for c, v in zip(batch, values, strict=True)})
 
     if config.pose_method == "guided" and len(ordered) > config.verify_k:
         screen(ordered)

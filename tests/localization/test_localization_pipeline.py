@@ -8,7 +8,9 @@ import pytest
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose, inverse, transform_points, wrap_angle
+from reradar_core.matching import AlignmentConfig
 from reradar_core.localization import (
+    CachedKeyframe,
     REASON_NO_CANDIDATE,
     REASON_SCREENED_OUT,
     REASON_TOO_FEW_INLIERS,
@@ -150,7 +152,7 @@ def test_expansion_screens_further_only_when_no_candidate_aligns() -> None:
         def loader(i: int):
             def load():
                 loaded.append(i)
-                return kfs[i], None
+                return CachedKeyframe(kfs[i], AlignmentConfig())
             return load
         return [Candidate(i, poses[i], None, 0.1 * r, r, loader=loader(i)) for r, i in enumerate(order_)]
 
