@@ -130,9 +130,8 @@ def bench_memory(n: int, dim: int, local_dim: int, keypoints: int, seed: int = 0
 # ---------------------------------------------------------------------------------------------- HTTP
 def measure_open(path: str, kind: str) -> dict:
     """RSS growth of this (fresh) process from opening the map at ``path`` with index ``kind``."""
-    from reradar_core.retrieval import IndexConfig
-
     from maps.database import MapDatabase
+    from reradar_core.retrieval import IndexConfig
 
     gc.collect()
     before = _rss_bytes()

@@ -14,7 +14,7 @@ import numpy as np
 from maps.store import KeyframeMap, MapMetadata, open_map
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
-from reradar_core.localization import LocalizationConfig, LocalizationResult, Localizer, Retrieval
+from reradar_core.localization import LocalizationConfig, LocalizationResult, Localizer, PosePrior, Retrieval
 from reradar_core.retrieval import GlobalIndex, IndexConfig
 
 __all__ = ["Retrieval", "MapDatabase"]
@@ -65,6 +65,11 @@ class MapDatabase:
     def localize(self, query: ScanFeatures, config: LocalizationConfig | None = None) -> LocalizationResult:
         """``Localizer.localize`` on this map."""
         return self.localizer.localize(query, config)
+
+    def track(self, query: ScanFeatures, prior: PosePrior,
+              config: LocalizationConfig | None = None) -> LocalizationResult:
+        """``Localizer.track`` on this map (tracking mode, global fallback)."""
+        return self.localizer.track(query, prior, config)
 
     def close(self) -> None:
         self.localizer.clear()

@@ -3,8 +3,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 echo "== ruff"
-python -m ruff check reradar_core service maps tests scripts benchmarks
-echo "== mypy (service, maps)"
-python -m mypy service maps
+python -m ruff check reradar_core reradar_cli service maps tests scripts benchmarks
+echo "== mypy (service, maps, reradar_cli)"
+python -m mypy service maps reradar_cli
 echo "== pytest"
 python -m pytest "$@"

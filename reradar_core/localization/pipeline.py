@@ -23,6 +23,8 @@ import numpy as np
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose
+from reradar_core.localization.screening import ScreenKeyframe, screen_candidates, screen_keyframe
+from reradar_core.localization.tracking import TrackingConfig
 from reradar_core.matching import (
     AlignmentConfig,
     LandmarkGrid,
@@ -31,7 +33,6 @@ from reradar_core.matching import (
     estimate_rigid_2d,
     match_descriptors,
 )
-from reradar_core.localization.screening import ScreenKeyframe, screen_candidates, screen_keyframe
 
 __all__ = [
     "LocalizationConfig",
@@ -51,6 +52,7 @@ REASON_NO_CANDIDATE = "no_candidate"
 REASON_TOO_FEW_INLIERS = "too_few_inliers"
 REASON_TOO_FEW_MATCHES = "too_few_matches"
 REASON_SCREENED_OUT = "screened_out"
+REASON_INCONSISTENT = "inconsistent_with_prior"
 
 Status = Literal["localized", "not_localized"]
 PoseMethod = Literal["guided", "mutual_nn"]
@@ -95,6 +97,7 @@ class LocalizationConfig:
             docs/BENCHMARKS.md for what each gives.
         alignment: settings of the guided estimator (its own ``min_inliers`` is replaced by this config's).
         ransac: RANSAC settings of ``mutual_nn`` (threshold in metres, iterations, seed).
+        tracking: settings of tracking mode (``Localizer.track``; ``localization.tracking``).
     """
 
     top_k: int = 20
@@ -108,6 +111,7 @@ class LocalizationConfig:
     pose_method: PoseMethod = "guided"
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     ransac: RansacConfig = field(default_factory=RansacConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
     @property
     def num_to_retrieve(self) -> int:
@@ -236,7 +240,9 @@ class LocalizationResult:
         T_map_query: (3,) float64 absolute pose (x m, y m, yaw rad) when localized, else None.
         candidates: every screened candidate in retrieval order (not verified in full: reason ``screened_out``).
         timings_ms: stage timings (``screen_ms``, ``pose_ms`` or ``match_ms`` + ``ransac_ms``, ``verify_ms``
-            = all of it), milliseconds.
+            = all of it; tracking: ``track_ms``), milliseconds.
+        mode: ``global`` (retrieval + screen + verify) or ``tracking`` (registered from a pose prior).
+        tracking_lost: a tracking attempt found no consistent pose and this is the global fallback's answer.
     """
 
     status: Status
@@ -245,6 +251,8 @@ class LocalizationResult:
     T_map_query: np.ndarray | None
     candidates: list[CandidateVerification]
     timings_ms: dict[str, float] = field(default_factory=dict)
+    mode: Literal["global", "tracking"] = "global"
+    tracking_lost: bool = False
 
     @property
     def localized(self) -> bool:

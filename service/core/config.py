@@ -57,6 +57,9 @@ class Settings(BaseSettings):
     preload_keyframes: bool = Field(default=True, description=(
         "Read every keyframe (up to `keyframe_cache_size`) when a map is loaded, so no query pays for cold "
         "reads (560 keyframes: ~1 s at start-up, ~80 MB)."))
+    session_ttl_s: float = Field(default=60.0, gt=0, description=(
+        "Seconds a tracking session's last pose is kept without a new scan (then the next scan is global)."))
+    max_sessions: int = Field(default=10_000, ge=1, description="Tracking sessions kept (least recently used dropped).")
     index_kind: Literal["auto", "flat", "hnsw", "ivf"] = Field(default="auto", description="FAISS index type.")
     index_exact_max_size: int = Field(default=20_000, ge=0, description="`auto` uses exact search up to this size.")
     torch_threads: int = Field(default=1, ge=1, description=(

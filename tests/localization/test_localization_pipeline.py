@@ -8,16 +8,16 @@ import pytest
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose, inverse, transform_points, wrap_angle
-from reradar_core.matching import AlignmentConfig
 from reradar_core.localization import (
-    CachedKeyframe,
     REASON_NO_CANDIDATE,
     REASON_SCREENED_OUT,
     REASON_TOO_FEW_INLIERS,
+    CachedKeyframe,
     Candidate,
     LocalizationConfig,
     localize,
 )
+from reradar_core.matching import AlignmentConfig
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
