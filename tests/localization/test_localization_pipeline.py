@@ -173,7 +173,7 @@ def test_expansion_screens_further_only_when_no_candidate_aligns() -> None:
 
 
 def test_verification_stops_once_an_answer_is_confident() -> None:
-    """Two true keyframes at ranks 3 and 6 screen best: with the default stop ratio only the best-screened one
+    """Two true keyframes at ranks 3 and 6 screen best: with a stop ratio of 0.5 only the best-screened one
     is verified; without it all ``verify_k`` are, and the answer is the same place."""
     rng = np.random.default_rng(8)
     kfs = [_keyframe(rng, ts=i) for i in range(10)]
@@ -182,7 +182,8 @@ def test_verification_stops_once_an_answer_is_confident() -> None:
     poses[6] = poses[3]
     query = _query_from(kfs[3], np.array([1.0, 2.0, 0.4]), rng)
     order = list(range(10))
-    fast = localize(query, _candidates(kfs, poses, order), LocalizationConfig(top_k=10, verify_k=3))
+    fast = localize(query, _candidates(kfs, poses, order), LocalizationConfig(top_k=10, verify_k=3,
+                                                                            stop_verify_ratio=0.5))
     full = localize(query, _candidates(kfs, poses, order), LocalizationConfig(top_k=10, verify_k=3,
                                                                             stop_verify_ratio=None))
     assert sum(c.reason != REASON_SCREENED_OUT for c in fast.candidates) == 1
