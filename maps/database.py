@@ -29,10 +29,10 @@ class MapDatabase:
 
     Args:
         keyframe_cache_size: keyframes whose features and compact screen data stay in memory between queries
-            (LRU; ~0.15 MB each with 512 landmarks; None = all). Re-reading a keyframe and rebuilding its grids
-            costs ~1.3 ms against ~0.1 ms to screen it, so a map that fits is best held whole.
+            (LRU; ~50 KB each with 512 landmarks; None = all). Re-reading a keyframe and rebuilding its grids
+            costs ~1.3 ms, as much as screening it, so a map that fits is best held whole.
         config: the localizer's default ``LocalizationConfig``.
-        preload: read every keyframe (up to ``keyframe_cache_size``) at open instead of on first use.
+        preload: read every keyframe at open (when the map fits in the cache) instead of on first use.
     """
 
     def __init__(self, kf_map: KeyframeMap, index_config: IndexConfig = IndexConfig(),

@@ -75,7 +75,7 @@ class InMemoryKeyframes:
 
 class CachedKeyframe:
     """One keyframe prepared for localization: its features and its compact screen data (``ScreenKeyframe``:
-    float32 descriptors and a uint8 alignment mask, ~0.13 MB with 512 landmarks)."""
+    the features' own arrays and a bit-packed alignment mask; ~30 KB in all with 512 landmarks)."""
 
     __slots__ = ("features", "screen")
 
@@ -88,9 +88,9 @@ class KeyframeCache:
     """Thread-safe caches over a ``KeyframeSource``: ``CachedKeyframe`` s (screen data) and, separately and
     smaller, the float32 distance grids + KD-trees (``LandmarkGrid``, ~0.3 MB) the full pose estimate uses.
 
-    Reading a keyframe from HDF5 and building its grids costs ~1.3 ms while screening it costs ~0.1 ms, so a
-    map whose screen data fits in memory is best held whole (``max_cached=None``, ``preload``); only the few
-    verified candidates per query need the larger grid.
+    Reading a keyframe from HDF5 and building its grids costs ~1.3 ms while screening it costs ~1 ms, so a
+    map whose screen data fits in memory (~50 KB per keyframe with 512 landmarks, measured) is best held whole
+    (``preload``); only the few verified candidates per query need the larger grid.
 
     Args:
         source: the keyframes.
@@ -150,10 +150,14 @@ class KeyframeCache:
             self._lru_put(self._grids, keyframe_id, built, self.max_grids)
         return built
 
-    def preload(self) -> None:
-        """Read every keyframe (up to ``max_cached``) so no query pays for a cold read."""
-        for i in range(len(self.source) if self.max_cached is None else min(len(self.source), self.max_cached)):
+    def preload(self) -> bool:
+        """Read every keyframe when the whole map fits in the cache, so no query pays for a cold read;
+        returns whether it did (a larger map fills the LRU as it is queried)."""
+        if self.max_cached is not None and len(self.source) > self.max_cached:
+            return False
+        for i in range(len(self.source)):
             self.get(i)
+        return True
 
     def clear(self) -> None:
         with self._lock:

@@ -63,8 +63,9 @@ class Localizer:
         keyframes: the keyframes' poses, timestamps and features (``KeyframeSource``).
         config: default settings of ``localize`` (a call may pass its own).
         cache_size: keyframes whose features and compact screen data stay in memory between queries (LRU,
-            ~0.15 MB each); None = the whole map.
-        preload: read every cached keyframe now, so that no query pays for a cold read (~1.3 ms each).
+            ~50 KB each); None = the whole map.
+        preload: read every keyframe now when the map fits in the cache, so that no query pays for a cold
+            read (~1.3 ms each).
     """
 
     def __init__(self, index: GlobalIndex, keyframes: KeyframeSource,

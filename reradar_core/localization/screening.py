@@ -8,8 +8,8 @@ look-up - each too small for numpy to be efficient, so 20-60 candidates cost 1.5
 
 Here the same steps run once for all candidates: one batched similarity product and top-k, minimal sets drawn
 once (the pair lists of all candidates have the same length, so one seeded draw indexes every candidate), and
-one look-up into compact per-keyframe ``uint8`` alignment masks (``ScreenGrid``: 1 where a keyframe landmark
-is within ``score_threshold_m``; ~76 KB per keyframe instead of a float32 distance grid). The scores follow
+one look-up into compact per-keyframe alignment masks (``ScreenGrid``: 1 where a keyframe landmark is within
+``score_threshold_m``, bit-packed: ~10 KB per keyframe instead of a ~0.3 MB float32 distance grid). The scores follow
 the single-candidate definition; the pair lists, the seeded draw and the arithmetic are those of
 ``screen_alignment``, so the scores are the same (tested).
 """
@@ -31,30 +31,36 @@ class ScreenGrid:
     """Alignment mask of one keyframe's landmarks.
 
     Attributes:
-        near: (n * n,) uint8, row-major (row = y cell, column = x cell): 1 where a keyframe landmark is within
-            the score threshold of the cell, else 0. Points outside the grid are never near (the grid covers
-            the landmarks plus a margin larger than the threshold).
+        packed: ``np.packbits`` of the (n * n,) row-major mask (row = y cell, column = x cell): 1 where a
+            keyframe landmark is within the score threshold of the cell. Points outside the grid are never
+            near (the grid covers the landmarks plus a margin larger than the threshold).
         n: cells per side; origin_m: lower corner (same for x and y), metres; cell_m: cell size, metres.
     """
 
-    near: np.ndarray
+    packed: np.ndarray
     n: int
     origin_m: float
     cell_m: float
+
+    @property
+    def near(self) -> np.ndarray:
+        """The (n * n,) uint8 mask (0 / 1)."""
+        return np.unpackbits(self.packed, count=self.n * self.n)
 
 
 def build_screen_grid(points_xy_m: np.ndarray, config: AlignmentConfig) -> ScreenGrid:
     """The ``ScreenGrid`` of (M, 2) landmark positions (metres): the cells of ``build_landmark_grid`` whose
     distance to the nearest landmark is below ``config.score_threshold_m``."""
     grid = build_landmark_grid(points_xy_m, config.grid_cell_m)
-    near = (grid.distance_m < config.score_threshold_m).astype(np.uint8).reshape(-1)
-    return ScreenGrid(near, int(grid.distance_m.shape[0]), float(grid.origin_m), float(grid.cell_m))
+    near = (grid.distance_m < config.score_threshold_m).reshape(-1)
+    return ScreenGrid(np.packbits(near), int(grid.distance_m.shape[0]), float(grid.origin_m), float(grid.cell_m))
 
 
 @dataclass
 class ScreenKeyframe:
-    """What the screen needs of one keyframe: (M, 2) float64 landmarks (metres, its sensor frame), (M, C)
-    float32 unit local descriptors and its ``ScreenGrid``."""
+    """What the screen needs of one keyframe: (M, 2) landmarks (metres, its sensor frame; any float dtype),
+    (M, C) unit local descriptors (any float dtype; the keyframe's own arrays, not copies) and its
+    ``ScreenGrid``."""
 
     points: np.ndarray
     descriptors: np.ndarray
@@ -179,5 +185,5 @@ def screen_candidates(query_points: np.ndarray, query_descriptors: np.ndarray,
 def screen_keyframe(features_points: np.ndarray, features_descriptors: np.ndarray,
                     config: AlignmentConfig) -> ScreenKeyframe:
     """A keyframe's ``ScreenKeyframe`` from its (M, 2) landmarks (metres) and (M, C) local descriptors."""
-    pts = np.asarray(features_points, np.float64).reshape(-1, 2)
-    return ScreenKeyframe(pts, np.asarray(features_descriptors, np.float32), build_screen_grid(pts, config))
+    pts = np.asarray(features_points).reshape(-1, 2)
+    return ScreenKeyframe(pts, np.asarray(features_descriptors), build_screen_grid(pts, config))
