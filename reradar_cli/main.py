@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import functools
 import importlib
 import logging
+from collections.abc import Callable
 from typing import Any
 
 import typer
@@ -31,6 +33,33 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+#: top-level modules of the optional extras (``server``, ``plot``, ...): missing ones get an install hint
+OPTIONAL_MODULES = frozenset({"torch", "e2cnn", "faiss", "cv2", "scipy", "h5py", "fastapi", "uvicorn", "starlette",
+                              "pydantic_settings", "multipart", "python_multipart", "tqdm", "matplotlib"})
+
+
+def _missing_extra(name: str, exc: ModuleNotFoundError) -> typer.Exit:
+    typer.echo(f"error: 'reradar {name}' needs the optional dependency {exc.name!r}, which is not installed; "
+               "install the extras, e.g. pip install 'reradar[server]' or 'reradar[all]' (see README)", err=True)
+    return typer.Exit(2)
+
+
+def _guarded(name: str, callback: Callable[..., Any]) -> Callable[..., Any]:
+    """``callback`` turning a missing optional dependency (imported lazily inside a command) into an
+    actionable error instead of a traceback."""
+
+    @functools.wraps(callback)
+    def run(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return callback(*args, **kwargs)
+        except ModuleNotFoundError as exc:
+            if (exc.name or "").split(".")[0] not in OPTIONAL_MODULES:
+                raise
+            raise _missing_extra(name, exc) from exc
+
+    return run
+
+
 def load_command(name: str) -> Any:
     """Import the module that defines sub-command ``name`` and return it as a (Typer's) click command; exits
     with status 2 and an actionable message when the module needs an optional dependency that is missing."""
@@ -38,15 +67,15 @@ def load_command(name: str) -> Any:
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as exc:  # a client-only install lacks the server/training/bench extras
-        typer.echo(f"error: 'reradar {name}' needs the optional dependency {exc.name!r}, which is not installed; "
-                   "install the extras, e.g. pip install 'reradar[server]' (see README)", err=True)
-        raise typer.Exit(2) from exc
+        raise _missing_extra(name, exc) from exc
     sub = typer.Typer()
     module.register(sub)
     group = typer.main.get_group(sub)
     cmd = group.get_command(typer.Context(group), name)
     if cmd is None:  # pragma: no cover - COMMANDS and the modules disagree
         raise RuntimeError(f"module {module_name} does not define the command {name!r}")
+    if cmd.callback is not None:
+        cmd.callback = _guarded(name, cmd.callback)
     return cmd
 
 

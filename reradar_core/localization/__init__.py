@@ -1,5 +1,6 @@
 """Localization stage: one ``Localizer`` (retrieval -> landmark-alignment screen -> guided pose -> re-ranking)
-over a map's keyframes (``KeyframeSource``); ``localize`` is the screen/verify step over given candidates."""
+over a map's keyframes (``KeyframeSource``), with a tracking mode from a pose prior (``Localizer.track``);
+``localize`` is the screen/verify step over given candidates."""
 
 from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
 from reradar_core.localization.keyframes import (
@@ -10,6 +11,7 @@ from reradar_core.localization.keyframes import (
 )
 from reradar_core.localization.localizer import Localizer, Retrieval
 from reradar_core.localization.pipeline import (
+    REASON_INCONSISTENT,
     REASON_NO_CANDIDATE,
     REASON_SCREENED_OUT,
     REASON_TOO_FEW_INLIERS,
@@ -21,6 +23,7 @@ from reradar_core.localization.pipeline import (
     localize,
     verify_candidate,
 )
+from reradar_core.localization.tracking import PosePrior, TrackingConfig
 
 __all__ = [
     "FeatureExtractor",
@@ -31,6 +34,9 @@ __all__ = [
     "KeyframeSource",
     "Localizer",
     "Retrieval",
+    "PosePrior",
+    "TrackingConfig",
+    "REASON_INCONSISTENT",
     "REASON_NO_CANDIDATE",
     "REASON_SCREENED_OUT",
     "REASON_TOO_FEW_INLIERS",

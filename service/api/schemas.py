@@ -9,7 +9,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.core.ids import MAP_ID_PATTERN
+from service.core.ids import MAP_ID_PATTERN, SESSION_ID_PATTERN
 
 __all__ = [
     "ErrorResponse",
@@ -154,11 +154,30 @@ class RetrieveResponse(_Model):
 
 class LocalizeRequest(ScanRef):
     """Localize by reference (JSON). Inline scans use multipart/form-data: `map_id` field, `scan` file,
-    optional `top_k`, `preset`."""
+    optional `top_k`, `preset` and the tracking fields below.
+
+    Tracking mode (docs/SERVICE.md): send a `session_id` (the server keeps the session's last pose on this
+    map) and, when known, the odometry since the session's previous scan (`odom_*`, in the previous scan's
+    frame); or an explicit prior (`prior_*`). Without either, or when tracking is lost, the scan is localized
+    globally."""
 
     map_id: str = Field(pattern=MAP_ID_PATTERN)
     top_k: int | None = Field(default=None, ge=1, le=100, description=(
         "Candidates retrieved and screened (default: service top_k; the best verify_k are verified in full)."))
+    session_id: str | None = Field(default=None, pattern=SESSION_ID_PATTERN, description=(
+        "Tracking session: the server remembers this session's last pose (per map, expires after "
+        "RERADAR_SESSION_TTL_S) and tracks from it."))
+    odom_dx_m: float | None = Field(default=None, ge=-1000, le=1000, description=(
+        "Odometry since the session's previous scan: forward motion in that scan's frame, metres."))
+    odom_dy_m: float | None = Field(default=None, ge=-1000, le=1000, description="Odometry: leftward motion, metres.")
+    odom_dyaw_deg: float | None = Field(default=None, ge=-360, le=360, description="Odometry: heading change, degrees CCW.")
+    prior_x_m: float | None = Field(default=None, ge=-1e7, le=1e7, description="Explicit prior: map-frame x, metres.")
+    prior_y_m: float | None = Field(default=None, ge=-1e7, le=1e7, description="Explicit prior: map-frame y, metres.")
+    prior_yaw_deg: float | None = Field(default=None, ge=-360, le=360, description="Explicit prior: heading, degrees.")
+    prior_sigma_m: float | None = Field(default=None, gt=0, le=1000, description=(
+        "Explicit prior: position standard deviation, metres (default 2)."))
+    prior_sigma_yaw_deg: float | None = Field(default=None, gt=0, le=180, description=(
+        "Explicit prior: heading standard deviation, degrees (default 5)."))
 
 
 class CandidateResult(_Model):
@@ -192,4 +211,12 @@ class LocalizeResponse(_Model):
     num_inliers: int = 0
     inlier_ratio: float = 0.0
     candidates: list[CandidateResult] = Field(default_factory=list)
+    mode: Literal["global", "tracking"] = Field(default="global", description=(
+        "`tracking`: registered from the session's / the request's prior; `global`: retrieval + re-ranking."))
+    tracking_lost: bool = Field(default=False, description=(
+        "A prior was given but no consistent pose was found near it; this is the global answer."))
+    session_id: str | None = None
+    alignment_score: float = Field(default=0.0, description=(
+        "The decision score: fraction of the query's landmarks aligned with the keyframe's (0-1); "
+        "`localized` needs >= 0.5 and `min_inliers`. Not a calibrated probability."))
     timings_ms: dict[str, float]
