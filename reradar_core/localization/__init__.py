@@ -11,6 +11,7 @@ from reradar_core.localization.keyframes import (
 )
 from reradar_core.localization.localizer import Localizer, Retrieval
 from reradar_core.localization.pipeline import (
+    REASON_AMBIGUOUS,
     REASON_INCONSISTENT,
     REASON_NO_CANDIDATE,
     REASON_SCREENED_OUT,
@@ -38,6 +39,7 @@ __all__ = [
     "TrackingConfig",
     "REASON_INCONSISTENT",
     "REASON_NO_CANDIDATE",
+    "REASON_AMBIGUOUS",
     "REASON_SCREENED_OUT",
     "REASON_TOO_FEW_INLIERS",
     "REASON_TOO_FEW_MATCHES",

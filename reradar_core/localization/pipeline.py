@@ -44,6 +44,7 @@ __all__ = [
     "REASON_NO_CANDIDATE",
     "REASON_TOO_FEW_INLIERS",
     "REASON_SCREENED_OUT",
+    "REASON_AMBIGUOUS",
 ]
 
 logger = logging.getLogger(__name__)
@@ -52,6 +53,8 @@ REASON_NO_CANDIDATE = "no_candidate"
 REASON_TOO_FEW_INLIERS = "too_few_inliers"
 REASON_TOO_FEW_MATCHES = "too_few_matches"
 REASON_SCREENED_OUT = "screened_out"
+#: The pose estimator found a rival pose aligning as many landmarks (``matching.alignment``): a guess.
+REASON_AMBIGUOUS = "ambiguous"
 REASON_INCONSISTENT = "inconsistent_with_prior"
 
 Status = Literal["localized", "not_localized"]
@@ -244,7 +247,8 @@ class LocalizationResult:
 
     Attributes:
         status: ``localized`` or ``not_localized``.
-        reason: why not localized (``no_candidate``, ``too_few_matches``, ``too_few_inliers``), else None.
+        reason: why not localized (``no_candidate``, ``too_few_matches``, ``too_few_inliers``,
+            ``ambiguous``: a rival pose aligns as many landmarks), else None.
         best: the chosen candidate's verification (the best one tried even when not localized; None when
             there was no candidate).
         T_map_query: (3,) float64 absolute pose (x m, y m, yaw rad) when localized, else None.
@@ -382,7 +386,7 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
         and best.inlier_ratio >= config.effective_min_inlier_ratio
     )
     if not ok:
-        reason = best.reason if best.reason == REASON_TOO_FEW_MATCHES else REASON_TOO_FEW_INLIERS
+        reason = best.reason if best.reason in (REASON_TOO_FEW_MATCHES, REASON_AMBIGUOUS) else REASON_TOO_FEW_INLIERS
         return LocalizationResult("not_localized", reason, best, None, verified, timings)
     assert best.T_keyframe_query is not None
     T_map_query = compose(best.T_map_keyframe, best.T_keyframe_query)

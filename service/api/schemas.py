@@ -201,7 +201,7 @@ class LocalizeResponse(_Model):
     """Where the vehicle is. `pose` is set only when `status` is `localized`."""
 
     status: Literal["localized", "not_localized"]
-    reason: str | None = Field(default=None, description="Why not localized: no_candidate, too_few_matches, too_few_inliers.")
+    reason: str | None = Field(default=None, description="Why not localized: no_candidate, too_few_matches, too_few_inliers, ambiguous (a rival pose aligns as many landmarks), inconsistent_with_prior (tracking).")
     map_id: str
     scan_id: str | None
     pose: Pose2D | None = Field(default=None, description="Query pose in the map frame (keyframe pose o relative pose).")

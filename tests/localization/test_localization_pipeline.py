@@ -192,3 +192,18 @@ def test_verification_stops_once_an_answer_is_confident() -> None:
     np.testing.assert_allclose(fast.T_map_query, full.T_map_query, atol=0.05)
     with pytest.raises(ConfigError):
         LocalizationConfig(stop_verify_ratio=1.5)
+
+
+def test_periodic_place_is_not_localized_as_ambiguous() -> None:
+    # a lattice of identical posts (one shared descriptor): every one-period shift aligns as many landmarks,
+    # so the answer is refused as ambiguous rather than guessed
+    from reradar_core.localization import REASON_AMBIGUOUS
+
+    g = np.arange(-48.0, 49.0, 8.0)
+    pts = np.array([(x, y) for x in g for y in g])
+    desc = np.ones((len(pts), 8)) / np.sqrt(8)
+    kf = ScanFeatures(_unit(np.ones(16)), pts, desc, 0)
+    query = ScanFeatures(kf.global_descriptor, transform_points(inverse(np.array([1.0, 0.5, 0.0])), pts), desc, 1)
+    cfg = LocalizationConfig(alignment=AlignmentConfig(top_k_matches=8))
+    res = localize(query, _candidates([kf], np.zeros((1, 3)), [0]), cfg)
+    assert res.status == "not_localized" and res.reason == REASON_AMBIGUOUS
