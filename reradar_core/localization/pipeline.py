@@ -32,6 +32,13 @@ from reradar_core.matching import (
     match_descriptors,
     screen_alignment,
 )
+from reradar_core.localization.confidence import (
+    ConfidenceCues,
+    ConfidenceModel,
+    confidence_cues,
+    default_confidence_model,
+    landmark_spread_m,
+)
 
 __all__ = [
     "LocalizationConfig",
@@ -43,6 +50,7 @@ __all__ = [
     "REASON_NO_CANDIDATE",
     "REASON_TOO_FEW_INLIERS",
     "REASON_SCREENED_OUT",
+    "REASON_LOW_CONFIDENCE",
 ]
 
 logger = logging.getLogger(__name__)
@@ -51,6 +59,7 @@ REASON_NO_CANDIDATE = "no_candidate"
 REASON_TOO_FEW_INLIERS = "too_few_inliers"
 REASON_TOO_FEW_MATCHES = "too_few_matches"
 REASON_SCREENED_OUT = "screened_out"
+REASON_LOW_CONFIDENCE = "low_confidence"
 
 Status = Literal["localized", "not_localized"]
 PoseMethod = Literal["guided", "mutual_nn"]
@@ -95,6 +104,12 @@ class LocalizationConfig:
             docs/BENCHMARKS.md for what each gives.
         alignment: settings of the guided estimator (its own ``min_inliers`` is replaced by this config's).
         ransac: RANSAC settings of ``mutual_nn`` (threshold in metres, iterations, seed).
+        min_confidence: ``guided`` only: an answer that passes the checks above is ``localized`` only when its
+            confidence (``reradar_core.localization.confidence``: calibrated probability that the pose is
+            within the success thresholds) reaches this bar; the aligned-ratio bar stays as a floor. None =
+            the bar stored with the shipped confidence model (chosen at fit time on the training splits as the
+            lowest bar at which wrong answers are <= 0.5 % of the training queries, docs/MODEL.md
+            "Confidence"); 0 = the floor alone (the decision before the confidence).
     """
 
     top_k: int = 20
@@ -108,6 +123,7 @@ class LocalizationConfig:
     pose_method: PoseMethod = "guided"
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     ransac: RansacConfig = field(default_factory=RansacConfig)
+    min_confidence: float | None = None
 
     @property
     def num_to_retrieve(self) -> int:
@@ -136,6 +152,15 @@ class LocalizationConfig:
             raise ConfigError(f"min_inlier_ratio must be in [0, 1], got {self.min_inlier_ratio}")
         if self.pose_method not in ("guided", "mutual_nn"):
             raise ConfigError(f"pose_method must be 'guided' or 'mutual_nn', got {self.pose_method!r}")
+        if self.min_confidence is not None and not 0.0 <= self.min_confidence <= 1.0:
+            raise ConfigError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
+
+    @property
+    def effective_min_confidence(self) -> float:
+        """``min_confidence``, or the shipped confidence model's bar when it is None."""
+        if self.min_confidence is not None:
+            return self.min_confidence
+        return default_confidence_model().min_confidence
 
 
 @dataclass
@@ -184,6 +209,10 @@ class CandidateVerification:
         screen_score: ``guided`` only: fraction of query landmarks aligned by the cheap screen, in [0, 1]
             (None when not screened); candidates not among the best ``verify_k`` keep 0 inliers and reason
             ``screened_out``.
+        ambiguity: ``guided`` only: the pose estimator's best rival pose's alignment score / the answer's
+            (``RigidEstimate.ambiguity``; None where not computed).
+        inlier_spread_m: spatial spread of the inlier query landmarks (``confidence.landmark_spread_m``,
+            metres; None without a fit).
     """
 
     keyframe_id: int
@@ -197,6 +226,8 @@ class CandidateVerification:
     T_keyframe_query: np.ndarray | None
     reason: str | None = None
     screen_score: float | None = None
+    ambiguity: float | None = None
+    inlier_spread_m: float | None = None
 
 
 @dataclass
@@ -212,6 +243,9 @@ class LocalizationResult:
         candidates: every screened candidate in retrieval order (not verified in full: reason ``screened_out``).
         timings_ms: stage timings (``screen_ms``, ``pose_ms`` or ``match_ms`` + ``ransac_ms``, ``verify_ms``
             = all of it), milliseconds.
+        confidence: probability in [0, 1] that the winner's pose is within the success thresholds (shipped
+            ``ConfidenceModel``; 0 without a pose), also when not localized.
+        cues: the confidence's inputs (None without a pose).
     """
 
     status: Status
@@ -220,6 +254,8 @@ class LocalizationResult:
     T_map_query: np.ndarray | None
     candidates: list[CandidateVerification]
     timings_ms: dict[str, float] = field(default_factory=dict)
+    confidence: float = 0.0
+    cues: ConfidenceCues | None = None
 
     @property
     def localized(self) -> bool:
@@ -246,6 +282,7 @@ def verify_candidate(query: ScanFeatures, candidate: Candidate, config: Localiza
                                    kf.local_descriptors, replace(config.alignment, min_inliers=config.min_inliers),
                                    grid=candidate.landmark_grid)
         num_matches = int(query.keypoints_xy_m.shape[0])
+        fit_xy = query.keypoints_xy_m
         if timings_ms is not None:
             timings_ms["pose_ms"] = timings_ms.get("pose_ms", 0.0) + (time.perf_counter() - t0) * 1e3
     else:
@@ -263,10 +300,12 @@ def verify_candidate(query: ScanFeatures, candidate: Candidate, config: Localiza
         src = query.keypoints_xy_m[pairs[:, 0]].astype(np.float64)
         dst = kf.keypoints_xy_m[pairs[:, 1]].astype(np.float64)
         est = estimate_rigid_2d(src, dst, replace(config.ransac, min_inliers=config.min_inliers))
+        fit_xy = src
         if timings_ms is not None:
             timings_ms["ransac_ms"] = timings_ms.get("ransac_ms", 0.0) + (time.perf_counter() - t1) * 1e3
     # inliers are reported even for a failed fit (diagnostics); only a successful fit yields a pose
     n_in = int(est.num_inliers)
+    inlier_xy = fit_xy[np.asarray(est.inlier_mask, bool)]  # the query landmarks the pose rests on
     return CandidateVerification(
         **base,
         num_matches=num_matches,
@@ -274,6 +313,8 @@ def verify_candidate(query: ScanFeatures, candidate: Candidate, config: Localiza
         inlier_ratio=float(n_in / num_matches) if num_matches else 0.0,
         T_keyframe_query=np.asarray(est.pose, np.float64) if est.success else None,
         reason=None if est.success else (est.reason or REASON_TOO_FEW_INLIERS),
+        ambiguity=float(est.ambiguity) if config.pose_method == "guided" else None,
+        inlier_spread_m=landmark_spread_m(inlier_xy) if est.success else None,
     )
 
 
@@ -333,9 +374,22 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
         and best.num_inliers >= config.min_inliers
         and best.inlier_ratio >= config.effective_min_inlier_ratio
     )
+    # confidence hook (reradar_core.localization.confidence): cues of the winner -> calibrated probability
+    model = default_confidence_model()
+    cues, confidence = _confidence(best, verified, model)
     if not ok:
         reason = best.reason if best.reason == REASON_TOO_FEW_MATCHES else REASON_TOO_FEW_INLIERS
-        return LocalizationResult("not_localized", reason, best, None, verified, timings)
+        return LocalizationResult("not_localized", reason, best, None, verified, timings, confidence, cues)
+    if config.pose_method == "guided" and confidence < config.effective_min_confidence:
+        return LocalizationResult("not_localized", REASON_LOW_CONFIDENCE, best, None, verified, timings,
+                                  confidence, cues)
     assert best.T_keyframe_query is not None
     T_map_query = compose(best.T_map_keyframe, best.T_keyframe_query)
-    return LocalizationResult("localized", None, best, np.asarray(T_map_query, np.float64), verified, timings)
+    return LocalizationResult("localized", None, best, np.asarray(T_map_query, np.float64), verified, timings,
+                              confidence, cues)
+
+
+def _confidence(best: CandidateVerification, candidates: list[CandidateVerification],
+                model: ConfidenceModel) -> tuple[ConfidenceCues | None, float]:
+    cues = confidence_cues(best, candidates, model.place_radius_m, model.top_n)
+    return cues, (float(model.predict(cues)) if cues is not None else 0.0)
