@@ -35,7 +35,12 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Localize training-split queries, fit the confidence model, write its JSON and a reliability diagram."""
         from reradar_core.localization.confidence import DEFAULT_MODEL_PATH
-        from reradar_core.localization.confidence_fit import FitData, collect_split, fit_from_data, plot_reliability
+        from reradar_core.localization.confidence_fit import (
+            FitData,
+            collect_split,
+            fit_from_data,
+            plot_reliability,
+        )
         from reradar_core.paths import cache_dir
         from reradar_core.sim.writer import SIM_VERSION
 

@@ -1,6 +1,7 @@
 """Localization stage: one ``Localizer`` (retrieval -> landmark-alignment screen -> guided pose -> re-ranking)
 over a map's keyframes (``KeyframeSource``); ``localize`` is the screen/verify step over given candidates."""
 
+from reradar_core.localization.confidence import ConfidenceCues, ConfidenceModel, default_confidence_model
 from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
 from reradar_core.localization.keyframes import (
     CachedKeyframe,
@@ -10,6 +11,7 @@ from reradar_core.localization.keyframes import (
 )
 from reradar_core.localization.localizer import Localizer, Retrieval
 from reradar_core.localization.pipeline import (
+    REASON_LOW_CONFIDENCE,
     REASON_NO_CANDIDATE,
     REASON_SCREENED_OUT,
     REASON_TOO_FEW_INLIERS,
@@ -23,6 +25,10 @@ from reradar_core.localization.pipeline import (
 )
 
 __all__ = [
+    "ConfidenceCues",
+    "ConfidenceModel",
+    "default_confidence_model",
+    "REASON_LOW_CONFIDENCE",
     "FeatureExtractor",
     "load_default_extractor",
     "CachedKeyframe",

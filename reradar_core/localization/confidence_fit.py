@@ -135,11 +135,11 @@ def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progre
             "half": (_localizer(method, db.records[:half], db_poses[:half], config), db_poses[:half])}
     rows: list[tuple[np.ndarray, bool, bool, bool, bool, bool]] = []
     for qpath in data.training:
-        qseq = data.load(qpath)
+        qseq = data.load(qpath).subset(slice(None, None, query_step))
         q = prepare_sequence([method], qseq, bc)[method.name]
         gt = qseq.poses.poses
         n = len(q.records)
-        picks = np.arange(0, n, query_step)
+        picks = np.arange(n)
         for map_name, (loc, poses) in maps.items():
             revisit = has_revisit(gt[picks], poses, radius)
             # the half map serves the no-match queries only (a revisit there repeats the full map's)

@@ -23,6 +23,13 @@ import numpy as np
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose
+from reradar_core.localization.confidence import (
+    ConfidenceCues,
+    ConfidenceModel,
+    confidence_cues,
+    default_confidence_model,
+    landmark_spread_m,
+)
 from reradar_core.matching import (
     AlignmentConfig,
     LandmarkGrid,
@@ -31,13 +38,6 @@ from reradar_core.matching import (
     estimate_rigid_2d,
     match_descriptors,
     screen_alignment,
-)
-from reradar_core.localization.confidence import (
-    ConfidenceCues,
-    ConfidenceModel,
-    confidence_cues,
-    default_confidence_model,
-    landmark_spread_m,
 )
 
 __all__ = [
