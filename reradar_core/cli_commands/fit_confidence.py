@@ -7,7 +7,6 @@ import shlex
 import sys
 from pathlib import Path
 
-import numpy as np
 import typer
 
 from reradar_core.errors import ReRadarError
@@ -65,10 +64,11 @@ def register(app: typer.Typer) -> None:
         target = out or DEFAULT_MODEL_PATH
         model.save(target)
         ho = data.has_pose & data.heldout
-        p = model.predict(data.cues[ho]) if ho.any() else np.zeros(0)
-        plot_reliability(np.asarray(p), data.correct[ho], plot,
-                         f"confidence on held-out training runs (n={int(ho.sum())}, "
-                         f"ECE {report['ece_heldout']:.3f})")
+        fit = data.has_pose & ~data.heldout
+        plot_reliability({"held-out training runs": (model.predict(data.cues[ho]), data.correct[ho]),
+                          "fit runs": (model.predict(data.cues[fit]), data.correct[fit])}, plot,
+                         f"answer confidence, training splits ({', '.join(names)}); held-out ECE "
+                         f"{report['ece_heldout']:.3f}")
         typer.echo(json.dumps({"model": target.name, "coef": dict(zip(model.cue_names, model.coef.round(3).tolist(),
                                                                        strict=True)),
                                **report}, indent=2))

@@ -197,6 +197,8 @@ def fit_from_data(d: FitData, l2: float = 1.0, max_wrong_fraction: float = 0.005
         "heldout_positives": int(d.correct[ho].sum()),
         "ece_heldout": expected_calibration_error(p[ho], d.correct[ho]),
         "ece_fit": expected_calibration_error(p[fit_rows], d.correct[fit_rows]),
+        "ece_heldout_above_floor": expected_calibration_error(p[ho & d.eligible], d.correct[ho & d.eligible]),
+        "heldout_runs_above_floor": int((ho & d.eligible).sum()),
         "max_wrong_fraction": max_wrong_fraction, "min_confidence": bar,
         "fit": _rates(p, d, ~d.heldout, bar), "heldout": _rates(p, d, d.heldout, bar),
         "per_split_heldout": {s: _rates(p, d, d.heldout & (d.split == s), bar) for s in np.unique(d.split)},
@@ -206,29 +208,31 @@ def fit_from_data(d: FitData, l2: float = 1.0, max_wrong_fraction: float = 0.005
     return model, report
 
 
-def plot_reliability(p: np.ndarray, y: np.ndarray, path: Path, title: str, bins: int = 10) -> None:
-    """Reliability diagram: observed fraction of correct poses per confidence bin vs the mean confidence,
-    with the bins' counts below (log scale)."""
+def plot_reliability(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, title: str,
+                     bins: int = 10) -> None:
+    """Reliability diagram: per curve (label -> (confidence (Q,), correct (Q,) bool)) the observed fraction of
+    correct poses per confidence bin against the bin's mean confidence; the bins' counts below (log scale)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    t = reliability_bins(p, y, bins)
-    ok = t["count"] > 0
-    fig, (ax, axh) = plt.subplots(2, 1, figsize=(5, 6), gridspec_kw={"height_ratios": [3, 1]}, sharex=True)
+    fig, (ax, axh) = plt.subplots(2, 1, figsize=(5.5, 6.5), gridspec_kw={"height_ratios": [3, 1]}, sharex=True)
     ax.plot([0, 1], [0, 1], "--", color="grey", label="perfect calibration")
-    ax.plot(t["mean_p"][ok], t["frac_pos"][ok], "o-", label="held-out training runs")
+    width = 1.0 / bins / (len(curves) + 1)
+    for k, (label, (p, y)) in enumerate(curves.items()):
+        t = reliability_bins(p, y, bins)
+        ok = t["count"] > 0
+        ax.plot(t["mean_p"][ok], t["frac_pos"][ok], "o-", label=f"{label} (n={len(p)})")
+        axh.bar(t["edges"][:-1] + (k + 0.5) * width + 0.5 * width, t["count"], width=width, label=label)
     ax.set_ylabel("observed fraction within thresholds")
     ax.set_xlim(0, 1)
-    ax.set_ylim(0, 1)
+    ax.set_ylim(-0.02, 1.02)
     ax.set_title(title, fontsize=9)
     ax.legend(loc="upper left", fontsize=8)
-    centres = 0.5 * (t["edges"][1:] + t["edges"][:-1])
-    axh.bar(centres, np.maximum(t["count"], 0), width=1.0 / bins * 0.9, color="tab:blue")
     axh.set_yscale("log")
-    axh.set_xlabel("confidence")
-    axh.set_ylabel("runs")
+    axh.set_xlabel("confidence (predicted probability)")
+    axh.set_ylabel("runs per bin")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
