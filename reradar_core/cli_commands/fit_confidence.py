@@ -31,8 +31,11 @@ def register(app: typer.Typer) -> None:
         reuse: bool = typer.Option(False, help="Re-fit from the runs saved by the last collection (cache) "
                                                "instead of localizing again."),
         progress: bool = typer.Option(True, help="Progress bars."),
+        threads: int = typer.Option(1, min=1, help="Torch threads (the machine is shared)."),
     ) -> None:
         """Localize training-split queries, fit the confidence model, write its JSON and a reliability diagram."""
+        import torch
+
         from reradar_core.localization.confidence import DEFAULT_MODEL_PATH
         from reradar_core.localization.confidence_fit import (
             FitData,
@@ -43,6 +46,7 @@ def register(app: typer.Typer) -> None:
         from reradar_core.paths import cache_dir
         from reradar_core.sim.writer import SIM_VERSION
 
+        torch.set_num_threads(threads)
         names = [s.strip() for s in splits.split(",") if s.strip()]
         runs_path = cache_dir("confidence") / f"runs-v{SIM_VERSION}-{'+'.join(names)}-step{query_step}.npz"
         try:
