@@ -50,13 +50,15 @@ def register(app: typer.Typer) -> None:
         names = [s.strip() for s in splits.split(",") if s.strip()]
         runs_path = cache_dir("confidence") / f"runs-v{SIM_VERSION}-{'+'.join(names)}-step{query_step}.npz"
         try:
-            if reuse and runs_path.is_file():
+            from_cache = reuse and runs_path.is_file()
+            if from_cache:
                 data = FitData.load(runs_path)
             else:
                 data = FitData.concat([collect_split(s, query_step, holdout, progress) for s in names])
                 data.save(runs_path)
             meta = {"command": "reradar " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
                     "splits": names, "sim_version": SIM_VERSION, "query_step": query_step, "holdout": holdout,
+                    "runs_from_cache": from_cache,
                     "l2": l2, "label": "pose within the suite's success thresholds (e_t < R, e_r < 10 deg)"}
             from reradar_core.localization.confidence_fit import SPLIT_MODELS
 
@@ -71,8 +73,8 @@ def register(app: typer.Typer) -> None:
         fit = data.has_pose & ~data.heldout
         plot_reliability({"held-out training runs": (model.predict(data.cues[ho]), data.correct[ho]),
                           "fit runs": (model.predict(data.cues[fit]), data.correct[fit])}, plot,
-                         f"answer confidence, training splits ({', '.join(names)}); held-out ECE "
-                         f"{report['ece_heldout']:.3f}")
+                         f"answer confidence on training splits\n{', '.join(names)}\nheld-out ECE "
+                         f"{report['ece_heldout']:.3f} (10 bins)", bar=model.min_confidence)
         typer.echo(json.dumps({"model": target.name, "coef": dict(zip(model.cue_names, model.coef.round(3).tolist(),
                                                                        strict=True)),
                                **report}, indent=2))

@@ -209,7 +209,7 @@ def fit_from_data(d: FitData, l2: float = 1.0, max_wrong_fraction: float = 0.005
 
 
 def plot_reliability(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, title: str,
-                     bins: int = 10) -> None:
+                     bins: int = 10, bar: float | None = None) -> None:
     """Reliability diagram: per curve (label -> (confidence (Q,), correct (Q,) bool)) the observed fraction of
     correct poses per confidence bin against the bin's mean confidence; the bins' counts below (log scale)."""
     import matplotlib
@@ -225,6 +225,8 @@ def plot_reliability(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: Pat
         ok = t["count"] > 0
         ax.plot(t["mean_p"][ok], t["frac_pos"][ok], "o-", label=f"{label} (n={len(p)})")
         axh.bar(t["edges"][:-1] + (k + 0.5) * width + 0.5 * width, t["count"], width=width, label=label)
+    if bar is not None:
+        ax.axvline(bar, color="tab:red", lw=1, label=f"min_confidence {bar:.2f}")
     ax.set_ylabel("observed fraction within thresholds")
     ax.set_xlim(0, 1)
     ax.set_ylim(-0.02, 1.02)
