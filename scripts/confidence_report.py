@@ -14,12 +14,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+from pathlib import Path
 
-from reradar_core.baselines.ours import Ours
-from reradar_core.benchmark.runner import BenchConfig, run_benchmark
-from reradar_core.benchmark.suites import pairs_from_suite
-from reradar_core.localization import LocalizationConfig, default_confidence_model
-from reradar_core.paths import cache_dir
+ROOT = Path(__file__).resolve().parents[1]
 
 KEYS = ("n_queries", "n_revisit", "n_no_match", "recall@1", "sr", "sr_all", "wrong_pose_pct",
         "wrong_pose_no_match_pct", "n_wrong_pose_revisit", "n_wrong_pose_no_match", "n_rejected_revisit",
@@ -32,6 +30,13 @@ def main() -> None:
     ap.add_argument("--model", default="default")
     ap.add_argument("--query-limit", type=int, default=None)
     args = ap.parse_args()
+    sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
+    from reradar_core.baselines.ours import Ours
+    from reradar_core.benchmark.runner import BenchConfig, run_benchmark
+    from reradar_core.benchmark.suites import pairs_from_suite
+    from reradar_core.localization import LocalizationConfig, default_confidence_model
+    from reradar_core.paths import cache_dir
+
     pairs, radius = pairs_from_suite(args.suite, query_limit=args.query_limit)
     label = "ours" if args.model == "default" else f"ours-{args.model}"
     methods = [Ours(args.model, LocalizationConfig(min_confidence=0.0), name=f"{label}-floor"),

@@ -181,7 +181,15 @@ def _features(rng: np.random.Generator, n: int = 150):
     return ScanFeatures(g / np.linalg.norm(g), kps, desc / np.linalg.norm(desc, axis=1, keepdims=True), 0)
 
 
-def test_pipeline_reports_confidence_and_applies_the_bar() -> None:
+def test_pipeline_reports_confidence_and_applies_the_bar(monkeypatch: pytest.MonkeyPatch) -> None:
+    import reradar_core.localization.pipeline as pipeline
+
+    # a known model: p = sigmoid(10 * aligned_ratio - 6), bar 0.99 (the shipped coefficients may change)
+    c = len(CUE_NAMES)
+    coef = np.zeros(c)
+    coef[0] = 10.0
+    known = ConfidenceModel(CUE_NAMES, np.zeros(c), np.ones(c), coef, -6.0, min_confidence=0.99)
+    monkeypatch.setattr(pipeline, "default_confidence_model", lambda: known)
     rng = np.random.default_rng(3)
     kfs = [_features(rng) for _ in range(4)]
     poses = np.column_stack([np.arange(4) * 100.0, np.zeros(4), np.zeros(4)])
@@ -190,15 +198,20 @@ def test_pipeline_reports_confidence_and_applies_the_bar() -> None:
     def cands() -> list[Candidate]:
         return [Candidate(i, poses[i], kfs[i], 0.1 * r, r) for r, i in enumerate([1, 0, 2, 3])]
 
+    expected = 1.0 / (1.0 + math.exp(-4.0))  # aligned ratio 1
     floor_only = localize(query, cands(), LocalizationConfig(min_confidence=0.0))
     assert floor_only.status == "localized" and floor_only.cues is not None
-    assert 0.0 <= floor_only.confidence <= 1.0
-    assert floor_only.confidence == pytest.approx(default_confidence_model().predict(floor_only.cues))
+    assert floor_only.cues.aligned_ratio == pytest.approx(1.0)
+    assert floor_only.confidence == pytest.approx(expected)
     assert floor_only.best is not None and floor_only.best.inlier_spread_m is not None
     assert floor_only.best.inlier_spread_m > 20.0  # landmarks spread over a 120 m square
-    strict = localize(query, cands(), LocalizationConfig(min_confidence=1.0))
+    # None = the model's own bar (0.99 > 0.982): refused, with the confidence still reported
+    strict = localize(query, cands(), LocalizationConfig())
     assert strict.status == "not_localized" and strict.reason == REASON_LOW_CONFIDENCE
-    assert strict.T_map_query is None and strict.confidence == pytest.approx(floor_only.confidence)
+    assert strict.T_map_query is None and strict.confidence == pytest.approx(expected)
+    assert localize(query, cands(), LocalizationConfig(min_confidence=0.98)).status == "localized"
+    # mutual_nn is not what the model was fitted on: the bar does not apply there
+    assert localize(query, cands(), LocalizationConfig(pose_method="mutual_nn")).status == "localized"
     with pytest.raises(ConfigError):
         LocalizationConfig(min_confidence=1.5)
 
