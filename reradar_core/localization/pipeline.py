@@ -7,7 +7,9 @@ Pipeline: the caller (``Localizer``) retrieves the top-k keyframes by global des
 ``mutual_nn`` every candidate is verified by mutual-nearest-neighbour matching of local descriptors and a
 RANSAC 2-D rigid fit. The verified candidate with the most inliers wins (geometric re-ranking) and the
 absolute pose is ``T_map_query = compose(T_map_keyframe, T_keyframe_query)``. A query is reported ``localized`` only when
-the winner has at least ``min_inliers`` inliers - an unknown place must not be reported as localized.
+the winner has at least ``min_inliers`` inliers and ``min_inlier_ratio`` (the floor) and, with ``guided``, its
+calibrated ``confidence`` (``localization.confidence``) reaches ``min_confidence`` - an unknown place must not be
+reported as localized.
 """
 
 from __future__ import annotations
@@ -263,9 +265,10 @@ class LocalizationResult:
 
     @property
     def alignment_score(self) -> float:
-        """The decision score ``localized`` is based on: the winner's inlier ratio (``guided``: fraction of the
-        query's landmarks aligned with the keyframe's, in [0, 1]; 0 without a winner). Not a calibrated
-        probability: ``localized`` means this score reached ``min_inlier_ratio`` with ``min_inliers``."""
+        """The winner's inlier ratio (``guided``: fraction of the query's landmarks aligned with the keyframe's,
+        in [0, 1]; 0 without a winner): the floor of the decision. Not a calibrated probability - that is
+        ``confidence``; ``localized`` means this score reached ``min_inlier_ratio`` with ``min_inliers`` and
+        (``guided``) ``confidence`` reached ``min_confidence``."""
         return float(self.best.inlier_ratio) if self.best is not None else 0.0
 
 
