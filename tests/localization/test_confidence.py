@@ -258,3 +258,28 @@ def test_service_response_carries_confidence(service_client: httpx.Client) -> No
     schema = service_client.get("/openapi.json").json()["components"]["schemas"]["LocalizeResponse"]
     field = schema["properties"]["confidence"]
     assert field["minimum"] == 0 and field["maximum"] == 1 and "Probability" in field["description"]
+
+
+def test_fit_from_data_chooses_the_bar_on_fit_runs_and_reports_held_out(tmp_path: Path) -> None:
+    from reradar_core.localization.confidence_fit import FitData, fit_from_data
+
+    rng = np.random.default_rng(5)
+    n = 3000
+    x = rng.normal(size=(n, len(CUE_NAMES)))
+    x[:, 0] = rng.uniform(0.0, 1.0, n)
+    correct = rng.uniform(size=n) < 1.0 / (1.0 + np.exp(-(12.0 * (x[:, 0] - 0.5))))
+    data = FitData(x, np.ones(n, bool), correct, x[:, 0] >= 0.3, np.ones(n, bool),
+                   np.arange(n) >= int(0.8 * n), np.array(["train-target-loop"] * n))
+    path = tmp_path / "runs.npz"
+    data.save(path)
+    back = FitData.load(path)
+    np.testing.assert_array_equal(back.cues, data.cues)
+    model, report = fit_from_data(back, max_wrong_fraction=0.005)
+    assert model.min_confidence == report["min_confidence"] and model.meta["report"] == report
+    fit = ~data.heldout
+    p = model.predict(x)
+    wrong_fit = (fit & data.eligible & (p >= model.min_confidence) & ~correct).sum()
+    assert wrong_fit <= 0.005 * fit.sum()
+    assert report["fit"]["wrong_pct_with_bar"] <= 0.5 < report["fit"]["wrong_pct_floor_only"]
+    assert report["heldout"]["runs"] == int(data.heldout.sum())
+    assert 0.0 <= report["ece_heldout"] < 0.1  # labels follow the model's own law
