@@ -2,6 +2,7 @@
 over a map's keyframes (``KeyframeSource``), with a tracking mode from a pose prior (``Localizer.track``);
 ``localize`` is the screen/verify step over given candidates."""
 
+from reradar_core.localization.confidence import ConfidenceCues, ConfidenceModel, default_confidence_model
 from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
 from reradar_core.localization.keyframes import (
     CachedKeyframe,
@@ -13,6 +14,7 @@ from reradar_core.localization.localizer import Localizer, Retrieval
 from reradar_core.localization.pipeline import (
     REASON_AMBIGUOUS,
     REASON_INCONSISTENT,
+    REASON_LOW_CONFIDENCE,
     REASON_NO_CANDIDATE,
     REASON_SCREENED_OUT,
     REASON_TOO_FEW_INLIERS,
@@ -27,6 +29,10 @@ from reradar_core.localization.pipeline import (
 from reradar_core.localization.tracking import PosePrior, TrackingConfig
 
 __all__ = [
+    "ConfidenceCues",
+    "ConfidenceModel",
+    "default_confidence_model",
+    "REASON_LOW_CONFIDENCE",
     "FeatureExtractor",
     "load_default_extractor",
     "CachedKeyframe",

@@ -20,6 +20,7 @@ import numpy as np
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose
+from reradar_core.localization.confidence import default_confidence_model
 from reradar_core.localization.keyframes import CachedKeyframe, KeyframeCache, KeyframeSource
 from reradar_core.localization.pipeline import (
     REASON_INCONSISTENT,
@@ -28,6 +29,7 @@ from reradar_core.localization.pipeline import (
     CandidateVerification,
     LocalizationConfig,
     LocalizationResult,
+    answer_confidence,
     localize,
 )
 from reradar_core.localization.tracking import (
@@ -174,8 +176,12 @@ class Localizer:
         track_ms = (time.perf_counter() - t0) * 1e3
         if accepted:
             best, T_map_query = max(accepted, key=lambda a: (a[0].num_inliers, -a[0].rank))
+            # same cues and model as global answers (fitted on those; the registration from a prior computes no
+            # pose ambiguity or landmark spread, so those cues are 0 here): a score, not calibrated for tracking
+            cues, confidence = answer_confidence(best, verified, default_confidence_model())
             return LocalizationResult("localized", None, best, T_map_query, verified,
-                                      {"track_ms": track_ms, "verify_ms": track_ms}, mode="tracking")
+                                      {"track_ms": track_ms, "verify_ms": track_ms}, confidence, cues,
+                                      mode="tracking")
         result = self.localize(features, config)
         result.tracking_lost = True
         result.timings_ms["track_ms"] = track_ms

@@ -7,7 +7,9 @@ Pipeline: the caller (``Localizer``) retrieves the top-k keyframes by global des
 ``mutual_nn`` every candidate is verified by mutual-nearest-neighbour matching of local descriptors and a
 RANSAC 2-D rigid fit. The verified candidate with the most inliers wins (geometric re-ranking) and the
 absolute pose is ``T_map_query = compose(T_map_keyframe, T_keyframe_query)``. A query is reported ``localized`` only when
-the winner has at least ``min_inliers`` inliers - an unknown place must not be reported as localized.
+the winner has at least ``min_inliers`` inliers and ``min_inlier_ratio`` (the floor) and, with ``guided``, its
+calibrated ``confidence`` (``localization.confidence``) reaches ``min_confidence`` - an unknown place must not be
+reported as localized.
 """
 
 from __future__ import annotations
@@ -23,6 +25,13 @@ import numpy as np
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose
+from reradar_core.localization.confidence import (
+    ConfidenceCues,
+    ConfidenceModel,
+    confidence_cues,
+    default_confidence_model,
+    landmark_spread_m,
+)
 from reradar_core.localization.screening import ScreenKeyframe, screen_candidates, screen_keyframe
 from reradar_core.localization.tracking import TrackingConfig
 from reradar_core.matching import (
@@ -45,6 +54,8 @@ __all__ = [
     "REASON_TOO_FEW_INLIERS",
     "REASON_SCREENED_OUT",
     "REASON_AMBIGUOUS",
+    "REASON_LOW_CONFIDENCE",
+    "answer_confidence",
 ]
 
 logger = logging.getLogger(__name__)
@@ -56,6 +67,7 @@ REASON_SCREENED_OUT = "screened_out"
 #: The pose estimator found a rival pose aligning as many landmarks (``matching.alignment``): a guess.
 REASON_AMBIGUOUS = "ambiguous"
 REASON_INCONSISTENT = "inconsistent_with_prior"
+REASON_LOW_CONFIDENCE = "low_confidence"
 
 Status = Literal["localized", "not_localized"]
 PoseMethod = Literal["guided", "mutual_nn"]
@@ -108,6 +120,12 @@ class LocalizationConfig:
         alignment: settings of the guided estimator (its own ``min_inliers`` is replaced by this config's).
         ransac: RANSAC settings of ``mutual_nn`` (threshold in metres, iterations, seed).
         tracking: settings of tracking mode (``Localizer.track``; ``localization.tracking``).
+        min_confidence: ``guided`` only: an answer that passes the checks above is ``localized`` only when its
+            confidence (``reradar_core.localization.confidence``: calibrated probability that the pose is
+            within the success thresholds) reaches this bar; the aligned-ratio bar stays as a floor. None =
+            the bar stored with the shipped confidence model (chosen at fit time on the training splits as the
+            lowest bar at which wrong answers are <= 0.5 % of the training queries, docs/MODEL.md
+            "Confidence"); 0 = the floor alone (the decision before the confidence).
     """
 
     top_k: int = 20
@@ -123,6 +141,7 @@ class LocalizationConfig:
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     ransac: RansacConfig = field(default_factory=RansacConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    min_confidence: float | None = None
 
     @property
     def num_to_retrieve(self) -> int:
@@ -153,6 +172,15 @@ class LocalizationConfig:
             raise ConfigError(f"min_inlier_ratio must be in [0, 1], got {self.min_inlier_ratio}")
         if self.pose_method not in ("guided", "mutual_nn"):
             raise ConfigError(f"pose_method must be 'guided' or 'mutual_nn', got {self.pose_method!r}")
+        if self.min_confidence is not None and not 0.0 <= self.min_confidence <= 1.0:
+            raise ConfigError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
+
+    @property
+    def effective_min_confidence(self) -> float:
+        """``min_confidence``, or the shipped confidence model's bar when it is None."""
+        if self.min_confidence is not None:
+            return self.min_confidence
+        return default_confidence_model().min_confidence
 
 
 class _Prepared(Protocol):
@@ -226,6 +254,10 @@ class CandidateVerification:
         screen_score: ``guided`` only: fraction of query landmarks aligned by the cheap screen, in [0, 1]
             (None when not screened); candidates not among the best ``verify_k`` keep 0 inliers and reason
             ``screened_out``.
+        ambiguity: ``guided`` only: the pose estimator's best rival pose's alignment score / the answer's
+            (``RigidEstimate.ambiguity``; None where not computed).
+        inlier_spread_m: spatial spread of the inlier query landmarks (``confidence.landmark_spread_m``,
+            metres; None without a fit).
     """
 
     keyframe_id: int
@@ -239,6 +271,8 @@ class CandidateVerification:
     T_keyframe_query: np.ndarray | None
     reason: str | None = None
     screen_score: float | None = None
+    ambiguity: float | None = None
+    inlier_spread_m: float | None = None
 
 
 @dataclass
@@ -257,6 +291,9 @@ class LocalizationResult:
             = all of it; tracking: ``track_ms``), milliseconds.
         mode: ``global`` (retrieval + screen + verify) or ``tracking`` (registered from a pose prior).
         tracking_lost: a tracking attempt found no consistent pose and this is the global fallback's answer.
+        confidence: probability in [0, 1] that the winner's pose is within the success thresholds (shipped
+            ``ConfidenceModel``; 0 without a pose), also when not localized.
+        cues: the confidence's inputs (None without a pose).
     """
 
     status: Status
@@ -265,6 +302,8 @@ class LocalizationResult:
     T_map_query: np.ndarray | None
     candidates: list[CandidateVerification]
     timings_ms: dict[str, float] = field(default_factory=dict)
+    confidence: float = 0.0
+    cues: ConfidenceCues | None = None
     mode: Literal["global", "tracking"] = "global"
     tracking_lost: bool = False
 
@@ -274,9 +313,10 @@ class LocalizationResult:
 
     @property
     def alignment_score(self) -> float:
-        """The decision score ``localized`` is based on: the winner's inlier ratio (``guided``: fraction of the
-        query's landmarks aligned with the keyframe's, in [0, 1]; 0 without a winner). Not a calibrated
-        probability: ``localized`` means this score reached ``min_inlier_ratio`` with ``min_inliers``."""
+        """The winner's inlier ratio (``guided``: fraction of the query's landmarks aligned with the keyframe's,
+        in [0, 1]; 0 without a winner): the floor of the decision. Not a calibrated probability - that is
+        ``confidence``; ``localized`` means this score reached ``min_inlier_ratio`` with ``min_inliers`` and
+        (``guided``) ``confidence`` reached ``min_confidence``."""
         return float(self.best.inlier_ratio) if self.best is not None else 0.0
 
 
@@ -293,6 +333,7 @@ def verify_candidate(query: ScanFeatures, candidate: Candidate, config: Localiza
                                    kf.local_descriptors, replace(config.alignment, min_inliers=config.min_inliers),
                                    grid=candidate.grid())
         num_matches = int(query.keypoints_xy_m.shape[0])
+        fit_xy = query.keypoints_xy_m
         if timings_ms is not None:
             timings_ms["pose_ms"] = timings_ms.get("pose_ms", 0.0) + (time.perf_counter() - t0) * 1e3
     else:
@@ -310,10 +351,12 @@ def verify_candidate(query: ScanFeatures, candidate: Candidate, config: Localiza
         src = query.keypoints_xy_m[pairs[:, 0]].astype(np.float64)
         dst = kf.keypoints_xy_m[pairs[:, 1]].astype(np.float64)
         est = estimate_rigid_2d(src, dst, replace(config.ransac, min_inliers=config.min_inliers))
+        fit_xy = src
         if timings_ms is not None:
             timings_ms["ransac_ms"] = timings_ms.get("ransac_ms", 0.0) + (time.perf_counter() - t1) * 1e3
     # inliers are reported even for a failed fit (diagnostics); only a successful fit yields a pose
     n_in = int(est.num_inliers)
+    inlier_xy = fit_xy[np.asarray(est.inlier_mask, bool)]  # the query landmarks the pose rests on
     return CandidateVerification(
         **base,
         num_matches=num_matches,
@@ -321,6 +364,8 @@ def verify_candidate(query: ScanFeatures, candidate: Candidate, config: Localiza
         inlier_ratio=float(n_in / num_matches) if num_matches else 0.0,
         T_keyframe_query=np.asarray(est.pose, np.float64) if est.success else None,
         reason=None if est.success else (est.reason or REASON_TOO_FEW_INLIERS),
+        ambiguity=float(est.ambiguity) if config.pose_method == "guided" else None,
+        inlier_spread_m=landmark_spread_m(inlier_xy) if est.success else None,
     )
 
 
@@ -385,9 +430,23 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
         and best.num_inliers >= config.min_inliers
         and best.inlier_ratio >= config.effective_min_inlier_ratio
     )
+    # confidence hook (reradar_core.localization.confidence): cues of the winner -> calibrated probability
+    model = default_confidence_model()
+    cues, confidence = answer_confidence(best, verified, model)
     if not ok:
         reason = best.reason if best.reason in (REASON_TOO_FEW_MATCHES, REASON_AMBIGUOUS) else REASON_TOO_FEW_INLIERS
-        return LocalizationResult("not_localized", reason, best, None, verified, timings)
+        return LocalizationResult("not_localized", reason, best, None, verified, timings, confidence, cues)
+    if config.pose_method == "guided" and confidence < config.effective_min_confidence:
+        return LocalizationResult("not_localized", REASON_LOW_CONFIDENCE, best, None, verified, timings,
+                                  confidence, cues)
     assert best.T_keyframe_query is not None
     T_map_query = compose(best.T_map_keyframe, best.T_keyframe_query)
-    return LocalizationResult("localized", None, best, np.asarray(T_map_query, np.float64), verified, timings)
+    return LocalizationResult("localized", None, best, np.asarray(T_map_query, np.float64), verified, timings,
+                              confidence, cues)
+
+
+def answer_confidence(best: CandidateVerification, candidates: list[CandidateVerification],
+                      model: ConfidenceModel) -> tuple[ConfidenceCues | None, float]:
+    """The winner's ``ConfidenceCues`` among ``candidates`` and ``model``'s probability (0.0 without cues)."""
+    cues = confidence_cues(best, candidates, model.place_radius_m, model.top_n)
+    return cues, (float(model.predict(cues)) if cues is not None else 0.0)

@@ -201,7 +201,9 @@ class LocalizeResponse(_Model):
     """Where the vehicle is. `pose` is set only when `status` is `localized`."""
 
     status: Literal["localized", "not_localized"]
-    reason: str | None = Field(default=None, description="Why not localized: no_candidate, too_few_matches, too_few_inliers, ambiguous (a rival pose aligns as many landmarks), inconsistent_with_prior (tracking).")
+    reason: str | None = Field(default=None, description=(
+        "Why not localized: no_candidate, too_few_matches, too_few_inliers, ambiguous (a rival pose aligns as "
+        "many landmarks), low_confidence (below min_confidence), inconsistent_with_prior (tracking)."))
     map_id: str
     scan_id: str | None
     pose: Pose2D | None = Field(default=None, description="Query pose in the map frame (keyframe pose o relative pose).")
@@ -210,6 +212,13 @@ class LocalizeResponse(_Model):
     num_matches: int = 0
     num_inliers: int = 0
     inlier_ratio: float = 0.0
+    confidence: float = Field(default=0.0, ge=0.0, le=1.0, description=(
+        "Probability in [0, 1] that `pose` (or, when not localized, the best candidate's pose) is within the "
+        "success thresholds (20 m and 10 deg urban, 25 m off-road): a logistic model over the answer's cues "
+        "(aligned-landmark ratio and count, margin over a different place, descriptor distance, landmark "
+        "spread, agreement of the top candidates, pose ambiguity), fitted on training data only "
+        "(docs/MODEL.md, Confidence). `localized` requires it to reach the configured min_confidence; "
+        "0 when there is no pose."))
     candidates: list[CandidateResult] = Field(default_factory=list)
     mode: Literal["global", "tracking"] = Field(default="global", description=(
         "`tracking`: registered from the session's / the request's prior; `global`: retrieval + re-ranking."))

@@ -115,6 +115,7 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         num_matches=best.num_matches if best else 0,
         num_inliers=best.num_inliers if best else 0,
         inlier_ratio=best.inlier_ratio if best else 0.0,
+        confidence=min(max(float(result.confidence), 0.0), 1.0),
         candidates=[CandidateResult(keyframe_id=c.keyframe_id, timestamp_us=c.timestamp_us, rank=c.rank,
                                     descriptor_distance=c.descriptor_distance, num_matches=c.num_matches,
                                     num_inliers=c.num_inliers, inlier_ratio=c.inlier_ratio,
