@@ -27,6 +27,7 @@ _COMMAND_MODULES = (
     "maps.cli",
     "reradar_core.benchmark.cli",
     "service.cli",
+    "service.worker",
 )
 
 

@@ -16,14 +16,15 @@ from starlette.concurrency import run_in_threadpool
 from reradar_core.errors import ModelMismatchError, ReRadarError
 from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
 from service.api.middleware import BodyLimitMiddleware, MetricsMiddleware
+from service.api.ops_middleware import OpsMiddleware
 from service.api.routes import health, localize, maps, scans
+from service.api.routes.ui import install_ui
 from service.core.blas import limit_blas_threads
 from service.core.config import Settings
 from service.core.errors import ServiceError
 from service.core.logs import configure_logging
 from service.core.metrics import Metrics
-from service.core.registry import MapRegistry
-from service.core.scan_cache import ScanCache
+from service.core.shared_state import OpsRuntime
 from service.core.state import ServiceState
 
 __all__ = ["create_app", "app"]
@@ -57,6 +58,8 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
         cfg = settings or Settings()
         app.state.settings = cfg
         configure_logging(cfg.log_level, cfg.log_format)  # ops: one log format
+        ops = OpsRuntime(cfg)  # ops: shared state (Redis) or in-process
+        app.state.ops = ops
 
         def load() -> ServiceState:
             import torch
@@ -64,21 +67,23 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
             torch.set_num_threads(cfg.torch_threads)
             limit_blas_threads(cfg.blas_threads)
             ext = extractor or load_default_extractor(cfg.model)
-            registry = MapRegistry(cfg, ext)
+            registry = ops.make_registry(ext)  # ops: queued builds with Redis
             if cfg.load_demo_map:
                 registry.install_demo_map()
             registry.load_all()
-            return ServiceState(cfg, ext, registry, ScanCache(cfg.scan_cache_size, cfg.scan_cache_ttl_s), metrics)
+            return ServiceState(cfg, ext, registry, ops.scan_store(), metrics)  # ops: Redis scan store
 
         state = await run_in_threadpool(load)
         metrics.set_model(state.extractor.model_id, state.extractor.weights_sha256)  # ops: reradar_model_info
         app.state.reradar = state
+        ops.start(state.registry)  # ops: follow other replicas' map changes
         logger.info("ReRadar ready: model %s, %d map(s) in %s", state.extractor.model_id,
                     state.registry.num_ready, cfg.maps_dir)
         try:
             yield
         finally:
             app.state.reradar = None
+            ops.close()
             state.registry.close()
 
     app = FastAPI(
@@ -91,6 +96,8 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
             "Mutating endpoints (`POST /maps`, `DELETE /maps/{id}`) need the `X-API-Key` header."
         ),
         lifespan=lifespan,
+        docs_url=None,  # ops: /docs and /redoc are served offline by service.api.routes.ui
+        redoc_url=None,
     )
     app.state.reradar = None
 
@@ -104,6 +111,7 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
 
     app.add_middleware(BodyLimitMiddleware, limit_for=limit_for)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
+    app.add_middleware(OpsMiddleware)  # ops: recent localizations, map events to other replicas
 
     @app.exception_handler(ServiceError)
     async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
@@ -124,6 +132,7 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
 
     for module in (health, maps, scans, localize):
         app.include_router(module.router)
+    install_ui(app)  # ops: operator page at /, offline /docs
     return app
 
 
