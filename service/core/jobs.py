@@ -39,6 +39,7 @@ from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
 from service.core.errors import ConflictError
 from service.core.registry import MapEntry, MapRegistry
+from service.core.shared_state import SharedStateUnavailableError
 
 __all__ = ["BuildQueue", "QueuedMapRegistry", "JOB_FUNCTION", "ARQ_IN_PROGRESS_PREFIX", "jobs_dir"]
 
@@ -159,7 +160,12 @@ class QueuedMapRegistry(MapRegistry):
             spec = {"map_id": map_id, "job_id": job_id, "preset": preset, "preset_name": preset_name,
                     "source": source, "scans": [str(p.relative_to(workdir)) for p in scan_paths]}
             (job_dir / "spec.json").write_text(json.dumps(spec))
-            self.queue.enqueue(map_id, job_id, len(scan_paths), source)
+            try:
+                self.queue.enqueue(map_id, job_id, len(scan_paths), source)
+            except redis.RedisError as exc:
+                raise SharedStateUnavailableError(
+                    "map builds are queued in Redis, which is unavailable; nothing was stored, retry later "
+                    "(or upload a prebuilt map file, which needs no queue)") from exc
         except BaseException:
             shutil.rmtree(job_dir, ignore_errors=True)
             self._release(map_id)
@@ -172,15 +178,24 @@ class QueuedMapRegistry(MapRegistry):
     def delete(self, map_id: str) -> MapEntry:
         """Delete a map; a map still building is cancelled (its job stops at the next batch)."""
         entry = self.get(map_id)
-        if entry.state == "building" and self.queue.cancel(map_id):
+        try:
+            cancelled = entry.state == "building" and self.queue.cancel(map_id)
+        except redis.RedisError as exc:
+            raise SharedStateUnavailableError(
+                f"map {map_id!r} is being built and build jobs live in Redis, which is unavailable; retry "
+                f"later") from exc
+        if cancelled:
             with self._lock:
                 self._entries.pop(map_id, None)
             logger.info("map %s: build cancelled", map_id, extra={"map_id": map_id})
             self._publish("cancelled", map_id)
             return entry
         entry = super().delete(map_id)  # the "deleted" event is published by OpsMiddleware
-        if self.queue.record(map_id).get("state") not in _ACTIVE:
-            self.queue.remove(map_id)  # a failed build's record goes with the map
+        try:
+            if self.queue.record(map_id).get("state") not in _ACTIVE:
+                self.queue.remove(map_id)  # a failed build's record goes with the map
+        except redis.RedisError:
+            logger.warning("map %s deleted, but its build record could not be removed (Redis down)", map_id)
         return entry
 
     def reconcile_builds(self) -> None:

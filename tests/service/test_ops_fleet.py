@@ -294,3 +294,6 @@ def test_redis_down_503_on_shared_scans_localization_keeps_working(fleet: Fleet)
     assert res.status_code == 200 and res.json()["status"] == "localized"
     assert fleet.a.get("/maps").status_code == 200 and fleet.a.get("/readyz").status_code == 200
     assert fleet.a.get("/ui/api/maps/city/localizations").status_code == 503
+    queued = fleet.a.post("/maps", data={"map_id": "later"}, files=_archive(3), headers=AUTH)
+    assert queued.status_code == 503 and "retry later" in queued.json()["detail"], queued.text
+    assert fleet.b.get("/maps/later").status_code == 404 and not any((fleet.maps_dir / ".jobs").iterdir())
