@@ -11,6 +11,7 @@ import asyncio
 import json
 import logging
 import shutil
+import socket
 import threading
 import time
 from pathlib import Path
@@ -33,6 +34,13 @@ logger = logging.getLogger("service.worker")
 
 #: Seconds between a running build's heartbeats.
 HEARTBEAT_S = 2.0
+#: Seconds between the worker's own health records (``reradar worker --check`` reads them).
+HEALTH_S = 10.0
+
+
+def health_key(keys: Keys) -> str:
+    """This worker's health record: ``<namespace>:v1:worker-health:<hostname>`` (one worker per container)."""
+    return f"{keys.prefix}:worker-health:{socket.gethostname()}"
 
 
 class BuildCancelledError(Exception):
@@ -207,6 +215,7 @@ def run_worker(settings: Settings, extractor: FeatureExtractor | None = None, bu
                         max_tries=settings.build_max_tries + 2)],  # our record counts attempts
         queue_name=keys.queue, redis_settings=RedisSettings.from_dsn(settings.redis_url), ctx=ctx, max_jobs=1,
         poll_delay=0.5, burst=burst, keep_result=3600, handle_signals=True,
+        health_check_interval=HEALTH_S, health_check_key=health_key(keys),
     )
     logger.info("worker %s ready: queue %s, maps in %s, model %s", ctx["origin"], keys.queue,
                 settings.maps_dir, extractor.model_id)
@@ -217,7 +226,15 @@ def run_worker(settings: Settings, extractor: FeatureExtractor | None = None, bu
         client.close()
 
 
-def worker_command() -> None:
+def check_health(settings: Settings) -> bool:
+    """True when this host's worker recorded its health within the last ``HEALTH_S`` + 1 seconds."""
+    try:
+        return bool(connect(settings.redis_url or "").exists(health_key(Keys(settings.redis_namespace))))
+    except redis.RedisError:
+        return False
+
+
+def worker_command(check: bool = False) -> None:
     """Run a map-build worker (needs RERADAR_REDIS_URL; settings from RERADAR_* variables)."""
     import typer
 
@@ -230,9 +247,18 @@ def worker_command() -> None:
         typer.echo("error: set RERADAR_REDIS_URL (e.g. redis://127.0.0.1:6379/0): the build queue lives in Redis",
                    err=True)
         raise typer.Exit(2)
+    if check:
+        raise typer.Exit(0 if check_health(settings) else 1)
     run_worker(settings)
 
 
 def register(app: Any) -> None:
     """Add ``worker`` to the ``reradar`` command line."""
-    app.command("worker")(worker_command)
+    import typer
+
+    def worker(check: bool = typer.Option(False, "--check", help=(
+            "Exit 0 if this host's worker is alive (its health record in Redis is fresh), else 1."))) -> None:
+        """Run a map-build worker: queued builds from Redis (needs RERADAR_REDIS_URL; docs/OPERATIONS.md)."""
+        worker_command(check)
+
+    app.command("worker")(worker)

@@ -27,6 +27,8 @@ import json
 import logging
 import os
 import shutil
+import socket
+import time
 import uuid
 from collections.abc import Callable
 from pathlib import Path
@@ -144,6 +146,24 @@ class QueuedMapRegistry(MapRegistry):
         super().__init__(settings, extractor)
         self.queue = queue
         self._publish = publish
+
+    def staging_dir(self) -> Path:
+        """A staging folder of this process only: the base ``load_all`` empties ``.staging`` at start-up,
+        which on a shared maps folder would break another replica's upload in flight."""
+        d = self.maps_dir / f".staging-{socket.gethostname()}-{os.getpid()}"
+        d.mkdir(exist_ok=True)
+        return d
+
+    def load_all(self) -> None:
+        """As ``MapRegistry.load_all``, and remove staging folders of replicas gone for over an hour."""
+        super().load_all()
+        cutoff = time.time() - 3600
+        for d in self.maps_dir.glob(".staging-*"):
+            try:
+                if d.is_dir() and d.stat().st_mtime < cutoff:
+                    shutil.rmtree(d, ignore_errors=True)
+            except OSError:
+                continue
 
     def start_build(self, map_id: str, scan_paths: list[Path], poses: np.ndarray, preset: str | None,
                     workdir: Path, source: str) -> MapEntry:
