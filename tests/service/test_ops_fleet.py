@@ -286,8 +286,8 @@ def test_failed_build_reports_its_reason_everywhere(fleet: Fleet) -> None:
 def test_redis_down_503_on_shared_scans_localization_keeps_working(fleet: Fleet) -> None:
     _stop(fleet.redis_proc)
     up = fleet.a.post("/scans", files={"scan": ("q.png", _png(1, keyframe_time(1)))})
-    assert up.status_code == 503 and up.json()["error"] == "shared_state_unavailable", up.text
-    assert "inline" in up.json()["detail"]
+    # whatever the error body's shape (docs/SERVICE.md), it names the cause and what to do instead
+    assert up.status_code == 503 and "shared_state_unavailable" in up.text and "inline" in up.text, up.text
     by_id = fleet.b.post("/localize", json={"map_id": "city", "scan_id": "1" * 32})
     assert by_id.status_code == 503
     res = fleet.b.post("/localize", data={"map_id": "city"}, files={"scan": ("q.png", _png(4, keyframe_time(4)))})
@@ -295,5 +295,5 @@ def test_redis_down_503_on_shared_scans_localization_keeps_working(fleet: Fleet)
     assert fleet.a.get("/maps").status_code == 200 and fleet.a.get("/readyz").status_code == 200
     assert fleet.a.get("/ui/api/maps/city/localizations").status_code == 503
     queued = fleet.a.post("/maps", data={"map_id": "later"}, files=_archive(3), headers=AUTH)
-    assert queued.status_code == 503 and "retry later" in queued.json()["detail"], queued.text
+    assert queued.status_code == 503 and "retry later" in queued.text, queued.text
     assert fleet.b.get("/maps/later").status_code == 404 and not any((fleet.maps_dir / ".jobs").iterdir())
