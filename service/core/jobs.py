@@ -37,6 +37,7 @@ from typing import Any, cast
 import numpy as np
 import redis
 
+from reradar_core.errors import MapFormatError, ModelMismatchError
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
 from service.core.errors import ConflictError
@@ -218,6 +219,25 @@ class QueuedMapRegistry(MapRegistry):
             logger.warning("map %s deleted, but its build record could not be removed (Redis down)", map_id)
         return entry
 
+    def _swap_in_built(self, map_id: str) -> None:
+        """Replace the ``building`` entry of a finished build by the loaded map, in one step (a request
+        never sees the id missing in between)."""
+        path = self.path_for(map_id)
+        entry = MapEntry(map_id, path, "failed")
+        try:
+            entry.db = self._open(path)
+            entry.state = "ready"
+            entry.scans_total = entry.scans_done = len(entry.db)
+        except (MapFormatError, ModelMismatchError, OSError) as exc:
+            entry.error = str(exc)
+        with self._lock:
+            current = self._entries.get(map_id)
+            if current is None or current.state == "building":
+                self._entries[map_id] = entry
+                return
+        if entry.db is not None:  # someone else loaded it meanwhile
+            entry.db.close()
+
     def reconcile_builds(self) -> None:
         """Mirror the job records into this registry: active builds as ``building`` with their progress,
         failed ones as ``failed`` with the reason; finished ones are loaded by ``MapSync``'s file pass."""
@@ -242,9 +262,7 @@ class QueuedMapRegistry(MapRegistry):
                 with self._lock:
                     self._entries[map_id] = failed
             elif state == "ready" and entry is not None and entry.state == "building":
-                with self._lock:
-                    self._entries.pop(map_id, None)
-                self.adopt(map_id)
+                self._swap_in_built(map_id)
         # builds that vanished (cancelled and cleaned up) leave no building entry behind
         with self._lock:
             stale = [m for m, e in self._entries.items() if e.state == "building" and e.db is None

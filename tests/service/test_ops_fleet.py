@@ -250,7 +250,7 @@ def test_queued_build_survives_worker_kill(fleet: Fleet) -> None:
     except AssertionError:
         pytest.fail(f"build not finished after the worker kill:\n{fleet.log('worker-2')}")
     assert fleet.b.get("/maps/built").json()["num_keyframes"] == n
-    assert _state(fleet.a, "built") == "ready"
+    _wait(lambda: _state(fleet.a, "built") == "ready", 5, "the rebuilt map on A")
     rec = {k.decode(): v.decode() for k, v in fleet.redis().hgetall(f"{NAMESPACE}:v1:build:built").items()}
     assert rec["state"] == "ready" and rec["attempts"] == "2" and rec["worker"].endswith(f":{fleet.pids['worker-2']}")
     assert not any((fleet.maps_dir / ".jobs").iterdir())  # the job's scans are cleaned up
