@@ -53,7 +53,7 @@ class BuildGaveUpError(Exception):
 
 def _publish(ctx: dict[str, Any], op: str, map_id: str) -> None:
     try:
-        ctx["redis"].publish(ctx["keys"].map_events, json.dumps({"op": op, "map_id": map_id, "origin": ctx["origin"]}))
+        ctx["sync_redis"].publish(ctx["keys"].map_events, json.dumps({"op": op, "map_id": map_id, "origin": ctx["origin"]}))
     except redis.RedisError as exc:
         logger.warning("map event %s %s not published: %s", op, map_id, exc)
 
@@ -197,7 +197,8 @@ def run_worker(settings: Settings, extractor: FeatureExtractor | None = None, bu
     client = connect(settings.redis_url)
     keys = Keys(settings.redis_namespace)
     queue = BuildQueue(client, keys, settings)
-    ctx: dict[str, Any] = {"settings": settings, "queue": queue, "redis": client, "keys": keys,
+    # arq puts its own asyncio pool under ctx["redis"]; the build thread uses this blocking client
+    ctx: dict[str, Any] = {"settings": settings, "queue": queue, "sync_redis": client, "keys": keys,
                            "registry": MapRegistry(settings, extractor), "extractor": extractor,
                            "origin": replica_id()}
     stop = threading.Event()

@@ -7,6 +7,7 @@ served or dropped by B within 2 s; a queued build survives its worker being kill
 from __future__ import annotations
 
 import io
+import json
 import os
 import shutil
 import signal
@@ -119,7 +120,7 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
     redis_url = f"redis://127.0.0.1:{port}/0"
     env = {**os.environ, "RERADAR_MAPS_DIR": str(maps_dir), "RERADAR_REDIS_URL": redis_url,
            "RERADAR_REDIS_NAMESPACE": NAMESPACE, "RERADAR_LOAD_DEMO_MAP": "false", "RERADAR_API_KEY": API_KEY,
-           "RERADAR_BUILD_HEARTBEAT_STALE_S": "4", "RERADAR_BUILD_BATCH_SIZE": "2", "OPENBLAS_NUM_THREADS": "1",
+           "RERADAR_BUILD_HEARTBEAT_STALE_S": "4", "RERADAR_MAP_SYNC_INTERVAL_S": "60",  # events only "RERADAR_BUILD_BATCH_SIZE": "2", "OPENBLAS_NUM_THREADS": "1",
            "PYTHONPATH": str(REPO)}
     ports = _free_port(), _free_port()
     fl = Fleet(redis_url, redis_proc, maps_dir, logs, env, httpx.Client(base_url=f"http://127.0.0.1:{ports[0]}",
@@ -244,6 +245,8 @@ def test_queued_build_survives_worker_kill(fleet: Fleet) -> None:
     _stop(w1, signal.SIGKILL)
     info = fleet.b.get("/maps/built").json()
     assert info["state"] == "building" and 0 < info["scans_done"] < n
+    events = fleet.redis().pubsub(ignore_subscribe_messages=True)
+    events.subscribe(f"{NAMESPACE}:v1:maps:events")
     fleet.start("worker-2", "worker", extra_env={"OPS_FAKE_SCAN_DELAY_S": "0.05"})
     try:
         _wait(lambda: _state(fleet.b, "built") == "ready", 90, "the rebuilt map on B", step_s=0.2)
@@ -251,6 +254,16 @@ def test_queued_build_survives_worker_kill(fleet: Fleet) -> None:
         pytest.fail(f"build not finished after the worker kill:\n{fleet.log('worker-2')}")
     assert fleet.b.get("/maps/built").json()["num_keyframes"] == n
     _wait(lambda: _state(fleet.a, "built") == "ready", 5, "the rebuilt map on A")
+    ops = []
+    deadline = time.monotonic() + 1.0  # everything is buffered already; None also stands for skipped messages
+    while time.monotonic() < deadline:
+        if (msg := events.get_message(timeout=0.1)) is not None:
+            ops.append(json.loads(msg["data"]))
+    events.close()
+    # the worker announces progress and the finished map (replicas load it on the event, not on a timer)
+    built = [o for o in ops if o["op"] == "built" and o["map_id"] == "built"]
+    assert len(built) == 1 and built[0]["origin"].endswith(f":{fleet.pids['worker-2']}")
+    assert any(o["op"] == "progress" for o in ops)
     rec = {k.decode(): v.decode() for k, v in fleet.redis().hgetall(f"{NAMESPACE}:v1:build:built").items()}
     assert rec["state"] == "ready" and rec["attempts"] == "2" and rec["worker"].endswith(f":{fleet.pids['worker-2']}")
     assert not any((fleet.maps_dir / ".jobs").iterdir())  # the job's scans are cleaned up
