@@ -130,8 +130,9 @@ def bench_memory(n: int, dim: int, local_dim: int, keypoints: int, seed: int = 0
 # ---------------------------------------------------------------------------------------------- HTTP
 def measure_open(path: str, kind: str) -> dict:
     """RSS growth of this (fresh) process from opening the map at ``path`` with index ``kind``."""
-    from maps.database import MapDatabase
     from maps.index import IndexConfig
+
+    from maps.database import MapDatabase
 
     gc.collect()
     before = _rss_bytes()
@@ -179,7 +180,7 @@ def bench_http(requests: int, warmup: int, threads: int, map_path: Path | None =
     (tmp / "maps").mkdir()
     shutil.copyfile(map_path or DEMO_MAP_PATH, tmp / "maps" / "demo.h5")
     log = open(tmp / "server.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "reradar_core.cli", "serve", "--port", str(port),
+    proc = subprocess.Popen([sys.executable, "-m", "reradar_cli", "serve", "--port", str(port),
                              "--log-level", "warning"], env=env, stdout=log, stderr=subprocess.STDOUT)
     try:
         with ReRadarClient(f"http://127.0.0.1:{port}") as client:

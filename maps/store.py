@@ -37,6 +37,9 @@ __all__ = [
     "MapWriter",
     "open_map",
     "write_map",
+    "install_file",
+    "fsync_dir",
+    "remove_stale_temp_files",
     "check_model",
     "read_metadata",
 ]
@@ -302,6 +305,61 @@ def open_map(path: str | Path, model_id: str | None = None, weights_sha256: str 
     return kf_map
 
 
+def fsync_dir(directory: str | Path) -> None:
+    """Make a rename / creation / deletion in ``directory`` durable (no-op where the filesystem refuses)."""
+    try:
+        dir_fd = os.open(directory, os.O_RDONLY)
+    except OSError:  # pragma: no cover
+        return
+    try:
+        os.fsync(dir_fd)
+    except OSError:  # pragma: no cover - some filesystems refuse directory fsync
+        pass
+    finally:
+        os.close(dir_fd)
+
+
+def install_file(src: str | Path, dst: str | Path) -> Path:
+    """Durably move a complete file into place: fsync ``src``, rename it over ``dst`` (atomic within one
+    filesystem), fsync both folders. After a crash ``dst`` is either the old file or the whole new one."""
+    src, dst = Path(src), Path(dst)
+    with open(src, "rb+") as fh:
+        os.fsync(fh.fileno())
+    os.replace(src, dst)
+    fsync_dir(dst.parent)
+    if src.parent != dst.parent:
+        fsync_dir(src.parent)
+    return dst
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def remove_stale_temp_files(directory: str | Path) -> list[Path]:
+    """Delete ``.<name>.<pid>.<thread>.tmp`` files in ``directory`` left by map writers whose process is gone
+    (killed mid-write); files of live processes are kept. Returns the removed paths."""
+    removed = []
+    for tmp in Path(directory).glob(".*.tmp"):
+        parts = tmp.name.split(".")
+        try:
+            pid = int(parts[-3])
+        except (IndexError, ValueError):
+            continue
+        if pid != os.getpid() and not _pid_alive(pid):
+            tmp.unlink(missing_ok=True)
+            removed.append(tmp)
+    if removed:
+        logger.info("removed %d temporary map file(s) left by killed writers in %s", len(removed), directory)
+    return removed
+
+
 class MapWriter:
     """Streaming, atomic map writer.
 
@@ -316,6 +374,7 @@ class MapWriter:
             raise FileExistsError(f"{self.path}: map already exists (pass overwrite=True to replace it)")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.metadata = metadata
+        remove_stale_temp_files(self.path.parent)  # left by a writer killed earlier (kill -9, power loss)
         self._tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
         self._file: h5py.File | None = None
         self._ts: list[int] = []
@@ -373,17 +432,7 @@ class MapWriter:
         f.flush()
         f.close()
         self._file = None
-        with open(self._tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(self._tmp, self.path)
-        try:  # make the rename itself durable
-            dir_fd = os.open(self.path.parent, os.O_RDONLY)
-            try:
-                os.fsync(dir_fd)
-            finally:
-                os.close(dir_fd)
-        except OSError:  # pragma: no cover - some filesystems refuse directory fsync
-            pass
+        install_file(self._tmp, self.path)
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Install ReRadar with its test tools into a virtualenv (default ./.venv; RERADAR_VENV=DIR to choose; an
-# already activated virtualenv is used as it is). Needs Python 3.11 or 3.12 (RERADAR_PYTHON=/path/to/python
+# Install ReRadar with every extra (server, training, benchmark, plots) and its test tools into a virtualenv; a
+# vehicle-side client needs only the base install (README). The virtualenv is ./.venv by default
+# (RERADAR_VENV=DIR to choose; an already activated virtualenv is used as it is). Needs Python 3.11 or 3.12 (RERADAR_PYTHON=/path/to/python
 # to choose); on Debian/Ubuntu also the venv module: apt-get install python3-venv.
 #
 # torch is the CPU build (torch==2.13.0+cpu from the PyTorch CPU index: a plain `pip install torch` pulls the
@@ -46,5 +47,5 @@ else
 fi
 echo "== installing into $venv ($("$PY" --version))"
 "$PY" -m pip install --quiet "${torch_index[@]}" -c constraints.txt "torch==2.13.0+cpu"
-"$PY" -m pip install --quiet -c constraints.txt -e ".[test]"
+"$PY" -m pip install --quiet -c constraints.txt -e ".[all,test]"
 echo "== done: $venv/bin/reradar (or 'source $venv/bin/activate', then 'reradar')"

@@ -8,20 +8,33 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from http import HTTPStatus
+from typing import Any
 
 from fastapi import FastAPI, Request
-from fastapi.responses import JSONResponse
+from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
 from starlette.concurrency import run_in_threadpool
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.responses import Response
+from starlette.routing import Match, Route
 
 from reradar_core.errors import ModelMismatchError, ReRadarError
 from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
-from service.api.middleware import BodyLimitMiddleware, MetricsMiddleware
+from service.api.middleware import MetricsMiddleware, RequestGuardMiddleware
 from service.api.ops_middleware import OpsMiddleware
 from service.api.routes import health, localize, maps, scans
 from service.api.routes.ui import install_ui
+from service.api.security import RequestLimits, build_guard, route_class
 from service.core.blas import limit_blas_threads
 from service.core.config import Settings
-from service.core.errors import ServiceError
+from service.core.errors import (
+    PROBLEM_MEDIA_TYPE,
+    ServiceError,
+    problem_body,
+    scrub_paths,
+    validation_detail,
+)
 from service.core.logs import configure_logging
 from service.core.metrics import Metrics
 from service.core.shared_state import OpsRuntime
@@ -34,13 +47,58 @@ logger = logging.getLogger("service")
 API_VERSION = "1.0.0"
 
 
-def _error(status: int, detail: str, code: str) -> JSONResponse:
-    return JSONResponse({"detail": detail, "error": code}, status_code=status)
-
-
 def _error_code(exc: ReRadarError) -> str:
     name = type(exc).__name__.removesuffix("Error")
     return "".join("_" + c.lower() if c.isupper() else c for c in name).lstrip("_") or "invalid_input"
+
+
+#: Error statuses every operation may answer, by route class (documented in the OpenAPI document).
+_VEHICLE_ERRORS = (400, 401, 403, 404, 408, 409, 413, 415, 422, 503)
+_OPERATOR_ERRORS = (400, 401, 403, 404, 408, 409, 413, 415, 422, 503)
+_PUBLIC_ERRORS = (503,)
+_HTTP_CODES = {404: "not_found", 405: "method_not_allowed", 400: "bad_request", 413: "payload_too_large"}
+
+
+def _problem_openapi(doc: dict[str, Any]) -> dict[str, Any]:
+    """Document the one error model: every 4xx/5xx response of every operation is
+    ``application/problem+json`` with the ``ErrorResponse`` schema; add the statuses the request guard can
+    answer, and the ``X-API-Key`` security scheme."""
+    problem = {PROBLEM_MEDIA_TYPE: {"schema": {"$ref": "#/components/schemas/ErrorResponse"}}}
+    comps = doc.setdefault("components", {})
+    schemas = comps.setdefault("schemas", {})
+    for unused in ("HTTPValidationError", "ValidationError"):
+        schemas.pop(unused, None)
+    comps["securitySchemes"] = {"ApiKey": {"type": "apiKey", "in": "header", "name": "X-API-Key", "description": (
+        "Operator key (RERADAR_API_KEY) for POST/DELETE /maps; a vehicle key (RERADAR_VEHICLE_KEYS) or the "
+        "operator key for scans, retrieve and localize (not needed from loopback without vehicle keys).")}}
+    for path, ops in doc.get("paths", {}).items():
+        for method, op in ops.items():
+            kind = route_class(method.upper(), path.replace("{map_id}", "x"))
+            if kind == "operator":
+                op["security"] = [{"ApiKey": []}]
+                extra = _OPERATOR_ERRORS
+            elif kind == "vehicle":
+                op["security"] = [{"ApiKey": []}, {}]
+                extra = _VEHICLE_ERRORS
+            else:
+                extra = _PUBLIC_ERRORS if path not in ("/healthz", "/readyz", "/metrics") else ()
+            responses = op.setdefault("responses", {})
+            if path.startswith("/maps/{map_id}"):
+                extra = tuple(sorted({*extra, 404, 422}))
+            for code in extra:
+                responses.setdefault(str(code), {})
+            for code, resp in responses.items():
+                if int(code) < 400 or (path == "/readyz" and code == "503"):
+                    continue
+                try:
+                    phrase = HTTPStatus(int(code)).phrase
+                except ValueError:
+                    phrase = "Error"
+                if not resp.get("description") or resp.get("description") in ("Validation Error", "Additional Response"):
+                    resp["description"] = phrase
+                resp["content"] = problem
+            op["responses"] = dict(sorted(responses.items()))
+    return doc
 
 
 def create_app(settings: Settings | None = None, extractor: FeatureExtractor | None = None) -> FastAPI:
@@ -74,6 +132,7 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
             return ServiceState(cfg, ext, registry, ops.scan_store(), metrics)  # ops: Redis scan store
 
         state = await run_in_threadpool(load)
+        app.state.guard = build_guard(cfg, spool_dir=state.registry.staging_dir())
         metrics.set_model(state.extractor.model_id, state.extractor.weights_sha256)  # ops: reradar_model_info
         app.state.reradar = state
         ops.start(state.registry)  # ops: follow other replicas' map changes
@@ -83,6 +142,7 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
             yield
         finally:
             app.state.reradar = None
+            app.state.guard = None
             ops.close()
             state.registry.close()
 
@@ -93,46 +153,84 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
         description=(
             "Units: distances in metres, angles in degrees, times in microseconds (`*_us`) or milliseconds "
             "(`*_ms`). Poses are in the map frame (x, y, counter-clockwise yaw) unless named `relative_*`. "
-            "Mutating endpoints (`POST /maps`, `DELETE /maps/{id}`) need the `X-API-Key` header."
+            "`POST /maps` and `DELETE /maps/{id}` need the operator key in the `X-API-Key` header; scans, "
+            "retrieve and localize need a vehicle key (or the operator key) unless the client is on loopback "
+            "and no vehicle key is configured. Every error is RFC 9457 `application/problem+json` "
+            "(`ErrorResponse`)."
         ),
         lifespan=lifespan,
         docs_url=None,  # ops: /docs and /redoc are served offline by service.api.routes.ui
         redoc_url=None,
     )
     app.state.reradar = None
+    app.state.guard = None
 
-    def limit_for(method: str, path: str) -> int:
+    def default_limits() -> RequestLimits:
         cfg: Settings | None = getattr(app.state, "settings", None) or settings
-        if cfg is None:
-            cfg = Settings()
-        if method == "POST" and path.rstrip("/") == "/maps":
-            return cfg.max_map_upload_bytes
-        return cfg.max_upload_bytes
+        return RequestLimits.from_settings(cfg or Settings())
 
-    app.add_middleware(BodyLimitMiddleware, limit_for=limit_for)
+    app.add_middleware(RequestGuardMiddleware, get_guard=lambda: app.state.guard, default_limits=default_limits)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     app.add_middleware(OpsMiddleware)  # ops: recent localizations, map events to other replicas
 
+    def problem(request: Request, status: int, code: str, detail: str, headers: dict[str, str] | None = None,
+                errors: list[dict[str, Any]] | None = None) -> Response:
+        cfg = getattr(app.state, "settings", None)
+        roots = [cfg.maps_dir, cfg.maps_dir.resolve()] if cfg is not None else []
+        body = problem_body(status, code, scrub_paths(detail, roots), instance=request.url.path, errors=errors)
+        return Response(body, status_code=status, media_type=PROBLEM_MEDIA_TYPE, headers=headers)
+
     @app.exception_handler(ServiceError)
-    async def _service_error(request: Request, exc: ServiceError) -> JSONResponse:
-        return _error(exc.status_code, exc.message, exc.code)
+    async def _service_error(request: Request, exc: ServiceError) -> Response:
+        return problem(request, exc.status_code, exc.code, exc.message, exc.headers)
 
     @app.exception_handler(ModelMismatchError)
-    async def _model_mismatch(request: Request, exc: ModelMismatchError) -> JSONResponse:
-        return _error(409, str(exc), "model_mismatch")
+    async def _model_mismatch(request: Request, exc: ModelMismatchError) -> Response:
+        return problem(request, 409, "model_mismatch", str(exc))
 
     @app.exception_handler(ReRadarError)
-    async def _core_error(request: Request, exc: ReRadarError) -> JSONResponse:
-        return _error(422, str(exc), _error_code(exc))
+    async def _core_error(request: Request, exc: ReRadarError) -> Response:
+        return problem(request, 422, _error_code(exc), str(exc))
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError) -> Response:
+        detail, items = validation_detail(exc.errors())
+        return problem(request, 422, "validation", detail, errors=items)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> Response:
+        code = _HTTP_CODES.get(exc.status_code, f"http_{exc.status_code}")
+        detail = f"no endpoint at {request.url.path}; the API is listed at /docs and /openapi.json"
+        headers = dict(exc.headers or {})
+        if exc.status_code == 405:
+            # Starlette's Allow names the methods of the first route on the path only (GET /maps and POST /maps
+            # are two routes): list them all
+            allowed = sorted({m for route in app.routes if isinstance(route, Route)
+                              and route.matches(request.scope)[0] != Match.NONE for m in (route.methods or ())})
+            headers = {k: v for k, v in headers.items() if k.lower() != "allow"}
+            headers["Allow"] = ", ".join(allowed)
+            detail = f"{request.method} is not allowed on {request.url.path}; allowed: {headers['Allow']}"
+        elif exc.status_code != 404 or exc.detail != "Not Found":
+            detail = str(exc.detail)
+        return problem(request, exc.status_code, code, detail, headers)
 
     @app.exception_handler(Exception)
-    async def _bug(request: Request, exc: Exception) -> JSONResponse:
+    async def _bug(request: Request, exc: Exception) -> Response:
         logger.exception("internal error on %s %s", request.method, request.url.path)
-        return _error(500, "internal server error (logged); please report it", "internal")
+        return problem(request, 500, "internal", "internal server error (logged); please report it")
 
     for module in (health, maps, scans, localize):
         app.include_router(module.router)
     install_ui(app)  # ops: operator page at /, offline /docs
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            app.openapi_schema = _problem_openapi(get_openapi(
+                title=app.title, version=app.version, summary=app.summary, description=app.description,
+                routes=app.routes))
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
     return app
 
 

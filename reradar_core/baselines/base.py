@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from reradar_core.io.scan import RadarScan
+from reradar_core.retrieval.index import EuclideanIndex  # the retrieval stage's exact search, re-exported
 
 __all__ = ["Prepared", "PlaceRecognitionMethod", "Retrieval", "params_hash"]
 
@@ -66,6 +67,9 @@ class PlaceRecognitionMethod(ABC):
     provides_pose: bool = False
     #: True when ``fit`` uses the database (descriptors then depend on the reference run).
     needs_fit: bool = False
+    #: Bump whenever ``prepare`` changes what it computes: part of the feature-cache key, so records made by
+    #: an earlier algorithm are never reused.
+    algorithm_version: int = 1
 
     # ------------------------------------------------------------------ identity
     def params(self) -> dict[str, Any]:
@@ -74,8 +78,8 @@ class PlaceRecognitionMethod(ABC):
 
     @property
     def cache_key(self) -> str:
-        """Folder-safe key of this method + parameters for the feature cache."""
-        return f"{self.name}-{params_hash(self.params())}"
+        """Folder-safe key of this method + parameters + ``algorithm_version`` for the feature cache."""
+        return f"{self.name}-{params_hash(self.params())}-a{self.algorithm_version}"
 
     # ------------------------------------------------------------------ pipeline
     @abstractmethod
@@ -119,24 +123,6 @@ class PlaceRecognitionMethod(ABC):
         d = self.distance(q_desc, index)
         j = int(np.argmin(d))
         return Retrieval(j, float(d[j]), self.estimate_heading(q_desc, index, j), None)
-
-
-class EuclideanIndex:
-    """Stacked (N, D) float32 descriptors with cached squared norms: Euclidean distances by one mat-vec
-    (no per-query (N, D) temporaries, which dominate the search time of long VLAD descriptors)."""
-
-    def __init__(self, descs: Sequence[np.ndarray] | np.ndarray) -> None:
-        self.matrix = np.ascontiguousarray(np.stack([np.asarray(d, np.float32).reshape(-1) for d in descs]))
-        self.sq_norms = np.einsum("nd,nd->n", self.matrix, self.matrix, dtype=np.float64)
-
-    def __len__(self) -> int:
-        return int(self.matrix.shape[0])
-
-    def distances(self, q: np.ndarray) -> np.ndarray:
-        """(N,) float64 Euclidean distances to ``q`` (D,)."""
-        q = np.asarray(q, np.float32).reshape(-1)
-        d2 = self.sq_norms - 2.0 * (self.matrix @ q).astype(np.float64) + float(np.dot(q, q))
-        return np.sqrt(np.maximum(d2, 0.0))
 
 
 def polar_resize(power: np.ndarray, num_azimuths: int, num_range: int) -> np.ndarray:

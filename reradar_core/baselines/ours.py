@@ -1,9 +1,10 @@
 """ReRadar itself behind the baseline interface: learned global descriptor + landmark pose verification.
 
-Retrieval: Euclidean distance between unit global descriptors (``DescriptorExtractor``); localization: the
-top-k candidates go through ``reradar_core.localization.localize`` (landmark-alignment screen of the top 20, and
-of up to 60 when none aligns well, full guided pose estimation of the best 3, re-ranking by inliers), which
-gives the answer keyframe and ``T_map_query``.
+The same code path as the service: a ``reradar_core.localization.Localizer`` over the database (FAISS
+``GlobalIndex`` on the unit global descriptors, keyframes in memory) retrieves, screens (landmark alignment of
+the top 20, and of up to 60 when none aligns well) and verifies (full guided pose estimation of the best 3,
+re-ranking by inliers), which gives the answer keyframe and ``T_map_query``. ``distance`` (PR curves) is the
+Euclidean distance between unit descriptors over the whole database.
 Model names come from ``reradar_core.model.available_models()`` (e.g. ``default``, ``our-1``, ``our-3-...``).
 """
 
@@ -14,13 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from reradar_core.baselines.base import (
-    EuclideanIndex,
-    PlaceRecognitionMethod,
-    Prepared,
-    Retrieval,
-    landmarks_for,
-)
+from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared, Retrieval, landmarks_for
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import relative_pose
 from reradar_core.io.scan import RadarScan
@@ -65,8 +60,8 @@ class Ours(PlaceRecognitionMethod):
         self.model_name = model if isinstance(model, str) else str(getattr(model, "model_id", "custom"))
         self.name = name or ("ours" if self.model_name == "default" else f"ours-{self.model_name}")
         self.localization = localization or LocalizationConfig()
-        self._keyframes: Any = None  # KeyframeCandidates of the current database (grids built once)
-        self._keyframes_of: int | None = None
+        self._localizer: Any = None  # Localizer of the current database (keyframe grids built once)
+        self._localizer_of: tuple[int, int] | None = None
 
     def params(self) -> dict[str, Any]:
         return {"model": str(getattr(self.extractor, "model_id", self.model_name)),
@@ -80,25 +75,36 @@ class Ours(PlaceRecognitionMethod):
         return np.asarray(prepared["global"], dtype=np.float32)
 
     def build_index(self, db_descs: Any) -> Any:
-        return EuclideanIndex(db_descs)
+        from reradar_core.retrieval import GlobalIndex
+
+        return GlobalIndex(np.stack([np.asarray(d, np.float32).reshape(-1) for d in db_descs]))
 
     def distance(self, q_desc: np.ndarray, index: Any) -> np.ndarray:
         return index.distances(q_desc)
 
+    def localizer(self, index: Any, db_prepared: Sequence[Prepared], db_poses: np.ndarray) -> Any:
+        """The ``Localizer`` over this database (built once per database, as the service keeps one per map)."""
+        from reradar_core.localization import InMemoryKeyframes, Localizer
+
+        key = (id(index), id(db_prepared))
+        if self._localizer_of != key:
+            keyframes = InMemoryKeyframes(lambda j: prepared_to_features(db_prepared[j]), db_poses,
+                                          np.array([int(np.asarray(p["timestamp_us"])) for p in db_prepared]))
+            self._localizer = Localizer(index, keyframes, self.localization)
+            self._localizer_of = key
+        return self._localizer
+
     def localize(self, q_prepared: Prepared, q_desc: np.ndarray, index: Any,
                  db_prepared: Sequence[Prepared], db_poses: np.ndarray) -> Retrieval:
-        from reradar_core.localization import KeyframeCandidates, localize
-
-        if self._keyframes_of != id(db_prepared):  # as the service does: each keyframe's grid is built once
-            self._keyframes = KeyframeCandidates(lambda j: prepared_to_features(db_prepared[j]),
-                                                 self.localization.alignment.grid_cell_m)
-            self._keyframes_of = id(db_prepared)
-        d = self.distance(q_desc, index)
-        order = np.argsort(d, kind="stable")[: self.localization.num_to_retrieve]
-        cands = [self._keyframes.candidate(int(j), db_poses[j], float(d[j]), rank) for rank, j in enumerate(order)]
-        res = localize(prepared_to_features(q_prepared), cands, self.localization)
-        j = int(res.best.keyframe_id) if res.best is not None else int(order[0])
+        localizer = self.localizer(index, db_prepared, db_poses)
+        res = localizer.localize(prepared_to_features(q_prepared), self.localization)
+        if res.best is not None:
+            j, dist = int(res.best.keyframe_id), float(res.best.descriptor_distance)
+        else:  # nothing retrieved (empty database)
+            d = self.distance(q_desc, index)
+            j = int(np.argmin(d))
+            dist = float(d[j])
         if res.localized and res.T_map_query is not None:
             heading = float(relative_pose(db_poses[j], res.T_map_query)[2])
-            return Retrieval(j, float(d[j]), heading, np.asarray(res.T_map_query, np.float64))
-        return Retrieval(j, float(d[j]), None, None)
+            return Retrieval(j, dist, heading, np.asarray(res.T_map_query, np.float64))
+        return Retrieval(j, dist, None, None)

@@ -1,9 +1,13 @@
 """``reradar bench``: every method on the same database / query sequences -> results.json, results.md, plots.
 
-Two ways to name the data:
+Ways to name the data:
   reradar bench --suite boreas-sim --out DIR                       (simulated suites, rendered and cached)
   reradar bench --database DIR --query DIR [--query DIR ...] --preset boreas [--radius 20] --out DIR
                                                                   (real recordings in their own layouts)
+  reradar bench --database DIR --split-at 765 --preset mulran --out DIR
+                                                                  (single session: scans before the split are
+                                                                   the database, the rest the queries)
+  reradar bench --suite loop-sim --split-at 120s [--split-sequence laps2-3] --out DIR
 """
 
 from __future__ import annotations
@@ -28,6 +32,11 @@ def _split(values: list[str] | None) -> list[str]:
     return out
 
 
+def _safe(text: str) -> str:
+    """``text`` as a folder-name part (the default output folder names the split)."""
+    return "".join(c if c.isalnum() else "_" for c in text.strip())
+
+
 def bench(
     suite: str | None = typer.Option(None, "--suite", help="Simulated suite: smoke, boreas-sim, loop-sim, "
                                      "offroad-sim (rendered on first use, cached)."),
@@ -42,7 +51,17 @@ def bench(
     out: Path | None = typer.Option(None, "--out", help="Output folder (default: cache/bench/<suite>)."),
     radius: float | None = typer.Option(None, "--radius", help="Correct-retrieval radius, metres (default: "
                                         "the suite's, or 25 OORD/Oxford, 20 MulRan/Boreas)."),
-    every: int | None = typer.Option(None, "--every", help="Use every N-th scan (default: suite's, else 5)."),
+    every: int | None = typer.Option(None, "--every", help="Use every N-th scan (default 1: every scan of a "
+                                     "folder; suites are rendered at their protocol spacing and keep it)."),
+    split_at: str | None = typer.Option(None, "--split-at", help="Single-session split of one sequence: "
+                                        "database = scans before, queries = scans from the split on. A scan "
+                                        "index (765, 0-based, before --every), seconds after the first scan "
+                                        "(120s) or a scan timestamp in µs (t=1566535872045000). With --database "
+                                        "(no --query) or --suite."),
+    time_unit: str | None = typer.Option(None, "--time-unit", help="Unit of the folders' pose-file timestamps "
+                                         "(s, ms, us, ns) when they are not absolute UTC times; never guessed."),
+    split_sequence: str | None = typer.Option(None, "--split-sequence", help="Suite sequence to split with "
+                                              "--split-at (default: the suite's database sequence)."),
     limit: int | None = typer.Option(None, "--limit", help="At most this many scans per sequence after "
                                      "subsampling."),
     query_limit: int | None = typer.Option(None, "--query-limit", help="At most this many queries per query "
@@ -66,22 +85,35 @@ def bench(
     from reradar_core.benchmark.plots import make_all_plots
     from reradar_core.benchmark.results import results_markdown, write_results
     from reradar_core.benchmark.runner import BenchConfig, run_benchmark
-    from reradar_core.benchmark.suites import pairs_from_folders, pairs_from_suite
+    from reradar_core.benchmark.suites import pairs_from_folders, pairs_from_suite, suite_spacing
     from reradar_core.paths import cache_dir
 
     torch.set_num_threads(max(1, threads))
     try:
         if (suite is None) == (database is None):
             raise typer.BadParameter("give either --suite NAME or --database DIR with --query DIR")
+        if every is not None and every < 1:
+            raise typer.BadParameter(f"--every must be >= 1, got {every}")
         if suite is not None:
-            pairs, default_radius = pairs_from_suite(suite, every=every, limit=limit, query_limit=query_limit)
-            label = suite
+            if query or time_unit:
+                raise typer.BadParameter("--query and --time-unit are for folders; a suite names its own sequences")
+            pairs, default_radius = pairs_from_suite(suite, every=every, limit=limit, query_limit=query_limit,
+                                                     split_at=split_at, split_sequence=split_sequence)
+            label = suite if split_at is None else f"{suite}-{split_sequence or 'database'}-split-{_safe(split_at)}"
+            spacing = suite_spacing(suite)
+            rendered = ", ".join(f"{k} every {v}" for k, v in spacing.items())
+            every_note = (f"suite protocol spacing (rendered: {rendered})" if every is None else
+                          f"every {every}-th scan of the suite's renders ({rendered})")
         else:
-            if not query:
-                raise typer.BadParameter("--database needs at least one --query DIR")
-            pairs, default_radius = pairs_from_folders(database, list(query), preset=preset, layout=layout,
-                                                       every=every or 5, limit=limit, query_limit=query_limit)
-            label = f"{database.name}"
+            assert database is not None
+            if split_sequence is not None:
+                raise typer.BadParameter("--split-sequence is for suites; a folder is split as a whole")
+            pairs, default_radius = pairs_from_folders(database, list(query or []), preset=preset, layout=layout,
+                                                       every=every or 1, limit=limit, query_limit=query_limit,
+                                                       split_at=split_at, time_unit=time_unit)
+            label = f"{database.name}" + ("" if split_at is None else f"-split-{_safe(split_at)}")
+            every_note = (f"every {every or 1} scan(s) of the folders"
+                          + (" (default 1: pass --every N to subsample)" if every is None else ""))
         names = _split(methods) or default_method_names()
         method_objs = [make_method(n) for n in names]
         out_dir = out or cache_dir("bench", label)
@@ -89,8 +121,15 @@ def bench(
                           rotation_limit=rotation_limit,
                           use_cache=cache)
         typer.echo(f"bench {label}: {len(pairs)} query sequence(s), methods {names}, radius {cfg.radius_m} m")
+        typer.echo(f"frame spacing: {every_note}")
+        for p in pairs:
+            cut = (f" (split of {p.split['sequence']} at scan {p.split['index']} of {p.split['n_scans']})"
+                   if p.split else "")
+            typer.echo(f"  {p.name}: database {p.database.name} {len(p.database)} scans, queries {len(p.query)}{cut}")
         results = run_benchmark(pairs, method_objs, out_dir, cfg, suite=label)
-        results["settings"].update(threads=threads, every=every, limit=limit, query_limit=query_limit)
+        results["settings"].update(threads=threads, every=every if every is not None else (1 if suite is None
+                                                                                            else "suite"),
+                                   every_note=every_note, limit=limit, query_limit=query_limit, split_at=split_at)
         ours = [m for m in method_objs if m.provides_pose]
         if timing and ours:
             add_timing(results, _primary(ours), pairs[0], cfg, timing_scans, threads)

@@ -1,8 +1,17 @@
 """Adapter from per-query benchmark outcomes to the paper's metrics (``reradar_core.evaluation``).
 
 Conventions (``reradar_core.evaluation.metrics``): a top-1 retrieval is correct within R of the query's
-ground-truth position (25 m OORD, 20 m MulRan / Boreas); Recall@1 and SR divide by all queries; F1max by
-the RaPlace protocol; ê_r, ê_t are means over successful queries. The results report percentages.
+ground-truth position (25 m OORD, 20 m MulRan / Boreas). The headline ``recall@1`` and ``sr`` divide by the
+*revisit* queries (those with a database keyframe within R); ``recall@1_all`` and ``sr_all`` divide by all
+queries (the paper's GT). Queries without a match are scored by rejection: ``correct_rejection_pct`` and
+``wrong_pose_no_match_pct``. "Rejected" means, per kind of method:
+
+- full-pose methods (ReRadar): the answer has no pose, i.e. the service's status ``not_localized``;
+- retrieval-only and heading-only methods (RingKey, RaPlace, RadVLAD, ResNet18-NetVLAD, ReFeree): no
+  rejection; they answer every query (a distance threshold would have to be chosen without the query
+  sequence, and none is), so the rejection figures are ``None`` (not applicable).
+
+F1max by the RaPlace protocol (unchanged); ê_r, ê_t are means over all successful queries. Percentages.
 """
 
 from __future__ import annotations
@@ -18,8 +27,13 @@ from reradar_core.evaluation import (
     localization_success,
     precision_recall_curve,
     retrieval_correct,
+    revisit_breakdown,
+    rotation_success,
     summarize,
 )
+
+#: What "rejected" means for each success rule (results.json ``rejection``; None = the method never rejects).
+REJECTION_RULES: dict[str, str | None] = {"pose": "not_localized", "heading": None, "none": None}
 
 __all__ = ["QueryOutcome", "make_outcome", "summarise", "pr_curve"]
 
@@ -62,11 +76,18 @@ def make_outcome(retrieved: np.ndarray, distance: np.ndarray, est_pose: np.ndarr
 
 def summarise(out: QueryOutcome, query_poses: np.ndarray, db_poses: np.ndarray, radius_m: float,
               sr_rule: str) -> dict[str, Any]:
-    """Recall@1, F1max, SR (percent), ê_r (deg), ê_t (m), n_queries; None where not applicable.
+    """The per-sequence metrics of one method (percentages; None where not applicable).
 
-    ``sr_rule``: ``pose`` (translation < R and rotation < 10 deg), ``heading`` (correct retrieval and
-    rotation < 10 deg, the paper's rule for ReFeree) or ``none`` (SR, ê_r, ê_t not applicable).
-    ``wrong_pose_pct`` (``pose`` rule only): queries answered with a pose that misses the SR rule, percent.
+    ``sr_rule``: ``pose`` (translation < R and rotation < 10 deg; a query without a pose is rejected),
+    ``heading`` (correct retrieval and rotation < 10 deg, the paper's rule for ReFeree; never rejects) or
+    ``none`` (SR, ê_r, ê_t not applicable; never rejects).
+
+    Keys: ``recall@1`` / ``sr`` (over revisit queries, the headline), ``recall@1_all`` / ``sr_all`` (over all
+    queries), ``f1max``, ``e_r_deg``, ``e_t_m``, counts ``n_queries`` / ``n_revisit`` / ``n_no_match``,
+    ``rejection`` (what rejected means, None = never rejects), on no-match queries ``correct_rejection_pct``,
+    ``wrong_pose_no_match_pct`` and their counts, on revisit queries ``n_rejected_revisit`` and
+    ``n_wrong_pose_revisit``, and ``wrong_pose_pct`` (answered with a pose that misses the SR rule, percent of
+    all queries; ``pose`` rule only).
     """
     m = summarize(query_poses, db_poses[out.retrieved, :2], out.distance, db_poses[:, :2], radius_m,
                   T_map_query_est=None if sr_rule == "none" else out.est_pose,
@@ -78,15 +99,26 @@ def summarise(out: QueryOutcome, query_poses: np.ndarray, db_poses: np.ndarray, 
     def val(v: float) -> float | None:
         return None if not np.isfinite(v) else float(v)
 
+    success = answered = None
+    if sr_rule == "pose":
+        success = localization_success(out.trans_err_m, out.heading_err_deg, radius_m)
+        answered = np.isfinite(out.est_pose[:, 0])  # no pose = not_localized = rejected
+    elif sr_rule == "heading":
+        success = rotation_success(out.correct, out.heading_err_deg)
+    b = revisit_breakdown(out.correct, out.positive, success, answered)
     wrong = None
     if sr_rule == "pose" and len(out.retrieved):
         # answered with a pose (the method said "localized") that misses the SR rule: what a user must not get
-        answered = np.isfinite(out.est_pose[:, 0])
-        good = localization_success(out.trans_err_m, out.heading_err_deg, radius_m)
-        wrong = 100.0 * float(np.mean(answered & ~good))
-    return {"recall@1": pct(m.recall_at_1), "f1max": pct(m.f1_max), "sr": pct(m.sr),
+        wrong = 100.0 * float(np.mean(answered & ~success))  # type: ignore[operator]
+    return {"recall@1": pct(b.recall_at_1_revisit), "sr": pct(b.sr_revisit),
+            "recall@1_all": pct(m.recall_at_1), "sr_all": pct(m.sr), "f1max": pct(m.f1_max),
             "e_r_deg": val(m.e_r_deg), "e_t_m": val(m.e_t_m), "n_queries": int(m.n_queries),
-            "n_with_revisit": int(np.count_nonzero(out.positive)), "wrong_pose_pct": wrong}
+            "n_revisit": b.n_revisit, "n_no_match": b.n_no_match, "rejection": REJECTION_RULES[sr_rule],
+            "correct_rejection_pct": pct(b.correct_rejection_rate),
+            "wrong_pose_no_match_pct": pct(b.wrong_pose_rate_no_match),
+            "n_rejected_no_match": b.n_rejected_no_match, "n_wrong_pose_no_match": b.n_wrong_pose_no_match,
+            "n_correct_pose_no_match": b.n_correct_pose_no_match, "n_rejected_revisit": b.n_rejected_revisit,
+            "n_wrong_pose_revisit": b.n_wrong_pose_revisit, "wrong_pose_pct": wrong}
 
 
 def pr_curve(distance: np.ndarray, correct: np.ndarray, positive: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -84,8 +84,11 @@ def plot_trajectory_links(results: dict[str, Any], per_query: Path, seq: str, pa
         colors = np.where(d["correct"][:, None], [[0.1, 0.65, 0.2, 0.8]], [[0.85, 0.1, 0.1, 0.8]])
         ax.add_collection(LineCollection(segs, colors=colors, linewidths=0.8))
         ax.scatter(q[:, 0], q[:, 1], s=6, c=colors, zorder=3)  # short correct links are hard to see
-        r1 = results["sequences"][seq][m]["recall@1"]
-        ax.set_title(f"{m}: Recall@1 {r1:.1f}% ({int(d['correct'].sum())}/{len(q)})", fontsize=9)
+        row = results["sequences"][seq][m]
+        r1 = row["recall@1"]
+        n_rev = int(row.get("n_revisit", len(q)))
+        r1_txt = "–" if r1 is None else f"{r1:.1f}%"
+        ax.set_title(f"{m}: Recall@1 {r1_txt} ({int(d['correct'].sum())}/{n_rev} revisit queries)", fontsize=9)
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel(f"x − {origin[0]:.0f} [m]")
         ax.set_ylabel(f"y − {origin[1]:.0f} [m]")
@@ -103,8 +106,12 @@ def plot_rotation_stress(results: dict[str, Any], path: Path) -> Path | None:
     if not stress:
         return None
     methods = list(next(iter(stress.values())).keys())
-    base = [np.mean([stress[s][m]["recall@1"] for s in stress]) for m in methods]
-    rot = [np.mean([stress[s][m]["recall@1_rotated"] for s in stress]) for m in methods]
+    def mean(key: str, m: str) -> float:
+        vals = [stress[s][m][key] for s in stress if stress[s][m][key] is not None]
+        return float(np.mean(vals)) if vals else 0.0
+
+    base = [mean("recall@1", m) for m in methods]
+    rot = [mean("recall@1_rotated", m) for m in methods]
     x = np.arange(len(methods))
     fig, ax = plt.subplots(figsize=(max(5.0, 0.9 * len(methods) + 2), 3.8))
     ax.bar(x - 0.2, base, 0.4, label="original heading")

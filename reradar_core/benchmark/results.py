@@ -6,11 +6,23 @@ import json
 from pathlib import Path
 from typing import Any
 
-__all__ = ["write_results", "results_markdown", "METRIC_COLUMNS"]
+__all__ = ["write_results", "results_markdown", "METRIC_COLUMNS", "QUERY_KIND_COLUMNS", "REJECTION_NOTE"]
 
-#: (key in results.json, column header, format) of the paper's per-sequence columns.
+#: (key in results.json, column header, format) of the paper's per-sequence columns (Recall@1 and SR over
+#: revisit queries, the headline).
 METRIC_COLUMNS = (("recall@1", "Recall@1 (%)", "{:.2f}"), ("f1max", "F1max (%)", "{:.2f}"),
                   ("sr", "SR (%)", "{:.2f}"), ("e_r_deg", "ê_r (°)", "{:.2f}"), ("e_t_m", "ê_t (m)", "{:.2f}"))
+#: Columns of the second table: all queries, and the queries without a match (rejection figures).
+QUERY_KIND_COLUMNS = (("recall@1_all", "Recall@1 all (%)", "{:.2f}"), ("sr_all", "SR all (%)", "{:.2f}"),
+                      ("correct_rejection_pct", "correct rejection (%)", "{:.2f}"),
+                      ("wrong_pose_no_match_pct", "wrong pose, no match (%)", "{:.2f}"))
+
+#: How the results define "rejected" for each kind of method (printed under the tables, docs/BENCHMARKS.md).
+REJECTION_NOTE = ("Rejected: ReRadar (methods with a full pose) rejects a query when it answers `not_localized` "
+                  "(fewer than 50 % of its landmarks align); the retrieval-only and heading-only baselines "
+                  "(RingKey, RaPlace, RadVLAD, ResNet18-NetVLAD, ReFeree) always answer: no distance threshold is "
+                  "chosen (one tuned on the query sequence would be a defect), so their rejection figures are – "
+                  "(not applicable), and every answer they give to a query without a match is a wrong place.")
 
 
 def _fmt(v: Any, fmt: str) -> str:
@@ -21,46 +33,91 @@ def _best(rows: dict[str, dict[str, Any]], key: str) -> set[str]:
     vals = {m: r.get(key) for m, r in rows.items() if r.get(key) is not None}
     if not vals:
         return set()
-    target = max(vals.values()) if key in ("recall@1", "f1max", "sr") else min(vals.values())
+    higher = ("recall@1", "f1max", "sr", "recall@1_all", "sr_all", "correct_rejection_pct")
+    target = max(vals.values()) if key in higher else min(vals.values())
     return {m for m, v in vals.items() if abs(v - target) < 1e-9}
+
+
+def _table(seqs: dict[str, dict[str, Any]], methods: list[str],
+           columns: tuple[tuple[str, str, str], ...]) -> list[str]:
+    """Methods as rows, per-sequence column groups, best value per column in bold."""
+    head = "| Method | " + " | ".join(f"{seq}: {h}" for seq in seqs for _, h, _ in columns) + " |"
+    lines = [head, "|" + "---|" * (1 + len(seqs) * len(columns))]
+    best = {(seq, k): _best(rows, k) for seq, rows in seqs.items() for k, _, _ in columns}
+    for m in methods:
+        cells = []
+        for seq, rows in seqs.items():
+            r = rows.get(m, {})
+            for k, _, fmt in columns:
+                c = _fmt(r.get(k), fmt)
+                cells.append(f"**{c}**" if m in best[(seq, k)] and c != "–" else c)
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def results_markdown(results: dict[str, Any]) -> str:
     """Markdown like the paper's tables: methods as rows, per-sequence Recall@1 / F1max / SR / ê_r / ê_t
     column groups, best values in bold; then time per query, rotation stress and stage timings."""
     lines = [f"# `reradar bench` results — suite `{results.get('suite')}`", ""]
-    radius = results.get("settings", {}).get("radius_m")
-    lines.append(f"Correct retrieval within {radius} m; Recall@1 and SR over all queries; SR: translation < "
+    settings = results.get("settings", {})
+    radius = settings.get("radius_m")
+    lines.append(f"Correct retrieval within {radius} m. **Recall@1 and SR are over the revisit queries** (those "
+                 f"with a database keyframe within {radius} m); the same over all queries (the paper's GT) and "
+                 f"the rejection figures on queries without a match are in the second table. SR: translation < "
                  f"{radius} m and rotation < 10° (heading-only methods ReFeree, RaPlace: correct retrieval and "
-                 "rotation < 10°); ê_r, ê_t over successes; – = not applicable; ms/query = features + "
-                 "retrieval (+ verification) per query on this machine.")
+                 "rotation < 10°); ê_r, ê_t over successes; F1max by the RaPlace protocol over all queries; "
+                 "– = not applicable; ms/query = features + retrieval (+ verification) per query on this machine.")
     lines.append("")
+    for name, p in settings.get("pairs", {}).items():
+        split = p.get("split")
+        if split:
+            lines.append(f"Single-session split `{name}`: sequence `{split.get('sequence')}` ({split.get('n_scans')} "
+                         f"scans) cut at `--split-at {split.get('spec')}` = scan index {split.get('index')} "
+                         f"(timestamp {split.get('timestamp_us')} µs): database = scans before it, queries = "
+                         "scans from it on (indices before subsampling).")
+            lines.append("")
+    if settings.get("every_note"):
+        lines.append(f"Frame spacing: {settings['every_note']}.")
+        lines.append("")
     seqs = results.get("sequences", {})
-    pairs = results.get("settings", {}).get("pairs", {})
+    pairs = settings.get("pairs", {})
     for seq in seqs:
         p = pairs.get(seq)
         if p:
-            rev = next((r.get("n_with_revisit") for r in seqs[seq].values() if "n_with_revisit" in r), None)
-            note = (f" ({rev} with a database keyframe within {radius} m: Recall@1 and SR are at most "
-                    f"{100.0 * rev / max(p['n_query'], 1):.2f}%)") if rev is not None and rev < p["n_query"] else ""
-            lines.append(f"- `{seq}`: {p['n_query']} queries{note} against database `{p['database']}` "
+            row: dict[str, Any] = next((r for r in seqs[seq].values() if "n_queries" in r), {})
+            rev = row.get("n_revisit", row.get("n_with_revisit"))
+            kinds = (f": {rev} revisit {'query' if rev == 1 else 'queries'}, {p['n_query'] - rev} without a "
+                     f"database keyframe within {radius} m") if rev is not None else ""
+            lines.append(f"- `{seq}`: {p['n_query']} queries{kinds}; database `{p['database']}` "
                          f"({p['n_database']} keyframes)")
     lines.append("")
     methods: list[str] = []
     for rows in seqs.values():
         methods += [m for m in rows if m not in methods]
-    head = "| Method | " + " | ".join(f"{seq}: {h}" for seq in seqs for _, h, _ in METRIC_COLUMNS) + " |"
-    lines += [head, "|" + "---|" * (1 + len(seqs) * len(METRIC_COLUMNS))]
-    best = {(seq, k): _best(rows, k) for seq, rows in seqs.items() for k, _, _ in METRIC_COLUMNS}
-    for m in methods:
-        cells = []
-        for seq, rows in seqs.items():
-            r = rows.get(m, {})
-            for k, _, fmt in METRIC_COLUMNS:
-                c = _fmt(r.get(k), fmt)
-                cells.append(f"**{c}**" if m in best[(seq, k)] and c != "–" else c)
-        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    lines += _table(seqs, methods, METRIC_COLUMNS)
     lines.append("")
+    lines += ["All queries, and queries without a match (correct rejection = rejected / no-match queries; wrong "
+              "pose = answered with a pose that misses the SR rule / no-match queries):", ""]
+    lines += _table(seqs, methods, QUERY_KIND_COLUMNS)
+    lines += ["", REJECTION_NOTE, ""]
+    counted = [m for m in methods if any(rows.get(m, {}).get("n_rejected_no_match") is not None
+                                         for rows in seqs.values())]
+    if counted:
+        lines += ["Counts per kind of query (methods that can reject): revisit queries rejected / answered with a "
+                  "wrong pose; no-match queries rejected / wrong pose / correct pose.", "",
+                  "| Method | " + " | ".join(seqs) + " |", "|" + "---|" * (1 + len(seqs))]
+        for m in counted:
+            cells = []
+            for rows in seqs.values():
+                r = rows.get(m, {})
+                if r.get("n_rejected_no_match") is None:
+                    cells.append("–")
+                    continue
+                cells.append(f"{r['n_rejected_revisit']} / {r['n_wrong_pose_revisit']} of {r['n_revisit']}; "
+                             f"{r['n_rejected_no_match']} / {r['n_wrong_pose_no_match']} / "
+                             f"{r['n_correct_pose_no_match']} of {r['n_no_match']}")
+            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        lines.append("")
     lines += ["Time per query (features + retrieval + verification, ms, this machine):", "",
               "| Method | " + " | ".join(seqs) + " |", "|" + "---|" * (1 + len(seqs))]
     for m in methods:
@@ -77,7 +134,8 @@ def results_markdown(results: dict[str, Any]) -> str:
         lines.append("")
     stress = results.get("rotation_stress")
     if stress:
-        lines += ["### Rotation stress (random heading offset added to every query scan)", ""]
+        lines += ["### Rotation stress (random heading offset added to every query scan; Recall@1 over the "
+                  "revisit queries among them)", ""]
         seqs = list(stress)
         lines.append("| Method | " + " | ".join(f"{s}: Recall@1 → rotated (Δ points)" for s in seqs) + " |")
         lines.append("|" + "---|" * (len(seqs) + 1))
@@ -86,7 +144,7 @@ def results_markdown(results: dict[str, Any]) -> str:
             cells = []
             for s in seqs:
                 r = stress[s].get(m)
-                cells.append("–" if r is None else
+                cells.append("–" if r is None or r.get("drop") is None else
                              f"{r['recall@1']:.2f} → {r['recall@1_rotated']:.2f} (Δ {-r['drop']:+.2f})")
             lines.append(f"| {m} | " + " | ".join(cells) + " |")
         lines.append("")

@@ -28,7 +28,7 @@ from reradar_core.geometry.se2 import compose
 from reradar_core.io.datasets import Sequence
 
 __all__ = ["BenchPair", "BenchConfig", "PreparedSet", "prepare_sequence", "evaluate_method", "run_benchmark",
-           "sr_rule"]
+           "sr_rule", "total_steps"]
 
 logger = logging.getLogger(__name__)
 
@@ -41,11 +41,14 @@ class BenchPair:
         name: label of the pair in the results (the query sequence's name by default).
         database: the reference run (already subsampled, e.g. every 5th scan).
         query: the query run (already subsampled).
+        split: for a single-session split, where the sequence was cut (``benchmark.suites.split_pair``);
+            None for separate database / query runs.
     """
 
     name: str
     database: Sequence
     query: Sequence
+    split: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -98,19 +101,24 @@ def sr_rule(method: PlaceRecognitionMethod) -> str:
 
 
 def prepare_sequence(methods: Seq[PlaceRecognitionMethod], seq: Sequence, config: BenchConfig,
-                     yaw_offsets: np.ndarray | None = None, variant: str = "") -> dict[str, PreparedSet]:
+                     yaw_offsets: np.ndarray | None = None, variant: str = "",
+                     bar: tqdm | None = None) -> dict[str, PreparedSet]:
     """Prepared records of every method for every scan of ``seq`` (cached; each scan read at most once).
 
     Args:
         yaw_offsets: optional (N,) heading offsets [rad]; scan i is turned by ``yaw_offsets[i]`` first
             (``rotate_scan``) and cached under ``<stem>@<variant>@yaw<offset>``.
+        bar: the run's overall progress bar (advanced by one step per scan and method); without it a bar of
+            its own is shown when ``config.progress``.
     """
     skey = sequence_key(seq.name, seq.root)
     caches = {m.name: FeatureCache(m.cache_key, skey, config.cache_root, config.use_cache) for m in methods}
     out: dict[str, PreparedSet] = {m.name: PreparedSet([], np.zeros(len(seq))) for m in methods}
     try:
         desc = f"{seq.name}{' ' + variant if variant else ''}: features"
-        for i in tqdm(range(len(seq)), desc=desc, disable=not config.progress, leave=False):
+        if bar is not None:
+            bar.set_postfix_str(desc, refresh=False)
+        for i in tqdm(range(len(seq)), desc=desc, disable=not config.progress or bar is not None, leave=False):
             path = Path(seq.scan_paths[i])
             key = path.stem + (f"@{variant}" if variant else "")
             if yaw_offsets is not None:  # the offset itself is part of the key: a record is one exact input
@@ -130,6 +138,8 @@ def prepare_sequence(methods: Seq[PlaceRecognitionMethod], seq: Sequence, config
                     hit = (rec, ms)
                 out[m.name].records.append(hit[0])
                 out[m.name].compute_ms[i] = hit[1]
+            if bar is not None:
+                bar.update(len(methods))
     finally:
         for c in caches.values():
             c.close()
@@ -138,11 +148,12 @@ def prepare_sequence(methods: Seq[PlaceRecognitionMethod], seq: Sequence, config
 
 def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: np.ndarray, query: PreparedSet,
                     query_poses: np.ndarray, radius_m: float, fit: bool = True,
-                    progress: bool = False, label: str = "") -> MethodRun:
+                    progress: bool = False, label: str = "", bar: tqdm | None = None) -> MethodRun:
     """Fit (optional) on the database, then answer every query; metrics per the paper's rules.
 
     Args:
         db_poses: (N, 3) database poses T_map_keyframe; query_poses: (Q, 3) ground-truth T_map_query.
+        bar: the run's overall progress bar (one step per query); replaces the per-method bar.
     """
     if fit:
         method.fit(db.records)
@@ -152,11 +163,16 @@ def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: n
     dist = np.zeros(q)
     est = np.full((q, 3), np.nan)
     t_total = 0.0
-    for i in tqdm(range(q), desc=f"{label}{method.name}: queries", disable=not progress, leave=False):
+    if bar is not None:
+        bar.set_postfix_str(f"{label}{method.name}: queries", refresh=False)
+    for i in tqdm(range(q), desc=f"{label}{method.name}: queries", disable=not progress or bar is not None,
+                  leave=False):
         t0 = time.perf_counter()
         q_desc = method.describe_prepared(query.records[i])
         r = method.localize(query.records[i], q_desc, index, db.records, db_poses)
         t_total += time.perf_counter() - t0
+        if bar is not None:
+            bar.update(1)
         retrieved[i], dist[i] = r.index, r.distance
         if r.pose is not None:
             est[i] = r.pose
@@ -179,35 +195,64 @@ def _save_outcome(path: Path, run: MethodRun, query_xy: np.ndarray, db_xy: np.nd
                         trans_err_m=o.trans_err_m, query_xy=query_xy, db_xy=db_xy)
 
 
+def _rotation_indices(n: int, limit: int | None) -> np.ndarray:
+    """The queries of the rotation stress test: all, or ``limit`` evenly spread."""
+    if limit is not None and 0 < limit < n:
+        return np.linspace(0, n - 1, limit).round().astype(np.int64)
+    return np.arange(n)
+
+
 def _rotation_stress(pair: BenchPair, methods: Seq[PlaceRecognitionMethod], dbp: dict[str, PreparedSet],
-                     qp: dict[str, PreparedSet], config: BenchConfig) -> dict[str, Any]:
-    """Recall@1 of the same queries with and without a random heading offset, per method."""
+                     qp: dict[str, PreparedSet], config: BenchConfig, bar: tqdm | None = None) -> dict[str, Any]:
+    """Recall@1 (over revisit queries) of the same queries with and without a random heading offset."""
     n = len(pair.query)
-    idx = np.arange(n)
-    if config.rotation_limit is not None and 0 < config.rotation_limit < n:
-        idx = np.linspace(0, n - 1, config.rotation_limit).round().astype(np.int64)
+    idx = _rotation_indices(n, config.rotation_limit)
     query = pair.query.subset(idx)
     yaw = heading_offsets(n, config.rotation_seed, pair.query.preset.num_azimuths)[idx]
-    rq = prepare_sequence(methods, query, config, yaw_offsets=yaw, variant=f"rot{config.rotation_seed}")
+    rq = prepare_sequence(methods, query, config, yaw_offsets=yaw, variant=f"rot{config.rotation_seed}", bar=bar)
     q_poses = query.poses.poses
     rq_poses = rotate_pose(q_poses, yaw)
     db_poses = pair.database.poses.poses
     stress: dict[str, Any] = {}
     for m in methods:
         base_set = PreparedSet([qp[m.name].records[i] for i in idx], qp[m.name].compute_ms[idx])
-        base = evaluate_method(m, dbp[m.name], db_poses, base_set, q_poses, config.radius_m, fit=False).summary
+        base = evaluate_method(m, dbp[m.name], db_poses, base_set, q_poses, config.radius_m, fit=False,
+                               label=f"{pair.name} unrotated ", bar=bar).summary
         run = evaluate_method(m, dbp[m.name], db_poses, rq[m.name], rq_poses, config.radius_m, fit=False,
-                              progress=config.progress, label=f"{pair.name} rotated ").summary
-        stress[m.name] = {"n_queries": int(len(idx)), "recall@1": base["recall@1"],
-                          "recall@1_rotated": run["recall@1"], "drop": base["recall@1"] - run["recall@1"],
+                              progress=config.progress, label=f"{pair.name} rotated ", bar=bar).summary
+        drop = None if base["recall@1"] is None or run["recall@1"] is None else base["recall@1"] - run["recall@1"]
+        stress[m.name] = {"n_queries": int(len(idx)), "n_revisit": base["n_revisit"], "recall@1": base["recall@1"],
+                          "recall@1_rotated": run["recall@1"], "drop": drop,
                           "sr": base["sr"], "sr_rotated": run["sr"]}
     return stress
+
+
+def _database_key(pair: BenchPair) -> str:
+    return sequence_key(pair.database.name, pair.database.root) + f"-{len(pair.database)}"
+
+
+def total_steps(pairs: Seq[BenchPair], n_methods: int, config: BenchConfig) -> int:
+    """Steps of ``run_benchmark``'s overall progress bar: one per (scan, method) feature record (each database
+    once) and one per (query, method) answer, rotation stress included."""
+    steps, seen = 0, set()
+    for pair in pairs:
+        dkey = _database_key(pair)
+        if dkey not in seen:
+            seen.add(dkey)
+            steps += len(pair.database) * n_methods
+        steps += 2 * len(pair.query) * n_methods  # features + answers
+        if config.rotation_stress:
+            steps += 3 * len(_rotation_indices(len(pair.query), config.rotation_limit)) * n_methods
+    return steps
 
 
 def run_benchmark(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod], out_dir: Path,
                   config: BenchConfig = BenchConfig(), suite: str | None = None) -> dict[str, Any]:
     """Run every method on every pair; write per-query arrays under ``out_dir/per_query`` and return the
-    results dict (``{"suite", "settings", "sequences": {SEQ: {METHOD: metrics}}, "rotation_stress"}``)."""
+    results dict (``{"suite", "settings", "sequences": {SEQ: {METHOD: metrics}}, "rotation_stress"}``).
+
+    With ``config.progress`` one overall tqdm bar (steps of ``total_steps``, with ETA) covers every method
+    and sequence; its postfix names the current stage."""
     out_dir = Path(out_dir)
     results: dict[str, Any] = {
         "suite": suite,
@@ -215,7 +260,8 @@ def run_benchmark(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod], o
                      "methods": [m.name for m in methods],
                      "method_params": {m.name: m.params() for m in methods},
                      "pairs": {p.name: {"database": p.database.name, "query": p.query.name,
-                                        "n_database": len(p.database), "n_query": len(p.query)}
+                                        "n_database": len(p.database), "n_query": len(p.query),
+                                        "split": p.split}
                                for p in pairs},
                      # the reference machine is shared: timings are only comparable at similar load
                      "load_average_1min_at_start": os.getloadavg()[0], "cpu_count": os.cpu_count()},
@@ -226,28 +272,31 @@ def run_benchmark(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod], o
     }
     db_cache: dict[str, dict[str, PreparedSet]] = {}
     fitted_on: dict[str, str] = {}
-    for pair in pairs:
-        dkey = sequence_key(pair.database.name, pair.database.root) + f"-{len(pair.database)}"
-        if dkey not in db_cache:
-            db_cache[dkey] = prepare_sequence(methods, pair.database, config)
-        dbp = db_cache[dkey]
-        qp = prepare_sequence(methods, pair.query, config)
-        db_poses = pair.database.poses.poses
-        q_poses = pair.query.poses.poses
-        seq_res: dict[str, Any] = {}
-        runs: dict[str, MethodRun] = {}
-        for m in methods:
-            need_fit = fitted_on.get(m.name) != dkey
-            run = evaluate_method(m, dbp[m.name], db_poses, qp[m.name], q_poses, config.radius_m,
-                                  fit=need_fit, progress=config.progress, label=f"{pair.name} ")
-            fitted_on[m.name] = dkey
-            runs[m.name] = run
-            seq_res[m.name] = run.summary
-            _save_outcome(out_dir / "per_query" / pair.name / f"{m.name}.npz", run, q_poses[:, :2],
-                          db_poses[:, :2])
-            logger.info("%s %s: Recall@1 %.2f%%", pair.name, m.name, run.summary["recall@1"])
-        results["sequences"][pair.name] = seq_res
-        if config.rotation_stress:
-            results["rotation_stress"][pair.name] = _rotation_stress(pair, methods, dbp, qp, config)
+    bar = tqdm(total=total_steps(pairs, len(methods), config), desc="bench", unit="step", dynamic_ncols=True,
+               disable=not config.progress)
+    try:
+        for pair in pairs:
+            dkey = _database_key(pair)
+            if dkey not in db_cache:
+                db_cache[dkey] = prepare_sequence(methods, pair.database, config, bar=bar)
+            dbp = db_cache[dkey]
+            qp = prepare_sequence(methods, pair.query, config, bar=bar)
+            db_poses = pair.database.poses.poses
+            q_poses = pair.query.poses.poses
+            seq_res: dict[str, Any] = {}
+            for m in methods:
+                need_fit = fitted_on.get(m.name) != dkey
+                run = evaluate_method(m, dbp[m.name], db_poses, qp[m.name], q_poses, config.radius_m,
+                                      fit=need_fit, label=f"{pair.name} ", bar=bar)
+                fitted_on[m.name] = dkey
+                seq_res[m.name] = run.summary
+                _save_outcome(out_dir / "per_query" / pair.name / f"{m.name}.npz", run, q_poses[:, :2],
+                              db_poses[:, :2])
+                logger.info("%s %s: Recall@1 %s%% (revisit queries)", pair.name, m.name, run.summary["recall@1"])
+            results["sequences"][pair.name] = seq_res
+            if config.rotation_stress:
+                results["rotation_stress"][pair.name] = _rotation_stress(pair, methods, dbp, qp, config, bar)
+    finally:
+        bar.close()
     results["settings"]["load_average_1min_at_end"] = os.getloadavg()[0]
     return results

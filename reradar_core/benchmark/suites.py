@@ -1,7 +1,21 @@
-"""Which sequences a benchmark compares: a simulated suite (``reradar_core.sim.suites``) or real folders."""
+"""Which sequences a benchmark compares: a simulated suite (``reradar_core.sim.suites``) or real folders.
+
+Single-session protocol (the paper's MulRan protocol: DCC01 split at scan 765, KAIST03 at 1420): one sequence
+is cut in two; the database is every scan *before* the split, the queries are the scans from the split on.
+The split is given as text (``parse_split``):
+
+- ``765``: scan index, 0-based, in time order, counted over the whole sequence *before* ``--every``
+  subsampling (the paper's scan number): scans 0..764 form the database, 765.. the queries;
+- ``120s`` (or ``120.5s``): seconds after the sequence's first scan (database: scans earlier than that);
+- ``t=1566535872045000``: an absolute scan timestamp in microseconds (Boreas / Oxford file names; MulRan
+  file names are nanoseconds, divide by 1000). The split is at the first scan at or after it.
+
+Each part is then subsampled with ``every`` and capped with ``limit`` / ``query_limit`` on its own.
+"""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +24,87 @@ from reradar_core.benchmark.runner import BenchPair
 from reradar_core.errors import ConfigError
 from reradar_core.io.datasets import Sequence, load_sequence
 
-__all__ = ["subsample", "pairs_from_folders", "pairs_from_suite", "default_radius"]
+__all__ = ["subsample", "pairs_from_folders", "pairs_from_suite", "default_radius", "SplitSpec", "parse_split",
+           "split_index", "split_pair"]
+
+
+@dataclass(frozen=True)
+class SplitSpec:
+    """Where a single-session split falls (see the module docstring).
+
+    Attributes:
+        kind: ``index`` (scan index), ``seconds`` (after the first scan) or ``timestamp`` (absolute, µs).
+        value: the number.
+        text: what the user wrote.
+    """
+
+    kind: str
+    value: float
+    text: str
+
+
+_SPLIT_HELP = "use a scan index (765), seconds after the first scan (120s) or a timestamp in µs (t=1566535872045000)"
+
+
+def parse_split(text: str) -> SplitSpec:
+    """``765`` -> index, ``120s`` -> seconds, ``t=<µs>`` -> timestamp.
+
+    Raises:
+        ConfigError: anything else (the message lists the accepted forms).
+    """
+    t = str(text).strip().lower()
+    try:
+        if t.startswith("t="):
+            return SplitSpec("timestamp", float(int(t[2:])), text)
+        if t.endswith("s") and not t.endswith("us"):
+            v = float(t[:-1])
+            if not np.isfinite(v) or v < 0:
+                raise ValueError
+            return SplitSpec("seconds", v, text)
+        v = int(t)
+    except ValueError:
+        raise ConfigError(f"--split-at {text!r} is not understood; {_SPLIT_HELP}") from None
+    if v < 0:
+        raise ConfigError(f"--split-at {text!r}: a scan index must be >= 0")
+    return SplitSpec("index", float(v), text)
+
+
+def split_index(seq: Sequence, spec: SplitSpec) -> int:
+    """Index of the first query scan of ``seq`` (scans before it form the database).
+
+    Raises:
+        ConfigError: the split leaves the database or the queries empty.
+    """
+    n = len(seq)
+    if spec.kind == "index":
+        k = int(spec.value)
+    elif spec.kind == "seconds":
+        t0 = int(seq.timestamps_us[0])
+        k = int(np.searchsorted(seq.timestamps_us, t0 + int(round(spec.value * 1e6)), side="left"))
+    else:
+        k = int(np.searchsorted(seq.timestamps_us, int(spec.value), side="left"))
+    if not 0 < k < n:
+        span = (int(seq.timestamps_us[-1]) - int(seq.timestamps_us[0])) / 1e6
+        raise ConfigError(f"--split-at {spec.text!r} falls at scan {k} of {seq.name!r}, which has {n} scans "
+                          f"({span:.1f} s, timestamps {int(seq.timestamps_us[0])}..{int(seq.timestamps_us[-1])} µs): "
+                          "the database (scans before) and the queries (scans from it on) must both be non-empty")
+    return k
+
+
+def split_pair(seq: Sequence, spec: SplitSpec, every: int = 1, limit: int | None = None,
+               query_limit: int | None = None) -> BenchPair:
+    """The single-session pair of ``seq``: database = scans before the split, queries = scans from it on,
+    each subsampled with ``every`` and capped; ``pair.split`` describes the split for results.json.
+
+    Both halves keep the sequence's name and folder, so they share its feature cache."""
+    k = split_index(seq, spec)
+    n = len(seq)
+    db = subsample(seq.subset(np.arange(0, k)), every, limit)
+    q = subsample(seq.subset(np.arange(k, n)), every, query_limit or limit)
+    info = {"sequence": seq.name, "spec": spec.text, "kind": spec.kind, "index": k,
+            "timestamp_us": int(seq.timestamps_us[k]), "n_scans": n,
+            "rule": "database = scans [0, index), queries = scans [index, n), before subsampling"}
+    return BenchPair(f"{seq.name}@{k}", db, q, split=info)
 
 
 def subsample(seq: Sequence, every: int = 1, limit: int | None = None) -> Sequence:
@@ -31,23 +125,45 @@ def default_radius(preset_name: str) -> float:
 
 
 def pairs_from_folders(database: Path, queries: list[Path], preset: str | None = None, layout: str | None = None,
-                       every: int = 5, limit: int | None = None,
-                       query_limit: int | None = None) -> tuple[list[BenchPair], float]:
-    """Real recordings: one database folder and query folders in their dataset layouts.
+                       every: int = 1, limit: int | None = None, query_limit: int | None = None,
+                       split_at: str | None = None, time_unit: str | None = None) -> tuple[list[BenchPair], float]:
+    """Real recordings: one database folder and query folders in their dataset layouts, or, with
+    ``split_at``, one folder split into database and queries (single-session protocol).
 
-    ``limit`` caps every sequence, ``query_limit`` only the query sequences (evenly spread)."""
-    db = subsample(load_sequence(database, layout, preset), every, limit)
+    ``limit`` caps every sequence, ``query_limit`` only the query sequences (evenly spread); ``time_unit`` is
+    the pose files' timestamp unit where it cannot be told (``load_sequence``). Returns the pairs and the
+    preset's radius."""
+    full = load_sequence(database, layout, preset, time_unit)
+    if split_at is not None:
+        if queries:
+            raise ConfigError("--split-at takes database and queries from one sequence: give --database DIR "
+                              "without --query")
+        return [split_pair(full, parse_split(split_at), every, limit, query_limit)], default_radius(full.preset.name)
+    if not queries:
+        raise ConfigError("--database needs at least one --query DIR (or --split-at for a single-session split)")
+    db = subsample(full, every, limit)
     pairs = []
     for q in queries:
-        qs = subsample(load_sequence(q, layout, preset or db.preset.name), every, query_limit or limit)
+        qs = subsample(load_sequence(q, layout, preset or db.preset.name, time_unit), every, query_limit or limit)
         name = qs.name if qs.name != db.name else f"{qs.name}-query"
         pairs.append(BenchPair(name, db, qs))
     return pairs, default_radius(db.preset.name)
 
 
+def suite_spacing(name: str) -> dict[str, int]:
+    """Frame step each sequence of suite ``name`` was rendered at (its protocol spacing), by sequence name."""
+    from reradar_core.sim.suites import SUITES
+
+    suite = SUITES.get(name)
+    return {s.name: s.every for s in suite.sequences} if suite is not None else {}
+
+
 def pairs_from_suite(name: str, every: int | None = None, limit: int | None = None,
-                     progress: bool = True, query_limit: int | None = None) -> tuple[list[BenchPair], float]:
-    """A simulated suite: render (cached) and pair its database with each of its query sequences.
+                     progress: bool = True, query_limit: int | None = None, split_at: str | None = None,
+                     split_sequence: str | None = None) -> tuple[list[BenchPair], float]:
+    """A simulated suite: render (cached) and pair its database with each of its query sequences, or, with
+    ``split_at``, split one of its sequences (``split_sequence``, default the database sequence) into
+    database and queries.
 
     Suites are already rendered at their protocol's frame spacing (e.g. every 5th frame off-road), so
     ``every`` defaults to 1 here. Returns the pairs and the suite's radius.
@@ -58,6 +174,16 @@ def pairs_from_suite(name: str, every: int | None = None, limit: int | None = No
     if not data.database or not data.queries:
         raise ConfigError(f"suite {name!r} has no database/query sequences (training split?); "
                           "choose an evaluation suite: smoke, boreas-sim, loop-sim, offroad-sim")
+    if split_at is not None:
+        folders = {p.name: p for p in data.database + data.queries}
+        target = split_sequence or data.database[0].name
+        if target not in folders:
+            raise ConfigError(f"--split-sequence {target!r} is not a sequence of suite {name!r}; choose one of "
+                              f"{sorted(folders)}")
+        pair = split_pair(data.load(folders[target]), parse_split(split_at), every or 1, limit, query_limit)
+        return [pair], float(data.radius_m)
+    if split_sequence is not None:
+        raise ConfigError("--split-sequence needs --split-at")
     if len(data.database) > 1:
         raise ConfigError(f"suite {name!r} has {len(data.database)} database sequences; one is supported")
     db = subsample(data.load(data.database[0]), every or 1, limit)

@@ -10,6 +10,14 @@
 
 Radii R: 25 m on OORD, 20 m on MulRan and Boreas (``RADIUS_M``). Rates are fractions in [0, 1] (the paper
 prints percentages).
+
+Revisit-aware figures (``revisit_breakdown``): the paper divides by all queries, which caps Recall@1 and SR
+at the share of queries that *have* a database entry within R (on a single-session split that can be half).
+The breakdown separates the two kinds of query: *revisit* queries (a database entry within R) give Recall@1
+and SR over revisits (the benchmark's headline); *no-match* queries can only be answered correctly by a
+rejection, so they give the correct-rejection rate and the wrong-pose rate. What "rejected" means depends on
+the method and is the caller's ``answered`` mask (ReRadar: status ``not_localized``); methods that always
+answer have no rejection and those two rates are not applicable.
 """
 
 from __future__ import annotations
@@ -38,6 +46,8 @@ __all__ = [
     "rotation_success",
     "rotation_success_rate",
     "summarize",
+    "RevisitBreakdown",
+    "revisit_breakdown",
 ]
 
 #: Place recognition / localization radius per dataset family, metres (paper, Sec. Evaluation Metrics).
@@ -303,3 +313,94 @@ def summarize(
             e_r_mean = float(e_r[ok].mean())
             e_t_mean = float("nan") if rotation_only else float(e_t[ok].mean())
     return LocalizationMetrics(r1, f1, sr, e_r_mean, e_t_mean, int(gt.shape[0]))
+
+
+@dataclass
+class RevisitBreakdown:
+    """Metrics split by query kind (revisit vs no match); see the module docstring.
+
+    Rates are fractions in [0, 1], NaN where the denominator is 0 or the figure does not apply.
+
+    Attributes:
+        n_queries: all queries.
+        n_revisit: queries with a database entry within R.
+        n_no_match: queries without one (``n_queries - n_revisit``).
+        recall_at_1_revisit: correct top-1 / n_revisit (the headline Recall@1).
+        recall_at_1_all: correct top-1 / n_queries (the paper's Recall@1).
+        sr_revisit: successes among revisit queries / n_revisit (NaN without a success rule).
+        sr_all: successes / n_queries (the paper's SR; NaN without a success rule).
+        has_rejection: the method can decline to answer (``answered`` was given).
+        n_rejected_no_match: no-match queries the method rejected (correct rejections).
+        n_wrong_pose_no_match: no-match queries answered with a pose that misses the success rule.
+        n_correct_pose_no_match: no-match queries answered with a pose that meets it (possible when a keyframe
+            just beyond R still overlaps the query's view).
+        correct_rejection_rate: n_rejected_no_match / n_no_match.
+        wrong_pose_rate_no_match: n_wrong_pose_no_match / n_no_match.
+        n_rejected_revisit: revisit queries the method rejected (missed localizations).
+        n_wrong_pose_revisit: revisit queries answered with a pose that misses the success rule.
+    """
+
+    n_queries: int
+    n_revisit: int
+    n_no_match: int
+    recall_at_1_revisit: float
+    recall_at_1_all: float
+    sr_revisit: float
+    sr_all: float
+    has_rejection: bool
+    n_rejected_no_match: int | None
+    n_wrong_pose_no_match: int | None
+    n_correct_pose_no_match: int | None
+    correct_rejection_rate: float
+    wrong_pose_rate_no_match: float
+    n_rejected_revisit: int | None
+    n_wrong_pose_revisit: int | None
+
+
+def _rate(num: int, den: int) -> float:
+    return float(num) / den if den > 0 else float("nan")
+
+
+def revisit_breakdown(correct: np.ndarray, revisit: np.ndarray, success: np.ndarray | None = None,
+                      answered: np.ndarray | None = None) -> RevisitBreakdown:
+    """Recall@1 / SR over revisit queries and over all, and the rejection figures on no-match queries.
+
+    Args:
+        correct: (Q,) bool, top-1 within R of the query (``retrieval_correct``).
+        revisit: (Q,) bool, the database holds an entry within R (``has_revisit``).
+        success: (Q,) bool per-query success (``localization_success`` or ``rotation_success``); None for
+            methods that estimate neither pose nor heading (SR figures NaN).
+        answered: (Q,) bool, the method gave an answer (a pose) rather than rejecting the query; None for
+            methods without a rejection rule (they answer every query; the rejection figures are NaN/None).
+            An answered query whose ``success`` is False is a wrong pose.
+
+    Raises:
+        ValueError: arrays of different lengths, or ``answered`` without ``success``.
+    """
+    c = np.asarray(correct, dtype=bool).reshape(-1)
+    rv = np.asarray(revisit, dtype=bool).reshape(-1)
+    ok = None if success is None else np.asarray(success, dtype=bool).reshape(-1)
+    ans = None if answered is None else np.asarray(answered, dtype=bool).reshape(-1)
+    for name, a in (("revisit", rv), ("success", ok), ("answered", ans)):
+        if a is not None and a.shape != c.shape:
+            raise ValueError(f"correct {c.shape} and {name} {a.shape} differ in length")
+    if ans is not None and ok is None:
+        raise ValueError("answered needs success: a rejection rule only makes sense with a success rule")
+    q, n_rev = int(c.size), int(rv.sum())
+    nm = ~rv
+    n_nm = q - n_rev
+    sr_rev = sr_all = float("nan")
+    if ok is not None:
+        sr_rev = _rate(int((ok & rv).sum()), n_rev)
+        sr_all = _rate(int(ok.sum()), q)
+    rej_nm = wrong_nm = good_nm = rej_rv = wrong_rv = None
+    cr = wr = float("nan")
+    if ans is not None and ok is not None:
+        rej_nm = int((~ans & nm).sum())
+        wrong_nm = int((ans & ~ok & nm).sum())
+        good_nm = int((ans & ok & nm).sum())
+        rej_rv = int((~ans & rv).sum())
+        wrong_rv = int((ans & ~ok & rv).sum())
+        cr, wr = _rate(rej_nm, n_nm), _rate(wrong_nm, n_nm)
+    return RevisitBreakdown(q, n_rev, n_nm, _rate(int((c & rv).sum()), n_rev), _rate(int(c.sum()), q),
+                            sr_rev, sr_all, ans is not None, rej_nm, wrong_nm, good_nm, cr, wr, rej_rv, wrong_rv)

@@ -265,13 +265,15 @@ def write_sequence_meta(root: str | Path, meta: dict) -> Path:
 
 
 def load_sequence(path: str | Path, layout: str | None = None,
-                  preset: str | RadarPreset | None = None) -> Sequence:
+                  preset: str | RadarPreset | None = None, pose_time_unit: str | None = None) -> Sequence:
     """Open a radar sequence folder in one of the real layouts (see the module docstring).
 
     Args:
         path: the sequence folder.
         layout: ``boreas``, ``oxford`` or ``mulran``; detected from the folder structure when None.
         preset: radar preset; when None, the simulator metadata's preset or the layout's default.
+        pose_time_unit: unit of the Boreas / MulRan pose file's timestamps (``s``, ``ms``, ``us``, ``ns``);
+            None: absolute UTC times or the format's unit, never a guess (``reradar_core.io.poses``).
 
     Returns:
         A ``Sequence`` whose ``poses`` hold one T_world_sensor per scan at its timestamp.
@@ -293,12 +295,14 @@ def load_sequence(path: str | Path, layout: str | None = None,
         pose_file = root / "applanix" / "radar_poses.csv"
         if not pose_file.is_file():
             raise DatasetError(f"{root}: missing applanix/radar_poses.csv")
-        track = read_boreas_radar_poses(pose_file).sorted()
+        # our simulator writes GPSTime in µs, also for trajectories whose time starts at 0 (no magnitude rule
+        # can tell those apart); real files must hold absolute times or the reader refuses to guess
+        track = read_boreas_radar_poses(pose_file, pose_time_unit or ("us" if meta else None)).sorted()
     elif layout == "mulran":
         pose_file = root / "global_pose.csv"
         if not pose_file.is_file():
             raise DatasetError(f"{root}: missing global_pose.csv")
-        track = read_mulran_global_pose(pose_file).sorted()
+        track = read_mulran_global_pose(pose_file, pose_time_unit).sorted()
     else:
         pose_file = _oxford_odometry_path(root)
         track = read_oxford_odometry(pose_file)

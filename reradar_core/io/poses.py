@@ -2,6 +2,18 @@
 
 All readers return a ``PoseSequence`` of planar poses T_world_sensor in metres / radians with int64
 microsecond timestamps. Malformed files raise ``PoseFileError`` naming the file and the 1-based line.
+
+Time units are never guessed from relative values. Each reader takes ``time_unit`` (``s``, ``ms``, ``us``,
+``ns``); without it:
+
+- a unit is taken only when every timestamp is an absolute UTC time between the years 2000 and 2100 in exactly
+  one unit (the four windows do not overlap: seconds ~1e9, ms ~1e12, µs ~1e15, ns ~1e18), as in the published
+  Boreas files (2021-08-05 stores GPSTime in ns, 2021-09-02 in µs);
+- MulRan ``global_pose.csv`` is in nanoseconds by its format definition; values that are absolute times in
+  another unit are refused;
+- Boreas ``radar_poses.csv`` and ``t,x,y,yaw`` CSVs with relative times (e.g. starting at 0) are refused with a
+  message asking for the unit. A ``t,x,y,yaw`` CSV can carry the unit in its header (``t_s``, ``t_ms``,
+  ``t_us``, ``t_ns``); ``write_txyyaw_csv`` writes ``t_s``.
 """
 
 from __future__ import annotations
@@ -25,7 +37,18 @@ __all__ = [
     "write_txyyaw_csv",
     "read_poses",
     "gps_time_to_us",
+    "TIME_UNITS",
+    "absolute_time_unit",
+    "to_microseconds",
 ]
+
+#: Timestamp units a pose file may use: name -> microseconds per unit.
+TIME_UNITS: dict[str, float] = {"s": 1e6, "ms": 1e3, "us": 1.0, "ns": 1e-3}
+#: Absolute UTC times accepted without an explicit unit: 2000-01-01 .. 2100-01-01, in seconds.
+_EPOCH_WINDOW_S = (946_684_800.0, 4_102_444_800.0)
+_UNIT_SCALE_FROM_S = {"s": 1.0, "ms": 1e3, "us": 1e6, "ns": 1e9}
+#: Header names of the time column of a t,x,y,yaw CSV and the unit each declares (None: not declared).
+TXYYAW_TIME_HEADERS: dict[str, str | None] = {"t": None, "t_s": "s", "t_ms": "ms", "t_us": "us", "t_ns": "ns"}
 
 BOREAS_COLUMNS = (
     "GPSTime,easting,northing,altitude,vel_east,vel_north,vel_up,roll,pitch,heading,angvel_z,angvel_y,angvel_x"
@@ -87,19 +110,74 @@ class PoseSequence:
         return float(np.sum(np.linalg.norm(np.diff(self.xy, axis=0), axis=1)))
 
 
-def gps_time_to_us(values: np.ndarray) -> np.ndarray:
-    """Convert Boreas GPSTime values to int64 microseconds, detecting the unit by magnitude.
+def _check_unit(unit: str) -> str:
+    u = unit.strip().lower().replace("µs", "us")
+    if u not in TIME_UNITS:
+        raise PoseFileError(f"unknown time unit {unit!r}; choose one of {sorted(TIME_UNITS)}")
+    return u
 
-    The published files differ: some store nanoseconds (~1.6e18), others microseconds (~1.6e15);
-    plain seconds (~1.6e9) are accepted too.
+
+def absolute_time_unit(values: np.ndarray) -> str | None:
+    """The unit in which every value is an absolute UTC time between 2000 and 2100, or None.
+
+    The windows of the four units (s, ms, µs, ns) are disjoint, so at most one fits. Relative times (a
+    trajectory starting at 0) fit none: their unit cannot be told from the numbers.
     """
+    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    if v.size == 0 or not np.all(np.isfinite(v)):
+        return None
+    lo, hi = float(v.min()), float(v.max())
+    for unit, scale in _UNIT_SCALE_FROM_S.items():
+        if _EPOCH_WINDOW_S[0] * scale <= lo and hi <= _EPOCH_WINDOW_S[1] * scale:
+            return unit
+    return None
+
+
+def to_microseconds(values: np.ndarray | list, unit: str) -> np.ndarray:
+    """Timestamps in ``unit`` -> int64 microseconds.
+
+    Integer inputs convert exactly (ns values of ~1.6e18 do not fit a float64 mantissa): ns are truncated
+    to whole µs, s / ms multiplied. Float inputs are rounded to the nearest µs.
+
+    Raises:
+        PoseFileError: unknown unit, or values that overflow int64 µs in that unit (a wrong unit).
+    """
+    u = _check_unit(unit)
     v = np.asarray(values)
-    mag = float(np.nanmax(np.abs(v.astype(np.float64)))) if v.size else 0.0
-    if mag > 1e17:
-        return (v.astype(np.int64) // 1000).astype(np.int64)
-    if mag > 1e14:
-        return v.astype(np.int64)
-    return np.round(v.astype(np.float64) * 1e6).astype(np.int64)
+    peak = float(np.max(np.abs(v.astype(np.float64)))) if v.size else 0.0
+    if peak * TIME_UNITS[u] >= 2.0**63:  # int64 would wrap around silently
+        raise PoseFileError(f"timestamps up to {peak:.6g} {u} overflow int64 microseconds; is the time unit "
+                            f"{u!r} right?")
+    if np.issubdtype(v.dtype, np.integer):
+        v = v.astype(np.int64)
+        if u == "ns":
+            return v // 1000
+        return v * int(TIME_UNITS[u])
+    return np.round(v.astype(np.float64) * TIME_UNITS[u]).astype(np.int64)
+
+
+def gps_time_to_us(values: np.ndarray, unit: str | None = None, source: str = "timestamps") -> np.ndarray:
+    """Convert Boreas GPSTime values (or any pose timestamps) to int64 microseconds.
+
+    Args:
+        values: (N,) timestamps, int64 (exact) or float64.
+        unit: ``s``, ``ms``, ``us`` or ``ns``; None = only absolute UTC times, whose unit follows from their
+            magnitude (``absolute_time_unit``).
+        source: what the values are, for the error message (e.g. ``path:GPSTime``).
+
+    Raises:
+        PoseFileError: no unit given and the values are not absolute UTC times in exactly one unit.
+    """
+    if unit is None:
+        unit = absolute_time_unit(values)
+        if unit is None:
+            v = np.asarray(values, dtype=np.float64)
+            span = f"{v.min():.6g} .. {v.max():.6g}" if v.size else "none"
+            raise PoseFileError(
+                f"{source}: timestamps {span} are not absolute UTC times (2000-2100) in s, ms, us or ns, so "
+                "their unit is ambiguous; give it explicitly: --time-unit s|ms|us|ns on the command line "
+                "(time_unit= in Python), or a t_s / t_ms / t_us / t_ns column header in a t,x,y,yaw CSV")
+    return to_microseconds(values, unit)
 
 
 def _read_rows(path: Path, min_cols: int, header_first: str | None) -> tuple[list[str] | None, list[tuple[int, list[str]]]]:
@@ -135,34 +213,40 @@ def _parse_floats(path: Path, rows: list[tuple[int, list[str]]], cols: list[int]
     return out
 
 
-def _parse_int_column(path: Path, rows: list[tuple[int, list[str]]], col: int) -> np.ndarray:
-    out = np.empty(len(rows), dtype=np.int64)
-    for i, (lineno, row) in enumerate(rows):
-        txt = row[col].strip()
+def _parse_time_column(path: Path, rows: list[tuple[int, list[str]]], col: int) -> np.ndarray:
+    """The time column, exactly: int64 when every value is an integer (ns stamps need all 64 bits), else
+    float64. No unit is applied here."""
+    texts = [(lineno, row[col].strip()) for lineno, row in rows]
+    try:
+        return np.asarray([int(t) for _, t in texts], dtype=np.int64)
+    except ValueError:
+        pass
+    out = np.empty(len(texts), dtype=np.float64)
+    for i, (lineno, txt) in enumerate(texts):
         try:
-            out[i] = int(txt)
+            out[i] = float(txt)
         except ValueError:
-            try:
-                out[i] = int(round(float(txt) * 1e6)) if "." in txt or "e" in txt.lower() else int(txt)
-            except ValueError:
-                raise PoseFileError(f"{path}:{lineno}: timestamp {txt!r} is not a number") from None
+            raise PoseFileError(f"{path}:{lineno}: timestamp {txt!r} is not a number") from None
+        if not np.isfinite(out[i]):
+            raise PoseFileError(f"{path}:{lineno}: timestamp {txt!r} is not finite")
     return out
 
 
-def read_boreas_radar_poses(path: str | Path) -> PoseSequence:
-    """Read a Boreas ``applanix/radar_poses.csv`` (GPSTime in ns or us, easting, northing, heading)."""
+def read_boreas_radar_poses(path: str | Path, time_unit: str | None = None) -> PoseSequence:
+    """Read a Boreas ``applanix/radar_poses.csv`` (GPSTime, easting, northing, heading).
+
+    Args:
+        time_unit: unit of GPSTime (``s``, ``ms``, ``us``, ``ns``). None: the published files are absolute UTC
+            times in ns or µs, told apart by magnitude; relative times are refused (``gps_time_to_us``).
+    """
     path = Path(path)
     header, rows = _read_rows(path, 10, "GPSTime")
     idx = {name: i for i, name in enumerate(header or BOREAS_COLUMNS)}
     for need in ("GPSTime", "easting", "northing", "heading"):
         if need not in idx:
             raise PoseFileError(f"{path}:1: header lacks column {need!r}")
-    raw_t = [r[idx["GPSTime"]].strip() for _, r in rows]
-    if any("." in t for t in raw_t):
-        t_vals = _parse_floats(path, rows, [idx["GPSTime"]])[:, 0]
-        t_us = gps_time_to_us(t_vals)
-    else:
-        t_us = gps_time_to_us(_parse_int_column(path, rows, idx["GPSTime"]))
+    t_raw = _parse_time_column(path, rows, idx["GPSTime"])
+    t_us = gps_time_to_us(t_raw, time_unit, f"{path}: GPSTime")
     vals = _parse_floats(path, rows, [idx["easting"], idx["northing"], idx["heading"]])
     return PoseSequence(t_us, vals[:, :2], vals[:, 2])
 
@@ -180,14 +264,25 @@ def write_boreas_radar_poses(poses: PoseSequence, path: str | Path) -> Path:
     return path
 
 
-def read_mulran_global_pose(path: str | Path) -> PoseSequence:
-    """Read MulRan ``global_pose.csv``: timestamp (ns) then a 3x4 row-major [R|t] matrix, no header."""
+def read_mulran_global_pose(path: str | Path, time_unit: str | None = None) -> PoseSequence:
+    """Read MulRan ``global_pose.csv``: timestamp then a 3x4 row-major [R|t] matrix, no header.
+
+    Args:
+        time_unit: unit of the timestamp column. None = nanoseconds, the format's unit; a file whose values
+            are absolute UTC times in another unit (e.g. µs) is refused rather than read 1000x off.
+    """
     path = Path(path)
     _, rows = _read_rows(path, 13, None)
-    t_ns = _parse_int_column(path, rows, 0)
+    t_raw = _parse_time_column(path, rows, 0)
+    if time_unit is None:
+        found = absolute_time_unit(t_raw)
+        if found is not None and found != "ns":
+            raise PoseFileError(f"{path}: MulRan timestamps are nanoseconds, but these are absolute times in "
+                                f"{found}; give the unit explicitly (--time-unit {found})")
+        time_unit = "ns"
     m = _parse_floats(path, rows, list(range(1, 13)))
     yaw = np.arctan2(m[:, 4], m[:, 0])  # R[1,0], R[0,0]
-    return PoseSequence(t_ns // 1000, m[:, [3, 7]], yaw)
+    return PoseSequence(to_microseconds(t_raw, time_unit), m[:, [3, 7]], yaw)
 
 
 def write_mulran_global_pose(poses: PoseSequence, path: str | Path) -> Path:
@@ -204,28 +299,50 @@ def write_mulran_global_pose(poses: PoseSequence, path: str | Path) -> Path:
     return path
 
 
-def read_txyyaw_csv(path: str | Path) -> PoseSequence:
-    """Read a plain CSV with columns ``t,x,y,yaw`` (t seconds, x/y metres, yaw radians; header optional)."""
+def read_txyyaw_csv(path: str | Path, time_unit: str | None = None) -> PoseSequence:
+    """Read a plain CSV with columns ``t,x,y,yaw`` (x/y metres, yaw radians, header optional).
+
+    The time unit comes from ``time_unit``, else from the header (``t_s``, ``t_ms``, ``t_us``, ``t_ns``),
+    else from absolute UTC times (``absolute_time_unit``); relative times without a unit are refused.
+
+    Raises:
+        PoseFileError: malformed rows, or a time unit that cannot be told (the message says what to pass).
+    """
     path = Path(path)
-    _, rows = _read_rows(path, 4, "t")
-    vals = _parse_floats(path, rows, [0, 1, 2, 3])
-    return PoseSequence(np.round(vals[:, 0] * 1e6).astype(np.int64), vals[:, 1:3], vals[:, 3])
+    if not path.is_file():
+        raise PoseFileError(f"{path}: no such pose file")
+    with path.open(newline="") as fh:
+        first = next(csv.reader(fh), [""])
+    head = first[0].strip().lower() if first else ""
+    header_unit = TXYYAW_TIME_HEADERS.get(head)
+    _, rows = _read_rows(path, 4, first[0].strip() if head in TXYYAW_TIME_HEADERS else None)
+    if time_unit is not None and header_unit is not None and _check_unit(time_unit) != header_unit:
+        raise PoseFileError(f"{path}:1: header says {first[0].strip()!r} but the time unit given is {time_unit!r}")
+    t_raw = _parse_time_column(path, rows, 0)
+    vals = _parse_floats(path, rows, [1, 2, 3])
+    t_us = gps_time_to_us(t_raw, time_unit or header_unit, f"{path}: column t")
+    return PoseSequence(t_us, vals[:, 0:2], vals[:, 2])
 
 
 def write_txyyaw_csv(poses: PoseSequence, path: str | Path) -> Path:
-    """Write a plain ``t,x,y,yaw`` CSV (t seconds, metres, radians)."""
+    """Write a plain ``t_s,x,y,yaw`` CSV (t seconds, declared in the header; metres, radians)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["t", "x", "y", "yaw"])
+        w.writerow(["t_s", "x", "y", "yaw"])
         for t, (x, y), yaw in zip(poses.timestamps_us, poses.xy, poses.yaw, strict=True):
             w.writerow([f"{t / 1e6:.6f}", repr(float(x)), repr(float(y)), repr(float(yaw))])
     return path
 
 
-def read_poses(path: str | Path) -> PoseSequence:
-    """Read any supported pose file, choosing the reader from its first line."""
+def read_poses(path: str | Path, time_unit: str | None = None) -> PoseSequence:
+    """Read any supported pose file, choosing the reader from its first line.
+
+    Args:
+        time_unit: unit of the file's timestamps (``s``, ``ms``, ``us``, ``ns``); None: see the module
+            docstring (absolute UTC times or the format's own unit; relative times are refused).
+    """
     path = Path(path)
     if not path.is_file():
         raise PoseFileError(f"{path}: no such pose file")
@@ -233,9 +350,9 @@ def read_poses(path: str | Path) -> PoseSequence:
         first = fh.readline().strip()
     head = first.split(",")[0].strip().lower()
     if head == "gpstime":
-        return read_boreas_radar_poses(path)
-    if head == "t" or len(first.split(",")) == 4:
-        return read_txyyaw_csv(path)
+        return read_boreas_radar_poses(path, time_unit)
+    if head in TXYYAW_TIME_HEADERS or len(first.split(",")) == 4:
+        return read_txyyaw_csv(path, time_unit)
     if len(first.split(",")) >= 13:
-        return read_mulran_global_pose(path)
+        return read_mulran_global_pose(path, time_unit)
     raise PoseFileError(f"{path}:1: unrecognised pose file format (expected Boreas, MulRan or t,x,y,yaw CSV)")

@@ -12,10 +12,16 @@ columns     dtype    meaning
 ==========  =======  ===========================================================
 
 The PNG is 8-bit single channel, so the metadata bytes are stored as pixel values.
+
+Uploads are sized from their header before anything is decoded (``scan_header``): a PNG's IHDR chunk and an
+.npy file's header state the image / array shape, so a 1 KB file that declares 60000 x 60000 pixels is refused
+without allocating them. Lossy images (JPEG, WebP, ...) are not radar scans and are refused by name.
 """
 
 from __future__ import annotations
 
+import io
+import struct
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -36,6 +42,13 @@ __all__ = [
     "load_scan",
     "load_scan_bytes",
     "infer_preset",
+    "ScanHeader",
+    "sniff_scan_format",
+    "read_png_header",
+    "read_npy_header",
+    "scan_header",
+    "LOSSY_FORMATS",
+    "check_navtech_layout",
 ]
 
 #: Metadata columns in front of the range bins in a Navtech PNG row.
@@ -138,8 +151,147 @@ def infer_preset(num_range_bins: int) -> RadarPreset:
             return p
     raise ScanFormatError(
         f"cannot infer the radar preset from {num_range_bins} range bins; pass the preset explicitly "
-        f"(known: {sorted(PRESETS)})"
+        f"(known: {sorted(PRESETS)}), or convert scans of another layout or resolution with "
+        f"`reradar import-scans`"
     )
+
+
+# ---- headers: sizes before decoding --------------------------------------------------------------------------
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_NPY_MAGIC = b"\x93NUMPY"
+
+#: Image formats recognised by their magic bytes that are refused as scans because they are lossy: their
+#: compression artefacts would be read as radar returns.
+LOSSY_FORMATS = ("jpeg", "jpeg2000", "webp", "gif", "heif/avif")
+
+_MAGIC: tuple[tuple[bytes, int, str], ...] = (
+    (PNG_SIGNATURE, 0, "png"),
+    (_NPY_MAGIC, 0, "npy"),
+    (b"\xff\xd8\xff", 0, "jpeg"),
+    (b"\x00\x00\x00\x0cjP  ", 0, "jpeg2000"),
+    (b"\xff\x4f\xff\x51", 0, "jpeg2000"),
+    (b"WEBP", 8, "webp"),
+    (b"GIF8", 0, "gif"),
+    (b"ftypheic", 4, "heif/avif"),
+    (b"ftypavif", 4, "heif/avif"),
+    (b"ftypmif1", 4, "heif/avif"),
+    (b"BM", 0, "bmp"),
+    (b"II*\x00", 0, "tiff"),
+    (b"MM\x00*", 0, "tiff"),
+)
+
+
+@dataclass(frozen=True)
+class ScanHeader:
+    """What a scan file's header declares, read without decoding it.
+
+    Attributes:
+        format: ``png`` or ``npy``.
+        shape: (rows, columns) of the image / array (PNG rows = azimuths, columns = 11 metadata + range bins).
+        itemsize: bytes per decoded element (1 for 8-bit PNG, the dtype's size for .npy).
+        dtype: numpy dtype string of the decoded array (``|u1`` for PNG).
+    """
+
+    format: str
+    shape: tuple[int, int]
+    itemsize: int
+    dtype: str
+
+    @property
+    def num_pixels(self) -> int:
+        return self.shape[0] * self.shape[1]
+
+    @property
+    def decoded_bytes(self) -> int:
+        """Bytes the decoded image / array takes in memory."""
+        return self.num_pixels * self.itemsize
+
+
+def sniff_scan_format(data: bytes) -> str:
+    """The file format named by ``data``'s magic bytes: ``png``, ``npy``, one of ``LOSSY_FORMATS``, ``bmp``,
+    ``tiff`` or ``unknown``."""
+    for magic, offset, name in _MAGIC:
+        if data[offset:offset + len(magic)] == magic:
+            return name
+    return "unknown"
+
+
+def read_png_header(data: bytes) -> ScanHeader:
+    """Shape and bit depth from a PNG's IHDR chunk (the first 33 bytes); refuses anything but an 8-bit
+    single-channel (greyscale) PNG, the Navtech layout.
+
+    Raises:
+        ScanFormatError: not a PNG, truncated header, zero or non-greyscale / non-8-bit image.
+    """
+    if data[:8] != PNG_SIGNATURE:
+        raise ScanFormatError("upload is not a PNG image (no PNG signature)")
+    if len(data) < 33 or data[12:16] != b"IHDR":
+        raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated header)")
+    length, = struct.unpack(">I", data[8:12])
+    width, height, bit_depth, color_type = struct.unpack(">IIBB", data[16:26])
+    if length != 13 or width == 0 or height == 0:
+        raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated header)")
+    if bit_depth != 8 or color_type != 0:
+        kinds = {0: "greyscale", 2: "colour", 3: "palette", 4: "greyscale+alpha", 6: "colour+alpha"}
+        raise ScanFormatError(
+            f"a Navtech PNG must be 8-bit single-channel (greyscale); this one is {bit_depth}-bit "
+            f"{kinds.get(color_type, f'colour type {color_type}')}"
+        )
+    return ScanHeader("png", (int(height), int(width)), 1, "|u1")
+
+
+def read_npy_header(data: bytes) -> ScanHeader:
+    """Shape and dtype from an .npy file's header (numpy's own parser; the header is at most 10 kB).
+
+    Raises:
+        ScanFormatError: not an .npy file, not a 2-D numeric array, Fortran order, or fewer data bytes than the
+        header declares.
+    """
+    from numpy.lib import format as npy_format
+
+    if data[:6] != _NPY_MAGIC:
+        raise ScanFormatError("upload is not a readable .npy array (no .npy magic)")
+    fp = io.BytesIO(data)
+    try:
+        version = npy_format.read_magic(fp)
+        if version == (1, 0):
+            shape, fortran, dtype = npy_format.read_array_header_1_0(fp)
+        elif version in ((2, 0), (3, 0)):
+            shape, fortran, dtype = npy_format.read_array_header_2_0(fp)
+        else:
+            raise ValueError(f"unsupported .npy version {version}")
+    except (ValueError, SyntaxError, TypeError, EOFError, struct.error) as exc:
+        raise ScanFormatError(f"upload is not a readable .npy array ({exc})") from None
+    if len(shape) != 2:
+        raise ScanFormatError(f"polar array must be 2-D (azimuths x range bins), got shape {tuple(shape)}")
+    if dtype.kind not in "uif" or dtype.hasobject:
+        raise ScanFormatError(f"polar array must be numeric, got dtype {dtype}")
+    if fortran:
+        raise ScanFormatError("polar array must be C-ordered (np.save of a regular array), not Fortran-ordered")
+    rows, cols = int(shape[0]), int(shape[1])
+    if rows * cols * dtype.itemsize > len(data) - fp.tell():
+        raise ScanFormatError(f"upload is not a readable .npy array (header declares {rows} x {cols} "
+                              f"{dtype} but the file is shorter: truncated?)")
+    return ScanHeader("npy", (rows, cols), int(dtype.itemsize), dtype.str)
+
+
+def scan_header(data: bytes) -> ScanHeader:
+    """The header of an uploaded scan (PNG or .npy, told apart by content, not by file name).
+
+    Raises:
+        ScanFormatError: a lossy image (JPEG, WebP, ...), another format, or a bad PNG / .npy header.
+    """
+    kind = sniff_scan_format(data)
+    if kind == "png":
+        return read_png_header(data)
+    if kind == "npy":
+        return read_npy_header(data)
+    if kind in LOSSY_FORMATS:
+        raise ScanFormatError(f"{kind.upper()} images are lossy and are not accepted as radar scans: send the "
+                              "radar's lossless Navtech PNG or an (A, R) .npy array")
+    what = "empty file" if not data else (kind.upper() if kind != "unknown" else "unrecognised format")
+    raise ScanFormatError(f"upload is not a Navtech PNG or .npy array ({what})")
 
 
 def _scan_from_raw(raw: np.ndarray, preset: str | RadarPreset | None, source: str) -> RadarScan:
@@ -156,10 +308,66 @@ def _scan_from_raw(raw: np.ndarray, preset: str | RadarPreset | None, source: st
     timestamps = meta[:, 0:8].copy().view("<i8").reshape(-1)
     encoder = meta[:, 8:10].copy().view("<u2").reshape(-1)
     valid = meta[:, 10] != 0
+    num_bins = raw.shape[1] - NAVTECH_META_COLUMNS
+    p = get_preset(preset) if preset is not None else infer_preset(num_bins)
+    check_navtech_layout(encoder, timestamps, valid, num_bins, p, source)
     fft = raw[:, NAVTECH_META_COLUMNS:].astype(np.float32) / 255.0
-    p = get_preset(preset) if preset is not None else infer_preset(fft.shape[1])
     azimuths = (encoder.astype(np.float64) * _RAD_PER_TICK) % (2.0 * np.pi)
     return RadarScan(fft, azimuths, timestamps, p.range_resolution_m, p.range_offset_m, valid, preset=p.name)
+
+
+#: A row's encoder step may differ from the nominal 2*pi/A by this fraction (real Navtech scans: < 1 %).
+_ENCODER_STEP_TOLERANCE = 0.5
+#: Fraction of valid rows whose encoder step must be nominal (dropped azimuths leave a few double steps).
+_MIN_NOMINAL_STEP_FRACTION = 0.8
+#: Longest plausible sweep, seconds (Navtech sensors turn at 4 Hz; a 4x margin).
+_MAX_SWEEP_S = 1.0
+
+
+def check_navtech_layout(encoder: np.ndarray, timestamps_us: np.ndarray, valid: np.ndarray, num_range_bins: int,
+                         preset: RadarPreset, source: str = "scan", strict_bins: bool = False) -> None:
+    """Refuse a Navtech PNG whose geometry or metadata contradict its preset.
+
+    A scan of another layout (no metadata columns, transposed, other range-bin count) decodes into garbage
+    azimuths and ranges without any error and then localizes confidently at a wrong pose, so the reader checks:
+    the scan has no more range bins than the preset (exactly as many with ``strict_bins``: the service, which
+    only takes whole sweeps; cropped scans are fine in the library); the encoder column advances by about ``5600 / A`` ticks per row
+    (azimuths evenly spaced around one turn); the azimuth timestamps do not decrease and span at most one
+    second. Rows flagged invalid are ignored.
+
+    Args:
+        encoder: (A,) uint16 encoder ticks (columns 8-9). timestamps_us: (A,) int64 (columns 0-7).
+        valid: (A,) bool (column 10). num_range_bins: range-bin columns. preset: the scan's preset.
+        source: file name or "upload", used in messages.
+        strict_bins: require exactly the preset's range-bin count.
+
+    Raises:
+        ScanFormatError: with what is wrong and what to do (``reradar import-scans`` for foreign layouts).
+    """
+    hint = ("scans of another layout or resolution can be converted with `reradar import-scans` "
+            "(docs/CONVENTIONS.md, 'Importing scans')")
+    if num_range_bins > preset.num_range_bins or (strict_bins and num_range_bins != preset.num_range_bins):
+        raise ScanFormatError(
+            f"{source}: {num_range_bins} range bins, but preset {preset.name!r} has {preset.num_range_bins} "
+            f"bins of {preset.range_resolution_m} m; pass the preset this scan was recorded with, or {hint}")
+    rows = np.flatnonzero(np.asarray(valid, dtype=bool))
+    if len(rows) < 2:
+        raise ScanFormatError(f"{source}: fewer than 2 azimuth rows are flagged valid (column 10); {hint}")
+    nominal = ENCODER_TICKS_PER_TURN / len(encoder)
+    ticks = encoder[rows].astype(np.int64)
+    step = np.diff(ticks) % ENCODER_TICKS_PER_TURN / np.diff(rows)
+    nominal_rows = np.abs(step - nominal) <= _ENCODER_STEP_TOLERANCE * nominal
+    if nominal_rows.mean() < _MIN_NOMINAL_STEP_FRACTION:
+        raise ScanFormatError(
+            f"{source}: the encoder column (8-9) does not advance by ~{nominal:.0f} ticks per azimuth row as a "
+            f"Navtech sweep of {len(encoder)} azimuths does (only {nominal_rows.mean():.0%} of rows do): the image "
+            f"has no Navtech metadata columns or is transposed; {hint}")
+    t = np.asarray(timestamps_us, dtype=np.int64)[rows]
+    span_s = (int(t[-1]) - int(t[0])) / 1e6
+    if np.any(np.diff(t) < 0) or not 0 <= span_s <= _MAX_SWEEP_S:
+        raise ScanFormatError(
+            f"{source}: the azimuth timestamps (columns 0-7) are not a sweep of at most {_MAX_SWEEP_S:.0f} s in "
+            f"increasing time; {hint}")
 
 
 def _raw_from_scan(scan: RadarScan) -> np.ndarray:
@@ -193,7 +401,10 @@ def read_navtech_png(path: str | Path, preset: str | RadarPreset | None = None) 
 
 
 def decode_navtech_png_bytes(data: bytes, preset: str | RadarPreset | None = None) -> RadarScan:
-    """Decode a Navtech PNG held in memory (e.g. an upload); see ``read_navtech_png``."""
+    """Decode a Navtech PNG held in memory (e.g. an upload); see ``read_navtech_png``. Only PNG is decoded:
+    OpenCV would read JPEG and other lossy images too."""
+    if data[:8] != PNG_SIGNATURE:
+        raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated: no PNG signature)")
     buf = np.frombuffer(data, dtype=np.uint8)
     raw = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
     if raw is None:
@@ -255,8 +466,6 @@ def load_scan_bytes(data: bytes, filename: str = "scan.png",
     """Decode an uploaded scan by its filename suffix (``.png`` or ``.npy``)."""
     suffix = Path(filename).suffix.lower()
     if suffix == ".npy":
-        import io
-
         try:
             array = np.load(io.BytesIO(data), allow_pickle=False)
         except (OSError, ValueError, EOFError) as exc:

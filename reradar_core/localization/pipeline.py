@@ -1,6 +1,6 @@
 """Global localization of one query scan against retrieved map keyframes (paper Sec. III, pose estimation).
 
-Pipeline: the caller retrieves the top-k keyframes by global descriptor (``maps.database``). With the default
+Pipeline: the caller (``Localizer``) retrieves the top-k keyframes by global descriptor. With the default
 ``guided`` pose method every candidate is first screened by a cheap landmark-alignment score
 (``screen_alignment``; further blocks of ``top_k`` up to ``max_candidates`` while none aligns well) and the best
 ``verify_k`` are verified in full (``estimate_pose_guided``); with
@@ -16,7 +16,6 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from functools import lru_cache, partial
 from typing import Literal
 
 import numpy as np
@@ -28,7 +27,6 @@ from reradar_core.matching import (
     AlignmentConfig,
     LandmarkGrid,
     RansacConfig,
-    build_landmark_grid,
     estimate_pose_guided,
     estimate_rigid_2d,
     match_descriptors,
@@ -38,7 +36,6 @@ from reradar_core.matching import (
 __all__ = [
     "LocalizationConfig",
     "Candidate",
-    "KeyframeCandidates",
     "CandidateVerification",
     "LocalizationResult",
     "verify_candidate",
@@ -228,6 +225,13 @@ class LocalizationResult:
     def localized(self) -> bool:
         return self.status == "localized"
 
+    @property
+    def alignment_score(self) -> float:
+        """The decision score ``localized`` is based on: the winner's inlier ratio (``guided``: fraction of the
+        query's landmarks aligned with the keyframe's, in [0, 1]; 0 without a winner). Not a calibrated
+        probability: ``localized`` means this score reached ``min_inlier_ratio`` with ``min_inliers``."""
+        return float(self.best.inlier_ratio) if self.best is not None else 0.0
+
 
 def verify_candidate(query: ScanFeatures, candidate: Candidate, config: LocalizationConfig,
                      timings_ms: dict[str, float] | None = None) -> CandidateVerification:
@@ -271,35 +275,6 @@ def verify_candidate(query: ScanFeatures, candidate: Candidate, config: Localiza
         T_keyframe_query=np.asarray(est.pose, np.float64) if est.success else None,
         reason=None if est.success else (est.reason or REASON_TOO_FEW_INLIERS),
     )
-
-
-class KeyframeCandidates:
-    """Lazy ``Candidate`` s over a map's keyframes; each keyframe's features and landmark grid are loaded once
-    and kept (thread-safe LRU).
-
-    Args:
-        features_of: keyframe index -> its ``ScanFeatures`` (e.g. a read from the map file).
-        grid_cell_m: cell of the landmark grids (``AlignmentConfig.grid_cell_m``).
-        max_cached: keyframes kept (least recently used dropped first); None = all.
-    """
-
-    def __init__(self, features_of: Callable[[int], ScanFeatures], grid_cell_m: float,
-                 max_cached: int | None = None) -> None:
-        self.features_of = features_of
-        self.grid_cell_m = grid_cell_m
-        self.load: Callable[[int], tuple[ScanFeatures, LandmarkGrid]] = lru_cache(maxsize=max_cached)(self._load)
-
-    def _load(self, keyframe_id: int) -> tuple[ScanFeatures, LandmarkGrid]:
-        features = self.features_of(keyframe_id)
-        return features, build_landmark_grid(features.keypoints_xy_m, self.grid_cell_m)
-
-    def clear(self) -> None:
-        self.load.cache_clear()  # type: ignore[attr-defined]
-
-    def candidate(self, keyframe_id: int, T_map_keyframe: np.ndarray, descriptor_distance: float,
-                  rank: int) -> Candidate:
-        return Candidate(keyframe_id, np.asarray(T_map_keyframe, np.float64), None, float(descriptor_distance),
-                         rank, loader=partial(self.load, keyframe_id))
 
 
 def _screened_out(candidate: Candidate) -> CandidateVerification:

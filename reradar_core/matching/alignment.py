@@ -53,6 +53,10 @@ class AlignmentConfig:
         screen_source_points: source landmarks (evenly subsampled) paired by descriptor in the screen.
         min_inliers: landmarks associated at the final radius for the pose to count.
         grid_cell_m: cell of the destination distance grid.
+        ambiguity_separation_m, ambiguity_separation_rad: a hypothesis farther than this (translation, or
+            heading) from the answer is a *rival* pose.
+        max_ambiguity: the answer is refused (``reason="ambiguous"``) when the best rival aligns at least this
+            fraction of the scoring landmarks that the answer aligns (``RigidEstimate.ambiguity``).
         seed: seed of the hypothesis sampler (deterministic results).
     """
 
@@ -68,6 +72,9 @@ class AlignmentConfig:
     screen_source_points: int = 256
     min_inliers: int = 12
     grid_cell_m: float = 0.5
+    ambiguity_separation_m: float = 5.0
+    ambiguity_separation_rad: float = math.radians(10.0)
+    max_ambiguity: float = 1.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -255,5 +262,27 @@ def estimate_pose_guided(points_src: np.ndarray, desc_src: np.ndarray, points_ds
     k = int(best_mask.sum())
     if k < config.min_inliers:
         return fail("too_few_inliers", best_pose, best_mask)
+    ambiguity = _ambiguity(best_pose, hyp, scores, src[::step], grid, config)
+    if ambiguity >= config.max_ambiguity:
+        est = fail("ambiguous", best_pose, best_mask)
+        est.ambiguity = ambiguity
+        return est
     residual, _ = grid.tree.query(_apply(best_pose, src[best_mask]))
-    return RigidEstimate(True, best_pose, k, k / n, best_mask, None, len(hyp), float(np.sqrt(np.mean(residual**2))))
+    return RigidEstimate(True, best_pose, k, k / n, best_mask, None, len(hyp), float(np.sqrt(np.mean(residual**2))),
+                         ambiguity)
+
+
+def _ambiguity(pose: np.ndarray, hyp: np.ndarray, scores: np.ndarray, scored: np.ndarray, grid: LandmarkGrid,
+               config: AlignmentConfig) -> float:
+    """Best rival hypothesis score / the answer's score on the same landmarks (0 = unique, >= 1 = a tie).
+
+    A rival is a hypothesis farther than ``ambiguity_separation_m`` or ``ambiguity_separation_rad`` from
+    ``pose``: along a straight façade or in a repeated structure a second, distinct pose aligns almost as many
+    landmarks, and picking either is a guess.
+    """
+    own = float(_score(pose[None], scored, grid, config.score_threshold_m)[0])
+    far = ((np.hypot(hyp[:, 0] - pose[0], hyp[:, 1] - pose[1]) > config.ambiguity_separation_m)
+           | (np.abs(wrap_angle(hyp[:, 2] - pose[2])) > config.ambiguity_separation_rad))
+    if not far.any() or own <= 0:
+        return 0.0 if own > 0 else float("inf")
+    return float(scores[far].max()) / own

@@ -83,6 +83,8 @@ class RigidEstimate:
         reason: why ``success`` is False (None on success).
         num_iterations: minimal-set hypotheses drawn.
         rmse_m: root-mean-square inlier residual, metres (NaN without inliers).
+        ambiguity: guided estimator only: the best rival pose's alignment score / the answer's (0 = unique,
+            1 = tie; NaN where not computed).
     """
 
     success: bool
@@ -93,6 +95,7 @@ class RigidEstimate:
     reason: str | None = None
     num_iterations: int = 0
     rmse_m: float = float("nan")
+    ambiguity: float = float("nan")
 
 
 def _failure(n: int, reason: str, pose: np.ndarray | None = None, mask: np.ndarray | None = None,

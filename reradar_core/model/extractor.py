@@ -191,6 +191,13 @@ class DescriptorExtractor:
         return ScanFeatures(global_descriptor=g, keypoints_xy_m=xy.astype(np.float32),
                             local_descriptors=local.astype(np.float16), timestamp_us=int(scan.timestamp_us))
 
+    def features_from_outputs(self, scan: RadarScan, global_descriptor: np.ndarray, feature_map: np.ndarray,
+                              landmarks: Any = None) -> ScanFeatures:
+        """``ScanFeatures`` from one scan's network outputs (``run_images``: (D,) descriptor, (C, h, h) F')
+        and its landmarks (detected when None): keypoints and local descriptors sampled from F'. Lets callers
+        time the network and the landmark stage separately (``benchmark.timing``)."""
+        return self._features(scan, global_descriptor, feature_map, landmarks)
+
     def describe(self, scan: RadarScan, landmarks: Any = None) -> ScanFeatures:
         """One scan -> ``ScanFeatures`` (landmarks detected with Cen 2018 unless given as ``Landmarks`` or
         an (N, 2) array of sensor-frame metres)."""

@@ -21,7 +21,11 @@ def register(app: typer.Typer) -> None:
     @app.command("sim")
     def sim(
         trajectory: Path = typer.Option(..., help="Pose file: Boreas radar_poses.csv, MulRan global_pose.csv or "
-                                                  "a t,x,y,yaw CSV (t seconds, metres, radians)."),
+                                                  "a t,x,y,yaw CSV (metres, radians; time unit from --time-unit, "
+                                                  "a t_s/t_ms/t_us/t_ns header, or absolute UTC times)."),
+        time_unit: str = typer.Option(None, "--time-unit", help="Unit of the pose file's timestamps: s, ms, us "
+                                      "or ns. Needed for relative times (e.g. a t,x,y,yaw CSV starting at 0); "
+                                      "absolute UTC times and MulRan's ns need none. Never guessed."),
         out: Path = typer.Option(..., help="Output sequence folder."),
         preset: str = typer.Option("boreas", help="Radar preset: boreas, boreas-2021, oxford, oord, mulran."),
         layout: str = typer.Option(None, help="Dataset layout boreas/oxford/mulran (default: the preset's)."),
@@ -40,15 +44,23 @@ def register(app: typer.Typer) -> None:
                                                    "sweeps tiling the time span at 4 Hz; default: by pose rate."),
     ) -> None:
         """Render a simulated radar sequence along a trajectory, in a real dataset layout."""
+        from reradar_core.io.poses import TIME_UNITS
         from reradar_core.sim.sensor import SensorConfig
-        from reradar_core.sim.trajectories import load_trajectory, offset_trajectory, scan_times
+        from reradar_core.sim.trajectories import (
+            load_road_xy,
+            load_trajectory,
+            offset_trajectory,
+            scan_times,
+        )
         from reradar_core.sim.traversal import Traversal
         from reradar_core.sim.world import RoadNetwork, World
         from reradar_core.sim.writer import render_sequence
 
         try:
-            traj = load_trajectory(trajectory)
-            roads = [traj.xy] + [load_trajectory(r).xy for r in (road or [])]
+            if time_unit is not None and time_unit.strip().lower() not in TIME_UNITS:
+                raise typer.BadParameter(f"--time-unit must be one of {sorted(TIME_UNITS)}, got {time_unit!r}")
+            traj = load_trajectory(trajectory, time_unit)
+            roads = [traj.xy] + [load_road_xy(r, time_unit) for r in (road or [])]
             world = World(RoadNetwork(roads), seed=seed, profile=profile)
             trav = Traversal(world, traversal_seed if traversal_seed is not None else seed + 1, condition)
             if lateral:
@@ -58,9 +70,11 @@ def register(app: typer.Typer) -> None:
             if limit is not None:
                 idx = idx[:limit]
             render_sequence(out, trav, traj, all_t[idx], idx, preset, layout, SensorConfig(), True,
-                            meta={"trajectory": str(trajectory)})
+                            meta={"trajectory": str(trajectory), "trajectory_time_unit": time_unit or "from file"})
         except ReRadarError as exc:
             raise _fail(exc) from exc
+        span = (traj.timestamps_us[-1] - traj.timestamps_us[0]) / 1e6
+        typer.echo(f"trajectory: {len(traj)} poses over {span:.1f} s, {traj.path_length_m():.1f} m")
         typer.echo(f"wrote {len(idx)} scans to {out}")
 
     @app.command("sim-suite")

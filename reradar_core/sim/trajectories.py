@@ -6,12 +6,13 @@ from pathlib import Path
 
 import numpy as np
 
-from reradar_core.errors import ConfigError
+from reradar_core.errors import ConfigError, PoseFileError
 from reradar_core.io.poses import PoseSequence, read_poses
 from reradar_core.sim.world import stable_seed
 
 __all__ = [
     "load_trajectory",
+    "load_road_xy",
     "offset_trajectory",
     "synthetic_loop_route",
     "drive_route",
@@ -19,9 +20,36 @@ __all__ = [
 ]
 
 
-def load_trajectory(path: str | Path) -> PoseSequence:
-    """Read any pose file ``read_poses`` understands (Boreas radar_poses.csv, MulRan, t,x,y,yaw CSV)."""
-    return read_poses(path).sorted()
+def load_trajectory(path: str | Path, time_unit: str | None = None) -> PoseSequence:
+    """Read any pose file ``read_poses`` understands (Boreas radar_poses.csv, MulRan, t,x,y,yaw CSV).
+
+    Args:
+        time_unit: unit of the file's timestamps (``s``, ``ms``, ``us``, ``ns``). None: absolute UTC times
+            (unit from their magnitude) or the format's own unit (MulRan: ns); relative times without a unit
+            raise ``PoseFileError`` saying what to pass (``reradar_core.io.poses``).
+
+    Raises:
+        PoseFileError: malformed file, ambiguous time unit, or fewer than two distinct times.
+    """
+    traj = read_poses(path, time_unit).sorted()
+    if len(traj) >= 2 and np.any(np.diff(traj.timestamps_us) <= 0):
+        raise PoseFileError(f"{path}: timestamps repeat after conversion to microseconds; is the time unit "
+                            "right? (--time-unit s|ms|us|ns)")
+    return traj
+
+
+def load_road_xy(path: str | Path, time_unit: str | None = None) -> np.ndarray:
+    """(N, 2) positions of a pose file used only as a road of the world (metres, in time order).
+
+    A road needs no timing, so the file is read on its own terms first (absolute UTC times, the format's
+    unit) and ``time_unit`` (the main trajectory's) is applied only where the file's times are ambiguous.
+    """
+    try:
+        return load_trajectory(path).xy
+    except PoseFileError:
+        if time_unit is None:
+            raise
+        return load_trajectory(path, time_unit).xy
 
 
 def offset_trajectory(traj: PoseSequence, lateral_m: float = 0.0, time_shift_us: int = 0) -> PoseSequence:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import secrets
 from typing import Annotated
 
 from fastapi import Depends, Path, Request, Security
@@ -12,7 +11,7 @@ from service.core.config import MAP_ID_PATTERN
 from service.core.errors import ServiceUnavailableError, UnauthorizedError
 from service.core.state import ServiceState
 
-__all__ = ["StateDep", "ApiKeyDep", "MapIdPath", "get_state", "require_api_key"]
+__all__ = ["StateDep", "ApiKeyDep", "OperatorDep", "MapIdPath", "get_state", "require_operator"]
 
 
 def get_state(request: Request) -> ServiceState:
@@ -25,15 +24,18 @@ def get_state(request: Request) -> ServiceState:
 StateDep = Annotated[ServiceState, Depends(get_state)]
 
 _api_key_header = APIKeyHeader(name="X-API-Key", auto_error=False,
-                               description="API key for mutating endpoints (RERADAR_API_KEY).")
+                               description="Operator key (RERADAR_API_KEY) for registering and deleting maps.")
 
 
-def require_api_key(state: StateDep, key: Annotated[str | None, Security(_api_key_header)]) -> None:
-    expected = state.settings.api_key.get_secret_value()
-    if not key or not secrets.compare_digest(key.encode(), expected.encode()):
-        raise UnauthorizedError("missing or wrong API key: send it in the X-API-Key header")
+def require_operator(request: Request, key: Annotated[str | None, Security(_api_key_header)]) -> None:
+    """The request guard (``service.api.middleware``) authenticates before the body is read and records the
+    caller; this re-checks the record, so a route can never be reached unauthenticated if the guard is
+    bypassed (e.g. mounted elsewhere)."""
+    if request.scope.get("state", {}).get("principal") != "operator":
+        raise UnauthorizedError("missing or wrong operator key: send it in the X-API-Key header")
 
 
-ApiKeyDep = Annotated[None, Depends(require_api_key)]
+OperatorDep = Annotated[None, Depends(require_operator)]
+ApiKeyDep = OperatorDep  # the name the routes used before vehicle keys existed
 
 MapIdPath = Annotated[str, Path(pattern=MAP_ID_PATTERN, description="Map id: [a-z0-9][a-z0-9_-]{0,63}.")]

@@ -1,100 +1,241 @@
-"""ASGI middleware: request body size limits and request metrics."""
+"""ASGI middleware: the request guard (authentication, size, time and concurrency limits, all before the app
+reads a body) and request metrics."""
 
 from __future__ import annotations
 
-import json
+import asyncio
+import tempfile
 import time
 from collections.abc import Callable
+from typing import IO
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.api.security import Guard, RequestLimits, route_class
+from service.core.errors import (
+    PROBLEM_MEDIA_TYPE,
+    OverloadedError,
+    PayloadTooLargeError,
+    RequestTimeoutError,
+    ServiceError,
+    ServiceUnavailableError,
+    problem_body,
+)
 from service.core.metrics import Metrics
 
-__all__ = ["BodyLimitMiddleware", "MetricsMiddleware"]
+__all__ = ["RequestGuardMiddleware", "MetricsMiddleware"]
+
+#: Before a refusal, up to this many body bytes are read and discarded (never stored) so that a client still
+#: sending sees the answer instead of a reset connection; larger bodies are cut off by closing the connection.
+#: (The server cannot read a body after its answer: uvicorn reports a disconnect then.)
+_DRAIN_MAX_BYTES = 64 * 2**20
+#: ... and for at most this long.
+_DRAIN_MAX_S = 5.0
+#: Replayed body chunks (bytes).
+_CHUNK = 1 << 20
+#: Map uploads above this size are spooled to disk by the guard, not held in memory.
+_SPOOL_MEMORY_BYTES = 4 * 2**20
+_BODY_METHODS = ("POST", "PUT", "PATCH")
 
 
-async def _reject(send: Send, status: int, detail: str, code: str) -> None:
-    body = json.dumps({"detail": detail, "error": code}).encode()
-    await send({"type": "http.response.start", "status": status,
-                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-                            (b"connection", b"close")]})
+class _Refused(Exception):
+    def __init__(self, error: ServiceError) -> None:
+        super().__init__(error.message)
+        self.error = error
+
+
+async def _reply(send: Send, path: str, error: ServiceError) -> None:
+    body = problem_body(error.status_code, error.code, error.message, instance=path)
+    headers = [(b"content-type", PROBLEM_MEDIA_TYPE.encode()), (b"content-length", str(len(body)).encode()),
+               (b"connection", b"close")]
+    headers += [(k.lower().encode(), v.encode()) for k, v in error.headers.items()]
+    await send({"type": "http.response.start", "status": error.status_code, "headers": headers})
     await send({"type": "http.response.body", "body": body})
 
 
-#: Oversized bodies up to this many bytes above the limit are read and discarded before the 413 is sent.
-_DRAIN_MAX_BYTES = 64 * 2**20
-
-
-async def _drain(receive: Receive) -> None:
-    while True:
-        message = await receive()
-        if message["type"] == "http.disconnect" or not message.get("more_body", False):
+async def _drain(receive: Receive, already_done: bool) -> None:
+    """Discard what is left of the request body, within ``_DRAIN_MAX_BYTES`` and ``_DRAIN_MAX_S``."""
+    if already_done:
+        return
+    total, deadline = 0, time.monotonic() + _DRAIN_MAX_S
+    while total <= _DRAIN_MAX_BYTES:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return
+        try:
+            message = await asyncio.wait_for(receive(), timeout=left)
+        except TimeoutError:
+            return
+        if message["type"] == "http.disconnect":
+            return
+        total += len(message.get("body", b""))
+        if not message.get("more_body", False):
             return
 
 
-class BodyLimitMiddleware:
-    """Refuse bodies above a limit with 413 before the app parses them.
+class _Body:
+    """A request body received in full, held in memory or spooled to a temporary file."""
 
-    ``limit_for(method, path)`` gives the byte limit of a request. With a Content-Length header the request
-    is refused up front; chunked bodies are buffered up to the limit and refused as soon as they exceed it.
+    def __init__(self, spool: IO[bytes] | None) -> None:
+        self.chunks: list[bytes] = []
+        self.spool = spool
+        self.size = 0
+
+    def add(self, chunk: bytes) -> None:
+        self.size += len(chunk)
+        if self.spool is not None:
+            self.spool.write(chunk)
+        else:
+            self.chunks.append(chunk)
+
+    def replay(self, receive: Receive) -> Receive:
+        if self.spool is not None:
+            self.spool.seek(0)
+        index = 0
+        done = False
+
+        async def replayed() -> Message:
+            nonlocal done, index
+            if done:
+                return await receive()  # e.g. http.disconnect while the app streams its answer
+            if self.spool is not None:
+                data = self.spool.read(_CHUNK)
+                more = self.spool.tell() < self.size
+            else:
+                data = self.chunks[index] if index < len(self.chunks) else b""
+                index += 1
+                more = index < len(self.chunks)
+            done = not more
+            return {"type": "http.request", "body": data, "more_body": more}
+
+        return replayed
+
+    def close(self) -> None:
+        if self.spool is not None:
+            self.spool.close()
+
+
+async def _receive_body(receive: Receive, limit: int, idle_s: float, total_s: float,
+                        spool: IO[bytes] | None) -> _Body | None:
+    """The whole body, or None when the client disconnected.
+
+    Raises:
+        _Refused: 413 above ``limit`` bytes, 408 when no data arrives for ``idle_s`` or the body is not complete
+        within ``total_s`` seconds.
+    """
+    body = _Body(spool)
+    deadline = time.monotonic() + total_s
+    while True:
+        left = deadline - time.monotonic()
+        wait = min(idle_s, left)
+        try:
+            if wait <= 0:
+                raise TimeoutError
+            message = await asyncio.wait_for(receive(), timeout=wait)
+        except TimeoutError:
+            body.close()
+            why = (f"the request body was not complete within {total_s:.0f} s" if left <= idle_s
+                   else f"the client sent no request body data for {idle_s:.0f} s")
+            raise _Refused(RequestTimeoutError(why + "; send the whole body at once")) from None
+        if message["type"] == "http.disconnect":
+            body.close()
+            return None
+        body.add(message.get("body", b""))
+        if body.size > limit:
+            body.close()
+            raise _Refused(PayloadTooLargeError(f"request body larger than the limit of {limit / 2**20:.1f} MB"))
+        if not message.get("more_body", False):
+            return body
+
+
+class RequestGuardMiddleware:
+    """Refuse what would cost the server before it costs anything.
+
+    For every HTTP request, in this order: authenticate scan and map requests (``X-API-Key``, see
+    ``service.api.security``) from the headers alone; refuse a declared ``Content-Length`` above the limit
+    (413); refuse a scan or map request when ``max_concurrent`` are in progress (503 + ``Retry-After``);
+    receive the body within the idle and total timeouts (408) and the size limit (413), then hand it to the app.
+    ``get_guard()`` is None while the service starts: scan and map requests then get 503 too.
     """
 
-    def __init__(self, app: ASGIApp, limit_for: Callable[[str, str], int]) -> None:
+    def __init__(self, app: ASGIApp, get_guard: Callable[[], Guard | None],
+                 default_limits: Callable[[], RequestLimits]) -> None:
         self.app = app
-        self.limit_for = limit_for
+        self.get_guard = get_guard
+        self.default_limits = default_limits
+        self.in_flight = 0
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        limit = self.limit_for(scope["method"], scope["path"])
+        method, path = scope["method"], scope["path"]
+        kind = route_class(method, path)
+        guard = self.get_guard()
         headers = dict(scope.get("headers") or [])
         declared = headers.get(b"content-length")
-        msg = f"request body larger than the limit of {limit / 2**20:.1f} MB"
+        no_body = declared in (None, b"0") and b"transfer-encoding" not in headers
+        if kind != "public":
+            try:
+                if guard is None:
+                    raise ServiceUnavailableError("the service is still loading the model and maps; retry shortly")
+                key = headers.get(b"x-api-key", b"").decode("latin-1") or None
+                client = scope.get("client")
+                principal = guard.policy.authorize(kind, key, client[0] if client else None)
+            except ServiceError as exc:
+                await _drain(receive, no_body)
+                await _reply(send, path, exc)
+                return
+            scope.setdefault("state", {})["principal"] = principal
+        limits = guard.limits if guard is not None else self.default_limits()
+        is_map_upload = kind == "operator" and method == "POST"
+        limit = limits.max_map_body_bytes if is_map_upload else limits.max_body_bytes
         if declared is not None:
             try:
                 size = int(declared)
+                if size < 0:
+                    raise ValueError
             except ValueError:
-                await _reject(send, 400, "invalid Content-Length header", "bad_request")
+                await _reply(send, path, ServiceError("invalid Content-Length header"))
                 return
             if size > limit:
-                if size <= limit + _DRAIN_MAX_BYTES:
-                    await _drain(receive)  # a client still sending would miss the answer on a reset socket
-                await _reject(send, 413, msg, "payload_too_large")
+                await _drain(receive, False)
+                await _reply(send, path, PayloadTooLargeError(
+                    f"request body larger than the limit of {limit / 2**20:.1f} MB"))
                 return
-            await self.app(scope, receive, send)
-            return
-        if scope["method"] in ("GET", "HEAD", "DELETE", "OPTIONS"):
-            await self.app(scope, receive, send)
-            return
-        chunks: list[bytes] = []
-        total = 0
-        while True:
-            message = await receive()
-            if message["type"] == "http.disconnect":
+        heavy = kind != "public" and method in _BODY_METHODS
+        if heavy:
+            if self.in_flight >= limits.max_concurrent:
+                await _drain(receive, no_body)
+                await _reply(send, path, OverloadedError(
+                    f"the server is busy with {limits.max_concurrent} scan / map requests; retry in "
+                    f"{limits.retry_after_s} s", retry_after_s=limits.retry_after_s))
                 return
-            chunk = message.get("body", b"")
-            total += len(chunk)
-            if total > limit:
-                while message.get("more_body", False) and total <= limit + _DRAIN_MAX_BYTES:
-                    message = await receive()
-                    total += len(message.get("body", b""))
-                await _reject(send, 413, msg, "payload_too_large")
+            self.in_flight += 1
+        try:
+            if method not in _BODY_METHODS or no_body:
+                await self.app(scope, receive, send)
                 return
-            chunks.append(chunk)
-            if not message.get("more_body", False):
-                break
-        body = b"".join(chunks)
-        sent = False
-
-        async def replay() -> Message:
-            nonlocal sent
-            if not sent:
-                sent = True
-                return {"type": "http.request", "body": body, "more_body": False}
-            return await receive()
-
-        await self.app(scope, replay, send)
+            spool: IO[bytes] | None = None
+            if is_map_upload:
+                spool = tempfile.SpooledTemporaryFile(max_size=_SPOOL_MEMORY_BYTES, dir=limits.spool_dir)  # noqa: SIM115
+            total_s = limits.map_upload_timeout_s if is_map_upload else limits.body_timeout_s
+            try:
+                body = await _receive_body(receive, limit, limits.body_idle_timeout_s, total_s, spool)
+            except _Refused as exc:
+                if exc.error.status_code == 413:
+                    await _drain(receive, False)
+                await _reply(send, path, exc.error)
+                return
+            if body is None:
+                return
+            try:
+                await self.app(scope, body.replay(receive), send)
+            finally:
+                body.close()
+        finally:
+            if heavy:
+                self.in_flight -= 1
 
 
 class MetricsMiddleware:

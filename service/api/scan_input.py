@@ -12,17 +12,45 @@ from pydantic import BaseModel, ValidationError
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 
+from reradar_core.errors import ScanFormatError
 from reradar_core.features import ScanFeatures
 from reradar_core.io.presets import PRESETS
-from service.core.errors import BadRequestError, NotFoundError, ServiceError
-from service.core.state import ServiceState
+from reradar_core.io.scan import LOSSY_FORMATS, NAVTECH_META_COLUMNS, scan_header, sniff_scan_format
+from service.core.errors import BadRequestError, NotFoundError, PayloadTooLargeError, UnsupportedMediaError
+from service.core.state import MAX_SCAN_SIDE, MIN_SCAN_SIDE, ServiceState
 
-__all__ = ["ScanInput", "read_scan_input", "scan_request_body", "UnsupportedMediaError"]
+__all__ = ["ScanInput", "read_scan_input", "scan_request_body", "UnsupportedMediaError", "check_scan_upload"]
+
+_TOP_K_FORM = re.compile(r"^[0-9]{1,6}$")
 
 
-class UnsupportedMediaError(ServiceError):
-    status_code = 415
-    code = "unsupported_media_type"
+def check_scan_upload(data: bytes, max_pixels: int) -> str:
+    """Size an uploaded scan from its header, before anything is decoded; returns the file name to decode it
+    under (``scan.png`` / ``scan.npy``: the content decides, not the client's file name).
+
+    Raises:
+        UnsupportedMediaError (415): a lossy image (JPEG, WebP, ...). ScanFormatError (422): not a Navtech PNG
+        or .npy, bad header, too few azimuths / bins. PayloadTooLargeError (413): more than ``max_pixels`` or a
+        side above ``MAX_SCAN_SIDE``.
+    """
+    kind = sniff_scan_format(data)
+    if kind in LOSSY_FORMATS:
+        raise UnsupportedMediaError(f"{kind.upper()} images are lossy and are not accepted as radar scans: send "
+                                    "the radar's lossless Navtech PNG or an (A, R) .npy array")
+    header = scan_header(data)
+    rows, cols = header.shape
+    bins = cols - NAVTECH_META_COLUMNS if header.format == "png" else cols
+    if rows > MAX_SCAN_SIDE or bins > MAX_SCAN_SIDE or header.num_pixels > max_pixels:
+        raise PayloadTooLargeError(
+            f"scan declares {rows} azimuths x {bins} range bins ({header.num_pixels:,} pixels); the service "
+            f"accepts up to {MAX_SCAN_SIDE} of each and {max_pixels:,} pixels (a Navtech sweep is 400 x 3,360-3,768)"
+        )
+    if rows < MIN_SCAN_SIDE or bins < MIN_SCAN_SIDE:
+        raise ScanFormatError(
+            f"scan has {rows} azimuths x {bins} range bins; expected a full sweep with {MIN_SCAN_SIDE}.."
+            f"{MAX_SCAN_SIDE} of each (e.g. 400 x 3360 Boreas, 400 x 3768 Oxford)"
+        )
+    return f"scan.{header.format}"
 
 
 @dataclass
@@ -64,7 +92,7 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
     if ctype == "application/json":
         raw = await request.body()
         try:
-            model = json_model.model_validate_json(raw or b"{}")
+            model = json_model.model_validate_json(raw or b"{}", strict=True)
         except ValidationError as exc:
             raise RequestValidationError(exc.errors(include_url=False)) from None
         fields = model.model_dump()
@@ -81,7 +109,13 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         upload = form.get("scan")
         if not isinstance(upload, UploadFile):
             raise BadRequestError("multipart request needs a file field named 'scan' (a Navtech PNG or .npy)")
-        raw_fields = {k: v for k, v in form.items() if k in form_keys and isinstance(v, str) and v != ""}
+        raw_fields: dict[str, Any] = {k: v for k, v in form.items()
+                                      if k in form_keys and isinstance(v, str) and v != ""}
+        if "top_k" in raw_fields:  # form fields are text: only plain decimal integers ("true", "5.0" are not)
+            if not _TOP_K_FORM.match(raw_fields["top_k"]):
+                raise RequestValidationError([{"loc": ("body", "top_k"), "msg": "Input should be a decimal integer",
+                                               "type": "int_parsing"}])
+            raw_fields["top_k"] = int(raw_fields["top_k"])
         unknown = sorted(set(form.keys()) - set(form_keys) - {"scan", "preset"})
         if unknown:
             raise BadRequestError(f"unexpected form fields {unknown}; allowed: scan, preset, {', '.join(form_keys)}")
@@ -90,16 +124,14 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         if preset is not None and preset.lower() not in PRESETS:
             raise BadRequestError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
         try:
-            model = json_model.model_validate({"scan_id": "inline", **raw_fields})
+            model = json_model.model_validate({"scan_id": "inline", **raw_fields}, strict=True)
         except ValidationError as exc:
             raise RequestValidationError(exc.errors(include_url=False)) from None
         fields = model.model_dump()
         fields.pop("scan_id")
         data = await upload.read()
         await upload.close()
-        filename = upload.filename or "scan.png"
-        if not re.search(r"\.(png|npy)$", filename.lower()):
-            filename = "scan.png"  # content decides: a non-PNG body fails to decode with a clear message
+        filename = check_scan_upload(data, state.settings.max_scan_pixels)
         timings: dict[str, float] = {}
         features, _ = await run_in_threadpool(state.describe_upload, data, filename, preset, timings)
         return ScanInput(features, None, fields, timings)

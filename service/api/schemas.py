@@ -9,10 +9,12 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.core.config import MAP_ID_PATTERN
+from service.core.ids import MAP_ID_PATTERN
 
 __all__ = [
     "ErrorResponse",
+    "Problem",
+    "ValidationItem",
     "Pose2D",
     "HealthResponse",
     "ReadyResponse",
@@ -33,11 +35,28 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
-class ErrorResponse(_Model):
-    """Every 4xx/5xx body."""
+class ValidationItem(BaseModel):
+    """One invalid request field."""
 
+    loc: list[str | int] = Field(description="Where: e.g. [\"body\", \"top_k\"].")
+    msg: str
+    type: str
+
+
+class ErrorResponse(BaseModel):
+    """Every error body: RFC 9457 problem details (`application/problem+json`), docs/SERVICE.md."""
+
+    type: str = Field(description="URI of the problem type, `urn:reradar:error:<error>`.")
+    title: str = Field(description="HTTP status phrase.")
+    status: int = Field(ge=400, le=599, description="HTTP status code.")
     detail: str = Field(description="What is wrong and what to do.")
     error: str = Field(description="Machine-readable error code, e.g. `scan_format`, `not_found`.")
+    instance: str | None = Field(default=None, description="Request path.")
+    errors: list[ValidationItem] | None = Field(default=None, description="Invalid fields (validation errors).")
+
+
+#: The same model under its RFC name.
+Problem = ErrorResponse
 
 
 class Pose2D(_Model):
@@ -103,6 +122,11 @@ class ScanInfo(_Model):
 
 
 class ScanRef(_Model):
+    """Requests by reference. JSON bodies are validated strictly: `top_k` must be a JSON integer (not `true`,
+    `"5"`, `5.5` or `NaN`)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
     scan_id: str = Field(min_length=1, max_length=64, description="Id returned by POST /scans.")
 
 

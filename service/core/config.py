@@ -2,21 +2,51 @@
 
 from __future__ import annotations
 
+import logging
 import os
+import secrets
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-__all__ = ["Settings", "DEV_API_KEY", "MAP_ID_PATTERN"]
+from reradar_core.localization.pipeline import LocalizationConfig
+from service.core.ids import MAP_ID_PATTERN
 
-#: API key accepted in ``development`` when none is configured; refused in ``production``.
+__all__ = ["Settings", "DEV_API_KEY", "MAP_ID_PATTERN", "MIN_KEY_LENGTH", "OPERATOR_KEY_FILE",
+           "resolve_operator_key", "is_loopback"]
+
+logger = logging.getLogger("service")
+
+#: The key earlier versions documented as the development default. Published, hence refused everywhere.
 DEV_API_KEY = "reradar-dev-key"
 
-#: Map ids: lower-case letters, digits, ``_`` and ``-``; no dots or slashes, so an id can never escape
-#: the maps directory.
-MAP_ID_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,63}$"
+#: ``LocalizationConfig`` fields that were flat ``RERADAR_<FIELD>`` settings before they were nested.
+_RENAMED_LOCALIZATION_FIELDS = ("TOP_K", "VERIFY_K", "MAX_CANDIDATES", "EXPAND_BELOW_SCREEN_SCORE", "MIN_INLIERS")
+
+#: Shortest API key accepted (operator or vehicle).
+MIN_KEY_LENGTH = 16
+
+#: File in ``maps_dir`` holding the operator key generated on first start when none is configured.
+OPERATOR_KEY_FILE = ".operator-key"
+
+
+def is_loopback(host: str | None) -> bool:
+    """True for 127.0.0.0/8, ::1, ``localhost`` (and IPv4-mapped loopback)."""
+    import ipaddress
+
+    if not host:
+        return False
+    if host == "localhost":
+        return True
+    try:
+        addr = ipaddress.ip_address(host.split("%", 1)[0])
+    except ValueError:
+        return False
+    if isinstance(addr, ipaddress.IPv6Address) and addr.ipv4_mapped is not None:
+        addr = addr.ipv4_mapped
+    return addr.is_loopback
 
 
 def _default_maps_dir() -> Path:
@@ -26,12 +56,19 @@ def _default_maps_dir() -> Path:
 class Settings(BaseSettings):
     """Service configuration. Every field can be set as ``RERADAR_<FIELD>`` (e.g. ``RERADAR_API_KEY``)."""
 
-    model_config = SettingsConfigDict(env_prefix="RERADAR_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="RERADAR_", extra="ignore", env_nested_delimiter="__")
 
     environment: Literal["development", "production"] = Field(
-        default="development", description="`production` refuses the development API key.")
-    api_key: SecretStr = Field(default=SecretStr(DEV_API_KEY),
-                               description="Key required in the X-API-Key header of mutating endpoints.")
+        default="development", description=(
+            "`production` requires both keys to be configured (no generated operator key, no anonymous vehicles "
+            "on loopback)."))
+    api_key: SecretStr | None = Field(default=None, description=(
+        "Operator key (X-API-Key header) for registering and deleting maps; also accepted where a vehicle key "
+        "is. Unset: a random key is generated on first start, stored in `<maps_dir>/.operator-key` (mode 0600) "
+        "and printed once in the log."))
+    vehicle_keys: SecretStr | None = Field(default=None, description=(
+        "Comma-separated vehicle keys (X-API-Key header) for POST /scans, /localize and /maps/{id}/retrieve. "
+        "Unset: those endpoints answer only clients on the loopback interface (local development)."))
     model: str = Field(default="default",
                        description="Descriptor model: registry name (`default` = shipped default) or a .pt path.")
     maps_dir: Path = Field(default_factory=_default_maps_dir,
@@ -42,19 +79,13 @@ class Settings(BaseSettings):
     max_archive_scans: int = Field(default=20_000, gt=0, description="Most scans accepted in one scan archive.")
     scan_cache_size: int = Field(default=256, gt=0, description="Uploaded scans whose features are kept.")
     scan_cache_ttl_s: float = Field(default=600.0, gt=0, description="Seconds an uploaded scan's features are kept.")
-    top_k: int = Field(default=20, ge=1, le=100, description=(
-        "Default number of retrieved candidates; all are screened by landmark alignment and the best "
-        "`verify_k` get the full pose estimate."))
-    verify_k: int = Field(default=3, ge=1, le=100, description="Screened candidates verified in full.")
-    max_candidates: int = Field(default=60, ge=1, le=500, description=(
-        "When no screened candidate aligns `expand_below_screen_score` of the query's landmarks, the next "
-        "`top_k` retrieved keyframes are screened too, up to this many."))
-    expand_below_screen_score: float = Field(default=0.6, ge=0.0, le=1.0, description=(
-        "Screen score (fraction of query landmarks aligned) under which screening continues."))
+    localization: LocalizationConfig = Field(default_factory=LocalizationConfig, description=(
+        "Localization settings (`reradar_core.localization.LocalizationConfig`, defaults documented there); "
+        "each field is `RERADAR_LOCALIZATION__<FIELD>`, nested ones e.g. "
+        "`RERADAR_LOCALIZATION__ALIGNMENT__SCREEN_HYPOTHESES`. `top_k` is also the default of `retrieve`."))
     keyframe_cache_size: int = Field(default=128, ge=1, description=(
         "Keyframes per map whose features and landmark grid stay in memory (LRU, ~0.33 MB each). A cold "
         "keyframe costs ~1.3 ms per candidate; maps queried all over benefit from a cache as large as the map."))
-    min_inliers: int = Field(default=12, ge=2, description="Inliers (aligned query landmarks) needed to report `localized`; at least 50 % of the query's landmarks must align too.")
     index_kind: Literal["auto", "flat", "hnsw", "ivf"] = Field(default="auto", description="FAISS index type.")
     index_exact_max_size: int = Field(default=20_000, ge=0, description="`auto` uses exact search up to this size.")
     torch_threads: int = Field(default=1, ge=1, description=(
@@ -63,6 +94,19 @@ class Settings(BaseSettings):
         "pipeline (measured: network 28 ms with 1 thread vs 0.3-1.9 s with 2 on the loaded 2-core box)."))
     blas_threads: int = Field(default=1, ge=1, description="OpenBLAS threads of numpy, scipy and opencv (1: small products stay fast).")
     build_batch_size: int = Field(default=8, ge=1, description="Scans per network batch when building maps.")
+    max_scan_pixels: int = Field(default=3_100_000, ge=4096, description=(
+        "Largest scan accepted, in pixels (azimuths x columns), read from the PNG / .npy header before "
+        "decoding: about twice an Oxford sweep (400 x 3,779), so one request costs at most ~2x a normal one."))
+    max_concurrent_requests: int = Field(default=4, ge=1, description=(
+        "Scan and map requests (POST /scans, /localize, /maps/{id}/retrieve, /maps) in progress at once; "
+        "more are answered 503 with Retry-After at once instead of queueing."))
+    retry_after_s: int = Field(default=1, ge=1, description="Retry-After seconds sent with 503 overloaded.")
+    body_idle_timeout_s: float = Field(default=10.0, gt=0, description=(
+        "A request body that sends nothing for this long is refused with 408 (slow-client protection)."))
+    body_timeout_s: float = Field(default=30.0, gt=0, description=(
+        "Longest time to receive a whole scan request body, seconds (408 after)."))
+    map_upload_timeout_s: float = Field(default=900.0, gt=0, description=(
+        "Longest time to receive a whole POST /maps body, seconds (408 after)."))
     # ---- operations (docs/OPERATIONS.md) ---------------------------------------------------------------
     log_format: Literal["json", "text"] = Field(default="json", description=(
         "Log line format of the service and worker: `json` (one JSON object per line) or `text`."))
@@ -84,14 +128,37 @@ class Settings(BaseSettings):
     build_max_tries: int = Field(default=3, ge=1, description="Attempts of a queued map build before it fails.")
 
     @model_validator(mode="after")
-    def _refuse_unsafe_defaults(self) -> Settings:
-        key = self.api_key.get_secret_value()
-        if self.environment == "production" and (key == DEV_API_KEY or len(key) < 16):
-            raise ValueError(
-                "RERADAR_API_KEY must be set to a secret of at least 16 characters when "
-                "RERADAR_ENVIRONMENT=production (the development key is refused)"
-            )
+    def _refuse_renamed_localization_variables(self) -> Settings:
+        # the localization fields used to be flat settings; a stale variable would otherwise be ignored silently
+        stale = [f"RERADAR_{name}" for name in _RENAMED_LOCALIZATION_FIELDS if f"RERADAR_{name}" in os.environ]
+        if stale:
+            raise ValueError(", ".join(f"{v} is now RERADAR_LOCALIZATION__{v.removeprefix('RERADAR_')}"
+                                       for v in stale))
         return self
+
+    @model_validator(mode="after")
+    def _refuse_unsafe_keys(self) -> Settings:
+        keys = {"RERADAR_API_KEY": [self.api_key.get_secret_value()] if self.api_key else [],
+                "RERADAR_VEHICLE_KEYS": self.vehicle_key_list}
+        for env, values in keys.items():
+            for key in values:
+                if key == DEV_API_KEY:
+                    raise ValueError(f"{env}: the published development key {DEV_API_KEY!r} is refused; "
+                                     f"set a secret (e.g. python -c 'import secrets; print(secrets.token_urlsafe(24))')")
+                if len(key) < MIN_KEY_LENGTH:
+                    raise ValueError(f"{env}: keys must be at least {MIN_KEY_LENGTH} characters")
+        if self.environment == "production" and (self.api_key is None or not self.vehicle_key_list):
+            raise ValueError("RERADAR_ENVIRONMENT=production needs RERADAR_API_KEY (operator) and "
+                             "RERADAR_VEHICLE_KEYS (comma-separated) set to secrets of at least "
+                             f"{MIN_KEY_LENGTH} characters")
+        return self
+
+    @property
+    def vehicle_key_list(self) -> list[str]:
+        """The configured vehicle keys (empty when none)."""
+        if self.vehicle_keys is None:
+            return []
+        return [k.strip() for k in self.vehicle_keys.get_secret_value().split(",") if k.strip()]
 
     @property
     def max_upload_bytes(self) -> int:
@@ -100,3 +167,43 @@ class Settings(BaseSettings):
     @property
     def max_map_upload_bytes(self) -> int:
         return int(self.max_map_upload_mb * 1024 * 1024)
+
+
+def resolve_operator_key(settings: Settings) -> str:
+    """The operator key: ``settings.api_key`` when configured; otherwise the key stored in
+    ``<maps_dir>/.operator-key``, generated (and printed once in the log) on first start.
+
+    The generated key is written atomically (temporary file, fsync, rename) with mode 0600, so that a restart
+    or a second replica on the same maps folder uses the same key, and no published default ever works.
+    """
+    if settings.api_key is not None:
+        return settings.api_key.get_secret_value()
+    maps_dir = Path(settings.maps_dir)
+    maps_dir.mkdir(parents=True, exist_ok=True)
+    path = maps_dir / OPERATOR_KEY_FILE
+    if path.is_file():
+        key = path.read_text().strip()
+        if len(key) >= MIN_KEY_LENGTH:
+            logger.info("operator key: the generated key stored in %s (set RERADAR_API_KEY to choose one)",
+                        OPERATOR_KEY_FILE)
+            return key
+        path.unlink()  # emptied or edited by hand: replace it
+    key = secrets.token_urlsafe(24)
+    tmp = maps_dir / f".{OPERATOR_KEY_FILE}.{os.getpid()}.tmp"
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.write(fd, (key + "\n").encode())
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    try:
+        os.link(tmp, path)  # fails when another process created the key first: then use that one
+    except FileExistsError:
+        key = path.read_text().strip()
+        return key
+    finally:
+        os.unlink(tmp)
+    logger.warning("no RERADAR_API_KEY configured: generated the operator key %s (stored in %s in the maps "
+                   "folder; shown only this once). Send it as X-API-Key to register or delete maps.",
+                   key, OPERATOR_KEY_FILE)
+    return key

@@ -1,13 +1,19 @@
 """The registry of maps served: ``<maps_dir>/<map_id>.h5`` files, loaded maps, and background build jobs.
 
 Invariants: a map file appears under its final name only when complete (uploads are validated in a hidden
-staging folder and renamed; builds use the atomic ``MapWriter``); a failed upload or build never touches
-another map; map ids match ``MAP_ID_PATTERN`` and resolved paths must stay inside ``maps_dir``.
+staging folder, fsync'ed and renamed; builds use the atomic ``MapWriter``); a failed upload or build never
+touches another map; map ids match ``MAP_ID_PATTERN`` and resolved paths must stay inside ``maps_dir``.
+
+Nothing accepted is lost: before ``POST /maps`` answers 202 the build has a job record
+``<maps_dir>/.jobs/<map_id>.json`` on disk (fsync'ed). The record is removed once the map file is installed,
+rewritten as ``failed`` with the reason when the build fails, and a record still ``building`` when the service
+starts means the process died mid-build: the map is then reported ``failed`` with that reason, never unknown.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import json
 import logging
 import os
 import re
@@ -23,14 +29,14 @@ import numpy as np
 
 from maps.build import build_map
 from maps.database import MapDatabase
-from maps.index import IndexConfig
 from maps.paths import DEMO_MAP_PATH
-from maps.store import open_map, read_metadata
+from maps.store import fsync_dir, install_file, open_map, read_metadata, remove_stale_temp_files
 from reradar_core.errors import MapFormatError, ModelMismatchError, ReRadarError
 from reradar_core.io.scan import RadarScan, read_navtech_png, read_polar_npy
 from reradar_core.localization.extractor import FeatureExtractor
+from reradar_core.retrieval import IndexConfig
 from service.core.config import MAP_ID_PATTERN, Settings
-from service.core.errors import BadRequestError, ConflictError, NotFoundError
+from service.core.errors import BadRequestError, ConflictError, NotFoundError, scrub_paths
 
 __all__ = ["MapEntry", "MapRegistry", "MapState", "DEMO_MAP_ID"]
 
@@ -40,6 +46,7 @@ MapState = Literal["ready", "building", "failed"]
 DEMO_MAP_ID = "demo"
 _ID_RE = re.compile(MAP_ID_PATTERN)
 _STAGING = ".staging"
+_JOBS = ".jobs"
 
 
 def _now() -> str:
@@ -100,10 +107,63 @@ class MapRegistry:
         d.mkdir(exist_ok=True)
         return d
 
+    # ---- durable job records -------------------------------------------------------------------------------
+    def _job_path(self, map_id: str) -> Path:
+        return self.maps_dir / _JOBS / f"{map_id}.json"
+
+    def _write_job(self, entry: MapEntry, source: str | None = None) -> None:
+        """Write ``entry``'s job record durably (temporary file, fsync, rename, fsync folder)."""
+        path = self._job_path(entry.map_id)
+        path.parent.mkdir(exist_ok=True)
+        record = {"map_id": entry.map_id, "state": entry.state, "error": entry.error,
+                  "scans_total": entry.scans_total, "registered_utc": entry.registered_utc,
+                  "source": source, "pid": os.getpid()}
+        tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.part")
+        tmp.write_text(json.dumps(record))
+        install_file(tmp, path)
+
+    def _drop_job(self, map_id: str) -> None:
+        path = self._job_path(map_id)
+        if path.exists():
+            path.unlink(missing_ok=True)
+            fsync_dir(path.parent)
+
+    def _load_jobs(self) -> None:
+        """Register the maps whose build failed or was cut short by a crash, from their job records."""
+        jobs = self.maps_dir / _JOBS
+        if not jobs.is_dir():
+            return
+        for part in jobs.glob(".*.part"):
+            part.unlink(missing_ok=True)
+        for path in sorted(jobs.glob("*.json")):
+            map_id = path.stem
+            try:
+                record = json.loads(path.read_text())
+            except (OSError, ValueError):
+                record = {}
+            if not _ID_RE.match(map_id):
+                continue
+            if (self.maps_dir / f"{map_id}.h5").exists():
+                self._drop_job(map_id)  # built and installed; the process stopped before dropping the record
+                continue
+            entry = MapEntry(map_id, self.maps_dir / f"{map_id}.h5", "failed",
+                             scans_total=int(record.get("scans_total") or 0),
+                             registered_utc=str(record.get("registered_utc") or _now()))
+            if record.get("state") == "failed" and record.get("error"):
+                entry.error = str(record["error"])
+            else:
+                entry.error = ("the service stopped (crash or restart) while this map was being built, and the "
+                               f"uploaded scans are gone: DELETE /maps/{map_id} and register it again")
+                self._write_job(entry, record.get("source"))
+                logger.error("map %s: build interrupted by a stop of the service; marked failed", map_id)
+            with self._lock:
+                self._entries[map_id] = entry
+
     # ---- loading -------------------------------------------------------------------------------------------
     def _open(self, path: Path) -> MapDatabase:
         return MapDatabase(open_map(path, self.extractor.model_id, self.extractor.weights_sha256),
-                           self.index_config, keyframe_cache_size=self.settings.keyframe_cache_size)
+                           self.index_config, keyframe_cache_size=self.settings.keyframe_cache_size,
+                           config=self.settings.localization)
 
     def install_demo_map(self) -> None:
         """Copy the shipped demo map to ``<maps_dir>/demo.h5`` unless a map ``demo`` exists already; an
@@ -125,13 +185,14 @@ class MapRegistry:
             logger.info("replacing the installed demo map (built with other weights) by the shipped one")
         tmp = self.staging_dir() / f"{uuid.uuid4().hex}.h5"
         shutil.copyfile(DEMO_MAP_PATH, tmp)
-        os.replace(tmp, target)
+        install_file(tmp, target)
 
     def load_all(self) -> None:
-        """Clean stale staging files and load every ``*.h5`` map in ``maps_dir``."""
+        """Clean stale staging and temporary files, load every ``*.h5`` map in ``maps_dir``, and register the
+        failed or interrupted builds from their job records."""
         shutil.rmtree(self.maps_dir / _STAGING, ignore_errors=True)
-        for stale in self.maps_dir.glob(".*.tmp"):
-            stale.unlink(missing_ok=True)
+        remove_stale_temp_files(self.maps_dir)
+        self._load_jobs()
         for path in sorted(self.maps_dir.glob("*.h5")):
             map_id = path.stem
             if not _ID_RE.match(map_id):
@@ -201,9 +262,12 @@ class MapRegistry:
             staged.unlink(missing_ok=True)
             raise
         try:
-            probe = open_map(staged, self.extractor.model_id, self.extractor.weights_sha256)
+            try:
+                probe = open_map(staged, self.extractor.model_id, self.extractor.weights_sha256)
+            except ReRadarError as exc:  # the message names the staged file: say "the uploaded map" instead
+                raise type(exc)(str(exc).replace(str(staged), "the uploaded map")) from None
             probe.close()
-            os.replace(staged, entry.path)
+            install_file(staged, entry.path)
             entry.db = self._open(entry.path)
             entry.scans_total = entry.scans_done = len(entry.db)
             entry.state = "ready"
@@ -225,6 +289,11 @@ class MapRegistry:
         first = self._load_scan(scan_paths[0], preset)  # fail fast, synchronously, on unreadable scans
         preset_name = preset or first.preset or "unknown"
         entry = self._reserve(map_id, scans_total=len(scan_paths))
+        try:
+            self._write_job(entry, source)  # durable before the client is told 202
+        except BaseException:
+            self._release(map_id)
+            raise
 
         def progress(done: int, total: int) -> None:
             entry.scans_done = done
@@ -238,11 +307,16 @@ class MapRegistry:
                 with self._lock:
                     entry.db = db
                     entry.state = "ready"
+                self._drop_job(map_id)
                 logger.info("map %s built: %d keyframes", map_id, len(db))
             except Exception as exc:  # noqa: BLE001 - a failed job is reported through GET /maps/{id}
                 logger.exception("building map %s failed", map_id)
-                entry.error = f"{type(exc).__name__}: {exc}"
+                entry.error = scrub_paths(f"{type(exc).__name__}: {exc}", [self.maps_dir])
                 entry.state = "failed"
+                try:
+                    self._write_job(entry, source)
+                except OSError:
+                    logger.exception("could not record the failure of map %s", map_id)
             finally:
                 shutil.rmtree(workdir, ignore_errors=True)
 
@@ -268,6 +342,8 @@ class MapRegistry:
         if entry.db is not None:
             entry.db.close()
         entry.path.unlink(missing_ok=True)
+        self._drop_job(map_id)
+        fsync_dir(self.maps_dir)
         return entry
 
     def close(self) -> None:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -37,10 +37,9 @@ class ServiceState:
     started_at: float = field(default_factory=time.time)
 
     def localization_config(self, top_k: int | None = None) -> LocalizationConfig:
-        return LocalizationConfig(top_k=top_k or self.settings.top_k, verify_k=self.settings.verify_k,
-                                  max_candidates=self.settings.max_candidates,
-                                  expand_below_screen_score=self.settings.expand_below_screen_score,
-                                  min_inliers=self.settings.min_inliers)
+        """The configured ``LocalizationConfig``, with a request's ``top_k`` when given."""
+        config = self.settings.localization
+        return replace(config, top_k=top_k) if top_k else config
 
     def describe_upload(self, data: bytes, filename: str, preset: str | None,
                         timings_ms: dict[str, float]) -> tuple[ScanFeatures, str | None]:

@@ -99,3 +99,28 @@ def test_feature_cache_in_use_by_another_run_is_left_alone(tmp_path):
     with FeatureCache("m-1", "seq", root=tmp_path / "c") as c:
         rec, ms = c.get("scan", src)
         assert ms == 1.0 and np.allclose(rec["a"], 1.0)  # the other run's file survived intact
+
+
+def test_summary_splits_revisit_and_no_match_queries():
+    """Single-session shape: half the queries have no keyframe within R; the headline divides by revisits."""
+    db = np.array([[0.0, 0.0, 0.0], [50.0, 0.0, 0.0]])
+    query = np.array([[1.0, 0.0, 0.0], [52.0, 0.0, 0.0], [200.0, 0.0, 0.0], [300.0, 0.0, 0.0]])
+    retrieved = np.array([0, 1, 1, 0])
+    est = np.array([[1.2, 0.1, 0.01], [np.nan] * 3,  # q1: not_localized although it has a match
+                    [49.0, 0.0, 0.0],  # q2: no match, localized at a wrong pose (150 m off)
+                    [np.nan] * 3])  # q3: no match, correctly rejected
+    out = make_outcome(retrieved, np.array([0.1, 0.2, 0.3, 0.4]), est, query, db, 20.0, "pose")
+    s = summarise(out, query, db, 20.0, "pose")
+    assert (s["n_queries"], s["n_revisit"], s["n_no_match"]) == (4, 2, 2)
+    assert s["recall@1"] == pytest.approx(100.0) and s["recall@1_all"] == pytest.approx(50.0)
+    assert s["sr"] == pytest.approx(50.0) and s["sr_all"] == pytest.approx(25.0)
+    assert s["rejection"] == "not_localized"
+    assert s["correct_rejection_pct"] == pytest.approx(50.0) and s["wrong_pose_no_match_pct"] == pytest.approx(50.0)
+    assert (s["n_rejected_no_match"], s["n_wrong_pose_no_match"], s["n_correct_pose_no_match"]) == (1, 1, 0)
+    assert (s["n_rejected_revisit"], s["n_wrong_pose_revisit"]) == (1, 0)
+    assert s["wrong_pose_pct"] == pytest.approx(25.0)
+    # the same answers from a method without rejection (heading only): rejection figures not applicable
+    h = summarise(make_outcome(retrieved, np.zeros(4), np.nan_to_num(est), query, db, 20.0, "heading"),
+                  query, db, 20.0, "heading")
+    assert h["rejection"] is None and h["correct_rejection_pct"] is None and h["n_rejected_no_match"] is None
+    assert h["recall@1"] == pytest.approx(100.0) and h["recall@1_all"] == pytest.approx(50.0)

@@ -126,3 +126,39 @@ def test_radii():
     assert radius_for("OORD") == 25.0 and radius_for("boreas-2021") == 20.0 and radius_for("oxford") == 25.0
     with pytest.raises(ConfigError, match="no evaluation radius"):
         radius_for("kitti")
+
+
+def test_revisit_breakdown_hand_computed():
+    from reradar_core.evaluation import revisit_breakdown
+
+    # query:     0     1      2      3      4      5
+    # revisit:   T     T      T      T      F      F
+    # correct:   T     T      F      F      F      F
+    # answered:  T     T      F      T      T      F     (F = rejected, e.g. not_localized)
+    # success:   T     F      F      F      T      F     (4: a good pose although no keyframe lies within R)
+    revisit = np.array([1, 1, 1, 1, 0, 0], bool)
+    correct = np.array([1, 1, 0, 0, 0, 0], bool)
+    answered = np.array([1, 1, 0, 1, 1, 0], bool)
+    success = np.array([1, 0, 0, 0, 1, 0], bool)
+    b = revisit_breakdown(correct, revisit, success, answered)
+    assert (b.n_queries, b.n_revisit, b.n_no_match) == (6, 4, 2)
+    assert b.recall_at_1_revisit == pytest.approx(2 / 4) and b.recall_at_1_all == pytest.approx(2 / 6)
+    assert b.sr_revisit == pytest.approx(1 / 4) and b.sr_all == pytest.approx(2 / 6)
+    assert b.has_rejection
+    assert (b.n_rejected_no_match, b.n_wrong_pose_no_match, b.n_correct_pose_no_match) == (1, 0, 1)
+    assert b.correct_rejection_rate == pytest.approx(0.5) and b.wrong_pose_rate_no_match == 0.0
+    assert (b.n_rejected_revisit, b.n_wrong_pose_revisit) == (1, 2)  # 2 rejected; 1 and 3 answered wrongly
+
+    # a method that always answers has no rejection figures; without a success rule no SR either
+    nr = revisit_breakdown(correct, revisit, success)
+    assert not nr.has_rejection and nr.n_rejected_no_match is None and np.isnan(nr.correct_rejection_rate)
+    assert nr.sr_revisit == pytest.approx(1 / 4)
+    plain = revisit_breakdown(correct, revisit)
+    assert np.isnan(plain.sr_revisit) and np.isnan(plain.sr_all) and plain.recall_at_1_revisit == 0.5
+    # no revisit query at all: the headline is undefined (NaN), never a misleading 0
+    none = revisit_breakdown(np.zeros(3, bool), np.zeros(3, bool), np.zeros(3, bool), np.zeros(3, bool))
+    assert np.isnan(none.recall_at_1_revisit) and none.correct_rejection_rate == 1.0
+    with pytest.raises(ValueError, match="differ in length"):
+        revisit_breakdown(correct, revisit[:3])
+    with pytest.raises(ValueError, match="answered needs success"):
+        revisit_breakdown(correct, revisit, None, answered)

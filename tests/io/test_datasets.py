@@ -143,3 +143,20 @@ def test_subset_every_kth(tmp_path):
     full = load_sequence(root, preset="boreas")
     masked = full.subset(full.timestamps_us >= times[4])
     assert masked.timestamps_us.tolist() == times[4:] and len(masked.poses) == 2
+
+
+def test_boreas_folder_with_relative_gpstime_is_refused_unless_simulated(tmp_path):
+    """Relative GPSTime (from 0) has no unit a reader could tell; only our simulator's folders (µs by
+    construction, marked by reradar_sim.json) are read without one."""
+    times = [0, 250_000, 500_000]
+    real = tmp_path / "real"
+    _write_scans(real, "boreas", times)
+    write_boreas_radar_poses(_track(np.asarray(times)), real / "applanix" / "radar_poses.csv")
+    with pytest.raises(PoseFileError, match="ambiguous"):
+        load_sequence(real)
+    sim = tmp_path / "sim"
+    _write_scans(sim, "boreas", times)
+    write_boreas_radar_poses(_track(np.asarray(times)), sim / "applanix" / "radar_poses.csv")
+    write_sequence_meta(sim, {"preset": "boreas", "sim_version": "2"})
+    seq = load_sequence(sim)
+    np.testing.assert_allclose(seq.poses.xy[:, 0], [0.0, 2.5, 5.0], atol=1e-9)  # 10 m/s, not all at the origin

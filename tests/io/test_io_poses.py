@@ -9,10 +9,12 @@ from reradar_core.errors import PoseFileError
 from reradar_core.io.poses import (
     BOREAS_COLUMNS,
     PoseSequence,
+    absolute_time_unit,
     read_boreas_radar_poses,
     read_mulran_global_pose,
     read_poses,
     read_txyyaw_csv,
+    to_microseconds,
     write_boreas_radar_poses,
     write_mulran_global_pose,
     write_txyyaw_csv,
@@ -55,7 +57,7 @@ def test_boreas_microsecond_gpstime(tmp_path):
 
 def test_read_poses_dispatches_on_first_line(tmp_path):
     assert len(read_poses(_write(tmp_path, "a.csv", BOREAS_US))) == 2
-    assert len(read_poses(_write(tmp_path, "b.csv", "t,x,y,yaw\n1.5,2,3,0.1\n2.5,3,4,0.2\n"))) == 2
+    assert len(read_poses(_write(tmp_path, "b.csv", "t_s,x,y,yaw\n1.5,2,3,0.1\n2.5,3,4,0.2\n"))) == 2
     mulran = "1566535872045000000,1,0,0,10,0,1,0,20,0,0,1,0\n"
     assert read_poses(_write(tmp_path, "c.csv", mulran)).timestamps_us[0] == 1566535872045000
     with pytest.raises(PoseFileError, match="c2.csv:1: unrecognised"):
@@ -111,7 +113,7 @@ def test_malformed_boreas_names_file_and_line(tmp_path):
 
 def test_malformed_other_formats(tmp_path):
     with pytest.raises(PoseFileError, match=r"t\.csv:3: non-numeric"):
-        read_txyyaw_csv(_write(tmp_path, "t.csv", "t,x,y,yaw\n1,2,3,4\n2,x,3,4\n"))
+        read_txyyaw_csv(_write(tmp_path, "t.csv", "t_s,x,y,yaw\n1,2,3,4\n2,x,3,4\n"))
     with pytest.raises(PoseFileError, match=r"m\.csv:2: timestamp 'abc'"):
         read_mulran_global_pose(_write(tmp_path, "m.csv", "1,1,0,0,0,0,1,0,0,0,0,1,0\nabc,1,0,0,0,0,1,0,0,0,0,1,0\n"))
     with pytest.raises(PoseFileError, match="no pose rows"):
@@ -126,3 +128,73 @@ def test_pose_sequence_interpolation_wraps_yaw():
     np.testing.assert_allclose(mid[:2], [5.0, -1.0])
     assert abs(abs(mid[2]) - np.pi) < 1e-9  # halfway across the +-pi seam, not through 0
     np.testing.assert_allclose(seq.interpolate(np.array([-10, 500]))[:, 0], [0.0, 10.0])  # clamped
+
+
+# ------------------------------------------------------------------ time units: never a silent guess
+RELATIVE = "t,x,y,yaw\n0,0,0,0\n0.25,2,0,0\n0.5,4,0,0\n"
+
+
+def test_absolute_time_unit_windows_are_disjoint():
+    assert absolute_time_unit(np.array([1_630_597_331.06])) == "s"
+    assert absolute_time_unit(np.array([1_630_597_331_060])) == "ms"
+    assert absolute_time_unit(np.array([1_630_597_331_060_160])) == "us"
+    assert absolute_time_unit(np.array([1_628_184_886_551_599_081])) == "ns"
+    # relative times (from 0), or values between two windows, have no unit
+    assert absolute_time_unit(np.array([0.0, 0.25])) is None
+    assert absolute_time_unit(np.array([250_000, 500_000])) is None
+    assert absolute_time_unit(np.array([5e10])) is None
+    # a file mixing magnitudes is not absolute in one unit
+    assert absolute_time_unit(np.array([1_630_597_331, 1_630_597_331_060_160])) is None
+
+
+def test_to_microseconds_is_exact_for_nanosecond_integers():
+    ns = np.array([1_628_184_886_551_599_081, 1_628_184_886_801_550_666], dtype=np.int64)
+    np.testing.assert_array_equal(to_microseconds(ns, "ns"), [1_628_184_886_551_599, 1_628_184_886_801_550])
+    np.testing.assert_array_equal(to_microseconds(np.array([0.0, 0.25, 1.5]), "s"), [0, 250_000, 1_500_000])
+    np.testing.assert_array_equal(to_microseconds(np.array([0, 250]), "ms"), [0, 250_000])
+    with pytest.raises(PoseFileError, match="unknown time unit 'min'"):
+        to_microseconds(np.array([1]), "min")
+    # Boreas ns stamps taken for seconds would wrap around int64: refused, not wrapped
+    with pytest.raises(PoseFileError, match="overflow int64 microseconds; is the time unit 's' right"):
+        to_microseconds(ns, "s")
+
+
+def test_relative_txyyaw_times_are_refused_without_a_unit(tmp_path):
+    path = _write(tmp_path, "rel.csv", RELATIVE)
+    with pytest.raises(PoseFileError, match=r"rel\.csv: column t: timestamps 0 \.\. 0\.5 .*ambiguous.*--time-unit"):
+        read_txyyaw_csv(path)
+    with pytest.raises(PoseFileError, match="ambiguous"):
+        read_poses(path)
+    np.testing.assert_array_equal(read_txyyaw_csv(path, "s").timestamps_us, [0, 250_000, 500_000])
+    np.testing.assert_array_equal(read_poses(path, time_unit="ms").timestamps_us, [0, 250, 500])
+    # the header may declare the unit; a conflicting explicit unit is an error, not a silent choice
+    declared = _write(tmp_path, "declared.csv", RELATIVE.replace("t,x", "t_s,x"))
+    np.testing.assert_array_equal(read_txyyaw_csv(declared).timestamps_us, [0, 250_000, 500_000])
+    with pytest.raises(PoseFileError, match="header says 't_s' but the time unit given is 'ms'"):
+        read_txyyaw_csv(declared, "ms")
+    # absolute UTC seconds need no unit
+    absolute = _write(tmp_path, "abs.csv", "t,x,y,yaw\n1630597331.06016,0,0,0\n1630597331.31078,1,0,0\n")
+    np.testing.assert_array_equal(read_txyyaw_csv(absolute).timestamps_us, [1630597331060160, 1630597331310780])
+    # headerless 4-column rows are read as t,x,y,yaw too
+    headerless = _write(tmp_path, "nohead.csv", "1630597331060160,0,0,0\n1630597331310779,1,0,0\n")
+    np.testing.assert_array_equal(read_poses(headerless).timestamps_us, [1630597331060160, 1630597331310779])
+
+
+def test_relative_boreas_gpstime_is_refused_without_a_unit(tmp_path):
+    rel = HEADER + "\n0,0,0,0,0,0,0,0,0,0.1,0,0,0\n250000,2,0,0,0,0,0,0,0,0.1,0,0,0\n"
+    path = _write(tmp_path, "radar_poses.csv", rel)
+    with pytest.raises(PoseFileError, match="GPSTime: timestamps 0 .. 250000 are not absolute UTC times"):
+        read_boreas_radar_poses(path)
+    np.testing.assert_array_equal(read_boreas_radar_poses(path, "us").timestamps_us, [0, 250_000])
+    np.testing.assert_array_equal(read_boreas_radar_poses(path, "ns").timestamps_us, [0, 250])
+
+
+def test_mulran_is_nanoseconds_and_refuses_absolute_times_in_another_unit(tmp_path):
+    us_line = "1566535872045000,1,0,0,10,0,1,0,20,0,0,1,0\n"  # absolute time, but in µs
+    path = _write(tmp_path, "global_pose.csv", us_line)
+    with pytest.raises(PoseFileError, match="MulRan timestamps are nanoseconds.*--time-unit us"):
+        read_mulran_global_pose(path)
+    assert read_mulran_global_pose(path, "us").timestamps_us[0] == 1566535872045000
+    # relative ns from 0 are the format's own unit
+    rel = _write(tmp_path, "rel_pose.csv", "0,1,0,0,0,0,1,0,0,0,0,1,0\n250000000,1,0,0,2,0,1,0,0,0,0,1,0\n")
+    np.testing.assert_array_equal(read_mulran_global_pose(rel).timestamps_us, [0, 250_000])

@@ -93,3 +93,24 @@ def test_screen_scores_the_true_place_above_a_different_place():
     assert right == cached  # a cached grid gives the same score
     assert right > 0.6 and wrong < right - 0.2
     assert screen_alignment(src[:1], dsrc[:1], dst, ddst) == 0.0  # degenerate input scores 0, never raises
+
+
+def test_unique_scene_has_low_ambiguity():
+    T = np.array([3.5, -2.0, np.radians(37.0)])
+    src, dsrc, dst, ddst = _scene(T)
+    est = estimate_pose_guided(src, dsrc, dst, ddst)
+    assert est.success and est.ambiguity < 0.8
+
+
+def test_periodic_scene_is_refused_as_ambiguous():
+    # a lattice of identical posts, 8 m apart, seen with identical descriptors: shifting the answer by one
+    # period aligns exactly as many landmarks, so no single pose can be right
+    g = np.arange(-48.0, 49.0, 8.0)
+    dst = np.array([(x, y) for x in g for y in g])
+    T = np.array([1.0, 0.5, 0.0])
+    src = transform_points(inverse(T), dst)
+    desc = np.ones((len(dst), 8), np.float32) / np.sqrt(8)
+    est = estimate_pose_guided(src, desc, dst, desc, AlignmentConfig(top_k_matches=8))
+    assert not est.success and est.reason == "ambiguous" and est.ambiguity >= 1.0
+    relaxed = estimate_pose_guided(src, desc, dst, desc, AlignmentConfig(top_k_matches=8, max_ambiguity=np.inf))
+    assert relaxed.success  # the same answer is accepted only when ambiguity checking is switched off

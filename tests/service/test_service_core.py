@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import stat
 import tarfile
 import zipfile
 from pathlib import Path
@@ -13,26 +14,47 @@ from pydantic import ValidationError
 
 from reradar_core.features import ScanFeatures
 from service.core.archive import extract_scan_archive
-from service.core.config import DEV_API_KEY, Settings
+from service.core.config import DEV_API_KEY, OPERATOR_KEY_FILE, Settings, resolve_operator_key
 from service.core.errors import BadRequestError, PayloadTooLargeError
 from service.core.metrics import Metrics
 from service.core.scan_cache import ScanCache
 
 
-def test_production_refuses_development_key(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+def test_keys_have_no_usable_default(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     with pytest.raises(ValidationError, match="RERADAR_API_KEY"):
         Settings(environment="production", maps_dir=tmp_path)
-    with pytest.raises(ValidationError):
-        Settings(environment="production", api_key="short", maps_dir=tmp_path)
-    ok = Settings(environment="production", api_key="x" * 32, maps_dir=tmp_path)
-    assert ok.api_key.get_secret_value() == "x" * 32
-    assert Settings(maps_dir=tmp_path).api_key.get_secret_value() == DEV_API_KEY
-    monkeypatch.setenv("RERADAR_TOP_K", "7")
+    with pytest.raises(ValidationError, match="RERADAR_VEHICLE_KEYS"):
+        Settings(environment="production", api_key="x" * 32, maps_dir=tmp_path)
+    with pytest.raises(ValidationError, match="published development key"):
+        Settings(api_key=DEV_API_KEY, maps_dir=tmp_path)
+    with pytest.raises(ValidationError, match="at least 16"):
+        Settings(vehicle_keys="v" * 20 + ",short", maps_dir=tmp_path)
+    ok = Settings(environment="production", api_key="x" * 32, vehicle_keys=" a" * 10 + ", " + "b" * 16,
+                  maps_dir=tmp_path)
+    assert ok.api_key is not None and ok.api_key.get_secret_value() == "x" * 32
+    assert ok.vehicle_key_list == [("a " * 10).strip(), "b" * 16]
+    assert resolve_operator_key(ok) == "x" * 32
+    # no key configured: a random one is generated once, stored with mode 0600 and reused after a restart
+    dev = Settings(maps_dir=tmp_path / "maps")
+    assert dev.api_key is None and dev.vehicle_key_list == []
+    key = resolve_operator_key(dev)
+    stored = tmp_path / "maps" / OPERATOR_KEY_FILE
+    assert len(key) >= 16 and key != DEV_API_KEY and stored.read_text().strip() == key
+    assert stat.S_IMODE(stored.stat().st_mode) == 0o600
+    assert resolve_operator_key(Settings(maps_dir=tmp_path / "maps")) == key
+    assert resolve_operator_key(Settings(maps_dir=tmp_path / "other")) != key
+    monkeypatch.setenv("RERADAR_LOCALIZATION__TOP_K", "7")
+    monkeypatch.setenv("RERADAR_LOCALIZATION__ALIGNMENT__SCREEN_HYPOTHESES", "700")
     monkeypatch.setenv("RERADAR_MAX_UPLOAD_MB", "1.5")
     s = Settings(maps_dir=tmp_path)
-    assert s.top_k == 7 and s.max_upload_bytes == int(1.5 * 2**20)
-    monkeypatch.setenv("RERADAR_TOP_K", "0")
+    assert s.localization.top_k == 7 and s.max_upload_bytes == int(1.5 * 2**20)
+    assert s.localization.alignment.screen_hypotheses == 700 and s.localization.verify_k == 3
+    monkeypatch.setenv("RERADAR_LOCALIZATION__TOP_K", "0")
     with pytest.raises(ValidationError):
+        Settings(maps_dir=tmp_path)
+    monkeypatch.delenv("RERADAR_LOCALIZATION__TOP_K")
+    monkeypatch.setenv("RERADAR_TOP_K", "7")  # the old flat name is refused, not silently ignored
+    with pytest.raises(ValidationError, match="RERADAR_LOCALIZATION__TOP_K"):
         Settings(maps_dir=tmp_path)
 
 

@@ -39,7 +39,7 @@ def test_scan_statistics_counts_a_bright_target():
 
 
 def test_sim_report_cli_on_generated_folders(tmp_path):
-    from reradar_core.cli import app
+    from reradar_cli import app
 
     rng = np.random.default_rng(1)
     for name, level in (("a", 0.05), ("b", 0.1)):

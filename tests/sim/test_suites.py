@@ -81,7 +81,7 @@ def test_boreas_suite_needs_trajectories_with_clear_error(tmp_path):
 
 
 def test_cli_sim_renders_a_trajectory(tmp_path):
-    from reradar_core.cli import app
+    from reradar_cli import app
 
     t = 1_600_000_000_000_000 + np.arange(0, 3_000_001, 250_000)
     s = (t - t[0]) / 1e6
@@ -123,3 +123,54 @@ def test_scan_times_follow_radar_pose_files_or_tile_dense_trajectories():
     assert len(st) == 5
     with pytest.raises(ConfigError):
         scan_times(p20, every=0)
+
+
+def test_cli_sim_trajectory_with_time_from_zero_needs_a_unit_and_then_renders_true_poses(tmp_path):
+    """Regression: a t,x,y,yaw CSV whose t starts at 0 s used to put every scan at the origin silently."""
+    from reradar_cli import app
+
+    t_s = np.arange(0.0, 3.01, 0.25)  # 4 Hz poses, relative seconds from 0
+    rows = "\n".join(f"{t:.2f},{8.0 * t:.3f},{-2.0 * t:.3f},0.1" for t in t_s)
+    traj = tmp_path / "traj.csv"
+    traj.write_text("t,x,y,yaw\n" + rows + "\n")
+    out = tmp_path / "seq"
+    base = ["sim", "--trajectory", str(traj), "--out", str(out), "--preset", "boreas", "--seed", "3", "--limit", "4"]
+    refused = CliRunner().invoke(app, base)
+    assert refused.exit_code == 2
+    assert "--time-unit" in refused.output and "ambiguous" in refused.output
+    assert not (out / "radar").exists()  # nothing rendered on a refused input
+    res = CliRunner().invoke(app, base + ["--time-unit", "s"])
+    assert res.exit_code == 0, res.output
+    seq = load_sequence(out)
+    assert len(seq) == 4
+    np.testing.assert_array_equal(seq.timestamps_us, [0, 250_000, 500_000, 750_000])
+    # each scan at the trajectory's pose at its start time: 8 m/s east, 2 m/s south (not all at the origin)
+    np.testing.assert_allclose(seq.poses.xy, [[0.0, 0.0], [2.0, -0.5], [4.0, -1.0], [6.0, -1.5]], atol=1e-6)
+    np.testing.assert_allclose(seq.poses.yaw, 0.1, atol=1e-12)
+    # the same drive in milliseconds with a unit-declaring header renders the same poses
+    traj_ms = tmp_path / "traj_ms.csv"
+    traj_ms.write_text("t_ms,x,y,yaw\n" + "\n".join(f"{1000 * t:.0f},{8.0 * t:.3f},{-2.0 * t:.3f},0.1"
+                                                       for t in t_s) + "\n")
+    out_ms = tmp_path / "seq_ms"
+    res = CliRunner().invoke(app, ["sim", "--trajectory", str(traj_ms), "--out", str(out_ms), "--limit", "4"])
+    assert res.exit_code == 0, res.output
+    np.testing.assert_allclose(load_sequence(out_ms).poses.xy, seq.poses.xy, atol=1e-6)
+    bad_unit = CliRunner().invoke(app, base + ["--time-unit", "minutes"])
+    assert bad_unit.exit_code == 2 and "--time-unit" in bad_unit.output
+
+
+def test_road_files_are_read_on_their_own_terms(tmp_path):
+    """--time-unit is for the trajectory; a road file with absolute times keeps its own unit."""
+    from reradar_core.errors import PoseFileError
+    from reradar_core.io.poses import write_boreas_radar_poses
+    from reradar_core.sim.trajectories import load_road_xy
+
+    t = 1_630_597_331_060_160 + np.arange(3) * 250_000  # absolute µs: would overflow if read as seconds
+    absolute = write_boreas_radar_poses(PoseSequence(t, [[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]], np.zeros(3)),
+                                        tmp_path / "radar_poses.csv")
+    np.testing.assert_allclose(load_road_xy(absolute, "s")[:, 0], [0.0, 1.0, 2.0])
+    relative = tmp_path / "rel.csv"
+    relative.write_text("t,x,y,yaw\n0.5,5,0,0\n0,4,0,0\n")
+    np.testing.assert_allclose(load_road_xy(relative, "s")[:, 0], [4.0, 5.0])  # in time order
+    with pytest.raises(PoseFileError, match="ambiguous"):
+        load_road_xy(relative)

@@ -39,19 +39,17 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
     map_id = inp.fields["map_id"]
     db = state.registry.ready(map_id)
     config = state.localization_config(inp.fields.get("top_k"))
-    retrievals, result = await run_in_threadpool(db.localize, inp.features, config)
+    result = await run_in_threadpool(db.localize, inp.features, config)
     timings = {**inp.timings_ms, **result.timings_ms}
     state.metrics.observe_stages(timings)
     state.metrics.inc("reradar_localizations_total", status=result.status)
     timings["total_ms"] = (time.perf_counter() - t0) * 1e3
-    by_id = {r.keyframe_id: r for r in retrievals}
     best = result.best
     keyframe = None
     if best is not None:
-        r = by_id[best.keyframe_id]
-        keyframe = RetrievedKeyframe(keyframe_id=r.keyframe_id, timestamp_us=r.timestamp_us,
-                                     descriptor_distance=r.descriptor_distance, rank=r.rank,
-                                     pose=Pose2D.from_array(r.T_map_keyframe))
+        keyframe = RetrievedKeyframe(keyframe_id=best.keyframe_id, timestamp_us=best.timestamp_us,
+                                     descriptor_distance=best.descriptor_distance, rank=best.rank,
+                                     pose=Pose2D.from_array(best.T_map_keyframe))
     localized = result.status == "localized"
     return LocalizeResponse(
         status=result.status,

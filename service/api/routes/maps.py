@@ -167,7 +167,7 @@ async def retrieve(request: Request, state: StateDep, map_id: MapIdPath) -> Retr
     t0 = time.perf_counter()
     db = state.registry.ready(map_id)
     inp = await read_scan_input(request, state, RetrieveRequest, ("top_k",))
-    k = inp.fields.get("top_k") or state.settings.top_k
+    k = inp.fields.get("top_k") or state.settings.localization.top_k
     t1 = time.perf_counter()
     hits = await run_in_threadpool(db.retrieve, inp.features.global_descriptor, k)
     timings = dict(inp.timings_ms)

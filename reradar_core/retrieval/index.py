@@ -1,4 +1,8 @@
-"""FAISS index over a map's global descriptors (inner product on L2-normalised rows = cosine similarity).
+"""Retrieval: nearest neighbours of a query's global descriptor among a map's keyframes.
+
+``GlobalIndex`` is the FAISS index over a map's global descriptors (inner product on L2-normalised rows =
+cosine similarity); ``EuclideanIndex`` is the exact brute-force search the baselines use for descriptors that
+are not unit vectors (VLAD, ring keys), where every distance is needed (PR curves).
 
 Exact search (``IndexFlatIP``) up to ``IndexConfig.exact_max_size`` keyframes, IVF-Flat above (k-means
 lists, ``nprobe`` of them scanned per query: ~0.2 ms per query on 10^5 keyframes with the exact top-1 in our
@@ -9,14 +13,18 @@ distance between unit vectors, ``sqrt(2 - 2 cos)`` in [0, 2].
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import faiss
 import numpy as np
 
 from reradar_core.errors import ConfigError
 
-__all__ = ["IndexConfig", "GlobalIndex", "similarity_to_distance"]
+if TYPE_CHECKING:
+    import faiss
+
+__all__ = ["IndexConfig", "GlobalIndex", "EuclideanIndex", "similarity_to_distance"]
 
 logger = logging.getLogger(__name__)
 
@@ -67,6 +75,8 @@ class GlobalIndex:
     """
 
     def __init__(self, descriptors: np.ndarray, config: IndexConfig = IndexConfig()) -> None:
+        import faiss  # here, not at import: the vehicle client never loads it
+
         x = np.ascontiguousarray(np.asarray(descriptors, dtype=np.float32))
         if x.ndim != 2:
             raise ConfigError(f"descriptors must be (N, D), got shape {x.shape}")
@@ -122,6 +132,15 @@ class GlobalIndex:
         sims, idx = self._index.search(q, k)
         return idx.astype(np.int64), sims.astype(np.float32)
 
+    def distances(self, query: np.ndarray) -> np.ndarray:
+        """(N,) float64 Euclidean distances between the unit query (D,) and every indexed descriptor
+        (``similarity_to_distance`` of the inner products; exact for ``flat``, missing rows = 2 otherwise)."""
+        idx, sims = self.search(query, self.size)
+        out = np.full(self.size, 2.0)
+        ok = idx[0] >= 0
+        out[idx[0][ok]] = similarity_to_distance(sims[0][ok])
+        return out
+
     @property
     def memory_bytes(self) -> int:
         """Approximate resident bytes of the index (vectors plus graph/list overhead)."""
@@ -131,3 +150,22 @@ class GlobalIndex:
         elif self.kind == "ivf":
             base += self.size * 8
         return int(base)
+
+
+class EuclideanIndex:
+    """Stacked (N, D) float32 descriptors with cached squared norms: exact Euclidean distances to every row by
+    one mat-vec (no per-query (N, D) temporaries, which dominate the search time of long VLAD descriptors).
+    For descriptors that are not unit vectors; ``GlobalIndex`` serves the unit global descriptors of maps."""
+
+    def __init__(self, descs: Sequence[np.ndarray] | np.ndarray) -> None:
+        self.matrix = np.ascontiguousarray(np.stack([np.asarray(d, np.float32).reshape(-1) for d in descs]))
+        self.sq_norms = np.einsum("nd,nd->n", self.matrix, self.matrix, dtype=np.float64)
+
+    def __len__(self) -> int:
+        return int(self.matrix.shape[0])
+
+    def distances(self, q: np.ndarray) -> np.ndarray:
+        """(N,) float64 Euclidean distances to ``q`` (D,)."""
+        q = np.asarray(q, np.float32).reshape(-1)
+        d2 = self.sq_norms - 2.0 * (self.matrix @ q).astype(np.float64) + float(np.dot(q, q))
+        return np.sqrt(np.maximum(d2, 0.0))

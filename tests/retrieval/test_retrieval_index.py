@@ -1,4 +1,5 @@
-"""FAISS index: exact search matches brute force; HNSW/IVF find the same nearest neighbours."""
+"""Retrieval: exact FAISS search matches brute force; HNSW/IVF find the same nearest neighbours; the exact
+Euclidean index and ``GlobalIndex.distances`` agree with numpy; a map database localizes through it."""
 
 from __future__ import annotations
 
@@ -8,11 +9,11 @@ import numpy as np
 import pytest
 
 from maps.database import MapDatabase
-from maps.index import GlobalIndex, IndexConfig, similarity_to_distance
 from maps.store import MapMetadata, write_map
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose, inverse, transform_points
+from reradar_core.retrieval import EuclideanIndex, GlobalIndex, IndexConfig, similarity_to_distance
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
@@ -55,6 +56,16 @@ def test_distance_and_errors() -> None:
         IndexConfig(kind="lsh")
 
 
+def test_distances_match_numpy_for_both_indexes() -> None:
+    rng = np.random.default_rng(4)
+    x = _unit(rng.normal(size=(50, 16)))
+    q = _unit(rng.normal(size=16))
+    expect = np.linalg.norm(x - q, axis=1)
+    np.testing.assert_allclose(GlobalIndex(x).distances(q), expect, atol=1e-5)
+    raw = rng.normal(size=(50, 16)) * 3.0  # not unit vectors: only the exact index is meaningful
+    np.testing.assert_allclose(EuclideanIndex(raw).distances(q), np.linalg.norm(raw - q, axis=1), atol=1e-4)
+
+
 def test_map_database_localizes_a_keyframe_seen_from_a_known_offset(tmp_path: Path) -> None:
     rng = np.random.default_rng(3)
     n, c = 12, 16
@@ -71,8 +82,9 @@ def test_map_database_localizes_a_keyframe_seen_from_a_known_offset(tmp_path: Pa
     pts = transform_points(inverse(T_kf_q), kf.keypoints_xy_m.astype(np.float64))
     query = ScanFeatures(_unit(kf.global_descriptor + 0.1 * rng.normal(size=32)), pts,
                          kf.local_descriptors.astype(np.float32), 0)
-    retrievals, res = db.localize(query)
-    assert retrievals[0].keyframe_id == 7 and retrievals[0].rank == 0
+    assert db.retrieve(query.global_descriptor, 3)[0].keyframe_id == 7
+    res = db.localize(query)
+    assert res.candidates[0].keyframe_id == 7 and res.candidates[0].rank == 0
     assert res.localized and res.T_map_query is not None
     np.testing.assert_allclose(res.T_map_query, compose(poses[7], T_kf_q), atol=1e-3)
     assert {"retrieve_ms", "read_ms", "verify_ms"} <= set(res.timings_ms)

@@ -1,0 +1,98 @@
+"""The ``reradar`` app: a Typer group whose sub-commands are imported on first use (``COMMANDS``)."""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from typing import Any
+
+import typer
+import typer.core
+
+__all__ = ["COMMANDS", "app", "main"]
+
+#: sub-command -> (module whose ``register(app)`` defines it, one-line help shown by ``reradar --help``).
+#: The help text is repeated here so listing the commands imports none of them.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "info": ("reradar_core.cli_commands.info", "Print a scan's shape, timing and power statistics."),
+    "import-scans": ("reradar_core.cli_commands.import_scans",
+                     "Convert polar scans of another layout or resolution into Navtech PNGs of a preset."),
+    "sim": ("reradar_core.sim.cli", "Render a simulated radar sequence along a trajectory, in a real dataset layout."),
+    "sim-suite": ("reradar_core.sim.cli", "Render a named benchmark suite or training split."),
+    "sim-report": ("reradar_core.sim.cli", "Print real vs simulated scan statistics side by side."),
+    "train": ("reradar_core.training.cli", "Train the descriptor network with InfoNCE and save weights."),
+    "build-map": ("maps.cli", "Build a keyframe map (global + local descriptors, poses) from a radar sequence."),
+    "map-info": ("maps.cli", "Print a map's metadata as JSON."),
+    "bench": ("reradar_core.benchmark.cli", "Benchmark ReRadar against RingKey, RaPlace, RadVLAD, "
+              "ResNet18-NetVLAD and ReFeree."),
+    "serve": ("service.cli", "Run the HTTP service (settings from RERADAR_* environment variables)."),
+    "localize": ("service.cli", "Localize one scan (or replay a drive with --follow) with a running service."),
+    "demo": ("service.cli", "Serve the demo map on localhost, localize the demo queries over HTTP, print errors."),
+    "worker": ("service.worker", "Run a map-build worker: queued builds from Redis (needs RERADAR_REDIS_URL)."),
+}
+
+
+def load_command(name: str) -> Any:
+    """Import the module that defines sub-command ``name`` and return it as a (Typer's) click command; exits
+    with status 2 and an actionable message when the module needs an optional dependency that is missing."""
+    module_name, _ = COMMANDS[name]
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:  # a client-only install lacks the server/training/bench extras
+        typer.echo(f"error: 'reradar {name}' needs the optional dependency {exc.name!r}, which is not installed; "
+                   "install the extras, e.g. pip install 'reradar[server]' (see README)", err=True)
+        raise typer.Exit(2) from exc
+    sub = typer.Typer()
+    module.register(sub)
+    group = typer.main.get_group(sub)
+    cmd = group.get_command(typer.Context(group), name)
+    if cmd is None:  # pragma: no cover - COMMANDS and the modules disagree
+        raise RuntimeError(f"module {module_name} does not define the command {name!r}")
+    return cmd
+
+
+class LazyGroup(typer.core.TyperGroup):
+    """Lists ``COMMANDS`` from their static help; imports a command's module only to run it (or show its
+    own ``--help``)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._resolving = False
+
+    def list_commands(self, ctx: Any) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx: Any, cmd_name: str) -> Any:
+        if cmd_name not in COMMANDS:
+            return None
+        if self._resolving:
+            return load_command(cmd_name)
+        # a placeholder that only carries the help line (listing the commands imports none of them)
+        return typer.core.TyperCommand(cmd_name, help=COMMANDS[cmd_name][1], short_help=COMMANDS[cmd_name][1])
+
+    def resolve_command(self, ctx: Any, args: list[str]) -> Any:
+        self._resolving = True
+        try:
+            return super().resolve_command(ctx, args)
+        finally:
+            self._resolving = False
+
+
+app = typer.Typer(
+    name="reradar",
+    cls=LazyGroup,
+    help="ReRadar: radar global localization (place recognition + 3-DoF pose) from one Navtech scan.",
+    no_args_is_help=True,
+    add_completion=False,
+)
+
+
+@app.callback()
+def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log debug messages.")) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+def main() -> None:
+    """Console-script entry point (``reradar``)."""
+    app()

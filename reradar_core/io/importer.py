@@ -1,0 +1,100 @@
+"""Convert polar scans of another layout or resolution into Navtech scans of a preset.
+
+Scans from other radars or tools come without the 11 Navtech metadata columns, transposed (range bins as
+rows), with another range-bin size or azimuth count. Read as Navtech PNGs they decode into garbage azimuths
+and ranges (the reader refuses them, ``io.scan.check_navtech_layout``); this module resamples them instead:
+
+1. orient the array as (azimuths, range bins) (``azimuth_axis``);
+2. resample every beam from the source range grid ``offset + i * resolution`` to the preset's range grid
+   (linear interpolation; bins beyond the source's maximum range are 0 = no return);
+3. resample the azimuths circularly to the preset's azimuth count when they differ;
+4. attach uniform azimuths from ``start_azimuth_rad`` and azimuth timestamps over one sweep.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from reradar_core.errors import ScanFormatError
+from reradar_core.io.presets import RadarPreset, get_preset
+from reradar_core.io.scan import RadarScan
+
+__all__ = ["ForeignScanLayout", "import_polar_scan"]
+
+
+@dataclass(frozen=True)
+class ForeignScanLayout:
+    """How a foreign polar array is laid out.
+
+    Attributes:
+        range_resolution_m: metres per range bin of the source (e.g. 0.175).
+        range_offset_m: range of the source's bin 0 centre, metres.
+        azimuth_axis: array axis that indexes azimuth (0: rows are azimuths, as Navtech; 1: transposed).
+        start_azimuth_rad: azimuth of the first source azimuth, radians, clockwise from forward.
+    """
+
+    range_resolution_m: float
+    range_offset_m: float = 0.0
+    azimuth_axis: int = 0
+    start_azimuth_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.range_resolution_m) and self.range_resolution_m > 0):
+            raise ScanFormatError(f"range resolution must be a positive number of metres, got "
+                                  f"{self.range_resolution_m}")
+        if self.azimuth_axis not in (0, 1):
+            raise ScanFormatError(f"azimuth_axis must be 0 or 1, got {self.azimuth_axis}")
+
+
+def _to_unit_power(array: np.ndarray) -> np.ndarray:
+    if array.dtype == np.uint8:
+        return array.astype(np.float32) / 255.0
+    if array.dtype.kind not in "uif":
+        raise ScanFormatError(f"polar array must be numeric, got dtype {array.dtype}")
+    out = array.astype(np.float32)
+    if not np.all(np.isfinite(out)) or out.min() < 0 or out.max() > 1:
+        raise ScanFormatError("a non-uint8 polar array must hold power as finite fractions of full scale in "
+                              "[0, 1]; rescale it first (e.g. divide 16-bit data by 65535)")
+    return out
+
+
+def import_polar_scan(array: np.ndarray, layout: ForeignScanLayout, preset: str | RadarPreset,
+                      start_time_us: int = 0) -> RadarScan:
+    """Resample a foreign (A, R) or (R, A) polar power array into a scan of ``preset``.
+
+    Args:
+        array: 2-D uint8 (0..255) or float in [0, 1] power.
+        layout: the source's range grid and orientation.
+        preset: target radar preset (range grid, azimuth count, sweep period).
+        start_time_us: timestamp of the first azimuth, microseconds.
+
+    Returns:
+        RadarScan with ``preset.num_azimuths`` rows and ``preset.num_range_bins`` bins, ready for
+        ``write_navtech_png``.
+    """
+    p = get_preset(preset)
+    array = np.asarray(array)
+    if array.ndim != 2 or min(array.shape) < 2:
+        raise ScanFormatError(f"a polar scan must be a 2-D array, got shape {array.shape}")
+    power = _to_unit_power(array if layout.azimuth_axis == 0 else array.T)
+    n_az_src, n_bins_src = power.shape
+    # 2. range: sample each beam at the preset's bin centres (vectorised over azimuths).
+    r_dst = p.range_offset_m + np.arange(p.num_range_bins) * p.range_resolution_m
+    x = (r_dst - layout.range_offset_m) / layout.range_resolution_m
+    inside = (x >= 0) & (x <= n_bins_src - 1)
+    i0 = np.clip(np.floor(x).astype(np.int64), 0, n_bins_src - 1)
+    i1 = np.minimum(i0 + 1, n_bins_src - 1)
+    w = (x - i0).astype(np.float32)
+    resampled = power[:, i0] * (1 - w) + power[:, i1] * w
+    resampled[:, ~inside] = 0.0
+    # 3. azimuth: circular linear interpolation to the preset's count.
+    if n_az_src != p.num_azimuths:
+        a = np.arange(p.num_azimuths) * (n_az_src / p.num_azimuths)
+        j0 = np.floor(a).astype(np.int64) % n_az_src
+        j1 = (j0 + 1) % n_az_src
+        wa = (a - np.floor(a)).astype(np.float32)[:, None]
+        resampled = resampled[j0] * (1 - wa) + resampled[j1] * wa
+    scan = RadarScan.from_power(np.clip(resampled, 0.0, 1.0).astype(np.float32), p, start_time_us)
+    return replace(scan, azimuths=np.mod(scan.azimuths + layout.start_azimuth_rad, 2 * np.pi))

@@ -1,0 +1,126 @@
+"""Who may call what: operator and vehicle keys, and the request limits the guard enforces before a body is read.
+
+Route classes:
+
+=========  ==========================================================  =====================================
+class      routes                                                      key (``X-API-Key`` header)
+=========  ==========================================================  =====================================
+operator   ``POST /maps``, ``DELETE /maps/{id}``                       the operator key
+vehicle    ``POST /scans``, ``POST /localize``, ``POST /maps/{id}/      a vehicle key or the operator key;
+           retrieve``                                                  none needed from loopback clients when
+                                                                       no vehicle key is configured
+public     health, metrics, ``GET /maps``, ``GET /maps/{id}``, docs     none
+=========  ==========================================================  =====================================
+"""
+
+from __future__ import annotations
+
+import secrets
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from service.core.config import Settings, is_loopback, resolve_operator_key
+from service.core.errors import ServiceError, UnauthorizedError
+
+__all__ = ["RouteClass", "Principal", "AccessPolicy", "RequestLimits", "Guard", "route_class", "ForbiddenError",
+           "build_guard"]
+
+RouteClass = Literal["operator", "vehicle", "public"]
+Principal = Literal["operator", "vehicle", "loopback"]
+
+
+class ForbiddenError(ServiceError):
+    status_code = 403
+    code = "forbidden"
+
+
+def route_class(method: str, path: str) -> RouteClass:
+    """The access class of a request (see the module docstring)."""
+    p = path.rstrip("/") or "/"
+    parts = p.split("/")
+    if method == "POST" and p == "/maps":
+        return "operator"
+    if method == "DELETE" and len(parts) == 3 and parts[1] == "maps":
+        return "operator"
+    if method == "POST" and (p in ("/scans", "/localize")
+                             or (len(parts) == 4 and parts[1] == "maps" and parts[3] == "retrieve")):
+        return "vehicle"
+    return "public"
+
+
+def _matches(key: str, candidates: tuple[str, ...]) -> bool:
+    hit = False
+    for c in candidates:  # compare with every key: the time taken does not tell which key was close
+        hit |= secrets.compare_digest(key.encode(), c.encode())
+    return hit
+
+
+@dataclass(frozen=True)
+class AccessPolicy:
+    """The operator key, the vehicle keys and whether loopback clients may use vehicle routes without a key."""
+
+    operator_key: str
+    vehicle_keys: tuple[str, ...] = ()
+    anonymous_loopback: bool = True
+
+    def authorize(self, kind: RouteClass, key: str | None, client_host: str | None) -> Principal | None:
+        """The caller's principal for a route of class ``kind``.
+
+        Raises:
+            UnauthorizedError: missing or unknown key. ForbiddenError: a vehicle key on an operator route.
+        """
+        if kind == "public":
+            return None
+        if key:
+            if _matches(key, (self.operator_key,)):
+                return "operator"
+            if _matches(key, self.vehicle_keys):
+                if kind == "operator":
+                    raise ForbiddenError("a vehicle key cannot register or delete maps; use the operator key")
+                return "vehicle"
+            raise UnauthorizedError("wrong API key in the X-API-Key header")
+        if kind == "vehicle" and self.anonymous_loopback and not self.vehicle_keys and is_loopback(client_host):
+            return "loopback"
+        if kind == "operator":
+            raise UnauthorizedError("this endpoint needs the operator key in the X-API-Key header "
+                                    "(RERADAR_API_KEY, or the generated key in the maps folder's .operator-key)")
+        raise UnauthorizedError("this endpoint needs a vehicle key in the X-API-Key header (RERADAR_VEHICLE_KEYS); "
+                                "without configured vehicle keys it answers only clients on the loopback interface")
+
+
+@dataclass(frozen=True)
+class RequestLimits:
+    """Body size and time limits, and the number of scan / map requests served at once."""
+
+    max_body_bytes: int
+    max_map_body_bytes: int
+    body_idle_timeout_s: float
+    body_timeout_s: float
+    map_upload_timeout_s: float
+    max_concurrent: int
+    retry_after_s: int
+    spool_dir: Path | None = None
+
+    @classmethod
+    def from_settings(cls, s: Settings) -> RequestLimits:
+        return cls(s.max_upload_bytes, s.max_map_upload_bytes, s.body_idle_timeout_s, s.body_timeout_s,
+                   s.map_upload_timeout_s, s.max_concurrent_requests, s.retry_after_s)
+
+
+@dataclass(frozen=True)
+class Guard:
+    """What the request guard needs once the service has started."""
+
+    policy: AccessPolicy
+    limits: RequestLimits
+
+
+def build_guard(settings: Settings, spool_dir: Path | None = None) -> Guard:
+    """The guard of a starting service (resolves, and on first start generates, the operator key)."""
+    policy = AccessPolicy(resolve_operator_key(settings), tuple(settings.vehicle_key_list),
+                          anonymous_loopback=settings.environment != "production")
+    limits = RequestLimits.from_settings(settings)
+    if spool_dir is not None:
+        limits = RequestLimits(**{**limits.__dict__, "spool_dir": spool_dir})
+    return Guard(policy, limits)
