@@ -74,6 +74,7 @@ def _problem_openapi(doc: dict[str, Any]) -> dict[str, Any]:
     for path, ops in doc.get("paths", {}).items():
         for method, op in ops.items():
             kind = route_class(method.upper(), path.replace("{map_id}", "x"))
+            extra: tuple[int, ...]
             if kind == "operator":
                 op["security"] = [{"ApiKey": []}]
                 extra = _OPERATOR_ERRORS

@@ -218,7 +218,7 @@ class RequestGuardMiddleware:
                 return
             spool: IO[bytes] | None = None
             if is_map_upload:
-                spool = tempfile.SpooledTemporaryFile(max_size=_SPOOL_MEMORY_BYTES, dir=limits.spool_dir)  # noqa: SIM115
+                spool = tempfile.SpooledTemporaryFile(max_size=_SPOOL_MEMORY_BYTES, dir=None if limits.spool_dir is None else str(limits.spool_dir))  # noqa: SIM115
             total_s = limits.map_upload_timeout_s if is_map_upload else limits.body_timeout_s
             try:
                 body = await _receive_body(receive, limit, limits.body_idle_timeout_s, total_s, spool)
