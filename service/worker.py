@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import redis
 
+from maps.store import install_file
 from reradar_core.errors import ReRadarError
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
@@ -103,11 +104,15 @@ def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
             last_event[0] = time.monotonic()
             _publish(ctx, "progress", map_id)
 
+    # written inside the job folder, then installed: replicas starting meanwhile clean up temporary map files
+    # of processes they cannot see (other containers), which must not include a build in progress
+    built = job_dir / f"{map_id}.h5"
     try:
-        build_map(registry.path_for(map_id), ctx["extractor"],
+        build_map(built, ctx["extractor"],
                   lambda i: MapRegistry._load_scan(scans[i], spec["preset"]), poses,
                   radar_preset=spec["preset_name"], name=map_id, source=spec["source"],
-                  batch_size=settings.build_batch_size, progress=progress)
+                  batch_size=settings.build_batch_size, progress=progress, overwrite=True)
+        install_file(built, registry.path_for(map_id))
     finally:
         stop.set()
         beater.join(timeout=5)

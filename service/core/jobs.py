@@ -2,7 +2,7 @@
 
 With ``RERADAR_REDIS_URL`` set, ``POST /maps`` with a scan archive no longer builds inside the API process:
 
-1. the API unpacks and checks the archive as before, moves it to ``<maps_dir>/.jobs/<job_id>/`` (the maps
+1. the API unpacks and checks the archive as before, moves it to ``<maps_dir>/.build-queue/<job_id>/`` (the maps
    folder is shared by every replica and worker), writes the job record ``build:<map_id>`` (a Redis hash:
    ``job_id, state, scans_done, scans_total, attempts, error, worker, heartbeat, cancel, ...``) and enqueues
    an arq job; it answers 202;
@@ -61,8 +61,10 @@ def _now() -> str:
 
 
 def jobs_dir(maps_dir: Path) -> Path:
-    """Where queued builds keep their scans: inside the shared maps folder, not cleaned at start-up."""
-    return maps_dir / ".jobs"
+    """Where queued builds keep their scans and write their map before installing it: inside the shared maps
+    folder (same file system: the install is a rename), apart from the single-process build records in
+    ``.jobs`` and from the temporary files replicas clean up at start-up."""
+    return maps_dir / ".build-queue"
 
 
 class BuildQueue:

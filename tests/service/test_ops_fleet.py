@@ -266,7 +266,7 @@ def test_queued_build_survives_worker_kill(fleet: Fleet) -> None:
     assert any(o["op"] == "progress" for o in ops)
     rec = {k.decode(): v.decode() for k, v in fleet.redis().hgetall(f"{NAMESPACE}:v1:build:built").items()}
     assert rec["state"] == "ready" and rec["attempts"] == "2" and rec["worker"].endswith(f":{fleet.pids['worker-2']}")
-    assert not any((fleet.maps_dir / ".jobs").iterdir())  # the job's scans are cleaned up
+    assert not any((fleet.maps_dir / ".build-queue").iterdir())  # the job's scans are cleaned up
     res = fleet.a.post("/localize", data={"map_id": "built"}, files={"scan": ("q.png", _png(105, keyframe_time(5)))})
     assert res.json()["status"] == "localized" and res.json()["keyframe"]["keyframe_id"] == 5
 
@@ -309,4 +309,4 @@ def test_redis_down_503_on_shared_scans_localization_keeps_working(fleet: Fleet)
     assert fleet.a.get("/ui/api/maps/city/localizations").status_code == 503
     queued = fleet.a.post("/maps", data={"map_id": "later"}, files=_archive(3), headers=AUTH)
     assert queued.status_code == 503 and "retry later" in queued.text, queued.text
-    assert fleet.b.get("/maps/later").status_code == 404 and not any((fleet.maps_dir / ".jobs").iterdir())
+    assert fleet.b.get("/maps/later").status_code == 404 and not any((fleet.maps_dir / ".build-queue").iterdir())
