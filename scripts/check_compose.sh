@@ -58,8 +58,13 @@ for name, b in (("api", api), ("worker", worker)):
         errors.append(f"compose: {name} does not use the redis service")
 if "ports:" in api or "container_name" in api:
     errors.append("compose: api must not publish ports or name its container (docker compose --scale api=N)")
-if "target: 8080" not in nginx:
+# Compose v2 renders ports in the long syntax, v1 as host_ip:published:target/protocol strings
+if not re.search(r"target: 8080|:8080/tcp", nginx):
     errors.append("compose: nginx does not publish port 8080")
+if not re.search(r"host_ip: 127\.0\.0\.1|127\.0\.0\.1:[0-9]+:8080", nginx):
+    errors.append("compose: port 8080 must be published on 127.0.0.1 unless RERADAR_BIND says otherwise")
+if re.search(r"RERADAR_API_KEY: reradar-dev-key", rendered):
+    errors.append("compose: no default operator key (replicas share the generated one on the maps volume)")
 if not re.search(r"command:\n\s+- reradar\n\s+- worker\n", worker):
     errors.append("compose: worker does not run `reradar worker`")
 if "--appendonly" not in redis or "volatile-ttl" not in redis:

@@ -7,6 +7,7 @@ import contextlib
 import csv
 import logging
 import math
+import secrets
 import socket
 import tempfile
 import threading
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import uvicorn
+from pydantic import SecretStr
 
 from maps.paths import DEMO_MAP_PATH, DEMO_QUERIES_DIR
 from reradar_core.localization.extractor import FeatureExtractor
@@ -122,7 +124,9 @@ def run_demo(map_path: Path = DEMO_MAP_PATH, queries_dir: Path = DEMO_QUERIES_DI
         maps_dir = Path(tmp) / "maps"
         maps_dir.mkdir()
         (maps_dir / f"{DEMO_MAP_ID}.h5").write_bytes(map_path.read_bytes())
-        settings = Settings(maps_dir=maps_dir, load_demo_map=False, torch_threads=threads)  # model: RERADAR_MODEL
+        # a throw-away operator key: the demo registers nothing, and a generated one would be logged
+        settings = Settings(maps_dir=maps_dir, load_demo_map=False, torch_threads=threads,  # model: RERADAR_MODEL
+                            api_key=SecretStr(secrets.token_urlsafe(24)))
         echo("starting the ReRadar service (uvicorn, loopback) on the demo map ...")
         t_start = time.perf_counter()
         with serve_in_thread(settings) as url, ReRadarClient(url) as client:

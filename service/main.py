@@ -53,10 +53,23 @@ def _error_code(exc: ReRadarError) -> str:
 
 
 #: Error statuses every operation may answer, by route class (documented in the OpenAPI document).
-_VEHICLE_ERRORS = (400, 401, 403, 404, 408, 409, 413, 415, 422, 503)
-_OPERATOR_ERRORS = (400, 401, 403, 404, 408, 409, 413, 415, 422, 503)
-_PUBLIC_ERRORS = (503,)
+_VEHICLE_ERRORS: tuple[int, ...] = (400, 401, 403, 404, 408, 409, 413, 415, 422, 503)
+_OPERATOR_ERRORS: tuple[int, ...] = (400, 401, 403, 404, 408, 409, 413, 415, 422, 503)
+_PUBLIC_ERRORS: tuple[int, ...] = (503,)
 _HTTP_CODES = {404: "not_found", 405: "method_not_allowed", 400: "bad_request", 413: "payload_too_large"}
+
+
+def _leaf_routes(routes: list[Any]) -> list[Route]:
+    """The plain routes, looking inside included routers (FastAPI wraps each ``include_router``)."""
+    out: list[Route] = []
+    for route in routes:
+        if isinstance(route, Route):
+            out.append(route)
+        elif hasattr(route, "original_router"):
+            out.extend(_leaf_routes(route.original_router.routes))
+        elif hasattr(route, "routes"):
+            out.extend(_leaf_routes(route.routes))
+    return out
 
 
 def _problem_openapi(doc: dict[str, Any]) -> dict[str, Any]:
@@ -135,6 +148,9 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
         state = await run_in_threadpool(load)
         app.state.guard = build_guard(cfg, spool_dir=state.registry.staging_dir())
         metrics.set_model(state.extractor.model_id, state.extractor.weights_sha256)  # ops: reradar_model_info
+        if not app.state.guard.policy.vehicle_keys:
+            logger.info("no RERADAR_VEHICLE_KEYS configured: scans, retrieve and localize answer loopback clients "
+                        "only (and callers with the operator key)")
         app.state.reradar = state
         ops.start(state.registry)  # ops: follow other replicas' map changes
         logger.info("ReRadar ready: model %s, %d map(s) in %s", state.extractor.model_id,
@@ -206,8 +222,8 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
         if exc.status_code == 405:
             # Starlette's Allow names the methods of the first route on the path only (GET /maps and POST /maps
             # are two routes): list them all
-            allowed = sorted({m for route in app.routes if isinstance(route, Route)
-                              and route.matches(request.scope)[0] != Match.NONE for m in (route.methods or ())})
+            allowed = sorted({m for route in _leaf_routes(app.routes)
+                              if route.matches(request.scope)[0] != Match.NONE for m in (route.methods or ())})
             headers = {k: v for k, v in headers.items() if k.lower() != "allow"}
             headers["Allow"] = ", ".join(allowed)
             detail = f"{request.method} is not allowed on {request.url.path}; allowed: {headers['Allow']}"

@@ -109,7 +109,7 @@ def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
     built = job_dir / f"{map_id}.h5"
     try:
         build_map(built, ctx["extractor"],
-                  lambda i: MapRegistry._load_scan(scans[i], spec["preset"]), poses,
+                  lambda i: registry._load_scan(scans[i], spec["preset"]), poses,
                   radar_preset=spec["preset_name"], name=map_id, source=spec["source"],
                   batch_size=settings.build_batch_size, progress=progress, overwrite=True)
         install_file(built, registry.path_for(map_id))

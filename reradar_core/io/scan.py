@@ -241,8 +241,10 @@ def read_png_header(data: bytes) -> ScanHeader:
     return ScanHeader("png", (int(height), int(width)), 1, "|u1")
 
 
-def read_npy_header(data: bytes) -> ScanHeader:
+def read_npy_header(data: bytes, size: int | None = None) -> ScanHeader:
     """Shape and dtype from an .npy file's header (numpy's own parser; the header is at most 10 kB).
+
+    ``data`` may be just the file's beginning; ``size`` is then the whole file's length in bytes.
 
     Raises:
         ScanFormatError: not an .npy file, not a 2-D numeric array, Fortran order, or fewer data bytes than the
@@ -270,14 +272,16 @@ def read_npy_header(data: bytes) -> ScanHeader:
     if fortran:
         raise ScanFormatError("polar array must be C-ordered (np.save of a regular array), not Fortran-ordered")
     rows, cols = int(shape[0]), int(shape[1])
-    if rows * cols * dtype.itemsize > len(data) - fp.tell():
+    if rows * cols * dtype.itemsize > (len(data) if size is None else size) - fp.tell():
         raise ScanFormatError(f"upload is not a readable .npy array (header declares {rows} x {cols} "
                               f"{dtype} but the file is shorter: truncated?)")
     return ScanHeader("npy", (rows, cols), int(dtype.itemsize), dtype.str)
 
 
-def scan_header(data: bytes) -> ScanHeader:
+def scan_header(data: bytes, size: int | None = None) -> ScanHeader:
     """The header of an uploaded scan (PNG or .npy, told apart by content, not by file name).
+
+    ``data`` may be just the file's first bytes (64 kB hold any header); ``size`` is then the file's length.
 
     Raises:
         ScanFormatError: a lossy image (JPEG, WebP, ...), another format, or a bad PNG / .npy header.
@@ -286,11 +290,11 @@ def scan_header(data: bytes) -> ScanHeader:
     if kind == "png":
         return read_png_header(data)
     if kind == "npy":
-        return read_npy_header(data)
+        return read_npy_header(data, size)
     if kind in LOSSY_FORMATS:
         raise ScanFormatError(f"{kind.upper()} images are lossy and are not accepted as radar scans: send the "
                               "radar's lossless Navtech PNG or an (A, R) .npy array")
-    what = "empty file" if not data else (kind.upper() if kind != "unknown" else "unrecognised format")
+    what = "empty file" if not data and not size else (kind.upper() if kind != "unknown" else "unrecognised format")
     raise ScanFormatError(f"upload is not a Navtech PNG or .npy array ({what})")
 
 

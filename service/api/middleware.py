@@ -103,6 +103,8 @@ class _Body:
                 more = self.spool.tell() < self.size
             else:
                 data = self.chunks[index] if index < len(self.chunks) else b""
+                if index < len(self.chunks):
+                    self.chunks[index] = b""  # the app holds (or has parsed) it now: do not keep a copy
                 index += 1
                 more = index < len(self.chunks)
             done = not more
@@ -175,6 +177,8 @@ class RequestGuardMiddleware:
         headers = dict(scope.get("headers") or [])
         declared = headers.get(b"content-length")
         no_body = declared in (None, b"0") and b"transfer-encoding" not in headers
+        # a client that waits for "100 Continue" has sent nothing yet: refuse it without asking for the body
+        skip_drain = no_body or headers.get(b"expect", b"").lower() == b"100-continue"
         if kind != "public":
             try:
                 if guard is None:
@@ -183,7 +187,7 @@ class RequestGuardMiddleware:
                 client = scope.get("client")
                 principal = guard.policy.authorize(kind, key, client[0] if client else None)
             except ServiceError as exc:
-                await _drain(receive, no_body)
+                await _drain(receive, skip_drain)
                 await _reply(send, path, exc)
                 return
             scope.setdefault("state", {})["principal"] = principal
@@ -199,14 +203,14 @@ class RequestGuardMiddleware:
                 await _reply(send, path, ServiceError("invalid Content-Length header"))
                 return
             if size > limit:
-                await _drain(receive, False)
+                await _drain(receive, skip_drain)
                 await _reply(send, path, PayloadTooLargeError(
                     f"request body larger than the limit of {limit / 2**20:.1f} MB"))
                 return
         heavy = kind != "public" and method in _BODY_METHODS
         if heavy:
             if self.in_flight >= limits.max_concurrent:
-                await _drain(receive, no_body)
+                await _drain(receive, skip_drain)
                 await _reply(send, path, OverloadedError(
                     f"the server is busy with {limits.max_concurrent} scan / map requests; retry in "
                     f"{limits.retry_after_s} s", retry_after_s=limits.retry_after_s))
@@ -218,7 +222,8 @@ class RequestGuardMiddleware:
                 return
             spool: IO[bytes] | None = None
             if is_map_upload:
-                spool = tempfile.SpooledTemporaryFile(max_size=_SPOOL_MEMORY_BYTES, dir=None if limits.spool_dir is None else str(limits.spool_dir))  # noqa: SIM115
+                spool = tempfile.SpooledTemporaryFile(  # noqa: SIM115 - closed by _Body
+                    max_size=_SPOOL_MEMORY_BYTES, dir=str(limits.spool_dir) if limits.spool_dir else None)
             total_s = limits.map_upload_timeout_s if is_map_upload else limits.body_timeout_s
             try:
                 body = await _receive_body(receive, limit, limits.body_idle_timeout_s, total_s, spool)

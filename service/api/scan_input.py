@@ -19,14 +19,32 @@ from reradar_core.io.scan import LOSSY_FORMATS, NAVTECH_META_COLUMNS, scan_heade
 from service.core.errors import BadRequestError, NotFoundError, PayloadTooLargeError, UnsupportedMediaError
 from service.core.state import MAX_SCAN_SIDE, MIN_SCAN_SIDE, ServiceState
 
-__all__ = ["ScanInput", "read_scan_input", "scan_request_body", "UnsupportedMediaError", "check_scan_upload"]
+__all__ = ["ScanInput", "read_scan_input", "scan_request_body", "UnsupportedMediaError", "check_scan_upload",
+           "read_scan_upload"]
 
 _TOP_K_FORM = re.compile(r"^[0-9]{1,6}$")
 
 
-def check_scan_upload(data: bytes, max_pixels: int) -> str:
+#: Bytes of an upload read to find its header (a PNG's IHDR is in the first 33, an .npy header under 10 kB).
+HEADER_BYTES = 65536
+
+
+async def read_scan_upload(upload: UploadFile, max_pixels: int) -> tuple[bytes, str]:
+    """The bytes of an uploaded scan and the file name to decode them under, after checking its header: only
+    the first ``HEADER_BYTES`` are read before the checks, so a refused file is never held in memory whole."""
+    head = await upload.read(HEADER_BYTES)
+    size = upload.size if upload.size is not None else len(head)
+    filename = check_scan_upload(head, max_pixels, size)
+    await upload.seek(0)
+    data = await upload.read()
+    await upload.close()
+    return data, filename
+
+
+def check_scan_upload(data: bytes, max_pixels: int, size: int | None = None) -> str:
     """Size an uploaded scan from its header, before anything is decoded; returns the file name to decode it
-    under (``scan.png`` / ``scan.npy``: the content decides, not the client's file name).
+    under (``scan.png`` / ``scan.npy``: the content decides, not the client's file name). ``data`` may be the
+    file's beginning only, ``size`` its whole length.
 
     Raises:
         UnsupportedMediaError (415): a lossy image (JPEG, WebP, ...). ScanFormatError (422): not a Navtech PNG
@@ -37,7 +55,7 @@ def check_scan_upload(data: bytes, max_pixels: int) -> str:
     if kind in LOSSY_FORMATS:
         raise UnsupportedMediaError(f"{kind.upper()} images are lossy and are not accepted as radar scans: send "
                                     "the radar's lossless Navtech PNG or an (A, R) .npy array")
-    header = scan_header(data)
+    header = scan_header(data, size)
     rows, cols = header.shape
     bins = cols - NAVTECH_META_COLUMNS if header.format == "png" else cols
     if rows > MAX_SCAN_SIDE or bins > MAX_SCAN_SIDE or header.num_pixels > max_pixels:
@@ -129,9 +147,7 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
             raise RequestValidationError(exc.errors(include_url=False)) from None
         fields = model.model_dump()
         fields.pop("scan_id")
-        data = await upload.read()
-        await upload.close()
-        filename = check_scan_upload(data, state.settings.max_scan_pixels)
+        data, filename = await read_scan_upload(upload, state.settings.max_scan_pixels)
         timings: dict[str, float] = {}
         features, _ = await run_in_threadpool(state.describe_upload, data, filename, preset, timings)
         return ScanInput(features, None, fields, timings)

@@ -5,11 +5,13 @@ Route classes:
 =========  ==========================================================  =====================================
 class      routes                                                      key (``X-API-Key`` header)
 =========  ==========================================================  =====================================
-operator   ``POST /maps``, ``DELETE /maps/{id}``                       the operator key
+operator   ``POST /maps``, ``DELETE /maps/{id}`` (any write under       the operator key
+           ``/maps`` except retrieve)
 vehicle    ``POST /scans``, ``POST /localize``, ``POST /maps/{id}/      a vehicle key or the operator key;
-           retrieve``                                                  none needed from loopback clients when
+           retrieve``, and any other write method on any path          none needed from loopback clients when
                                                                        no vehicle key is configured
-public     health, metrics, ``GET /maps``, ``GET /maps/{id}``, docs     none
+public     ``GET`` / ``HEAD`` / ``OPTIONS``: health, metrics, maps,     none
+           docs
 =========  ==========================================================  =====================================
 """
 
@@ -36,17 +38,15 @@ class ForbiddenError(ServiceError):
 
 
 def route_class(method: str, path: str) -> RouteClass:
-    """The access class of a request (see the module docstring)."""
+    """The access class of a request (see the module docstring). Safe by default: a write method on any
+    path not named here (a route added later, an unknown path) is a vehicle route, never public."""
     p = path.rstrip("/") or "/"
     parts = p.split("/")
-    if method == "POST" and p == "/maps":
-        return "operator"
-    if method == "DELETE" and len(parts) == 3 and parts[1] == "maps":
-        return "operator"
-    if method == "POST" and (p in ("/scans", "/localize")
-                             or (len(parts) == 4 and parts[1] == "maps" and parts[3] == "retrieve")):
-        return "vehicle"
-    return "public"
+    if method in ("GET", "HEAD", "OPTIONS"):
+        return "public"
+    if len(parts) >= 2 and parts[1] == "maps" and not (len(parts) == 4 and parts[3] == "retrieve"):
+        return "operator"  # POST /maps, DELETE /maps/{id}, and any other change to maps
+    return "vehicle"
 
 
 def _matches(key: str, candidates: tuple[str, ...]) -> bool:

@@ -8,7 +8,7 @@ import secrets
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr, model_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from reradar_core.localization.pipeline import LocalizationConfig
@@ -74,7 +74,10 @@ class Settings(BaseSettings):
     maps_dir: Path = Field(default_factory=_default_maps_dir,
                            description="Folder holding the registered maps (<map_id>.h5).")
     load_demo_map: bool = Field(default=True, description="Copy the shipped demo map into maps_dir as map `demo`.")
-    max_upload_mb: float = Field(default=20.0, gt=0, description="Largest scan upload / request body, MB.")
+    max_upload_mb: float = Field(default=8.0, gt=0, description=(
+        "Largest scan upload / request body, MB: a Navtech PNG is ~1.3 MB, a float32 .npy of the largest "
+        "accepted scan 6.4 MB. The guard holds a scan request's body in memory, so this bounds what a junk body "
+        "costs (measured in docs/SERVICE.md); send float64 arrays as float32 or uint8."))
     max_map_upload_mb: float = Field(default=512.0, gt=0, description="Largest map or scan-archive upload, MB.")
     max_archive_scans: int = Field(default=20_000, gt=0, description="Most scans accepted in one scan archive.")
     scan_cache_size: int = Field(default=256, gt=0, description="Uploaded scans whose features are kept.")
@@ -94,9 +97,10 @@ class Settings(BaseSettings):
         "pipeline (measured: network 28 ms with 1 thread vs 0.3-1.9 s with 2 on the loaded 2-core box)."))
     blas_threads: int = Field(default=1, ge=1, description="OpenBLAS threads of numpy, scipy and opencv (1: small products stay fast).")
     build_batch_size: int = Field(default=8, ge=1, description="Scans per network batch when building maps.")
-    max_scan_pixels: int = Field(default=3_100_000, ge=4096, description=(
+    max_scan_pixels: int = Field(default=1_600_000, ge=4096, description=(
         "Largest scan accepted, in pixels (azimuths x columns), read from the PNG / .npy header before "
-        "decoding: about twice an Oxford sweep (400 x 3,779), so one request costs at most ~2x a normal one."))
+        "decoding: 6 % above an Oxford sweep (400 x 3,779 PNG pixels), so no request costs much more memory "
+        "than a normal one (measured in docs/SERVICE.md); raise it for sensors with more range bins."))
     max_concurrent_requests: int = Field(default=4, ge=1, description=(
         "Scan and map requests (POST /scans, /localize, /maps/{id}/retrieve, /maps) in progress at once; "
         "more are answered 503 with Retry-After at once instead of queueing."))
@@ -135,6 +139,14 @@ class Settings(BaseSettings):
             raise ValueError(", ".join(f"{v} is now RERADAR_LOCALIZATION__{v.removeprefix('RERADAR_')}"
                                        for v in stale))
         return self
+
+    @field_validator("api_key", "vehicle_keys", mode="before")
+    @classmethod
+    def _empty_is_unset(cls, value: object) -> object:
+        # compose passes unset variables as empty strings
+        if isinstance(value, str) and not value.strip():
+            return None
+        return value
 
     @model_validator(mode="after")
     def _refuse_unsafe_keys(self) -> Settings:

@@ -31,8 +31,8 @@ from maps.build import build_map
 from maps.database import MapDatabase
 from maps.paths import DEMO_MAP_PATH
 from maps.store import fsync_dir, install_file, open_map, read_metadata, remove_stale_temp_files
-from reradar_core.errors import MapFormatError, ModelMismatchError, ReRadarError
-from reradar_core.io.scan import RadarScan, read_navtech_png, read_polar_npy
+from reradar_core.errors import MapFormatError, ModelMismatchError, ReRadarError, ScanFormatError
+from reradar_core.io.scan import RadarScan, load_scan_bytes, scan_header
 from reradar_core.localization.extractor import FeatureExtractor
 from reradar_core.retrieval import IndexConfig
 from service.core.config import MAP_ID_PATTERN, Settings
@@ -323,12 +323,16 @@ class MapRegistry:
         self._executor.submit(job)
         return entry
 
-    @staticmethod
-    def _load_scan(path: Path, preset: str | None) -> RadarScan:
+    def _load_scan(self, path: Path, preset: str | None) -> RadarScan:
+        """One archive scan, sized from its header before decoding (the same budget as uploaded scans)."""
         try:
-            if path.suffix == ".npy":
-                return read_polar_npy(path, preset or "oxford")
-            return read_navtech_png(path, preset)
+            data = path.read_bytes()
+            header = scan_header(data)
+            if header.num_pixels > self.settings.max_scan_pixels or max(header.shape) > 8192 + 11:
+                raise ScanFormatError(
+                    f"scan declares {header.shape[0]} x {header.shape[1]} pixels; at most "
+                    f"{self.settings.max_scan_pixels:,} pixels are accepted (RERADAR_MAX_SCAN_PIXELS)")
+            return load_scan_bytes(data, f"scan.{header.format}", preset)
         except ReRadarError as exc:
             raise type(exc)(f"{path.name}: {exc}") from exc
 

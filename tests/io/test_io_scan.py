@@ -16,7 +16,11 @@ from reradar_core.io.scan import (
     load_scan,
     load_scan_bytes,
     read_navtech_png,
+    read_npy_header,
+    read_png_header,
     read_polar_npy,
+    scan_header,
+    sniff_scan_format,
     write_navtech_png,
 )
 
@@ -168,3 +172,62 @@ def test_missing_and_unsupported_files(tmp_path):
         load_scan_bytes(b"not numpy", "scan.npy")
     with pytest.raises(ScanFormatError, match=r"\[0, 1\]"):
         read_polar_npy(array=np.full((400, 3768), 2.0, dtype=np.float32))
+
+
+def _npy_bytes(arr: np.ndarray) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, arr)
+    return buf.getvalue()
+
+
+def test_png_header_gives_shape_without_decoding():
+    data = encode_navtech_png_bytes(_quantised_scan())
+    header = read_png_header(data)
+    assert header.format == "png" and header.shape == (N_AZ, NAVTECH_META_COLUMNS + N_BINS)
+    assert header.itemsize == 1 and header.decoded_bytes == N_AZ * (NAVTECH_META_COLUMNS + N_BINS)
+    assert scan_header(data[:64], size=len(data)) == header  # the first bytes are enough
+    ok, deep = cv2.imencode(".png", np.zeros((8, 40), np.uint16))
+    with pytest.raises(ScanFormatError, match="16-bit"):
+        read_png_header(deep.tobytes())
+    ok, rgb = cv2.imencode(".png", np.zeros((8, 40, 3), np.uint8))
+    with pytest.raises(ScanFormatError, match="colour"):
+        read_png_header(rgb.tobytes())
+    with pytest.raises(ScanFormatError, match="truncated"):
+        read_png_header(data[:20])
+    with pytest.raises(ScanFormatError, match="no PNG signature"):
+        read_png_header(b"GIF89a" + data[6:])
+
+
+def test_npy_header_gives_shape_and_refuses_lies():
+    arr = np.zeros((400, 3768), np.float32)
+    data = _npy_bytes(arr)
+    header = read_npy_header(data)
+    assert header.shape == (400, 3768) and header.itemsize == 4 and header.dtype == "<f4"
+    assert scan_header(data[:200], size=len(data)).shape == (400, 3768)
+    with pytest.raises(ScanFormatError, match="shorter"):
+        read_npy_header(data[: len(data) // 2])  # header says more data than the file holds
+    with pytest.raises(ScanFormatError, match="2-D"):
+        read_npy_header(_npy_bytes(np.zeros((2, 3, 4), np.uint8)))
+    with pytest.raises(ScanFormatError, match="numeric"):
+        read_npy_header(_npy_bytes(np.array([["a", "b"]])))
+    with pytest.raises(ScanFormatError, match="C-ordered"):
+        read_npy_header(_npy_bytes(np.asfortranarray(np.zeros((70, 80), np.uint8))))
+    with pytest.raises(ScanFormatError, match="not a readable .npy"):
+        read_npy_header(b"\x93NUMPY\x01\x00\xff\xff garbage")
+
+
+def test_lossy_and_unknown_formats_are_named():
+    ok, jpg = cv2.imencode(".jpg", np.zeros((64, 64), np.uint8))
+    assert sniff_scan_format(jpg.tobytes()) == "jpeg"
+    assert sniff_scan_format(b"RIFF\x00\x00\x00\x00WEBPVP8 ") == "webp"
+    assert sniff_scan_format(encode_navtech_png_bytes(_quantised_scan())) == "png"
+    with pytest.raises(ScanFormatError, match="JPEG images are lossy"):
+        scan_header(jpg.tobytes())
+    with pytest.raises(ScanFormatError, match="unrecognised"):
+        scan_header(b"hello world")
+    with pytest.raises(ScanFormatError, match="empty"):
+        scan_header(b"")
+    with pytest.raises(ScanFormatError, match="corrupt or truncated"):
+        decode_navtech_png_bytes(jpg.tobytes())  # OpenCV would decode it: the PNG signature is required

@@ -171,3 +171,13 @@ def test_demo_map_installed_and_refreshed_after_weight_change(tmp_path: Path, mo
     entry = registry.get("demo")
     assert entry.state == "failed" and "rebuild the map" in (entry.error or "")
     registry.close()
+
+
+def test_unset_keys_from_compose_and_loopback_binding(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv("RERADAR_API_KEY", "")  # compose passes unset variables as empty strings
+    monkeypatch.setenv("RERADAR_VEHICLE_KEYS", " ")
+    s = Settings(maps_dir=tmp_path)
+    assert s.api_key is None and s.vehicle_key_list == []
+    compose = (Path(__file__).resolve().parents[2] / "docker" / "compose.yaml").read_text()
+    assert "${RERADAR_BIND:-127.0.0.1}:${RERADAR_PORT:-8080}:8080" in compose
+    assert DEV_API_KEY not in compose and 'RERADAR_API_KEY: "${RERADAR_API_KEY:-}"' in compose

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from service_test_fakes import API_KEY, FakeExtractor, keyframe_poses, keyframe_time, make_scan  # noqa: E402
 
 SEED = 20261130
-EXAMPLES_PER_OPERATION = 300
+EXAMPLES_PER_OPERATION = 350
 MIN_REQUESTS = 2000
 
 _maps_dir = Path(tempfile.mkdtemp(prefix="reradar-fuzz-")) / "maps"
@@ -77,6 +77,7 @@ def test_fuzz_run_was_large_enough() -> None:
     if not _requests:
         pytest.skip("run together with test_api_conforms_and_never_5xx")
     total = _http_requests[0] - 1  # minus the request for /openapi.json
+    print(f"schemathesis: {total} requests over {len(_requests)} method x path pairs")  # shown with -s
     assert total >= MIN_REQUESTS, f"only {total} fuzzed requests: {_requests}"
     documented = {f"{m.upper()} {p}" for p, ops in service_app.openapi()["paths"].items() for m in ops}
     assert documented <= set(_requests), f"operations not fuzzed: {documented - set(_requests)}"

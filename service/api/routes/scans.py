@@ -8,7 +8,7 @@ from fastapi import APIRouter, File, Form, UploadFile, status
 from starlette.concurrency import run_in_threadpool
 
 from service.api.deps import StateDep
-from service.api.scan_input import check_scan_upload
+from service.api.scan_input import read_scan_upload
 from service.api.schemas import ErrorResponse, ScanInfo
 from service.core.errors import BadRequestError
 
@@ -29,9 +29,7 @@ async def upload_scan(
 
     if preset is not None and preset.lower() not in PRESETS:
         raise BadRequestError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
-    data = await scan.read()
-    await scan.close()
-    filename = check_scan_upload(data, state.settings.max_scan_pixels)
+    data, filename = await read_scan_upload(scan, state.settings.max_scan_pixels)
     timings: dict[str, float] = {}
     features, scan_preset = await run_in_threadpool(state.describe_upload, data, filename, preset, timings)
     state.metrics.observe_stages(timings)
