@@ -31,6 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("service.cli", "Run the HTTP service (settings from RERADAR_* environment variables)."),
     "localize": ("service.cli", "Localize one scan (or replay a drive with --follow) with a running service."),
     "demo": ("service.cli", "Serve the demo map on localhost, localize the demo queries over HTTP, print errors."),
+    "worker": ("service.worker", "Run a map-build worker: queued builds from Redis (needs RERADAR_REDIS_URL)."),
 }
 
 

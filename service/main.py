@@ -22,7 +22,9 @@ from starlette.routing import Match, Route
 from reradar_core.errors import ModelMismatchError, ReRadarError
 from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
 from service.api.middleware import MetricsMiddleware, RequestGuardMiddleware
+from service.api.ops_middleware import OpsMiddleware
 from service.api.routes import health, localize, maps, scans
+from service.api.routes.ui import install_ui
 from service.api.security import RequestLimits, build_guard, route_class
 from service.core.blas import limit_blas_threads
 from service.core.config import Settings
@@ -35,8 +37,7 @@ from service.core.errors import (
 )
 from service.core.logs import configure_logging
 from service.core.metrics import Metrics
-from service.core.registry import MapRegistry
-from service.core.scan_cache import ScanCache
+from service.core.shared_state import OpsRuntime
 from service.core.state import ServiceState
 
 __all__ = ["create_app", "app"]
@@ -129,6 +130,8 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
         cfg = settings or Settings()
         app.state.settings = cfg
         configure_logging(cfg.log_level, cfg.log_format)  # ops: one log format
+        ops = OpsRuntime(cfg)  # ops: shared state (Redis) or in-process
+        app.state.ops = ops
 
         def load() -> ServiceState:
             import torch
@@ -136,11 +139,11 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
             torch.set_num_threads(cfg.torch_threads)
             limit_blas_threads(cfg.blas_threads)
             ext = extractor or load_default_extractor(cfg.model)
-            registry = MapRegistry(cfg, ext)
+            registry = ops.make_registry(ext)  # ops: queued builds with Redis
             if cfg.load_demo_map:
                 registry.install_demo_map()
             registry.load_all()
-            return ServiceState(cfg, ext, registry, ScanCache(cfg.scan_cache_size, cfg.scan_cache_ttl_s), metrics)
+            return ServiceState(cfg, ext, registry, ops.scan_store(), metrics)  # ops: Redis scan store
 
         state = await run_in_threadpool(load)
         app.state.guard = build_guard(cfg, spool_dir=state.registry.staging_dir())
@@ -149,6 +152,7 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
             logger.info("no RERADAR_VEHICLE_KEYS configured: scans, retrieve and localize answer loopback clients "
                         "only (and callers with the operator key)")
         app.state.reradar = state
+        ops.start(state.registry)  # ops: follow other replicas' map changes
         logger.info("ReRadar ready: model %s, %d map(s) in %s", state.extractor.model_id,
                     state.registry.num_ready, cfg.maps_dir)
         try:
@@ -156,6 +160,7 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
         finally:
             app.state.reradar = None
             app.state.guard = None
+            ops.close()
             state.registry.close()
 
     app = FastAPI(
@@ -171,6 +176,8 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
             "(`ErrorResponse`)."
         ),
         lifespan=lifespan,
+        docs_url=None,  # ops: /docs and /redoc are served offline by service.api.routes.ui
+        redoc_url=None,
     )
     app.state.reradar = None
     app.state.guard = None
@@ -181,6 +188,7 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
 
     app.add_middleware(RequestGuardMiddleware, get_guard=lambda: app.state.guard, default_limits=default_limits)
     app.add_middleware(MetricsMiddleware, metrics=metrics)
+    app.add_middleware(OpsMiddleware)  # ops: recent localizations, map events to other replicas
 
     def problem(request: Request, status: int, code: str, detail: str, headers: dict[str, str] | None = None,
                 errors: list[dict[str, Any]] | None = None) -> Response:
@@ -230,6 +238,7 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
 
     for module in (health, maps, scans, localize):
         app.include_router(module.router)
+    install_ui(app)  # ops: operator page at /, offline /docs
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:

@@ -352,6 +352,43 @@ class MapRegistry:
 
     def close(self) -> None:
         self._executor.shutdown(wait=True, cancel_futures=True)
+
+    # ---- shared maps folder (several replicas; service.core.shared_state) ----------------------------------
+    def adopt(self, map_id: str) -> MapEntry | None:
+        """Load ``<maps_dir>/<map_id>.h5`` written by another process, unless this registry knows the id.
+
+        Returns the new entry (``ready``, or ``failed`` with the reason), or None when nothing was done.
+        """
+        path = self.path_for(map_id)
+        with self._lock:
+            if map_id in self._entries or not path.is_file():
+                return None
+        entry = MapEntry(map_id, path, "failed")
+        try:
+            entry.db = self._open(path)
+            entry.state = "ready"
+            entry.scans_total = entry.scans_done = len(entry.db)
+        except (MapFormatError, ModelMismatchError, OSError) as exc:
+            entry.error = str(exc)
+        with self._lock:
+            if map_id in self._entries:  # registered here meanwhile
+                if entry.db is not None:
+                    entry.db.close()
+                return None
+            self._entries[map_id] = entry
+        return entry
+
+    def forget(self, map_id: str) -> MapEntry | None:
+        """Drop ``map_id`` from this registry without touching its file (another process deleted it).
+
+        Its database is closed after a grace period so requests using it can finish."""
+        with self._lock:
+            entry = self._entries.pop(map_id, None)
+        if entry is not None and entry.db is not None:
+            closer = threading.Timer(30.0, entry.db.close)
+            closer.daemon = True
+            closer.start()
+        return entry
         with self._lock:
             for entry in self._entries.values():
                 if entry.db is not None:

@@ -87,3 +87,46 @@ def test_configure_logging_replaces_its_own_handler_not_others() -> None:
     configure_logging("WARNING", "text")
     ours = [h for h in root.handlers if type(h).__name__ == "_OurHandler"]
     assert len(ours) == 1 and other in root.handlers and root.level == logging.WARNING
+
+
+def test_features_encoding_round_trip_is_exact_and_pickle_free() -> None:
+    import numpy as np
+
+    from reradar_core.features import ScanFeatures
+    from service.core.shared_state import decode_features, encode_features
+
+    rng = np.random.default_rng(0)
+    g = rng.normal(size=256).astype(np.float32)
+    f = ScanFeatures(g / np.linalg.norm(g), rng.normal(size=(512, 2)) * 50, rng.normal(size=(512, 16)), 123456789)
+    blob = encode_features(f, "boreas")
+    assert len(blob) < 24_000  # what docs/OPERATIONS.md sizes Redis with
+    back, preset = decode_features(blob)
+    assert preset == "boreas" and back.timestamp_us == 123456789
+    for name in ("global_descriptor", "keypoints_xy_m", "local_descriptors"):
+        a, b = getattr(f, name), getattr(back, name)
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    assert decode_features(encode_features(f, None))[1] is None
+    with np.load(io.BytesIO(blob), allow_pickle=False) as z:  # loads without pickle
+        assert set(z.files) == {"global_descriptor", "keypoints_xy_m", "local_descriptors", "timestamp_us", "preset"}
+
+
+def test_trajectory_subsample_keeps_ends_and_bound() -> None:
+    import numpy as np
+
+    from service.api.routes.ui import trajectory_points
+
+    assert trajectory_points(np.zeros((7, 3)), max_points=10).tolist() == list(range(7))
+    idx = trajectory_points(np.zeros((100_001, 3)), max_points=5000)
+    assert len(idx) == 5000 and idx[0] == 0 and idx[-1] == 100_000 and np.all(np.diff(idx) > 0)
+
+
+def test_recent_localizations_in_memory_newest_first_and_bounded() -> None:
+    from service.core.shared_state import RecentLocalizations
+
+    recent = RecentLocalizations(capacity=3)
+    for i in range(5):
+        recent.add("m", {"i": i})
+    assert [r["i"] for r in recent.latest("m", 10)] == [4, 3, 2]
+    assert recent.latest("m", 1) == [{"i": 4}] and recent.latest("other", 5) == []
+    recent.drop("m")
+    assert recent.latest("m", 5) == []

@@ -1,0 +1,374 @@
+"""State shared by every replica of the service, on Redis (optional: one process keeps it in memory).
+
+What lives in Redis (keys ``<namespace>:v1:...``; ``v1`` changes when a value's encoding does):
+
+| key | type | what |
+| --- | --- | --- |
+| ``scan:<scan_id>`` | string, TTL ``scan_cache_ttl_s`` | features of an uploaded scan (``encode_features``) |
+| ``recent:<map_id>`` | list, newest first, capped | the latest localizations on a map (JSON) |
+| ``maps:events`` | pub/sub channel | ``{"op", "map_id", "origin"}`` when a map is registered, built or deleted |
+| ``build:<map_id>``, ``builds``, ``queue`` | hash, set, arq queue | map build jobs (``service.core.jobs``) |
+
+Every replica listens on ``maps:events`` and reconciles its registry with the shared maps folder: a map file
+that appeared is loaded, a map whose file is gone is dropped (within a second of the event; a full re-check
+every ``map_sync_interval_s`` catches missed events). Redis down: uploading or using a ``scan_id`` answers
+503, everything else - localizing inline scans on the maps already loaded - keeps working.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import os
+import socket
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, cast
+
+import numpy as np
+import redis
+
+from reradar_core.features import ScanFeatures
+from service.core.config import Settings
+from service.core.errors import ServiceError
+from service.core.registry import MapRegistry
+from service.core.scan_cache import CachedScan, ScanCache, new_scan_id
+
+__all__ = ["Keys", "SharedStateUnavailableError", "RedisScanStore", "RecentLocalizations", "MapSync",
+           "OpsRuntime", "encode_features", "decode_features", "replica_id"]
+
+logger = logging.getLogger(__name__)
+
+#: Version of the key layout and value encodings; bump it when either changes.
+SCHEMA_VERSION = "v1"
+
+
+def replica_id() -> str:
+    """This process' name in events and records: ``<hostname>:<pid>``."""
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+class SharedStateUnavailableError(ServiceError):
+    status_code = 503
+    code = "shared_state_unavailable"
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Redis key names of one deployment (``namespace``) and schema version."""
+
+    namespace: str = "reradar"
+
+    @property
+    def prefix(self) -> str:
+        return f"{self.namespace}:{SCHEMA_VERSION}"
+
+    def scan(self, scan_id: str) -> str:
+        return f"{self.prefix}:scan:{scan_id}"
+
+    def recent(self, map_id: str) -> str:
+        return f"{self.prefix}:recent:{map_id}"
+
+    @property
+    def map_events(self) -> str:
+        return f"{self.prefix}:maps:events"
+
+    def build(self, map_id: str) -> str:
+        return f"{self.prefix}:build:{map_id}"
+
+    @property
+    def builds(self) -> str:
+        return f"{self.prefix}:builds"
+
+    @property
+    def queue(self) -> str:
+        return f"{self.prefix}:queue"
+
+
+def connect(url: str) -> redis.Redis:
+    """A Redis client with short timeouts: a dead Redis must answer 503 quickly, not hang requests."""
+    return redis.Redis.from_url(url, socket_timeout=2.0, socket_connect_timeout=2.0, health_check_interval=15)
+
+
+# ---- uploaded scans --------------------------------------------------------------------------------------
+def encode_features(features: ScanFeatures, preset: str | None) -> bytes:
+    """``ScanFeatures`` + preset as an ``.npz`` blob (no pickle): ~90 KB for 1200 keypoints x 32 float16."""
+    buf = io.BytesIO()
+    np.savez(buf, global_descriptor=features.global_descriptor, keypoints_xy_m=features.keypoints_xy_m,
+             local_descriptors=features.local_descriptors, timestamp_us=np.int64(features.timestamp_us),
+             preset=np.array(preset or ""))
+    return buf.getvalue()
+
+
+def decode_features(blob: bytes) -> tuple[ScanFeatures, str | None]:
+    """Inverse of ``encode_features``."""
+    with np.load(io.BytesIO(blob), allow_pickle=False) as z:
+        features = ScanFeatures(z["global_descriptor"], z["keypoints_xy_m"], z["local_descriptors"],
+                                int(z["timestamp_us"]))
+        preset = str(z["preset"]) or None
+    return features, preset
+
+
+class RedisScanStore(ScanCache):
+    """Uploaded scans' features in Redis, seen by every replica; each expires ``ttl_s`` after upload.
+
+    Redis bounds memory with its own ``maxmemory`` policy (compose: ``volatile-ttl``), so there is no entry
+    bound here. ``len()`` is 0: this process holds no scans.
+    """
+
+    def __init__(self, client: redis.Redis, keys: Keys, ttl_s: float) -> None:
+        super().__init__(max_entries=1, ttl_s=ttl_s)
+        self._redis = client
+        self._keys = keys
+
+    def put(self, features: ScanFeatures, preset: str | None) -> CachedScan:
+        entry = CachedScan(new_scan_id(), features, preset, time.monotonic() + self.ttl_s)
+        try:
+            self._redis.set(self._keys.scan(entry.scan_id), encode_features(features, preset),
+                            px=int(self.ttl_s * 1000))
+        except redis.RedisError as exc:
+            raise SharedStateUnavailableError(
+                "the shared scan store (Redis) is unavailable, so the scan was not stored; send the scan "
+                "inline (multipart) to POST /localize instead, or retry later") from exc
+        return entry
+
+    def get(self, scan_id: str) -> CachedScan | None:
+        try:
+            pipe = self._redis.pipeline()
+            pipe.get(self._keys.scan(scan_id))
+            pipe.pttl(self._keys.scan(scan_id))
+            blob, ttl_ms = pipe.execute()
+        except redis.RedisError as exc:
+            raise SharedStateUnavailableError(
+                "the shared scan store (Redis) is unavailable, so scan_id cannot be resolved; send the scan "
+                "inline (multipart) instead, or retry later") from exc
+        if blob is None:
+            return None
+        features, preset = decode_features(blob)
+        return CachedScan(scan_id, features, preset, time.monotonic() + max(ttl_ms, 0) / 1e3)
+
+    def __len__(self) -> int:
+        return 0
+
+
+# ---- recent localizations ---------------------------------------------------------------------------------
+class RecentLocalizations:
+    """The latest localizations per map, newest first: in Redis when given a client, else in memory.
+
+    Records are JSON-able dicts (``service.api.ops_middleware`` writes them). Failures to write are logged
+    and dropped: the operator page must never break localization.
+    """
+
+    def __init__(self, capacity: int, client: redis.Redis | None = None, keys: Keys | None = None) -> None:
+        self.capacity = capacity
+        self._redis = client
+        self._keys = keys or Keys()
+        self._local: dict[str, deque[dict[str, Any]]] = {}
+        self._lock = threading.Lock()
+
+    def add(self, map_id: str, record: dict[str, Any]) -> None:
+        if self._redis is not None:
+            try:
+                pipe = self._redis.pipeline()
+                pipe.lpush(self._keys.recent(map_id), json.dumps(record))
+                pipe.ltrim(self._keys.recent(map_id), 0, self.capacity - 1)
+                pipe.execute()
+            except redis.RedisError as exc:
+                logger.warning("recent localization not recorded (Redis: %s)", exc)
+            return
+        with self._lock:
+            self._local.setdefault(map_id, deque(maxlen=self.capacity)).appendleft(record)
+
+    def latest(self, map_id: str, limit: int) -> list[dict[str, Any]]:
+        """Up to ``limit`` records of ``map_id``, newest first.
+
+        Raises:
+            SharedStateUnavailableError: Redis is configured but down.
+        """
+        limit = max(0, min(limit, self.capacity))
+        if self._redis is not None:
+            try:
+                raw = cast(list[bytes], self._redis.lrange(self._keys.recent(map_id), 0, limit - 1))
+            except redis.RedisError as exc:
+                raise SharedStateUnavailableError(
+                    "recent localizations live in Redis, which is unavailable; retry later") from exc
+            return [json.loads(r) for r in raw]
+        with self._lock:
+            return list(self._local.get(map_id, ()))[:limit]
+
+    def drop(self, map_id: str) -> None:
+        if self._redis is not None:
+            try:
+                self._redis.delete(self._keys.recent(map_id))
+            except redis.RedisError:
+                pass
+            return
+        with self._lock:
+            self._local.pop(map_id, None)
+
+
+# ---- map registry events -------------------------------------------------------------------------------------
+class MapSync:
+    """Keeps this replica's registry in step with the shared maps folder, driven by Redis events.
+
+    A background thread listens on ``maps:events``; on any event, and every ``interval_s`` regardless, it
+    reconciles: a map file without a registry entry is loaded (``MapRegistry.adopt``), a ready or failed
+    entry whose file is gone is dropped (``MapRegistry.forget``). ``extra_reconcile`` (the build jobs' view)
+    runs after each pass.
+    """
+
+    def __init__(self, client: redis.Redis, keys: Keys, registry: MapRegistry, interval_s: float,
+                 origin: str, extra_reconcile: Callable[[], None] | None = None) -> None:
+        self._redis = client
+        self._keys = keys
+        self._registry = registry
+        self._interval_s = interval_s
+        self._origin = origin
+        self._extra = extra_reconcile
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="map-sync", daemon=True)
+        self.passes = 0
+
+    def publish(self, op: str, map_id: str) -> None:
+        """Tell every replica that ``map_id`` was registered, built, failed or deleted (best effort)."""
+        try:
+            self._redis.publish(self._keys.map_events,
+                                json.dumps({"op": op, "map_id": map_id, "origin": self._origin}))
+        except redis.RedisError as exc:
+            logger.warning("map event %s %s not published (Redis: %s); replicas catch up within %.0f s",
+                           op, map_id, exc, self._interval_s)
+
+    def reconcile(self) -> None:
+        registry = self._registry
+        on_disk = {p.stem for p in registry.maps_dir.glob("*.h5") if _valid_id(registry, p.stem)}
+        known = {e.map_id: e for e in registry.entries()}
+        for map_id in sorted(on_disk - known.keys()):
+            entry = registry.adopt(map_id)
+            if entry is not None:
+                logger.info("map %s loaded from the shared maps folder (%s)", map_id, entry.state,
+                            extra={"map_id": map_id})
+        for map_id, entry in known.items():
+            if entry.state != "building" and map_id not in on_disk and not entry.path.exists():
+                registry.forget(map_id)
+                logger.info("map %s dropped: deleted by another replica", map_id, extra={"map_id": map_id})
+        if self._extra is not None:
+            self._extra()
+        self.passes += 1
+
+    def _run(self) -> None:
+        pubsub = None
+        last_full = 0.0
+        while not self._stop.is_set():
+            try:
+                if pubsub is None:
+                    pubsub = self._redis.pubsub(ignore_subscribe_messages=True)
+                    pubsub.subscribe(self._keys.map_events)
+                    last_full = 0.0  # events may have been missed while unsubscribed
+                message = pubsub.get_message(timeout=0.25)
+                now = time.monotonic()
+                if message is not None or now - last_full >= self._interval_s:
+                    # drain a burst of events into one pass
+                    while message is not None:
+                        message = pubsub.get_message(timeout=0.0)
+                    self.reconcile()
+                    last_full = now
+            except redis.RedisError as exc:
+                logger.warning("map sync: Redis unavailable (%s); retrying", exc)
+                if pubsub is not None:
+                    try:
+                        pubsub.close()
+                    except redis.RedisError:
+                        pass
+                pubsub = None
+                self._stop.wait(1.0)
+                try:
+                    self.reconcile()  # the shared folder still works without Redis
+                except Exception:  # noqa: BLE001 - never let the sync thread die
+                    logger.exception("map sync pass failed")
+            except Exception:  # noqa: BLE001 - never let the sync thread die
+                logger.exception("map sync pass failed")
+                self._stop.wait(1.0)
+        if pubsub is not None:
+            try:
+                pubsub.close()
+            except redis.RedisError:
+                pass
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+
+def _valid_id(registry: MapRegistry, map_id: str) -> bool:
+    try:
+        registry.validate_id(map_id)
+    except ServiceError:
+        return False
+    return True
+
+
+# ---- everything together, per process -------------------------------------------------------------------------
+class OpsRuntime:
+    """The shared-state side of one service process: Redis client (or none), scan store, recent
+    localizations, map sync and (with Redis) the build queue. Created in the app's lifespan."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.keys = Keys(settings.redis_namespace)
+        self.origin = replica_id()
+        self.redis: redis.Redis | None = connect(settings.redis_url) if settings.redis_url else None
+        self.recent = RecentLocalizations(settings.recent_localizations, self.redis, self.keys)
+        self.sync: MapSync | None = None
+        self.jobs: Any = None  # service.core.jobs.BuildQueue with Redis
+
+    def scan_store(self) -> ScanCache:
+        s = self.settings
+        if self.redis is None:
+            return ScanCache(s.scan_cache_size, s.scan_cache_ttl_s)
+        return RedisScanStore(self.redis, self.keys, s.scan_cache_ttl_s)
+
+    def make_registry(self, extractor: Any) -> MapRegistry:
+        """A plain registry in one process; with Redis, one whose archive builds go to the job queue."""
+        if self.redis is None:
+            return MapRegistry(self.settings, extractor)
+        from service.core.jobs import BuildQueue, QueuedMapRegistry
+
+        self.jobs = BuildQueue(self.redis, self.keys, self.settings)
+        return QueuedMapRegistry(self.settings, extractor, self.jobs, publish=self.publish)
+
+    def publish(self, op: str, map_id: str) -> None:
+        if self.sync is not None:
+            self.sync.publish(op, map_id)
+
+    def start(self, registry: MapRegistry) -> None:
+        """Start following other replicas' map changes (Redis only)."""
+        if self.redis is None:
+            return
+        extra = None
+        if self.jobs is not None and hasattr(registry, "reconcile_builds"):
+            extra = registry.reconcile_builds
+        self.sync = MapSync(self.redis, self.keys, registry, self.settings.map_sync_interval_s, self.origin,
+                            extra_reconcile=extra)
+        self.sync.start()
+
+    def redis_ok(self) -> bool | None:
+        """None without Redis; else whether it answers a PING."""
+        if self.redis is None:
+            return None
+        try:
+            return bool(self.redis.ping())
+        except redis.RedisError:
+            return False
+
+    def close(self) -> None:
+        if self.sync is not None:
+            self.sync.stop()
+        if self.redis is not None:
+            self.redis.close()

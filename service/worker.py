@@ -1,0 +1,270 @@
+"""``reradar worker``: runs queued map builds (``service.core.jobs``) from the shared Redis.
+
+One worker builds one map at a time (the network uses the CPU cores); run more workers for more parallel
+builds. Each worker also watches the job records: a build whose worker stopped sending heartbeats (killed,
+machine lost) is released so that a live worker runs it again.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import shutil
+import socket
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import redis
+
+from maps.store import install_file
+from reradar_core.errors import ReRadarError
+from reradar_core.localization.extractor import FeatureExtractor
+from service.core.config import Settings
+from service.core.jobs import ARQ_IN_PROGRESS_PREFIX, JOB_FUNCTION, BuildQueue, jobs_dir
+from service.core.logs import configure_logging
+from service.core.registry import MapRegistry
+from service.core.shared_state import Keys, connect, replica_id
+
+__all__ = ["run_worker", "build_map_job", "BuildCancelledError", "register"]
+
+logger = logging.getLogger("service.worker")
+
+#: Seconds between a running build's heartbeats.
+HEARTBEAT_S = 2.0
+#: Seconds between the worker's own health records (``reradar worker --check`` reads them).
+HEALTH_S = 10.0
+
+
+def health_key(keys: Keys) -> str:
+    """This worker's health record: ``<namespace>:v1:worker-health:<hostname>`` (one worker per container)."""
+    return f"{keys.prefix}:worker-health:{socket.gethostname()}"
+
+
+class BuildCancelledError(Exception):
+    """The job record asks this build to stop."""
+
+
+class BuildGaveUpError(Exception):
+    """The build was attempted ``build_max_tries`` times (crashed workers count)."""
+
+
+def _publish(ctx: dict[str, Any], op: str, map_id: str) -> None:
+    try:
+        ctx["sync_redis"].publish(ctx["keys"].map_events, json.dumps({"op": op, "map_id": map_id, "origin": ctx["origin"]}))
+    except redis.RedisError as exc:
+        logger.warning("map event %s %s not published: %s", op, map_id, exc)
+
+
+def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
+    """The blocking part of a build job (runs in a thread). Returns the final state."""
+    from maps.build import build_map
+
+    settings: Settings = ctx["settings"]
+    queue: BuildQueue = ctx["queue"]
+    registry: MapRegistry = ctx["registry"]
+    job_dir = jobs_dir(registry.maps_dir) / job_id
+    rec = queue.record(map_id)
+    if rec.get("job_id") != job_id:
+        logger.warning("job %s: record of map %s belongs to job %s; dropping", job_id, map_id, rec.get("job_id"))
+        shutil.rmtree(job_dir, ignore_errors=True)
+        return "superseded"
+    if rec.get("cancel") == "1":
+        raise BuildCancelledError
+    spec = json.loads((job_dir / "spec.json").read_text())
+    poses = np.load(job_dir / "poses.npy")
+    scans = [job_dir / "work" / rel for rel in spec["scans"]]
+    attempts = int(queue.redis.hincrby(queue.keys.build(map_id), "attempts", 1))  # type: ignore[arg-type]
+    if attempts > settings.build_max_tries:
+        raise BuildGaveUpError(f"gave up after {attempts - 1} attempts ({rec.get('error') or 'worker lost'})")
+    queue.update(map_id, state="running", worker=ctx["origin"], heartbeat=time.time(), scans_done=0)
+    logger.info("map %s: building job %s, attempt %d, %d scans", map_id, job_id, attempts, len(scans),
+                extra={"map_id": map_id, "job_id": job_id})
+    stop = threading.Event()
+
+    def beat() -> None:
+        while not stop.wait(HEARTBEAT_S):
+            try:
+                queue.update(map_id, heartbeat=time.time())
+            except redis.RedisError as exc:
+                logger.warning("heartbeat of %s failed: %s", map_id, exc)
+
+    beater = threading.Thread(target=beat, daemon=True, name=f"heartbeat-{map_id}")
+    beater.start()
+    last_event = [0.0]
+
+    def progress(done: int, total: int) -> None:
+        queue.update(map_id, scans_done=done, heartbeat=time.time())
+        if queue.record(map_id).get("cancel") == "1":
+            raise BuildCancelledError
+        if time.monotonic() - last_event[0] >= 1.0:  # replicas refresh their progress view on events
+            last_event[0] = time.monotonic()
+            _publish(ctx, "progress", map_id)
+
+    # written inside the job folder, then installed: replicas starting meanwhile clean up temporary map files
+    # of processes they cannot see (other containers), which must not include a build in progress
+    built = job_dir / f"{map_id}.h5"
+    try:
+        build_map(built, ctx["extractor"],
+                  lambda i: registry._load_scan(scans[i], spec["preset"]), poses,
+                  radar_preset=spec["preset_name"], name=map_id, source=spec["source"],
+                  batch_size=settings.build_batch_size, progress=progress, overwrite=True)
+        install_file(built, registry.path_for(map_id))
+    finally:
+        stop.set()
+        beater.join(timeout=5)
+    queue.update(map_id, state="ready", scans_done=len(scans), finished_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ",
+                                                                                          time.gmtime()))
+    shutil.rmtree(job_dir, ignore_errors=True)
+    _publish(ctx, "built", map_id)
+    logger.info("map %s built", map_id, extra={"map_id": map_id, "job_id": job_id})
+    return "ready"
+
+
+async def build_map_job(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
+    """arq job: build ``map_id`` from the files of ``job_id``; retried after a crash (see module doc)."""
+    from arq import Retry
+
+    queue: BuildQueue = ctx["queue"]
+    settings: Settings = ctx["settings"]
+    job_dir = jobs_dir(ctx["registry"].maps_dir) / job_id
+    try:
+        return await asyncio.to_thread(_build, ctx, map_id, job_id)
+    except BuildCancelledError:
+        shutil.rmtree(job_dir, ignore_errors=True)
+        queue.remove(map_id)
+        _publish(ctx, "cancelled", map_id)
+        logger.info("map %s: build cancelled", map_id, extra={"map_id": map_id, "job_id": job_id})
+        return "cancelled"
+    except BuildGaveUpError as exc:
+        _fail(ctx, map_id, job_dir, str(exc))
+        return "failed"
+    except (ReRadarError, ValueError, OSError) as exc:
+        # bad input (unreadable scan, wrong shape, disk full): retrying cannot help
+        _fail(ctx, map_id, job_dir, f"{type(exc).__name__}: {exc}")
+        return "failed"
+    except Exception as exc:
+        attempts = int(queue.record(map_id).get("attempts", "1"))
+        if attempts < settings.build_max_tries:
+            logger.exception("map %s: build attempt %d failed; retrying", map_id, attempts)
+            queue.update(map_id, state="queued", error=f"attempt {attempts}: {type(exc).__name__}: {exc}")
+            raise Retry(defer=2) from exc
+        _fail(ctx, map_id, job_dir, f"{type(exc).__name__}: {exc} (after {attempts} attempts)")
+        return "failed"
+
+
+def _fail(ctx: dict[str, Any], map_id: str, job_dir: Path, error: str) -> None:
+    logger.error("map %s: build failed: %s", map_id, error, extra={"map_id": map_id})
+    ctx["queue"].update(map_id, state="failed", error=error)
+    shutil.rmtree(job_dir, ignore_errors=True)
+    _publish(ctx, "failed", map_id)
+
+
+def release_stale_builds(queue: BuildQueue, stale_after_s: float, now: float | None = None) -> list[str]:
+    """Release arq's lock on running builds whose heartbeat is older than ``stale_after_s`` (their worker
+    died), so that the queue hands them out again. Returns the map ids released."""
+    now = time.time() if now is None else now
+    released = []
+    for map_id, rec in queue.records().items():
+        if rec.get("state") != "running":
+            continue
+        if now - float(rec.get("heartbeat") or 0.0) < stale_after_s:
+            continue
+        job_id = rec.get("job_id", "")
+        queue.redis.delete(ARQ_IN_PROGRESS_PREFIX + job_id)
+        queue.update(map_id, state="queued", error=f"worker {rec.get('worker')} stopped responding; retrying")
+        logger.warning("map %s: worker %s stopped responding; build released for a retry", map_id,
+                       rec.get("worker"), extra={"map_id": map_id, "job_id": job_id})
+        released.append(map_id)
+    return released
+
+
+def run_worker(settings: Settings, extractor: FeatureExtractor | None = None, burst: bool = False) -> None:
+    """Run a build worker until SIGINT/SIGTERM (``burst``: until the queue is empty)."""
+    from arq.connections import RedisSettings
+    from arq.worker import Worker, func
+
+    configure_logging(settings.log_level, settings.log_format)
+    if not settings.redis_url:
+        raise ValueError("the worker needs RERADAR_REDIS_URL (the queue lives in Redis)")
+    if extractor is None:
+        import torch
+
+        from reradar_core.localization.extractor import load_default_extractor
+        from service.core.blas import limit_blas_threads
+
+        torch.set_num_threads(settings.torch_threads)
+        limit_blas_threads(settings.blas_threads)
+        extractor = load_default_extractor(settings.model)
+    client = connect(settings.redis_url)
+    keys = Keys(settings.redis_namespace)
+    queue = BuildQueue(client, keys, settings)
+    # arq puts its own asyncio pool under ctx["redis"]; the build thread uses this blocking client
+    ctx: dict[str, Any] = {"settings": settings, "queue": queue, "sync_redis": client, "keys": keys,
+                           "registry": MapRegistry(settings, extractor), "extractor": extractor,
+                           "origin": replica_id()}
+    stop = threading.Event()
+
+    def reaper() -> None:
+        while not stop.wait(min(5.0, settings.build_heartbeat_stale_s / 3)):
+            try:
+                release_stale_builds(queue, settings.build_heartbeat_stale_s)
+            except redis.RedisError as exc:
+                logger.warning("stale-build check failed: %s", exc)
+
+    threading.Thread(target=reaper, daemon=True, name="build-reaper").start()
+    worker = Worker(
+        functions=[func(build_map_job, name=JOB_FUNCTION, timeout=settings.build_job_timeout_s,  # type: ignore[arg-type]
+                        max_tries=settings.build_max_tries + 2)],  # our record counts attempts
+        queue_name=keys.queue, redis_settings=RedisSettings.from_dsn(settings.redis_url), ctx=ctx, max_jobs=1,
+        poll_delay=0.5, burst=burst, keep_result=3600, handle_signals=True,
+        health_check_interval=HEALTH_S, health_check_key=health_key(keys),
+    )
+    logger.info("worker %s ready: queue %s, maps in %s, model %s", ctx["origin"], keys.queue,
+                settings.maps_dir, extractor.model_id)
+    try:
+        worker.run()
+    finally:
+        stop.set()
+        client.close()
+
+
+def check_health(settings: Settings) -> bool:
+    """True when this host's worker recorded its health within the last ``HEALTH_S`` + 1 seconds."""
+    try:
+        return bool(connect(settings.redis_url or "").exists(health_key(Keys(settings.redis_namespace))))
+    except redis.RedisError:
+        return False
+
+
+def worker_command(check: bool = False) -> None:
+    """Run a map-build worker (needs RERADAR_REDIS_URL; settings from RERADAR_* variables)."""
+    import typer
+
+    try:
+        settings = Settings()
+    except ValueError as exc:
+        typer.echo(f"error: invalid settings: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    if not settings.redis_url:
+        typer.echo("error: set RERADAR_REDIS_URL (e.g. redis://127.0.0.1:6379/0): the build queue lives in Redis",
+                   err=True)
+        raise typer.Exit(2)
+    if check:
+        raise typer.Exit(0 if check_health(settings) else 1)
+    run_worker(settings)
+
+
+def register(app: Any) -> None:
+    """Add ``worker`` to the ``reradar`` command line."""
+    import typer
+
+    def worker(check: bool = typer.Option(False, "--check", help=(
+            "Exit 0 if this host's worker is alive (its health record in Redis is fresh), else 1."))) -> None:
+        """Run a map-build worker: queued builds from Redis (needs RERADAR_REDIS_URL; docs/OPERATIONS.md)."""
+        worker_command(check)
+
+    app.command("worker")(worker)
