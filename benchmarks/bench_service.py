@@ -1,12 +1,14 @@
 #!/usr/bin/env python3
 """Service benchmarks: POST /localize latency over HTTP, FAISS retrieval on a 100,000-keyframe map,
-resident memory per keyframe, and what geometric re-ranking adds over plain top-1.
+resident memory per keyframe, what geometric re-ranking adds over plain top-1, and the Localizer offline
+(global vs tracking mode along a drive).
 
     python benchmarks/bench_service.py --all              # everything (a few minutes on 2 cores)
     python benchmarks/bench_service.py --http --requests 100
-    python benchmarks/bench_service.py --http --http-map MAP.h5 --http-queries SEQ/radar   # a bigger map
+    python benchmarks/bench_service.py --http --http-map MAP.h5 --http-queries SEQ/radar   # demo + a bigger map
     python benchmarks/bench_service.py --faiss --memory
     python benchmarks/bench_service.py --rerank --suite smoke
+    python benchmarks/bench_service.py --localizer --http-map MAP.h5 --sequences SEQ [SEQ ...]  # global vs tracking
 
 Results print as Markdown and are saved as JSON under the cache (``bench/service``); copy the numbers into
 docs/BENCHMARKS.md with the command used.
@@ -60,7 +62,7 @@ def _load_avg() -> str:
 # ---------------------------------------------------------------------------------------------- FAISS
 def bench_faiss(n: int, dim: int, queries: int, seed: int = 0) -> dict:
     """Per-query search latency (1 thread, k=5) of exact and HNSW indexes over n unit descriptors."""
-    from maps.index import GlobalIndex, IndexConfig
+    from reradar_core.retrieval import GlobalIndex, IndexConfig
 
     rng = np.random.default_rng(seed)
     # route-like descriptors: a random walk on the sphere (neighbouring places look alike) plus per-scan noise;
@@ -130,9 +132,8 @@ def bench_memory(n: int, dim: int, local_dim: int, keypoints: int, seed: int = 0
 # ---------------------------------------------------------------------------------------------- HTTP
 def measure_open(path: str, kind: str) -> dict:
     """RSS growth of this (fresh) process from opening the map at ``path`` with index ``kind``."""
-    from maps.index import IndexConfig
-
     from maps.database import MapDatabase
+    from reradar_core.retrieval import IndexConfig
 
     gc.collect()
     before = _rss_bytes()
@@ -212,7 +213,9 @@ def bench_http(requests: int, warmup: int, threads: int, map_path: Path | None =
         return {
             "map": str(map_path or DEMO_MAP_PATH), "queries": str(queries_dir or DEMO_QUERIES_DIR),
             "requests": requests, "torch_threads": threads, "statuses": statuses,
+            "load_avg": _load_avg(),
             "inline_p50_ms": _pct(lat, 50), "inline_p99_ms": _pct(lat, 99), "inline_mean_ms": float(np.mean(lat)),
+            "server_total_p50_ms": _pct(stages["total_ms"], 50), "server_total_p99_ms": _pct(stages["total_ms"], 99),
             "by_scan_id_p50_ms": _pct(lat_ref, 50), "by_scan_id_p99_ms": _pct(lat_ref, 99),
             "server_stage_mean_ms": {k: float(np.mean(v)) for k, v in sorted(stages.items())},
             "server_stage_p99_ms": {k: _pct(v, 99) for k, v in sorted(stages.items())},
@@ -226,6 +229,83 @@ def bench_http(requests: int, warmup: int, threads: int, map_path: Path | None =
             proc.kill()
         log.close()
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+# ---------------------------------------------------------------------------------------------- localizer
+def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_noise: float, seed: int = 0) -> dict:
+    """The ``Localizer`` offline (features precomputed; no HTTP, no decoding) on every scan of each query
+    sequence: global localization with verification stopping at the localized bar (the default) and with all
+    ``verify_k`` verified, and tracking mode through the drive with the ground-truth motion (seeded noise of
+    ``odometry_noise`` x step) as odometry. Success: 20 m / 10 degrees."""
+    import torch
+    from tqdm import tqdm
+
+    from maps.database import MapDatabase
+    from reradar_core.geometry.se2 import angle_diff, relative_pose
+    from reradar_core.io.datasets import load_sequence
+    from reradar_core.localization import LocalizationConfig, PosePrior
+    from reradar_core.model import DescriptorExtractor
+    from service.core.blas import limit_blas_threads
+    from service.follow import noisy_odometry
+
+    torch.set_num_threads(1)
+    limit_blas_threads(1)
+    ext = DescriptorExtractor.from_pretrained()
+    db = MapDatabase.open(map_path, ext.model_id, ext.weights_sha256, keyframe_cache_size=None, preload=True)
+    out: dict = {"map": str(map_path), "num_keyframes": len(db), "odometry_noise": odometry_noise}
+
+    def judge(res, gt) -> str:  # noqa: ANN001
+        if not res.localized:
+            return "not"
+        et = float(np.hypot(*(res.T_map_query[:2] - gt[:2])))
+        er = float(abs(np.degrees(angle_diff(res.T_map_query[2], gt[2]))))
+        return "ok" if et <= 20.0 and er <= 10.0 else "wrong"
+
+    for seq_dir in sequences:
+        seq = load_sequence(seq_dir)
+        idx = np.arange(0, len(seq), every)
+        feats = [ext.describe(seq.load_scan(int(i))) for i in tqdm(idx, desc=f"features {seq.name}")]
+        gts = seq.poses.poses[idx]
+        res_seq: dict = {"scans": len(idx)}
+        modes = {"global": LocalizationConfig(), "global_verify_all": LocalizationConfig(stop_verify_ratio=None)}
+        for name, cfg in modes.items():
+            lat, outc = [], []
+            for f, gt in zip(feats, gts, strict=True):
+                t0 = time.perf_counter()
+                res = db.localize(f, cfg)
+                lat.append((time.perf_counter() - t0) * 1e3)
+                outc.append(judge(res, gt))
+            res_seq[name] = _summarise(lat, outc)
+        rng = np.random.default_rng(seed)
+        lat, outc, kinds, prior = [], [], [], None
+        for n, (f, gt) in enumerate(zip(feats, gts, strict=True)):
+            if prior is not None:
+                prior = prior.moved(noisy_odometry(relative_pose(gts[n - 1], gt), odometry_noise, rng))
+            t0 = time.perf_counter()
+            res = db.track(f, prior) if prior is not None else db.localize(f)
+            lat.append((time.perf_counter() - t0) * 1e3)
+            outc.append(judge(res, gt))
+            kinds.append("tracking" if res.mode == "tracking" else ("lost" if res.tracking_lost else "global"))
+            if res.localized:
+                prior = PosePrior(res.T_map_query, 0.5, math.radians(1.0))
+        summary = _summarise(lat, outc)
+        tracked = np.array(kinds) == "tracking"
+        summary["tracked_scans"] = int(tracked.sum())
+        summary["lost_scans"] = int(np.sum(np.array(kinds) == "lost"))
+        summary["tracked_p50_ms"] = _pct(list(np.asarray(lat)[tracked]), 50) if tracked.any() else math.nan
+        summary["wrong_from_tracking"] = int(np.sum(tracked & (np.array(outc) == "wrong")))
+        res_seq["tracking"] = summary
+        res_seq["tracked_p50_over_global_p50"] = summary["tracked_p50_ms"] / res_seq["global"]["p50_ms"]
+        out[seq.name] = res_seq
+    db.close()
+    return out
+
+
+def _summarise(lat: list[float], outcomes: list[str]) -> dict:
+    o = np.asarray(outcomes)
+    return {"success_rate": float(np.mean(o == "ok")), "wrong": int(np.sum(o == "wrong")),
+            "not_localized": int(np.sum(o == "not")), "p50_ms": _pct(lat, 50), "p99_ms": _pct(lat, 99),
+            "mean_ms": float(np.mean(lat))}
 
 
 # ---------------------------------------------------------------------------------------------- re-ranking
@@ -270,7 +350,7 @@ def bench_rerank(suite_name: str, threads: int, top_k: int, ransac_threshold_m: 
             gt = seq.poses.poses[i]
             n += 1
             for mode, cfg in modes.items():
-                retr, res = db.localize(feat, cfg)
+                retr, res = db.retrieve(feat.global_descriptor, cfg.top_k), db.localize(feat, cfg)
                 if mode == "top1" and retr:
                     retrieval_top1_correct += np.hypot(*(retr[0].T_map_keyframe[:2] - gt[:2])) <= radius
                 c = counts[mode]
@@ -314,6 +394,10 @@ def main() -> int:
     p.add_argument("--suite", default="smoke")
     p.add_argument("--top-k", type=int, default=5)
     p.add_argument("--ransac-threshold-m", type=float, default=None, help="RANSAC inlier threshold (default: RansacConfig)")
+    p.add_argument("--localizer", action="store_true", help="offline Localizer: global vs tracking on --http-map")
+    p.add_argument("--sequences", type=Path, nargs="*", default=[], help="--localizer: query sequence folders")
+    p.add_argument("--every", type=int, default=1, help="--localizer: use every n-th scan")
+    p.add_argument("--odometry-noise", type=float, default=0.05, help="--localizer: odometry noise / step")
     p.add_argument("--measure-open", nargs=2, metavar=("MAP", "KIND"), help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.measure_open:
@@ -328,7 +412,18 @@ def main() -> int:
     if args.all or args.http:
         if (args.http_map is None) != (args.http_queries is None):
             p.error("--http-map and --http-queries go together")
-        results["http"] = bench_http(args.requests, args.warmup, args.threads, args.http_map, args.http_queries)
+        results["http"] = bench_http(args.requests, args.warmup, args.threads)  # the demo map
+        if args.http_map is not None:  # and the bigger map in the same run: the ratios are the targets
+            big = bench_http(args.requests, args.warmup, args.threads, args.http_map, args.http_queries)
+            results["http_map"] = big
+            results["ratios"] = {
+                "map_p50_over_demo_p50": big["inline_p50_ms"] / results["http"]["inline_p50_ms"],
+                "map_p99_over_map_p50": big["inline_p99_ms"] / big["inline_p50_ms"],
+                "demo_p99_over_demo_p50": results["http"]["inline_p99_ms"] / results["http"]["inline_p50_ms"]}
+    if args.localizer:
+        if args.http_map is None or not args.sequences:
+            p.error("--localizer needs --http-map MAP.h5 and --sequences SEQ [SEQ ...]")
+        results["localizer"] = bench_localizer(args.http_map, args.sequences, args.every, args.odometry_noise)
     if args.all or args.rerank:
         results["rerank"] = bench_rerank(args.suite, args.threads, args.top_k, args.ransac_threshold_m)
     results["load_avg_end"] = _load_avg()

@@ -14,7 +14,7 @@ import numpy as np
 from maps.store import KeyframeMap, MapMetadata, open_map
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
-from reradar_core.localization import LocalizationConfig, LocalizationResult, Localizer, Retrieval
+from reradar_core.localization import LocalizationConfig, LocalizationResult, Localizer, PosePrior, Retrieval
 from reradar_core.retrieval import GlobalIndex, IndexConfig
 
 __all__ = ["Retrieval", "MapDatabase"]
@@ -28,21 +28,22 @@ class MapDatabase:
         localizer: the ``Localizer`` reading keyframes from ``map``.
 
     Args:
-        keyframe_cache_size: keyframes whose features and landmark distance grid stay in memory between
-            queries (LRU; about 0.33 MB each; None = all). Re-reading a keyframe and rebuilding its grid costs
-            ~1.3 ms, and with 20 candidates per query that is most of the verification time on a revisited
-            route.
+        keyframe_cache_size: keyframes whose features and compact screen data stay in memory between queries
+            (LRU; ~50 KB each with 512 landmarks; None = all). Re-reading a keyframe and rebuilding its grids
+            costs ~1.3 ms, as much as screening it, so a map that fits is best held whole.
         config: the localizer's default ``LocalizationConfig``.
+        preload: read every keyframe at open (when the map fits in the cache) instead of on first use.
     """
 
     def __init__(self, kf_map: KeyframeMap, index_config: IndexConfig = IndexConfig(),
-                 keyframe_cache_size: int | None = 128, config: LocalizationConfig | None = None) -> None:
+                 keyframe_cache_size: int | None = 128, config: LocalizationConfig | None = None,
+                 preload: bool = False) -> None:
         self.map = kf_map
         if kf_map.global_descriptors is None:
             raise ConfigError(f"{kf_map.path}: global descriptors were released; reopen the map")
         self.index = GlobalIndex(kf_map.global_descriptors, index_config)
         kf_map.release_global_descriptors()  # the index holds its own copy
-        self.localizer = Localizer(self.index, kf_map, config, cache_size=keyframe_cache_size)
+        self.localizer = Localizer(self.index, kf_map, config, cache_size=keyframe_cache_size, preload=preload)
 
     @classmethod
     def open(cls, path: str | Path, model_id: str | None = None, weights_sha256: str | None = None,
@@ -64,6 +65,11 @@ class MapDatabase:
     def localize(self, query: ScanFeatures, config: LocalizationConfig | None = None) -> LocalizationResult:
         """``Localizer.localize`` on this map."""
         return self.localizer.localize(query, config)
+
+    def track(self, query: ScanFeatures, prior: PosePrior,
+              config: LocalizationConfig | None = None) -> LocalizationResult:
+        """``Localizer.track`` on this map (tracking mode, global fallback)."""
+        return self.localizer.track(query, prior, config)
 
     def close(self) -> None:
         self.localizer.clear()

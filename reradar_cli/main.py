@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import functools
 import importlib
 import logging
+from collections.abc import Callable
 from typing import Any
 
 import typer
@@ -15,6 +17,7 @@ __all__ = ["COMMANDS", "app", "main"]
 #: The help text is repeated here so listing the commands imports none of them.
 COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("reradar_core.cli_commands.info", "Print a scan's shape, timing and power statistics."),
+    "fit-confidence": ("reradar_core.cli_commands.fit_confidence", "Fit the calibrated answer confidence on training splits."),
     "import-scans": ("reradar_core.cli_commands.import_scans",
                      "Convert polar scans of another layout or resolution into Navtech PNGs of a preset."),
     "sim": ("reradar_core.sim.cli", "Render a simulated radar sequence along a trajectory, in a real dataset layout."),
@@ -32,6 +35,33 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+#: top-level modules of the optional extras (``server``, ``plot``, ...): missing ones get an install hint
+OPTIONAL_MODULES = frozenset({"torch", "e2cnn", "faiss", "cv2", "scipy", "h5py", "fastapi", "uvicorn", "starlette",
+                              "pydantic_settings", "multipart", "python_multipart", "tqdm", "matplotlib"})
+
+
+def _missing_extra(name: str, exc: ModuleNotFoundError) -> typer.Exit:
+    typer.echo(f"error: 'reradar {name}' needs the optional dependency {exc.name!r}, which is not installed; "
+               "install the extras, e.g. pip install 'reradar[server]' or 'reradar[all]' (see README)", err=True)
+    return typer.Exit(2)
+
+
+def _guarded(name: str, callback: Callable[..., Any]) -> Callable[..., Any]:
+    """``callback`` turning a missing optional dependency (imported lazily inside a command) into an
+    actionable error instead of a traceback."""
+
+    @functools.wraps(callback)
+    def run(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return callback(*args, **kwargs)
+        except ModuleNotFoundError as exc:
+            if (exc.name or "").split(".")[0] not in OPTIONAL_MODULES:
+                raise
+            raise _missing_extra(name, exc) from exc
+
+    return run
+
+
 def load_command(name: str) -> Any:
     """Import the module that defines sub-command ``name`` and return it as a (Typer's) click command; exits
     with status 2 and an actionable message when the module needs an optional dependency that is missing."""
@@ -39,15 +69,15 @@ def load_command(name: str) -> Any:
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as exc:  # a client-only install lacks the server/training/bench extras
-        typer.echo(f"error: 'reradar {name}' needs the optional dependency {exc.name!r}, which is not installed; "
-                   "install the extras, e.g. pip install 'reradar[server]' (see README)", err=True)
-        raise typer.Exit(2) from exc
+        raise _missing_extra(name, exc) from exc
     sub = typer.Typer()
     module.register(sub)
     group = typer.main.get_group(sub)
     cmd = group.get_command(typer.Context(group), name)
     if cmd is None:  # pragma: no cover - COMMANDS and the modules disagree
         raise RuntimeError(f"module {module_name} does not define the command {name!r}")
+    if cmd.callback is not None:
+        cmd.callback = _guarded(name, cmd.callback)
     return cmd
 
 

@@ -9,8 +9,8 @@ if [[ -z "${VIRTUAL_ENV:-}" && -x "$venv/bin/python" ]]; then
     PY="$venv/bin/python"
 fi
 echo "== ruff"
-"$PY" -m ruff check reradar_core service maps tests scripts benchmarks
-echo "== mypy (service, maps)"
-"$PY" -m mypy service maps
+"$PY" -m ruff check reradar_core reradar_cli service maps tests scripts benchmarks
+echo "== mypy (service, maps, reradar_cli)"
+"$PY" -m mypy service maps reradar_cli
 echo "== pytest"
 "$PY" -m pytest "$@"

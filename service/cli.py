@@ -32,13 +32,29 @@ def serve_command(
 
 
 def localize_command(
-    scan: Path = typer.Argument(..., exists=True, dir_okay=False, help="Navtech PNG or .npy scan."),
+    scan: Path | None = typer.Argument(None, dir_okay=False, help="Navtech PNG or .npy scan."),
     server: str = typer.Option("http://127.0.0.1:8080", "--server", help="Service base URL."),
     map_id: str = typer.Option("demo", "--map", help="Map id."),
     top_k: int | None = typer.Option(None, help="Candidates to verify."),
     as_json: bool = typer.Option(False, "--json", help="Print the full JSON response."),
+    session: str | None = typer.Option(None, "--session", help="Tracking session id (the server keeps its pose)."),
+    follow: Path | None = typer.Option(None, "--follow", file_okay=False, help=(
+        "Replay a drive: localize every scan of this sequence folder (Boreas / Oxford / MulRan layout) in order "
+        "through one tracking session, print a per-scan table and write a trajectory PNG against the "
+        "folder's ground truth. Needs the [bench] extras (dataset reader, matplotlib).")),
+    odometry: str = typer.Option("ground-truth", help=(
+        "--follow: odometry sent with each scan: `ground-truth` (relative motion between the folder's poses, "
+        "with --odometry-noise) or `none` (the server tracks from the last pose alone).")),
+    odometry_noise: float = typer.Option(0.05, min=0.0, help=(
+        "--follow: odometry noise, a fraction of each step's length (and of its turn), seeded.")),
+    every: int = typer.Option(1, min=1, help="--follow: use every n-th scan."),
+    limit: int | None = typer.Option(None, min=1, help="--follow: at most this many scans."),
+    no_tracking: bool = typer.Option(False, "--no-tracking", help="--follow: global localization for every scan."),
+    out: Path | None = typer.Option(None, "--out", help="--follow: trajectory PNG (default: <folder>-follow.png)."),
+    seed: int = typer.Option(0, help="--follow: seed of the odometry noise."),
 ) -> None:
-    """Localize one scan with a running service; prints the map-frame pose (metres, degrees)."""
+    """Localize one scan with a running service (or replay a drive with --follow); prints the map-frame pose
+    (metres, degrees)."""
     import logging
 
     import httpx
@@ -46,9 +62,26 @@ def localize_command(
     from service.client import ReRadarAPIError, ReRadarClient
 
     logging.getLogger("httpx").setLevel(logging.WARNING)
+    if (scan is None) == (follow is None):
+        typer.echo("error: give one SCAN file or --follow SEQUENCE_DIR", err=True)
+        raise typer.Exit(2)
+    if odometry not in ("ground-truth", "none"):
+        typer.echo("error: --odometry must be `ground-truth` or `none`", err=True)
+        raise typer.Exit(2)
     try:
         with ReRadarClient(server) as client:
-            res = client.localize(map_id, scan_path=scan, top_k=top_k)
+            if follow is not None:
+                from service.follow import follow_sequence
+
+                raise typer.Exit(follow_sequence(client, follow, map_id, echo=typer.echo, top_k=top_k,
+                                                 odometry=odometry, odometry_noise=odometry_noise, every=every,
+                                                 limit=limit, tracking=not no_tracking, out=out, seed=seed,
+                                                 session=session))
+            assert scan is not None
+            if not scan.is_file():
+                typer.echo(f"error: scan file {scan} does not exist", err=True)
+                raise typer.Exit(2)
+            res = client.localize(map_id, scan_path=scan, top_k=top_k, session_id=session)
     except ReRadarAPIError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
@@ -60,7 +93,7 @@ def localize_command(
     elif res.status == "localized" and res.pose is not None and res.keyframe is not None:
         typer.echo(f"localized: x={res.pose.x_m:.2f} m y={res.pose.y_m:.2f} m yaw={res.pose.yaw_deg:.2f} deg "
                    f"(map {res.map_id}, keyframe {res.keyframe.keyframe_id}, {res.num_inliers} inliers, "
-                   f"{res.timings_ms.get('total_ms', 0):.0f} ms)")
+                   f"{res.mode}, {res.timings_ms.get('total_ms', 0):.0f} ms)")
     else:
         typer.echo(f"not localized: {res.reason} ({res.num_inliers} inliers)")
     raise typer.Exit(0 if res.status == "localized" else 1)

@@ -55,8 +55,11 @@ class ReRadarClient:
     def __init__(self, base_url: str, api_key: str | None = None, timeout: float = 60.0,
                  transport: httpx.BaseTransport | None = None) -> None:
         headers = {"X-API-Key": api_key} if api_key else {}
+        # plain-HTTP servers need no TLS context, and loading the CA bundle costs ~0.2 s of a vehicle-side
+        # call's start-up; redirects are not followed, so requests never leave this http:// base URL
+        tls = not base_url.lower().startswith("http://")
         self._http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers, timeout=timeout,
-                                  transport=transport)
+                                  transport=transport, verify=tls)
 
     def __enter__(self) -> ReRadarClient:
         return self
@@ -170,8 +173,22 @@ class ReRadarClient:
 
     def localize(self, map_id: str, scan_path: str | Path | None = None, scan_id: str | None = None,
                  scan_bytes: bytes | None = None, top_k: int | None = None,
-                 filename: str = "scan.png") -> LocalizeResponse:
-        """Localize an inline scan (``scan_path``/``scan_bytes``, multipart) or a cached ``scan_id`` (JSON)."""
-        resp = self._scan_request("/localize", {"map_id": map_id, "top_k": top_k}, scan_id, scan_path,
-                                  scan_bytes, filename)
+                 filename: str = "scan.png", session_id: str | None = None,
+                 odometry: tuple[float, float, float] | None = None,
+                 prior: tuple[float, float, float] | None = None,
+                 prior_sigma: tuple[float, float] | None = None) -> LocalizeResponse:
+        """Localize an inline scan (``scan_path``/``scan_bytes``, multipart) or a cached ``scan_id`` (JSON).
+
+        Tracking mode: ``session_id`` (the server keeps the session's last pose) with ``odometry`` = motion
+        since the session's previous scan (dx m forward, dy m left, dyaw deg, in that scan's frame); or an
+        explicit ``prior`` = (x m, y m, yaw deg) in the map frame with ``prior_sigma`` = (m, deg).
+        """
+        fields: dict[str, Any] = {"map_id": map_id, "top_k": top_k, "session_id": session_id}
+        if odometry is not None:
+            fields.update(zip(("odom_dx_m", "odom_dy_m", "odom_dyaw_deg"), map(float, odometry), strict=True))
+        if prior is not None:
+            fields.update(zip(("prior_x_m", "prior_y_m", "prior_yaw_deg"), map(float, prior), strict=True))
+        if prior_sigma is not None:
+            fields.update(zip(("prior_sigma_m", "prior_sigma_yaw_deg"), map(float, prior_sigma), strict=True))
+        resp = self._scan_request("/localize", fields, scan_id, scan_path, scan_bytes, filename)
         return LocalizeResponse.model_validate(resp.json())

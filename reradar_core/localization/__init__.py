@@ -1,6 +1,8 @@
 """Localization stage: one ``Localizer`` (retrieval -> landmark-alignment screen -> guided pose -> re-ranking)
-over a map's keyframes (``KeyframeSource``); ``localize`` is the screen/verify step over given candidates."""
+over a map's keyframes (``KeyframeSource``), with a tracking mode from a pose prior (``Localizer.track``);
+``localize`` is the screen/verify step over given candidates."""
 
+from reradar_core.localization.confidence import ConfidenceCues, ConfidenceModel, default_confidence_model
 from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
 from reradar_core.localization.keyframes import (
     CachedKeyframe,
@@ -10,6 +12,9 @@ from reradar_core.localization.keyframes import (
 )
 from reradar_core.localization.localizer import Localizer, Retrieval
 from reradar_core.localization.pipeline import (
+    REASON_AMBIGUOUS,
+    REASON_INCONSISTENT,
+    REASON_LOW_CONFIDENCE,
     REASON_NO_CANDIDATE,
     REASON_SCREENED_OUT,
     REASON_TOO_FEW_INLIERS,
@@ -21,8 +26,13 @@ from reradar_core.localization.pipeline import (
     localize,
     verify_candidate,
 )
+from reradar_core.localization.tracking import PosePrior, TrackingConfig
 
 __all__ = [
+    "ConfidenceCues",
+    "ConfidenceModel",
+    "default_confidence_model",
+    "REASON_LOW_CONFIDENCE",
     "FeatureExtractor",
     "load_default_extractor",
     "CachedKeyframe",
@@ -31,7 +41,11 @@ __all__ = [
     "KeyframeSource",
     "Localizer",
     "Retrieval",
+    "PosePrior",
+    "TrackingConfig",
+    "REASON_INCONSISTENT",
     "REASON_NO_CANDIDATE",
+    "REASON_AMBIGUOUS",
     "REASON_SCREENED_OUT",
     "REASON_TOO_FEW_INLIERS",
     "REASON_TOO_FEW_MATCHES",

@@ -16,7 +16,8 @@ import numpy as np
 
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
-from reradar_core.matching import LandmarkGrid, build_landmark_grid
+from reradar_core.localization.screening import screen_keyframe
+from reradar_core.matching import AlignmentConfig, LandmarkGrid, build_landmark_grid
 
 __all__ = ["KeyframeSource", "InMemoryKeyframes", "KeyframeCache", "CachedKeyframe"]
 
@@ -73,55 +74,92 @@ class InMemoryKeyframes:
 
 
 class CachedKeyframe:
-    """One keyframe prepared for alignment: its features and its landmark distance grid (built once)."""
+    """One keyframe prepared for localization: its features and its compact screen data (``ScreenKeyframe``:
+    the features' own arrays and a bit-packed alignment mask; ~30 KB in all with 512 landmarks)."""
 
-    __slots__ = ("features", "grid")
+    __slots__ = ("features", "screen")
 
-    def __init__(self, features: ScanFeatures, grid: LandmarkGrid) -> None:
+    def __init__(self, features: ScanFeatures, config: AlignmentConfig) -> None:
         self.features = features
-        self.grid = grid
+        self.screen = screen_keyframe(features.keypoints_xy_m, features.local_descriptors, config)
 
 
 class KeyframeCache:
-    """Thread-safe LRU of ``CachedKeyframe`` s read from a ``KeyframeSource``.
+    """Thread-safe caches over a ``KeyframeSource``: ``CachedKeyframe`` s (screen data) and, separately and
+    smaller, the float32 distance grids + KD-trees (``LandmarkGrid``, ~0.3 MB) the full pose estimate uses.
 
-    Reading a keyframe from HDF5 and building its landmark grid costs ~1.3 ms; a query screens 20-60
-    candidates, so keeping them between queries is most of the difference between a cold and a warm map.
+    Reading a keyframe from HDF5 and building its grids costs ~1.3 ms while screening it costs ~1 ms, so a
+    map whose screen data fits in memory (~50 KB per keyframe with 512 landmarks, measured) is best held whole
+    (``preload``); only the few verified candidates per query need the larger grid.
 
     Args:
         source: the keyframes.
-        grid_cell_m: cell of the landmark grids (``AlignmentConfig.grid_cell_m``).
-        max_cached: keyframes kept (least recently used dropped first); None = all.
+        config: alignment settings (grid cell and score threshold of the screen masks).
+        max_cached: keyframes whose screen data is kept (least recently used dropped first); None = all.
+        max_grids: landmark grids kept (LRU).
     """
 
-    def __init__(self, source: KeyframeSource, grid_cell_m: float, max_cached: int | None = None) -> None:
-        if max_cached is not None and max_cached < 1:
-            raise ConfigError(f"max_cached must be >= 1 or None, got {max_cached}")
+    def __init__(self, source: KeyframeSource, config: AlignmentConfig, max_cached: int | None = None,
+                 max_grids: int = 64) -> None:
+        if (max_cached is not None and max_cached < 1) or max_grids < 1:
+            raise ConfigError(f"max_cached must be >= 1 or None and max_grids >= 1, got {max_cached}, {max_grids}")
         self.source = source
-        self.grid_cell_m = grid_cell_m
+        self.config = config
         self.max_cached = max_cached
+        self.max_grids = max_grids
         self._items: OrderedDict[int, CachedKeyframe] = OrderedDict()
+        self._grids: OrderedDict[int, LandmarkGrid] = OrderedDict()
         self._lock = threading.Lock()
 
     def __len__(self) -> int:
         return len(self._items)
 
-    def get(self, keyframe_id: int) -> CachedKeyframe:
-        """The keyframe's features and grid, read and built on first use."""
-        with self._lock:
-            item = self._items.get(keyframe_id)
-            if item is not None:
-                self._items.move_to_end(keyframe_id)
-                return item
-        features = self.source.read_keyframe(keyframe_id)  # outside the lock: reads may be slow
-        item = CachedKeyframe(features, build_landmark_grid(features.keypoints_xy_m, self.grid_cell_m))
-        with self._lock:
-            self._items[keyframe_id] = item
-            if self.max_cached is not None:
-                while len(self._items) > self.max_cached:
-                    self._items.popitem(last=False)
+    @staticmethod
+    def _lru_get(store: OrderedDict, key: int) -> object | None:
+        item = store.get(key)
+        if item is not None:
+            store.move_to_end(key)
         return item
+
+    @staticmethod
+    def _lru_put(store: OrderedDict, key: int, item: object, limit: int | None) -> None:
+        store[key] = item
+        if limit is not None:
+            while len(store) > limit:
+                store.popitem(last=False)
+
+    def get(self, keyframe_id: int) -> CachedKeyframe:
+        """The keyframe's features and screen data, read and built on first use."""
+        with self._lock:
+            item = self._lru_get(self._items, keyframe_id)
+        if item is not None:
+            return item  # type: ignore[return-value]
+        built = CachedKeyframe(self.source.read_keyframe(keyframe_id), self.config)  # outside the lock: slow
+        with self._lock:
+            self._lru_put(self._items, keyframe_id, built, self.max_cached)
+        return built
+
+    def landmark_grid(self, keyframe_id: int) -> LandmarkGrid:
+        """The keyframe's ``LandmarkGrid`` (distance grid + KD-tree) for the full pose estimate."""
+        with self._lock:
+            grid = self._lru_get(self._grids, keyframe_id)
+        if grid is not None:
+            return grid  # type: ignore[return-value]
+        built = build_landmark_grid(self.get(keyframe_id).features.keypoints_xy_m, self.config.grid_cell_m)
+        with self._lock:
+            self._lru_put(self._grids, keyframe_id, built, self.max_grids)
+        return built
+
+    def preload(self) -> bool:
+        """Read every keyframe when the whole map fits in the cache, so no query pays for a cold read;
+        returns whether it did (a larger map fills the LRU as it is queried)."""
+        if self.max_cached is not None and len(self.source) > self.max_cached:
+            return False
+        for i in range(len(self.source)):
+            self.get(i)
+        return True
 
     def clear(self) -> None:
         with self._lock:
             self._items.clear()
+            self._grids.clear()

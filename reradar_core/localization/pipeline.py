@@ -7,7 +7,9 @@ Pipeline: the caller (``Localizer``) retrieves the top-k keyframes by global des
 ``mutual_nn`` every candidate is verified by mutual-nearest-neighbour matching of local descriptors and a
 RANSAC 2-D rigid fit. The verified candidate with the most inliers wins (geometric re-ranking) and the
 absolute pose is ``T_map_query = compose(T_map_keyframe, T_keyframe_query)``. A query is reported ``localized`` only when
-the winner has at least ``min_inliers`` inliers - an unknown place must not be reported as localized.
+the winner has at least ``min_inliers`` inliers and ``min_inlier_ratio`` (the floor) and, with ``guided``, its
+calibrated ``confidence`` (``localization.confidence``) reaches ``min_confidence`` - an unknown place must not be
+reported as localized.
 """
 
 from __future__ import annotations
@@ -16,13 +18,22 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Literal, Protocol
 
 import numpy as np
 
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose
+from reradar_core.localization.confidence import (
+    ConfidenceCues,
+    ConfidenceModel,
+    confidence_cues,
+    default_confidence_model,
+    landmark_spread_m,
+)
+from reradar_core.localization.screening import ScreenKeyframe, screen_candidates, screen_keyframe
+from reradar_core.localization.tracking import TrackingConfig
 from reradar_core.matching import (
     AlignmentConfig,
     LandmarkGrid,
@@ -30,7 +41,6 @@ from reradar_core.matching import (
     estimate_pose_guided,
     estimate_rigid_2d,
     match_descriptors,
-    screen_alignment,
 )
 
 __all__ = [
@@ -43,6 +53,9 @@ __all__ = [
     "REASON_NO_CANDIDATE",
     "REASON_TOO_FEW_INLIERS",
     "REASON_SCREENED_OUT",
+    "REASON_AMBIGUOUS",
+    "REASON_LOW_CONFIDENCE",
+    "answer_confidence",
 ]
 
 logger = logging.getLogger(__name__)
@@ -51,6 +64,10 @@ REASON_NO_CANDIDATE = "no_candidate"
 REASON_TOO_FEW_INLIERS = "too_few_inliers"
 REASON_TOO_FEW_MATCHES = "too_few_matches"
 REASON_SCREENED_OUT = "screened_out"
+#: The pose estimator found a rival pose aligning as many landmarks (``matching.alignment``): a guess.
+REASON_AMBIGUOUS = "ambiguous"
+REASON_INCONSISTENT = "inconsistent_with_prior"
+REASON_LOW_CONFIDENCE = "low_confidence"
 
 Status = Literal["localized", "not_localized"]
 PoseMethod = Literal["guided", "mutual_nn"]
@@ -75,6 +92,13 @@ class LocalizationConfig:
             loaded lazily). Confident queries stop after ``top_k``; on offroad-sim every query the default
             settings missed had its right keyframe at retrieval rank 21-56 and a best screen score <= 0.59.
             ``max_candidates <= top_k`` disables the expansion.
+        stop_verify_ratio: ``guided`` only: the screened candidates are verified best-screened first, and the
+            rest are skipped once one aligns at least this fraction of the query's landmarks (None: verify all
+            ``verify_k``); the skipped ones keep reason ``screened_out``. Default 0.7: on the boreas-sim
+            snow-cover and falling-snow drives (517 queries each, 560-keyframe map, our-3-boreas) it left success
+            and wrong poses unchanged (328 / 10 and 317 / 20) and cut pose-estimation time ~12 %; 0.5 (the
+            ``localized`` bar) saved 35 % but cost 2 successes and added 2 wrong poses on falling snow, 0.6 one
+            each (docs/BENCHMARKS.md).
         min_inliers: RANSAC inliers the best candidate needs to count as localized. Random
             correspondences between unrelated scans rarely agree on more than a handful of points under a
             2 m threshold, so 12 rejects unknown places while real revisits have tens of inliers.
@@ -95,12 +119,20 @@ class LocalizationConfig:
             docs/BENCHMARKS.md for what each gives.
         alignment: settings of the guided estimator (its own ``min_inliers`` is replaced by this config's).
         ransac: RANSAC settings of ``mutual_nn`` (threshold in metres, iterations, seed).
+        tracking: settings of tracking mode (``Localizer.track``; ``localization.tracking``).
+        min_confidence: ``guided`` only: an answer that passes the checks above is ``localized`` only when its
+            confidence (``reradar_core.localization.confidence``: calibrated probability that the pose is
+            within the success thresholds) reaches this bar; the aligned-ratio bar stays as a floor. None =
+            the bar stored with the shipped confidence model (chosen at fit time on the training splits as the
+            lowest bar at which wrong answers are <= 0.5 % of the training queries, docs/MODEL.md
+            "Confidence"); 0 = the floor alone (the decision before the confidence).
     """
 
     top_k: int = 20
     verify_k: int = 3
     max_candidates: int = 60
     expand_below_screen_score: float = 0.6
+    stop_verify_ratio: float | None = 0.7
     min_inliers: int = 12
     min_inlier_ratio: float | None = None
     match_ratio: float | None = None
@@ -108,6 +140,8 @@ class LocalizationConfig:
     pose_method: PoseMethod = "guided"
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     ransac: RansacConfig = field(default_factory=RansacConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    min_confidence: float | None = None
 
     @property
     def num_to_retrieve(self) -> int:
@@ -132,10 +166,28 @@ class LocalizationConfig:
                               f"{self.max_candidates} and {self.expand_below_screen_score}")
         if self.min_inliers < 2:
             raise ConfigError(f"min_inliers must be >= 2 (a 2-D rigid fit needs two points), got {self.min_inliers}")
+        if self.stop_verify_ratio is not None and not 0.0 <= self.stop_verify_ratio <= 1.0:
+            raise ConfigError(f"stop_verify_ratio must be in [0, 1] or None, got {self.stop_verify_ratio}")
         if self.min_inlier_ratio is not None and not 0.0 <= self.min_inlier_ratio <= 1.0:
             raise ConfigError(f"min_inlier_ratio must be in [0, 1], got {self.min_inlier_ratio}")
         if self.pose_method not in ("guided", "mutual_nn"):
             raise ConfigError(f"pose_method must be 'guided' or 'mutual_nn', got {self.pose_method!r}")
+        if self.min_confidence is not None and not 0.0 <= self.min_confidence <= 1.0:
+            raise ConfigError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
+
+    @property
+    def effective_min_confidence(self) -> float:
+        """``min_confidence``, or the shipped confidence model's bar when it is None."""
+        if self.min_confidence is not None:
+            return self.min_confidence
+        return default_confidence_model().min_confidence
+
+
+class _Prepared(Protocol):
+    """What a candidate's ``loader`` returns (``keyframes.CachedKeyframe``): features + screen data."""
+
+    features: ScanFeatures
+    screen: ScreenKeyframe
 
 
 @dataclass
@@ -149,9 +201,12 @@ class Candidate:
         descriptor_distance: Euclidean distance between unit global descriptors, in [0, 2].
         rank: 0-based position in the retrieval list.
         landmark_grid: ``build_landmark_grid(features.keypoints_xy_m)`` when the caller caches it per keyframe
-            (built on the fly otherwise).
-        loader: instead of ``features`` (None): returns (features, landmark grid or None) when the candidate is
-            first needed, so retrieving many candidates costs nothing for those never screened.
+            (else ``grid_loader`` or built on the fly).
+        loader: instead of ``features`` (None): returns the keyframe's features and screen data
+            (``keyframes.CachedKeyframe``) when the candidate is first needed, so retrieving many candidates
+            costs nothing for those never screened.
+        screen: the keyframe's ``ScreenKeyframe`` (built from ``features`` when neither it nor a loader is given).
+        grid_loader: returns the keyframe's ``LandmarkGrid`` for the full pose estimate (e.g. from a cache).
     """
 
     keyframe_id: int
@@ -160,16 +215,31 @@ class Candidate:
     descriptor_distance: float
     rank: int
     landmark_grid: LandmarkGrid | None = None
-    loader: Callable[[], tuple[ScanFeatures, LandmarkGrid | None]] | None = None
+    loader: Callable[[], _Prepared] | None = None
+    screen: ScreenKeyframe | None = None
+    grid_loader: Callable[[], LandmarkGrid] | None = None
 
     def resolve(self) -> ScanFeatures:
-        """The keyframe's features, loading them (and the grid) through ``loader`` on first use."""
+        """The keyframe's features, loading them (and the screen data) through ``loader`` on first use."""
         if self.features is None:
             if self.loader is None:
                 raise ConfigError(f"candidate keyframe {self.keyframe_id} has neither features nor a loader")
-            self.features, grid = self.loader()
-            self.landmark_grid = self.landmark_grid if grid is None else grid
+            prepared = self.loader()
+            self.features, self.screen = prepared.features, self.screen or prepared.screen
         return self.features
+
+    def screen_data(self, config: AlignmentConfig) -> ScreenKeyframe:
+        """The keyframe's ``ScreenKeyframe`` (loaded, or built from its features)."""
+        features = self.resolve()
+        if self.screen is None:
+            self.screen = screen_keyframe(features.keypoints_xy_m, features.local_descriptors, config)
+        return self.screen
+
+    def grid(self) -> LandmarkGrid | None:
+        """The keyframe's ``LandmarkGrid`` when one is given or loadable, else None (built by the estimator)."""
+        if self.landmark_grid is None and self.grid_loader is not None:
+            self.landmark_grid = self.grid_loader()
+        return self.landmark_grid
 
 
 @dataclass
@@ -184,6 +254,10 @@ class CandidateVerification:
         screen_score: ``guided`` only: fraction of query landmarks aligned by the cheap screen, in [0, 1]
             (None when not screened); candidates not among the best ``verify_k`` keep 0 inliers and reason
             ``screened_out``.
+        ambiguity: ``guided`` only: the pose estimator's best rival pose's alignment score / the answer's
+            (``RigidEstimate.ambiguity``; None where not computed).
+        inlier_spread_m: spatial spread of the inlier query landmarks (``confidence.landmark_spread_m``,
+            metres; None without a fit).
     """
 
     keyframe_id: int
@@ -197,6 +271,8 @@ class CandidateVerification:
     T_keyframe_query: np.ndarray | None
     reason: str | None = None
     screen_score: float | None = None
+    ambiguity: float | None = None
+    inlier_spread_m: float | None = None
 
 
 @dataclass
@@ -205,13 +281,19 @@ class LocalizationResult:
 
     Attributes:
         status: ``localized`` or ``not_localized``.
-        reason: why not localized (``no_candidate``, ``too_few_matches``, ``too_few_inliers``), else None.
+        reason: why not localized (``no_candidate``, ``too_few_matches``, ``too_few_inliers``,
+            ``ambiguous``: a rival pose aligns as many landmarks), else None.
         best: the chosen candidate's verification (the best one tried even when not localized; None when
             there was no candidate).
         T_map_query: (3,) float64 absolute pose (x m, y m, yaw rad) when localized, else None.
         candidates: every screened candidate in retrieval order (not verified in full: reason ``screened_out``).
         timings_ms: stage timings (``screen_ms``, ``pose_ms`` or ``match_ms`` + ``ransac_ms``, ``verify_ms``
-            = all of it), milliseconds.
+            = all of it; tracking: ``track_ms``), milliseconds.
+        mode: ``global`` (retrieval + screen + verify) or ``tracking`` (registered from a pose prior).
+        tracking_lost: a tracking attempt found no consistent pose and this is the global fallback's answer.
+        confidence: probability in [0, 1] that the winner's pose is within the success thresholds (shipped
+            ``ConfidenceModel``; 0 without a pose), also when not localized.
+        cues: the confidence's inputs (None without a pose).
     """
 
     status: Status
@@ -220,6 +302,10 @@ class LocalizationResult:
     T_map_query: np.ndarray | None
     candidates: list[CandidateVerification]
     timings_ms: dict[str, float] = field(default_factory=dict)
+    confidence: float = 0.0
+    cues: ConfidenceCues | None = None
+    mode: Literal["global", "tracking"] = "global"
+    tracking_lost: bool = False
 
     @property
     def localized(self) -> bool:
@@ -227,9 +313,10 @@ class LocalizationResult:
 
     @property
     def alignment_score(self) -> float:
-        """The decision score ``localized`` is based on: the winner's inlier ratio (``guided``: fraction of the
-        query's landmarks aligned with the keyframe's, in [0, 1]; 0 without a winner). Not a calibrated
-        probability: ``localized`` means this score reached ``min_inlier_ratio`` with ``min_inliers``."""
+        """The winner's inlier ratio (``guided``: fraction of the query's landmarks aligned with the keyframe's,
+        in [0, 1]; 0 without a winner): the floor of the decision. Not a calibrated probability - that is
+        ``confidence``; ``localized`` means this score reached ``min_inlier_ratio`` with ``min_inliers`` and
+        (``guided``) ``confidence`` reached ``min_confidence``."""
         return float(self.best.inlier_ratio) if self.best is not None else 0.0
 
 
@@ -244,8 +331,9 @@ def verify_candidate(query: ScanFeatures, candidate: Candidate, config: Localiza
     if config.pose_method == "guided":
         est = estimate_pose_guided(query.keypoints_xy_m, query.local_descriptors, kf.keypoints_xy_m,
                                    kf.local_descriptors, replace(config.alignment, min_inliers=config.min_inliers),
-                                   grid=candidate.landmark_grid)
+                                   grid=candidate.grid())
         num_matches = int(query.keypoints_xy_m.shape[0])
+        fit_xy = query.keypoints_xy_m
         if timings_ms is not None:
             timings_ms["pose_ms"] = timings_ms.get("pose_ms", 0.0) + (time.perf_counter() - t0) * 1e3
     else:
@@ -263,10 +351,12 @@ def verify_candidate(query: ScanFeatures, candidate: Candidate, config: Localiza
         src = query.keypoints_xy_m[pairs[:, 0]].astype(np.float64)
         dst = kf.keypoints_xy_m[pairs[:, 1]].astype(np.float64)
         est = estimate_rigid_2d(src, dst, replace(config.ransac, min_inliers=config.min_inliers))
+        fit_xy = src
         if timings_ms is not None:
             timings_ms["ransac_ms"] = timings_ms.get("ransac_ms", 0.0) + (time.perf_counter() - t1) * 1e3
     # inliers are reported even for a failed fit (diagnostics); only a successful fit yields a pose
     n_in = int(est.num_inliers)
+    inlier_xy = fit_xy[np.asarray(est.inlier_mask, bool)]  # the query landmarks the pose rests on
     return CandidateVerification(
         **base,
         num_matches=num_matches,
@@ -274,6 +364,8 @@ def verify_candidate(query: ScanFeatures, candidate: Candidate, config: Localiza
         inlier_ratio=float(n_in / num_matches) if num_matches else 0.0,
         T_keyframe_query=np.asarray(est.pose, np.float64) if est.success else None,
         reason=None if est.success else (est.reason or REASON_TOO_FEW_INLIERS),
+        ambiguity=float(est.ambiguity) if config.pose_method == "guided" else None,
+        inlier_spread_m=landmark_spread_m(inlier_xy) if est.success else None,
     )
 
 
@@ -302,11 +394,10 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
     ordered = pool[: config.top_k] if config.rerank else pool[:1]
     scores: dict[int, float] = {}
 
-    def screen(batch: list[Candidate]) -> None:
-        for c in batch:
-            f = c.resolve()
-            scores[c.rank] = screen_alignment(query.keypoints_xy_m, query.local_descriptors, f.keypoints_xy_m,
-                                              f.local_descriptors, config.alignment, c.landmark_grid)
+    def screen(batch: list[Candidate]) -> None:  # all candidates of a block at once (``screening``)
+        values = screen_candidates(query.keypoints_xy_m, query.local_descriptors,
+                                   [c.screen_data(config.alignment) for c in batch], config.alignment)
+        scores.update({c.rank: float(v) for c, v in zip(batch, values, strict=True)})
 
     if config.pose_method == "guided" and len(ordered) > config.verify_k:
         screen(ordered)
@@ -316,11 +407,17 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
             screen(batch)
             ordered += batch
         timings["screen_ms"] = (time.perf_counter() - t0) * 1e3
-        keep = {c.rank for c in sorted(ordered, key=lambda c: (-scores[c.rank], c.rank))[: config.verify_k]}
+        keep = [c.rank for c in sorted(ordered, key=lambda c: (-scores[c.rank], c.rank))[: config.verify_k]]
     else:
-        keep = {c.rank for c in ordered}
-    verified = [verify_candidate(query, c, config, timings) if c.rank in keep
-                else _screened_out(c) for c in ordered]
+        keep = [c.rank for c in ordered]
+    by_rank = {c.rank: c for c in ordered}
+    done: dict[int, CandidateVerification] = {}
+    for r in keep:  # best screened first; stop once one answer is confident enough (``stop_verify_ratio``)
+        done[r] = v = verify_candidate(query, by_rank[r], config, timings)
+        if (config.stop_verify_ratio is not None and v.T_keyframe_query is not None
+                and v.num_inliers >= config.min_inliers and v.inlier_ratio >= config.stop_verify_ratio):
+            break
+    verified = [done[c.rank] if c.rank in done else _screened_out(c) for c in ordered]
     for v in verified:
         v.screen_score = scores.get(v.rank)
     timings["verify_ms"] = (time.perf_counter() - t0) * 1e3
@@ -333,9 +430,23 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
         and best.num_inliers >= config.min_inliers
         and best.inlier_ratio >= config.effective_min_inlier_ratio
     )
+    # confidence hook (reradar_core.localization.confidence): cues of the winner -> calibrated probability
+    model = default_confidence_model()
+    cues, confidence = answer_confidence(best, verified, model)
     if not ok:
-        reason = best.reason if best.reason == REASON_TOO_FEW_MATCHES else REASON_TOO_FEW_INLIERS
-        return LocalizationResult("not_localized", reason, best, None, verified, timings)
+        reason = best.reason if best.reason in (REASON_TOO_FEW_MATCHES, REASON_AMBIGUOUS) else REASON_TOO_FEW_INLIERS
+        return LocalizationResult("not_localized", reason, best, None, verified, timings, confidence, cues)
+    if config.pose_method == "guided" and confidence < config.effective_min_confidence:
+        return LocalizationResult("not_localized", REASON_LOW_CONFIDENCE, best, None, verified, timings,
+                                  confidence, cues)
     assert best.T_keyframe_query is not None
     T_map_query = compose(best.T_map_keyframe, best.T_keyframe_query)
-    return LocalizationResult("localized", None, best, np.asarray(T_map_query, np.float64), verified, timings)
+    return LocalizationResult("localized", None, best, np.asarray(T_map_query, np.float64), verified, timings,
+                              confidence, cues)
+
+
+def answer_confidence(best: CandidateVerification, candidates: list[CandidateVerification],
+                      model: ConfidenceModel) -> tuple[ConfidenceCues | None, float]:
+    """The winner's ``ConfidenceCues`` among ``candidates`` and ``model``'s probability (0.0 without cues)."""
+    cues = confidence_cues(best, candidates, model.place_radius_m, model.top_n)
+    return cues, (float(model.predict(cues)) if cues is not None else 0.0)

@@ -104,6 +104,7 @@ class GlobalIndex:
             index.cp.seed = 0
             index.train(sample)
             index.nprobe = min(config.ivf_nprobe, nlist)
+            index.make_direct_map()  # ``vector(i)`` (8 bytes per keyframe)
             self._quantizer = quantizer  # keep alive: FAISS does not own it
         if self.size:
             index.add(x)
@@ -131,6 +132,10 @@ class GlobalIndex:
             return np.zeros((q.shape[0], 0), np.int64), np.zeros((q.shape[0], 0), np.float32)
         sims, idx = self._index.search(q, k)
         return idx.astype(np.int64), sims.astype(np.float32)
+
+    def vector(self, i: int) -> np.ndarray:
+        """(D,) float32 indexed descriptor ``i`` (exact for every index kind)."""
+        return np.asarray(self._index.reconstruct(int(i)), np.float32)
 
     def distances(self, query: np.ndarray) -> np.ndarray:
         """(N,) float64 Euclidean distances between the unit query (D,) and every indexed descriptor

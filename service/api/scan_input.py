@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 from typing import Any
@@ -23,6 +24,7 @@ __all__ = ["ScanInput", "read_scan_input", "scan_request_body", "UnsupportedMedi
            "read_scan_upload"]
 
 _TOP_K_FORM = re.compile(r"^[0-9]{1,6}$")
+_FLOAT_FORM = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d{1,3})?$")
 
 
 #: Bytes of an upload read to find its header (a PNG's IHDR is in the first 33, an .npy header under 10 kB).
@@ -134,6 +136,15 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
                 raise RequestValidationError([{"loc": ("body", "top_k"), "msg": "Input should be a decimal integer",
                                                "type": "int_parsing"}])
             raw_fields["top_k"] = int(raw_fields["top_k"])
+        for name, text in list(raw_fields.items()):  # numeric form fields (tracking): plain finite decimals
+            info = json_model.model_fields.get(name)
+            if info is None or name == "top_k" or float not in getattr(info.annotation, "__args__", (info.annotation,)):
+                continue
+            value = float(text) if _FLOAT_FORM.match(text) else math.nan
+            if not math.isfinite(value):
+                raise RequestValidationError([{"loc": ("body", name), "msg": "Input should be a finite decimal number",
+                                               "type": "float_parsing"}])
+            raw_fields[name] = value
         unknown = sorted(set(form.keys()) - set(form_keys) - {"scan", "preset"})
         if unknown:
             raise BadRequestError(f"unexpected form fields {unknown}; allowed: scan, preset, {', '.join(form_keys)}")

@@ -9,7 +9,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.core.ids import MAP_ID_PATTERN
+from service.core.ids import MAP_ID_PATTERN, SESSION_ID_PATTERN
 
 __all__ = [
     "ErrorResponse",
@@ -154,11 +154,30 @@ class RetrieveResponse(_Model):
 
 class LocalizeRequest(ScanRef):
     """Localize by reference (JSON). Inline scans use multipart/form-data: `map_id` field, `scan` file,
-    optional `top_k`, `preset`."""
+    optional `top_k`, `preset` and the tracking fields below.
+
+    Tracking mode (docs/SERVICE.md): send a `session_id` (the server keeps the session's last pose on this
+    map) and, when known, the odometry since the session's previous scan (`odom_*`, in the previous scan's
+    frame); or an explicit prior (`prior_*`). Without either, or when tracking is lost, the scan is localized
+    globally."""
 
     map_id: str = Field(pattern=MAP_ID_PATTERN)
     top_k: int | None = Field(default=None, ge=1, le=100, description=(
         "Candidates retrieved and screened (default: service top_k; the best verify_k are verified in full)."))
+    session_id: str | None = Field(default=None, pattern=SESSION_ID_PATTERN, description=(
+        "Tracking session: the server remembers this session's last pose (per map, expires after "
+        "RERADAR_SESSION_TTL_S) and tracks from it."))
+    odom_dx_m: float | None = Field(default=None, ge=-1000, le=1000, description=(
+        "Odometry since the session's previous scan: forward motion in that scan's frame, metres."))
+    odom_dy_m: float | None = Field(default=None, ge=-1000, le=1000, description="Odometry: leftward motion, metres.")
+    odom_dyaw_deg: float | None = Field(default=None, ge=-360, le=360, description="Odometry: heading change, degrees CCW.")
+    prior_x_m: float | None = Field(default=None, ge=-1e7, le=1e7, description="Explicit prior: map-frame x, metres.")
+    prior_y_m: float | None = Field(default=None, ge=-1e7, le=1e7, description="Explicit prior: map-frame y, metres.")
+    prior_yaw_deg: float | None = Field(default=None, ge=-360, le=360, description="Explicit prior: heading, degrees.")
+    prior_sigma_m: float | None = Field(default=None, gt=0, le=1000, description=(
+        "Explicit prior: position standard deviation, metres (default 2)."))
+    prior_sigma_yaw_deg: float | None = Field(default=None, gt=0, le=180, description=(
+        "Explicit prior: heading standard deviation, degrees (default 5)."))
 
 
 class CandidateResult(_Model):
@@ -182,7 +201,9 @@ class LocalizeResponse(_Model):
     """Where the vehicle is. `pose` is set only when `status` is `localized`."""
 
     status: Literal["localized", "not_localized"]
-    reason: str | None = Field(default=None, description="Why not localized: no_candidate, too_few_matches, too_few_inliers.")
+    reason: str | None = Field(default=None, description=(
+        "Why not localized: no_candidate, too_few_matches, too_few_inliers, ambiguous (a rival pose aligns as "
+        "many landmarks), low_confidence (below min_confidence), inconsistent_with_prior (tracking)."))
     map_id: str
     scan_id: str | None
     pose: Pose2D | None = Field(default=None, description="Query pose in the map frame (keyframe pose o relative pose).")
@@ -191,5 +212,20 @@ class LocalizeResponse(_Model):
     num_matches: int = 0
     num_inliers: int = 0
     inlier_ratio: float = 0.0
+    confidence: float = Field(default=0.0, ge=0.0, le=1.0, description=(
+        "Probability in [0, 1] that `pose` (or, when not localized, the best candidate's pose) is within the "
+        "success thresholds (20 m and 10 deg urban, 25 m off-road): a logistic model over the answer's cues "
+        "(aligned-landmark ratio and count, margin over a different place, descriptor distance, landmark "
+        "spread, agreement of the top candidates, pose ambiguity), fitted on training data only "
+        "(docs/MODEL.md, Confidence). `localized` requires it to reach the configured min_confidence; "
+        "0 when there is no pose."))
     candidates: list[CandidateResult] = Field(default_factory=list)
+    mode: Literal["global", "tracking"] = Field(default="global", description=(
+        "`tracking`: registered from the session's / the request's prior; `global`: retrieval + re-ranking."))
+    tracking_lost: bool = Field(default=False, description=(
+        "A prior was given but no consistent pose was found near it; this is the global answer."))
+    session_id: str | None = None
+    alignment_score: float = Field(default=0.0, description=(
+        "The decision score: fraction of the query's landmarks aligned with the keyframe's (0-1); "
+        "`localized` needs >= 0.5 and `min_inliers`. Not a calibrated probability."))
     timings_ms: dict[str, float]

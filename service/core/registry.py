@@ -163,7 +163,7 @@ class MapRegistry:
     def _open(self, path: Path) -> MapDatabase:
         return MapDatabase(open_map(path, self.extractor.model_id, self.extractor.weights_sha256),
                            self.index_config, keyframe_cache_size=self.settings.keyframe_cache_size,
-                           config=self.settings.localization)
+                           config=self.settings.localization, preload=self.settings.preload_keyframes)
 
     def install_demo_map(self) -> None:
         """Copy the shipped demo map to ``<maps_dir>/demo.h5`` unless a map ``demo`` exists already; an

@@ -16,6 +16,7 @@ from service.core.config import Settings
 from service.core.metrics import Metrics
 from service.core.registry import MapRegistry
 from service.core.scan_cache import ScanCache
+from service.core.sessions import SessionConfig, SessionStore
 
 __all__ = ["ServiceState", "MIN_SCAN_SIDE", "MAX_SCAN_SIDE"]
 
@@ -35,6 +36,11 @@ class ServiceState:
     cache: ScanCache
     metrics: Metrics
     started_at: float = field(default_factory=time.time)
+    sessions: SessionStore = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.sessions = SessionStore(SessionConfig(max_sessions=self.settings.max_sessions,
+                                                   ttl_s=self.settings.session_ttl_s))
 
     def localization_config(self, top_k: int | None = None) -> LocalizationConfig:
         """The configured ``LocalizationConfig``, with a request's ``top_k`` when given."""

@@ -12,10 +12,12 @@ from reradar_core.localization import (
     REASON_NO_CANDIDATE,
     REASON_SCREENED_OUT,
     REASON_TOO_FEW_INLIERS,
+    CachedKeyframe,
     Candidate,
     LocalizationConfig,
     localize,
 )
+from reradar_core.matching import AlignmentConfig
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
@@ -86,7 +88,8 @@ def test_screen_keeps_true_keyframe_from_deep_in_the_retrieval_list() -> None:
     T_kf_query = np.array([-3.0, 2.0, np.deg2rad(-140.0)])
     query = _query_from(kfs[7], T_kf_query, rng)
     order = [0, 1, 2, 3, 4, 5, 6, 8, 9, 7, 10, 11]
-    res = localize(query, _candidates(kfs, poses, order), LocalizationConfig(top_k=12, verify_k=3))
+    res = localize(query, _candidates(kfs, poses, order), LocalizationConfig(top_k=12, verify_k=3,
+                                                                           stop_verify_ratio=None))
     assert res.localized and res.best is not None and res.best.keyframe_id == 7 and res.best.rank == 9
     assert res.T_map_query is not None
     np.testing.assert_allclose(res.T_map_query[:2], compose(poses[7], T_kf_query)[:2], atol=0.15)
@@ -150,7 +153,7 @@ def test_expansion_screens_further_only_when_no_candidate_aligns() -> None:
         def loader(i: int):
             def load():
                 loaded.append(i)
-                return kfs[i], None
+                return CachedKeyframe(kfs[i], AlignmentConfig())
             return load
         return [Candidate(i, poses[i], None, 0.1 * r, r, loader=loader(i)) for r, i in enumerate(order_)]
 
@@ -167,3 +170,40 @@ def test_expansion_screens_further_only_when_no_candidate_aligns() -> None:
     loaded.clear()
     confident = localize(query, lazy([33] + order[:25] + order[26:]), cfg)
     assert confident.localized and confident.best.keyframe_id == 33 and len(loaded) == 10
+
+
+def test_verification_stops_once_an_answer_is_confident() -> None:
+    """Two true keyframes at ranks 3 and 6 screen best: with a stop ratio of 0.5 only the best-screened one
+    is verified; without it all ``verify_k`` are, and the answer is the same place."""
+    rng = np.random.default_rng(8)
+    kfs = [_keyframe(rng, ts=i) for i in range(10)]
+    kfs[6] = ScanFeatures(kfs[6].global_descriptor, kfs[3].keypoints_xy_m, kfs[3].local_descriptors, 6)
+    poses = np.column_stack([np.arange(10) * 40.0, np.zeros(10), np.zeros(10)])
+    poses[6] = poses[3]
+    query = _query_from(kfs[3], np.array([1.0, 2.0, 0.4]), rng)
+    order = list(range(10))
+    fast = localize(query, _candidates(kfs, poses, order), LocalizationConfig(top_k=10, verify_k=3,
+                                                                            stop_verify_ratio=0.5))
+    full = localize(query, _candidates(kfs, poses, order), LocalizationConfig(top_k=10, verify_k=3,
+                                                                            stop_verify_ratio=None))
+    assert sum(c.reason != REASON_SCREENED_OUT for c in fast.candidates) == 1
+    assert sum(c.reason != REASON_SCREENED_OUT for c in full.candidates) == 3
+    assert fast.localized and full.localized and fast.best.keyframe_id in (3, 6)
+    np.testing.assert_allclose(fast.T_map_query, full.T_map_query, atol=0.05)
+    with pytest.raises(ConfigError):
+        LocalizationConfig(stop_verify_ratio=1.5)
+
+
+def test_periodic_place_is_not_localized_as_ambiguous() -> None:
+    # a lattice of identical posts (one shared descriptor): every one-period shift aligns as many landmarks,
+    # so the answer is refused as ambiguous rather than guessed
+    from reradar_core.localization import REASON_AMBIGUOUS
+
+    g = np.arange(-48.0, 49.0, 8.0)
+    pts = np.array([(x, y) for x in g for y in g])
+    desc = np.ones((len(pts), 8)) / np.sqrt(8)
+    kf = ScanFeatures(_unit(np.ones(16)), pts, desc, 0)
+    query = ScanFeatures(kf.global_descriptor, transform_points(inverse(np.array([1.0, 0.5, 0.0])), pts), desc, 1)
+    cfg = LocalizationConfig(alignment=AlignmentConfig(top_k_matches=8))
+    res = localize(query, _candidates([kf], np.zeros((1, 3)), [0]), cfg)
+    assert res.status == "not_localized" and res.reason == REASON_AMBIGUOUS

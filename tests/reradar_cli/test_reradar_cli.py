@@ -87,3 +87,11 @@ def test_library_never_imports_maps_service_or_cli() -> None:
             bad += [f"{path.relative_to(ROOT)}: {n}" for n in names
                     if n.split(".")[0] in ("maps", "service", "reradar_cli")]
     assert bad == []
+
+
+def test_missing_optional_dependency_is_an_actionable_error(monkeypatch) -> None:  # noqa: ANN001
+    """A client-only install has no uvicorn: `reradar serve` says which extra to install (exit 2)."""
+    monkeypatch.setitem(sys.modules, "uvicorn", None)  # `import uvicorn` now raises ModuleNotFoundError
+    res = CliRunner().invoke(app, ["serve", "--port", "1"])
+    assert res.exit_code == 2
+    assert "uvicorn" in res.output and "reradar[server]" in res.output

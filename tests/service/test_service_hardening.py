@@ -88,6 +88,12 @@ def test_error_model_covers_validation_404_405_and_paths(live: tuple[str, Path])
             assert_problem(c.post("/localize", data={"map_id": "hard", "top_k": bad}, files={"scan": ("q.png", png)}),
                            422)
         assert c.post("/localize", data={"map_id": "hard", "top_k": "5"}, files={"scan": ("q.png", png)}).status_code == 200
+        # strict multipart decimals (tracking odometry): finite numbers only
+        odom = {"odom_dx_m": "1.5", "odom_dy_m": "-0.25", "odom_dyaw_deg": "2e0", "session_id": "veh-1"}
+        for bad in ("nan", "inf", "1e999", "true", "0x10", ""):
+            r = c.post("/localize", data={"map_id": "hard", **odom, "odom_dx_m": bad}, files={"scan": ("q.png", png)})
+            assert_problem(r, 400 if bad == "" else 422)
+        assert c.post("/localize", data={"map_id": "hard", **odom}, files={"scan": ("q.png", png)}).status_code == 200
 
 
 def test_keys_operator_vehicle_and_loopback(tmp_path: Path, fake_map: Path) -> None:

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import math
 import time
+from typing import Any
 
+import numpy as np
 from fastapi import APIRouter, Request
 from starlette.concurrency import run_in_threadpool
 
+from reradar_core.localization import PosePrior
 from service.api.deps import StateDep
 from service.api.scan_input import read_scan_input, scan_request_body
 from service.api.schemas import (
@@ -18,8 +22,44 @@ from service.api.schemas import (
     RetrievedKeyframe,
 )
 from service.core.config import MAP_ID_PATTERN
+from service.core.errors import BadRequestError
+from service.core.ids import SESSION_ID_PATTERN
 
 router = APIRouter(tags=["localize"])
+
+_ODOM = ("odom_dx_m", "odom_dy_m", "odom_dyaw_deg")
+_PRIOR = ("prior_x_m", "prior_y_m", "prior_yaw_deg")
+_PRIOR_SIGMAS = ("prior_sigma_m", "prior_sigma_yaw_deg")
+_FORM_KEYS = ("map_id", "top_k", "session_id", *_ODOM, *_PRIOR, *_PRIOR_SIGMAS)
+#: uncertainty of an explicit prior sent without sigmas
+_DEFAULT_PRIOR_SIGMA_M = 2.0
+_DEFAULT_PRIOR_SIGMA_YAW_DEG = 5.0
+
+
+def _all_or_none(fields: dict[str, Any], names: tuple[str, ...]) -> bool:
+    given = [fields.get(n) is not None for n in names]
+    if any(given) and not all(given):
+        raise BadRequestError(f"send all of {', '.join(names)} or none of them")
+    return all(given)
+
+
+def _odometry(fields: dict[str, Any]) -> np.ndarray | None:
+    """``T_prev_curr`` (x m, y m, yaw rad) from the request's odometry, or None."""
+    if not _all_or_none(fields, _ODOM):
+        return None
+    return np.array([fields["odom_dx_m"], fields["odom_dy_m"], math.radians(fields["odom_dyaw_deg"])])
+
+
+def _prior(fields: dict[str, Any]) -> PosePrior | None:
+    """The request's explicit prior, or None."""
+    if not _all_or_none(fields, _PRIOR):
+        if any(fields.get(n) is not None for n in _PRIOR_SIGMAS):
+            raise BadRequestError("prior_sigma_m / prior_sigma_yaw_deg need prior_x_m, prior_y_m, prior_yaw_deg")
+        return None
+    sigma = fields.get("prior_sigma_m") or _DEFAULT_PRIOR_SIGMA_M
+    sigma_yaw = fields.get("prior_sigma_yaw_deg") or _DEFAULT_PRIOR_SIGMA_YAW_DEG
+    return PosePrior(np.array([fields["prior_x_m"], fields["prior_y_m"], math.radians(fields["prior_yaw_deg"])]),
+                     float(sigma), math.radians(float(sigma_yaw)))
 
 _E = {"model": ErrorResponse}
 
@@ -28,18 +68,30 @@ _E = {"model": ErrorResponse}
              responses={400: _E, 404: _E, 409: _E, 413: _E, 415: _E, 422: _E},
              openapi_extra=scan_request_body(LocalizeRequest, {
                  "map_id": {"type": "string", "pattern": MAP_ID_PATTERN, "x-required": True},
-                 "top_k": {"type": "integer", "minimum": 1, "maximum": 100}}))
+                 "top_k": {"type": "integer", "minimum": 1, "maximum": 100},
+                 "session_id": {"type": "string", "pattern": SESSION_ID_PATTERN},
+                 **{k: {"type": "number"} for k in (*_ODOM, *_PRIOR, *_PRIOR_SIGMAS)}}))
 async def localize(request: Request, state: StateDep) -> LocalizeResponse:
     """Localize one scan on a map. JSON ``{map_id, scan_id}`` for a scan uploaded with ``POST /scans``, or
     multipart/form-data with ``map_id`` and a ``scan`` file (Navtech PNG / .npy). ``status`` is
-    ``localized`` only when the best candidate has enough RANSAC inliers; ``pose`` is then the query's pose
-    in the map frame (metres, degrees)."""
+    ``localized`` only when at least half of the query's landmarks align with the chosen keyframe's (and
+    ``min_inliers``); ``pose`` is then the query's pose in the map frame (metres, degrees). With a
+    ``session_id`` (plus odometry) or an explicit ``prior_*`` the scan is tracked from that prior (``mode``
+    ``tracking``), falling back to global localization when no consistent pose is found near it."""
     t0 = time.perf_counter()
-    inp = await read_scan_input(request, state, LocalizeRequest, ("map_id", "top_k"))
+    inp = await read_scan_input(request, state, LocalizeRequest, _FORM_KEYS)
     map_id = inp.fields["map_id"]
     db = state.registry.ready(map_id)
     config = state.localization_config(inp.fields.get("top_k"))
-    result = await run_in_threadpool(db.localize, inp.features, config)
+    session_id = inp.fields.get("session_id")
+    odometry, explicit = _odometry(inp.fields), _prior(inp.fields)  # both validated on every request
+    prior = explicit or (state.sessions.prior_for(session_id, map_id, odometry) if session_id else None)
+    if prior is not None:
+        result = await run_in_threadpool(db.track, inp.features, prior, config)
+    else:
+        result = await run_in_threadpool(db.localize, inp.features, config)
+    if session_id:
+        state.sessions.update(session_id, map_id, result.T_map_query, prior)
     timings = {**inp.timings_ms, **result.timings_ms}
     state.metrics.observe_stages(timings)
     state.metrics.inc("reradar_localizations_total", status=result.status)
@@ -63,6 +115,7 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         num_matches=best.num_matches if best else 0,
         num_inliers=best.num_inliers if best else 0,
         inlier_ratio=best.inlier_ratio if best else 0.0,
+        confidence=min(max(float(result.confidence), 0.0), 1.0),
         candidates=[CandidateResult(keyframe_id=c.keyframe_id, timestamp_us=c.timestamp_us, rank=c.rank,
                                     descriptor_distance=c.descriptor_distance, num_matches=c.num_matches,
                                     num_inliers=c.num_inliers, inlier_ratio=c.inlier_ratio,
@@ -70,5 +123,9 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
                                     relative_pose=Pose2D.from_array(c.T_keyframe_query)
                                     if c.T_keyframe_query is not None else None)
                     for c in result.candidates],
+        mode=result.mode,
+        tracking_lost=result.tracking_lost,
+        session_id=session_id,
+        alignment_score=result.alignment_score,
         timings_ms=timings,
     )

@@ -1,0 +1,80 @@
+"""``reradar fit-confidence``: fit the shipped confidence model on training splits (one command to re-fit)."""
+
+from __future__ import annotations
+
+import json
+import shlex
+import sys
+from pathlib import Path
+
+import typer
+
+from reradar_core.errors import ReRadarError
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("fit-confidence")
+    def fit_confidence(
+        splits: str = typer.Option("train-target-boreas,train-target-loop,train-target-offroad",
+                                   help="Comma-separated training splits (never benchmark query sequences)."),
+        query_step: int = typer.Option(1, min=1, help="Use every N-th query scan of each split."),
+        holdout: float = typer.Option(0.15, min=0.05, max=0.5,
+                                      help="Tail fraction of each query sequence held out for the reliability "
+                                           "numbers (the descriptor's validation tail)."),
+        l2: float = typer.Option(1.0, min=0.0, help="L2 penalty on the standardised weights."),
+        max_wrong_pct: float = typer.Option(0.5, min=0.0, max=100.0,
+                                            help="The bar is the lowest confidence at which wrong localized "
+                                                 "answers are at most this percent of the fit runs."),
+        out: Path = typer.Option(None, help="Model JSON (default: the shipped "
+                                            "reradar_core/localization/confidence_model.json)."),
+        plot: Path = typer.Option(Path("docs/img/confidence_reliability.png"), help="Reliability diagram PNG."),
+        reuse: bool = typer.Option(False, help="Re-fit from the runs saved by the last collection (cache) "
+                                               "instead of localizing again."),
+        progress: bool = typer.Option(True, help="Progress bars."),
+        threads: int = typer.Option(1, min=1, help="Torch threads (the machine is shared)."),
+    ) -> None:
+        """Localize training-split queries, fit the confidence model, write its JSON and a reliability diagram."""
+        import torch
+
+        from reradar_core.localization.confidence import DEFAULT_MODEL_PATH
+        from reradar_core.localization.confidence_fit import (
+            FitData,
+            collect_split,
+            fit_from_data,
+            plot_reliability,
+        )
+        from reradar_core.paths import cache_dir
+        from reradar_core.sim.writer import SIM_VERSION
+
+        torch.set_num_threads(threads)
+        names = [s.strip() for s in splits.split(",") if s.strip()]
+        runs_path = cache_dir("confidence") / f"runs-v{SIM_VERSION}-{'+'.join(names)}-step{query_step}.npz"
+        try:
+            from_cache = reuse and runs_path.is_file()
+            if from_cache:
+                data = FitData.load(runs_path)
+            else:
+                data = FitData.concat([collect_split(s, query_step, holdout, progress) for s in names])
+                data.save(runs_path)
+            meta = {"command": "reradar " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+                    "splits": names, "sim_version": SIM_VERSION, "query_step": query_step, "holdout": holdout,
+                    "runs_from_cache": from_cache,
+                    "l2": l2, "label": "pose within the suite's success thresholds (e_t < R, e_r < 10 deg)"}
+            from reradar_core.localization.confidence_fit import SPLIT_MODELS
+
+            meta["models"] = {s: SPLIT_MODELS[s] for s in names}
+            model, report = fit_from_data(data, l2, max_wrong_pct / 100.0, meta)
+        except ReRadarError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from exc
+        target = out or DEFAULT_MODEL_PATH
+        model.save(target)
+        ho = data.has_pose & data.heldout
+        fit = data.has_pose & ~data.heldout
+        plot_reliability({"held-out training runs": (model.predict(data.cues[ho]), data.correct[ho]),
+                          "fit runs": (model.predict(data.cues[fit]), data.correct[fit])}, plot,
+                         f"answer confidence on training splits\n{', '.join(names)}\nheld-out ECE "
+                         f"{report['ece_heldout']:.3f} (10 bins)", bar=model.min_confidence)
+        typer.echo(json.dumps({"model": target.name, "coef": dict(zip(model.cue_names, model.coef.round(3).tolist(),
+                                                                       strict=True)),
+                               **report}, indent=2))

@@ -1,0 +1,241 @@
+"""Fit the shipped ``ConfidenceModel`` on training splits (``reradar fit-confidence``).
+
+Data (never a benchmark query sequence): for each target training split (``reradar_core.training.suites``)
+its own traversals are the queries and the benchmark suite's *database* sequence of that domain is the map -
+the same pairing the target-adapted descriptor was trained on. Each query is localized by the service's
+``Localizer`` with the split's target-adapted model (``our-3-<domain>``) and the aligned-ratio floor alone
+(``min_confidence=0``); its label is 1 when the winner's pose is within the paper's success thresholds
+(``localization_success``: translation error < R of the suite, heading error < 10 deg), else 0. Queries are
+run twice where useful: on the full map, and on a map of the first half of the database keyframes for the
+queries that have no keyframe of that half within R - no-match queries, whose every pose is a wrong answer
+(labels 0), as a user sees on an unmapped road.
+
+Held-out split: the last ``holdout`` (15 %) of each query sequence - the tail the descriptor was validated on
+and never trained on - gives the reliability numbers (ECE, diagram, wrong-answer rate at the bar); the rest
+fits the coefficients and chooses the bar. Everything is deterministic (the localizer is seeded, the split is by
+position).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from reradar_core.evaluation.metrics import has_revisit, localization_errors, localization_success
+from reradar_core.geometry.se2 import compose
+from reradar_core.localization.confidence import (
+    CUE_NAMES,
+    ConfidenceModel,
+    choose_min_confidence,
+    cues_from_result,
+    expected_calibration_error,
+    fit_confidence_model,
+    reliability_bins,
+)
+
+__all__ = ["SPLIT_MODELS", "FitData", "collect_split", "fit_from_data", "plot_reliability"]
+
+logger = logging.getLogger(__name__)
+
+#: training split -> the target-adapted model whose answers it judges
+SPLIT_MODELS: dict[str, str] = {
+    "train-target-boreas": "our-3-boreas",
+    "train-target-loop": "our-3-loop",
+    "train-target-offroad": "our-3-offroad",
+}
+
+#: the cues' place radius (metres) and agreement count, stored with the fitted model
+PLACE_RADIUS_M = 20.0
+TOP_N = 5
+
+
+@dataclass
+class FitData:
+    """One row per localization run.
+
+    Attributes:
+        cues: (Q, C) float64 cues (``CUE_NAMES`` order; zeros where ``has_pose`` is False).
+        has_pose: (Q,) bool the winner has a pose (cues defined).
+        correct: (Q,) bool the pose is within the success thresholds (False without a pose).
+        eligible: (Q,) bool the answer passes the aligned-ratio floor (``localized`` without the confidence).
+        revisit: (Q,) bool the map has a keyframe within R of the query.
+        heldout: (Q,) bool the query lies in its sequence's held-out tail.
+        split: (Q,) str training split of the row.
+    """
+
+    cues: np.ndarray
+    has_pose: np.ndarray
+    correct: np.ndarray
+    eligible: np.ndarray
+    revisit: np.ndarray
+    heldout: np.ndarray
+    split: np.ndarray
+
+    @staticmethod
+    def concat(parts: list[FitData]) -> FitData:
+        return FitData(*(np.concatenate([getattr(p, f) for p in parts]) for f in
+                         ("cues", "has_pose", "correct", "eligible", "revisit", "heldout", "split")))
+
+    def save(self, path: Path) -> None:
+        np.savez_compressed(path, **{f: getattr(self, f) for f in
+                                     ("cues", "has_pose", "correct", "eligible", "revisit", "heldout", "split")})
+
+    @staticmethod
+    def load(path: Path) -> FitData:
+        z = np.load(path, allow_pickle=False)
+        return FitData(z["cues"], z["has_pose"], z["correct"], z["eligible"], z["revisit"], z["heldout"],
+                       z["split"])
+
+
+def _localizer(method: Any, records: list[Any], poses: np.ndarray, config: Any) -> Any:
+    from reradar_core.baselines.ours import prepared_to_features
+    from reradar_core.localization import InMemoryKeyframes, Localizer
+    from reradar_core.retrieval import GlobalIndex
+
+    index = GlobalIndex(np.stack([np.asarray(r["global"], np.float32).reshape(-1) for r in records]))
+    keyframes = InMemoryKeyframes(lambda j: prepared_to_features(records[j]), poses,
+                                  np.array([int(np.asarray(r["timestamp_us"])) for r in records]))
+    return Localizer(index, keyframes, config)
+
+
+def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progress: bool = True) -> FitData:
+    """Localize the split's training queries on its domain's map and label the answers (module docstring).
+
+    Args:
+        split: a key of ``SPLIT_MODELS``.
+        query_step: use every ``query_step``-th query scan (1 = all).
+        holdout: fraction at the end of each query sequence held out for the reliability numbers.
+        progress: progress bars.
+    """
+    from tqdm import tqdm
+
+    from reradar_core.baselines.ours import Ours, prepared_to_features
+    from reradar_core.benchmark.runner import BenchConfig, prepare_sequence
+    from reradar_core.localization.pipeline import LocalizationConfig
+    from reradar_core.sim.suites import build_suite
+    from reradar_core.training.suites import TRAINING_SPLITS
+
+    data = build_suite(split, progress=progress)
+    bench_name = TRAINING_SPLITS[split]
+    assert bench_name is not None
+    bench = build_suite(bench_name, progress=progress)
+    radius = bench.radius_m
+    config = replace(LocalizationConfig(), min_confidence=0.0)  # the floor alone: every answer is labelled
+    method = Ours(SPLIT_MODELS[split], localization=config)
+    bc = BenchConfig(radius_m=radius, rotation_stress=False, progress=progress)
+    db_seq = bench.load(bench.database[0])
+    db = prepare_sequence([method], db_seq, bc)[method.name]
+    db_poses = db_seq.poses.poses
+    half = len(db.records) // 2
+    maps = {"full": (_localizer(method, db.records, db_poses, config), db_poses),
+            "half": (_localizer(method, db.records[:half], db_poses[:half], config), db_poses[:half])}
+    rows: list[tuple[np.ndarray, bool, bool, bool, bool, bool]] = []
+    for qpath in data.training:
+        qseq = data.load(qpath).subset(slice(None, None, query_step))
+        q = prepare_sequence([method], qseq, bc)[method.name]
+        gt = qseq.poses.poses
+        n = len(q.records)
+        picks = np.arange(n)
+        for map_name, (loc, poses) in maps.items():
+            revisit = has_revisit(gt[picks], poses, radius)
+            # the half map serves the no-match queries only (a revisit there repeats the full map's)
+            todo = picks if map_name == "full" else picks[~revisit]
+            rev = dict(zip(picks.tolist(), revisit.tolist(), strict=True))
+            for i in tqdm(todo, desc=f"{split}/{qseq.name} on the {map_name} map", disable=not progress,
+                          leave=False):
+                res = loc.localize(prepared_to_features(q.records[i]), config)
+                cues = cues_from_result(res, PLACE_RADIUS_M, TOP_N)
+                ok = False
+                if cues is not None:
+                    assert res.best is not None and res.best.T_keyframe_query is not None
+                    est = np.asarray(compose(res.best.T_map_keyframe, res.best.T_keyframe_query))[None]
+                    e_t, e_r = localization_errors(est, gt[i][None])
+                    ok = bool(localization_success(e_t, e_r, radius)[0]) and rev[int(i)]
+                rows.append((cues.as_array() if cues is not None else np.zeros(len(CUE_NAMES)),
+                             cues is not None, ok, res.localized, rev[int(i)], i >= (1.0 - holdout) * n))
+    m = len(rows)
+    return FitData(np.array([r[0] for r in rows]).reshape(m, len(CUE_NAMES)),
+                   np.array([r[1] for r in rows], bool), np.array([r[2] for r in rows], bool),
+                   np.array([r[3] for r in rows], bool), np.array([r[4] for r in rows], bool),
+                   np.array([r[5] for r in rows], bool), np.array([split] * m))
+
+
+def _rates(p: np.ndarray, d: FitData, mask: np.ndarray, bar: float) -> dict[str, float]:
+    """Wrong / correct ``localized`` answers (percent of the runs in ``mask``) with and without the bar."""
+    n = max(int(mask.sum()), 1)
+    old = d.eligible & mask
+    new = old & (p >= bar)
+    return {"runs": int(mask.sum()),
+            "wrong_pct_floor_only": 100.0 * float((old & ~d.correct).sum()) / n,
+            "wrong_pct_with_bar": 100.0 * float((new & ~d.correct).sum()) / n,
+            "correct_pct_floor_only": 100.0 * float((old & d.correct).sum()) / n,
+            "correct_pct_with_bar": 100.0 * float((new & d.correct).sum()) / n}
+
+
+def fit_from_data(d: FitData, l2: float = 1.0, max_wrong_fraction: float = 0.005,
+                  meta: dict[str, Any] | None = None) -> tuple[ConfidenceModel, dict[str, Any]]:
+    """Fit on the non-held-out runs with a pose, choose the bar there, report on the held-out runs.
+
+    Returns:
+        The model (its ``meta`` holds the report) and the report: sizes, ECE (10 bins) on the held-out runs
+        with a pose, wrong / correct answer rates (percent of runs) with the floor alone and with the bar.
+    """
+    fit_rows = d.has_pose & ~d.heldout
+    model = fit_confidence_model(d.cues[fit_rows], d.correct[fit_rows], l2=l2, place_radius_m=PLACE_RADIUS_M,
+                                 top_n=TOP_N)
+    p = np.where(d.has_pose, model.predict(d.cues), 0.0)
+    bar = choose_min_confidence(p[~d.heldout], d.correct[~d.heldout], d.eligible[~d.heldout],
+                                int((~d.heldout).sum()), max_wrong_fraction)
+    ho = d.has_pose & d.heldout
+    report: dict[str, Any] = {
+        "runs": int(len(d.correct)), "fit_runs_with_pose": int(fit_rows.sum()),
+        "fit_positives": int(d.correct[fit_rows].sum()), "heldout_runs_with_pose": int(ho.sum()),
+        "heldout_positives": int(d.correct[ho].sum()),
+        "ece_heldout": expected_calibration_error(p[ho], d.correct[ho]),
+        "ece_fit": expected_calibration_error(p[fit_rows], d.correct[fit_rows]),
+        "ece_heldout_above_floor": expected_calibration_error(p[ho & d.eligible], d.correct[ho & d.eligible]),
+        "heldout_runs_above_floor": int((ho & d.eligible).sum()),
+        "max_wrong_fraction": max_wrong_fraction, "min_confidence": bar,
+        "fit": _rates(p, d, ~d.heldout, bar), "heldout": _rates(p, d, d.heldout, bar),
+        "per_split_heldout": {s: _rates(p, d, d.heldout & (d.split == s), bar) for s in np.unique(d.split)},
+    }
+    full_meta = {**(meta or {}), "report": report}
+    model = replace(model, min_confidence=bar, meta=full_meta)
+    return model, report
+
+
+def plot_reliability(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: Path, title: str,
+                     bins: int = 10, bar: float | None = None) -> None:
+    """Reliability diagram: per curve (label -> (confidence (Q,), correct (Q,) bool)) the observed fraction of
+    correct poses per confidence bin against the bin's mean confidence; the bins' counts below (log scale)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax, axh) = plt.subplots(2, 1, figsize=(5.5, 6.5), gridspec_kw={"height_ratios": [3, 1]}, sharex=True)
+    ax.plot([0, 1], [0, 1], "--", color="grey", label="perfect calibration")
+    width = 1.0 / bins / (len(curves) + 1)
+    for k, (label, (p, y)) in enumerate(curves.items()):
+        t = reliability_bins(p, y, bins)
+        ok = t["count"] > 0
+        ax.plot(t["mean_p"][ok], t["frac_pos"][ok], "o-", label=f"{label} (n={len(p)})")
+        axh.bar(t["edges"][:-1] + (k + 0.5) * width + 0.5 * width, t["count"], width=width, label=label)
+    if bar is not None:
+        ax.axvline(bar, color="tab:red", lw=1, label=f"min_confidence {bar:.2f}")
+    ax.set_ylabel("observed fraction within thresholds")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="upper left", fontsize=8)
+    axh.set_yscale("log")
+    axh.set_xlabel("confidence (predicted probability)")
+    axh.set_ylabel("runs per bin")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

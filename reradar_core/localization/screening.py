@@ -1,0 +1,189 @@
+"""Landmark-alignment screen of many candidate keyframes at once (vectorised ``screen_alignment``).
+
+``reradar_core.matching.screen_alignment`` scores one keyframe: pair each of ~256 query landmarks with its 5
+most similar keyframe landmarks (local descriptors), draw 1,500 two-point minimal sets, keep those whose
+lengths agree, and count the query landmarks each hypothesis puts within ``score_threshold_m`` of a keyframe
+landmark. Per candidate that is a 256 x M similarity product, a top-k, ~150 surviving hypotheses and a table
+look-up - each too small for numpy to be efficient, so 20-60 candidates cost 1.5 ms each in Python overhead.
+
+Here the same steps run once for all candidates: one batched similarity product and top-k, minimal sets drawn
+once (the pair lists of all candidates have the same length, so one seeded draw indexes every candidate), and
+one look-up into compact per-keyframe alignment masks (``ScreenGrid``: 1 where a keyframe landmark is within
+``score_threshold_m``, bit-packed: ~10 KB per keyframe instead of a ~0.3 MB float32 distance grid). The scores follow
+the single-candidate definition; the pair lists, the seeded draw and the arithmetic are those of
+``screen_alignment``, so the scores are the same (tested).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from reradar_core.matching import AlignmentConfig, build_landmark_grid, screen_alignment
+
+__all__ = ["ScreenGrid", "build_screen_grid", "ScreenKeyframe", "screen_keyframe", "screen_candidates"]
+
+
+@dataclass
+class ScreenGrid:
+    """Alignment mask of one keyframe's landmarks.
+
+    Attributes:
+        packed: ``np.packbits`` of the (n * n,) row-major mask (row = y cell, column = x cell): 1 where a
+            keyframe landmark is within the score threshold of the cell. Points outside the grid are never
+            near (the grid covers the landmarks plus a margin larger than the threshold).
+        n: cells per side; origin_m: lower corner (same for x and y), metres; cell_m: cell size, metres.
+    """
+
+    packed: np.ndarray
+    n: int
+    origin_m: float
+    cell_m: float
+
+    @property
+    def near(self) -> np.ndarray:
+        """The (n * n,) uint8 mask (0 / 1)."""
+        return np.unpackbits(self.packed, count=self.n * self.n)
+
+
+def build_screen_grid(points_xy_m: np.ndarray, config: AlignmentConfig) -> ScreenGrid:
+    """The ``ScreenGrid`` of (M, 2) landmark positions (metres): the cells of ``build_landmark_grid`` whose
+    distance to the nearest landmark is below ``config.score_threshold_m``."""
+    grid = build_landmark_grid(points_xy_m, config.grid_cell_m)
+    near = (grid.distance_m < config.score_threshold_m).reshape(-1)
+    return ScreenGrid(np.packbits(near), int(grid.distance_m.shape[0]), float(grid.origin_m), float(grid.cell_m))
+
+
+@dataclass
+class ScreenKeyframe:
+    """What the screen needs of one keyframe: (M, 2) landmarks (metres, its sensor frame; any float dtype),
+    (M, C) unit local descriptors (any float dtype; the keyframe's own arrays, not copies) and its
+    ``ScreenGrid``."""
+
+    points: np.ndarray
+    descriptors: np.ndarray
+    grid: ScreenGrid
+
+
+def _topk_indices(sim: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the k largest entries along the last axis of ``sim`` (any leading shape)."""
+    import torch  # torch.topk is several times faster than np.argpartition on these shapes
+
+    # unsorted, like ``matching.alignment``: the pair order (which the seeded draw indexes) is then the same
+    return torch.topk(torch.from_numpy(sim), k, dim=2, sorted=False).indices.numpy()
+
+
+def _cells(a: np.ndarray, b: np.ndarray, sign: float, t: np.ndarray, origin: np.ndarray,
+           cell: np.ndarray) -> np.ndarray:
+    """floor(((a + sign * b) + t - origin) / cell) as int64, computed in place in ``a``."""
+    if sign < 0:
+        a -= b
+    else:
+        a += b
+    a += t
+    a -= origin
+    a /= cell
+    np.floor(a, out=a)
+    return a.astype(np.int64)
+
+
+def screen_candidates(query_points: np.ndarray, query_descriptors: np.ndarray,
+                      keyframes: Sequence[ScreenKeyframe], config: AlignmentConfig) -> np.ndarray:
+    """Screen scores of many keyframes for one query, as ``screen_alignment`` defines them.
+
+    Args:
+        query_points: (N, 2) query landmarks, metres (query sensor frame).
+        query_descriptors: (N, C) unit local descriptors (any float dtype).
+        keyframes: the candidates.
+        config: ``screen_source_points``, ``top_k_matches``, ``screen_hypotheses``, ``min_pair_separation_m``,
+            ``max_length_mismatch_m``, ``score_points``, ``seed`` (and the grids' threshold / cell).
+
+    Returns:
+        (K,) float64 scores in [0, 1]: the best hypothesis' fraction of the (evenly subsampled
+        ``score_points``) query landmarks within the threshold of a keyframe landmark; 0 for degenerate input.
+    """
+    out = np.zeros(len(keyframes))
+    src = np.asarray(query_points, np.float64).reshape(-1, 2)
+    n = len(src)
+    if n < 2 or not np.all(np.isfinite(src)) or not keyframes:
+        return out
+    k = config.top_k_matches
+    usable = [len(kf.points) >= k and bool(np.all(np.isfinite(kf.points))) for kf in keyframes]
+    batch = [i for i, ok in enumerate(usable) if ok]
+    for i, kf in enumerate(keyframes):  # too few landmarks for the shared pair layout (or bad): one at a time
+        if not usable[i]:
+            out[i] = screen_alignment(src, query_descriptors, kf.points, kf.descriptors, config)
+    if not batch:
+        return out
+    sub = np.arange(0, n, max(1, n // config.screen_source_points))
+    q = np.asarray(query_descriptors, np.float32)[sub]
+    m_max = max(len(keyframes[i].points) for i in batch)
+    kb = len(batch)
+    desc = np.zeros((kb, m_max, q.shape[1]), np.float32)
+    pts = np.zeros((kb, m_max, 2), np.float64)
+    for row, i in enumerate(batch):
+        m = len(keyframes[i].points)
+        desc[row, :m] = keyframes[i].descriptors
+        pts[row, :m] = keyframes[i].points
+    # one BLAS product for all candidates (a batched np.matmul over a transposed view would not use BLAS)
+    sim = (q @ desc.reshape(kb * m_max, -1).T).reshape(len(sub), kb, m_max)  # (S, K, M)
+    for row, i in enumerate(batch):  # padding never wins the top-k
+        sim[:, row, len(keyframes[i].points):] = -np.inf
+    idx = _topk_indices(sim, k).transpose(1, 0, 2)  # (K, S, k)
+
+    # one seeded draw of minimal sets indexes every candidate's pair list (same length S * k for all)
+    rng = np.random.default_rng(config.seed)
+    num_pairs = len(sub) * k
+    a = rng.integers(0, num_pairs, config.screen_hypotheses)
+    b = rng.integers(0, num_pairs, config.screen_hypotheses)
+    s1, s2 = src[sub[a // k]], src[sub[b // k]]  # (H, 2), shared
+    rows = np.arange(kb)[:, None]
+    d1 = pts[rows, idx[:, a // k, a % k]]  # (K, H, 2)
+    d2 = pts[rows, idx[:, b // k, b % k]]
+    vs, vd = s2 - s1, d2 - d1
+    ls = np.hypot(vs[:, 0], vs[:, 1])
+    ld = np.hypot(vd[..., 0], vd[..., 1])
+    ok = (ls > config.min_pair_separation_m)[None, :] & (np.abs(ls[None, :] - ld) < config.max_length_mismatch_m)
+    cand, hyp = np.nonzero(ok)  # candidate-major order
+    if len(cand) == 0:
+        return out
+    yaw = np.arctan2(vd[cand, hyp, 1], vd[cand, hyp, 0]) - np.arctan2(vs[hyp, 1], vs[hyp, 0])
+    c, s = np.cos(yaw), np.sin(yaw)
+    ms = (s1[hyp] + s2[hyp]) / 2
+    md = (d1[cand, hyp] + d2[cand, hyp]) / 2
+    tx = md[:, 0] - (c * ms[:, 0] - s * ms[:, 1])
+    ty = md[:, 1] - (s * ms[:, 0] + c * ms[:, 1])
+
+    scored = src[:: max(1, n // config.score_points)]  # (P, 2)
+    grids = [keyframes[i].grid for i in batch]
+    sizes = np.array([g.n for g in grids], np.int64)
+    origins = np.array([g.origin_m for g in grids])
+    cells = np.array([g.cell_m for g in grids])
+    offsets = np.concatenate([[0], np.cumsum(sizes * sizes)[:-1]])
+    near = np.concatenate([g.near for g in grids] + [np.zeros(1, np.uint8)])  # last cell: "outside"
+    # grid cell of every scored landmark under every hypothesis, (V, P); in place, in the arithmetic order of
+    # ``LandmarkGrid.lookup`` (floor((x - origin) / cell)), so the cells are exactly the same
+    go, gc = origins[cand][:, None], cells[cand][:, None]
+    gi = _cells(c[:, None] * scored[None, :, 0], s[:, None] * scored[None, :, 1], -1.0, tx[:, None], go, gc)
+    gj = _cells(s[:, None] * scored[None, :, 0], c[:, None] * scored[None, :, 1], 1.0, ty[:, None], go, gc)
+    gn = sizes[cand][:, None]
+    inside = gi.view(np.uint64) < gn.astype(np.uint64)  # negative cells wrap to huge unsigned values
+    inside &= gj.view(np.uint64) < gn.astype(np.uint64)
+    gj *= gn
+    gj += gi
+    gj += offsets[cand][:, None]
+    np.putmask(gj, ~inside, len(near) - 1)
+    counts = near[gj].sum(axis=1, dtype=np.int64)  # aligned query landmarks per hypothesis
+    best = np.zeros(kb, np.int64)
+    np.maximum.at(best, cand, counts)
+    out[batch] = best / len(scored)
+    return out
+
+
+def screen_keyframe(features_points: np.ndarray, features_descriptors: np.ndarray,
+                    config: AlignmentConfig) -> ScreenKeyframe:
+    """A keyframe's ``ScreenKeyframe`` from its (M, 2) landmarks (metres) and (M, C) local descriptors."""
+    pts = np.asarray(features_points).reshape(-1, 2)
+    return ScreenKeyframe(pts, np.asarray(features_descriptors), build_screen_grid(pts, config))

@@ -1,0 +1,160 @@
+"""Tracking mode: localize a vehicle that was localized a moment ago, from a pose prior instead of the map.
+
+A prior (the previous pose composed with odometry, or any pose with an uncertainty) replaces retrieval:
+
+1. candidates are the ``max_candidates`` keyframes nearest to the prior within its gate (``gate_sigmas`` x
+   sigma, plus ``search_radius_m`` of overlap), nearest first;
+2. each is registered by nearest-landmark association started at the prior's relative pose
+   (``T_keyframe_query = T_keyframe_map * T_map_prior``), with association radii shrinking from the prior's
+   uncertainty to the global estimator's final radius, and a least-squares rigid fit per step - no
+   descriptors, no hypotheses, a few KD-tree queries;
+3. the answer must pass the global localizer's own bar (``min_inliers`` and the aligned-landmark ratio) and a
+   sequence-consistency check: it lies within the gate of the prior in position and heading;
+4. otherwise tracking is lost and the caller falls back to global localization (``Localizer.localize``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from reradar_core.errors import ConfigError
+from reradar_core.features import ScanFeatures
+from reradar_core.geometry.se2 import compose, inverse, wrap_angle
+from reradar_core.matching import LandmarkGrid, fit_rigid_2d
+
+__all__ = ["PosePrior", "TrackingConfig", "tracking_candidates", "register_from_prior", "Registration"]
+
+
+@dataclass(frozen=True)
+class PosePrior:
+    """Where the vehicle should be: a map-frame pose and its uncertainty.
+
+    Attributes:
+        T_map_query: (3,) float64 (x m, y m, yaw rad), map frame.
+        sigma_xy_m: standard deviation of the position, metres (> 0).
+        sigma_yaw_rad: standard deviation of the heading, radians (> 0).
+    """
+
+    T_map_query: np.ndarray
+    sigma_xy_m: float
+    sigma_yaw_rad: float
+
+    def __post_init__(self) -> None:
+        pose = np.asarray(self.T_map_query, np.float64).reshape(-1)
+        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+            raise ConfigError(f"a pose prior needs a finite (x, y, yaw), got {self.T_map_query!r}")
+        if not (self.sigma_xy_m > 0 and self.sigma_yaw_rad > 0 and math.isfinite(self.sigma_xy_m)
+                and math.isfinite(self.sigma_yaw_rad)):
+            raise ConfigError(f"prior sigmas must be positive and finite, got {self.sigma_xy_m}, "
+                              f"{self.sigma_yaw_rad}")
+        object.__setattr__(self, "T_map_query", pose)
+
+    def moved(self, T_prev_curr: np.ndarray, sigma_growth: float = 0.1, min_sigma_xy_m: float = 0.5,
+              min_sigma_yaw_rad: float = math.radians(1.0)) -> PosePrior:
+        """The prior after relative motion ``T_prev_curr`` (odometry, in this pose's frame): composed pose,
+        sigmas grown by ``sigma_growth`` x distance travelled (and the heading sigma by that x turn)."""
+        motion = np.asarray(T_prev_curr, np.float64).reshape(3)
+        dist = float(np.hypot(motion[0], motion[1]))
+        return PosePrior(compose(self.T_map_query, motion),
+                         max(min_sigma_xy_m, self.sigma_xy_m + sigma_growth * dist),
+                         max(min_sigma_yaw_rad, self.sigma_yaw_rad + sigma_growth * abs(float(motion[2]))))
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Tracking-mode settings (metres, radians).
+
+    Attributes:
+        max_candidates: keyframes nearest to the prior that are registered (2: the nearest and its neighbour,
+            in case the nearest one saw the place from a bad angle).
+        gate_sigmas: candidates and answers must lie within this many prior sigmas (position and heading).
+        search_radius_m: a keyframe this far from the prior still overlaps the scan (radar range >> 20 m).
+        min_gate_m: the smallest position gate (a tight prior still allows a keyframe spacing of slack).
+        min_gate_yaw_rad: the smallest heading gate.
+        final_radius_m: association radius of the last refinement steps (the global estimator's 0.75 m).
+        max_start_radius_m: the first association radius is 2 sigma of the prior, capped here.
+    """
+
+    max_candidates: int = 2
+    gate_sigmas: float = 3.0
+    search_radius_m: float = 20.0
+    min_gate_m: float = 2.0
+    min_gate_yaw_rad: float = math.radians(5.0)
+    final_radius_m: float = 0.75
+    max_start_radius_m: float = 6.0
+
+    def __post_init__(self) -> None:
+        if self.max_candidates < 1 or self.gate_sigmas <= 0 or self.search_radius_m < 0:
+            raise ConfigError(f"invalid tracking configuration {self}")
+        if self.final_radius_m <= 0 or self.max_start_radius_m < self.final_radius_m:
+            raise ConfigError("tracking radii must satisfy 0 < final_radius_m <= max_start_radius_m")
+
+    def position_gate_m(self, prior: PosePrior) -> float:
+        return max(self.min_gate_m, self.gate_sigmas * prior.sigma_xy_m)
+
+    def yaw_gate_rad(self, prior: PosePrior) -> float:
+        return max(self.min_gate_yaw_rad, self.gate_sigmas * prior.sigma_yaw_rad)
+
+    def radii(self, prior: PosePrior) -> tuple[float, ...]:
+        """Association radii, coarse to fine: from 2 sigma of the prior (capped) halving to the final radius."""
+        start = min(self.max_start_radius_m, max(2.0, 2.0 * prior.sigma_xy_m))
+        out = [start]
+        while out[-1] / 2 > self.final_radius_m:
+            out.append(out[-1] / 2)
+        return (*out, self.final_radius_m, self.final_radius_m)
+
+
+def tracking_candidates(poses: np.ndarray, prior: PosePrior, config: TrackingConfig) -> np.ndarray:
+    """Indices of the keyframes (rows of (N, 3) ``poses``) within the prior's gate plus ``search_radius_m``,
+    nearest first, at most ``config.max_candidates``."""
+    d = np.hypot(poses[:, 0] - prior.T_map_query[0], poses[:, 1] - prior.T_map_query[1])
+    near = np.flatnonzero(d <= config.position_gate_m(prior) + config.search_radius_m)
+    return near[np.argsort(d[near], kind="stable")][: config.max_candidates]
+
+
+@dataclass
+class Registration:
+    """Result of ``register_from_prior``: ``T_keyframe_query`` (x m, y m, yaw rad), query landmarks within the
+    final radius of a keyframe landmark (``num_inliers``) and their fraction of the query's landmarks."""
+
+    T_keyframe_query: np.ndarray
+    num_inliers: int
+    inlier_ratio: float
+
+
+def register_from_prior(query: ScanFeatures, grid: LandmarkGrid, T_keyframe_query: np.ndarray,
+                        radii: tuple[float, ...]) -> Registration:
+    """Refine ``T_keyframe_query`` by iterated nearest-landmark association (KD-tree of ``grid``) with the
+    given shrinking radii and a least-squares rigid fit per step; inliers are counted at the last radius."""
+    src = np.asarray(query.keypoints_xy_m, np.float64).reshape(-1, 2)
+    n = len(src)
+    pose = np.asarray(T_keyframe_query, np.float64).reshape(3).copy()
+    if n < 3 or len(grid.points) < 3:
+        return Registration(pose, 0, 0.0)
+    mask = np.zeros(n, bool)
+    for radius in radii:
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        moved = src @ np.array([[c, s], [-s, c]]) + pose[:2]
+        dist, nn = grid.tree.query(moved, distance_upper_bound=radius)
+        mask = np.isfinite(dist)
+        if mask.sum() < 3:
+            return Registration(pose, int(mask.sum()), float(mask.sum() / n))
+        pose = fit_rigid_2d(src[mask], grid.points[nn[mask]])
+    pose = np.array([pose[0], pose[1], wrap_angle(pose[2])])
+    k = int(mask.sum())
+    return Registration(pose, k, k / n)
+
+
+def within_gate(T_map_query: np.ndarray, prior: PosePrior, config: TrackingConfig) -> bool:
+    """Sequence consistency: the answer lies within the prior's position and heading gates."""
+    dxy = float(np.hypot(*(np.asarray(T_map_query[:2]) - prior.T_map_query[:2])))
+    dyaw = abs(float(wrap_angle(T_map_query[2] - prior.T_map_query[2])))
+    return dxy <= config.position_gate_m(prior) and dyaw <= config.yaw_gate_rad(prior)
+
+
+def relative_to_keyframe(T_map_keyframe: np.ndarray, prior: PosePrior) -> np.ndarray:
+    """The prior's pose in the keyframe's sensor frame: ``T_keyframe_map * T_map_prior``."""
+    return compose(inverse(T_map_keyframe), prior.T_map_query)

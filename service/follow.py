@@ -1,0 +1,153 @@
+"""``reradar localize --follow SEQUENCE_DIR``: replay a recorded drive through a running service in tracking
+mode, print a per-scan table against the folder's ground truth and draw the trajectory (PNG).
+
+Each scan is sent with one session id and the odometry since the previous scan; odometry is the ground-truth
+relative motion with seeded multiplicative noise (``odometry_noise`` x step length / turn), standing in for
+a vehicle's wheel odometry, or none at all. Success uses the paper's thresholds (20 m, 10 degrees).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["follow_sequence", "noisy_odometry"]
+
+SR_TRANSLATION_M = 20.0
+SR_ROTATION_DEG = 10.0
+
+
+def noisy_odometry(T_prev_curr: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
+    """(dx m, dy m, dyaw rad) with zero-mean Gaussian noise of ``noise`` x the step length on each axis and
+    ``noise`` x the turn (plus 0.1 degrees) on the heading."""
+    step = float(np.hypot(T_prev_curr[0], T_prev_curr[1]))
+    out = np.asarray(T_prev_curr, np.float64).copy()
+    out[:2] += rng.normal(scale=noise * step, size=2)
+    out[2] += rng.normal(scale=noise * abs(out[2]) + math.radians(0.1))
+    return out
+
+
+def _yaw_err_deg(a: float, b: float) -> float:
+    return abs((a - b + 180.0) % 360.0 - 180.0)
+
+
+def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str], None] = print,
+                    top_k: int | None = None, odometry: str = "ground-truth", odometry_noise: float = 0.05,
+                    every: int = 1, limit: int | None = None, tracking: bool = True, out: Path | None = None,
+                    seed: int = 0, session: str | None = None) -> int:
+    """Replay ``folder`` on map ``map_id`` with ``client`` (``service.client.ReRadarClient``).
+
+    Returns 0 when no scan was answered ``localized`` at a wrong pose, else 1 (2: unreadable folder).
+    """
+    from reradar_core.errors import ReRadarError
+    from reradar_core.geometry.se2 import relative_pose
+    from reradar_core.io.datasets import load_sequence
+
+    try:
+        seq = load_sequence(folder)
+    except ReRadarError as exc:
+        echo(f"error: {exc}")
+        return 2
+    idx = np.arange(0, len(seq), every)
+    if limit is not None:
+        idx = idx[:limit]
+    gt = seq.poses.poses
+    rng = np.random.default_rng(seed)
+    session_id = (session or f"follow-{uuid.uuid4().hex[:12]}") if tracking else None
+    head = (f"{'#':>4} {'scan':<22} {'mode':<9} {'status':<13} {'x_m':>8} {'y_m':>8} {'yaw_deg':>8} | "
+            f"{'gt_x_m':>8} {'gt_y_m':>8} {'gt_yaw':>8} | {'err_m':>6} {'err_deg':>7} {'score':>5} {'ms':>5}")
+    echo(head)
+    echo("-" * len(head))
+    rows: list[dict[str, Any]] = []
+    prev = None
+    for n, i in enumerate(idx):
+        odo = None
+        if tracking and odometry == "ground-truth" and prev is not None:
+            T = noisy_odometry(relative_pose(gt[prev], gt[i]), odometry_noise, rng)
+            odo = (float(T[0]), float(T[1]), math.degrees(float(T[2])))
+        t0 = time.perf_counter()
+        res = client.localize(map_id, scan_path=seq.scan_paths[i], top_k=top_k, session_id=session_id,
+                              odometry=odo)
+        ms = (time.perf_counter() - t0) * 1e3
+        prev = i
+        g = gt[i]
+        row: dict[str, Any] = {"i": int(i), "mode": res.mode + ("*" if res.tracking_lost else ""),
+                               "status": res.status, "ms": ms, "server_ms": res.timings_ms.get("total_ms", ms),
+                               "gt": g, "pose": None, "ok": False, "wrong": False}
+        name = seq.scan_paths[i].name
+        gts = f"{g[0]:8.2f} {g[1]:8.2f} {math.degrees(g[2]):8.2f}"
+        if res.status == "localized" and res.pose is not None:
+            et = math.hypot(res.pose.x_m - g[0], res.pose.y_m - g[1])
+            er = _yaw_err_deg(res.pose.yaw_deg, math.degrees(g[2]))
+            row.update(pose=(res.pose.x_m, res.pose.y_m), ok=et <= SR_TRANSLATION_M and er <= SR_ROTATION_DEG)
+            row["wrong"] = not row["ok"]
+            echo(f"{n:4d} {name:<22} {row['mode']:<9} {res.status:<13} {res.pose.x_m:8.2f} {res.pose.y_m:8.2f} "
+                 f"{res.pose.yaw_deg:8.2f} | {gts} | {et:6.2f} {er:7.2f} {res.alignment_score:5.2f} {ms:5.0f}"
+                 + ("  WRONG" if row["wrong"] else ""))
+        else:
+            echo(f"{n:4d} {name:<22} {row['mode']:<9} {res.status:<13} {'-':>8} {'-':>8} {'-':>8} | {gts} | "
+                 f"{'-':>6} {'-':>7} {res.alignment_score:5.2f} {ms:5.0f}  ({res.reason})")
+        rows.append(row)
+    _summary(rows, echo)
+    png = out or folder.with_name(f"{folder.name}-follow.png")
+    try:
+        _plot(rows, gt[idx], png, f"{folder.name} on map {map_id}")
+        echo(f"trajectory: {png}")
+    except ModuleNotFoundError:
+        echo("trajectory PNG skipped: matplotlib is not installed (pip install 'reradar[plot]')")
+    return 1 if any(r["wrong"] for r in rows) else 0
+
+
+def _summary(rows: list[dict[str, Any]], echo: Callable[[str], None]) -> None:
+    n = len(rows)
+    if not n:
+        echo("no scans")
+        return
+    ok = sum(r["ok"] for r in rows)
+    wrong = sum(r["wrong"] for r in rows)
+    echo("")
+    echo(f"success (<= {SR_TRANSLATION_M:.0f} m and <= {SR_ROTATION_DEG:.0f} deg): {ok}/{n} ({100 * ok / n:.1f} %); "
+         f"localized at a wrong pose: {wrong}/{n}; not localized: {n - ok - wrong}/{n}")
+    for mode in sorted({r["mode"] for r in rows}):
+        sel = [r for r in rows if r["mode"] == mode]
+        echo(f"mode {mode:<9} {len(sel):4d} scans: server p50 {np.percentile([r['server_ms'] for r in sel], 50):.0f} ms, "
+             f"client p50 {np.percentile([r['ms'] for r in sel], 50):.0f} ms")
+    echo("(mode global* = tracking was lost and the scan was localized globally)")
+
+
+def _plot(rows: list[dict[str, Any]], gt: np.ndarray, path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    o = gt[0, :2]  # plot relative to the first ground-truth pose: map coordinates may be UTM (1e6 m)
+    fig, ax = plt.subplots(figsize=(7, 7))
+    ax.plot(gt[:, 0] - o[0], gt[:, 1] - o[1], "-", color="0.6", lw=1.5, label="ground truth")
+    styles = {"tracking": ("tab:blue", "o"), "global": ("tab:green", "s"), "global*": ("tab:orange", "^")}
+    for mode, (color, marker) in styles.items():
+        pts = np.array([r["pose"] for r in rows if r["pose"] is not None and r["mode"] == mode and not r["wrong"]]).reshape(-1, 2) - o
+        if len(pts):
+            ax.scatter(pts[:, 0], pts[:, 1], s=10, c=color, marker=marker, label=f"{mode} ({len(pts)})")
+    bad = np.array([r["pose"] for r in rows if r["wrong"]]).reshape(-1, 2) - o
+    if len(bad):
+        ax.scatter(bad[:, 0], bad[:, 1], s=40, c="tab:red", marker="x", label=f"wrong pose ({len(bad)})")
+    lost = np.array([r["gt"][:2] for r in rows if r["pose"] is None]).reshape(-1, 2) - o
+    if len(lost):
+        ax.scatter(lost[:, 0], lost[:, 1], s=12, facecolors="none", edgecolors="k", lw=0.6,
+                   label=f"not localized ({len(lost)}, at ground truth)")
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"x - {o[0]:.1f} (m, map frame)")
+    ax.set_ylabel(f"y - {o[1]:.1f} (m, map frame)")
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

@@ -1,0 +1,285 @@
+"""Answer confidence: cues with known values, a monotone fitted model, JSON round-trip, calibration helpers,
+the pipeline's decision and the service's ``confidence`` field."""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from reradar_core.errors import ConfigError
+from reradar_core.localization import (
+    REASON_LOW_CONFIDENCE,
+    Candidate,
+    CandidateVerification,
+    LocalizationConfig,
+    localize,
+)
+from reradar_core.localization.confidence import (
+    CUE_NAMES,
+    ConfidenceCues,
+    ConfidenceModel,
+    choose_min_confidence,
+    confidence_cues,
+    default_confidence_model,
+    expected_calibration_error,
+    fit_confidence_model,
+    landmark_spread_m,
+    reliability_bins,
+)
+
+
+def _cand(rank: int, xy: tuple[float, float], screen: float | None, *, rel: np.ndarray | None = None,
+          inliers: int = 0, ratio: float = 0.0, dist: float = 0.5, ambiguity: float | None = None,
+          spread: float | None = None) -> CandidateVerification:
+    return CandidateVerification(keyframe_id=10 + rank, rank=rank, descriptor_distance=dist, timestamp_us=rank,
+                                 T_map_keyframe=np.array([xy[0], xy[1], 0.0]), num_matches=100,
+                                 num_inliers=inliers, inlier_ratio=ratio, T_keyframe_query=rel,
+                                 screen_score=screen, ambiguity=ambiguity, inlier_spread_m=spread)
+
+
+def test_landmark_spread_known_values() -> None:
+    # four corners (+-a, +-b): np.cov (ddof 1) gives var_y = 4 b^2 / 3 < var_x
+    a, b = 10.0, 3.0
+    pts = np.array([[a, b], [a, -b], [-a, b], [-a, -b]])
+    assert landmark_spread_m(pts) == pytest.approx(math.sqrt(4 * b * b / 3))
+    line = np.column_stack([np.linspace(0, 50, 20), 2.0 * np.linspace(0, 50, 20) + 1.0])
+    assert landmark_spread_m(line) == pytest.approx(0.0, abs=1e-6)  # one façade: no spread across it
+    assert landmark_spread_m(pts[:2]) == 0.0
+
+
+def test_cues_on_a_constructed_result() -> None:
+    # winner: keyframe at (0, 0) facing +x, query 1 m ahead -> answer at (1, 0)
+    best = _cand(0, (0.0, 0.0), 0.7, rel=np.array([1.0, 0.0, 0.0]), inliers=99, ratio=0.6, dist=0.3,
+                 ambiguity=0.4, spread=7.5)
+    near = _cand(1, (5.0, 0.0), 0.4)  # same place (within 20 m of the answer)
+    far1 = _cand(2, (100.0, 0.0), 0.3)  # different places
+    far2 = _cand(3, (-50.0, 0.0), 0.35)
+    unscreened = _cand(4, (0.0, 200.0), None, ratio=0.1)  # no screen score: its inlier ratio counts
+    cues = confidence_cues(best, [best, near, far1, far2, unscreened], place_radius_m=20.0, top_n=2)
+    assert cues is not None
+    assert cues.aligned_ratio == pytest.approx(0.6)
+    assert cues.log_aligned == pytest.approx(math.log(100.0))
+    assert cues.margin == pytest.approx(0.7 - 0.35)  # best different-place rival is rank 3
+    assert cues.descriptor_distance == pytest.approx(0.3)
+    assert cues.spread_m == pytest.approx(7.5)
+    assert cues.agreement == pytest.approx(0.5)  # top-2 others by score: rank 1 (near), rank 3 (far)
+    assert cues.ambiguity == pytest.approx(0.4)
+    np.testing.assert_allclose(cues.as_array(), [cues.as_dict()[n] for n in CUE_NAMES])
+    # the place radius decides what counts as "different": with 1 m every other keyframe is a rival
+    assert confidence_cues(best, [best, near, far1, far2], place_radius_m=1.0).margin == pytest.approx(0.3)
+    # alone: no rival (margin = own score), no agreement; infinite ambiguity is clipped
+    alone = confidence_cues(replace(best, ambiguity=math.inf, inlier_spread_m=None), [best])
+    assert alone is not None and alone.margin == pytest.approx(0.7) and alone.agreement == 0.0
+    assert alone.ambiguity == 2.0 and alone.spread_m == 0.0
+    assert confidence_cues(None, []) is None
+    assert confidence_cues(_cand(0, (0.0, 0.0), 0.7), [best]) is None  # no pose: nothing to judge
+
+
+def _constructed_fit(seed: int = 0, n: int = 4000) -> ConfidenceModel:
+    """Labels drawn from a known logistic law in the aligned ratio; the other cues are noise."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n, len(CUE_NAMES)))
+    x[:, 0] = rng.uniform(0.0, 1.0, n)
+    p_true = 1.0 / (1.0 + np.exp(-(12.0 * (x[:, 0] - 0.5))))
+    y = rng.uniform(size=n) < p_true
+    return fit_confidence_model(x, y, l2=1.0)
+
+
+def test_fitted_model_is_monotone_in_aligned_ratio_and_recovers_the_law() -> None:
+    model = _constructed_fit()
+    grid = np.tile(model.mean, (21, 1))
+    grid[:, 0] = np.linspace(0.0, 1.0, 21)
+    p = model.predict(grid)
+    assert np.all(np.diff(p) > 0)
+    assert p[0] < 0.05 and p[-1] > 0.95 and p[10] == pytest.approx(0.5, abs=0.08)
+    # the noise cues get small weights next to the ratio's
+    assert model.coef[0] > 5 * np.abs(model.coef[1:]).max()
+    # deterministic: the same data gives the same coefficients
+    np.testing.assert_array_equal(_constructed_fit().coef, model.coef)
+
+
+def test_predict_accepts_cues_and_arrays() -> None:
+    model = _constructed_fit()
+    cues = ConfidenceCues(*model.mean)
+    one = model.predict(cues)
+    assert isinstance(one, float) and 0.0 <= one <= 1.0
+    assert model.predict(cues.as_array()) == pytest.approx(one)
+    assert model.predict(np.full(len(CUE_NAMES), 1e6)) <= 1.0  # no overflow
+
+
+def test_json_round_trip(tmp_path: Path) -> None:
+    model = replace(_constructed_fit(), min_confidence=0.83, meta={"splits": ["train-target-loop"]})
+    path = tmp_path / "conf.json"
+    model.save(path)
+    back = ConfidenceModel.load(path)
+    for name in ("mean", "scale", "coef"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(model, name))
+    assert back.intercept == model.intercept and back.min_confidence == 0.83
+    assert back.meta == {"splits": ["train-target-loop"]} and back.cue_names == CUE_NAMES
+    x = np.random.default_rng(1).normal(size=(5, len(CUE_NAMES)))
+    np.testing.assert_array_equal(back.predict(x), model.predict(x))
+
+
+def test_bad_model_files_are_refused(tmp_path: Path) -> None:
+    d = _constructed_fit().to_dict()
+    with pytest.raises(ConfigError, match="format"):
+        ConfidenceModel.from_dict({**d, "format_version": 99})
+    with pytest.raises(ConfigError, match="cues"):
+        ConfidenceModel.from_dict({**d, "cue_names": ["aligned_ratio"]})
+    with pytest.raises(ConfigError, match="lacks"):
+        ConfidenceModel.from_dict({k: v for k, v in d.items() if k != "coef"})
+    with pytest.raises(ConfigError, match="not found"):
+        ConfidenceModel.load(tmp_path / "missing.json")
+    with pytest.raises(ConfigError):
+        fit_confidence_model(np.zeros((4, len(CUE_NAMES))), np.ones(4))  # one class only
+
+
+def test_shipped_model_loads() -> None:
+    model = default_confidence_model()
+    assert 0.0 <= model.min_confidence <= 1.0
+    assert 0.0 <= model.predict(model.mean) <= 1.0
+
+
+def test_calibration_helpers_known_answers() -> None:
+    # p = 0.25 for four answers of which one is right: perfectly calibrated
+    assert expected_calibration_error(np.full(4, 0.25), np.array([1, 0, 0, 0])) == pytest.approx(0.0)
+    # always 0.9 sure, always wrong: ECE 0.9
+    assert expected_calibration_error(np.full(10, 0.9), np.zeros(10)) == pytest.approx(0.9)
+    t = reliability_bins(np.array([0.05, 0.95, 0.95]), np.array([0, 1, 0]), bins=10)
+    assert t["count"][0] == 1 and t["count"][9] == 2 and t["frac_pos"][9] == pytest.approx(0.5)
+    assert np.isnan(t["mean_p"][5])
+
+
+def test_choose_min_confidence_known_answer() -> None:
+    p = np.array([0.99, 0.95, 0.9, 0.8, 0.7, 0.6])
+    correct = np.array([True, False, True, False, True, False])
+    eligible = np.ones(6, bool)
+    # 200 queries, 0.5 % -> one wrong answer allowed: the bar sits just above the second-highest wrong (0.8)
+    bar = choose_min_confidence(p, correct, eligible, 200, 0.005)
+    assert 0.8 < bar <= 0.9
+    assert int(((p >= bar) & ~correct).sum()) == 1
+    # 100 queries -> none allowed: just above 0.95
+    assert 0.95 < choose_min_confidence(p, correct, eligible, 100, 0.005) <= 0.99
+    # ineligible wrong answers (below the floor) never count
+    assert choose_min_confidence(p, correct, correct, 100, 0.005) == 0.0
+
+
+# ------------------------------------------------------------------ the pipeline's decision
+def _features(rng: np.random.Generator, n: int = 150):
+    from reradar_core.features import ScanFeatures
+
+    kps = rng.uniform(-60, 60, size=(n, 2))
+    desc = rng.normal(size=(n, 32))
+    g = rng.normal(size=16)
+    return ScanFeatures(g / np.linalg.norm(g), kps, desc / np.linalg.norm(desc, axis=1, keepdims=True), 0)
+
+
+def test_pipeline_reports_confidence_and_applies_the_bar(monkeypatch: pytest.MonkeyPatch) -> None:
+    import reradar_core.localization.pipeline as pipeline
+
+    # a known model: p = sigmoid(10 * aligned_ratio - 6), bar 0.99 (the shipped coefficients may change)
+    c = len(CUE_NAMES)
+    coef = np.zeros(c)
+    coef[0] = 10.0
+    known = ConfidenceModel(CUE_NAMES, np.zeros(c), np.ones(c), coef, -6.0, min_confidence=0.99)
+    monkeypatch.setattr(pipeline, "default_confidence_model", lambda: known)
+    rng = np.random.default_rng(3)
+    kfs = [_features(rng) for _ in range(4)]
+    poses = np.column_stack([np.arange(4) * 100.0, np.zeros(4), np.zeros(4)])
+    query = kfs[1]  # the keyframe itself: every landmark aligns at the identity
+
+    def cands() -> list[Candidate]:
+        return [Candidate(i, poses[i], kfs[i], 0.1 * r, r) for r, i in enumerate([1, 0, 2, 3])]
+
+    expected = 1.0 / (1.0 + math.exp(-4.0))  # aligned ratio 1
+    floor_only = localize(query, cands(), LocalizationConfig(min_confidence=0.0))
+    assert floor_only.status == "localized" and floor_only.cues is not None
+    assert floor_only.cues.aligned_ratio == pytest.approx(1.0)
+    assert floor_only.confidence == pytest.approx(expected)
+    assert floor_only.best is not None and floor_only.best.inlier_spread_m is not None
+    assert floor_only.best.inlier_spread_m > 20.0  # landmarks spread over a 120 m square
+    # None = the model's own bar (0.99 > 0.982): refused, with the confidence still reported
+    strict = localize(query, cands(), LocalizationConfig())
+    assert strict.status == "not_localized" and strict.reason == REASON_LOW_CONFIDENCE
+    assert strict.T_map_query is None and strict.confidence == pytest.approx(expected)
+    assert localize(query, cands(), LocalizationConfig(min_confidence=0.98)).status == "localized"
+    # mutual_nn is not what the model was fitted on: the bar does not apply there
+    assert localize(query, cands(), LocalizationConfig(pose_method="mutual_nn")).status == "localized"
+    with pytest.raises(ConfigError):
+        LocalizationConfig(min_confidence=1.5)
+
+
+# ------------------------------------------------------------------ the service's field
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "service"))
+
+
+@pytest.fixture(scope="module")
+def service_client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[httpx.Client]:
+    from service_test_fakes import API_KEY, FakeExtractor, keyframe_poses, keyframe_time, make_scan
+
+    from maps.build import build_map
+    from service.core.config import Settings
+    from service.demo import serve_in_thread
+
+    extractor = FakeExtractor()
+    built = build_map(tmp_path_factory.mktemp("built") / "fake.h5", extractor,
+                      lambda i: make_scan(i, keyframe_time(i)), keyframe_poses(), radar_preset="boreas",
+                      name="fake", batch_size=4)
+    settings = Settings(maps_dir=tmp_path_factory.mktemp("maps"), load_demo_map=False, api_key=API_KEY,
+                        torch_threads=1)
+    with serve_in_thread(settings, extractor) as url, httpx.Client(base_url=url, timeout=60) as c:
+        with built.open("rb") as fh:
+            r = c.post("/maps", data={"map_id": "route-a"}, files={"map_file": ("fake.h5", fh)},
+                       headers={"X-API-Key": API_KEY})
+        assert r.status_code == 201, r.text
+        yield c
+
+
+def test_service_response_carries_confidence(service_client: httpx.Client) -> None:
+    from service_test_fakes import make_scan
+
+    from reradar_core.io.scan import encode_navtech_png_bytes
+
+    for seed in (3, 999):  # a mapped place and an unknown one
+        files = {"scan": ("q.png", encode_navtech_png_bytes(make_scan(seed, 5)), "image/png")}
+        r = service_client.post("/localize", data={"map_id": "route-a"}, files=files)
+        assert r.status_code == 200, r.text
+        res = r.json()
+        assert isinstance(res["confidence"], float) and 0.0 <= res["confidence"] <= 1.0
+        if res["status"] == "not_localized" and res["reason"] != REASON_LOW_CONFIDENCE:
+            assert res["pose"] is None
+    schema = service_client.get("/openapi.json").json()["components"]["schemas"]["LocalizeResponse"]
+    field = schema["properties"]["confidence"]
+    assert field["minimum"] == 0 and field["maximum"] == 1 and "Probability" in field["description"]
+
+
+def test_fit_from_data_chooses_the_bar_on_fit_runs_and_reports_held_out(tmp_path: Path) -> None:
+    from reradar_core.localization.confidence_fit import FitData, fit_from_data
+
+    rng = np.random.default_rng(5)
+    n = 3000
+    x = rng.normal(size=(n, len(CUE_NAMES)))
+    x[:, 0] = rng.uniform(0.0, 1.0, n)
+    correct = rng.uniform(size=n) < 1.0 / (1.0 + np.exp(-(12.0 * (x[:, 0] - 0.5))))
+    data = FitData(x, np.ones(n, bool), correct, x[:, 0] >= 0.3, np.ones(n, bool),
+                   np.arange(n) >= int(0.8 * n), np.array(["train-target-loop"] * n))
+    path = tmp_path / "runs.npz"
+    data.save(path)
+    back = FitData.load(path)
+    np.testing.assert_array_equal(back.cues, data.cues)
+    model, report = fit_from_data(back, max_wrong_fraction=0.005)
+    assert model.min_confidence == report["min_confidence"] and model.meta["report"] == report
+    fit = ~data.heldout
+    p = model.predict(x)
+    wrong_fit = (fit & data.eligible & (p >= model.min_confidence) & ~correct).sum()
+    assert wrong_fit <= 0.005 * fit.sum()
+    assert report["fit"]["wrong_pct_with_bar"] <= 0.5 < report["fit"]["wrong_pct_floor_only"]
+    assert report["heldout"]["runs"] == int(data.heldout.sum())
+    assert 0.0 <= report["ece_heldout"] < 0.1  # labels follow the model's own law

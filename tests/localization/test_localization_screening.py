@@ -1,0 +1,46 @@
+"""The vectorised screen gives ``screen_alignment``'s score for every candidate, and ranks the true keyframe
+first."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from reradar_core.geometry.se2 import inverse, transform_points
+from reradar_core.localization.screening import build_screen_grid, screen_candidates, screen_keyframe
+from reradar_core.matching import AlignmentConfig, build_landmark_grid, screen_alignment
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+
+def test_batched_scores_equal_single_candidate_scores() -> None:
+    rng = np.random.default_rng(0)
+    cfg = AlignmentConfig()
+    kfs = [(rng.uniform(-60, 60, (m, 2)), _unit(rng.normal(size=(m, 16)))) for m in (300, 120, 3, 250, 1)]
+    # the query sees keyframe 3 from a known offset, plus clutter
+    sel = rng.choice(250, 180, replace=False)
+    q_pts = np.vstack([transform_points(inverse(np.array([2.0, -3.0, 0.7])), kfs[3][0][sel]),
+                       rng.uniform(-60, 60, (60, 2))])
+    q_desc = _unit(np.vstack([kfs[3][1][sel] + 0.05 * rng.normal(size=(180, 16)), rng.normal(size=(60, 16))]))
+    batched = screen_candidates(q_pts, q_desc, [screen_keyframe(p, d, cfg) for p, d in kfs], cfg)
+    single = [screen_alignment(q_pts, q_desc, p, d, cfg) for p, d in kfs]
+    np.testing.assert_array_equal(batched, single)
+    assert int(np.argmax(batched)) == 3 and batched[3] > 0.6 and batched[4] == 0.0  # one landmark: no pair
+
+
+def test_screen_grid_marks_cells_within_the_threshold() -> None:
+    cfg = AlignmentConfig()
+    pts = np.array([[0.0, 0.0], [10.0, -4.0]])
+    g = build_screen_grid(pts, cfg)
+    full = build_landmark_grid(pts, cfg.grid_cell_m)
+    assert g.near.dtype == np.uint8 and g.near.size == g.n * g.n
+    np.testing.assert_array_equal(g.near.reshape(g.n, g.n), full.distance_m < cfg.score_threshold_m)
+    assert g.near.sum() > 0 and g.near.reshape(g.n, g.n)[0, 0] == 0  # the margin is never near
+
+
+def test_degenerate_query_scores_zero() -> None:
+    cfg = AlignmentConfig()
+    kf = screen_keyframe(np.zeros((10, 2)), _unit(np.ones((10, 4))), cfg)
+    assert screen_candidates(np.zeros((1, 2)), np.ones((1, 4)), [kf], cfg).tolist() == [0.0]
+    assert screen_candidates(np.zeros((5, 2)), np.ones((5, 4)), [], cfg).shape == (0,)

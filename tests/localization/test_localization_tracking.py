@@ -1,0 +1,91 @@
+"""Tracking mode: registration from a pose prior recovers the known pose from the nearest keyframes only,
+inconsistent priors fall back to global localization, unknown places stay unlocalized."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from reradar_core.errors import ConfigError
+from reradar_core.features import ScanFeatures
+from reradar_core.geometry.se2 import compose, inverse, transform_points
+from reradar_core.localization import InMemoryKeyframes, Localizer, PosePrior, TrackingConfig
+from reradar_core.localization.tracking import tracking_candidates
+from reradar_core.retrieval import GlobalIndex
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+
+def _map(rng: np.random.Generator, n: int = 8) -> tuple[list[ScanFeatures], np.ndarray]:
+    kfs = [ScanFeatures(_unit(rng.normal(size=16)), rng.uniform(-60, 60, (150, 2)),
+                        _unit(rng.normal(size=(150, 16))), i) for i in range(n)]
+    poses = np.column_stack([np.arange(n) * 50.0, np.zeros(n), np.linspace(0.0, 0.5, n)])
+    return kfs, poses
+
+
+def _query(kf: ScanFeatures, T_kf_query: np.ndarray, rng: np.random.Generator) -> ScanFeatures:
+    pts = transform_points(inverse(T_kf_query), kf.keypoints_xy_m.astype(np.float64))
+    pts += rng.normal(scale=0.05, size=pts.shape)
+    return ScanFeatures(kf.global_descriptor, pts, kf.local_descriptors, 99)
+
+
+def _localizer(kfs: list[ScanFeatures], poses: np.ndarray) -> Localizer:
+    return Localizer(GlobalIndex(np.stack([f.global_descriptor for f in kfs])), InMemoryKeyframes(kfs, poses))
+
+
+def test_prior_validation_and_motion() -> None:
+    with pytest.raises(ConfigError):
+        PosePrior(np.array([0.0, np.nan, 0.0]), 1.0, 0.1)
+    with pytest.raises(ConfigError):
+        PosePrior(np.zeros(3), 0.0, 0.1)
+    p = PosePrior(np.array([10.0, 0.0, math.pi / 2]), 0.5, 0.02).moved(np.array([4.0, 0.0, 0.1]))
+    np.testing.assert_allclose(p.T_map_query, [10.0, 4.0, math.pi / 2 + 0.1], atol=1e-12)  # forward = +y here
+    assert p.sigma_xy_m == pytest.approx(0.5 + 0.1 * 4.0) and p.sigma_yaw_rad == pytest.approx(0.02 + 0.01)
+    radii = TrackingConfig().radii(PosePrior(np.zeros(3), 10.0, 0.1))
+    assert radii[0] == 6.0 and radii[-1] == 0.75 and list(radii) == sorted(radii, reverse=True)
+
+
+def test_candidates_are_the_nearest_keyframes_within_the_gate() -> None:
+    poses = np.column_stack([np.arange(10) * 50.0, np.zeros(10), np.zeros(10)])
+    cfg = TrackingConfig()
+    # gate 3 sigma + 20 m: 23 m for sigma 1 (only keyframe 3, 10 m away), 35 m for sigma 5 (3 and then 4)
+    np.testing.assert_array_equal(tracking_candidates(poses, PosePrior(np.array([160.0, 0, 0]), 1.0, 0.1), cfg), [3])
+    np.testing.assert_array_equal(tracking_candidates(poses, PosePrior(np.array([180.0, 0, 0]), 5.0, 0.1), cfg),
+                                  [4, 3])
+    assert tracking_candidates(poses, PosePrior(np.array([200.0, 500.0, 0]), 1.0, 0.1), cfg).size == 0
+
+
+def test_tracking_recovers_the_pose_from_an_offset_prior() -> None:
+    rng = np.random.default_rng(0)
+    kfs, poses = _map(rng)
+    loc = _localizer(kfs, poses)
+    T_kf_q = np.array([6.0, -2.0, math.radians(8.0)])
+    query = _query(kfs[5], T_kf_q, rng)
+    truth = compose(poses[5], T_kf_q)
+    prior = PosePrior(truth + np.array([1.5, -1.0, math.radians(3.0)]), 1.5, math.radians(2.0))
+    res = loc.track(query, prior)
+    assert res.mode == "tracking" and res.localized and not res.tracking_lost
+    assert res.best is not None and res.best.keyframe_id == 5 and len(res.candidates) <= 2
+    np.testing.assert_allclose(res.T_map_query[:2], truth[:2], atol=0.1)
+    assert abs(res.T_map_query[2] - truth[2]) < math.radians(0.3)
+    assert res.alignment_score > 0.9 and "track_ms" in res.timings_ms and "screen_ms" not in res.timings_ms
+    assert len(loc.cache) <= 2  # only the keyframes near the prior were read
+
+
+def test_inconsistent_prior_falls_back_to_global_and_unknown_places_stay_unlocalized() -> None:
+    rng = np.random.default_rng(1)
+    kfs, poses = _map(rng)
+    loc = _localizer(kfs, poses)
+    query = _query(kfs[2], np.array([1.0, 1.0, 0.2]), rng)
+    far = PosePrior(poses[6].copy(), 1.0, 0.05)  # the vehicle is really at keyframe 2
+    res = loc.track(query, far)
+    assert res.tracking_lost and res.mode == "global" and res.localized
+    assert res.best is not None and res.best.keyframe_id == 2 and "track_ms" in res.timings_ms
+    unknown = ScanFeatures(_unit(rng.normal(size=16)), rng.uniform(-60, 60, (150, 2)),
+                           _unit(rng.normal(size=(150, 16))), 0)
+    res = loc.track(unknown, PosePrior(poses[3].copy(), 2.0, 0.05))
+    assert res.status == "not_localized" and res.tracking_lost

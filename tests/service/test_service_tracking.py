@@ -1,0 +1,67 @@
+"""Tracking mode over HTTP: a session's second scan is registered from its first pose plus odometry; an
+explicit prior works without a session; inconsistent or partial tracking fields are refused with 400."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import httpx
+import pytest
+
+from reradar_core.geometry.se2 import relative_pose
+from reradar_core.io.scan import encode_navtech_png_bytes
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from service_test_fakes import API_KEY, keyframe_poses, make_scan  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def client(server: tuple[str, Path], fake_map: Path) -> httpx.Client:
+    url, _ = server
+    with httpx.Client(base_url=url, timeout=60) as c:
+        with fake_map.open("rb") as fh:
+            r = c.post("/maps", data={"map_id": "route-t"}, files={"map_file": ("fake.h5", fh)},
+                       headers={"X-API-Key": API_KEY})
+        assert r.status_code == 201, r.text
+        yield c
+
+
+def _localize(c: httpx.Client, seed: int, **fields: object) -> httpx.Response:
+    files = {"scan": ("q.png", encode_navtech_png_bytes(make_scan(seed, 0)), "image/png")}
+    return c.post("/localize", data={"map_id": "route-t", **{k: str(v) for k, v in fields.items()}}, files=files)
+
+
+def test_session_tracks_from_previous_pose_and_odometry(client: httpx.Client) -> None:
+    poses = keyframe_poses()
+    first = _localize(client, 2, session_id="veh-1").json()
+    assert first["status"] == "localized" and first["mode"] == "global" and first["session_id"] == "veh-1"
+    assert first["keyframe"]["keyframe_id"] == 2 and first["alignment_score"] >= 0.5
+    odo = relative_pose(poses[2], poses[3])  # the vehicle drove from keyframe 2 to keyframe 3
+    second = _localize(client, 3, session_id="veh-1", odom_dx_m=odo[0], odom_dy_m=odo[1],
+                       odom_dyaw_deg=float(odo[2]) * 180 / 3.141592653589793).json()
+    assert second["status"] == "localized" and second["mode"] == "tracking" and not second["tracking_lost"]
+    assert second["keyframe"]["keyframe_id"] == 3
+    assert second["pose"]["x_m"] == pytest.approx(poses[3, 0], abs=0.3)
+    assert second["pose"]["y_m"] == pytest.approx(poses[3, 1], abs=0.3)
+    assert "track_ms" in second["timings_ms"] and "screen_ms" not in second["timings_ms"]
+    lost = _localize(client, 999, session_id="veh-1", odom_dx_m=1.0, odom_dy_m=0.0, odom_dyaw_deg=0.0).json()
+    assert lost["status"] == "not_localized" and lost["tracking_lost"] and lost["mode"] == "global"
+    other = _localize(client, 3, session_id="veh-2").json()  # a new session starts global
+    assert other["mode"] == "global" and other["status"] == "localized"
+
+
+def test_explicit_prior_and_refused_partial_fields(client: httpx.Client) -> None:
+    poses = keyframe_poses()
+    res = _localize(client, 1, prior_x_m=poses[1, 0] + 1.0, prior_y_m=poses[1, 1] - 1.0,
+                    prior_yaw_deg=float(poses[1, 2]) * 180 / 3.141592653589793 + 2.0, prior_sigma_m=2.0).json()
+    assert res["mode"] == "tracking" and res["status"] == "localized" and res["keyframe"]["keyframe_id"] == 1
+    assert res["pose"]["x_m"] == pytest.approx(poses[1, 0], abs=0.3)
+    # a prior far from where the scan really is: no consistent pose near it, so the global answer is used
+    far = _localize(client, 1, prior_x_m=poses[4, 0], prior_y_m=poses[4, 1], prior_yaw_deg=0.0).json()
+    assert far["mode"] == "global" and far["tracking_lost"] and far["keyframe"]["keyframe_id"] == 1
+    for bad in ({"odom_dx_m": 1.0}, {"prior_x_m": 1.0, "prior_y_m": 2.0}, {"prior_sigma_m": 1.0},
+                {"session_id": "no spaces allowed"}):
+        r = _localize(client, 1, **bad)
+        assert r.status_code in (400, 422), (bad, r.status_code)
+        assert "detail" in r.json()
