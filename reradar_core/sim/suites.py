@@ -90,6 +90,7 @@ class RouteDef:
         lateral_m: lateral offset (another lane), metres.
         time_fraction: (start, end) fraction of the drive's duration to use (single-session splits).
         speed_seed: seed of the speed profile (loop routes: a new session drives at other speeds).
+        reverse: drive the loop route's waypoints in the opposite direction (revisits heading the other way).
     """
 
     kind: str
@@ -100,6 +101,7 @@ class RouteDef:
     lateral_m: float = 0.0
     time_fraction: tuple[float, float] = (0.0, 1.0)
     speed_seed: int = 0
+    reverse: bool = False
 
 
 @dataclass(frozen=True)
@@ -180,6 +182,7 @@ class SuiteData:
 _BOREAS_MAP = RouteDef("boreas-map")
 _BOREAS_QUERY = RouteDef("boreas-query")
 _LOOP = RouteDef("loop", seed=11, laps=3, block_m=(90.0, 160.0), n_blocks=3)
+_LOOP_OPEN = RouteDef("loop", seed=12, laps=3, block_m=(120.0, 200.0), n_blocks=3)
 _OFFROAD = RouteDef("loop", seed=21, laps=1, block_m=(250.0, 400.0), n_blocks=2)
 _SMOKE = RouteDef("loop", seed=3, laps=1, block_m=(50.0, 70.0), n_blocks=2)
 _CALIB = RouteDef("loop", seed=7, laps=1)
@@ -220,6 +223,18 @@ SUITES: dict[str, SuiteDef] = {
         ),
         single_session=True,
     ),
+    "loop-sim-hard": SuiteDef(
+        "loop-sim-hard", "single session on wide, sparse boulevards (DCC01-like): lap 1 = database, laps 2-3 "
+        "driven the other way round in the far lane = queries",
+        preset="mulran", layout="mulran", profile="urban-open", world_seed=12, road_routes=(_LOOP_OPEN,),
+        sequences=(
+            SequenceDef("lap1", "database", replace(_LOOP_OPEN, time_fraction=(0.0, 1 / 3)),
+                        traversal_seed=121, every=3),
+            SequenceDef("laps2-3-reverse", "query", replace(_LOOP_OPEN, time_fraction=(1 / 3, 1.0), reverse=True,
+                                                            lateral_m=3.5), traversal_seed=121, every=3),
+        ),
+        single_session=True,
+    ),
     "offroad-sim": SuiteDef(
         "offroad-sim", "OORD-like off-road route: map drive clear, query drive another day in rain",
         preset="oord", layout="oxford", profile="offroad", world_seed=21, road_routes=(_OFFROAD,),
@@ -227,6 +242,9 @@ SUITES: dict[str, SuiteDef] = {
             SequenceDef("day1-clear", "database", _OFFROAD, traversal_seed=211, every=5),
             SequenceDef("day2-rain", "query", replace(_OFFROAD, lateral_m=0.8, speed_seed=2),
                         traversal_seed=212, condition="rain", every=5, offset=2),
+            # the Two Lochs-like pair: the route driven the other way round (headings differ by ~180 deg)
+            SequenceDef("day4-reverse", "query", replace(_OFFROAD, lateral_m=0.8, speed_seed=4, reverse=True),
+                        traversal_seed=214, condition="clear", every=5, offset=1),
         ),
         radius_m=25.0,
     ),
@@ -308,8 +326,10 @@ def suite_names(purpose: str | None = None) -> list[str]:
 # ---------------------------------------------------------------------------------------------- rendering
 @lru_cache(maxsize=16)
 def _loop_drive(route_seed: int, laps: int, block_m: tuple[float, float], n_blocks: int,
-                speed_seed: int) -> PoseSequence:
+                speed_seed: int, reverse: bool = False) -> PoseSequence:
     wp = synthetic_loop_route(route_seed, block_m=block_m, n_blocks=n_blocks, laps=laps)
+    if reverse:
+        wp = wp[::-1].copy()
     return drive_route(wp, seed=route_seed * 1000 + speed_seed,
                        start_time_us=1_600_000_000_000_000 + speed_seed * 86_400_000_000)
 
@@ -325,7 +345,7 @@ def _route_trajectory(route: RouteDef, traj_dir: Path | None) -> PoseSequence:
             )
         traj = load_trajectory(f)
     elif route.kind == "loop":
-        traj = _loop_drive(route.seed, route.laps, route.block_m, route.n_blocks, route.speed_seed)
+        traj = _loop_drive(route.seed, route.laps, route.block_m, route.n_blocks, route.speed_seed, route.reverse)
     else:
         raise ConfigError(f"unknown route kind {route.kind!r}")
     if route.lateral_m:
