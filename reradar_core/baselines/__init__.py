@@ -1,7 +1,9 @@
 """Published radar place-recognition baselines behind one interface (``PlaceRecognitionMethod``).
 
-``make_method(name)`` builds one by name: ``ringkey``, ``raplace``, ``radvlad``, ``resnet18-netvlad``,
-``referee``, and ReRadar itself as ``ours`` / ``ours-<model>`` for every name in
+``make_method(name)`` builds one by name: the five baselines as their reference implementations
+(``ringkey``, ``raplace``, ``radvlad``, ``resnet18-netvlad``, ``referee``; each module cites its reference
+file and commit), the variants this project ran before (``raplace-nodc``, ``radvlad-half``; never the
+reference rows), and ReRadar itself as ``ours`` / ``ours-<model>`` for every name in
 ``reradar_core.model.available_models()``.
 """
 
@@ -10,11 +12,13 @@ from __future__ import annotations
 from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared, Retrieval
 from reradar_core.errors import ConfigError
 
-__all__ = ["PlaceRecognitionMethod", "Prepared", "Retrieval", "BASELINES", "make_method", "ours_model_names",
-           "default_method_names"]
+__all__ = ["PlaceRecognitionMethod", "Prepared", "Retrieval", "BASELINES", "VARIANTS", "make_method",
+           "ours_model_names", "default_method_names"]
 
 #: Baseline method names, in the paper's table order.
 BASELINES = ("raplace", "radvlad", "resnet18-netvlad", "referee", "ringkey")
+#: Separately named variants of baselines (not the reference implementations; run only when named).
+VARIANTS = ("raplace-nodc", "radvlad-half")
 
 
 def ours_model_names() -> list[str]:
@@ -49,10 +53,18 @@ def make_method(name: str) -> PlaceRecognitionMethod:
         from reradar_core.baselines.raplace import RaPlace
 
         return RaPlace()
+    if key == "raplace-nodc":
+        from reradar_core.baselines.raplace import RaPlaceNoDC
+
+        return RaPlaceNoDC()
     if key == "radvlad":
         from reradar_core.baselines.radvlad import RadVLAD
 
         return RadVLAD()
+    if key == "radvlad-half":
+        from reradar_core.baselines.radvlad import RadVLADHalf
+
+        return RadVLADHalf()
     if key in ("resnet18-netvlad", "resnet18_netvlad", "netvlad"):
         from reradar_core.baselines.resnet_netvlad import ResNetNetVLAD
 
@@ -80,4 +92,5 @@ def make_method(name: str) -> PlaceRecognitionMethod:
         if model not in known:
             raise ConfigError(f"unknown ReRadar model {model!r}; shipped models: {known or 'none'}")
         return Ours(model, name=model)
-    raise ConfigError(f"unknown method {name!r}; choose from {default_method_names()} or 'ours'")
+    raise ConfigError(f"unknown method {name!r}; choose from {default_method_names()}, the variants "
+                      f"{list(VARIANTS)} or 'ours'")

@@ -66,6 +66,9 @@ class PlaceRecognitionMethod(ABC):
     provides_pose: bool = False
     #: True when ``fit`` uses the database (descriptors then depend on the reference run).
     needs_fit: bool = False
+    #: Bump whenever ``prepare`` changes what it computes: part of the feature-cache key, so records made by
+    #: an earlier algorithm are never reused.
+    algorithm_version: int = 1
 
     # ------------------------------------------------------------------ identity
     def params(self) -> dict[str, Any]:
@@ -74,8 +77,8 @@ class PlaceRecognitionMethod(ABC):
 
     @property
     def cache_key(self) -> str:
-        """Folder-safe key of this method + parameters for the feature cache."""
-        return f"{self.name}-{params_hash(self.params())}"
+        """Folder-safe key of this method + parameters + ``algorithm_version`` for the feature cache."""
+        return f"{self.name}-{params_hash(self.params())}-a{self.algorithm_version}"
 
     # ------------------------------------------------------------------ pipeline
     @abstractmethod

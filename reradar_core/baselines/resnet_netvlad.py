@@ -1,21 +1,39 @@
 """ResNet18-NetVLAD: the OORD benchmark's neural baseline.
 
 References:
-    M. Gadd et al., "OORD: The Oxford Offroad Radar Dataset", IEEE T-ITS 2024: an ImageNet-pretrained
-    ResNet-18 on the 128 x 128 polar radar image, NetVLAD with 64 clusters whose centres are initialised by
-    k-means++ on deep features of the reference run; the backbone is not fine-tuned on radar (as the ReRadar
-    paper, Sec. Implementation Details, repeats).
-    R. Arandjelovic et al., "NetVLAD: CNN architecture for weakly supervised place recognition", CVPR 2016
-    (soft assignment, alpha from the centre-similarity gap, intra-normalisation, L2).
+    M. Gadd et al., "OORD: The Oxford Offroad Radar Dataset", IEEE T-ITS 2024; R. Arandjelovic et al.,
+    "NetVLAD: CNN architecture for weakly supervised place recognition", CVPR 2016.
+    Reference implementation: OORD benchmark code, github.com/mttgdd/oord-dataset at commit
+    f04683fb68d15f042395de528c92064dbfc4bc30: ``config/resnet18_netvlad.yaml`` (min_bin 60, max_bin 3768,
+    polar, num_azis = num_bins = 128, channels 3), ``src/dataset.py`` (``load_image``,
+    ``prepare_output_tensor``), ``src/resnet18_netvlad.py`` (``NetVLAD``, ``Net``),
+    ``jobs/test_resnet18_netvlad.py`` (``calib``), ``src/compute_distance_matrix.py`` (Euclidean ``cdist``).
+
+``resnet18-netvlad`` follows the reference step by step, its quirks included (they shape the published
+numbers):
+    1. bins < 60 zeroed; polar image resized (Pillow bicubic) to 128 x 128; power in [0, 1] repeated into 3
+       channels, *without* ImageNet mean/std normalisation;
+    2. ResNet-18 up to conv5 (``layer4``): (512, 4, 4) -> 16 local descriptors of 512 channels;
+    3. calibration on the reference run: each scan's (16, 512) feature matrix is L2-normalised *over the 16
+       positions* per channel (the reference normalises ``dim=1`` after the permute), then
+       ``KMeans(64, k-means++, tol 1e-4, n_init 1)`` on all of them (``kmeans_to_convergence``); the
+       centres are used as they come (not unit-normalised);
+    4. alpha = -ln(0.01) / mean(i_2^2 - i_1^2) where i_1, i_2 are the *indices* of each centre's two
+       nearest calibration descriptors (the reference takes ``kneighbors(...)[1]``, the index array, where
+       the NetVLAD paper means the squared distances); for realistic run lengths alpha is tiny and the
+       soft assignment nearly uniform;
+    5. NetVLAD forward: descriptors L2-normalised over channels; soft assignment softmax_k(2 alpha c_k.x -
+       alpha |c_k|) (the bias uses the norm, not its square); residual sums; intra-normalisation; L2;
+    6. Euclidean distance.
 
 Offline substitute (stated in docs/BENCHMARKS.md): ImageNet weights cannot be downloaded on this machine, so
-the backbone is ResNet-18 with torchvision's random initialisation under a fixed seed (``seed``); only the
-NetVLAD centres are fit on the reference run, exactly as in OORD. A checkpoint with ImageNet weights in
-this module's parameter names can be given as ``weights_path``.
+the backbone is ResNet-18 with torchvision's random initialisation under a fixed seed (``seed``); a
+checkpoint with ImageNet weights in this module's parameter names can be given as ``weights_path``.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,38 +42,67 @@ from typing import Any
 import numpy as np
 import torch
 
-from reradar_core.baselines.base import EuclideanIndex, PlaceRecognitionMethod, Prepared, polar_resize
-from reradar_core.baselines.kmeans import kmeans
+from reradar_core.baselines.base import EuclideanIndex, PlaceRecognitionMethod, Prepared
+from reradar_core.baselines.kmeans import kmeans_to_convergence
+from reradar_core.baselines.oord import MAX_BIN, MIN_BIN, oord_polar_image
 from reradar_core.baselines.resnet18 import ResNet18
 from reradar_core.errors import ConfigError
 from reradar_core.io.scan import RadarScan
 
-__all__ = ["ResNetNetVLADConfig", "ResNetNetVLAD", "netvlad_numpy"]
+__all__ = ["ResNetNetVLADConfig", "ResNetNetVLAD", "netvlad_numpy", "reference_alpha", "normalise_positions"]
 
-_IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
-_IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class ResNetNetVLADConfig:
-    """OORD settings: 128 x 128 polar input, 64 NetVLAD clusters (k-means++ on the reference run)."""
+    """OORD settings: 128 x 128 polar input, bins [60, 3768), 64 NetVLAD clusters (k-means on the reference
+    run, to convergence). ``seed``: backbone initialisation; ``kmeans_seed``: the centres' k-means."""
 
     input_px: int = 128
+    min_bin: int = MIN_BIN
+    max_bin: int = MAX_BIN
     num_clusters: int = 64
     seed: int = 0
     weights_path: str | None = None
-    kmeans_iterations: int = 20
+    kmeans_seed: int = 0
+    kmeans_tol: float = 1e-4
+    kmeans_max_iter: int = 300
+
+
+def normalise_positions(local: np.ndarray) -> np.ndarray:
+    """(M, C) local descriptors of one scan -> each channel L2-normalised over the M positions (float32).
+
+    What the reference's calibration does (``F.normalize(..., dim=1)`` on a (B, M, C) tensor)."""
+    x = np.asarray(local, dtype=np.float32)
+    return x / np.maximum(np.linalg.norm(x, axis=0, keepdims=True), 1e-12)
+
+
+def reference_alpha(centres: np.ndarray, train: np.ndarray) -> float:
+    """The reference's alpha: -ln(0.01) / mean(i_2^2 - i_1^2), i_1 / i_2 = *indices* (into ``train``) of the
+    two nearest training descriptors of each centre (exact Euclidean search)."""
+    import faiss
+
+    index = faiss.IndexFlatL2(train.shape[1])
+    index.add(np.ascontiguousarray(train, dtype=np.float32))
+    _, idx = index.search(np.ascontiguousarray(centres, dtype=np.float32), 2)
+    ds_sq = np.square(idx.astype(np.float64))
+    gap = float(np.mean(ds_sq[:, 1] - ds_sq[:, 0]))
+    if gap == 0.0:  # cannot happen with distinct indices unless every centre has the same neighbours
+        raise ConfigError("ResNet18-NetVLAD calibration is degenerate (no index gap); use a longer reference run")
+    return float(-np.log(0.01) / gap)
 
 
 def netvlad_numpy(features: np.ndarray, centres: np.ndarray, alpha: float) -> np.ndarray:
-    """NetVLAD of (M, C) L2-normalised local features with (K, C) unit centres -> (K*C,) float32.
+    """The reference NetVLAD layer on one scan: (M, C) local features, (K, C) centres -> (K*C,) float32.
 
-    Soft assignment softmax_k(alpha * (2 c_k.x - |c_k|^2)) (Arandjelovic et al. initialisation), residual
-    sums, intra-normalisation, then L2.
+    Features are L2-normalised over channels; soft assignment softmax_k(2 alpha c_k.x - alpha |c_k|);
+    residual sums; intra-normalisation; L2.
     """
     x = np.asarray(features, dtype=np.float64)
+    x = x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
     c = np.asarray(centres, dtype=np.float64)
-    logits = alpha * (2.0 * x @ c.T - (c * c).sum(1)[None])
+    logits = 2.0 * alpha * x @ c.T - alpha * np.linalg.norm(c, axis=1)[None]
     logits -= logits.max(axis=1, keepdims=True)
     a = np.exp(logits)
     a /= a.sum(axis=1, keepdims=True)  # (M, K)
@@ -66,10 +113,11 @@ def netvlad_numpy(features: np.ndarray, centres: np.ndarray, alpha: float) -> np
 
 
 class ResNetNetVLAD(PlaceRecognitionMethod):
-    """ResNet-18 conv5 features on the polar image + NetVLAD (centres from the database); cosine distance."""
+    """ResNet-18 conv5 features on the polar image + NetVLAD calibrated on the database; Euclidean."""
 
     name = "resnet18-netvlad"
     needs_fit = True
+    algorithm_version = 2
 
     def __init__(self, config: ResNetNetVLADConfig = ResNetNetVLADConfig()) -> None:
         self.config = config
@@ -88,30 +136,26 @@ class ResNetNetVLAD(PlaceRecognitionMethod):
 
     def params(self) -> dict[str, Any]:
         c = self.config
-        return {"px": c.input_px, "seed": c.seed, "weights": c.weights_path, "v": 1}
+        return {"px": c.input_px, "min_bin": c.min_bin, "max_bin": c.max_bin, "seed": c.seed,
+                "weights": c.weights_path}
 
     @torch.no_grad()
     def prepare(self, scan: RadarScan) -> Prepared:
-        img = polar_resize(scan.power, self.config.input_px, self.config.input_px)
-        x = (img[None] - _IMAGENET_MEAN[:, None, None]) / _IMAGENET_STD[:, None, None]  # grey -> 3 channels
-        fmap = self.net.forward_features(torch.from_numpy(x[None].astype(np.float32)))[0]
-        local = torch.nn.functional.normalize(fmap.flatten(1).T, dim=1)  # (M, 512) unit rows
-        return {"local": local.numpy().astype(np.float32)}
+        c = self.config
+        img = oord_polar_image(scan.power, c.input_px, c.input_px, c.min_bin, c.max_bin)
+        x = torch.from_numpy(np.repeat(img[None, None], 3, axis=1).astype(np.float32))  # grey -> 3 channels
+        fmap = self.net.forward_features(x)[0]  # (512, H', W')
+        return {"local": fmap.flatten(1).T.contiguous().numpy().astype(np.float32)}  # (M, 512), raw
 
     def fit(self, database: Sequence[Prepared]) -> None:
         if not database:
             raise ConfigError("ResNet18-NetVLAD needs a non-empty reference run to fit its NetVLAD centres")
-        feats = np.concatenate([np.asarray(p["local"], dtype=np.float32) for p in database])
+        feats = np.concatenate([normalise_positions(p["local"]) for p in database])
         k = min(self.config.num_clusters, feats.shape[0])
-        c = kmeans(feats, k, self.config.kmeans_iterations, self.config.seed)
-        c /= np.maximum(np.linalg.norm(c, axis=1, keepdims=True), 1e-12)
-        # alpha as in the NetVLAD reference code: -log(0.01) / mean gap between the two closest centres
-        sample = feats[np.random.default_rng(self.config.seed).choice(feats.shape[0], min(5000, feats.shape[0]),
-                                                                      replace=False)]
-        dots = np.sort(sample @ c.T, axis=1)[:, ::-1]
-        gap = float(np.mean(dots[:, 0] - dots[:, 1])) if k > 1 else 1.0
-        self.alpha = float(-np.log(0.01) / max(gap, 1e-6))
-        self.centres = c
+        self.centres = kmeans_to_convergence(feats, k, self.config.kmeans_seed, self.config.kmeans_tol,
+                                             self.config.kmeans_max_iter)
+        self.alpha = reference_alpha(self.centres, feats)
+        logger.info("resnet18-netvlad: alpha %.3g from %d calibration descriptors", self.alpha, feats.shape[0])
 
     def describe_prepared(self, prepared: Prepared) -> np.ndarray:
         if self.centres is None:
