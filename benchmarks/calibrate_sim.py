@@ -92,9 +92,16 @@ def _profile(name: str, ov: dict[str, object]) -> W.WorldProfile:
     return replace(p, **kw) if kw else p
 
 
-def _traversal(world: W.World, seed: int, cond: T.Condition, ov: dict[str, object]) -> T.Traversal:
-    kw = {k.split(".", 1)[1]: v for k, v in ov.items() if k.startswith("traversal.")}
-    return T.Traversal(world, seed, cond, **kw)  # type: ignore[arg-type]
+def _traversal(world: W.World, seed: int, cond: T.Condition, ov: dict[str, object],
+               traffic_per_km: float = 12.0) -> T.Traversal:
+    kw: dict[str, object] = {"traffic_per_km": traffic_per_km}
+    kw.update({k.split(".", 1)[1]: v for k, v in ov.items() if k.startswith("traversal.")})
+    attrs = {"persistent_car_fraction": "PERSISTENT_CAR_FRACTION", "transient_car_prob": "TRANSIENT_CAR_PROB"}
+    trav = T.Traversal(world, seed, cond, **{k: v for k, v in kw.items() if k not in attrs})  # type: ignore[arg-type]
+    for k, attr in attrs.items():
+        if k in kw:
+            setattr(trav, attr, float(kw[k]))  # type: ignore[arg-type]
+    return trav
 
 
 def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, query_seq: str | None,
@@ -152,7 +159,7 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
     q_t, q_idx, q_pose = q_t[ok], q_idx[ok], q_pose[ok]
 
     def render(seq: S.SequenceDef, traj, t, idx) -> np.ndarray:
-        trav = _traversal(world, seq.traversal_seed, _condition(seq.condition, ov), ov)
+        trav = _traversal(world, seq.traversal_seed, _condition(seq.condition, ov), ov, suite.traffic_per_km)
         out = []
         for t0, k in zip(t, idx, strict=True):
             s = render_scan(trav, traj, int(t0), suite.preset, scan_seed(trav.seed, int(k)), sensor)
@@ -200,6 +207,49 @@ def recall_at_1(method_name: str, data: dict[str, object]) -> float:
     return 100.0 * hits / max(len(q_pose), 1)
 
 
+#: Published real-data Recall@1 (%) of the baselines (paper, Tables OORD / MulRan / Boreas).
+PUBLISHED: dict[str, dict[str, float]] = {
+    "OORD Bellmouth 2-vs-1": {"raplace": 98.45, "radvlad": 98.87, "resnet18-netvlad": 97.67, "referee": 89.29,
+                              "ringkey": 94.29},
+    "OORD Hydro 1-vs-2": {"raplace": 92.65, "radvlad": 93.51, "resnet18-netvlad": 93.78, "referee": 90.13,
+                          "ringkey": 91.15},
+    "OORD Two Lochs 2-vs-1": {"raplace": 85.82, "radvlad": 84.27, "resnet18-netvlad": 5.41, "referee": 70.75,
+                              "ringkey": 72.96},
+    "MulRan DCC01": {"raplace": 64.71, "radvlad": 75.94, "resnet18-netvlad": 43.85, "referee": 54.55,
+                     "ringkey": 54.01},
+    "MulRan KAIST03": {"raplace": 92.98, "radvlad": 96.66, "resnet18-netvlad": 89.63, "referee": 87.63,
+                       "ringkey": 86.29},
+    "Boreas 2020-11-26": {"raplace": 94.93, "radvlad": 91.30, "resnet18-netvlad": 74.52, "referee": 73.67,
+                          "ringkey": 58.33},
+    "Boreas 2021-01-26": {"raplace": 96.99, "radvlad": 94.78, "resnet18-netvlad": 73.98, "referee": 69.47,
+                          "ringkey": 65.31},
+}
+_ORDER = ("raplace", "radvlad", "resnet18-netvlad", "referee", "ringkey")
+_NAMES = {"raplace": "RaPlace", "radvlad": "RadVLAD", "resnet18-netvlad": "ResNet18-NetVLAD*",
+          "referee": "ReFeree", "ringkey": "RingKey"}
+
+
+def calibration_table(rows: list[dict[str, object]], real: list[str]) -> str:
+    """Markdown table: per (row, real sequence) and baseline, published vs simulated Recall@1, difference,
+    within +-10 (ResNet18-NetVLAD exempt) and whether the five baselines' order is reproduced."""
+    out = ["| simulated (subset) | stands for | method | published | simulated | diff | within ±10 |",
+           "|---|---|---|---|---|---|---|"]
+    for row, seq in zip(rows, real, strict=True):
+        pub = PUBLISHED[seq]
+        methods = [m for m in _ORDER if m in row]
+        sim_order = sorted(methods, key=lambda m: -float(row[m]))  # type: ignore[arg-type]
+        pub_order = sorted(methods, key=lambda m: -pub[m])
+        where = f"{row['suite']}/{row['query_seq'] or 'default'} ({row['queries']} q, {row['db']} db)"
+        for m in methods:
+            d = float(row[m]) - pub[m]  # type: ignore[arg-type]
+            ok = "exempt" if m == "resnet18-netvlad" else ("yes" if abs(d) <= 10 else "**no**")
+            out.append(f"| {where} | {seq} | {_NAMES[m]} | {pub[m]:.1f} | {float(row[m]):.1f} | {d:+.1f} | {ok} |")  # type: ignore[arg-type]
+        same = "yes" if sim_order == pub_order else "**no**"
+        out.append(f"| {where} | {seq} | order | {' > '.join(_NAMES[m] for m in pub_order)} | "
+                   f"{' > '.join(_NAMES[m] for m in sim_order)} | | {same} |")
+    return "\n".join(out)
+
+
 def _revisited(data: dict[str, object]) -> float:
     """Share (%) of the queries with a database scan within the recall radius (the Recall@1 ceiling)."""
     q, db = np.asarray(data["q_pose"])[:, :2], np.asarray(data["db_pose"])[:, :2]
@@ -209,7 +259,7 @@ def _revisited(data: dict[str, object]) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--suite", required=True, choices=sorted(n for n, s in S.SUITES.items()
+    ap.add_argument("--suite", default="offroad-sim", choices=sorted(n for n, s in S.SUITES.items()
                                                              if s.purpose in ("benchmark", "test")))
     ap.add_argument("--query-seq", default=None, help="query sequence name (default: the suite's first)")
     ap.add_argument("--window", default="0:1", help="fraction a:b of the database drive's scans")
@@ -222,7 +272,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--all-queries", action="store_true", help="queries evenly over the whole query drive, "
                     "revisits or not (the paper's MulRan Recall@1 divides by all queries)")
     ap.add_argument("--no-cache", action="store_true")
+    ap.add_argument("--table", type=Path, default=None, help="print the calibration table from this JSON-lines "
+                    "file (rows chosen by --rows LABEL=REAL_SEQUENCE,...) and exit")
+    ap.add_argument("--rows", default="", help="LABEL=REAL_SEQUENCE pairs for --table, ';'-separated")
     a = ap.parse_args(argv)
+    if a.table is not None:
+        rows = {json.loads(line)["label"]: json.loads(line) for line in a.table.read_text().splitlines() if line}
+        pairs = [p.split("=", 1) for p in a.rows.split(";") if p]
+        print(calibration_table([rows[lab] for lab, _ in pairs], [seq for _, seq in pairs]))
+        return 0
     ov = parse_overrides(a.overrides)
     w0, w1 = (float(x) for x in a.window.split(":"))
     t0 = time.perf_counter()

@@ -105,6 +105,9 @@ PROFILES: dict[str, WorldProfile] = {
         parked_car_slot_prob=0.0, ground_clutter_per_m2=0.0, kerb_reflectivity=0.0, frontage_prob=0.0,
     ),
     "urban": WorldProfile("urban"),
+    # suburban residential / commercial roads (the Boreas Glen Shields route): houses with driveways, so few
+    # cars park on the street (v3 calibration, docs/SIMULATOR.md)
+    "suburban": WorldProfile("suburban", parked_car_slot_prob=0.2),
     # wide multi-lane boulevards with sparse, set-back, repetitive buildings (MulRan DCC-like campus roads)
     "urban-open": WorldProfile(
         "urban-open", road_half_width_m=9.0, building_prob_per_tile=0.5, building_far_prob=1.0,
