@@ -29,7 +29,6 @@ Example (the off-road rows of the ablation table):
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import hashlib
 import json
 import sys
@@ -272,12 +271,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--all-queries", action="store_true", help="queries evenly over the whole query drive, "
                     "revisits or not (the paper's MulRan Recall@1 divides by all queries)")
     ap.add_argument("--no-cache", action="store_true")
-    ap.add_argument("--table", type=Path, default=None, help="print the calibration table from this JSON-lines "
-                    "file (rows chosen by --rows LABEL=REAL_SEQUENCE,...) and exit")
+    ap.add_argument("--table", default=None, help="print the calibration table from these JSON-lines files "
+                    "(comma-separated; rows chosen by --rows) and exit")
     ap.add_argument("--rows", default="", help="LABEL=REAL_SEQUENCE pairs for --table, ';'-separated")
     a = ap.parse_args(argv)
     if a.table is not None:
-        rows = {json.loads(line)["label"]: json.loads(line) for line in a.table.read_text().splitlines() if line}
+        lines = [ln for f in a.table.split(",") for ln in Path(f).read_text().splitlines() if ln.strip()]
+        rows = {json.loads(ln)["label"]: json.loads(ln) for ln in lines}
         pairs = [p.split("=", 1) for p in a.rows.split(";") if p]
         print(calibration_table([rows[lab] for lab, _ in pairs], [seq for _, seq in pairs]))
         return 0
@@ -305,4 +305,4 @@ if __name__ == "__main__":
     raise SystemExit(main())
 
 
-__all__ = ["render_subset", "recall_at_1", "parse_overrides", "dataclasses"]
+__all__ = ["render_subset", "recall_at_1", "parse_overrides", "calibration_table", "PUBLISHED"]

@@ -188,6 +188,7 @@ _LOOP = RouteDef("loop", seed=11, laps=3, block_m=(90.0, 160.0), n_blocks=3)
 _LOOP_OPEN = RouteDef("loop", seed=12, laps=3, block_m=(120.0, 200.0), n_blocks=3)
 # off-road tracks are driven at 3-7 m/s (11-25 km/h), not at urban speeds: at the OORD protocol's every 5th
 # frame that puts database scans ~5 m apart (simulator v2 drove 6-12 m/s: ~10 m, RingKey 72.5 % -> 85.0 %)
+_OFFROAD_HARD = RouteDef("loop", seed=22, laps=1, block_m=(250.0, 400.0), n_blocks=2, speed_mps=(6.0, 12.0))
 _OFFROAD = RouteDef("loop", seed=21, laps=1, block_m=(250.0, 400.0), n_blocks=2, speed_mps=(3.0, 7.0))
 _SMOKE = RouteDef("loop", seed=3, laps=1, block_m=(50.0, 70.0), n_blocks=2)
 _CALIB = RouteDef("loop", seed=7, laps=1)
@@ -249,9 +250,18 @@ SUITES: dict[str, SuiteDef] = {
             SequenceDef("day1-clear", "database", _OFFROAD, traversal_seed=211, every=5),
             SequenceDef("day2-rain", "query", replace(_OFFROAD, lateral_m=0.8, speed_seed=2),
                         traversal_seed=212, condition="rain", every=5, offset=2),
-            # the Two Lochs-like pair: the route driven the other way round (headings differ by ~180 deg)
-            SequenceDef("day4-reverse", "query", replace(_OFFROAD, lateral_m=0.8, speed_seed=4, reverse=True),
-                        traversal_seed=214, condition="clear", every=5, offset=1),
+        ),
+        radius_m=25.0,
+    ),
+    "offroad-sim-hard": SuiteDef(
+        "offroad-sim-hard", "Two Lochs-like off-road pair: a faster gravel route (6-12 m/s), the query drive "
+        "goes the other way round",
+        preset="oord", layout="oxford", profile="offroad", world_seed=22, road_routes=(_OFFROAD_HARD,),
+        sequences=(
+            SequenceDef("day1-clear", "database", _OFFROAD_HARD, traversal_seed=221, every=5),
+            # headings differ by ~180 deg from the map's: only rotation-invariant descriptors survive
+            SequenceDef("day2-reverse", "query", replace(_OFFROAD_HARD, lateral_m=0.8, speed_seed=2, reverse=True),
+                        traversal_seed=222, condition="clear", every=5, offset=2),
         ),
         radius_m=25.0,
     ),

@@ -53,7 +53,8 @@ def test_smoke_suite_resumes_and_renders_identically(smoke, tmp_path):
 
 
 def test_suite_definitions():
-    for name in ("smoke", "boreas-sim", "loop-sim", "loop-sim-hard", "offroad-sim", "train-source",
+    for name in ("smoke", "boreas-sim", "loop-sim", "loop-sim-hard", "offroad-sim", "offroad-sim-hard",
+                 "train-source",
                  "train-target-boreas",
                  "train-target-loop", "train-target-offroad"):
         assert name in SUITES
@@ -67,7 +68,8 @@ def test_suite_definitions():
     assert SUITES["offroad-sim"].radius_m == 25.0 and SUITES["boreas-sim"].radius_m == 20.0
     from reradar_core.sim.suites import suite_names
 
-    assert suite_names("benchmark") == ["boreas-sim", "loop-sim", "loop-sim-hard", "offroad-sim"]
+    assert suite_names("benchmark") == ["boreas-sim", "loop-sim", "loop-sim-hard", "offroad-sim",
+                                           "offroad-sim-hard"]
     assert all(n.startswith("train-") for n in suite_names("training"))
     # the Boreas training traversal is never one of the query traversals
     q_seeds = {s.traversal_seed for s in SUITES["boreas-sim"].sequences}
@@ -88,7 +90,7 @@ def test_reversed_routes_revisit_the_same_road_heading_the_other_way():
 
     from reradar_core.sim.suites import _route_trajectory
 
-    for suite, q_name in (("offroad-sim", "day4-reverse"), ("loop-sim-hard", "laps2-3-reverse")):
+    for suite, q_name in (("offroad-sim-hard", "day2-reverse"), ("loop-sim-hard", "laps2-3-reverse")):
         sd = SUITES[suite]
         db_def = next(s for s in sd.sequences if s.role == "database")
         q_def = next(s for s in sd.sequences if s.name == q_name)
