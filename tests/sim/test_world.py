@@ -95,3 +95,23 @@ def test_zone_fields_vary_density_along_the_route_with_unit_mean(road):
     assert abs(a[0] - b[0]) < 0.1
     assert zoned.zone_factors(np.array([100.0, 0.0])) == World(road, seed=3, profile=zoned.profile).zone_factors(
         np.array([100.0, 0.0]))
+
+
+def test_suburban_profile_has_fewer_street_parking_slots_and_building_transmission_is_used(road):
+    from dataclasses import replace
+
+    from reradar_core.sim.world import PROFILES
+
+    def slots(profile):
+        w = World(road, seed=8, profile=profile)
+        return sum(len(w.tile(ix, iy).car_slots) for ix in range(-10, 10) for iy in (-1, 0))
+
+    urban, suburban = slots("urban"), slots("suburban")
+    assert urban > 50
+    # 0.2 vs 0.7 slot probability per 6.5 m; slots closer than 6 m to another are dropped, which removes
+    # more of the dense urban ones, so the ratio lies above 0.2 / 0.7 = 0.29 (measured 44 / 96)
+    assert 0.2 < suburban / urban < 0.6
+    see_over = World(road, seed=8, profile=replace(PROFILES["urban"], building_transmission=0.3))
+    prim = see_over.query(np.array([0.0, 0.0]), 150.0)
+    opaque = World(road, seed=8, profile="urban").query(np.array([0.0, 0.0]), 150.0)
+    assert np.sum(prim.seg_trans == 0.3) > 100 and np.sum(opaque.seg_trans == 0.3) == 0
