@@ -2,13 +2,17 @@
 
 Evaluation suites mirror the paper's protocols:
 
-- ``boreas-sim``: database = the real Boreas 2021-08-05 trajectory in clear weather; queries = the real
-  2021-09-02 trajectory (four weeks later, real GNSS drift) under ``snow_cover`` and ``falling_snow``.
-  Boreas preset / layout, recall radius 20 m.
-- ``loop-sim``: single session (MulRan protocol): one drive around a street grid, three laps; the first
-  lap is the database, the later laps are the queries. MulRan preset / layout, 20 m.
-- ``offroad-sim``: OORD-like vegetation/terrain route, two drives on different days (clear / rain),
-  every 5th frame as in the OORD benchmark. OORD preset, Oxford layout, 25 m.
+- ``boreas-sim``: database = the real Boreas 2021-08-05 trajectory in clear weather (every 2nd frame);
+  queries = the real 2021-09-02 trajectory (four weeks later, real GNSS drift) under ``snow_cover`` and
+  ``falling_snow``, in a ``suburban`` world with 4 vehicles/km. Boreas preset / layout, recall radius 20 m.
+- ``loop-sim`` (KAIST03-like): single session (MulRan protocol): one drive around a street grid, three
+  laps; the first lap is the database, the later laps are the queries. MulRan preset / layout, 20 m.
+- ``loop-sim-hard`` (DCC01-like): the same protocol on wide, sparse boulevards (``urban-open``), the later
+  laps driven the other way round in the far lane.
+- ``offroad-sim`` (Hydro-like): OORD-like vegetation/terrain route driven at 3-7 m/s, two drives on
+  different days (clear / rain), every 5th frame as in the OORD benchmark. OORD preset, Oxford layout, 25 m.
+- ``offroad-sim-hard`` (Two Lochs-like): another, faster off-road route; the query drive goes the other way.
+- Calibration of these against the paper's real-data tables: docs/BENCHMARKS.md.
 - ``calib-oxford``: Oxford-format city drive, 12 scans per weather condition, for ``reradar sim-report``
   against the real Oxford scans.
 - ``smoke``: tiny (two traversals of a small loop, 20 scans each), for tests; renders in seconds.
