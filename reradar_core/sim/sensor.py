@@ -62,6 +62,12 @@ class SensorConfig:
             (persistent per scatterer: 2..``glint_max_lobes`` lobes over a full turn); surfaces also vary
             along their length with period ``glint_length_m``. Makes returns change with the viewpoint
             as real ones do, so appearance matching degrades with the baseline.
+        dominant_fraction: share of the power of hard returns (surfaces, poles, façade details: not leaves,
+            ground clutter or precipitation) that is one dominant, steady scatterer per resolution cell rather
+            than many random ones. Speckle is fully developed (exponential intensity) only for distributed
+            clutter; a cell holding a dominant scatterer has Rician statistics (Swerling 0 plus diffuse part,
+            Skolnik, Radar Handbook 3rd ed., ch. 7), so strong targets flicker far less between scans.
+            0 = every return fully speckled.
     """
 
     oversample: int = 2
@@ -89,6 +95,7 @@ class SensorConfig:
     glint_db: float = 6.0
     glint_max_lobes: int = 8
     glint_length_m: float = 3.0
+    dominant_fraction: float = 0.0
 
 
 def sweep_poses(trajectory: PoseSequence, t0_us: int, preset: RadarPreset, oversample: int = 1
@@ -214,7 +221,7 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
     prim = Primitives.concat([prim, dyn] + ([extra] if extra is not None else []))
 
     # ---------------- ray casting against segments
-    hit_ray, hit_t, hit_amp, hit_tr = [], [], [], []
+    hit_ray, hit_t, hit_amp, hit_tr, hit_coh = [], [], [], [], []
     if len(prim.seg):
         s = prim.seg
         a0, r0 = _to_sensor(s[:, :2], mid)
@@ -257,6 +264,7 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
         hit_t.append(t)
         hit_amp.append(amp)
         hit_tr.append(tr[si])
+        hit_coh.append(np.ones(len(t), bool))
     # ---------------- discs (tree canopies, pole shadows)
     if len(prim.disc):
         c = prim.disc
@@ -279,14 +287,17 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
         hit_t.append(t[ok2])
         hit_amp.append(refl[di[ok][ok2]] * cond.leaf_factor / K)
         hit_tr.append(1 - (1 - tr[di[ok][ok2]]) * min(1.0, cond.leaf_factor))
+        hit_coh.append(np.zeros(int(ok2.sum()), bool))  # canopy: many leaves, distributed
     if hit_ray:
         h_ray = np.concatenate(hit_ray)
         h_t = np.concatenate(hit_t)
         h_amp = np.concatenate(hit_amp)
         h_tr = np.concatenate(hit_tr)
+        h_coh = np.concatenate(hit_coh)
     else:
         h_ray = np.zeros(0, np.int64)
         h_t = h_amp = h_tr = np.zeros(0)
+        h_coh = np.zeros(0, bool)
 
     # ---------------- transmission map on a coarse range grid (two-way, log domain, cumulative)
     coarse = 8
@@ -329,14 +340,17 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
         # when its sub-ray meets the wall a little earlier at grazing incidence
         pb = np.clip(np.floor((rp - 1.0 - off) / (res * coarse)).astype(np.int64), 0, n_c - 1)
         p_pow = rcs * tmap[j, pb]
+        p_coh = kind == 0
     else:
         j = np.zeros(0, np.int64)
         rp = p_pow = np.zeros(0)
+        p_coh = np.zeros(0, bool)
 
     # ---------------- impulses -> (A, R) target power
     all_ray = np.concatenate([h_ray, j]) // K
     all_r = np.concatenate([h_t, rp])
     all_p = np.concatenate([h_pow, p_pow])
+    all_coh = np.concatenate([h_coh, p_coh])
     atten = 10 ** (-2 * cond.attenuation_db_per_km * all_r / 1e4)
     all_p = all_p * cfg.target_gain * (cfg.ref_range_m / np.maximum(all_r, 1.0)) ** cfg.range_exponent * atten
     # multipath ghosts: a fraction of the strongest returns reappear farther out along the same azimuth
@@ -347,20 +361,26 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
             all_ray = np.concatenate([all_ray, all_ray[g]])
             all_r = np.concatenate([all_r, all_r[g] + rng.uniform(3.0, 25.0, len(g))])
             all_p = np.concatenate([all_p, all_p[g] * 0.02])
+            all_coh = np.concatenate([all_coh, np.zeros(len(g), bool)])  # multipath: diffuse
     fb = (all_r - off) / res
     okb = (fb >= 0) & (fb < n_r - 1)
-    fb, all_ray, all_p = fb[okb], all_ray[okb], all_p[okb]
+    fb, all_ray, all_p, all_coh = fb[okb], all_ray[okb], all_p[okb], all_coh[okb]
     b0 = np.floor(fb).astype(np.int64)
     wb = fb - b0
     flat = np.concatenate([all_ray * n_r + b0, all_ray * n_r + b0 + 1])
-    wts = np.concatenate([all_p * (1 - wb), all_p * wb])
-    target = np.bincount(flat, weights=wts, minlength=n_az * n_r).astype(np.float32).reshape(n_az, n_r)
-
     k_r, anchor_r, k_a = _kernels(cfg, res)
     pad = len(k_a) // 2
-    padded = np.concatenate([target[-pad:], target, target[:pad]], axis=0)
-    blurred = cv2.sepFilter2D(padded, cv2.CV_32F, k_r, k_a, anchor=(anchor_r, pad),
-                              borderType=cv2.BORDER_CONSTANT)[pad:-pad]
+
+    def impulses_to_image(weight: np.ndarray) -> np.ndarray:
+        wts = np.concatenate([all_p * weight * (1 - wb), all_p * weight * wb])
+        target = np.bincount(flat, weights=wts, minlength=n_az * n_r).astype(np.float32).reshape(n_az, n_r)
+        padded = np.concatenate([target[-pad:], target, target[:pad]], axis=0)
+        return cv2.sepFilter2D(padded, cv2.CV_32F, k_r, k_a, anchor=(anchor_r, pad),
+                               borderType=cv2.BORDER_CONSTANT)[pad:-pad]
+
+    dom_w = np.where(all_coh, cfg.dominant_fraction, 0.0) if cfg.speckle_looks > 0 else np.zeros(len(all_p))
+    blurred = impulses_to_image(1.0 - dom_w)  # distributed part: fully speckled
+    dominant = impulses_to_image(dom_w) if np.any(dom_w > 0) else None
 
     # ---------------- diffuse ground, noise floor, near field
     ranges = (off + np.arange(n_r) * res).astype(np.float32)
@@ -387,7 +407,12 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
             power[(row + k) % n_az] += prof
 
     if cfg.speckle_looks > 0:
-        power *= _speckle(rng, n_az, n_r, cfg)
+        if dominant is None:
+            power *= _speckle(rng, n_az, n_r, cfg)
+        else:
+            power = _rician(rng, n_az, n_r, cfg, dominant, power)
+    elif dominant is not None:
+        power += dominant
     np.maximum(power, 1e-12, out=power)
     # value = (10 log10 P - db_floor) / db_span, quantised to 8 bits (cv2.log: ~5x faster than np.log10)
     scale = np.float32(255.0 * 10.0 / np.log(10.0) / cfg.db_span)
@@ -418,6 +443,34 @@ def _speckle(rng: np.random.Generator, n_az: int, n_r: int, cfg: SensorConfig) -
             cv2.accumulateSquare(up, out)
     out *= np.float32(1.0 / cv2.mean(out)[0])
     return out
+
+
+def _speckle_field(rng: np.random.Generator, n_az: int, n_r: int, cfg: SensorConfig) -> np.ndarray:
+    """(A, R) float32 zero-mean Gaussian field, correlated like ``_speckle``'s (one quadrature component)."""
+    cell = cfg.speckle_range_cell
+    n_c = n_r // cell + 2
+    k_az = np.array([cfg.speckle_az_coupling, 1.0, cfg.speckle_az_coupling], np.float32)
+    g = rng.standard_normal((n_az, n_c), dtype=np.float32)
+    g = cv2.filter2D(np.concatenate([g[-1:], g, g[:1]]), cv2.CV_32F, k_az[:, None])[1:-1]
+    return np.ascontiguousarray(cv2.resize(g, (n_c * cell, n_az), interpolation=cv2.INTER_CUBIC)[:, :n_r])
+
+
+def _rician(rng: np.random.Generator, n_az: int, n_r: int, cfg: SensorConfig, dominant: np.ndarray,
+            diffuse: np.ndarray) -> np.ndarray:
+    """(A, R) float32 intensity |sqrt(D) + sqrt(P) z|^2 averaged over looks: a steady dominant scatterer of
+    power D plus fully developed speckle of mean power P (z unit complex Gaussian, correlated like
+    ``_speckle``). Mean intensity D + P, as without speckle."""
+    looks = max(1, int(round(cfg.speckle_looks)))
+    a = np.sqrt(dominant)
+    b = np.sqrt(diffuse)
+    out = np.zeros((n_az, n_r), np.float32)
+    for _ in range(looks):
+        re, im = _speckle_field(rng, n_az, n_r, cfg), _speckle_field(rng, n_az, n_r, cfg)
+        norm = np.float32(1.0 / np.sqrt(np.mean(re * re + im * im)))
+        re *= norm
+        im *= norm
+        out += (a + b * re) ** 2 + (b * im) ** 2
+    return out / np.float32(looks)
 
 
 def scan_seed(traversal_seed: int, scan_index: int) -> int:

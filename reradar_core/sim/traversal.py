@@ -43,11 +43,14 @@ class Condition:
 
 CONDITIONS: dict[str, Condition] = {
     "clear": Condition("clear"),
-    "rain": Condition("rain", noise_floor_db=2.5, attenuation_db_per_km=10.0, volume_clutter_per_m2=0.03,
+    # no receiver-noise rise in weather (v3): a horizontal beam already sees a scene at ambient temperature,
+    # so rain or snow in it cannot raise the antenna noise temperature measurably; what weather adds is
+    # backscatter from the precipitation (volume clutter) and path attenuation (docs/SIMULATOR.md)
+    "rain": Condition("rain", noise_floor_db=0.0, attenuation_db_per_km=10.0, volume_clutter_per_m2=0.03,
                       volume_clutter_rcs=0.02, leaf_factor=1.1, ground_factor=1.4),
-    "snow_cover": Condition("snow_cover", noise_floor_db=1.0, attenuation_db_per_km=2.0, leaf_factor=0.35,
+    "snow_cover": Condition("snow_cover", noise_floor_db=0.0, attenuation_db_per_km=2.0, leaf_factor=0.35,
                             snow_banks=True, ground_factor=0.6),
-    "falling_snow": Condition("falling_snow", noise_floor_db=4.0, attenuation_db_per_km=12.0,
+    "falling_snow": Condition("falling_snow", noise_floor_db=0.0, attenuation_db_per_km=12.0,
                               volume_clutter_per_m2=0.06, volume_clutter_rcs=0.03, leaf_factor=0.35,
                               snow_banks=True, ground_factor=0.6),
 }

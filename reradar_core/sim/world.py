@@ -18,7 +18,7 @@ Geometry primitives (world frame, metres):
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -87,6 +87,14 @@ class WorldProfile:
     terrain_ridges_per_tile: float = 0.0     # off-road: rough terrain slopes
     kerb_reflectivity: float = 0.06
     frontage_prob: float = 0.8               # per tile and road side: a continuous row of façades
+    # land use varies along a real route (terraces, open parkland, car parks, woods, fields): two smooth
+    # random fields over ``zone_scale_m`` scale the built (buildings, walls, fences, façades) and the
+    # vegetation (trees, hedges, terrain) densities by 1 +- zone_contrast; 0 = statistically uniform world
+    # one-way transmission of building outlines: 0 = opaque; > 0 stands for what the elevation beam sees
+    # over low buildings (taller structures behind them) in this 2-D world
+    building_transmission: float = BUILDING_TRANSMISSION
+    zone_contrast: float = 0.0
+    zone_scale_m: float = 150.0
 
 
 PROFILES: dict[str, WorldProfile] = {
@@ -97,6 +105,15 @@ PROFILES: dict[str, WorldProfile] = {
         parked_car_slot_prob=0.0, ground_clutter_per_m2=0.0, kerb_reflectivity=0.0, frontage_prob=0.0,
     ),
     "urban": WorldProfile("urban"),
+    # suburban residential / commercial roads (the Boreas Glen Shields route): houses with driveways, so few
+    # cars park on the street (v3 calibration, docs/SIMULATOR.md)
+    "suburban": WorldProfile("suburban", parked_car_slot_prob=0.2),
+    # wide multi-lane boulevards with sparse, set-back, repetitive buildings (MulRan DCC-like campus roads)
+    "urban-open": WorldProfile(
+        "urban-open", road_half_width_m=9.0, building_prob_per_tile=0.5, building_far_prob=1.0,
+        wall_per_tile=0.3, fence_per_tile=0.4, pole_spacing_m=15.0, street_tree_prob=0.5, tree_per_tile=0.8,
+        parked_car_slot_prob=0.2, frontage_prob=0.2,
+    ),
     "offroad": WorldProfile(
         "offroad", road_half_width_m=3.5, building_prob_per_tile=0.05, building_far_prob=0.02,
         wall_per_tile=0.05, fence_per_tile=0.3, pole_spacing_m=150.0, street_tree_prob=0.25,
@@ -295,8 +312,42 @@ class World:
         return Primitives.concat(parts)
 
     # ------------------------------------------------------------------ generation
+    def zone_factors(self, xy: np.ndarray) -> tuple[float, float]:
+        """(built, vegetation) density factors at world point ``xy`` (both 1 when ``zone_contrast`` is 0).
+
+        Value noise: uniform values on a ``zone_scale_m`` lattice (hashed from the world seed), interpolated
+        with a smoothstep; factor = 1 + zone_contrast * (2 v - 1), so the mean density is unchanged.
+        """
+        pr = self.profile
+        if pr.zone_contrast <= 0:
+            return 1.0, 1.0
+        g = np.asarray(xy, dtype=np.float64) / pr.zone_scale_m
+        i0 = np.floor(g).astype(np.int64)
+        f = g - i0
+        f = f * f * (3 - 2 * f)
+        out = []
+        for salt in ("zone-built", "zone-veg"):
+            s = stable_seed(self.seed, salt)
+            v = 0.0
+            for dx in (0, 1):
+                for dy in (0, 1):
+                    cid = np.array([stable_seed(int(i0[0]) + dx, int(i0[1]) + dy)], dtype=np.uint64)
+                    w = (f[0] if dx else 1 - f[0]) * (f[1] if dy else 1 - f[1])
+                    v += w * float(_hash_uniform(cid, s)[0])
+            out.append(max(0.0, 1.0 + pr.zone_contrast * (2.0 * v - 1.0)))
+        return out[0], out[1]
+
     def _generate(self, ix: int, iy: int) -> Primitives:
         pr = self.profile
+        built, veg = self.zone_factors(np.array([(ix + 0.5) * self.tile_m, (iy + 0.5) * self.tile_m]))
+        if built != 1.0 or veg != 1.0:
+            pr = replace(pr, frontage_prob=min(1.0, pr.frontage_prob * built),
+                         building_prob_per_tile=pr.building_prob_per_tile * built,
+                         building_far_prob=pr.building_far_prob * built, wall_per_tile=pr.wall_per_tile * built,
+                         fence_per_tile=pr.fence_per_tile * built,
+                         street_tree_prob=pr.street_tree_prob * veg, tree_per_tile=pr.tree_per_tile * veg,
+                         hedge_per_tile=pr.hedge_per_tile * veg,
+                         terrain_ridges_per_tile=pr.terrain_ridges_per_tile * veg)
         rng = np.random.default_rng(stable_seed(self.seed, pr.name, ix, iy))
         t = self.tile_m
         x0, y0 = ix * t, iy * t
@@ -369,7 +420,7 @@ class World:
                     k += 1
                 keep &= far_from_road(0.5 * (fa + fb), sb - 0.5)
                 seg = seg[keep]
-                prim.add_segments(seg, rng.lognormal(np.log(2.0), 0.4, len(seg)), BUILDING_TRANSMISSION,
+                prim.add_segments(seg, rng.lognormal(np.log(2.0), 0.4, len(seg)), pr.building_transmission,
                                   rng.uniform(0.5, 0.95, len(seg)))
                 if len(seg):
                     n_det = int(rng.poisson(len(seg) * 3.0))
@@ -436,7 +487,7 @@ class World:
                 if not np.all(far_from_road(ends, w + 1.5)):
                     continue
                 # a little transmission stands for what the elevation beam sees over low buildings
-                prim.add_segments(segs, rng.lognormal(np.log(2.0), 0.4, len(segs)), BUILDING_TRANSMISSION,
+                prim.add_segments(segs, rng.lognormal(np.log(2.0), 0.4, len(segs)), pr.building_transmission,
                                   rng.uniform(0.5, 0.95, len(segs)))
                 # façade details (windows, pipes, balconies): strong points on the walls
                 n_det = int(rng.poisson(length * 1.5))

@@ -126,16 +126,40 @@ def test_same_seed_same_scan_other_seed_other_noise(road):
     assert not np.array_equal(a.power, c.power)
 
 
-def test_weather_raises_noise_floor_and_attenuates(road):
+def test_weather_adds_near_clutter_and_attenuates_but_leaves_receiver_floor(road):
+    """Simulator v3: precipitation backscatter (volume clutter, within 60 m) brightens the near range, path
+    attenuation dims far structure; the receiver noise floor far out (> 130 m, no returns) is unchanged."""
+    from reradar_core.sim.traversal import get_condition
+
     world = World(road, seed=5, profile="urban")
     traj = linear_trajectory()
-    med = {}
-    far = {}
+    near, floor, far = {}, {}, {}
     for cond in ("clear", "rain", "falling_snow"):
-        s = render_scan(Traversal(world, seed=2, condition=cond), traj, T0, "oxford", 11)
-        r = s.ranges_m
-        med[cond] = float(np.median(s.power[:, (r > 130)]))
-        far[cond] = float(np.percentile(s.power[:, (r > 60) & (r < 120)], 99.5))
-    assert med["rain"] > med["clear"] and med["falling_snow"] > med["rain"]
-    # returns from far structures lose contrast above the (raised) floor
-    assert far["falling_snow"] - med["falling_snow"] < far["clear"] - med["clear"]
+        for dry in (False, True):  # dry: the same condition without its precipitation clutter
+            c = replace(get_condition(cond), volume_clutter_per_m2=0.0) if dry else get_condition(cond)
+            s = render_scan(Traversal(world, seed=2, condition=c), traj, T0, "oxford", 11)
+            r = s.ranges_m
+            key = cond + ("-dry" if dry else "")
+            near[key] = float(np.mean(s.power[:, (r > 5) & (r < 55)]))
+            floor[key] = float(np.median(s.power[:, (r > 130)]))
+            far[key] = float(np.percentile(s.power[:, (r > 60) & (r < 120)], 99.5))
+    assert near["rain"] > near["rain-dry"] and near["falling_snow"] > near["falling_snow-dry"]
+    assert near["clear"] == near["clear-dry"]
+    assert abs(floor["rain"] - floor["clear"]) < 0.01 and abs(floor["falling_snow"] - floor["clear"]) < 0.01
+    assert far["falling_snow"] < far["clear"]
+
+
+def test_dominant_scatterer_flickers_less_than_fully_developed_speckle(road):
+    """A pole (one dominant scatterer) keeps its mean power with Rician statistics but varies far less from
+    scan to scan than under fully developed (exponential) speckle."""
+    trav = _empty_traversal(road)
+    extra = Primitives()
+    extra.add_points(np.array([[0.0, -30.0]]), 4.0, 0)  # 30 m to the right
+    cfg_full = replace(CLEAN, glint_db=0.0)
+    cfg_dom = replace(cfg_full, dominant_fraction=1.0)
+    vals = {}
+    for name, cfg in (("full", cfg_full), ("dominant", cfg_dom)):
+        vals[name] = np.array([_peak(render_scan(trav, linear_trajectory(), T0, "oxford", k, cfg, extra=extra),
+                                     90.0, 30.0, az_win=0, r_win_m=0.1) for k in range(12)])
+    assert vals["dominant"].std() < 0.5 * vals["full"].std()
+    assert abs(np.median(vals["dominant"]) - np.median(vals["full"])) < 0.05

@@ -53,7 +53,9 @@ def test_smoke_suite_resumes_and_renders_identically(smoke, tmp_path):
 
 
 def test_suite_definitions():
-    for name in ("smoke", "boreas-sim", "loop-sim", "offroad-sim", "train-source", "train-target-boreas",
+    for name in ("smoke", "boreas-sim", "loop-sim", "loop-sim-hard", "offroad-sim", "offroad-sim-hard",
+                 "train-source",
+                 "train-target-boreas",
                  "train-target-loop", "train-target-offroad"):
         assert name in SUITES
     # training splits never contain query sequences, evaluation suites always do
@@ -66,13 +68,40 @@ def test_suite_definitions():
     assert SUITES["offroad-sim"].radius_m == 25.0 and SUITES["boreas-sim"].radius_m == 20.0
     from reradar_core.sim.suites import suite_names
 
-    assert suite_names("benchmark") == ["boreas-sim", "loop-sim", "offroad-sim"]
+    assert suite_names("benchmark") == ["boreas-sim", "loop-sim", "loop-sim-hard", "offroad-sim",
+                                           "offroad-sim-hard"]
     assert all(n.startswith("train-") for n in suite_names("training"))
     # the Boreas training traversal is never one of the query traversals
     q_seeds = {s.traversal_seed for s in SUITES["boreas-sim"].sequences}
     assert not q_seeds & {s.traversal_seed for s in SUITES["train-target-boreas"].sequences}
+    # no training split drives a query traversal (same world and traversal seed)
+    for train in (s for s in SUITES.values() if s.purpose == "training"):
+        for bench in (s for s in SUITES.values() if s.purpose == "benchmark"):
+            if train.world_seed == bench.world_seed and train.profile == bench.profile:
+                q = {s.traversal_seed for s in bench.sequences if s.role == "query"}
+                assert not q & {s.traversal_seed for s in train.sequences}, (train.name, bench.name)
     with pytest.raises(ConfigError, match="unknown suite"):
         build_suite("nope")
+
+
+def test_reversed_routes_revisit_the_same_road_heading_the_other_way():
+    """The Two Lochs-like off-road pair and the DCC01-like loop drive their route the other way round."""
+    from dataclasses import replace
+
+    from reradar_core.sim.suites import _route_trajectory
+
+    for suite, q_name in (("offroad-sim-hard", "day2-reverse"), ("loop-sim-hard", "laps2-3-reverse")):
+        sd = SUITES[suite]
+        db_def = next(s for s in sd.sequences if s.role == "database")
+        q_def = next(s for s in sd.sequences if s.name == q_name)
+        assert q_def.route.reverse and not db_def.route.reverse
+        db = _route_trajectory(replace(db_def.route, time_fraction=(0.0, 1.0)), None)
+        q = _route_trajectory(q_def.route, None)
+        d = np.linalg.norm(q.xy[::25, None] - db.xy[None], axis=2)
+        j = d.argmin(axis=1)
+        assert np.median(d.min(axis=1)) < 5.0  # same road (another lane)
+        dyaw = np.abs(np.angle(np.exp(1j * (q.yaw[::25] - db.yaw[j]))))
+        assert np.median(dyaw) > np.radians(150)  # heading the other way
 
 
 def test_boreas_suite_needs_trajectories_with_clear_error(tmp_path):
