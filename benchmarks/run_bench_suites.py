@@ -1,6 +1,6 @@
 """Run ``reradar bench`` on the evaluation suites and collect the tables and figures for docs/BENCHMARKS.md.
 
-    nice -n 5 python benchmarks/run_bench_suites.py [--suites boreas-sim loop-sim offroad-sim] [--methods ...]
+    nice -n 5 python benchmarks/run_bench_suites.py [--suites boreas-sim loop-sim loop-sim-hard offroad-sim offroad-sim-hard] [--methods ...]
 
 Each suite's results go to ``cache_dir("bench", <suite>)`` (results.json, results.md, PNGs, per-query
 arrays); its figures are copied to ``docs/img/bench_<suite>_<figure>.png``, and the combined markdown is
@@ -23,7 +23,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--suites", nargs="+", default=["boreas-sim", "loop-sim", "offroad-sim"])
+    ap.add_argument("--suites", nargs="+", default=["boreas-sim", "loop-sim", "loop-sim-hard", "offroad-sim", "offroad-sim-hard"])
     ap.add_argument("--methods", default=None, help="comma-separated (default: all)")
     ap.add_argument("--collect-only", action="store_true", help="do not run; collect existing outputs")
     ap.add_argument("--extra", nargs=argparse.REMAINDER, default=[], help="more `reradar bench` options")

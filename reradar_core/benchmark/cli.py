@@ -39,7 +39,7 @@ def _safe(text: str) -> str:
 
 def bench(
     suite: str | None = typer.Option(None, "--suite", help="Simulated suite: smoke, boreas-sim, loop-sim, "
-                                     "offroad-sim (rendered on first use, cached)."),
+                                     "loop-sim-hard, offroad-sim, offroad-sim-hard (rendered on first use, cached)."),
     database: Path | None = typer.Option(None, "--database", help="Reference (map) sequence folder."),
     query: list[Path] | None = typer.Option(None, "--query", help="Query sequence folder (repeatable)."),
     preset: str | None = typer.Option(None, "--preset", help="Radar preset: boreas, boreas-2021, oxford, "

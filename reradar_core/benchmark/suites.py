@@ -172,8 +172,10 @@ def pairs_from_suite(name: str, every: int | None = None, limit: int | None = No
 
     data = build_suite(name, progress=progress)
     if not data.database or not data.queries:
-        raise ConfigError(f"suite {name!r} has no database/query sequences (training split?); "
-                          "choose an evaluation suite: smoke, boreas-sim, loop-sim, offroad-sim")
+        from reradar_core.sim.suites import suite_names
+
+        raise ConfigError(f"suite {name!r} has no database/query sequences (training split?); choose an "
+                          f"evaluation suite: {', '.join(suite_names('benchmark'))} (or smoke)")
     if split_at is not None:
         folders = {p.name: p for p in data.database + data.queries}
         target = split_sequence or data.database[0].name
