@@ -37,7 +37,6 @@ from typing import Any, cast
 import numpy as np
 import redis
 
-from reradar_core.errors import MapFormatError, ModelMismatchError
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
 from service.core.errors import ConflictError
@@ -224,14 +223,7 @@ class QueuedMapRegistry(MapRegistry):
     def _swap_in_built(self, map_id: str) -> None:
         """Replace the ``building`` entry of a finished build by the loaded map, in one step (a request
         never sees the id missing in between)."""
-        path = self.path_for(map_id)
-        entry = MapEntry(map_id, path, "failed")
-        try:
-            entry.db = self._open(path)
-            entry.state = "ready"
-            entry.scans_total = entry.scans_done = len(entry.db)
-        except (MapFormatError, ModelMismatchError, OSError) as exc:
-            entry.error = str(exc)
+        entry = self._load_entry(map_id, self.path_for(map_id))
         with self._lock:
             current = self._entries.get(map_id)
             if current is None or current.state == "building":

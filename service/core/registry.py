@@ -160,6 +160,17 @@ class MapRegistry:
                 self._entries[map_id] = entry
 
     # ---- loading -------------------------------------------------------------------------------------------
+    def _load_entry(self, map_id: str, path: Path) -> MapEntry:
+        """Open the map file ``path`` as an entry: ``ready`` with its keyframes, or ``failed`` with the reason."""
+        entry = MapEntry(map_id, path, "failed")
+        try:
+            entry.db = self._open(path)
+            entry.state = "ready"
+            entry.scans_total = entry.scans_done = len(entry.db)
+        except (MapFormatError, ModelMismatchError, OSError) as exc:
+            entry.error = str(exc)
+        return entry
+
     def _open(self, path: Path) -> MapDatabase:
         return MapDatabase(open_map(path, self.extractor.model_id, self.extractor.weights_sha256),
                            self.index_config, keyframe_cache_size=self.settings.keyframe_cache_size,
@@ -363,13 +374,7 @@ class MapRegistry:
         with self._lock:
             if map_id in self._entries or not path.is_file():
                 return None
-        entry = MapEntry(map_id, path, "failed")
-        try:
-            entry.db = self._open(path)
-            entry.state = "ready"
-            entry.scans_total = entry.scans_done = len(entry.db)
-        except (MapFormatError, ModelMismatchError, OSError) as exc:
-            entry.error = str(exc)
+        entry = self._load_entry(map_id, path)
         with self._lock:
             if map_id in self._entries:  # registered here meanwhile
                 if entry.db is not None:
