@@ -136,7 +136,7 @@ def run_demo(map_path: Path = DEMO_MAP_PATH, queries_dir: Path = DEMO_QUERIES_DI
                  f"map '{info.id}' with {info.num_keyframes} keyframes ({info.index_kind} index)")
             echo("")
             head = (f"{'query':<22} {'status':<13} {'x_m':>8} {'y_m':>8} {'yaw_deg':>8} | {'gt_x_m':>8} "
-                    f"{'gt_y_m':>8} {'gt_yaw':>8} | {'err_m':>6} {'err_deg':>7} {'inl':>4} {'ms':>6}")
+                    f"{'gt_y_m':>8} {'gt_yaw':>8} | {'err_m':>6} {'err_deg':>7} {'inl':>4} {'conf':>5} {'ms':>6}")
             echo(head)
             echo("-" * len(head))
             errs_t, errs_r, lat, ok, wrong = [], [], [], 0, 0
@@ -156,10 +156,11 @@ def run_demo(map_path: Path = DEMO_MAP_PATH, queries_dir: Path = DEMO_QUERIES_DI
                         errs_r.append(er)
                     echo(f"{q.file:<22} {res.status:<13} {res.pose.x_m:8.2f} {res.pose.y_m:8.2f} "
                          f"{res.pose.yaw_deg:8.2f} | {q.x_m:8.2f} {q.y_m:8.2f} {q.yaw_deg:8.2f} | {et:6.2f} "
-                         f"{er:7.2f} {res.num_inliers:4d} {ms:6.0f}")
+                         f"{er:7.2f} {res.num_inliers:4d} {res.confidence:5.2f} {ms:6.0f}")
                 else:
                     echo(f"{q.file:<22} {res.status:<13} {'-':>8} {'-':>8} {'-':>8} | {q.x_m:8.2f} {q.y_m:8.2f} "
-                         f"{q.yaw_deg:8.2f} | {'-':>6} {'-':>7} {res.num_inliers:4d} {ms:6.0f}  ({res.reason})")
+                         f"{q.yaw_deg:8.2f} | {'-':>6} {'-':>7} {res.num_inliers:4d} {res.confidence:5.2f} {ms:6.0f}  "
+                         f"({res.reason})")
             echo("")
             n = len(truth)
             mean_t = f"{np.mean(errs_t):.2f} m" if errs_t else "n/a"
