@@ -64,7 +64,7 @@ def results_markdown(results: dict[str, Any]) -> str:
     lines.append(f"Correct retrieval within {radius} m. **Recall@1 and SR are over the revisit queries** (those "
                  f"with a database keyframe within {radius} m); the same over all queries (the paper's GT) and "
                  f"the rejection figures on queries without a match are in the second table. SR: translation < "
-                 f"{radius} m and rotation < 10° (heading-only methods ReFeree, RaPlace: correct retrieval and "
+                 f"{radius} m and rotation < 10° (heading-only methods ReFeree, raplace-nodc: correct retrieval and "
                  "rotation < 10°); ê_r, ê_t over successes; F1max by the RaPlace protocol over all queries; "
                  "– = not applicable; ms/query = features + retrieval (+ verification) per query on this machine.")
     lines.append("")
