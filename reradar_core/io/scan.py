@@ -334,8 +334,8 @@ def check_navtech_layout(encoder: np.ndarray, timestamps_us: np.ndarray, valid: 
 
     A scan of another layout (no metadata columns, transposed, other range-bin count) decodes into garbage
     azimuths and ranges without any error and then localizes confidently at a wrong pose, so the reader checks:
-    the scan has no more range bins than the preset (exactly as many with ``strict_bins``: the service, which
-    only takes whole sweeps; cropped scans are fine in the library); the encoder column advances by about ``5600 / A`` ticks per row
+    the scan has no more range bins than the preset (exactly as many with ``strict_bins``; a scan cropped in
+    range is accepted by default); the encoder column advances by about ``5600 / A`` ticks per row
     (azimuths evenly spaced around one turn); the azimuth timestamps do not decrease and span at most one
     second. Rows flagged invalid are ignored.
 
