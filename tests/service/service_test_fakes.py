@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 
 from reradar_core.features import ScanFeatures
@@ -10,6 +13,14 @@ from reradar_core.io.scan import RadarScan
 
 API_KEY = "test-key-0123456789abcdef"
 N_KEYFRAMES = 6
+
+
+def register_map_file(client: Any, map_file: Path, map_id: str) -> None:
+    """POST ``map_file`` to ``/maps`` as ``map_id`` with the operator key (an httpx client) and check the 201."""
+    with map_file.open("rb") as fh:
+        r = client.post("/maps", data={"map_id": map_id}, files={"map_file": ("fake.h5", fh)},
+                        headers={"X-API-Key": API_KEY})
+    assert r.status_code == 201, r.text
 
 
 class FakeExtractor:

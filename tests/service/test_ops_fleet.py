@@ -28,7 +28,7 @@ from reradar_core.io.poses import PoseSequence, write_txyyaw_csv
 from reradar_core.io.scan import encode_navtech_png_bytes
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from service_test_fakes import API_KEY, keyframe_time, make_scan  # noqa: E402
+from service_test_fakes import API_KEY, keyframe_time, make_scan, register_map_file  # noqa: E402
 
 AUTH = {"X-API-Key": API_KEY}
 HERE = Path(__file__).resolve().parent
@@ -184,9 +184,7 @@ def _state(c: httpx.Client, map_id: str) -> str | None:
 
 def test_map_registered_through_a_is_served_by_b_within_2s(fleet: Fleet, fake_map: Path) -> None:
     assert fleet.b.get("/maps/city").status_code == 404
-    with fake_map.open("rb") as fh:
-        r = fleet.a.post("/maps", data={"map_id": "city"}, files={"map_file": ("fake.h5", fh)}, headers=AUTH)
-    assert r.status_code == 201, r.text
+    register_map_file(fleet.a, fake_map, "city")
     t0 = time.monotonic()
     _wait(lambda: _state(fleet.b, "city") == "ready", 10, "map city on replica B")
     elapsed = time.monotonic() - t0

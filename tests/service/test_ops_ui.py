@@ -22,7 +22,13 @@ import pytest
 from reradar_core.io.scan import encode_navtech_png_bytes
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from service_test_fakes import API_KEY, N_KEYFRAMES, keyframe_poses, keyframe_time, make_scan  # noqa: E402
+from service_test_fakes import (  # noqa: E402
+    N_KEYFRAMES,
+    keyframe_poses,
+    keyframe_time,
+    make_scan,
+    register_map_file,
+)
 
 TRAJ_BGR = (180, 119, 31)  # #1f77b4 in service/ui/app.js, as OpenCV's BGR
 OK_BGR = (44, 160, 44)  # #2ca02c
@@ -69,10 +75,7 @@ def live(server: tuple[str, Path], fake_map: Path) -> str:
     """The live server with the fake map registered as ``city`` and two localizations on it."""
     url, _ = server
     with httpx.Client(base_url=url, timeout=60) as c:
-        with fake_map.open("rb") as fh:
-            r = c.post("/maps", data={"map_id": "city"}, files={"map_file": ("fake.h5", fh)},
-                       headers={"X-API-Key": API_KEY})
-        assert r.status_code == 201, r.text
+        register_map_file(c, fake_map, "city")
         for i in (1, 4):
             png = encode_navtech_png_bytes(make_scan(i, keyframe_time(i)))
             r = c.post("/localize", data={"map_id": "city"}, files={"scan": ("q.png", png, "image/png")})

@@ -20,7 +20,14 @@ from reradar_core.io.scan import encode_navtech_png_bytes
 from service.client import ReRadarAPIError, ReRadarClient
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from service_test_fakes import API_KEY, N_KEYFRAMES, keyframe_poses, keyframe_time, make_scan  # noqa: E402
+from service_test_fakes import (  # noqa: E402
+    API_KEY,
+    N_KEYFRAMES,
+    keyframe_poses,
+    keyframe_time,
+    make_scan,
+    register_map_file,
+)
 
 AUTH = {"X-API-Key": API_KEY}
 
@@ -30,9 +37,7 @@ def client(server: tuple[str, Path], fake_map: Path) -> httpx.Client:
     """httpx client on the live server, with the fake map registered as ``route-a`` through POST /maps."""
     url, _ = server
     with httpx.Client(base_url=url, timeout=60) as c:
-        with fake_map.open("rb") as fh:
-            r = c.post("/maps", data={"map_id": "route-a"}, files={"map_file": ("fake.h5", fh)}, headers=AUTH)
-        assert r.status_code == 201, r.text
+        register_map_file(c, fake_map, "route-a")
         yield c
 
 

@@ -13,17 +13,14 @@ from reradar_core.geometry.se2 import relative_pose
 from reradar_core.io.scan import encode_navtech_png_bytes
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from service_test_fakes import API_KEY, keyframe_poses, make_scan  # noqa: E402
+from service_test_fakes import keyframe_poses, make_scan, register_map_file  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def client(server: tuple[str, Path], fake_map: Path) -> httpx.Client:
     url, _ = server
     with httpx.Client(base_url=url, timeout=60) as c:
-        with fake_map.open("rb") as fh:
-            r = c.post("/maps", data={"map_id": "route-t"}, files={"map_file": ("fake.h5", fh)},
-                       headers={"X-API-Key": API_KEY})
-        assert r.status_code == 201, r.text
+        register_map_file(c, fake_map, "route-t")
         yield c
 
 
