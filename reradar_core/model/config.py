@@ -56,6 +56,12 @@ class ModelConfig:
         output_dim: PCA-whitening projection output D (None: raw K*C NetVLAD vector).
         cartesian_width_px, cartesian_resolution_m: network input geometry (201 px keeps C8 equivariance
             exact for 90 degree rotations; the paper's 200 does not).
+        disc_mask: NetVLAD aggregates only the F' cells inside the sensor disc (the image's inscribed circle;
+            soft weight over one cell at the rim), so content that a yaw rotation moves into or out of the
+            square's corners does not change the global descriptor. No parameters: weights trained without
+            it load unchanged (docs/MODEL.md, "Invariance at any angle").
+        disc_mask_input: also zero the input image outside the inscribed circle (off by default; see
+            docs/MODEL.md for the measurement).
     """
 
     backbone: str = "reresnet"
@@ -66,6 +72,8 @@ class ModelConfig:
     output_dim: int | None = 256
     cartesian_width_px: int = 201
     cartesian_resolution_m: float = 0.64
+    disc_mask: bool = True
+    disc_mask_input: bool = False
     extra: dict[str, Any] = field(default_factory=dict, compare=False)
 
     def __post_init__(self) -> None:

@@ -20,7 +20,30 @@ from torch import nn
 
 from reradar_core.model.config import ModelConfig
 
-__all__ = ["PlainBottleneck", "PlainBackbone", "NetVLAD", "DescriptorNet", "group_max_pool", "fuse_batchnorm"]
+__all__ = ["PlainBottleneck", "PlainBackbone", "NetVLAD", "DescriptorNet", "group_max_pool", "fuse_batchnorm",
+           "disc_weights", "disc_image_mask"]
+
+
+def disc_weights(h: int, w: int, stride: int, width_px: int) -> torch.Tensor:
+    """(h * w,) float32 weights of F' cells for the sensor disc (inscribed circle of a width_px image).
+
+    Cell (k, l) is centred on input pixel (stride * k, stride * l); the image centre is pixel (W - 1) / 2 and
+    the disc radius W / 2 px. Weight 1 inside radius - stride / 2, 0 beyond radius + stride / 2, linear in
+    between (one cell wide), so a cell's weight changes continuously when a rotation moves it across the rim.
+    """
+    c = (width_px - 1) / 2.0
+    r = width_px / 2.0
+    rr = torch.arange(h, dtype=torch.float64)[:, None] * stride - c
+    cc = torch.arange(w, dtype=torch.float64)[None, :] * stride - c
+    d = torch.sqrt(rr ** 2 + cc ** 2)
+    return ((r - d) / stride + 0.5).clamp(0.0, 1.0).float().reshape(-1)
+
+
+def disc_image_mask(width_px: int) -> torch.Tensor:
+    """(W, W) float32: 1 for pixels whose centre lies within the inscribed circle (radius W / 2), else 0."""
+    c = (width_px - 1) / 2.0
+    ax = torch.arange(width_px, dtype=torch.float64) - c
+    return ((ax[:, None] ** 2 + ax[None, :] ** 2) <= (width_px / 2.0) ** 2).float()
 
 
 def group_max_pool(x: torch.Tensor, group_order: int) -> torch.Tensor:
@@ -103,10 +126,13 @@ class NetVLAD(nn.Module):
         self.assign.weight.copy_((2.0 * self.alpha * c)[:, :, None, None])
         self.assign.bias.copy_(-self.alpha * (c * c).sum(dim=1))
 
-    def forward(self, fmap: torch.Tensor) -> torch.Tensor:
-        """(B, C, h, w) -> (B, K*C) L2-normalised VLAD vector."""
+    def forward(self, fmap: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, C, h, w) -> (B, K*C) L2-normalised VLAD vector; ``weight`` (h*w,) scales each cell's
+        soft assignment (0 = the cell is not aggregated)."""
         x = F.normalize(fmap, dim=1)
         a = F.softmax(self.assign(x).flatten(2), dim=1)  # (B, K, M)
+        if weight is not None:
+            a = a * weight.to(a)[None, None, :]
         xf = x.flatten(2)  # (B, C, M)
         vlad = torch.bmm(a, xf.transpose(1, 2)) - a.sum(dim=2, keepdim=True) * self.centroids[None]
         vlad = F.normalize(vlad, dim=2)  # intra-normalisation
@@ -125,16 +151,42 @@ class DescriptorNet(nn.Module):
         if config.output_dim is not None:
             self.proj = nn.Linear(config.vlad_dim, config.output_dim, bias=True)
 
+    def cell_weights(self, fmap: torch.Tensor) -> torch.Tensor | None:
+        """Disc weights of F' cells (``ModelConfig.disc_mask``), or None when every cell is aggregated."""
+        if not self.config.disc_mask:
+            return None
+        h, w = fmap.shape[-2:]
+        key = (h, w, str(fmap.device))
+        cache = self.__dict__.setdefault("_disc_cache", {})
+        if key not in cache:
+            cache[key] = disc_weights(h, w, self.config.stride, self.config.cartesian_width_px).to(fmap.device)
+        return cache[key]
+
+    def vlad(self, fmap: torch.Tensor) -> torch.Tensor:
+        """F' (B, C, h, w) -> (B, K*C) raw NetVLAD vector (disc-masked when configured)."""
+        return self.netvlad(fmap, self.cell_weights(fmap))
+
     def aggregate(self, fmap: torch.Tensor) -> torch.Tensor:
         """F' (B, C, h, w) -> (B, D) L2-normalised global descriptor."""
-        v = self.netvlad(fmap)
+        v = self.vlad(fmap)
         if self.proj is not None:
             v = F.normalize(self.proj(v), dim=1)
         return v
 
+    def mask_input(self, x: torch.Tensor) -> torch.Tensor:
+        """Zero the input outside the inscribed circle when ``ModelConfig.disc_mask_input`` is set."""
+        if not self.config.disc_mask_input:
+            return x
+        w = x.shape[-1]
+        key = ("input", w, str(x.device))
+        cache = self.__dict__.setdefault("_disc_cache", {})
+        if key not in cache:
+            cache[key] = disc_image_mask(w).to(x.device)
+        return x * cache[key].to(x.dtype)
+
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, 1, W, W) images -> ((B, D) descriptors, (B, C, h, h) F')."""
-        fmap = self.backbone(x)
+        fmap = self.backbone(self.mask_input(x))
         return self.aggregate(fmap), fmap
 
     @torch.no_grad()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import shlex
@@ -48,7 +49,8 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
                lr: float | None = None, steps: int = 1500, minutes: float = 60.0, seed: int = 0,
                threads: int = 1, device: str = "auto", out_dir: Path | None = None, run_dir: Path | None = None,
                resume: bool = True,
-               data_note: str = "", progress: bool = True, command: str | None = None, **train_kwargs) -> Path:
+               data_note: str = "", progress: bool = True, command: str | None = None, disc_mask: bool = True,
+               **train_kwargs) -> Path:
     """Train (or adapt, with ``init``) a model and write ``<out_dir>/<name>.pt`` + ``.json``; returns the path."""
     import torch
 
@@ -61,7 +63,8 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
     if init is not None:
         pt, meta = resolve_weights(init)
         blob = torch.load(pt, map_location="cpu", weights_only=True)
-        model = ModelConfig.from_dict(meta["config"])
+        # the disc mask has no parameters: it follows the flag whatever the init model was trained with
+        model = dataclasses.replace(ModelConfig.from_dict(meta["config"]), disc_mask=disc_mask)
         # the plain ResNet trains as it runs; the ReResNet needs its e2cnn (basis-coefficient) state
         init_state = blob.get("train_state_dict") or (blob["state_dict"] if model.backbone == "resnet" else None)
         if init_state is None:
@@ -69,7 +72,8 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
         if model.backbone != backbone:
             raise ConfigError(f"--init {init} is a {model.backbone} model but --backbone is {backbone}")
     else:
-        model = ModelConfig(backbone=backbone, width=width, num_clusters=clusters, output_dim=dim)
+        model = ModelConfig(backbone=backbone, width=width, num_clusters=clusters, output_dim=dim,
+                            disc_mask=disc_mask)
     if lr is None:
         lr = 1e-5 if init is not None else 1e-4  # paper: 1e-4 from scratch, 1e-5 when adapting
     cfg = TrainConfig(model=model, lr=lr, max_steps=steps, max_minutes=minutes, seed=seed, num_threads=threads,
@@ -128,12 +132,17 @@ def register(app: typer.Typer) -> None:
         device: str = typer.Option("auto", help="auto (CUDA GPU when available, else CPU), cpu or cuda."),
         out_dir: Path | None = typer.Option(None, help="Where to write the weights (default: the package)."),
         no_resume: bool = typer.Option(False, "--no-resume", help="Ignore an existing checkpoint."),
+        hard_negatives: int = typer.Option(0, help="Negatives per query (of 14, even) mined from a memory bank "
+                                           "of global descriptors instead of drawn at random (0 = off)."),
+        hard_refresh: int = typer.Option(100, help="Refresh the hard-negative memory bank every K steps."),
+        no_disc_mask: bool = typer.Option(False, "--no-disc-mask", help="NetVLAD over all F' cells, not only "
+                                          "the sensor disc (ModelConfig.disc_mask; the behaviour before it)."),
     ) -> None:
         """Train the descriptor network with InfoNCE (tau 0.1, 14 negatives) and save shipped weights."""
         seqs = [SeqSpec(p, f"seq:{p.resolve()}") for p in sequence]
         vals: list[tuple[SeqSpec, SeqSpec]] = []
         note = ""
-        extra = {}
+        extra: dict = {"hard_negatives": hard_negatives, "hard_refresh_every": hard_refresh}
         if split is not None:
             from reradar_core.training.suites import suite_training_data
 
@@ -150,7 +159,7 @@ def register(app: typer.Typer) -> None:
             path = train_main(name, seqs, vals, backbone=backbone, width=width, clusters=clusters,
                               dim=dim or None, init=init, lr=lr, steps=steps, minutes=minutes, seed=seed,
                               threads=threads, device=device, out_dir=out_dir, run_dir=None, resume=not no_resume,
-                              data_note=note, **extra)
+                              data_note=note, disc_mask=not no_disc_mask, **extra)
         except ConfigError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from exc

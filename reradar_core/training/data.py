@@ -212,8 +212,19 @@ class TupleSampler:
         if len(self.anchors) == 0:
             raise ConfigError(f"no scan has a positive within {pos_radius_m} m; scans are too sparse")
 
-    def sample(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """(batch_pairs,) anchor items and (batch_pairs,) positive items (may be fewer if the data is small)."""
+    def sample(self, rng: np.random.Generator, bank: np.ndarray | None = None, hard_pairs: int = 0,
+               hard_pool: int = 10) -> tuple[np.ndarray, np.ndarray]:
+        """(batch_pairs,) anchor items and (batch_pairs,) positive items (may be fewer if the data is small).
+
+        Hard negatives (``bank``: (N, D) L2-normalised global descriptors of every training item, e.g. a
+        memory bank refreshed every K steps; ``hard_pairs`` > 0): after the first, random anchor, the next
+        ``hard_pairs`` anchors are mined — each is drawn uniformly from the ``hard_pool`` candidates whose bank
+        descriptor is nearest to that of a randomly chosen anchor already in the batch, among candidates of
+        the first anchor's place group that are farther than ``neg_radius_m + pos_radius_m`` from every
+        chosen anchor (so they and their positives are true negatives). The remaining anchors are random as
+        without a bank. Since every image's negatives are the other pairs of the batch, each mined pair adds
+        two hard negatives for the anchor it was mined against (classic NetVLAD / PointNetVLAD mining).
+        """
         d = self.data
         min_sep = self.neg_r + self.pos_r
         anchors: list[int] = []
@@ -224,7 +235,26 @@ class TupleSampler:
             # global appearance alone, a shortcut that does not teach place recognition.
             g = d.group[order[0]]
             order = np.concatenate([order[d.group[order] == g], order[d.group[order] != g]])
+        if bank is not None and hard_pairs > 0:
+            anchors.append(int(order[0]))
+            cand_all = self.anchors[d.group[self.anchors] == d.group[order[0]]]
+            for _ in range(min(hard_pairs, self.batch_pairs - 1)):
+                dist = np.min(np.hypot(*(d.xy[cand_all][:, None, :] - d.xy[anchors][None, :, :]).transpose(2, 0, 1)),
+                              axis=1)
+                cand = cand_all[dist > min_sep]
+                if len(cand) == 0:
+                    break
+                q = anchors[int(rng.integers(len(anchors)))]
+                sim = bank[cand] @ bank[q]
+                k = min(hard_pool, len(cand))
+                top = np.argpartition(-sim, k - 1)[:k]
+                top = top[np.lexsort((cand[top], -sim[top]))]  # deterministic order (ties by item index)
+                anchors.append(int(cand[top[int(rng.integers(k))]]))
         for a in order:
+            if int(a) in anchors:
+                continue
+            if len(anchors) >= self.batch_pairs:
+                break
             same = [b for b in anchors if d.group[b] == d.group[a]]
             if same and np.min(np.hypot(*(d.xy[same] - d.xy[a]).T)) <= min_sep:
                 continue

@@ -46,9 +46,9 @@ def suite_recall_at_1(extractors: list[DescriptorExtractor], suite: str,
             g, v = [], []
             with torch.inference_mode():
                 for i in range(0, len(imgs), 16):
-                    fmap = ex.net.backbone(torch.from_numpy(imgs[i:i + 16].astype(np.float32))[:, None])
+                    fmap = ex.net.backbone(ex.net.mask_input(torch.from_numpy(imgs[i:i + 16].astype(np.float32))[:, None]))
                     g.append(ex.net.aggregate(fmap).numpy())
-                    v.append(ex.net.netvlad(fmap).numpy())
+                    v.append(ex.net.vlad(fmap).numpy())
             return np.concatenate(g), np.concatenate(v)
 
         dd, dv = desc(db_img)

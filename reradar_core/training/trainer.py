@@ -46,6 +46,12 @@ class TrainConfig:
         val_every / checkpoint_every: in steps. recall_radius_m: a retrieval is correct within this distance.
         device: ``auto`` (CUDA when available, else CPU), ``cpu`` or ``cuda``. On CUDA the same seed gives
             close but not bit-identical weights (cuDNN kernels are not deterministic).
+        hard_negatives: how many of the ``num_negatives`` negatives of a query are mined from a memory bank
+            instead of drawn at random (even; 0 = off, the default). The bank holds the global descriptors
+            (centre crop, eval mode) of every training scan and is refreshed every ``hard_refresh_every``
+            steps; ``hard_negatives / 2`` anchors of each batch are drawn from the ``hard_pool`` nearest bank
+            descriptors of an anchor already in the batch, among places farther than ``neg_radius_m +
+            pos_radius_m`` (``TupleSampler.sample``). The bank is saved in checkpoints, so resuming stays exact.
         num_threads: torch CPU threads. Default 1: on the shared 2-core machine two threads ran 3-6x slower
             per step than one whenever other processes competed for the cores (OpenMP threads waiting on
             each other), while on an idle machine two threads gain only ~1.6x.
@@ -69,13 +75,27 @@ class TrainConfig:
     val_max_queries: int = 100
     kmeans_images: int = 48
     whiten_images: int = 192
+    hard_negatives: int = 0
+    hard_refresh_every: int = 100
+    hard_pool: int = 10
     seed: int = 0
     num_threads: int = 1
     device: str = "auto"
 
+    def __post_init__(self) -> None:
+        if self.hard_negatives < 0 or self.hard_negatives % 2 or self.hard_negatives > self.num_negatives:
+            raise ConfigError(f"hard_negatives must be even and in [0, num_negatives={self.num_negatives}] "
+                              f"(each mined anchor/positive pair gives two negatives), got {self.hard_negatives}")
+        if self.hard_refresh_every < 1 or self.hard_pool < 1:
+            raise ConfigError("hard_refresh_every and hard_pool must be >= 1")
+
     @property
     def batch_pairs(self) -> int:
         return self.num_negatives // 2 + 1
+
+    @property
+    def hard_pairs(self) -> int:
+        return self.hard_negatives // 2
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -164,6 +184,8 @@ class Trainer:
         self.elapsed_s = 0.0
         self.history: list[dict[str, Any]] = []
         self.initialised = self.adapted
+        self.bank: np.ndarray | None = None  # memory bank of global descriptors (hard negatives)
+        self.bank_step = -1
 
     # ------------------------------------------------------------------ batches
     def _views(self, items: np.ndarray, rng: np.random.Generator, augment: bool = True) -> torch.Tensor:
@@ -191,7 +213,7 @@ class Trainer:
         items = rng.choice(len(self.data), size=min(c.kmeans_images, len(self.data)), replace=False)
         feats = []
         for chunk in np.array_split(items, max(1, len(items) // 16)):
-            f = self.net.backbone(self._views(chunk, rng))
+            f = self.net.backbone(self.net.mask_input(self._views(chunk, rng)))
             f = torch.nn.functional.normalize(f, dim=1)
             feats.append(f.permute(0, 2, 3, 1).reshape(-1, f.shape[1]))
         x = torch.cat(feats).cpu().numpy().astype(np.float32)
@@ -201,10 +223,29 @@ class Trainer:
         self.net.netvlad.init_from_centroids(torch.from_numpy(km.centroids).to(self.device))
         if self.net.proj is not None:
             items = rng.choice(len(self.data), size=min(c.whiten_images, len(self.data)), replace=False)
-            vl = [self.net.netvlad(self.net.backbone(self._views(ch, rng)))
+            vl = [self.net.vlad(self.net.backbone(self.net.mask_input(self._views(ch, rng))))
                   for ch in np.array_split(items, max(1, len(items) // 16))]
             self.net.init_whitening(torch.cat(vl))
         self.initialised = True
+
+    @torch.no_grad()
+    def refresh_bank(self) -> None:
+        """Global descriptors (eval mode, centre crop, no augmentation) of every training scan."""
+        c = self.config
+        w = c.model.cartesian_width_px
+        was = self.net.training
+        self.net.eval()
+        out = []
+        for seq in self.data.sequences:
+            for chunk in np.array_split(np.arange(len(seq)), max(1, math.ceil(len(seq) / 32))):
+                s = seq.images.shape[1]
+                o = (s - w) // 2
+                x = torch.from_numpy(np.asarray(seq.images[chunk, o:o + w, o:o + w], np.float32))[:, None]
+                g, _ = self.net(x.to(self.device))
+                out.append(g.cpu().numpy())
+        self.net.train(was)
+        self.bank = np.ascontiguousarray(np.concatenate(out).astype(np.float32))
+        self.bank_step = self.step
 
     # ------------------------------------------------------------------ validation
     @torch.no_grad()
@@ -227,8 +268,8 @@ class Trainer:
                     o = (s - w) // 2
                     x = torch.from_numpy(np.asarray(seq.images[chunk, o:o + w, o:o + w], np.float32))[:, None]
                     x = x.to(self.device)
-                    fmap = self.net.backbone(x)
-                    v = self.net.netvlad(fmap)
+                    fmap = self.net.backbone(self.net.mask_input(x))
+                    v = self.net.vlad(fmap)
                     g = torch.nn.functional.normalize(self.net.proj(v), dim=1) if self.net.proj is not None else v
                     g_all.append(g.cpu().numpy())
                     v_all.append(v.cpu().numpy())
@@ -258,7 +299,9 @@ class Trainer:
         tmp = path.with_suffix(".tmp")
         torch.save({"net": trainable_state(self.net), "opt": self.opt.state_dict(), "step": self.step,
                     "elapsed_s": self.elapsed_s, "history": self.history, "initialised": self.initialised,
-                    "config": self.config.to_dict()}, tmp)
+                    "config": self.config.to_dict(),
+                    "bank": None if self.bank is None else torch.from_numpy(self.bank), "bank_step": self.bank_step},
+                   tmp)
         tmp.replace(path)
 
     def load_checkpoint(self) -> bool:
@@ -266,12 +309,17 @@ class Trainer:
         if path is None or not path.is_file():
             return False
         ck = torch.load(path, map_location="cpu", weights_only=False)
-        if ck.get("config", {}).get("model") != self.config.model.to_dict():
+        saved = ck.get("config", {}).get("model")
+        # options added later (e.g. disc_mask) take their defaults in checkpoints written before them
+        if saved is None or ModelConfig.from_dict(saved).to_dict() != self.config.model.to_dict():
             raise ConfigError(f"checkpoint {path} was written for another model config; use a new run dir")
         load_trainable_state(self.net, ck["net"])
         self.opt.load_state_dict(ck["opt"])
         self.step, self.elapsed_s = int(ck["step"]), float(ck["elapsed_s"])
         self.history, self.initialised = list(ck["history"]), bool(ck["initialised"])
+        bank = ck.get("bank")
+        self.bank = None if bank is None else bank.numpy()
+        self.bank_step = int(ck.get("bank_step", -1))
         logger.info("resumed %s at step %d", path, self.step)
         return True
 
@@ -279,7 +327,12 @@ class Trainer:
     def train_step(self) -> float:
         c = self.config
         rng = np.random.default_rng([c.seed, self.step])
-        anchors, positives = self.sampler.sample(rng)
+        if c.hard_pairs > 0:
+            if self.bank is None or (self.step % c.hard_refresh_every == 0 and self.bank_step != self.step):
+                self.refresh_bank()
+            anchors, positives = self.sampler.sample(rng, self.bank, c.hard_pairs, c.hard_pool)
+        else:
+            anchors, positives = self.sampler.sample(rng)
         x = self._views(np.concatenate([anchors, positives]), rng)
         self.net.train()
         g, _ = self.net(x)
