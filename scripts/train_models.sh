@@ -9,6 +9,10 @@
 #
 # Step counts, not wall-clock budgets, end every run, so the same command gives the same weights on any
 # machine (1 torch thread, seed 0). On the 2-core CPU: stage 1 ~22 min, each stage 2 ~7 min when run alone.
+# Defaults of `reradar train` used here (docs/MODEL.md): NetVLAD over the sensor disc only (ModelConfig.disc_mask,
+# on; --no-disc-mask turns it off) and random in-batch negatives (hard negatives from a memory bank,
+# --hard-negatives N, did not win on validation and stay opt-in). Checkpoints written before the disc mask existed
+# resume as if they had it: run with FRESH=1 to retrain from scratch.
 # Weights go to reradar_core/model/weights/ unless OUT_DIR is set; runs resume from their checkpoints
 # unless FRESH=1.
 set -euo pipefail
