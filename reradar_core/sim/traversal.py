@@ -146,12 +146,11 @@ class Traversal:
         if len(veh):
             from reradar_core.sim.world import rectangle_segments
 
-            for car in (True, False):  # cars vs buses / trucks (taller than the sensor: opaque)
-                sel = veh[(veh[:, 3] <= 5.0) == car]
-                if len(sel):
-                    segs = np.concatenate([rectangle_segments(x, y, ln, wd, yaw) for x, y, yaw, ln, wd in sel])
-                    out.add_segments(segs, self.CAR_REFLECTIVITY if car else 2.5,
-                                     self.CAR_TRANSMISSION if car else 0.0, 0.5)
+            rects = [rectangle_segments(x, y, ln, wd, yaw) for x, y, yaw, ln, wd in veh]
+            n_seg = np.array([len(r) for r in rects])
+            car = np.repeat(veh[:, 3] <= 5.0, n_seg)  # cars vs buses / trucks (taller than the sensor: opaque)
+            out.add_segments(np.concatenate(rects), np.where(car, self.CAR_REFLECTIVITY, 2.5),
+                             np.where(car, self.CAR_TRANSMISSION, 0.0), 0.5)
         if self.condition.snow_banks and self.world.profile.kerb_reflectivity > 0:
             road = self.world.road
             idx = np.asarray(road.tree.query_ball_point(center_xy, radius_m), dtype=np.int64)
