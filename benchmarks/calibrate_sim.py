@@ -13,7 +13,8 @@ Overrides (``--set``, repeatable), applied on top of the suite's definition:
     cond.NAME.FIELD=V            Condition field of one weather condition (e.g. cond.rain.noise_floor_db=0);
                                  cond.*.FIELD applies to every condition
     profile.NAME.FIELD=V         WorldProfile field (e.g. profile.offroad.tree_per_tile=2)
-    traversal.FIELD=V            Traversal option (traffic_per_km, persistent_car_fraction, transient_car_prob)
+    traversal.FIELD=V            Traversal option (traffic_per_km, persistent_car_fraction, transient_car_prob,
+                                 car_reflectivity, car_transmission, snow_bank_reflectivity)
     query.lateral_m=V            the query drive's lateral offset from its route, metres
     db.every=N, query.every=N    frame step of the database / query drive (protocol spacing)
     route.speed_min=V, route.speed_max=V   cruise speed range of both drives (synthetic routes), m/s
@@ -92,10 +93,12 @@ def _profile(name: str, ov: dict[str, object]) -> W.WorldProfile:
 
 
 def _traversal(world: W.World, seed: int, cond: T.Condition, ov: dict[str, object],
-               traffic_per_km: float = 12.0) -> T.Traversal:
-    kw: dict[str, object] = {"traffic_per_km": traffic_per_km}
+               traffic_per_km: float = 12.0, car_transmission: float = 0.0) -> T.Traversal:
+    kw: dict[str, object] = {"traffic_per_km": traffic_per_km, "car_transmission": car_transmission}
     kw.update({k.split(".", 1)[1]: v for k, v in ov.items() if k.startswith("traversal.")})
-    attrs = {"persistent_car_fraction": "PERSISTENT_CAR_FRACTION", "transient_car_prob": "TRANSIENT_CAR_PROB"}
+    attrs = {"persistent_car_fraction": "PERSISTENT_CAR_FRACTION", "transient_car_prob": "TRANSIENT_CAR_PROB",
+             "car_reflectivity": "CAR_REFLECTIVITY",
+             "snow_bank_reflectivity": "SNOW_BANK_REFLECTIVITY"}
     trav = T.Traversal(world, seed, cond, **{k: v for k, v in kw.items() if k not in attrs})  # type: ignore[arg-type]
     for k, attr in attrs.items():
         if k in kw:
@@ -158,7 +161,8 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
     q_t, q_idx, q_pose = q_t[ok], q_idx[ok], q_pose[ok]
 
     def render(seq: S.SequenceDef, traj, t, idx) -> np.ndarray:
-        trav = _traversal(world, seq.traversal_seed, _condition(seq.condition, ov), ov, suite.traffic_per_km)
+        trav = _traversal(world, seq.traversal_seed, _condition(seq.condition, ov), ov, suite.traffic_per_km,
+                          suite.car_transmission)
         out = []
         for t0, k in zip(t, idx, strict=True):
             s = render_scan(trav, traj, int(t0), suite.preset, scan_seed(trav.seed, int(k)), sensor)

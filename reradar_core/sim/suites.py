@@ -140,6 +140,8 @@ class SuiteDef:
     single_session: bool = False
     purpose: str = "benchmark"  # "benchmark", "training", "calibration" or "test"
     traffic_per_km: float = 12.0  # moving vehicles per km of road (both directions)
+    # fraction of the beam passing over a car (Traversal.CAR_TRANSMISSION; 0 = opaque, v3 everywhere)
+    car_transmission: float = 0.0
 
 
 @dataclass
@@ -223,6 +225,8 @@ SUITES: dict[str, SuiteDef] = {
                         condition="falling_snow", every=8, offset=4),
         ),
         traffic_per_km=4.0,
+        # v4: the roof-mounted radar's beam passes over most of a car (docs/SIMULATOR.md, simulator v4)
+        car_transmission=0.8,
     ),
     "loop-sim": SuiteDef(
         "loop-sim", "single session, three laps of a street grid: lap 1 = database, laps 2-3 = queries",
@@ -299,6 +303,7 @@ SUITES: dict[str, SuiteDef] = {
         ),
         purpose="training",
         traffic_per_km=4.0,
+        car_transmission=0.8,
     ),
     "train-target-loop": SuiteDef(
         "train-target-loop", "another session on the loop-sim street grid (other speeds, own seed, rain)",
@@ -442,7 +447,8 @@ def build_suite(name: str, root: str | Path | None = None, progress: bool = True
         if not is_complete(out):
             traj = _route_trajectory(seq.route, traj_dir)
             world = _world_for(suite, seq, traj_dir)
-            traversal = Traversal(world, seq.traversal_seed, seq.condition, traffic_per_km=suite.traffic_per_km)
+            traversal = Traversal(world, seq.traversal_seed, seq.condition, traffic_per_km=suite.traffic_per_km,
+                                  car_transmission=suite.car_transmission)
             times, idx = _sequence_times(traj, seq, use_pose_times=seq.route.kind != "loop")
             render_sequence(out, traversal, traj, times, idx, suite.preset, suite.layout, config, progress,
                             meta={"suite": name, "sequence": seq.name, "role": seq.role},

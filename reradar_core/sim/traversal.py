@@ -48,9 +48,11 @@ CONDITIONS: dict[str, Condition] = {
     # backscatter from the precipitation (volume clutter) and path attenuation (docs/SIMULATOR.md)
     "rain": Condition("rain", noise_floor_db=0.0, attenuation_db_per_km=10.0, volume_clutter_per_m2=0.03,
                       volume_clutter_rcs=0.02, leaf_factor=1.1, ground_factor=1.4),
-    "snow_cover": Condition("snow_cover", noise_floor_db=0.0, attenuation_db_per_km=2.0, leaf_factor=0.35,
+    # v4: no path attenuation on a day without precipitation (like clear; v3: 2 dB/km) and ~1 dB/km in
+    # falling dry snow (ice crystals scatter little and absorb less at 77 GHz: order 0.1-1 dB/km; v3: 12)
+    "snow_cover": Condition("snow_cover", noise_floor_db=0.0, attenuation_db_per_km=0.0, leaf_factor=0.35,
                             snow_banks=True, ground_factor=0.6),
-    "falling_snow": Condition("falling_snow", noise_floor_db=0.0, attenuation_db_per_km=12.0,
+    "falling_snow": Condition("falling_snow", noise_floor_db=0.0, attenuation_db_per_km=1.0,
                               volume_clutter_per_m2=0.06, volume_clutter_rcs=0.03, leaf_factor=0.35,
                               snow_banks=True, ground_factor=0.6),
 }
@@ -73,15 +75,26 @@ class Traversal:
         seed: traversal seed (traffic, parked cars, foliage, per-scan noise).
         condition: weather condition name or ``Condition``.
         traffic_per_km: moving vehicles per km of road.
+        car_transmission: fraction of the beam passing over a car (parked or moving, not buses / trucks);
+            ``None`` keeps the class default ``CAR_TRANSMISSION`` (opaque cars).
     """
 
     #: Fraction of parked-car slots holding a long-term parked car (same on every traversal) and the
     #: probability that any other slot is occupied on a given traversal.
     PERSISTENT_CAR_FRACTION = 0.35
     TRANSIENT_CAR_PROB = 0.3
+    #: Parked and moving cars (not buses / trucks): reflectivity of their outline and the fraction of the
+    #: beam passing over them (occlusion of what lies behind). v3: 2.5 and 0 (opaque).
+    CAR_REFLECTIVITY = 2.5
+    CAR_TRANSMISSION = 0.0
+    #: Reflectivity of the ploughed snow banks along the kerbs (v3: 0.6).
+    SNOW_BANK_REFLECTIVITY = 0.6
 
-    def __init__(self, world: World, seed: int, condition: str | Condition = "clear", traffic_per_km: float = 12.0):
+    def __init__(self, world: World, seed: int, condition: str | Condition = "clear", traffic_per_km: float = 12.0,
+                 car_transmission: float | None = None):
         self.world = world
+        if car_transmission is not None:
+            self.CAR_TRANSMISSION = float(car_transmission)
         self.seed = int(seed)
         self.condition = get_condition(condition)
         road = world.road
@@ -128,13 +141,16 @@ class Traversal:
         out = Primitives()
         cars = self.parked_cars(static)
         if len(cars):
-            out.add_segments(car_segments(cars), 2.5, 0.0, 0.5)
+            out.add_segments(car_segments(cars), self.CAR_REFLECTIVITY, self.CAR_TRANSMISSION, 0.5)
         veh = self.moving_vehicles(t_s, center_xy, radius_m)
         if len(veh):
             from reradar_core.sim.world import rectangle_segments
 
-            segs = np.concatenate([rectangle_segments(x, y, ln, wd, yaw) for x, y, yaw, ln, wd in veh])
-            out.add_segments(segs, 2.5, 0.0, 0.5)
+            rects = [rectangle_segments(x, y, ln, wd, yaw) for x, y, yaw, ln, wd in veh]
+            n_seg = np.array([len(r) for r in rects])
+            car = np.repeat(veh[:, 3] <= 5.0, n_seg)  # cars vs buses / trucks (taller than the sensor: opaque)
+            out.add_segments(np.concatenate(rects), np.where(car, self.CAR_REFLECTIVITY, 2.5),
+                             np.where(car, self.CAR_TRANSMISSION, 0.0), 0.5)
         if self.condition.snow_banks and self.world.profile.kerb_reflectivity > 0:
             road = self.world.road
             idx = np.asarray(road.tree.query_ball_point(center_xy, radius_m), dtype=np.int64)
@@ -152,5 +168,5 @@ class Traversal:
                     seg = np.concatenate([road.points[j] + side * w * na, road.points[j + 1] + side * w * nb], axis=1)
                     d, _ = road.nearest(0.5 * (seg[:, :2] + seg[:, 2:]))
                     seg = seg[d > w - 0.8]
-                    out.add_segments(seg, 0.6, 0.6, 1.0, low=True)
+                    out.add_segments(seg, self.SNOW_BANK_REFLECTIVITY, 0.6, 1.0, low=True)
         return out

@@ -72,6 +72,10 @@ def test_conditions_and_seeds():
     # v3: no receiver-noise rise in weather (the antenna already sees an ambient-temperature scene)
     assert all(get_condition(c).noise_floor_db == 0.0 for c in ("clear", "rain", "snow_cover", "falling_snow"))
     assert get_condition("falling_snow").volume_clutter_per_m2 > get_condition("rain").volume_clutter_per_m2 > 0
+    # v4: no path attenuation without precipitation; ~1 dB/km in falling dry snow, far below rain's 10 dB/km
+    assert get_condition("snow_cover").attenuation_db_per_km == get_condition("clear").attenuation_db_per_km == 0.0
+    assert get_condition("falling_snow").attenuation_db_per_km == 1.0
+    assert get_condition("rain").attenuation_db_per_km == 10.0
     with pytest.raises(ConfigError, match="condition"):
         get_condition("fog")
     assert stable_seed(1, "a", 2) == stable_seed(1, "a", 2) != stable_seed(1, "a", 3)
@@ -119,3 +123,19 @@ def test_suburban_profile_has_fewer_street_parking_slots_and_building_transmissi
     turned = (opaque.seg_trans == 0.0) & (prim.seg_trans == 0.3)
     assert turned.sum() > 100
     assert np.array_equal(prim.seg_trans[~turned], opaque.seg_trans[~turned])
+
+
+def test_car_transmission_option_boreas_suites_only():
+    """v4: cars let 80 % of the beam pass over them on the Boreas suites (roof-mounted radar); every other
+    suite keeps v3's opaque cars; buses / trucks stay opaque."""
+    from reradar_core.sim.suites import SUITES
+
+    assert SUITES["boreas-sim"].car_transmission == SUITES["train-target-boreas"].car_transmission == 0.8
+    assert all(s.car_transmission == 0.0 for n, s in SUITES.items() if "boreas" not in n)
+    road = straight_road(400.0)
+    world = World(road, seed=0, profile="urban")
+    static = world.query(np.array([0.0, 0.0]), 150.0)
+    trav = Traversal(world, seed=5, traffic_per_km=30.0, car_transmission=0.8)
+    assert trav.CAR_TRANSMISSION == 0.8 and Traversal(world, seed=5).CAR_TRANSMISSION == 0.0
+    dyn = trav.dynamic_primitives(0.0, np.array([0.0, 0.0]), 150.0, static)
+    assert set(np.unique(dyn.seg_trans).tolist()) <= {0.0, 0.8} and np.any(dyn.seg_trans == 0.8)
