@@ -188,20 +188,24 @@ def main() -> None:
             print(f"one replica ({os.cpu_count()} CPUs), map {map_id}, {len(scans)} queries, inline PNG, "
                   f"{args.clients} clients, {args.seconds:.0f} s segments; load average before: "
                   f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
-            print("round  workers  requests  localizations/s  p50 ms  p99 ms  errors  localized  CPU ms/request  "
+            print("round  workers  requests  localizations/s  p50 ms  p99 ms  errors  localized  server CPU ms/req  "
+                  "client CPU ms/req  "
                   "RSS MB (before->after)  PSS MB (before->after)  load", flush=True)
             for rnd in range(args.rounds):
                 for w, url, proc in servers:
-                    m0, c0 = memory_mb(proc.pid), cpu_s(proc.pid)
+                    m0, c0, t0 = memory_mb(proc.pid), cpu_s(proc.pid), os.times()
                     r = run(url, map_id, scans, args.clients, args.seconds)
-                    m1, c1 = memory_mb(proc.pid), cpu_s(proc.pid)
+                    m1, c1, t1 = memory_mb(proc.pid), cpu_s(proc.pid), os.times()
                     r["server_cpu_ms"] = (c1 - c0) * 1e3 / max(1, int(r["requests"]))
+                    # this process' own clients (multipart encoding, HTTP) share the machine's cores
+                    r["client_cpu_ms"] = ((t1.user - t0.user) + (t1.system - t0.system)) * 1e3 / max(1, int(r["requests"]))
                     seg = {"round": rnd, "workers": w, **r, "rss_before_mb": m0["rss_mb"], "rss_after_mb": m1["rss_mb"],
                            "pss_before_mb": m0["pss_mb"], "pss_after_mb": m1["pss_mb"], "load1": os.getloadavg()[0],
                            "utc": time.strftime("%H:%M:%S", time.gmtime())}
                     segments.append(seg)
                     print(f"{rnd:5d}  {w:7d}  {r['requests']:8d}  {r['per_s']:15.2f}  {r['p50_ms']:6.0f}  "
-                          f"{r['p99_ms']:6.0f}  {r['errors']:6d}  {r['localized']:9d}  {r['server_cpu_ms']:14.1f}  "
+                          f"{r['p99_ms']:6.0f}  {r['errors']:6d}  {r['localized']:9d}  {r['server_cpu_ms']:17.1f}  "
+                          f"{r['client_cpu_ms']:17.1f}  "
                           f"{m0['rss_mb']:8.0f} -> {m1['rss_mb']:6.0f}  {m0['pss_mb']:8.0f} -> {m1['pss_mb']:6.0f}  "
                           f"{seg['load1']:.2f} ({seg['utc']} UTC)", flush=True)
             base = args.workers[0]
