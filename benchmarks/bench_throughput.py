@@ -57,9 +57,10 @@ def _tree(pid: int) -> list[int]:
 
 
 def memory_mb(pid: int) -> dict[str, float]:
-    """RSS and PSS (MB) summed over ``pid`` and its descendants (``smaps_rollup``); PSS counts a page shared
-    by k processes as 1/k in each, so the PSS sum is the tree's real footprint."""
-    rss = pss = 0.0
+    """RSS, PSS and USS (MB) summed over ``pid`` and its descendants (``smaps_rollup``). PSS counts a page shared
+    by k processes as 1/k in each (so it moves when other users' processes map the same libraries, e.g.
+    torch's); USS is the tree's private pages only, which no other process affects."""
+    rss = pss = uss = 0.0
     for p in _tree(pid):
         try:
             for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
@@ -67,9 +68,11 @@ def memory_mb(pid: int) -> dict[str, float]:
                     rss += float(line.split()[1]) / 1024
                 elif line.startswith("Pss:"):
                     pss += float(line.split()[1]) / 1024
+                elif line.startswith(("Private_Clean:", "Private_Dirty:")):
+                    uss += float(line.split()[1]) / 1024
         except OSError:
             continue
-    return {"rss_mb": rss, "pss_mb": pss}
+    return {"rss_mb": rss, "pss_mb": pss, "uss_mb": uss}
 
 
 def cpu_s(pid: int) -> float:
@@ -190,7 +193,7 @@ def main() -> None:
                   f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
             print("round  workers  requests  localizations/s  p50 ms  p99 ms  errors  localized  server CPU ms/req  "
                   "client CPU ms/req  "
-                  "RSS MB (before->after)  PSS MB (before->after)  load", flush=True)
+                  "RSS MB (before->after)  PSS MB (before->after)  USS MB (before->after)  load", flush=True)
             for rnd in range(args.rounds):
                 for w, url, proc in servers:
                     m0, c0, t0 = memory_mb(proc.pid), cpu_s(proc.pid), os.times()
@@ -200,13 +203,14 @@ def main() -> None:
                     # this process' own clients (multipart encoding, HTTP) share the machine's cores
                     r["client_cpu_ms"] = ((t1.user - t0.user) + (t1.system - t0.system)) * 1e3 / max(1, int(r["requests"]))
                     seg = {"round": rnd, "workers": w, **r, "rss_before_mb": m0["rss_mb"], "rss_after_mb": m1["rss_mb"],
-                           "pss_before_mb": m0["pss_mb"], "pss_after_mb": m1["pss_mb"], "load1": os.getloadavg()[0],
+                           "pss_before_mb": m0["pss_mb"], "pss_after_mb": m1["pss_mb"], "uss_before_mb": m0["uss_mb"],
+                           "uss_after_mb": m1["uss_mb"], "load1": os.getloadavg()[0],
                            "utc": time.strftime("%H:%M:%S", time.gmtime())}
                     segments.append(seg)
                     print(f"{rnd:5d}  {w:7d}  {r['requests']:8d}  {r['per_s']:15.2f}  {r['p50_ms']:6.0f}  "
                           f"{r['p99_ms']:6.0f}  {r['errors']:6d}  {r['localized']:9d}  {r['server_cpu_ms']:17.1f}  "
                           f"{r['client_cpu_ms']:17.1f}  "
-                          f"{m0['rss_mb']:8.0f} -> {m1['rss_mb']:6.0f}  {m0['pss_mb']:8.0f} -> {m1['pss_mb']:6.0f}  "
+                          f"{m0['rss_mb']:8.0f} -> {m1['rss_mb']:6.0f}  {m0['pss_mb']:8.0f} -> {m1['pss_mb']:6.0f}  {m0['uss_mb']:8.0f} -> {m1['uss_mb']:6.0f}  "
                           f"{seg['load1']:.2f} ({seg['utc']} UTC)", flush=True)
             base = args.workers[0]
             print("median per setting (ratio to the first setting, round by round):")
