@@ -147,6 +147,8 @@ def main() -> None:
                     help="folder of query PNGs (sent in a client-specific rotation)")
     ap.add_argument("--max-queries", type=int, default=100)
     ap.add_argument("--json", type=Path, default=None, help="write every segment's figures here")
+    ap.add_argument("--setting-env", nargs="*", default=[], metavar="K:NAME=VALUE",
+                    help="extra environment of the K-th setting (0-based), e.g. 1:MALLOC_ARENA_MAX=2")
     args = ap.parse_args()
 
     files = sorted(args.queries.glob("*.png"))
@@ -176,6 +178,11 @@ def main() -> None:
                     os.symlink(args.map.resolve(), maps_dir / args.map.name)
                 port = _free_port()
                 wenv = {**env, "RERADAR_MAPS_DIR": str(maps_dir)}
+                for item in args.setting_env:
+                    which, _, assignment = item.partition(":")
+                    if int(which) == k:
+                        name, _, value = assignment.partition("=")
+                        wenv[name] = value
                 if w > 1:
                     wenv["RERADAR_REDIS_URL"] = f"redis://127.0.0.1:{rport}/{k}"
                 proc = subprocess.Popen([sys.executable, "-m", "reradar_cli", "serve", "--port", str(port),

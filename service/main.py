@@ -23,6 +23,7 @@ from starlette.routing import Match, Route
 
 from reradar_core.errors import ModelMismatchError, ReRadarError
 from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
+from reradar_core.threads import limit_malloc_arenas
 from service.api.middleware import MetricsMiddleware, RequestGuardMiddleware
 from service.api.ops_middleware import OpsMiddleware
 from service.api.routes import health, localize, maps, scans
@@ -145,6 +146,8 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         cfg = settings or Settings()
         app.state.settings = cfg
+        if cfg.malloc_arenas:  # before the request thread pool starts (docs/OPERATIONS.md, memory)
+            limit_malloc_arenas(cfg.malloc_arenas)
         configure_logging(cfg.log_level, cfg.log_format)  # ops: one log format
         ops = OpsRuntime(cfg)  # ops: shared state (Redis) or in-process
         app.state.ops = ops
