@@ -15,12 +15,17 @@ def serve_command(
     port: int = typer.Option(8080, help="TCP port."),
     maps_dir: Path | None = typer.Option(None, help="Maps folder (default: RERADAR_MAPS_DIR or the cache)."),
     log_level: str = typer.Option("info", help="uvicorn log level."),
+    workers: int = typer.Option(1, min=1, max=64, envvar="RERADAR_WORKERS", help=(
+        "Worker processes (uvicorn's supervisor restarts a dead one), each with its own model and maps and 1 "
+        "torch / BLAS thread; > 1 needs RERADAR_REDIS_URL (uploaded scans and tracking sessions must be "
+        "seen by every worker). One worker per core: docs/OPERATIONS.md.")),
 ) -> None:
     """Run the HTTP service (settings from RERADAR_* environment variables, see docs/SERVICE.md)."""
+    import os
+
     import uvicorn
 
     from service.core.config import Settings
-    from service.main import create_app
 
     overrides = {"maps_dir": maps_dir} if maps_dir is not None else {}
     try:
@@ -28,7 +33,25 @@ def serve_command(
     except ValueError as exc:
         typer.echo(f"error: invalid settings: {exc}", err=True)
         raise typer.Exit(2) from exc
-    uvicorn.run(create_app(settings), host=host, port=port, log_level=log_level)
+    if workers == 1:
+        from service.main import create_app
+
+        uvicorn.run(create_app(settings), host=host, port=port, log_level=log_level)
+        return
+    if not settings.redis_url:
+        typer.echo(f"error: --workers {workers} needs RERADAR_REDIS_URL: each worker is a separate process, so "
+                   "uploaded scans (POST /scans, scan_id) and tracking sessions must live in Redis to be seen by "
+                   "every worker (e.g. redis-server on localhost: RERADAR_REDIS_URL=redis://127.0.0.1:6379/0); "
+                   "or run one worker per container and scale replicas instead (docs/OPERATIONS.md)", err=True)
+        raise typer.Exit(2)
+    # the workers are spawned processes that read their settings from the environment, as the first did
+    os.environ["RERADAR_MAPS_DIR"] = str(settings.maps_dir)
+    # one thread per worker in every pool that reads these before the libraries load (torch's and OpenBLAS'
+    # own are also set from RERADAR_TORCH_THREADS / RERADAR_BLAS_THREADS at start-up)
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    uvicorn.run("service.main:create_app", factory=True, host=host, port=port, log_level=log_level,
+                workers=workers)
 
 
 def localize_command(

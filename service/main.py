@@ -5,10 +5,12 @@ Run with ``reradar serve`` or ``uvicorn service.main:app``.
 
 from __future__ import annotations
 
+import fcntl
 import logging
-from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
+from collections.abc import AsyncIterator, Iterator
+from contextlib import asynccontextmanager, contextmanager
 from http import HTTPStatus
+from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -21,6 +23,7 @@ from starlette.routing import Match, Route
 
 from reradar_core.errors import ModelMismatchError, ReRadarError
 from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
+from reradar_core.threads import limit_malloc_arenas
 from service.api.middleware import MetricsMiddleware, RequestGuardMiddleware
 from service.api.ops_middleware import OpsMiddleware
 from service.api.routes import health, localize, maps, scans
@@ -43,6 +46,20 @@ from service.core.state import ServiceState
 __all__ = ["create_app", "app"]
 
 logger = logging.getLogger("service")
+
+
+@contextmanager
+def startup_lock(maps_dir: Path) -> Iterator[None]:
+    """Serialise the start-up work on the maps folder (staging clean-up, demo map install, loading) between
+    processes of one host: the workers of ``reradar serve --workers N`` all start at once, and one worker's
+    clean-up must not remove the demo map another is copying in."""
+    maps_dir.mkdir(parents=True, exist_ok=True)
+    with open(maps_dir / ".startup.lock", "a+b") as fh:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
 
 API_VERSION = "1.0.0"
 
@@ -129,6 +146,8 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         cfg = settings or Settings()
         app.state.settings = cfg
+        if cfg.malloc_arenas:  # before the request thread pool starts (docs/OPERATIONS.md, memory)
+            limit_malloc_arenas(cfg.malloc_arenas)
         configure_logging(cfg.log_level, cfg.log_format)  # ops: one log format
         ops = OpsRuntime(cfg)  # ops: shared state (Redis) or in-process
         app.state.ops = ops
@@ -140,10 +159,13 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
             limit_blas_threads(cfg.blas_threads)
             ext = extractor or load_default_extractor(cfg.model)
             registry = ops.make_registry(ext)  # ops: queued builds with Redis
-            if cfg.load_demo_map:
-                registry.install_demo_map()
-            registry.load_all()
-            return ServiceState(cfg, ext, registry, ops.scan_store(), metrics)  # ops: Redis scan store
+            with startup_lock(cfg.maps_dir):  # workers of `reradar serve --workers N` start at the same time
+                if cfg.load_demo_map:
+                    registry.install_demo_map()
+                registry.load_all()
+            state = ServiceState(cfg, ext, registry, ops.scan_store(), metrics)  # ops: Redis scan store
+            state.sessions = ops.session_store()  # ops: tracking sessions in Redis (workers, replicas)
+            return state
 
         state = await run_in_threadpool(load)
         app.state.guard = build_guard(cfg, spool_dir=state.registry.staging_dir())

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from pathlib import Path
 
 import typer
@@ -87,8 +88,11 @@ def bench(
     from reradar_core.benchmark.runner import BenchConfig, run_benchmark
     from reradar_core.benchmark.suites import pairs_from_folders, pairs_from_suite, suite_spacing
     from reradar_core.paths import cache_dir
+    from reradar_core.threads import limit_blas_threads
 
     torch.set_num_threads(max(1, threads))
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):  # BLAS libraries loaded later (scipy's) read these
+        os.environ.setdefault(var, str(max(1, threads)))
     try:
         if (suite is None) == (database is None):
             raise typer.BadParameter("give either --suite NAME or --database DIR with --query DIR")
@@ -116,6 +120,9 @@ def bench(
                           + (" (default 1: pass --every N to subsample)" if every is None else ""))
         names = _split(methods) or default_method_names()
         method_objs = [make_method(n) for n in names]
+        # every BLAS loaded by now (numpy's, scipy's, opencv's) gets --threads: two pools fighting over 2 cores
+        # make the screen's descriptor product 20x slower (docs/BENCHMARKS.md, issue 12)
+        limit_blas_threads(max(1, threads))
         out_dir = out or cache_dir("bench", label)
         cfg = BenchConfig(radius_m=radius or default_radius, rotation_stress=rotation, rotation_seed=seed,
                           rotation_limit=rotation_limit,

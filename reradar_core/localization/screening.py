@@ -89,6 +89,30 @@ def _cells(a: np.ndarray, b: np.ndarray, sign: float, t: np.ndarray, origin: np.
     return a.astype(np.int64)
 
 
+#: hypotheses scored at once (x 128 scored landmarks: ~0.5 MB per float64 temporary)
+_SCORE_BLOCK = 256
+
+
+def _aligned_counts(scored: np.ndarray, c: np.ndarray, s: np.ndarray, tx: np.ndarray, ty: np.ndarray,
+                    cand: np.ndarray, origins: np.ndarray, cells: np.ndarray, sizes: np.ndarray,
+                    offsets: np.ndarray, near: np.ndarray) -> np.ndarray:
+    """(V,) scored landmarks that V hypotheses (rotation cos / sin, translation, candidate) put on a cell of
+    their candidate's alignment mask (``near``: every candidate's mask concatenated, last entry "outside")."""
+    # grid cell of every scored landmark under every hypothesis, (V, P); in place, in the arithmetic order of
+    # ``LandmarkGrid.lookup`` (floor((x - origin) / cell)), so the cells are exactly the same
+    go, gc = origins[cand][:, None], cells[cand][:, None]
+    gi = _cells(c[:, None] * scored[None, :, 0], s[:, None] * scored[None, :, 1], -1.0, tx[:, None], go, gc)
+    gj = _cells(s[:, None] * scored[None, :, 0], c[:, None] * scored[None, :, 1], 1.0, ty[:, None], go, gc)
+    gn = sizes[cand][:, None]
+    inside = gi.view(np.uint64) < gn.astype(np.uint64)  # negative cells wrap to huge unsigned values
+    inside &= gj.view(np.uint64) < gn.astype(np.uint64)
+    gj *= gn
+    gj += gi
+    gj += offsets[cand][:, None]
+    np.putmask(gj, ~inside, len(near) - 1)
+    return near[gj].sum(axis=1, dtype=np.int64)
+
+
 def screen_candidates(query_points: np.ndarray, query_descriptors: np.ndarray,
                       keyframes: Sequence[ScreenKeyframe], config: AlignmentConfig) -> np.ndarray:
     """Screen scores of many keyframes for one query, as ``screen_alignment`` defines them.
@@ -163,19 +187,13 @@ def screen_candidates(query_points: np.ndarray, query_descriptors: np.ndarray,
     cells = np.array([g.cell_m for g in grids])
     offsets = np.concatenate([[0], np.cumsum(sizes * sizes)[:-1]])
     near = np.concatenate([g.near for g in grids] + [np.zeros(1, np.uint8)])  # last cell: "outside"
-    # grid cell of every scored landmark under every hypothesis, (V, P); in place, in the arithmetic order of
-    # ``LandmarkGrid.lookup`` (floor((x - origin) / cell)), so the cells are exactly the same
-    go, gc = origins[cand][:, None], cells[cand][:, None]
-    gi = _cells(c[:, None] * scored[None, :, 0], s[:, None] * scored[None, :, 1], -1.0, tx[:, None], go, gc)
-    gj = _cells(s[:, None] * scored[None, :, 0], c[:, None] * scored[None, :, 1], 1.0, ty[:, None], go, gc)
-    gn = sizes[cand][:, None]
-    inside = gi.view(np.uint64) < gn.astype(np.uint64)  # negative cells wrap to huge unsigned values
-    inside &= gj.view(np.uint64) < gn.astype(np.uint64)
-    gj *= gn
-    gj += gi
-    gj += offsets[cand][:, None]
-    np.putmask(gj, ~inside, len(near) - 1)
-    counts = near[gj].sum(axis=1, dtype=np.int64)  # aligned query landmarks per hypothesis
+    counts = np.empty(len(cand), np.int64)  # aligned query landmarks per hypothesis
+    # in blocks of hypotheses, so the (block, P) temporaries stay in the CPU cache (the arithmetic is
+    # element-wise, so the cells - and the scores - do not depend on the block size)
+    for lo in range(0, len(cand), _SCORE_BLOCK):
+        sl = slice(lo, lo + _SCORE_BLOCK)
+        counts[sl] = _aligned_counts(scored, c[sl], s[sl], tx[sl], ty[sl], cand[sl], origins, cells, sizes,
+                                     offsets, near)
     best = np.zeros(kb, np.int64)
     np.maximum.at(best, cand, counts)
     out[batch] = best / len(scored)

@@ -21,7 +21,7 @@ The estimator:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -106,6 +106,30 @@ class LandmarkGrid:
     tree: cKDTree
     points: np.ndarray
 
+    _within: dict[float, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
+
+    def within_mask(self, threshold_m: float) -> np.ndarray:
+        """(n * n + 1,) uint8: 1 where a cell is closer than ``threshold_m`` to a landmark (row-major), then a
+        0 for "outside the grid"; built once per threshold."""
+        mask = self._within.get(threshold_m)
+        if mask is None:
+            mask = np.append((self.distance_m < threshold_m).reshape(-1), False).astype(np.uint8)
+            self._within[threshold_m] = mask
+        return mask
+
+    def count_within(self, x: np.ndarray, y: np.ndarray, threshold_m: float) -> np.ndarray:
+        """Per row of the (V, P) points (x, y): how many are closer than ``threshold_m`` to a landmark -
+        exactly ``(lookup(x, y) < threshold_m).sum(axis=1)`` (same cells), without the float look-up."""
+        n = self.distance_m.shape[0]
+        i = np.floor((x - self.origin_m) / self.cell_m).astype(np.int64)
+        j = np.floor((y - self.origin_m) / self.cell_m).astype(np.int64)
+        inside = i.view(np.uint64) < np.uint64(n)  # negative cells wrap to huge unsigned values
+        inside &= j.view(np.uint64) < np.uint64(n)
+        j *= n
+        j += i
+        np.putmask(j, ~inside, n * n)
+        return self.within_mask(threshold_m)[j].sum(axis=1, dtype=np.int64)
+
     def lookup(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Distance to the nearest landmark at points (x, y) (any shape); far outside the grid = large."""
         n = self.distance_m.shape[0]
@@ -156,11 +180,21 @@ def _hypotheses(src: np.ndarray, dst: np.ndarray, pairs: np.ndarray, cfg: Alignm
     return np.stack([tx, ty, yaw], axis=1)[ok]
 
 
+#: hypotheses scored at once, so the (block, 128) temporaries stay in the CPU cache
+_SCORE_BLOCK = 256
+
+
 def _score(poses: np.ndarray, src: np.ndarray, grid: LandmarkGrid, threshold_m: float) -> np.ndarray:
-    c, s = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
-    x = c * src[None, :, 0] - s * src[None, :, 1] + poses[:, 0:1]
-    y = s * src[None, :, 0] + c * src[None, :, 1] + poses[:, 1:2]
-    return (grid.lookup(x, y) < threshold_m).sum(axis=1)
+    """Source landmarks within ``threshold_m`` of a destination landmark under each pose (element-wise
+    arithmetic in blocks of poses: the counts do not depend on the block size)."""
+    out = np.empty(len(poses), np.int64)
+    for lo in range(0, len(poses), _SCORE_BLOCK):
+        p = poses[lo:lo + _SCORE_BLOCK]
+        c, s = np.cos(p[:, 2:3]), np.sin(p[:, 2:3])
+        x = c * src[None, :, 0] - s * src[None, :, 1] + p[:, 0:1]
+        y = s * src[None, :, 0] + c * src[None, :, 1] + p[:, 1:2]
+        out[lo:lo + _SCORE_BLOCK] = grid.count_within(x, y, threshold_m)
+    return out
 
 
 def _apply(pose: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -108,6 +108,13 @@ class GlobalIndex:
             self._quantizer = quantizer  # keep alive: FAISS does not own it
         if self.size:
             index.add(x)
+        if kind == "ivf" and self.size:
+            # the inverted lists grew one vector at a time (vector capacity doubling leaves ~25 % of their
+            # memory unused on average); a serialise round trip stores every list at its exact size
+            nprobe = min(config.ivf_nprobe, index.nlist)  # type: ignore[attr-defined]
+            index = faiss.deserialize_index(faiss.serialize_index(index))  # owns its own quantizer
+            index.nprobe = nprobe  # type: ignore[attr-defined]
+            del self._quantizer
         self._index = index
         logger.debug("built %s index over %d x %d descriptors", kind, self.size, self.dim)
 

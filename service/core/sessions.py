@@ -1,4 +1,5 @@
-"""Tracking sessions: the last pose of each vehicle session per map, kept in memory (bounded, expiring).
+"""Tracking sessions: the last pose of each vehicle session per map, kept in memory (bounded, expiring);
+``service.core.shared_state.RedisSessionStore`` keeps them in Redis instead, shared by every worker and replica.
 
 A session's state is a ``PosePrior``: after a localized scan, the answer with the localizer's accuracy
 (``fix_sigma_*``); after a scan that was not localized, the previous prior moved by the reported odometry
@@ -93,8 +94,11 @@ class SessionStore:
             state = prior
         if state is None:
             return
+        self._store(session_id, map_id, state)
+
+    def _store(self, session_id: str, map_id: str, state: PosePrior) -> None:
         with self._lock:
             self._items[(session_id, map_id)] = (self._clock(), state)
             self._items.move_to_end((session_id, map_id))
-            while len(self._items) > c.max_sessions:
+            while len(self._items) > self.config.max_sessions:
                 self._items.popitem(last=False)

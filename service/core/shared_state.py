@@ -6,6 +6,7 @@ What lives in Redis (keys ``<namespace>:v1:...``; ``v1`` changes when a value's 
 | --- | --- | --- |
 | ``scan:<scan_id>`` | string, TTL ``scan_cache_ttl_s`` | features of an uploaded scan (``encode_features``) |
 | ``recent:<map_id>`` | list, newest first, capped | the latest localizations on a map (JSON) |
+| ``session:<map_id>:<session_id>`` | string, TTL ``session_ttl_s`` | a tracking session's pose prior (JSON) |
 | ``maps:events`` | pub/sub channel | ``{"op", "map_id", "origin"}`` when a map is registered, built or deleted |
 | ``build:<map_id>``, ``builds``, ``queue`` | hash, set, arq queue | map build jobs (``service.core.jobs``) |
 
@@ -32,13 +33,16 @@ from typing import Any, cast
 import numpy as np
 import redis
 
+from reradar_core.errors import ReRadarError
 from reradar_core.features import ScanFeatures
+from reradar_core.localization import PosePrior
 from service.core.config import Settings
 from service.core.errors import ServiceError
 from service.core.registry import MapRegistry
 from service.core.scan_cache import CachedScan, ScanCache, new_scan_id
+from service.core.sessions import SessionConfig, SessionStore
 
-__all__ = ["Keys", "SharedStateUnavailableError", "RedisScanStore", "RecentLocalizations", "MapSync",
+__all__ = ["Keys", "SharedStateUnavailableError", "RedisScanStore", "RedisSessionStore", "RecentLocalizations", "MapSync",
            "OpsRuntime", "encode_features", "decode_features", "replica_id"]
 
 logger = logging.getLogger(__name__)
@@ -72,6 +76,9 @@ class Keys:
 
     def recent(self, map_id: str) -> str:
         return f"{self.prefix}:recent:{map_id}"
+
+    def session(self, session_id: str, map_id: str) -> str:
+        return f"{self.prefix}:session:{map_id}:{session_id}"
 
     @property
     def map_events(self) -> str:
@@ -150,6 +157,44 @@ class RedisScanStore(ScanCache):
             return None
         features, preset = decode_features(blob)
         return CachedScan(scan_id, features, preset, time.monotonic() + max(ttl_ms, 0) / 1e3)
+
+    def __len__(self) -> int:
+        return 0
+
+
+class RedisSessionStore(SessionStore):
+    """Tracking sessions in Redis, so consecutive scans of one vehicle may reach any worker or replica: one
+    JSON value per (session, map) that expires ``ttl_s`` after its last update (Redis' ``maxmemory`` policy
+    bounds their number, not ``max_sessions``). Redis down: the session is forgotten for that scan (it is
+    localized globally, as after a session's expiry) - localizing never fails because of it."""
+
+    def __init__(self, client: redis.Redis, keys: Keys, config: SessionConfig | None = None) -> None:
+        super().__init__(config)
+        self._redis = client
+        self._keys = keys
+
+    def get(self, session_id: str, map_id: str) -> PosePrior | None:
+        try:
+            blob = cast(bytes | None, self._redis.get(self._keys.session(session_id, map_id)))
+        except redis.RedisError:
+            logger.warning("tracking session %s: Redis unavailable, localizing globally", session_id)
+            return None
+        if blob is None:
+            return None
+        try:
+            item = json.loads(blob)
+            return PosePrior(np.array(item["pose"], np.float64), float(item["sigma_xy_m"]),
+                             float(item["sigma_yaw_rad"]))
+        except (ValueError, KeyError, TypeError, ReRadarError):
+            return None  # a value this version cannot read: start the session afresh
+
+    def _store(self, session_id: str, map_id: str, state: PosePrior) -> None:
+        value = json.dumps({"pose": [float(v) for v in state.T_map_query], "sigma_xy_m": state.sigma_xy_m,
+                            "sigma_yaw_rad": state.sigma_yaw_rad})
+        try:
+            self._redis.set(self._keys.session(session_id, map_id), value, px=int(self.config.ttl_s * 1000))
+        except redis.RedisError:
+            logger.warning("tracking session %s: Redis unavailable, pose not kept", session_id)
 
     def __len__(self) -> int:
         return 0
@@ -333,6 +378,14 @@ class OpsRuntime:
         if self.redis is None:
             return ScanCache(s.scan_cache_size, s.scan_cache_ttl_s)
         return RedisScanStore(self.redis, self.keys, s.scan_cache_ttl_s)
+
+    def session_store(self) -> SessionStore:
+        """Tracking sessions: in this process, or with Redis in Redis (shared by every worker and replica)."""
+        s = self.settings
+        config = SessionConfig(max_sessions=s.max_sessions, ttl_s=s.session_ttl_s)
+        if self.redis is None:
+            return SessionStore(config)
+        return RedisSessionStore(self.redis, self.keys, config)
 
     def make_registry(self, extractor: Any) -> MapRegistry:
         """A plain registry in one process; with Redis, one whose archive builds go to the job queue."""

@@ -44,3 +44,15 @@ def test_degenerate_query_scores_zero() -> None:
     kf = screen_keyframe(np.zeros((10, 2)), _unit(np.ones((10, 4))), cfg)
     assert screen_candidates(np.zeros((1, 2)), np.ones((1, 4)), [kf], cfg).tolist() == [0.0]
     assert screen_candidates(np.zeros((5, 2)), np.ones((5, 4)), [], cfg).shape == (0,)
+
+
+def test_scores_do_not_depend_on_the_scoring_block(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import reradar_core.localization.screening as screening
+
+    rng = np.random.default_rng(3)
+    cfg = AlignmentConfig()
+    kfs = [screen_keyframe(rng.uniform(-60, 60, (m, 2)), _unit(rng.normal(size=(m, 16))), cfg) for m in (200, 90, 150)]
+    q_pts, q_desc = rng.uniform(-60, 60, (220, 2)), _unit(rng.normal(size=(220, 16)))
+    default = screen_candidates(q_pts, q_desc, kfs, cfg)
+    monkeypatch.setattr(screening, "_SCORE_BLOCK", 7)  # many blocks, a ragged last one
+    np.testing.assert_array_equal(screen_candidates(q_pts, q_desc, kfs, cfg), default)

@@ -114,3 +114,16 @@ def test_periodic_scene_is_refused_as_ambiguous():
     assert not est.success and est.reason == "ambiguous" and est.ambiguity >= 1.0
     relaxed = estimate_pose_guided(src, desc, dst, desc, AlignmentConfig(top_k_matches=8, max_ambiguity=np.inf))
     assert relaxed.success  # the same answer is accepted only when ambiguity checking is switched off
+
+
+def test_count_within_equals_the_distance_lookup():
+    rng = np.random.default_rng(5)
+    grid = build_landmark_grid(rng.uniform(-40, 40, (120, 2)), 0.5)
+    # points inside, on the edges of and far outside the grid, and non-finite ones
+    x = rng.uniform(-70, 70, (50, 128))
+    y = rng.uniform(-70, 70, (50, 128))
+    x[0, :4] = [np.nan, np.inf, -np.inf, 1e12]
+    for thr in (0.75, 1.5, 3.0):
+        with np.errstate(invalid="ignore"):  # non-finite points: a cast warning, and never within
+            expected = (grid.lookup(x, y) < thr).sum(axis=1)
+            np.testing.assert_array_equal(grid.count_within(x, y, thr), expected)

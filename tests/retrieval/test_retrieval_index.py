@@ -43,6 +43,9 @@ def test_approximate_indexes_find_the_true_neighbour(kind: str) -> None:
     assert idx.kind == kind
     ids, _ = idx.search(q, 3)
     np.testing.assert_array_equal(ids[:, 0], targets)
+    if kind == "ivf":  # the compacted (serialised and reloaded) lists keep nprobe and the stored vectors
+        assert idx._index.nprobe == 8
+        np.testing.assert_array_equal(idx.vector(int(targets[0])), x[targets[0]].astype(np.float32))
 
 
 def test_distance_and_errors() -> None:
