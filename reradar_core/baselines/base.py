@@ -45,12 +45,15 @@ class Retrieval:
         heading_rad: estimated yaw of the query relative to the candidate (yaw of ``T_candidate_query``),
             radians counter-clockwise, or None when the method gives no heading.
         pose: estimated map-frame pose ``T_map_query`` (x [m], y [m], yaw [rad]), or None.
+        descriptor_index: database index of the nearest global descriptor alone, before any re-ranking, for
+            methods that re-rank (ReRadar's screen); None when ``index`` already is that (no re-ranking).
     """
 
     index: int
     distance: float
     heading_rad: float | None = None
     pose: np.ndarray | None = None
+    descriptor_index: int | None = None
 
 
 class PlaceRecognitionMethod(ABC):

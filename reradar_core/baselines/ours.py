@@ -104,7 +104,9 @@ class Ours(PlaceRecognitionMethod):
             d = self.distance(q_desc, index)
             j = int(np.argmin(d))
             dist = float(d[j])
+        # the global descriptor's own top 1 (retrieval rank 0), before the landmark screen re-ranks
+        top = min(res.candidates, key=lambda c: c.rank).keyframe_id if res.candidates else j
         if res.localized and res.T_map_query is not None:
             heading = float(relative_pose(db_poses[j], res.T_map_query)[2])
-            return Retrieval(j, dist, heading, np.asarray(res.T_map_query, np.float64))
-        return Retrieval(j, dist, None, None)
+            return Retrieval(j, dist, heading, np.asarray(res.T_map_query, np.float64), descriptor_index=int(top))
+        return Retrieval(j, dist, None, None, descriptor_index=int(top))

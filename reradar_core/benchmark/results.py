@@ -14,6 +14,7 @@ METRIC_COLUMNS = (("recall@1", "Recall@1 (%)", "{:.2f}"), ("f1max", "F1max (%)",
                   ("sr", "SR (%)", "{:.2f}"), ("e_r_deg", "ê_r (°)", "{:.2f}"), ("e_t_m", "ê_t (m)", "{:.2f}"))
 #: Columns of the second table: all queries, and the queries without a match (rejection figures).
 QUERY_KIND_COLUMNS = (("recall@1_all", "Recall@1 all (%)", "{:.2f}"), ("sr_all", "SR all (%)", "{:.2f}"),
+                      ("recall@1_descriptor", "Recall@1, global descriptor alone, revisits (%)", "{:.2f}"),
                       ("correct_rejection_pct", "correct rejection (%)", "{:.2f}"),
                       ("wrong_pose_no_match_pct", "wrong pose, no match (%)", "{:.2f}"))
 
@@ -34,7 +35,7 @@ def _best(rows: dict[str, dict[str, Any]], key: str) -> set[str]:
     vals = {m: r.get(key) for m, r in rows.items() if r.get(key) is not None}
     if not vals:
         return set()
-    higher = ("recall@1", "f1max", "sr", "recall@1_all", "sr_all", "correct_rejection_pct")
+    higher = ("recall@1", "f1max", "sr", "recall@1_all", "sr_all", "correct_rejection_pct", "recall@1_descriptor")
     target = max(vals.values()) if key in higher else min(vals.values())
     return {m for m, v in vals.items() if abs(v - target) < 1e-9}
 

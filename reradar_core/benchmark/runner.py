@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared
 from reradar_core.benchmark.cache import FeatureCache, sequence_key
-from reradar_core.benchmark.metrics import QueryOutcome, make_outcome, summarise
+from reradar_core.benchmark.metrics import QueryOutcome, make_outcome, retrieval_correct, summarise
 from reradar_core.benchmark.rotation import heading_offsets, rotate_pose, rotate_scan
 from reradar_core.geometry.se2 import compose
 from reradar_core.io.datasets import Sequence
@@ -162,6 +162,7 @@ def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: n
     retrieved = np.zeros(q, np.int64)
     dist = np.zeros(q)
     est = np.full((q, 3), np.nan)
+    by_descriptor = np.full(q, -1, np.int64)  # global-descriptor top 1 of re-ranking methods (-1: none)
     t_total = 0.0
     if bar is not None:
         bar.set_postfix_str(f"{label}{method.name}: queries", refresh=False)
@@ -174,6 +175,8 @@ def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: n
         if bar is not None:
             bar.update(1)
         retrieved[i], dist[i] = r.index, r.distance
+        if r.descriptor_index is not None:
+            by_descriptor[i] = r.descriptor_index
         if r.pose is not None:
             est[i] = r.pose
         elif r.heading_rad is not None:
@@ -184,7 +187,25 @@ def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: n
     summary = summarise(outcome, query_poses, db_poses, radius_m, rule)
     search_ms = 1e3 * t_total / max(q, 1)
     summary["ms_per_query"] = float(np.nanmean(query.compute_ms) + search_ms) if q else None
+    summary["recall@1_descriptor"] = descriptor_recall_at_1(by_descriptor, outcome.positive, query_poses,
+                                                            db_poses, radius_m)
     return MethodRun(outcome, summary, search_ms)
+
+
+def descriptor_recall_at_1(by_descriptor: np.ndarray, positive: np.ndarray, query_poses: np.ndarray,
+                           db_poses: np.ndarray, radius_m: float) -> float | None:
+    """Recall@1 (%, over revisit queries) of the global descriptor's own top 1, before any re-ranking.
+
+    Args:
+        by_descriptor: (Q,) int database index of each query's nearest global descriptor; -1 where the method
+            does not re-rank (then the headline Recall@1 already is the descriptor's and this returns None).
+        positive: (Q,) bool, the query has a database keyframe within ``radius_m``.
+        query_poses: (Q, 3) T_map_query; db_poses: (N, 3) T_map_keyframe (metres, radians).
+    """
+    if len(by_descriptor) == 0 or np.any(by_descriptor < 0) or not np.any(positive):
+        return None
+    hit = retrieval_correct(query_poses, db_poses[by_descriptor, :2], radius_m)
+    return float(100.0 * np.mean(hit[positive]))
 
 
 def _save_outcome(path: Path, run: MethodRun, query_xy: np.ndarray, db_xy: np.ndarray) -> None:

@@ -38,7 +38,9 @@ def _cached(spec: SeqSpec, width_px: int, resolution_m: float, progress: bool):
 def _command_line() -> str:
     """This process's command line, with the console script named as a user types it (``reradar ...``)."""
     argv = list(sys.argv)
-    if argv and Path(argv[0]).name == "reradar":
+    # ``reradar ...`` and ``python -m reradar_cli ...`` (argv[0] = .../reradar_cli/__main__.py) are the same
+    # command; never record the install path
+    if argv and (Path(argv[0]).name == "reradar" or Path(argv[0]).parent.name == "reradar_cli"):
         argv[0] = "reradar"
     return " ".join(shlex.quote(a) for a in argv)
 

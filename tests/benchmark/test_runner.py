@@ -94,3 +94,17 @@ def test_cli_rejects_ambiguous_input(tmp_path):
     r = CliRunner().invoke(app, ["bench", "--out", str(tmp_path)])
     assert r.exit_code != 0
     assert "--suite" in r.output
+
+
+def test_descriptor_recall_at_1_known_answer():
+    """Descriptor-only Recall@1 counts the global top 1 against the revisit queries only."""
+    from reradar_core.benchmark.runner import descriptor_recall_at_1
+
+    db = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [200.0, 0.0, 0.0]])
+    q = np.array([[1.0, 0.0, 0.0], [101.0, 0.0, 0.0], [199.0, 0.0, 0.0], [500.0, 0.0, 0.0]])
+    positive = np.array([True, True, True, False])  # the last query has no keyframe within 20 m
+    # right, wrong, right; the no-match query's answer does not count
+    by_descriptor = np.array([0, 2, 2, 1])
+    assert descriptor_recall_at_1(by_descriptor, positive, q, db, 20.0) == pytest.approx(200.0 / 3)
+    # a method that does not re-rank reports none (its headline Recall@1 is the descriptor's)
+    assert descriptor_recall_at_1(np.full(4, -1), positive, q, db, 20.0) is None
