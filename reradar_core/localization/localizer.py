@@ -14,6 +14,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 
@@ -21,7 +22,7 @@ from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose
 from reradar_core.localization.confidence import default_confidence_model
-from reradar_core.localization.keyframes import CachedKeyframe, KeyframeCache, KeyframeSource
+from reradar_core.localization.keyframes import KeyframeCache, KeyframeSource
 from reradar_core.localization.pipeline import (
     REASON_INCONSISTENT,
     REASON_TOO_FEW_INLIERS,
@@ -39,8 +40,9 @@ from reradar_core.localization.tracking import (
     tracking_candidates,
     within_gate,
 )
-from reradar_core.matching import LandmarkGrid
 from reradar_core.retrieval import GlobalIndex, similarity_to_distance
+
+_Item = TypeVar("_Item")
 
 __all__ = ["Localizer", "Retrieval"]
 
@@ -113,25 +115,19 @@ class Localizer:
         t1 = time.perf_counter()
         read_s = [0.0]
 
-        def loader(keyframe_id: int) -> Callable[[], CachedKeyframe]:  # from the cache, read on first use
-            def load() -> CachedKeyframe:
+        def timed(fetch: Callable[[int], _Item], keyframe_id: int) -> Callable[[], _Item]:
+            """``fetch(keyframe_id)`` from the cache on first use, its time added to the read stage."""
+            def load() -> _Item:
                 t = time.perf_counter()
-                item = self.cache.get(keyframe_id)
+                item = fetch(keyframe_id)
                 read_s[0] += time.perf_counter() - t
                 return item
             return load
 
-        def grid_loader(keyframe_id: int) -> Callable[[], LandmarkGrid]:
-            def load() -> LandmarkGrid:
-                t = time.perf_counter()
-                grid = self.cache.landmark_grid(keyframe_id)
-                read_s[0] += time.perf_counter() - t
-                return grid
-            return load
-
         wanted = hits if config.rerank else hits[:1]
         candidates = [Candidate(h.keyframe_id, h.T_map_keyframe, None, h.descriptor_distance, h.rank,
-                                loader=loader(h.keyframe_id), grid_loader=grid_loader(h.keyframe_id))
+                                loader=timed(self.cache.get, h.keyframe_id),
+                                grid_loader=timed(self.cache.landmark_grid, h.keyframe_id))
                       for h in wanted]
         result = localize(features, candidates, config)
         result.timings_ms["retrieve_ms"] = (t1 - t0) * 1e3
