@@ -267,7 +267,7 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
         seq = load_sequence(seq_dir)
         idx = np.arange(0, len(seq), every)
         feats = [ext.describe(seq.load_scan(int(i))) for i in tqdm(idx, desc=f"features {seq.name}")]
-        gts = seq.poses.poses[idx]
+        gts = seq.mid_sweep_poses()[idx]  # answers are mid-sweep poses
         res_seq: dict = {"scans": len(idx)}
         modes = {"global": LocalizationConfig(), "global_verify_all": LocalizationConfig(stop_verify_ratio=None)}
         for name, cfg in modes.items():
@@ -349,7 +349,7 @@ def bench_rerank(suite_name: str, threads: int, top_k: int, ransac_threshold_m: 
         seq = suite.load(qpath)
         for i in tqdm(range(len(seq)), desc=f"queries {qpath.name}"):
             feat = ext.describe(seq.load_scan(i))
-            gt = seq.poses.poses[i]
+            gt = seq.mid_sweep_poses()[i]  # answers are mid-sweep poses
             n += 1
             for mode, cfg in modes.items():
                 retr, res = db.retrieve(feat.global_descriptor, cfg.top_k), db.localize(feat, cfg)

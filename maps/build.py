@@ -130,5 +130,7 @@ def build_map_from_sequence(sequence_dir: str | Path, out: str | Path, extractor
     seq = seq.subset(keep)
     kwargs.setdefault("source", f"{seq.layout}:{Path(sequence_dir).resolve()}")
     kwargs.setdefault("name", seq.name)
-    return build_map(out, extractor, seq.load_scan, seq.poses.poses, radar_preset=seq.preset.name,
+    # keyframe poses at mid-sweep: what a registration against the keyframe's whole sweep aligns
+    # (docs/CONVENTIONS.md)
+    return build_map(out, extractor, seq.load_scan, seq.mid_sweep_poses(), radar_preset=seq.preset.name,
                      **kwargs)  # type: ignore[arg-type]

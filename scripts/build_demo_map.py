@@ -67,10 +67,11 @@ def main() -> int:
     shutil.rmtree(DEMO_QUERIES_DIR, ignore_errors=True)
     DEMO_QUERIES_DIR.mkdir(parents=True)
     rows = []
+    truth = query.mid_sweep_poses()  # the service answers mid-sweep poses (docs/CONVENTIONS.md)
     for i in pick:
         src = query.scan_paths[i]
         shutil.copyfile(src, DEMO_QUERIES_DIR / src.name)
-        x, y, yaw = query.poses.poses[i]
+        x, y, yaw = truth[i]
         rows.append(QueryTruth(src.name, int(query.timestamps_us[i]), float(x), float(y), math.degrees(float(yaw))))
     write_queries_csv(DEMO_QUERIES_DIR / QUERIES_CSV, rows)
 

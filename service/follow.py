@@ -57,7 +57,7 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     idx = np.arange(0, len(seq), every)
     if limit is not None:
         idx = idx[:limit]
-    gt = seq.poses.poses
+    gt = seq.mid_sweep_poses()  # the service answers mid-sweep poses (docs/CONVENTIONS.md)
     rng = np.random.default_rng(seed)
     session_id = (session or f"follow-{uuid.uuid4().hex[:12]}") if tracking else None
     head = (f"{'#':>4} {'scan':<22} {'mode':<9} {'status':<13} {'x_m':>8} {'y_m':>8} {'yaw_deg':>8} | "

@@ -63,11 +63,16 @@ class QueryOutcome:
 
 
 def make_outcome(retrieved: np.ndarray, distance: np.ndarray, est_pose: np.ndarray, query_poses: np.ndarray,
-                 db_poses: np.ndarray, radius_m: float, sr_rule: str) -> QueryOutcome:
-    """Build the outcome arrays (correctness, revisits, errors) from the raw answers."""
+                 db_poses: np.ndarray, radius_m: float, sr_rule: str,
+                 query_pose_gt: np.ndarray | None = None) -> QueryOutcome:
+    """Build the outcome arrays (correctness, revisits, errors) from the raw answers.
+
+    ``query_pose_gt``: (Q, 3) ground truth of the estimated poses when it refers to another time than
+    ``query_poses`` (mid-sweep, docs/CONVENTIONS.md); retrieval correctness always uses ``query_poses``.
+    """
     correct = retrieval_correct(query_poses, db_poses[retrieved, :2], radius_m)
     positive = has_revisit(query_poses, db_poses[:, :2], radius_m)
-    e_t, e_r = localization_errors(est_pose, query_poses)
+    e_t, e_r = localization_errors(est_pose, query_poses if query_pose_gt is None else query_pose_gt)
     if sr_rule != "pose":
         e_t = np.full_like(e_t, np.nan)
     return QueryOutcome(np.asarray(retrieved, np.int64), np.asarray(distance, np.float64), est_pose, correct,
@@ -75,7 +80,7 @@ def make_outcome(retrieved: np.ndarray, distance: np.ndarray, est_pose: np.ndarr
 
 
 def summarise(out: QueryOutcome, query_poses: np.ndarray, db_poses: np.ndarray, radius_m: float,
-              sr_rule: str) -> dict[str, Any]:
+              sr_rule: str, query_pose_gt: np.ndarray | None = None) -> dict[str, Any]:
     """The per-sequence metrics of one method (percentages; None where not applicable).
 
     ``sr_rule``: ``pose`` (translation < R and rotation < 10 deg; a query without a pose is rejected),
@@ -91,7 +96,7 @@ def summarise(out: QueryOutcome, query_poses: np.ndarray, db_poses: np.ndarray, 
     """
     m = summarize(query_poses, db_poses[out.retrieved, :2], out.distance, db_poses[:, :2], radius_m,
                   T_map_query_est=None if sr_rule == "none" else out.est_pose,
-                  rotation_only=sr_rule == "heading")
+                  rotation_only=sr_rule == "heading", T_map_query_gt=query_pose_gt)
 
     def pct(v: float) -> float | None:
         return None if not np.isfinite(v) else 100.0 * float(v)

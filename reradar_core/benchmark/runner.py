@@ -148,13 +148,21 @@ def prepare_sequence(methods: Seq[PlaceRecognitionMethod], seq: Sequence, config
 
 def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: np.ndarray, query: PreparedSet,
                     query_poses: np.ndarray, radius_m: float, fit: bool = True,
-                    progress: bool = False, label: str = "", bar: tqdm | None = None) -> MethodRun:
+                    progress: bool = False, label: str = "", bar: tqdm | None = None,
+                    pose_refs: tuple[np.ndarray, np.ndarray] | None = None) -> MethodRun:
     """Fit (optional) on the database, then answer every query; metrics per the paper's rules.
 
     Args:
-        db_poses: (N, 3) database poses T_map_keyframe; query_poses: (Q, 3) ground-truth T_map_query.
+        db_poses: (N, 3) database poses T_map_keyframe; query_poses: (Q, 3) ground-truth T_map_query, both at
+            the scan timestamps (retrieval correctness).
         bar: the run's overall progress bar (one step per query); replaces the per-method bar.
+        pose_refs: (database (N, 3), query (Q, 3)) poses at the scans' mid-sweep times
+            (docs/CONVENTIONS.md): a pose-estimating method localizes against the first and its poses are
+            scored against the second. None: ``db_poses`` / ``query_poses``.
     """
+    pose_method = sr_rule(method) == "pose" and pose_refs is not None
+    kf_poses = pose_refs[0] if pose_method and pose_refs is not None else db_poses
+    gt_poses = pose_refs[1] if pose_method and pose_refs is not None else None
     if fit:
         method.fit(db.records)
     index = method.build_index([method.describe_prepared(r) for r in db.records])
@@ -170,7 +178,7 @@ def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: n
                   leave=False):
         t0 = time.perf_counter()
         q_desc = method.describe_prepared(query.records[i])
-        r = method.localize(query.records[i], q_desc, index, db.records, db_poses)
+        r = method.localize(query.records[i], q_desc, index, db.records, kf_poses)
         t_total += time.perf_counter() - t0
         if bar is not None:
             bar.update(1)
@@ -183,8 +191,8 @@ def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: n
             # heading-only: the keyframe's position, the estimated yaw (only the yaw is scored)
             est[i] = compose(db_poses[r.index], np.array([0.0, 0.0, r.heading_rad]))
     rule = sr_rule(method)
-    outcome = make_outcome(retrieved, dist, est, query_poses, db_poses, radius_m, rule)
-    summary = summarise(outcome, query_poses, db_poses, radius_m, rule)
+    outcome = make_outcome(retrieved, dist, est, query_poses, db_poses, radius_m, rule, gt_poses)
+    summary = summarise(outcome, query_poses, db_poses, radius_m, rule, gt_poses)
     search_ms = 1e3 * t_total / max(q, 1)
     summary["ms_per_query"] = float(np.nanmean(query.compute_ms) + search_ms) if q else None
     summary["recall@1_descriptor"] = descriptor_recall_at_1(by_descriptor, outcome.positive, query_poses,
@@ -234,13 +242,15 @@ def _rotation_stress(pair: BenchPair, methods: Seq[PlaceRecognitionMethod], dbp:
     q_poses = query.poses.poses
     rq_poses = rotate_pose(q_poses, yaw)
     db_poses = pair.database.poses.poses
+    db_mid, q_mid = pair.database.mid_sweep_poses(), query.mid_sweep_poses()
     stress: dict[str, Any] = {}
     for m in methods:
         base_set = PreparedSet([qp[m.name].records[i] for i in idx], qp[m.name].compute_ms[idx])
         base = evaluate_method(m, dbp[m.name], db_poses, base_set, q_poses, config.radius_m, fit=False,
-                               label=f"{pair.name} unrotated ", bar=bar).summary
+                               label=f"{pair.name} unrotated ", bar=bar, pose_refs=(db_mid, q_mid)).summary
         run = evaluate_method(m, dbp[m.name], db_poses, rq[m.name], rq_poses, config.radius_m, fit=False,
-                              progress=config.progress, label=f"{pair.name} rotated ", bar=bar).summary
+                              progress=config.progress, label=f"{pair.name} rotated ", bar=bar,
+                              pose_refs=(db_mid, rotate_pose(q_mid, yaw))).summary
         drop = None if base["recall@1"] is None or run["recall@1"] is None else base["recall@1"] - run["recall@1"]
         stress[m.name] = {"n_queries": int(len(idx)), "n_revisit": base["n_revisit"], "recall@1": base["recall@1"],
                           "recall@1_rotated": run["recall@1"], "drop": drop,
@@ -304,11 +314,12 @@ def run_benchmark(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod], o
             qp = prepare_sequence(methods, pair.query, config, bar=bar)
             db_poses = pair.database.poses.poses
             q_poses = pair.query.poses.poses
+            mid = (pair.database.mid_sweep_poses(), pair.query.mid_sweep_poses())
             seq_res: dict[str, Any] = {}
             for m in methods:
                 need_fit = fitted_on.get(m.name) != dkey
                 run = evaluate_method(m, dbp[m.name], db_poses, qp[m.name], q_poses, config.radius_m,
-                                      fit=need_fit, label=f"{pair.name} ", bar=bar)
+                                      fit=need_fit, label=f"{pair.name} ", bar=bar, pose_refs=mid)
                 fitted_on[m.name] = dkey
                 seq_res[m.name] = run.summary
                 _save_outcome(out_dir / "per_query" / pair.name / f"{m.name}.npz", run, q_poses[:, :2],

@@ -23,8 +23,12 @@ def register(app: typer.Typer) -> None:
                                            "numbers (the descriptor's validation tail)."),
         l2: float = typer.Option(1.0, min=0.0, help="L2 penalty on the standardised weights."),
         max_wrong_pct: float = typer.Option(0.5, min=0.0, max=100.0,
-                                            help="The bar is the lowest confidence at which wrong localized "
-                                                 "answers are at most this percent of the fit runs."),
+                                            help="The bar is at least the lowest confidence at which wrong "
+                                                 "localized answers are at most this percent of the fit runs "
+                                                 "of every split."),
+        wrong_cost: float = typer.Option(10.0, min=0.0,
+                                         help="The bar also minimises WRONG_COST x wrong answers + refused correct "
+                                              "answers on the fit runs (0: only the --max-wrong-pct rule)."),
         out: Path = typer.Option(None, help="Model JSON (default: the shipped "
                                             "reradar_core/localization/confidence_model.json)."),
         plot: Path = typer.Option(Path("docs/img/confidence_reliability.png"), help="Reliability diagram PNG."),
@@ -63,7 +67,7 @@ def register(app: typer.Typer) -> None:
             from reradar_core.localization.confidence_fit import SPLIT_MODELS
 
             meta["models"] = {s: SPLIT_MODELS[s] for s in names}
-            model, report = fit_from_data(data, l2, max_wrong_pct / 100.0, meta)
+            model, report = fit_from_data(data, l2, max_wrong_pct / 100.0, meta, wrong_cost or None)
         except ReRadarError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from exc

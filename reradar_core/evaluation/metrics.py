@@ -279,6 +279,7 @@ def summarize(
     T_map_query_est: np.ndarray | None = None,
     max_rot_deg: float = MAX_ROTATION_ERROR_DEG,
     rotation_only: bool = False,
+    T_map_query_gt: np.ndarray | None = None,
 ) -> LocalizationMetrics:
     """All metrics for one query sequence against one database.
 
@@ -293,6 +294,8 @@ def summarize(
         max_rot_deg: rotation bound of a success, degrees.
         rotation_only: the estimate's translation is meaningless (ReFeree): success = correct retrieval and
             e_r < max_rot_deg; e_t is NaN.
+        T_map_query_gt: (Q, 3) ground truth the estimated poses are scored against, when it refers to another
+            time than ``query_poses`` (the mid-sweep poses, docs/CONVENTIONS.md); None: ``query_poses``.
     """
     gt = np.asarray(query_poses, dtype=np.float64)
     if gt.ndim != 2 or gt.shape[1] != 3:
@@ -303,7 +306,7 @@ def summarize(
     f1 = precision_recall_curve(top1_distance, correct, revisit).f1_max
     sr = e_r_mean = e_t_mean = float("nan")
     if T_map_query_est is not None:
-        e_t, e_r = localization_errors(T_map_query_est, gt)
+        e_t, e_r = localization_errors(T_map_query_est, gt if T_map_query_gt is None else T_map_query_gt)
         if rotation_only:
             ok = rotation_success(correct, e_r, max_rot_deg)
         else:

@@ -46,7 +46,7 @@ from reradar_core.io.poses import (
     write_boreas_radar_poses,
     write_mulran_global_pose,
 )
-from reradar_core.io.presets import RadarPreset, get_preset
+from reradar_core.io.presets import RadarPreset, get_preset, mid_sweep_times_us
 from reradar_core.io.scan import RadarScan, read_navtech_png, write_navtech_png
 
 __all__ = [
@@ -87,6 +87,8 @@ class Sequence:
         timestamps_us: (N,) int64 scan timestamps (first azimuth), microseconds.
         poses: one pose per scan, T_world_sensor (x, y, yaw) at the scan timestamp, metres / radians.
         root: the sequence folder.
+        track: the pose file's whole trajectory (sorted), kept when the sequence is subset, so that poses at
+            other times (``mid_sweep_poses``) interpolate the file and not the kept scans; None: ``poses``.
     """
 
     name: str
@@ -96,9 +98,21 @@ class Sequence:
     timestamps_us: np.ndarray
     poses: PoseSequence
     root: Path = field(default_factory=Path)
+    track: PoseSequence | None = None
 
     def __len__(self) -> int:
         return len(self.scan_paths)
+
+    def mid_sweep_poses(self) -> np.ndarray:
+        """(N, 3) float64 T_world_sensor at each scan's mid-sweep time (``mid_sweep_times_us``).
+
+        A scanning radar turns once while the vehicle moves (4 Hz: 2.5 m at 10 m/s), so a registration of two
+        whole sweeps aligns their mid-sweep poses, not their first-azimuth poses: keyframe poses and pose
+        ground truth are taken at mid-sweep (docs/CONVENTIONS.md). Interpolated in the pose file's trajectory
+        (linear, clamped at its ends).
+        """
+        track = self.track if self.track is not None and len(self.track) else self.poses
+        return track.interpolate(mid_sweep_times_us(self.timestamps_us, self.preset))
 
     def load_scan(self, i: int) -> RadarScan:
         """Read scan ``i`` (Navtech PNG) with this sequence's preset."""
@@ -108,7 +122,8 @@ class Sequence:
         """A sequence holding only the scans at ``index`` (e.g. ``slice(None, None, 5)`` for every 5th)."""
         idx = np.asarray(np.arange(len(self))[index], dtype=np.int64).reshape(-1)  # slices, int or bool masks
         return Sequence(self.name, self.preset, self.layout, [self.scan_paths[i] for i in idx],
-                        self.timestamps_us[idx], self.poses.subset(idx), self.root)
+                        self.timestamps_us[idx], self.poses.subset(idx), self.root,
+                        self.track if self.track is not None else self.poses)
 
 
 def _scan_dir(root: Path, layout: str) -> Path:
@@ -329,7 +344,7 @@ def load_sequence(path: str | Path, layout: str | None = None,
             raise DatasetError(f"{bad}: scan time lies outside the pose file's time span ({pose_file})")
         interp = track.interpolate(stamps)
         poses = PoseSequence(stamps, interp[:, :2], interp[:, 2])
-    return Sequence(root.name, p, layout, paths, stamps, poses, root)
+    return Sequence(root.name, p, layout, paths, stamps, poses, root, track.sorted())
 
 
 def write_sequence_scan(root: str | Path, layout: str, scan: RadarScan) -> Path:

@@ -13,9 +13,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from reradar_core.errors import ConfigError
 
-__all__ = ["PRESETS", "RadarPreset", "get_preset", "ENCODER_TICKS_PER_TURN"]
+__all__ = ["PRESETS", "RadarPreset", "get_preset", "mid_sweep_times_us", "ENCODER_TICKS_PER_TURN"]
 
 #: Navtech encoder counts per full turn: azimuth [rad] = encoder * pi / 2800.
 ENCODER_TICKS_PER_TURN = 5600
@@ -74,3 +76,18 @@ def get_preset(name: str | RadarPreset) -> RadarPreset:
         return PRESETS[name.lower()]
     except KeyError:
         raise ConfigError(f"unknown radar preset {name!r}; choose one of {sorted(PRESETS)}") from None
+
+
+def mid_sweep_times_us(first_azimuth_us: np.ndarray | int, preset: RadarPreset) -> np.ndarray:
+    """The mean azimuth time of each sweep: ``first + (A - 1) / 2 * sweep_period / A``, int64 microseconds.
+
+    A rigid registration of two whole sweeps aligns the sensor poses at (about) this time: the sensor moves
+    while the antenna turns, and every azimuth is seen from the pose at its own time. Keyframe poses, pose
+    answers and pose ground truth refer to it (docs/CONVENTIONS.md).
+
+    Args:
+        first_azimuth_us: scan timestamps (the first azimuth's time), microseconds, any shape.
+        preset: the radar (``num_azimuths``, ``sweep_period_s``).
+    """
+    half = round(preset.sweep_period_s * 1e6 * (preset.num_azimuths - 1) / (2 * preset.num_azimuths))
+    return np.asarray(first_azimuth_us, dtype=np.int64) + np.int64(half)

@@ -62,6 +62,7 @@ __all__ = [
     "reliability_bins",
     "expected_calibration_error",
     "choose_min_confidence",
+    "choose_min_confidence_by_cost",
 ]
 
 #: order of the cues in a cue vector (and in the JSON's arrays)
@@ -351,3 +352,40 @@ def choose_min_confidence(p: np.ndarray, correct: np.ndarray, eligible: np.ndarr
     # answering p >= bar admits every wrong answer with p >= bar: the bar must exceed the (allowed+1)-th highest
     bar = float(np.nextafter(wrong_p[allowed], np.inf))
     return min(bar, 1.0)
+
+
+def choose_min_confidence_by_cost(p: np.ndarray, correct: np.ndarray, eligible: np.ndarray,
+                                  wrong_cost: float = 10.0) -> float:
+    """The bar on ``p`` that minimises ``wrong_cost`` x wrong answers + refused correct answers.
+
+    Only eligible answers (past the aligned-ratio floor) can be ``localized``; answering ``p >= bar`` admits
+    every eligible answer at or above the bar and refuses the rest. Ties go to the lowest bar (fewest
+    refusals).
+
+    Args:
+        p: (Q,) confidence of each answer; correct: (Q,) bool pose within the thresholds;
+        eligible: (Q,) bool the answer passes the floor.
+        wrong_cost: what one wrong ``localized`` answer costs, in refused correct answers (> 0).
+
+    Returns:
+        The bar in [0, 1] (0.0, or just above one of the eligible answers' ``p``).
+    """
+    if wrong_cost <= 0:
+        raise ConfigError(f"wrong_cost must be positive, got {wrong_cost}")
+    p = np.asarray(p, dtype=np.float64)
+    el = np.asarray(eligible, dtype=bool)
+    ok = np.asarray(correct, dtype=bool)[el]
+    pe = p[el]
+    order = np.argsort(pe, kind="stable")
+    pe, ok = pe[order], ok[order]
+    # bar k refuses the k lowest answers: refused correct = cumsum(ok)[k-1], admitted wrong = wrong total - ...
+    refused_correct = np.concatenate([[0], np.cumsum(ok)])
+    admitted_wrong = int((~ok).sum()) - np.concatenate([[0], np.cumsum(~ok)])
+    cost = wrong_cost * admitted_wrong + refused_correct
+    # only cut between distinct values (equal p cannot be separated by a bar)
+    valid = np.ones(len(pe) + 1, dtype=bool)
+    valid[1:-1] = pe[1:] > pe[:-1]
+    k = int(np.flatnonzero(valid)[np.argmin(cost[valid])])
+    if k == 0:
+        return 0.0
+    return min(float(np.nextafter(pe[k - 1], np.inf)), 1.0)

@@ -160,3 +160,25 @@ def test_boreas_folder_with_relative_gpstime_is_refused_unless_simulated(tmp_pat
     write_sequence_meta(sim, {"preset": "boreas", "sim_version": "2"})
     seq = load_sequence(sim)
     np.testing.assert_allclose(seq.poses.xy[:, 0], [0.0, 2.5, 5.0], atol=1e-9)  # 10 m/s, not all at the origin
+
+
+def test_mid_sweep_poses_interpolate_the_pose_file_also_after_subset(tmp_path):
+    from reradar_core.io.presets import get_preset, mid_sweep_times_us
+
+    # 400 azimuths over 0.25 s: the mean azimuth time is 399 / 2 * 625 us = 124687.5 us after the first
+    assert int(mid_sweep_times_us(T0, get_preset("boreas"))) == T0 + 124_688
+    times = [T0 + k * 250_000 for k in range(9)]
+    _write_scans(tmp_path, "boreas", times)
+    pose_times = np.arange(T0 - 100_000, T0 + 2_500_000, 50_000)
+    write_boreas_radar_poses(_track(pose_times), tmp_path / "applanix" / "radar_poses.csv")
+    write_sequence_meta(tmp_path, {"preset": "boreas", "layout": "boreas"})
+    seq = load_sequence(tmp_path)
+    mid = seq.mid_sweep_poses()
+    # the track moves 10 m/s along x, 2 m/s along y from T0 - 0.1 s: mid-sweep is 0.1247 s after each scan time
+    s = (np.asarray(times) - (T0 - 100_000) + 124_688) / 1e6
+    np.testing.assert_allclose(mid[:, 0], 10.0 * s, atol=1e-6)
+    np.testing.assert_allclose(mid[:, 1], 2.0 * s, atol=1e-6)
+    np.testing.assert_allclose(mid[:, 0] - seq.poses.poses[:, 0], 1.24688, atol=1e-6)
+    # every 4th scan kept: still interpolated in the file's trajectory, not between the kept scans
+    sub = seq.subset(slice(None, None, 4))
+    np.testing.assert_allclose(sub.mid_sweep_poses(), mid[::4], atol=1e-9)

@@ -26,6 +26,7 @@ from reradar_core.localization.confidence import (
     ConfidenceCues,
     ConfidenceModel,
     choose_min_confidence,
+    choose_min_confidence_by_cost,
     confidence_cues,
     default_confidence_model,
     expected_calibration_error,
@@ -169,6 +170,50 @@ def test_choose_min_confidence_known_answer() -> None:
     assert 0.95 < choose_min_confidence(p, correct, eligible, 100, 0.005) <= 0.99
     # ineligible wrong answers (below the floor) never count
     assert choose_min_confidence(p, correct, correct, 100, 0.005) == 0.0
+
+
+def test_choose_min_confidence_by_cost_known_answer() -> None:
+    p = np.array([0.99, 0.95, 0.9, 0.8, 0.7, 0.6, 0.5])
+    correct = np.array([True, True, True, False, True, True, False])
+    eligible = np.ones(7, bool)
+    # cost 10: refusing the 0.8 wrong costs two correct answers (0.7, 0.6) -> bar just above 0.8 (cost 2)
+    bar = choose_min_confidence_by_cost(p, correct, eligible, 10.0)
+    assert 0.8 < bar <= 0.9
+    # cost 1.5: one wrong is cheaper than two refusals -> only the 0.5 wrong is refused (cost 1.5)
+    bar = choose_min_confidence_by_cost(p, correct, eligible, 1.5)
+    assert 0.5 < bar <= 0.6
+    # no wrong answers -> no bar; ineligible answers never count
+    assert choose_min_confidence_by_cost(p, np.ones(7, bool), eligible, 10.0) == 0.0
+    assert choose_min_confidence_by_cost(p, correct, correct, 10.0) == 0.0
+    # equal confidences cannot be split by a bar: the tie is refused or admitted together
+    bar = choose_min_confidence_by_cost(np.array([0.9, 0.5, 0.5]), np.array([True, True, False]),
+                                        np.ones(3, bool), 10.0)
+    assert 0.5 < bar <= 0.9
+    with pytest.raises(ConfigError):
+        choose_min_confidence_by_cost(p, correct, eligible, 0.0)
+
+
+def test_fit_bar_holds_the_wrong_rate_on_every_split() -> None:
+    from reradar_core.localization.confidence_fit import FitData, fit_from_data
+
+    rng = np.random.default_rng(7)
+    n = 2000
+    x = rng.normal(size=(n, len(CUE_NAMES)))
+    x[:, 0] = rng.uniform(0.0, 1.0, n)
+    correct = rng.uniform(size=n) < 1.0 / (1.0 + np.exp(-(12.0 * (x[:, 0] - 0.5))))
+    split = np.where(np.arange(n) < n // 2, "train-target-loop", "train-target-boreas")
+    # the second split has no wrong answers above the floor: pooled, the first could have twice its share
+    correct[n // 2:] = True
+    data = FitData(x, np.ones(n, bool), correct, x[:, 0] >= 0.3, np.ones(n, bool), np.zeros(n, bool), split)
+    model, report = fit_from_data(data, max_wrong_fraction=0.005, wrong_cost=None)
+    p = model.predict(x)
+    for s in ("train-target-loop", "train-target-boreas"):
+        k = split == s
+        assert (k & data.eligible & (p >= model.min_confidence) & ~correct).sum() <= 0.005 * k.sum()
+    assert report["bar_cost"] == 0.0 and model.min_confidence == max(report["bar_max_wrong_per_split"].values())
+    # with a cost the bar can only rise
+    model_c, report_c = fit_from_data(data, max_wrong_fraction=0.005, wrong_cost=10.0)
+    assert model_c.min_confidence == max(report_c["bar_cost"], model.min_confidence)
 
 
 # ------------------------------------------------------------------ the pipeline's decision

@@ -58,7 +58,11 @@ def test_build_from_boreas_sequence(tmp_path: Path) -> None:
         assert len(m) == 7 and m.metadata.radar_preset == "boreas" and m.metadata.name == "seq"
         assert m.metadata.source.startswith("boreas:")
         np.testing.assert_array_equal(m.timestamps_us, truth.timestamps_us)
-        np.testing.assert_allclose(m.poses, truth.poses, atol=1e-6)
+        # keyframe poses at mid-sweep (docs/CONVENTIONS.md): 124688 us after each scan time, 4 m per 0.25 s
+        # along x (the last one clamped at the pose file's end)
+        mid = truth.interpolate(truth.timestamps_us + 124_688)
+        np.testing.assert_allclose(mid[:6, 0] - truth.poses[:6, 0], 4.0 * 0.124688 / 0.25, atol=1e-6)
+        np.testing.assert_allclose(m.poses, mid, atol=1e-6)
         assert m.read_keyframe(6).keypoints_xy_m.shape == (5, 2)
 
 
@@ -67,7 +71,8 @@ def test_keyframe_spacing_and_keypoint_cap(tmp_path: Path) -> None:
     out = build_map_from_sequence(tmp_path / "seq", tmp_path / "m.h5", CountingExtractor(), min_spacing_m=7.0,
                                   max_keypoints=3)
     with open_map(out) as m:
-        np.testing.assert_allclose(m.poses[:, 0], [0.0, 8.0, 16.0, 24.0])
+        # scans 0, 2, 4, 6 at mid-sweep (+1.995 m; the last clamped at the pose file's end)
+        np.testing.assert_allclose(m.poses[:, 0], [1.995008, 9.995008, 17.995008, 24.0], atol=1e-6)
         assert m.read_keyframe(0).keypoints_xy_m.shape == (3, 2)
     poses = np.array([[0, 0, 0], [1, 0, 0], [5, 0, 0], [5.5, 0, 0], [10, 0, 0]], float)
     np.testing.assert_array_equal(select_keyframes(poses, 4.0), [0, 2, 4])

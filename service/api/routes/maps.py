@@ -14,7 +14,7 @@ from starlette.concurrency import run_in_threadpool
 
 from reradar_core.errors import PoseFileError
 from reradar_core.io.poses import read_poses
-from reradar_core.io.presets import PRESETS
+from reradar_core.io.presets import PRESETS, mid_sweep_times_us
 from service.api.deps import ApiKeyDep, MapIdPath, StateDep
 from service.api.scan_input import read_scan_input, scan_request_body
 from service.api.schemas import (
@@ -120,7 +120,8 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
             bad = scan_paths[int(np.argmax(outside))].name
             raise BadRequestError(f"scan {bad} lies outside the time span of the poses file; scan files must be "
                                   f"named by their timestamp in microseconds")
-        pose_arr = track.interpolate(stamps)
+        # keyframe poses at mid-sweep (docs/CONVENTIONS.md); every preset sweeps 400 azimuths at 4 Hz
+        pose_arr = track.interpolate(mid_sweep_times_us(stamps, PRESETS[(preset or "boreas").lower()]))
         entry = state.registry.start_build(map_id, scan_paths, pose_arr, preset, work,
                                            source=f"upload:{archive.filename or 'archive'}")  # type: ignore[union-attr]
         return entry, True
