@@ -142,7 +142,7 @@ class RetrievedKeyframe(_Model):
     timestamp_us: int
     descriptor_distance: float = Field(description="Euclidean distance between unit global descriptors, [0, 2].")
     rank: int
-    pose: Pose2D = Field(description="Keyframe pose in the map frame.")
+    pose: Pose2D = Field(description="Keyframe pose in the map frame, at the keyframe scan's mid-sweep time.")
 
 
 class RetrieveResponse(_Model):
@@ -206,7 +206,10 @@ class LocalizeResponse(_Model):
         "many landmarks), low_confidence (below min_confidence), inconsistent_with_prior (tracking)."))
     map_id: str
     scan_id: str | None
-    pose: Pose2D | None = Field(default=None, description="Query pose in the map frame (keyframe pose o relative pose).")
+    pose: Pose2D | None = Field(default=None, description=(
+        "Query pose in the map frame (keyframe pose o relative pose) at the scan's mid-sweep time: its first "
+        "azimuth's timestamp + 124.7 ms at 4 Hz (the antenna turns while the vehicle moves; a registration of "
+        "whole sweeps aligns their mid-sweep poses)."))
     relative_pose: Pose2D | None = Field(default=None, description="Query pose in the matched keyframe's sensor frame.")
     keyframe: RetrievedKeyframe | None = Field(default=None, description="The keyframe the query was registered to.")
     num_matches: int = 0
