@@ -92,6 +92,12 @@ class LocalizationConfig:
             loaded lazily). Confident queries stop after ``top_k``; on offroad-sim every query the default
             settings missed had its right keyframe at retrieval rank 21-56 and a best screen score <= 0.59.
             ``max_candidates <= top_k`` disables the expansion.
+        expand_on_refusal: ``guided`` only: when the answer over the screened candidates is refused (floor,
+            ambiguity or confidence), the next ``top_k`` retrieved candidates are screened and the best
+            ``verify_k`` of them not yet verified are verified, and the decision is taken again over all of
+            them, up to ``max_candidates``. Only refused queries pay for it. On the Boreas snow-cover drive 25
+            of the 31 revisit queries the pipeline got wrong had their right keyframe outside the 20 screened
+            (retrieval rank 20-320) while a wrong one screened >= 0.6, so the score-based expansion never ran.
         stop_verify_ratio: ``guided`` only: the screened candidates are verified best-screened first, and the
             rest are skipped once one aligns at least this fraction of the query's landmarks (None: verify all
             ``verify_k``); the skipped ones keep reason ``screened_out``. Default 0.7: on the boreas-sim
@@ -132,6 +138,7 @@ class LocalizationConfig:
     verify_k: int = 3
     max_candidates: int = 60
     expand_below_screen_score: float = 0.6
+    expand_on_refusal: bool = True
     stop_verify_ratio: float | None = 0.7
     min_inliers: int = 12
     min_inlier_ratio: float | None = None
@@ -399,19 +406,39 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
                                    [c.screen_data(config.alignment) for c in batch], config.alignment)
         scores.update({c.rank: float(v) for c, v in zip(batch, values, strict=True)})
 
-    if config.pose_method == "guided" and len(ordered) > config.verify_k:
+    guided = config.pose_method == "guided"
+    limit = min(len(pool), config.num_to_retrieve)
+    if guided and len(ordered) > config.verify_k:
         screen(ordered)
-        limit = min(len(pool), config.num_to_retrieve)
         while max(scores.values()) < config.expand_below_screen_score and len(ordered) < limit:
             batch = pool[len(ordered): min(limit, len(ordered) + config.top_k)]
             screen(batch)
             ordered += batch
         timings["screen_ms"] = (time.perf_counter() - t0) * 1e3
-        keep = [c.rank for c in sorted(ordered, key=lambda c: (-scores[c.rank], c.rank))[: config.verify_k]]
+    done: dict[int, CandidateVerification] = {}
+    while True:
+        result = _verify_and_decide(query, ordered, scores, done, config, timings, t0)
+        # refused: screen the next top_k retrieved candidates and verify the best new ones (``expand_on_refusal``)
+        if (result.localized or not guided or not config.expand_on_refusal or len(ordered) >= limit
+                or len(ordered) <= config.verify_k):
+            return result
+        t1 = time.perf_counter()
+        batch = pool[len(ordered): min(limit, len(ordered) + config.top_k)]
+        screen(batch)
+        ordered += batch
+        timings["screen_ms"] = timings.get("screen_ms", 0.0) + (time.perf_counter() - t1) * 1e3
+
+
+def _verify_and_decide(query: ScanFeatures, ordered: list[Candidate], scores: dict[int, float],
+                       done: dict[int, CandidateVerification], config: LocalizationConfig,
+                       timings: dict[str, float], t0: float) -> LocalizationResult:
+    """Verify the best-screened candidates not verified yet (into ``done``) and decide over all of ``done``."""
+    if scores:
+        fresh = [c for c in sorted(ordered, key=lambda c: (-scores[c.rank], c.rank)) if c.rank not in done]
+        keep = [c.rank for c in fresh[: config.verify_k]]
     else:
         keep = [c.rank for c in ordered]
     by_rank = {c.rank: c for c in ordered}
-    done: dict[int, CandidateVerification] = {}
     for r in keep:  # best screened first; stop once one answer is confident enough (``stop_verify_ratio``)
         done[r] = v = verify_candidate(query, by_rank[r], config, timings)
         if (config.stop_verify_ratio is not None and v.T_keyframe_query is not None

@@ -172,6 +172,33 @@ def test_expansion_screens_further_only_when_no_candidate_aligns() -> None:
     assert confident.localized and confident.best.keyframe_id == 33 and len(loaded) == 10
 
 
+def test_a_refused_answer_screens_further() -> None:
+    """A decoy at rank 0 (an alias holding 75 % of the true keyframe's landmarks, at another place) screens well
+    enough to stop the score-based expansion but is refused by the floor; the true keyframe at rank 25 is then
+    found by screening the next blocks (``expand_on_refusal``). Without it the query is refused after 10."""
+    rng = np.random.default_rng(11)
+    kfs = [_keyframe(rng, ts=i) for i in range(40)]
+    poses = np.column_stack([np.arange(40) * 50.0, np.zeros(40), np.zeros(40)])
+    true = kfs[33]
+    keep = rng.permutation(len(true.keypoints_xy_m)) < int(0.75 * len(true.keypoints_xy_m))
+    kps = np.where(keep[:, None], true.keypoints_xy_m, rng.uniform(-60, 60, size=true.keypoints_xy_m.shape))
+    kfs[5] = ScanFeatures(kfs[5].global_descriptor, kps, true.local_descriptors, 5)
+    T_kf_query = np.array([2.0, -1.0, np.deg2rad(30.0)])
+    query = _query_from(true, T_kf_query, rng)
+    order = [5] + [i for i in range(40) if i not in (5, 33)]
+    order.insert(25, 33)
+    base = {"top_k": 10, "verify_k": 2, "max_candidates": 40, "expand_below_screen_score": 0.4,
+            "min_inlier_ratio": 0.65, "min_confidence": 0.0}
+    res = localize(query, _candidates(kfs, poses, order), LocalizationConfig(**base))
+    decoy = next(c for c in res.candidates if c.keyframe_id == 5)
+    assert decoy.screen_score is not None and decoy.screen_score >= 0.4 and decoy.inlier_ratio < 0.65
+    assert res.localized and res.best is not None and res.best.keyframe_id == 33 and res.best.rank == 25
+    assert len(res.candidates) == 30  # two more blocks of 10 screened after the refusal, not all 40
+    np.testing.assert_allclose(res.T_map_query[:2], compose(poses[33], T_kf_query)[:2], atol=0.15)
+    off = localize(query, _candidates(kfs, poses, order), LocalizationConfig(**base, expand_on_refusal=False))
+    assert off.status == "not_localized" and len(off.candidates) == 10 and off.best.keyframe_id == 5
+
+
 def test_verification_stops_once_an_answer_is_confident() -> None:
     """Two true keyframes at ranks 3 and 6 screen best: with a stop ratio of 0.5 only the best-screened one
     is verified; without it all ``verify_k`` are, and the answer is the same place."""
