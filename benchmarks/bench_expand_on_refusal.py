@@ -1,0 +1,73 @@
+"""Paired timing of the localize stage with and without ``LocalizationConfig.expand_on_refusal``.
+
+Every query of one benchmark sequence is localized twice in one process, with and without the deeper search
+on refusal, in alternating order (so load changes hit both alike), over the suite's database as the benchmark
+builds it (cached features, the service's ``Localizer``). Prints mean / p50 / p90 / p99 and the ratios, with
+the load average.
+
+    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_expand_on_refusal.py --suite boreas-sim \\
+        --model our-3-boreas --query snow_cover
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from reradar_core.baselines.ours import Ours, prepared_to_features  # noqa: E402
+from reradar_core.benchmark.runner import BenchConfig, prepare_sequence  # noqa: E402
+from reradar_core.localization.confidence_fit import _localizer  # noqa: E402
+from reradar_core.localization.pipeline import LocalizationConfig  # noqa: E402
+from reradar_core.sim.suites import build_suite  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--suite", default="boreas-sim")
+    ap.add_argument("--model", default="our-3-boreas")
+    ap.add_argument("--query", default="snow_cover", help="substring of the query sequence's name")
+    ap.add_argument("--warmup", type=int, default=30, help="queries run first to fill the keyframe cache")
+    args = ap.parse_args()
+    bench = build_suite(args.suite, progress=False)
+    on = LocalizationConfig()
+    off = replace(on, expand_on_refusal=False)
+    method = Ours(args.model, localization=on)
+    bc = BenchConfig(radius_m=bench.radius_m, rotation_stress=False, progress=False)
+    db_seq = bench.load(bench.database[0])
+    db = prepare_sequence([method], db_seq, bc)[method.name]
+    loc = _localizer(method, db.records, db_seq.mid_sweep_poses(), on)
+    qpath = next(p for p in bench.queries if args.query in str(p))
+    q = prepare_sequence([method], bench.load(qpath), bc)[method.name]
+    feats = [prepared_to_features(r) for r in q.records]
+    for f in feats[: args.warmup]:
+        loc.localize(f, on)
+    times: dict[str, list[float]] = {"on": [], "off": []}
+    load0 = os.getloadavg()[0]
+    for k, f in enumerate(feats):
+        for name, cfg in ((("on", on), ("off", off)) if k % 2 == 0 else (("off", off), ("on", on))):
+            t0 = time.perf_counter()
+            loc.localize(f, cfg)
+            times[name].append((time.perf_counter() - t0) * 1e3)
+    stats = {}
+    for name, v in times.items():
+        a = np.asarray(v)
+        stats[name] = (a.mean(), *np.percentile(a, [50, 90, 99]))
+        print(f"{name:>3}: n {len(a)}  mean {stats[name][0]:.1f}  p50 {stats[name][1]:.1f}  p90 {stats[name][2]:.1f}"
+              f"  p99 {stats[name][3]:.1f} ms")
+    ratios = [a / b for a, b in zip(stats["on"], stats["off"], strict=True)]
+    print("on/off: mean {:.3f}  p50 {:.3f}  p90 {:.3f}  p99 {:.3f}".format(*ratios),
+          f"(load average {load0:.1f} -> {os.getloadavg()[0]:.1f})")
+
+
+if __name__ == "__main__":
+    main()
