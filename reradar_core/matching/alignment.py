@@ -93,26 +93,52 @@ class LandmarkGrid:
     """Distance (metres) from each grid cell to the nearest landmark, plus a KD-tree of the landmarks.
 
     Attributes:
-        distance_m: (n, n) float32, row = y cell, column = x cell.
+        distance_m: (n, n) float32, row = y cell, column = x cell; None for a grid made ``from_within_mask``
+            (it answers ``count_within`` at its one threshold only).
         origin_m: coordinate of the grid's lower corner (same for x and y), metres.
         cell_m: cell size, metres.
         tree: KD-tree over the (N, 2) landmark positions.
         points: (N, 2) float64 landmark positions, metres.
     """
 
-    distance_m: np.ndarray
+    distance_m: np.ndarray | None
     origin_m: float
     cell_m: float
     tree: cKDTree
     points: np.ndarray
 
     _within: dict[float, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
+    _size: int = field(default=0, repr=False, compare=False)
+
+    @classmethod
+    def from_within_mask(cls, packed: np.ndarray, n: int, origin_m: float, cell_m: float, threshold_m: float,
+                         points_xy_m: np.ndarray) -> LandmarkGrid:
+        """A grid over (M, 2) landmarks from the bit-packed (``np.packbits``, row-major) mask of the n x n cells
+        of ``build_landmark_grid(points_xy_m, cell_m)`` closer than ``threshold_m`` to a landmark (e.g. the
+        screen's ``ScreenGrid``): no distance transform and no float grid (0.5 MB with 512 landmarks), and it
+        counts exactly as the full grid at ``threshold_m`` (same cells, same mask)."""
+        pts = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+        grid = cls(None, float(origin_m), float(cell_m), cKDTree(pts), pts, _size=int(n))
+        grid._within[threshold_m] = np.append(np.unpackbits(packed, count=n * n), np.uint8(0))
+        return grid
+
+    @property
+    def size(self) -> int:
+        """Cells per side, n."""
+        return self._size if self.distance_m is None else int(self.distance_m.shape[0])
+
+    def can_count(self, cell_m: float, threshold_m: float) -> bool:
+        """Whether ``count_within(..., threshold_m)`` is available on a grid of ``cell_m`` cells."""
+        return self.cell_m == cell_m and (self.distance_m is not None or threshold_m in self._within)
 
     def within_mask(self, threshold_m: float) -> np.ndarray:
         """(n * n + 1,) uint8: 1 where a cell is closer than ``threshold_m`` to a landmark (row-major), then a
         0 for "outside the grid"; built once per threshold."""
         mask = self._within.get(threshold_m)
         if mask is None:
+            if self.distance_m is None:
+                raise ConfigError(f"this landmark grid counts within {sorted(self._within)} m only, "
+                                  f"not {threshold_m} m")
             mask = np.append((self.distance_m < threshold_m).reshape(-1), False).astype(np.uint8)
             self._within[threshold_m] = mask
         return mask
@@ -120,7 +146,7 @@ class LandmarkGrid:
     def count_within(self, x: np.ndarray, y: np.ndarray, threshold_m: float) -> np.ndarray:
         """Per row of the (V, P) points (x, y): how many are closer than ``threshold_m`` to a landmark -
         exactly ``(lookup(x, y) < threshold_m).sum(axis=1)`` (same cells), without the float look-up."""
-        n = self.distance_m.shape[0]
+        n = self.size
         i = np.floor((x - self.origin_m) / self.cell_m).astype(np.int64)
         j = np.floor((y - self.origin_m) / self.cell_m).astype(np.int64)
         inside = i.view(np.uint64) < np.uint64(n)  # negative cells wrap to huge unsigned values
@@ -132,6 +158,8 @@ class LandmarkGrid:
 
     def lookup(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Distance to the nearest landmark at points (x, y) (any shape); far outside the grid = large."""
+        if self.distance_m is None:
+            raise ConfigError("this landmark grid holds a mask, not distances (made by from_within_mask)")
         n = self.distance_m.shape[0]
         i = np.floor((x - self.origin_m) / self.cell_m).astype(np.int64)
         j = np.floor((y - self.origin_m) / self.cell_m).astype(np.int64)
@@ -232,7 +260,7 @@ def screen_alignment(points_src: np.ndarray, desc_src: np.ndarray, points_dst: n
         return 0.0
     if desc_src.shape[0] != n or desc_dst.shape[0] != len(dst) or desc_src.shape[1] != desc_dst.shape[1]:
         raise ConfigError(f"descriptor shapes {desc_src.shape}, {desc_dst.shape} do not match the landmarks")
-    if grid is None or grid.cell_m != config.grid_cell_m:  # a cached grid built with another cell is rebuilt
+    if grid is None or not grid.can_count(config.grid_cell_m, config.score_threshold_m):  # else rebuilt
         grid = build_landmark_grid(dst, config.grid_cell_m)
     sub = np.arange(0, n, max(1, n // config.screen_source_points))
     pairs = _topk_pairs(desc_src[sub], desc_dst, config.top_k_matches)
@@ -281,7 +309,7 @@ def estimate_pose_guided(points_src: np.ndarray, desc_src: np.ndarray, points_ds
         return fail("non_finite_input")
     if desc_src.shape[0] != n or desc_dst.shape[0] != len(dst) or desc_src.shape[1] != desc_dst.shape[1]:
         raise ConfigError(f"descriptor shapes {desc_src.shape}, {desc_dst.shape} do not match the landmarks")
-    if grid is None or grid.cell_m != config.grid_cell_m:  # a cached grid built with another cell is rebuilt
+    if grid is None or not grid.can_count(config.grid_cell_m, config.score_threshold_m):  # else rebuilt
         grid = build_landmark_grid(dst, config.grid_cell_m)
     rng = np.random.default_rng(config.seed)
     hyp = _hypotheses(src, dst, _topk_pairs(desc_src, desc_dst, config.top_k_matches), config, rng)
