@@ -298,6 +298,10 @@ def scan_header(data: bytes, size: int | None = None) -> ScanHeader:
     raise ScanFormatError(f"upload is not a Navtech PNG or .npy array ({what})")
 
 
+#: uint8 power byte -> float32 power in [0, 1]: the very values of ``byte.astype(np.float32) / 255.0``, looked up
+_UNIT_POWER = np.arange(256, dtype=np.uint8).astype(np.float32) / 255.0
+
+
 def _scan_from_raw(raw: np.ndarray, preset: str | RadarPreset | None, source: str) -> RadarScan:
     if raw.ndim != 2 or raw.dtype != np.uint8:
         raise ScanFormatError(
@@ -315,7 +319,7 @@ def _scan_from_raw(raw: np.ndarray, preset: str | RadarPreset | None, source: st
     num_bins = raw.shape[1] - NAVTECH_META_COLUMNS
     p = get_preset(preset) if preset is not None else infer_preset(num_bins)
     check_navtech_layout(encoder, timestamps, valid, num_bins, p, source)
-    fft = raw[:, NAVTECH_META_COLUMNS:].astype(np.float32) / 255.0
+    fft = np.take(_UNIT_POWER, raw[:, NAVTECH_META_COLUMNS:])  # = astype(float32) / 255, bit for bit, 2x faster
     azimuths = (encoder.astype(np.float64) * _RAD_PER_TICK) % (2.0 * np.pi)
     return RadarScan(fft, azimuths, timestamps, p.range_resolution_m, p.range_offset_m, valid, preset=p.name)
 

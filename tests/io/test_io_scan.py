@@ -231,3 +231,11 @@ def test_lossy_and_unknown_formats_are_named():
         scan_header(b"")
     with pytest.raises(ScanFormatError, match="corrupt or truncated"):
         decode_navtech_png_bytes(jpg.tobytes())  # OpenCV would decode it: the PNG signature is required
+
+
+def test_png_power_lookup_is_the_float32_division_bit_for_bit() -> None:
+    from reradar_core.io.scan import _UNIT_POWER
+
+    b = np.arange(256, dtype=np.uint8)
+    np.testing.assert_array_equal(_UNIT_POWER.view(np.uint32), (b.astype(np.float32) / 255.0).view(np.uint32))
+    assert _UNIT_POWER.dtype == np.float32
