@@ -24,6 +24,7 @@ import io
 import struct
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -37,6 +38,8 @@ __all__ = [
     "read_navtech_png",
     "write_navtech_png",
     "decode_navtech_png_bytes",
+    "decode_navtech_npy_bytes",
+    "NpyLayout",
     "encode_navtech_png_bytes",
     "read_polar_npy",
     "load_scan",
@@ -298,10 +301,6 @@ def scan_header(data: bytes, size: int | None = None) -> ScanHeader:
     raise ScanFormatError(f"upload is not a Navtech PNG or .npy array ({what})")
 
 
-#: uint8 power byte -> float32 power in [0, 1]: the very values of ``byte.astype(np.float32) / 255.0``, looked up
-_UNIT_POWER = np.arange(256, dtype=np.uint8).astype(np.float32) / 255.0
-
-
 def _scan_from_raw(raw: np.ndarray, preset: str | RadarPreset | None, source: str) -> RadarScan:
     if raw.ndim != 2 or raw.dtype != np.uint8:
         raise ScanFormatError(
@@ -319,7 +318,7 @@ def _scan_from_raw(raw: np.ndarray, preset: str | RadarPreset | None, source: st
     num_bins = raw.shape[1] - NAVTECH_META_COLUMNS
     p = get_preset(preset) if preset is not None else infer_preset(num_bins)
     check_navtech_layout(encoder, timestamps, valid, num_bins, p, source)
-    fft = np.take(_UNIT_POWER, raw[:, NAVTECH_META_COLUMNS:])  # = astype(float32) / 255, bit for bit, 2x faster
+    fft = raw[:, NAVTECH_META_COLUMNS:].astype(np.float32) / 255.0
     azimuths = (encoder.astype(np.float64) * _RAD_PER_TICK) % (2.0 * np.pi)
     return RadarScan(fft, azimuths, timestamps, p.range_resolution_m, p.range_offset_m, valid, preset=p.name)
 
@@ -469,11 +468,32 @@ def load_scan(path: str | Path, preset: str | RadarPreset | None = None) -> Rada
     raise ScanFormatError(f"{path}: unsupported scan format {suffix!r} (use .png or .npy)")
 
 
-def load_scan_bytes(data: bytes, filename: str = "scan.png",
-                    preset: str | RadarPreset | None = None) -> RadarScan:
-    """Decode an uploaded scan by its filename suffix (``.png`` or ``.npy``)."""
+def decode_navtech_npy_bytes(data: bytes, preset: str | RadarPreset | None = None) -> RadarScan:
+    """Decode an .npy array holding a Navtech PNG's pixels (uint8 (A, 11 + R): the metadata columns, then the
+    range bins) - the same scan as the PNG, with the same azimuths and timestamps, without PNG's inflate
+    (~5-10 ms per sweep) for 2.7x the bytes (``NpyLayout`` ``navtech``)."""
+    try:
+        array = np.load(io.BytesIO(data), allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise ScanFormatError(f"upload is not a readable .npy array ({exc})") from exc
+    if array.dtype != np.uint8 or array.ndim != 2:
+        raise ScanFormatError(f"a Navtech .npy (scan_layout navtech) must be a 2-D uint8 array of the PNG's pixels, "
+                              f"got dtype {array.dtype} shape {array.shape}")
+    return _scan_from_raw(array, preset, "upload")
+
+
+#: What an uploaded .npy holds: ``polar`` = (A, R) power, uniform azimuths, geometry from the preset;
+#: ``navtech`` = the Navtech PNG's pixels, metadata columns included (decoded exactly as the PNG).
+NpyLayout = Literal["polar", "navtech"]
+
+
+def load_scan_bytes(data: bytes, filename: str = "scan.png", preset: str | RadarPreset | None = None,
+                    npy_layout: NpyLayout = "polar") -> RadarScan:
+    """Decode an uploaded scan by its filename suffix (``.png`` or ``.npy``; an .npy as ``npy_layout``)."""
     suffix = Path(filename).suffix.lower()
     if suffix == ".npy":
+        if npy_layout == "navtech":
+            return decode_navtech_npy_bytes(data, preset)
         try:
             array = np.load(io.BytesIO(data), allow_pickle=False)
         except (OSError, ValueError, EOFError) as exc:
