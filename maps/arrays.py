@@ -316,8 +316,8 @@ def _write(path: Path, key: dict[str, object], arrays: dict[str, np.ndarray]) ->
 
 
 def prune_arrays(arrays_dir: str | Path, keep: Iterable[str], min_age_s: float = 600.0) -> list[Path]:
-    """Delete arrays files (and their temporary files) under ``arrays_dir`` not named in ``keep`` and not
-    modified for ``min_age_s``. Safe while other processes map them: an unlinked file's pages stay valid for
+    """Delete arrays files (and their temporary and lock files) under ``arrays_dir`` not named in ``keep`` and
+    not modified for ``min_age_s``. Safe while other processes map them: an unlinked file's pages stay valid for
     whoever has it mapped, and a process that opens it later rebuilds it. Returns the removed paths."""
     arrays_dir = Path(arrays_dir)
     keep = set(keep)
@@ -326,7 +326,9 @@ def prune_arrays(arrays_dir: str | Path, keep: Iterable[str], min_age_s: float =
         return removed
     now = time.time()
     for p in arrays_dir.iterdir():
-        if p.name in keep or not (p.name.endswith(SUFFIX) or p.name.endswith(".tmp")):
+        if p.name in keep or not p.name.endswith((SUFFIX, ".tmp", ".lock")):
+            continue
+        if p.name.endswith(".lock") and p.name[1:-len(".lock")] in keep:  # the lock of a file in use
             continue
         try:
             if now - p.stat().st_mtime < min_age_s:

@@ -379,6 +379,7 @@ class MapRegistry:
         entry.path.unlink(missing_ok=True)
         self._drop_job(map_id)
         fsync_dir(self.maps_dir)
+        self.prune_map_arrays()
         return entry
 
     def close(self) -> None:
