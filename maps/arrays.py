@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from maps.store import KeyframeMap, fsync_dir
+from maps.store import KeyframeMap, _pid_alive, fsync_dir
 from reradar_core.errors import MapFormatError
 from reradar_core.features import ScanFeatures
 from reradar_core.localization.screening import ScreenGrid, ScreenKeyframe, build_screen_grid
@@ -330,6 +330,12 @@ def prune_arrays(arrays_dir: str | Path, keep: Iterable[str], min_age_s: float =
             continue
         if p.name.endswith(".lock") and p.name[1:-len(".lock")] in keep:  # the lock of a file in use
             continue
+        if p.name.endswith(".tmp"):  # .<name>.<pid>.<thread>.tmp: never the file of a writer still running
+            try:
+                if _pid_alive(int(p.name.split(".")[-3])):
+                    continue
+            except (IndexError, ValueError):
+                pass
         try:
             if now - p.stat().st_mtime < min_age_s:
                 continue

@@ -157,11 +157,13 @@ def test_a_changed_map_gets_new_arrays_and_old_mappings_stay_valid(map_path: Pat
     # the process still serving the old version reads its old data, unchanged
     np.testing.assert_array_equal(old.read_keyframe(2).keypoints_xy_m, old_kp)
     # the old file is pruned once unused (its mapping stays valid after the unlink)
+    live = arrays_dir / f".{new.path.name}.{os.getpid()}.1.tmp"  # a writer still running: kept
+    live.touch()
     (arrays_dir / f".{old.path.name}.lock").touch()
     (arrays_dir / f".{new.path.name}.lock").touch()
     removed = prune_arrays(arrays_dir, keep=[new.path.name], min_age_s=0)
     assert sorted(p.name for p in removed) == sorted([old.path.name, f".{old.path.name}.lock"])
-    assert _files(arrays_dir) == [new.path] and (arrays_dir / f".{new.path.name}.lock").exists()
+    assert _files(arrays_dir) == [new.path] and (arrays_dir / f".{new.path.name}.lock").exists() and live.exists()
     np.testing.assert_array_equal(old.read_keyframe(2).keypoints_xy_m, old_kp)
     old_map.close()
 
