@@ -212,7 +212,7 @@ def topk_last_axis(scores: np.ndarray, k: int) -> np.ndarray:
     unclear = np.flatnonzero((val[:, :-1] == val[:, 1:]).any(axis=1) | np.isnan(val).any(axis=1))
     out = idx[:, :k]
     if len(unclear):  # ties or NaN: restore those rows and let torch order them as it does
-        for j in range(k + 1):
+        for j in reversed(range(k + 1)):  # last pass first: a pass over an all -inf rest may re-pick an index
             flat[unclear, idx[unclear, j]] = val[unclear, j]
         out[unclear] = torch.topk(torch.from_numpy(np.ascontiguousarray(flat[unclear])), k, dim=1,
                                   sorted=False).indices.numpy()

@@ -147,6 +147,8 @@ def test_topk_last_axis_is_torch_topks_order(n: int) -> None:
     sim[5, 0, 17] = np.nan
     sim[6, 0, :] = -np.inf
     sim[6, 0, :6] = [1, 2, 3, 4, 5, 6]                   # exactly k + 1 finite values
+    sim[7, 0, :] = -np.inf
+    sim[7, 0, :5] = [3, 1, 3, 2, 0]                      # k finite values with a tie, then padding
     want = torch.topk(torch.from_numpy(sim.copy()), 5, dim=2, sorted=False).indices.numpy()
     got = topk_last_axis(sim.copy(), 5)
     assert got.shape == want.shape
