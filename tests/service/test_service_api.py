@@ -16,6 +16,7 @@ import pytest
 
 from reradar_core.geometry.se2 import wrap_angle
 from reradar_core.io.poses import PoseSequence, write_txyyaw_csv
+from reradar_core.io.presets import get_preset, mid_sweep_times_us
 from reradar_core.io.scan import encode_navtech_png_bytes
 from service.client import ReRadarAPIError, ReRadarClient
 
@@ -247,7 +248,10 @@ def test_build_map_from_scan_archive_then_delete(client: httpx.Client, server: t
     assert info["state"] == "ready" and info["num_keyframes"] == n and info["progress"] == 1.0, info
     res = client.post("/localize", data={"map_id": "built"}, files={"scan": ("q.png", _png(2, 0))}).json()
     assert res["status"] == "localized" and res["keyframe"]["keyframe_id"] == 2
-    assert res["pose"]["x_m"] == pytest.approx(poses[2, 0], abs=0.05)
+    # keyframe poses are taken at mid-sweep (docs/CONVENTIONS.md): 124.7 ms into the 0.25 s between keyframes
+    track = PoseSequence([keyframe_time(i) for i in range(n)], poses[:, :2], poses[:, 2])
+    mid = track.interpolate(mid_sweep_times_us(keyframe_time(2), get_preset("boreas")))
+    assert res["pose"]["x_m"] == pytest.approx(mid[0], abs=0.05)
     assert not (server[1] / "evil.png").exists() and not (tmp_path.parent / "evil.png").exists()
     # bad archives and poses
     bad = {"archive": ("a.zip", b"not an archive"), "poses": ("p.csv", pose_file.read_bytes())}
