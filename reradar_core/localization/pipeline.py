@@ -129,9 +129,9 @@ class LocalizationConfig:
         min_confidence: ``guided`` only: an answer that passes the checks above is ``localized`` only when its
             confidence (``reradar_core.localization.confidence``: calibrated probability that the pose is
             within the success thresholds) reaches this bar; the aligned-ratio bar stays as a floor. None =
-            the bar stored with the shipped confidence model (chosen at fit time on the training splits as the
-            lowest bar at which wrong answers are <= 0.5 % of the training queries, docs/MODEL.md
-            "Confidence"); 0 = the floor alone (the decision before the confidence).
+            the bar stored with the shipped confidence model (chosen at fit time on the training splits: wrong
+            answers <= 0.5 % of every split's queries and the least 10 x wrong + refused-correct cost,
+            docs/MODEL.md "Confidence"); 0 = the floor alone (the decision before the confidence).
     """
 
     top_k: int = 20

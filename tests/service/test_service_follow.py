@@ -29,7 +29,9 @@ def test_follow_replays_a_drive_in_tracking_mode(server: tuple[str, Path], fake_
     times = [keyframe_time(i) + 10_000_000 for i in range(N_KEYFRAMES)]
     for i, t in enumerate(times):
         write_sequence_scan(seq, "boreas", make_scan(i, t))
-    write_sequence_poses(seq, "boreas", PoseSequence(times, poses[:, :2], poses[:, 2]))
+    # the fake keyframes are 40 m apart per 0.25 s: give the drive its poses at the scans' mid-sweep times
+    # (first azimuth + 124688 us, docs/CONVENTIONS.md), where the service's answers refer to
+    write_sequence_poses(seq, "boreas", PoseSequence([t + 124_688 for t in times], poses[:, :2], poses[:, 2]))
     app = typer.Typer()
     register(app)
     png = tmp_path / "follow.png"
