@@ -6,6 +6,7 @@ resident memory per keyframe, what geometric re-ranking adds over plain top-1, a
     python benchmarks/bench_service.py --all              # everything (a few minutes on 2 cores)
     python benchmarks/bench_service.py --http --requests 100
     python benchmarks/bench_service.py --http --http-map MAP.h5 --http-queries SEQ/radar   # demo + a bigger map
+    python benchmarks/bench_service.py --http --http-transport both   # PNG vs the .npy transport, side by side
     python benchmarks/bench_service.py --faiss --memory
     python benchmarks/bench_service.py --rerank --suite smoke
     python benchmarks/bench_service.py --localizer --http-map MAP.h5 --sequences SEQ [SEQ ...]  # global vs tracking
@@ -156,12 +157,26 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def _navtech_npy(png: bytes) -> bytes:
+    """The PNG's pixels as .npy bytes (``scan_layout=navtech``: the same scan without PNG decompression)."""
+    import io
+
+    import cv2
+
+    buf = io.BytesIO()
+    np.save(buf, cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED))
+    return buf.getvalue()
+
+
 def bench_http(requests: int, warmup: int, threads: int, map_path: Path | None = None,
-               queries_dir: Path | None = None) -> dict:
-    """Sequential POST /localize (inline PNG, multipart) against `reradar serve` in a subprocess.
+               queries_dir: Path | None = None, transports: tuple[str, ...] = ("png",)) -> dict:
+    """Sequential POST /localize (inline scan, multipart) against `reradar serve` in a subprocess.
 
     Default: the demo map and its 8 queries. ``map_path`` + ``queries_dir``: another map (e.g. 560 keyframes
     built with `reradar build-map`) and ``requests`` PNG scans evenly spread over a query folder.
+    ``transports``: ``png`` and / or ``navtech-npy`` (the PNG's pixels as .npy, ``scan_layout=navtech``); with
+    both, each query is sent both ways in turn (side by side on one server) and the second's figures are under
+    ``transports``; their answers must agree.
     """
     from maps.paths import DEMO_MAP_PATH, DEMO_QUERIES_DIR
     from service.client import ReRadarClient
@@ -191,15 +206,33 @@ def bench_http(requests: int, warmup: int, threads: int, map_path: Path | None =
             for i in range(warmup):
                 name, data = blobs[i % len(blobs)]
                 client.localize("demo", scan_bytes=data, filename=name)
-            lat, stages, statuses = [], {}, {}
+            npys = {name: _navtech_npy(data) for name, data in blobs} if "navtech-npy" in transports else {}
+            per: dict[str, tuple[list, dict, dict]] = {t: ([], {}, {}) for t in transports}
+            disagree = 0
             for i in range(requests):
                 name, data = blobs[i % len(blobs)]
-                t0 = time.perf_counter()
-                res = client.localize("demo", scan_bytes=data, filename=name)
-                lat.append((time.perf_counter() - t0) * 1e3)
-                statuses[res.status] = statuses.get(res.status, 0) + 1
-                for k, v in res.timings_ms.items():
-                    stages.setdefault(k, []).append(v)
+                answers = set()
+                for t in transports:
+                    lat, stages, statuses = per[t]
+                    t0 = time.perf_counter()
+                    if t == "navtech-npy":
+                        res = client.localize("demo", scan_bytes=npys[name], filename=Path(name).stem + ".npy",
+                                              scan_layout="navtech")
+                    else:
+                        res = client.localize("demo", scan_bytes=data, filename=name)
+                    lat.append((time.perf_counter() - t0) * 1e3)
+                    statuses[res.status] = statuses.get(res.status, 0) + 1
+                    for k, v in res.timings_ms.items():
+                        stages.setdefault(k, []).append(v)
+                    answers.add((res.status, res.keyframe.keyframe_id if res.keyframe else None,
+                                 None if res.pose is None else (res.pose.x_m, res.pose.y_m, res.pose.yaw_deg)))
+                disagree += len(answers) > 1
+            lat, stages, statuses = per[transports[0]]
+            others = {t: {"inline_p50_ms": _pct(per[t][0], 50), "inline_p99_ms": _pct(per[t][0], 99),
+                          "server_total_p50_ms": _pct(per[t][1]["total_ms"], 50),
+                          "server_total_p99_ms": _pct(per[t][1]["total_ms"], 99),
+                          "server_stage_mean_ms": {k: float(np.mean(v)) for k, v in sorted(per[t][1].items())},
+                          "statuses": per[t][2]} for t in transports[1:]}
             sid = client.upload_scan(scan_bytes=blobs[0][1], filename=blobs[0][0]).scan_id
             lat_ref = []
             for _ in range(min(requests, 50)):
@@ -222,6 +255,7 @@ def bench_http(requests: int, warmup: int, threads: int, map_path: Path | None =
             "server_stage_mean_ms": {k: float(np.mean(v)) for k, v in sorted(stages.items())},
             "server_stage_p99_ms": {k: _pct(v, 99) for k, v in sorted(stages.items())},
             "server_rss_mb": server_rss / 1e6,
+            "transport": transports[0], "transports": others, "answers_differ_between_transports": disagree,
         }
     finally:
         proc.terminate()
@@ -387,6 +421,9 @@ def main() -> int:
     p.add_argument("--requests", type=int, default=100)
     p.add_argument("--http-map", type=Path, default=None, help="--http against this map instead of the demo map")
     p.add_argument("--http-queries", type=Path, default=None, help="folder of query PNGs for --http-map")
+    p.add_argument("--http-transport", choices=("png", "navtech-npy", "both"), default="png",
+                   help="--http on the demo map: send PNGs, the PNGs' pixels as .npy (scan_layout=navtech), or "
+                        "each query both ways in turn")
     p.add_argument("--warmup", type=int, default=5)
     p.add_argument("--threads", type=int, default=1, help="torch threads of the service")
     p.add_argument("--keyframes", type=int, default=100_000)
@@ -414,7 +451,9 @@ def main() -> int:
     if args.all or args.http:
         if (args.http_map is None) != (args.http_queries is None):
             p.error("--http-map and --http-queries go together")
-        results["http"] = bench_http(args.requests, args.warmup, args.threads)  # the demo map
+        transports = ("png", "navtech-npy") if args.http_transport == "both" else (args.http_transport,)
+        results["http"] = bench_http(args.requests, args.warmup, args.threads,  # the demo map
+                                     transports=transports)
         if args.http_map is not None:  # and the bigger map in the same run: the ratios are the targets
             big = bench_http(args.requests, args.warmup, args.threads, args.http_map, args.http_queries)
             results["http_map"] = big

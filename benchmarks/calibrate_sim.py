@@ -14,8 +14,10 @@ Overrides (``--set``, repeatable), applied on top of the suite's definition:
                                  cond.*.FIELD applies to every condition
     profile.NAME.FIELD=V         WorldProfile field (e.g. profile.offroad.tree_per_tile=2)
     traversal.FIELD=V            Traversal option (traffic_per_km, persistent_car_fraction, transient_car_prob,
-                                 car_reflectivity, car_transmission, snow_bank_reflectivity)
+                                 car_reflectivity, car_transmission, snow_bank_reflectivity, traffic_lanes,
+                                 median_m, ego_clearance_m)
     query.lateral_m=V            the query drive's lateral offset from its route, metres
+    db.lateral_m=V               the database drive's lateral offset from its route, metres (v5)
     db.every=N, query.every=N    frame step of the database / query drive (protocol spacing)
     route.speed_min=V, route.speed_max=V   cruise speed range of both drives (synthetic routes), m/s
 
@@ -32,6 +34,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import os
 import sys
 import time
 from dataclasses import replace
@@ -86,19 +89,17 @@ def _condition(name: str, ov: dict[str, object]) -> T.Condition:
     return replace(c, **kw) if kw else c
 
 
-def _profile(name: str, ov: dict[str, object]) -> W.WorldProfile:
-    p = W.PROFILES[name]
-    kw = {k.split(".")[2]: v for k, v in ov.items() if k.startswith(f"profile.{name}.")}
-    return replace(p, **kw) if kw else p
-
-
 def _traversal(world: W.World, seed: int, cond: T.Condition, ov: dict[str, object],
-               traffic_per_km: float = 12.0, car_transmission: float = 0.0) -> T.Traversal:
-    kw: dict[str, object] = {"traffic_per_km": traffic_per_km, "car_transmission": car_transmission}
+               traffic_per_km: float = 12.0, car_transmission: float = 0.0, traffic_lanes: int | None = None,
+               median_m: float = 0.0, ego_clearance_m: float | None = None) -> T.Traversal:
+    kw: dict[str, object] = {"traffic_per_km": traffic_per_km, "car_transmission": car_transmission,
+                             "traffic_lanes": traffic_lanes, "median_m": median_m}
+    if ego_clearance_m is not None:
+        kw["ego_clearance_m"] = ego_clearance_m
     kw.update({k.split(".", 1)[1]: v for k, v in ov.items() if k.startswith("traversal.")})
     attrs = {"persistent_car_fraction": "PERSISTENT_CAR_FRACTION", "transient_car_prob": "TRANSIENT_CAR_PROB",
              "car_reflectivity": "CAR_REFLECTIVITY",
-             "snow_bank_reflectivity": "SNOW_BANK_REFLECTIVITY"}
+             "snow_bank_reflectivity": "SNOW_BANK_REFLECTIVITY", "ego_clearance_m": "EGO_CLEARANCE_M"}
     trav = T.Traversal(world, seed, cond, **{k: v for k, v in kw.items() if k not in attrs})  # type: ignore[arg-type]
     for k, attr in attrs.items():
         if k in kw:
@@ -108,12 +109,13 @@ def _traversal(world: W.World, seed: int, cond: T.Condition, ov: dict[str, objec
 
 def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, query_seq: str | None,
                   ov: dict[str, object], db_every: int = 1, use_cache: bool = True,
-                  all_queries: bool = False) -> dict[str, object]:
+                  all_queries: bool = False, revisit_m: float | None = None) -> dict[str, object]:
     """Render the database window and the chosen queries; returns scans, poses and the radius.
 
     ``all_queries``: take the query drive's scans evenly, whether or not the database holds their place (the
     paper's Recall@1 = TP / all queries, which is what it publishes for the MulRan single-session split);
-    otherwise only queries with a database scan within half the radius."""
+    otherwise only queries with a database scan within ``revisit_m`` (default half the radius; a larger value
+    keeps queries driven in a lane far from the database's, simulator v5)."""
     suite = S.SUITES[suite_name]
     db_def = next(s for s in suite.sequences if s.role == "database")
     q_defs = [s for s in suite.sequences if s.role == "query"]
@@ -128,8 +130,10 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
         q_def = replace(q_def, route=replace(q_def.route, speed_mps=sp))
     if "query.lateral_m" in ov:
         q_def = replace(q_def, route=replace(q_def.route, lateral_m=float(ov["query.lateral_m"])))  # type: ignore[arg-type]
+    if "db.lateral_m" in ov:
+        db_def = replace(db_def, route=replace(db_def.route, lateral_m=float(ov["db.lateral_m"])))  # type: ignore[arg-type]
     key = json.dumps([suite_name, window, n_queries, q_def.name, db_every, sorted(ov.items()), _sim_source_hash(),
-                      all_queries],
+                      all_queries] + ([revisit_m] if revisit_m is not None else []),
                      default=str)
     tag = hashlib.sha256(key.encode()).hexdigest()[:16]
     cache = Path(cache_dir("calib")) / f"{suite_name}-{tag}.npz"
@@ -137,9 +141,12 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
         z = np.load(cache, allow_pickle=False)
         return {k: z[k] for k in z.files} | {"radius": float(z["radius"]), "preset": str(z["preset"])}
 
-    sensor = SensorConfig(**{k.split(".", 1)[1]: v for k, v in ov.items() if k.startswith("sensor.")})  # type: ignore[arg-type]
+    sensor = replace(SensorConfig(**dict(suite.sensor_overrides)),  # type: ignore[arg-type]
+                     **{k.split(".", 1)[1]: v for k, v in ov.items() if k.startswith("sensor.")})  # type: ignore[arg-type]
     road = W.RoadNetwork([S._route_trajectory(replace(r, lateral_m=0.0), None).xy for r in suite.road_routes])
-    world = W.World(road, seed=suite.world_seed, profile=_profile(suite.profile, ov))
+    base = S.suite_profile(suite)
+    kw = {k.split(".")[2]: v for k, v in ov.items() if k.startswith(f"profile.{suite.profile}.")}
+    world = W.World(road, seed=suite.world_seed, profile=replace(base, **kw) if kw else base)  # type: ignore[arg-type]
 
     def times(seq: S.SequenceDef):
         traj = S._route_trajectory(seq.route, None)
@@ -155,14 +162,15 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
     q_traj, q_t, q_idx = times(q_def)
     q_pose = q_traj.interpolate(q_t)
     d = np.min(np.hypot(q_pose[:, None, 0] - db_pose[None, :, 0], q_pose[:, None, 1] - db_pose[None, :, 1]), axis=1)
-    ok = np.arange(len(d)) if all_queries else np.nonzero(d < 0.5 * suite.radius_m)[0]
+    near = 0.5 * suite.radius_m if revisit_m is None else float(revisit_m)
+    ok = np.arange(len(d)) if all_queries else np.nonzero(d < near)[0]
     if len(ok) > n_queries:
         ok = ok[np.linspace(0, len(ok) - 1, n_queries).round().astype(np.int64)]
     q_t, q_idx, q_pose = q_t[ok], q_idx[ok], q_pose[ok]
 
     def render(seq: S.SequenceDef, traj, t, idx) -> np.ndarray:
         trav = _traversal(world, seq.traversal_seed, _condition(seq.condition, ov), ov, suite.traffic_per_km,
-                          suite.car_transmission)
+                          suite.car_transmission, suite.traffic_lanes, suite.median_m, suite.ego_clearance_m)
         out = []
         for t0, k in zip(t, idx, strict=True):
             s = render_scan(trav, traj, int(t0), suite.preset, scan_seed(trav.seed, int(k)), sensor)
@@ -274,6 +282,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="append the result as one JSON line here")
     ap.add_argument("--all-queries", action="store_true", help="queries evenly over the whole query drive, "
                     "revisits or not (the paper's MulRan Recall@1 divides by all queries)")
+    ap.add_argument("--revisit-m", type=float, default=None, help="keep queries with a database scan within this "
+                    "distance (default: half the recall radius)")
     ap.add_argument("--no-cache", action="store_true")
     ap.add_argument("--table", default=None, help="print the calibration table from these JSON-lines files "
                     "(comma-separated; rows chosen by --rows) and exit")
@@ -288,12 +298,15 @@ def main(argv: list[str] | None = None) -> int:
     ov = parse_overrides(a.overrides)
     w0, w1 = (float(x) for x in a.window.split(":"))
     t0 = time.perf_counter()
-    data = render_subset(a.suite, (w0, w1), a.queries, a.query_seq, ov, a.db_every, not a.no_cache, a.all_queries)
+    data = render_subset(a.suite, (w0, w1), a.queries, a.query_seq, ov, a.db_every, not a.no_cache, a.all_queries,
+                         a.revisit_m)
     t_render = time.perf_counter() - t0
     row: dict[str, object] = {"suite": a.suite, "query_seq": a.query_seq, "window": a.window,
                               "db": int(len(data["db_scans"])), "queries": int(len(data["q_scans"])),  # type: ignore[arg-type]
                               "overrides": ov, "label": a.label, "render_s": round(t_render, 1),
-                              "all_queries": a.all_queries, "revisited_pct": round(_revisited(data), 1)}
+                              "all_queries": a.all_queries, "revisited_pct": round(_revisited(data), 1),
+                              "revisit_m": a.revisit_m, "load1": round(os.getloadavg()[0], 2),
+                              "utc": time.strftime("%H:%M:%S", time.gmtime())}
     for name in [s.strip() for s in a.methods.split(",") if s.strip()]:
         t1 = time.perf_counter()
         row[name] = round(recall_at_1(name, data), 1)

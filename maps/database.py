@@ -2,22 +2,35 @@
 ``Localizer`` (``reradar_core.localization``), with the FAISS index over its global descriptors.
 
 Global descriptors (N x D float32) live in the FAISS index; keypoints and local descriptors stay on disk and
-are read (and cached, with their landmark grids) only for a query's candidates.
+are read (and cached, with their landmark grids) only for a query's candidates - or, with ``arrays_dir`` (the
+service's default), are views into the map's memory-mapped arrays file (``maps.arrays``) shared by every
+worker process.
 """
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
 
+from maps.arrays import MapArrays
 from maps.store import KeyframeMap, MapMetadata, open_map
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
-from reradar_core.localization import LocalizationConfig, LocalizationResult, Localizer, PosePrior, Retrieval
+from reradar_core.localization import (
+    KeyframeSource,
+    LocalizationConfig,
+    LocalizationResult,
+    Localizer,
+    PosePrior,
+    Retrieval,
+)
 from reradar_core.retrieval import GlobalIndex, IndexConfig
 
 __all__ = ["Retrieval", "MapDatabase"]
+
+logger = logging.getLogger(__name__)
 
 
 def _return_freed_memory() -> None:
@@ -45,18 +58,31 @@ class MapDatabase:
             costs ~1.3 ms, as much as screening it, so a map that fits is best held whole.
         config: the localizer's default ``LocalizationConfig``.
         preload: read every keyframe at open (when the map fits in the cache) instead of on first use.
+        arrays_dir: when given, the keyframes' features and screen masks are read from the map's shared arrays
+            file in this folder (``maps.arrays``; built on first use), memory-mapped: every process serving the
+            map shares those pages, and the cache holds only views into them.
     """
 
     def __init__(self, kf_map: KeyframeMap, index_config: IndexConfig = IndexConfig(),
                  keyframe_cache_size: int | None = 128, config: LocalizationConfig | None = None,
-                 preload: bool = False) -> None:
+                 preload: bool = False, arrays_dir: str | Path | None = None) -> None:
         self.map = kf_map
         if kf_map.global_descriptors is None:
             raise ConfigError(f"{kf_map.path}: global descriptors were released; reopen the map")
+        config = config or LocalizationConfig()
+        self.arrays: MapArrays | None = None
+        source: KeyframeSource = kf_map
+        if arrays_dir is not None:  # keyframes as views into one memory-mapped file shared by every process
+            try:
+                self.arrays = MapArrays.open_or_build(kf_map, arrays_dir, config.alignment)
+                source = self.arrays
+            except OSError as exc:  # e.g. a read-only or full disk: serve from private memory instead
+                logger.warning("%s: shared map arrays unavailable (%s); reading keyframes into this process",
+                               kf_map.path.name, exc)
         self.index = GlobalIndex(kf_map.global_descriptors, index_config)
         kf_map.release_global_descriptors()  # the index holds its own copy
         _return_freed_memory()
-        self.localizer = Localizer(self.index, kf_map, config, cache_size=keyframe_cache_size, preload=preload)
+        self.localizer = Localizer(self.index, source, config, cache_size=keyframe_cache_size, preload=preload)
 
     @classmethod
     def open(cls, path: str | Path, model_id: str | None = None, weights_sha256: str | None = None,
@@ -86,4 +112,6 @@ class MapDatabase:
 
     def close(self) -> None:
         self.localizer.clear()
+        if self.arrays is not None:
+            self.arrays.close()
         self.map.close()

@@ -17,6 +17,7 @@ only when complete, so a crash mid-write never leaves a half map visible under t
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
 import logging
 import os
 import threading
@@ -202,6 +203,7 @@ class KeyframeMap:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self._lock = threading.Lock()
+        self._sha256: str | None = None
         self._file: h5py.File | None = _open_h5(self.path)
         self.global_descriptors: np.ndarray | None
         try:
@@ -269,6 +271,23 @@ class KeyframeMap:
             return ScanFeatures(g, kps, desc, int(self.timestamps_us[index]))
         except ValueError as exc:
             raise MapFormatError(f"{self.path}: keyframe {index}: {exc}") from exc
+
+    def content_sha256(self) -> str:
+        """SHA-256 of the map file's bytes, read through the HDF5 library's own file descriptor (so it is the
+        content of the file this object opened, even if another file was renamed over ``path`` since);
+        computed once (~1 s per GB)."""
+        with self._lock:
+            if self._sha256 is None:
+                if self._file is None:
+                    raise MapFormatError(f"{self.path}: map is closed")
+                fd = int(self._file.id.get_vfd_handle())
+                h = hashlib.sha256()
+                pos = 0
+                while chunk := os.pread(fd, 1 << 20, pos):
+                    h.update(chunk)
+                    pos += len(chunk)
+                self._sha256 = h.hexdigest()
+            return self._sha256
 
     def release_global_descriptors(self) -> None:
         """Drop the in-memory (N, D) global descriptors once an index holds them (halves resident memory);

@@ -151,9 +151,10 @@ class ReRadarClient:
 
     # ---- scans, retrieval, localization ------------------------------------------------------------------
     def upload_scan(self, scan_path: str | Path | None = None, scan_bytes: bytes | None = None,
-                    filename: str = "scan.png", preset: str | None = None) -> ScanInfo:
+                    filename: str = "scan.png", preset: str | None = None,
+                    scan_layout: str | None = None) -> ScanInfo:
         files = {"scan": _scan_file(scan_path, scan_bytes, filename)}
-        data = {"preset": preset} if preset else {}
+        data = {k: v for k, v in (("preset", preset), ("scan_layout", scan_layout)) if v}
         return ScanInfo.model_validate(self._check(self._http.post("/scans", files=files, data=data)).json())
 
     def _scan_request(self, path: str, fields: dict[str, Any], scan_id: str | None,
@@ -166,9 +167,9 @@ class ReRadarClient:
 
     def retrieve(self, map_id: str, scan_id: str | None = None, scan_path: str | Path | None = None,
                  scan_bytes: bytes | None = None, top_k: int | None = None,
-                 filename: str = "scan.png") -> RetrieveResponse:
-        resp = self._scan_request(f"/maps/{map_id}/retrieve", {"top_k": top_k}, scan_id, scan_path, scan_bytes,
-                                  filename)
+                 filename: str = "scan.png", scan_layout: str | None = None) -> RetrieveResponse:
+        fields = {"top_k": top_k, "scan_layout": scan_layout if scan_id is None else None}
+        resp = self._scan_request(f"/maps/{map_id}/retrieve", fields, scan_id, scan_path, scan_bytes, filename)
         return RetrieveResponse.model_validate(resp.json())
 
     def localize(self, map_id: str, scan_path: str | Path | None = None, scan_id: str | None = None,
@@ -176,14 +177,20 @@ class ReRadarClient:
                  filename: str = "scan.png", session_id: str | None = None,
                  odometry: tuple[float, float, float] | None = None,
                  prior: tuple[float, float, float] | None = None,
-                 prior_sigma: tuple[float, float] | None = None) -> LocalizeResponse:
+                 prior_sigma: tuple[float, float] | None = None,
+                 scan_layout: str | None = None) -> LocalizeResponse:
         """Localize an inline scan (``scan_path``/``scan_bytes``, multipart) or a cached ``scan_id`` (JSON).
+
+        ``scan_layout="navtech"`` with ``filename="scan.npy"``: ``scan_bytes`` is ``np.save`` of the Navtech image
+        itself (uint8, 11 metadata columns + range bins, as the PNG's pixels): the same answer as the PNG, without
+        the server's PNG decompression (docs/SERVICE.md).
 
         Tracking mode: ``session_id`` (the server keeps the session's last pose) with ``odometry`` = motion
         since the session's previous scan (dx m forward, dy m left, dyaw deg, in that scan's frame); or an
         explicit ``prior`` = (x m, y m, yaw deg) in the map frame with ``prior_sigma`` = (m, deg).
         """
-        fields: dict[str, Any] = {"map_id": map_id, "top_k": top_k, "session_id": session_id}
+        fields: dict[str, Any] = {"map_id": map_id, "top_k": top_k, "session_id": session_id,
+                                  "scan_layout": scan_layout if scan_id is None else None}
         if odometry is not None:
             fields.update(zip(("odom_dx_m", "odom_dy_m", "odom_dyaw_deg"), map(float, odometry), strict=True))
         if prior is not None:

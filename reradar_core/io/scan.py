@@ -24,6 +24,7 @@ import io
 import struct
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -37,6 +38,8 @@ __all__ = [
     "read_navtech_png",
     "write_navtech_png",
     "decode_navtech_png_bytes",
+    "decode_navtech_npy_bytes",
+    "NpyLayout",
     "encode_navtech_png_bytes",
     "read_polar_npy",
     "load_scan",
@@ -465,11 +468,32 @@ def load_scan(path: str | Path, preset: str | RadarPreset | None = None) -> Rada
     raise ScanFormatError(f"{path}: unsupported scan format {suffix!r} (use .png or .npy)")
 
 
-def load_scan_bytes(data: bytes, filename: str = "scan.png",
-                    preset: str | RadarPreset | None = None) -> RadarScan:
-    """Decode an uploaded scan by its filename suffix (``.png`` or ``.npy``)."""
+def decode_navtech_npy_bytes(data: bytes, preset: str | RadarPreset | None = None) -> RadarScan:
+    """Decode an .npy array holding a Navtech PNG's pixels (uint8 (A, 11 + R): the metadata columns, then the
+    range bins) - the same scan as the PNG, with the same azimuths and timestamps, without PNG's inflate
+    (~5-10 ms per sweep) for 2.7x the bytes (``NpyLayout`` ``navtech``)."""
+    try:
+        array = np.load(io.BytesIO(data), allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise ScanFormatError(f"upload is not a readable .npy array ({exc})") from exc
+    if array.dtype != np.uint8 or array.ndim != 2:
+        raise ScanFormatError(f"a Navtech .npy (scan_layout navtech) must be a 2-D uint8 array of the PNG's pixels, "
+                              f"got dtype {array.dtype} shape {array.shape}")
+    return _scan_from_raw(array, preset, "upload")
+
+
+#: What an uploaded .npy holds: ``polar`` = (A, R) power, uniform azimuths, geometry from the preset;
+#: ``navtech`` = the Navtech PNG's pixels, metadata columns included (decoded exactly as the PNG).
+NpyLayout = Literal["polar", "navtech"]
+
+
+def load_scan_bytes(data: bytes, filename: str = "scan.png", preset: str | RadarPreset | None = None,
+                    npy_layout: NpyLayout = "polar") -> RadarScan:
+    """Decode an uploaded scan by its filename suffix (``.png`` or ``.npy``; an .npy as ``npy_layout``)."""
     suffix = Path(filename).suffix.lower()
     if suffix == ".npy":
+        if npy_layout == "navtech":
+            return decode_navtech_npy_bytes(data, preset)
         try:
             array = np.load(io.BytesIO(data), allow_pickle=False)
         except (OSError, ValueError, EOFError) as exc:

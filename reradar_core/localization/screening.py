@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from reradar_core.matching import AlignmentConfig, build_landmark_grid, screen_alignment
+from reradar_core.matching.alignment import topk_last_axis
 
 __all__ = ["ScreenGrid", "build_screen_grid", "ScreenKeyframe", "screen_keyframe", "screen_candidates"]
 
@@ -68,11 +69,10 @@ class ScreenKeyframe:
 
 
 def _topk_indices(sim: np.ndarray, k: int) -> np.ndarray:
-    """Indices of the k largest entries along the last axis of ``sim`` (any leading shape)."""
-    import torch  # torch.topk is several times faster than np.argpartition on these shapes
-
-    # unsorted, like ``matching.alignment``: the pair order (which the seeded draw indexes) is then the same
-    return torch.topk(torch.from_numpy(sim), k, dim=2, sorted=False).indices.numpy()
+    """Indices of the k largest entries along the last axis of ``sim`` (any leading shape; overwritten), in
+    ``torch.topk(sorted=False)``'s order like ``matching.alignment``: the pair order (which the seeded draw
+    indexes) is then the same (``matching.topk_last_axis``)."""
+    return topk_last_axis(sim, k)
 
 
 def _cells(a: np.ndarray, b: np.ndarray, sign: float, t: np.ndarray, origin: np.ndarray,

@@ -31,7 +31,8 @@ from reradar_core.errors import ConfigError
 from reradar_core.geometry.se2 import wrap_angle
 from reradar_core.matching.ransac import RigidEstimate, fit_rigid_2d
 
-__all__ = ["AlignmentConfig", "LandmarkGrid", "build_landmark_grid", "estimate_pose_guided", "screen_alignment"]
+__all__ = ["AlignmentConfig", "LandmarkGrid", "build_landmark_grid", "estimate_pose_guided", "screen_alignment",
+           "topk_last_axis"]
 
 
 @dataclass(frozen=True)
@@ -93,26 +94,52 @@ class LandmarkGrid:
     """Distance (metres) from each grid cell to the nearest landmark, plus a KD-tree of the landmarks.
 
     Attributes:
-        distance_m: (n, n) float32, row = y cell, column = x cell.
+        distance_m: (n, n) float32, row = y cell, column = x cell; None for a grid made ``from_within_mask``
+            (it answers ``count_within`` at its one threshold only).
         origin_m: coordinate of the grid's lower corner (same for x and y), metres.
         cell_m: cell size, metres.
         tree: KD-tree over the (N, 2) landmark positions.
         points: (N, 2) float64 landmark positions, metres.
     """
 
-    distance_m: np.ndarray
+    distance_m: np.ndarray | None
     origin_m: float
     cell_m: float
     tree: cKDTree
     points: np.ndarray
 
     _within: dict[float, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
+    _size: int = field(default=0, repr=False, compare=False)
+
+    @classmethod
+    def from_within_mask(cls, packed: np.ndarray, n: int, origin_m: float, cell_m: float, threshold_m: float,
+                         points_xy_m: np.ndarray) -> LandmarkGrid:
+        """A grid over (M, 2) landmarks from the bit-packed (``np.packbits``, row-major) mask of the n x n cells
+        of ``build_landmark_grid(points_xy_m, cell_m)`` closer than ``threshold_m`` to a landmark (e.g. the
+        screen's ``ScreenGrid``): no distance transform and no float grid (0.5 MB with 512 landmarks), and it
+        counts exactly as the full grid at ``threshold_m`` (same cells, same mask)."""
+        pts = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+        grid = cls(None, float(origin_m), float(cell_m), cKDTree(pts), pts, _size=int(n))
+        grid._within[threshold_m] = np.append(np.unpackbits(packed, count=n * n), np.uint8(0))
+        return grid
+
+    @property
+    def size(self) -> int:
+        """Cells per side, n."""
+        return self._size if self.distance_m is None else int(self.distance_m.shape[0])
+
+    def can_count(self, cell_m: float, threshold_m: float) -> bool:
+        """Whether ``count_within(..., threshold_m)`` is available on a grid of ``cell_m`` cells."""
+        return self.cell_m == cell_m and (self.distance_m is not None or threshold_m in self._within)
 
     def within_mask(self, threshold_m: float) -> np.ndarray:
         """(n * n + 1,) uint8: 1 where a cell is closer than ``threshold_m`` to a landmark (row-major), then a
         0 for "outside the grid"; built once per threshold."""
         mask = self._within.get(threshold_m)
         if mask is None:
+            if self.distance_m is None:
+                raise ConfigError(f"this landmark grid counts within {sorted(self._within)} m only, "
+                                  f"not {threshold_m} m")
             mask = np.append((self.distance_m < threshold_m).reshape(-1), False).astype(np.uint8)
             self._within[threshold_m] = mask
         return mask
@@ -120,7 +147,7 @@ class LandmarkGrid:
     def count_within(self, x: np.ndarray, y: np.ndarray, threshold_m: float) -> np.ndarray:
         """Per row of the (V, P) points (x, y): how many are closer than ``threshold_m`` to a landmark -
         exactly ``(lookup(x, y) < threshold_m).sum(axis=1)`` (same cells), without the float look-up."""
-        n = self.distance_m.shape[0]
+        n = self.size
         i = np.floor((x - self.origin_m) / self.cell_m).astype(np.int64)
         j = np.floor((y - self.origin_m) / self.cell_m).astype(np.int64)
         inside = i.view(np.uint64) < np.uint64(n)  # negative cells wrap to huge unsigned values
@@ -132,6 +159,8 @@ class LandmarkGrid:
 
     def lookup(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Distance to the nearest landmark at points (x, y) (any shape); far outside the grid = large."""
+        if self.distance_m is None:
+            raise ConfigError("this landmark grid holds a mask, not distances (made by from_within_mask)")
         n = self.distance_m.shape[0]
         i = np.floor((x - self.origin_m) / self.cell_m).astype(np.int64)
         j = np.floor((y - self.origin_m) / self.cell_m).astype(np.int64)
@@ -153,13 +182,48 @@ def build_landmark_grid(points_xy_m: np.ndarray, cell_m: float = 0.5, margin_m: 
     return LandmarkGrid(dist, -half, cell_m, cKDTree(pts), pts)
 
 
+def topk_last_axis(scores: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the ``k`` largest entries along the last axis of float ``scores`` (any leading shape), in
+    exactly the order ``torch.topk(scores, k, dim=-1, sorted=False)`` returns them - the order the seeded
+    minimal-set draws index, so the answers depend on it. ``scores`` is used as scratch space (overwritten).
+
+    torch's CPU kernel copies every row into a (value, index) vector and ``std::partial_sort`` s it when
+    ``64 k <= n`` (then its "unsorted" output is in descending order; ties in an order of its heap's making);
+    that costs ~3 us per row. Here ``k + 1`` vectorised ``argmax`` passes give the same indices for every row
+    whose ``k + 1`` largest values are distinct and not NaN (~6x faster on the screen's 5,120 rows of 512);
+    the other rows, and shapes where torch selects with ``nth_element`` instead, go to ``torch.topk``.
+    """
+    import torch  # loaded anyway by the model; its kernel is the reference for ties
+
+    n = scores.shape[-1]
+    lead = scores.shape[:-1]
+    k = min(k, n)
+    if k < 1 or 64 * k > n:
+        return torch.topk(torch.from_numpy(scores), k, dim=-1, sorted=False).indices.numpy()
+    flat = scores.reshape(-1, n)  # a view when contiguous, else a copy: scratch either way
+    rows = np.arange(flat.shape[0])
+    idx = np.empty((flat.shape[0], k + 1), np.int64)
+    val = np.empty((flat.shape[0], k + 1), flat.dtype)
+    for j in range(k + 1):
+        i = flat.argmax(axis=1)
+        idx[:, j] = i
+        val[:, j] = flat[rows, i]
+        flat[rows, i] = -np.inf
+    unclear = np.flatnonzero((val[:, :-1] == val[:, 1:]).any(axis=1) | np.isnan(val).any(axis=1))
+    out = idx[:, :k]
+    if len(unclear):  # ties or NaN: restore those rows and let torch order them as it does
+        for j in reversed(range(k + 1)):  # last pass first: a pass over an all -inf rest may re-pick an index
+            flat[unclear, idx[unclear, j]] = val[unclear, j]
+        out[unclear] = torch.topk(torch.from_numpy(np.ascontiguousarray(flat[unclear])), k, dim=1,
+                                  sorted=False).indices.numpy()
+    return np.ascontiguousarray(out).reshape(*lead, k)
+
+
 def _topk_pairs(desc_src: np.ndarray, desc_dst: np.ndarray, k: int) -> np.ndarray:
     """(N*k, 2) index pairs: each source row with its k most cosine-similar destination rows."""
-    import torch  # torch.topk is ~3x faster than np.argpartition here and torch is loaded anyway
-
-    sim = torch.from_numpy(desc_src.astype(np.float32) @ desc_dst.astype(np.float32).T)
+    sim = desc_src.astype(np.float32) @ desc_dst.astype(np.float32).T
     k = min(k, sim.shape[1])
-    idx = torch.topk(sim, k, dim=1, sorted=False).indices.numpy()
+    idx = topk_last_axis(sim, k)
     return np.stack([np.repeat(np.arange(sim.shape[0]), k), idx.reshape(-1)], axis=1)
 
 
@@ -232,7 +296,7 @@ def screen_alignment(points_src: np.ndarray, desc_src: np.ndarray, points_dst: n
         return 0.0
     if desc_src.shape[0] != n or desc_dst.shape[0] != len(dst) or desc_src.shape[1] != desc_dst.shape[1]:
         raise ConfigError(f"descriptor shapes {desc_src.shape}, {desc_dst.shape} do not match the landmarks")
-    if grid is None or grid.cell_m != config.grid_cell_m:  # a cached grid built with another cell is rebuilt
+    if grid is None or not grid.can_count(config.grid_cell_m, config.score_threshold_m):  # else rebuilt
         grid = build_landmark_grid(dst, config.grid_cell_m)
     sub = np.arange(0, n, max(1, n // config.screen_source_points))
     pairs = _topk_pairs(desc_src[sub], desc_dst, config.top_k_matches)
@@ -281,7 +345,7 @@ def estimate_pose_guided(points_src: np.ndarray, desc_src: np.ndarray, points_ds
         return fail("non_finite_input")
     if desc_src.shape[0] != n or desc_dst.shape[0] != len(dst) or desc_src.shape[1] != desc_dst.shape[1]:
         raise ConfigError(f"descriptor shapes {desc_src.shape}, {desc_dst.shape} do not match the landmarks")
-    if grid is None or grid.cell_m != config.grid_cell_m:  # a cached grid built with another cell is rebuilt
+    if grid is None or not grid.can_count(config.grid_cell_m, config.score_threshold_m):  # else rebuilt
         grid = build_landmark_grid(dst, config.grid_cell_m)
     rng = np.random.default_rng(config.seed)
     hyp = _hypotheses(src, dst, _topk_pairs(desc_src, desc_dst, config.top_k_matches), config, rng)

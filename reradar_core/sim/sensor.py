@@ -68,6 +68,13 @@ class SensorConfig:
             clutter; a cell holding a dominant scatterer has Rician statistics (Swerling 0 plus diffuse part,
             Skolnik, Radar Handbook 3rd ed., ch. 7), so strong targets flicker far less between scans.
             0 = every return fully speckled.
+        attitude_deg: standard deviation (degrees) of the vehicle's pitch and of its roll relative to the
+            surrounding ground (simulator v5; 0 = level, v4). The elevation beam then meets the ground nearer
+            on the side it tips towards and farther on the other, so the ground clutter, kerbs and terrain
+            slopes it lights change with the azimuth and from one pass to the next. Pitch and roll vary
+            smoothly with time (sum of sinusoids of 1.5-12 s periods, phases from the traversal seed).
+        mount_height_m: height of the antenna above the ground (only used with ``attitude_deg``): the beam's
+            depression angle in level attitude is atan(mount_height_m / ground_peak_m).
     """
 
     oversample: int = 2
@@ -96,6 +103,8 @@ class SensorConfig:
     glint_max_lobes: int = 8
     glint_length_m: float = 3.0
     dominant_fraction: float = 0.0
+    attitude_deg: float = 0.0
+    mount_height_m: float = 2.0
 
 
 def sweep_poses(trajectory: PoseSequence, t0_us: int, preset: RadarPreset, oversample: int = 1
@@ -154,9 +163,32 @@ def _aspect_gain(ids: np.ndarray, angle: np.ndarray, cfg: SensorConfig) -> np.nd
     return 10.0 ** (cfg.glint_db / 10.0 * np.sin(k * angle + phase))
 
 
-def _elevation_gain(r: np.ndarray, cfg: SensorConfig) -> np.ndarray:
-    """Fraction of the elevation beam on the ground at range r (0 next to the vehicle, 1 beyond the peak)."""
-    return 1.0 / (1.0 + np.exp(-(r - 0.4 * cfg.ground_peak_m) / (0.15 * cfg.ground_peak_m)))
+def _elevation_gain(r: np.ndarray, cfg: SensorConfig, peak: np.ndarray | None = None) -> np.ndarray:
+    """Fraction of the elevation beam on the ground at range r (0 next to the vehicle, 1 beyond the peak).
+
+    ``peak``: per-return ground-peak range (vehicle attitude, ``attitude_deg``); default ``cfg.ground_peak_m``."""
+    if peak is None:
+        return 1.0 / (1.0 + np.exp(-(r - 0.4 * cfg.ground_peak_m) / (0.15 * cfg.ground_peak_m)))
+    return 1.0 / (1.0 + np.exp(-(r - 0.4 * peak) / (0.15 * peak)))
+
+
+def attitude(traversal_seed: int, t_s: float, cfg: SensorConfig) -> tuple[float, float]:
+    """(pitch, roll) in radians at time ``t_s``: smooth, zero-mean, std ``cfg.attitude_deg`` each."""
+    if cfg.attitude_deg <= 0:
+        return 0.0, 0.0
+    rng = np.random.default_rng(stable_seed(traversal_seed, "attitude"))
+    periods = rng.uniform(1.5, 12.0, (2, 6))
+    phases = rng.uniform(0.0, 2 * np.pi, (2, 6))
+    # the sum of six unit sinusoids has variance 3: scale to the requested std
+    v = np.sin(2 * np.pi * t_s / periods + phases).sum(axis=1) / np.sqrt(3.0)
+    return float(np.radians(cfg.attitude_deg) * v[0]), float(np.radians(cfg.attitude_deg) * v[1])
+
+
+def _ground_peaks(theta: np.ndarray, pitch: float, roll: float, cfg: SensorConfig) -> np.ndarray:
+    """Ground-peak range per sensor azimuth ``theta`` (clockwise from forward) for a tilted vehicle."""
+    dep0 = np.arctan2(cfg.mount_height_m, cfg.ground_peak_m)
+    dep = dep0 + pitch * np.cos(theta) - roll * np.sin(theta)
+    return np.clip(cfg.mount_height_m / np.tan(np.clip(dep, np.radians(0.1), np.radians(60.0))), 3.0, 1000.0)
 
 
 def _intervals(lo_ang: np.ndarray, span: np.ndarray, n_fine: int, dth_fine: float,
@@ -216,6 +248,9 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
     dyaw = float(abs(np.angle(np.exp(1j * (poses[-1, 2] - poses[0, 2])))))
     t_mid_s = (t0_us + 0.5 * p.sweep_period_s * 1e6) / 1e6
 
+    pitch, roll = attitude(traversal.seed, t_mid_s, cfg)
+    peak_f = _ground_peaks(theta, pitch, roll, cfg) if cfg.attitude_deg > 0 else None  # per fine ray
+
     prim = traversal.world.query(mid[:2], max_r + motion + 5.0)
     dyn = traversal.dynamic_primitives(t_mid_s, mid[:2], max_r, prim)
     prim = Primitives.concat([prim, dyn] + ([extra] if extra is not None else []))
@@ -255,7 +290,7 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
         cos_inc = np.abs(den) / seg_len[si]
         amp = refl[si] * (rough[si] * cos_inc + (1 - rough[si]) * cos_inc ** 8) / K
         # objects at ground level are lit only where the elevation beam reaches the ground
-        amp = np.where(low[si] > 0, amp * _elevation_gain(t, cfg), amp)
+        amp = np.where(low[si] > 0, amp * _elevation_gain(t, cfg, None if peak_f is None else peak_f[ri]), amp)
         # glint along the surface and with the viewing direction (windows, seams, ribs of a façade)
         seg_ids = _point_ids(0.5 * (s[:, :2] + s[:, 2:]))
         view = np.arctan2(rdy, rdx)[ok] + uu[ok] * seg_len[si] * (2 * np.pi / cfg.glint_length_m)
@@ -335,7 +370,8 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
         bearing = np.arctan2(poses[j, 1] - pts[:, 1], poses[j, 0] - pts[:, 0])
         rcs = rcs * _aspect_gain(_point_ids(pts), bearing, cfg)
         rcs = np.where(kind == 1, rcs * cond.leaf_factor, rcs)
-        rcs = np.where(kind == 2, rcs * cond.ground_factor * _elevation_gain(rp, cfg), rcs)
+        rcs = np.where(kind == 2, rcs * cond.ground_factor
+                       * _elevation_gain(rp, cfg, None if peak_f is None else peak_f[j]), rcs)
         # 1 m tolerance: a scatterer on a wall (façade detail) is not shadowed by the wall it sits on, even
         # when its sub-ray meets the wall a little earlier at grazing incidence
         pb = np.clip(np.floor((rp - 1.0 - off) / (res * coarse)).astype(np.int64), 0, n_c - 1)
@@ -394,7 +430,14 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
     # ground is shadowed like everything else: average the sub-ray transmission into azimuth cells
     tm = tmap.reshape(n_az, K, n_c).mean(axis=1)
     tm_full = cv2.resize(tm, (n_r, n_az), interpolation=cv2.INTER_NEAREST) if n_c != n_r else tm
-    power = blurred + ground[None, :] * tm_full + (near + floor)[None, :]
+    if peak_f is None:
+        power = blurred + ground[None, :] * tm_full + (near + floor)[None, :]
+    else:  # tilted vehicle: the ground profile per azimuth, with that azimuth's peak range
+        pk = peak_f.reshape(n_az, K).mean(axis=1).astype(np.float32)[:, None]
+        g2 = (cfg.ground_level * cond.ground_factor * _elevation_gain(rr[None, :], cfg, pk)
+              * (pk / np.maximum(rr[None, :], pk)) ** 2.5).astype(np.float32)
+        g2 *= (10 ** (-2 * cond.attenuation_db_per_km * rr / 1e4)).astype(np.float32)[None, :]
+        power = blurred + g2 * tm_full + (near + floor)[None, :]
 
     # interference streaks: a few azimuths saturated across range (another radar / the vehicle's own)
     n_st = rng.poisson(cfg.streak_rate)

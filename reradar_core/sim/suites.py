@@ -49,7 +49,7 @@ from reradar_core.sim.trajectories import (
     synthetic_loop_route,
 )
 from reradar_core.sim.traversal import Traversal
-from reradar_core.sim.world import RoadNetwork, World
+from reradar_core.sim.world import PROFILES, RoadNetwork, World, WorldProfile
 from reradar_core.sim.writer import SIM_VERSION, is_complete, render_sequence
 
 __all__ = [
@@ -142,6 +142,18 @@ class SuiteDef:
     traffic_per_km: float = 12.0  # moving vehicles per km of road (both directions)
     # fraction of the beam passing over a car (Traversal.CAR_TRANSMISSION; 0 = opaque, v3 everywhere)
     car_transmission: float = 0.0
+    # v5: (field, value) pairs replacing fields of the world profile for this suite only; the profile keeps
+    # its name, so the tiles draw from the same seeds (empty = the profile as defined, v4 everywhere)
+    profile_overrides: tuple[tuple[str, float], ...] = ()
+    # v5: moving traffic spread over this many lanes per direction either side of a median (Traversal's
+    # ``traffic_lanes`` / ``median_m``); None = one lane per direction at 0.4 road half-widths (v4)
+    traffic_lanes: int | None = None
+    median_m: float = 0.0
+    # v5: moving vehicles nearer than this to the sensor are left out (None = Traversal.EGO_CLEARANCE_M, 7 m)
+    ego_clearance_m: float | None = None
+    # v5: (field, value) pairs replacing SensorConfig fields when this suite is rendered (e.g. the vehicle's
+    # attitude); empty = the sensor as given (v4 everywhere)
+    sensor_overrides: tuple[tuple[str, float], ...] = ()
 
 
 @dataclass
@@ -394,7 +406,15 @@ def _world_for(suite: SuiteDef, seq: SequenceDef, traj_dir: Path | None) -> Worl
 def _shared_world(suite_name: str, traj_dir: Path | None) -> World:
     suite = SUITES[suite_name]
     road = RoadNetwork([_route_trajectory(replace(r, lateral_m=0.0), traj_dir).xy for r in suite.road_routes])
-    return World(road, seed=suite.world_seed, profile=suite.profile)
+    return World(road, seed=suite.world_seed, profile=suite_profile(suite))
+
+
+def suite_profile(suite: SuiteDef) -> WorldProfile:
+    """The suite's world profile with its ``profile_overrides`` applied (same name, so same tile seeds)."""
+    if suite.profile not in PROFILES:
+        raise ConfigError(f"suite {suite.name!r}: unknown world profile {suite.profile!r}")
+    prof = PROFILES[suite.profile]
+    return replace(prof, **dict(suite.profile_overrides)) if suite.profile_overrides else prof  # type: ignore[arg-type]
 
 
 def _sequence_times(traj: PoseSequence, seq: SequenceDef, use_pose_times: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -440,6 +460,8 @@ def build_suite(name: str, root: str | Path | None = None, progress: bool = True
     traj_dir = Path(trajectory_dir) if trajectory_dir is not None else None
     data = SuiteData(name, root, suite.preset, suite.layout, suite.radius_m, single_session=suite.single_session,
                      purpose=suite.purpose)
+    if suite.sensor_overrides:
+        config = replace(config, **dict(suite.sensor_overrides))  # type: ignore[arg-type]
     for seq in suite.sequences:
         if every is not None or limit is not None:
             seq = replace(seq, every=every or seq.every, limit=limit if limit is not None else seq.limit)
@@ -448,7 +470,8 @@ def build_suite(name: str, root: str | Path | None = None, progress: bool = True
             traj = _route_trajectory(seq.route, traj_dir)
             world = _world_for(suite, seq, traj_dir)
             traversal = Traversal(world, seq.traversal_seed, seq.condition, traffic_per_km=suite.traffic_per_km,
-                                  car_transmission=suite.car_transmission)
+                                  car_transmission=suite.car_transmission, traffic_lanes=suite.traffic_lanes,
+                                  median_m=suite.median_m, ego_clearance_m=suite.ego_clearance_m)
             times, idx = _sequence_times(traj, seq, use_pose_times=seq.route.kind != "loop")
             render_sequence(out, traversal, traj, times, idx, suite.preset, suite.layout, config, progress,
                             meta={"suite": name, "sequence": seq.name, "role": seq.role},

@@ -77,6 +77,13 @@ class Traversal:
         traffic_per_km: moving vehicles per km of road.
         car_transmission: fraction of the beam passing over a car (parked or moving, not buses / trucks);
             ``None`` keeps the class default ``CAR_TRANSMISSION`` (opaque cars).
+        traffic_lanes: lanes per direction of the moving traffic (simulator v5, multi-lane boulevards):
+            each vehicle keeps one lane, 3.5 m wide, counted from ``median_m`` / 2 off the centreline.
+            ``None`` (default, v4): every vehicle at 0.4 road half-widths off the centreline.
+        median_m: width of the central median for ``traffic_lanes``, metres.
+        ego_clearance_m: moving vehicles closer than this to the sensor are left out (they would overlap the
+            ego vehicle); ``None`` keeps the class default ``EGO_CLEARANCE_M`` (7 m, v4), which also drops
+            every vehicle in the lanes next to the ego's.
     """
 
     #: Fraction of parked-car slots holding a long-term parked car (same on every traversal) and the
@@ -90,9 +97,17 @@ class Traversal:
     #: Reflectivity of the ploughed snow banks along the kerbs (v3: 0.6).
     SNOW_BANK_REFLECTIVITY = 0.6
 
+    #: Lane width of the multi-lane traffic option, metres (Korean / UK urban arterials: 3.25-3.65 m).
+    LANE_WIDTH_M = 3.5
+    #: Moving vehicles closer than this to the sensor are left out (they would overlap the ego vehicle).
+    EGO_CLEARANCE_M = 7.0
+
     def __init__(self, world: World, seed: int, condition: str | Condition = "clear", traffic_per_km: float = 12.0,
-                 car_transmission: float | None = None):
+                 car_transmission: float | None = None, traffic_lanes: int | None = None, median_m: float = 0.0,
+                 ego_clearance_m: float | None = None):
         self.world = world
+        if ego_clearance_m is not None:
+            self.EGO_CLEARANCE_M = float(ego_clearance_m)
         if car_transmission is not None:
             self.CAR_TRANSMISSION = float(car_transmission)
         self.seed = int(seed)
@@ -103,6 +118,10 @@ class Traversal:
         self._veh_idx0 = rng.uniform(0, len(road.points), n)
         self._veh_speed = rng.uniform(4.0, 14.0, n) * rng.choice([-1.0, 1.0], n)
         self._veh_lane = np.where(self._veh_speed > 0, -1.0, 1.0) * world.profile.road_half_width_m * 0.4
+        if traffic_lanes is not None and n:
+            # own generator: the draws above (and so the default traffic) stay as they were
+            lane = np.random.default_rng(stable_seed(self.seed, "lanes")).integers(0, int(traffic_lanes), n)
+            self._veh_lane = np.sign(self._veh_lane) * (0.5 * median_m + (lane + 0.5) * self.LANE_WIDTH_M)
         self._veh_size = np.column_stack([rng.uniform(4.2, 12.0, n), rng.uniform(1.8, 2.6, n)])
         self._veh_size[rng.random(n) < 0.8] = (4.6, 1.85)  # mostly cars, some buses / trucks
 
@@ -115,8 +134,11 @@ class Traversal:
         return prim.car_slots[persistent | today]
 
     def moving_vehicles(self, t_s: float, center_xy: np.ndarray, radius_m: float,
-                        ego_clearance_m: float = 7.0) -> np.ndarray:
-        """(V, 5) x, y, yaw, length, width of moving vehicles near ``center_xy`` at time ``t_s``."""
+                        ego_clearance_m: float | None = None) -> np.ndarray:
+        """(V, 5) x, y, yaw, length, width of moving vehicles near ``center_xy`` at time ``t_s``
+        (none within ``ego_clearance_m``, default ``EGO_CLEARANCE_M``, of it)."""
+        if ego_clearance_m is None:
+            ego_clearance_m = self.EGO_CLEARANCE_M
         road = self.world.road
         n_road = len(road.points)
         if len(self._veh_idx0) == 0 or n_road < 2:

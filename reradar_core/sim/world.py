@@ -95,6 +95,10 @@ class WorldProfile:
     building_transmission: float = BUILDING_TRANSMISSION
     zone_contrast: float = 0.0
     zone_scale_m: float = 150.0
+    # repetitive structure (simulator v5): > 0 draws every tile's random layout from one of this many tile
+    # types (chosen per tile by a hash), so the same arrangement of buildings, trees, walls and clutter recurs
+    # along the route as rows of identical apartment blocks or plantation stands do; 0 = every tile unique (v4)
+    tile_types: int = 0
 
 
 PROFILES: dict[str, WorldProfile] = {
@@ -348,7 +352,12 @@ class World:
                          street_tree_prob=pr.street_tree_prob * veg, tree_per_tile=pr.tree_per_tile * veg,
                          hedge_per_tile=pr.hedge_per_tile * veg,
                          terrain_ridges_per_tile=pr.terrain_ridges_per_tile * veg)
-        rng = np.random.default_rng(stable_seed(self.seed, pr.name, ix, iy))
+        if pr.tile_types > 0:
+            kind = int(_hash_uniform(np.array([stable_seed(ix, iy)], dtype=np.uint64),
+                                     stable_seed(self.seed, "tile-type"))[0] * pr.tile_types)
+            rng = np.random.default_rng(stable_seed(self.seed, pr.name, "type", kind))
+        else:
+            rng = np.random.default_rng(stable_seed(self.seed, pr.name, ix, iy))
         t = self.tile_m
         x0, y0 = ix * t, iy * t
         prim = Primitives()
@@ -466,6 +475,9 @@ class World:
                     ids = rng.integers(0, np.iinfo(np.int64).max, len(slots), dtype=np.int64).astype(np.uint64)
                     prim.car_ids = np.concatenate([prim.car_ids, ids])
 
+        if pr.tile_types > 0:
+            # the road-independent layout below repeats exactly (relative to the tile) in tiles of one type
+            rng = np.random.default_rng(stable_seed(self.seed, pr.name, "type-free", kind))
         # --- buildings (rectangles with façade recesses), oriented along the nearest road
         for far, lam in ((False, pr.building_prob_per_tile), (True, pr.building_far_prob)):
             for _ in range(rng.poisson(lam)):

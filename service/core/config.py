@@ -94,6 +94,14 @@ class Settings(BaseSettings):
     preload_keyframes: bool = Field(default=True, description=(
         "Read every keyframe when a map that fits in `keyframe_cache_size` is loaded, so no query pays for "
         "cold reads (560 keyframes: ~1 s at start-up, ~28 MB)."))
+    share_map_arrays: bool = Field(default=True, description=(
+        "Serve each map's keyframe features and screen masks from one memory-mapped arrays file per map version "
+        "(`maps.arrays`, in `map_arrays_dir`; written by the first process that loads the map, atomically, "
+        "verified by every process that opens it), so every worker process shares those pages instead of "
+        "holding a private copy. False: each process reads the keyframes from the HDF5 map into its own memory."))
+    map_arrays_dir: Path | None = Field(default=None, description=(
+        "Folder of the shared map arrays files; default `<maps_dir>/.arrays`. Local disk: every process that "
+        "serves a map maps this file."))
     session_ttl_s: float = Field(default=60.0, gt=0, description=(
         "Seconds a tracking session's last pose is kept without a new scan (then the next scan is global)."))
     max_sessions: int = Field(default=10_000, ge=1, description="Tracking sessions kept (least recently used dropped).")
@@ -183,6 +191,13 @@ class Settings(BaseSettings):
         if self.vehicle_keys is None:
             return []
         return [k.strip() for k in self.vehicle_keys.get_secret_value().split(",") if k.strip()]
+
+    @property
+    def arrays_dir(self) -> Path | None:
+        """Where the shared map arrays live (None when ``share_map_arrays`` is off)."""
+        if not self.share_map_arrays:
+            return None
+        return Path(self.map_arrays_dir) if self.map_arrays_dir is not None else Path(self.maps_dir) / ".arrays"
 
     @property
     def max_upload_bytes(self) -> int:

@@ -27,6 +27,7 @@ from typing import Literal
 
 import numpy as np
 
+from maps.arrays import prune_arrays
 from maps.build import build_map
 from maps.database import MapDatabase
 from maps.paths import DEMO_MAP_PATH
@@ -172,9 +173,14 @@ class MapRegistry:
         return entry
 
     def _open(self, path: Path) -> MapDatabase:
-        return MapDatabase(open_map(path, self.extractor.model_id, self.extractor.weights_sha256),
-                           self.index_config, keyframe_cache_size=self.settings.keyframe_cache_size,
-                           config=self.settings.localization, preload=self.settings.preload_keyframes)
+        kf_map = open_map(path, self.extractor.model_id, self.extractor.weights_sha256)
+        try:
+            return MapDatabase(kf_map, self.index_config, keyframe_cache_size=self.settings.keyframe_cache_size,
+                               config=self.settings.localization, preload=self.settings.preload_keyframes,
+                               arrays_dir=self.settings.arrays_dir)
+        except BaseException:
+            kf_map.close()
+            raise
 
     def install_demo_map(self) -> None:
         """Copy the shipped demo map to ``<maps_dir>/demo.h5`` unless a map ``demo`` exists already; an
@@ -219,6 +225,20 @@ class MapRegistry:
                 logger.error("map %s not served: %s", map_id, exc)
             with self._lock:
                 self._entries[map_id] = entry
+        self.prune_map_arrays()
+
+    def prune_map_arrays(self) -> None:
+        """Delete shared map arrays files (``maps.arrays``) no loaded map uses and unused for 10 minutes
+        (files of replaced or deleted maps); processes still mapping one keep their pages."""
+        arrays_dir = self.settings.arrays_dir
+        if arrays_dir is None:
+            return
+        with self._lock:
+            keep = [e.db.arrays.path.name for e in self._entries.values() if e.db is not None and e.db.arrays]
+        try:
+            prune_arrays(arrays_dir, keep)
+        except OSError as exc:
+            logger.warning("could not prune map arrays in %s: %s", arrays_dir, exc)
 
     # ---- queries -------------------------------------------------------------------------------------------
     def entries(self) -> list[MapEntry]:
@@ -359,6 +379,7 @@ class MapRegistry:
         entry.path.unlink(missing_ok=True)
         self._drop_job(map_id)
         fsync_dir(self.maps_dir)
+        self.prune_map_arrays()
         return entry
 
     def close(self) -> None:

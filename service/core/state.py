@@ -9,7 +9,7 @@ import numpy as np
 
 from reradar_core.errors import ScanFormatError
 from reradar_core.features import ScanFeatures
-from reradar_core.io.scan import load_scan_bytes
+from reradar_core.io.scan import NpyLayout, load_scan_bytes
 from reradar_core.localization import LocalizationConfig
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
@@ -47,9 +47,10 @@ class ServiceState:
         config = self.settings.localization
         return replace(config, top_k=top_k) if top_k else config
 
-    def describe_upload(self, data: bytes, filename: str, preset: str | None,
-                        timings_ms: dict[str, float]) -> tuple[ScanFeatures, str | None]:
-        """Decode an uploaded scan (PNG / .npy) and compute its features; adds ``decode_ms``/``extract_ms``.
+    def describe_upload(self, data: bytes, filename: str, preset: str | None, timings_ms: dict[str, float],
+                        scan_layout: NpyLayout = "polar") -> tuple[ScanFeatures, str | None]:
+        """Decode an uploaded scan (PNG / .npy, an .npy as ``scan_layout``) and compute its features; adds
+        ``decode_ms``/``extract_ms``.
 
         Raises:
             ScanFormatError: empty, corrupt or wrongly shaped scans, non-finite features.
@@ -57,7 +58,7 @@ class ServiceState:
         if not data:
             raise ScanFormatError("the uploaded scan file is empty")
         t0 = time.perf_counter()
-        scan = load_scan_bytes(data, filename or "scan.png", preset)
+        scan = load_scan_bytes(data, filename or "scan.png", preset, scan_layout)
         a, r = scan.power.shape
         if not (MIN_SCAN_SIDE <= a <= MAX_SCAN_SIDE and MIN_SCAN_SIDE <= r <= MAX_SCAN_SIDE):
             raise ScanFormatError(

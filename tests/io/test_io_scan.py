@@ -231,3 +231,23 @@ def test_lossy_and_unknown_formats_are_named():
         scan_header(b"")
     with pytest.raises(ScanFormatError, match="corrupt or truncated"):
         decode_navtech_png_bytes(jpg.tobytes())  # OpenCV would decode it: the PNG signature is required
+
+
+def test_navtech_npy_decodes_to_the_pngs_scan() -> None:
+    import io
+
+    from reradar_core.io.scan import decode_navtech_npy_bytes, load_scan_bytes
+
+    rng = np.random.default_rng(3)
+    scan = RadarScan.from_power(rng.uniform(0, 1, (400, 3360)).astype(np.float32), "boreas")
+    png = encode_navtech_png_bytes(scan)
+    buf = io.BytesIO()
+    np.save(buf, cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED))
+    a, b = decode_navtech_png_bytes(png), load_scan_bytes(buf.getvalue(), "x.npy", npy_layout="navtech")
+    for name in ("power", "azimuths", "timestamps_us", "valid"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert (a.preset, a.range_resolution_m) == (b.preset, b.range_resolution_m)
+    bad = io.BytesIO()
+    np.save(bad, np.zeros((400, 3371), np.float32))
+    with pytest.raises(ScanFormatError, match="uint8"):
+        decode_navtech_npy_bytes(bad.getvalue())

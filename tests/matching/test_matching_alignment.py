@@ -127,3 +127,30 @@ def test_count_within_equals_the_distance_lookup():
         with np.errstate(invalid="ignore"):  # non-finite points: a cast warning, and never within
             expected = (grid.lookup(x, y) < thr).sum(axis=1)
             np.testing.assert_array_equal(grid.count_within(x, y, thr), expected)
+
+
+@pytest.mark.parametrize("n", [512, 320, 319, 100, 1000])
+def test_topk_last_axis_is_torch_topks_order(n: int) -> None:
+    """The same indices in the same order as ``torch.topk(sorted=False)`` (the seeded draws index that
+    order), also for rows with ties, repeated values, NaN and -inf padding, and in any leading shape."""
+    import torch
+
+    from reradar_core.matching.alignment import topk_last_axis
+
+    rng = np.random.default_rng(n)
+    sim = rng.normal(size=(40, 7, n)).astype(np.float32)
+    sim[0, 0, :] = 0.5                                   # all equal
+    sim[1, 0, 10:20] = sim[1, 0].max() + 1               # ten tied maxima
+    sim[2, 0, [3, 9]] = 7.0                              # tie inside the top k
+    sim[3, 0, -3:] = -np.inf                             # padding
+    sim[4, 0, :] = np.round(sim[4, 0] * 2) / 2           # many repeated values
+    sim[5, 0, 17] = np.nan
+    sim[6, 0, :] = -np.inf
+    sim[6, 0, :6] = [1, 2, 3, 4, 5, 6]                   # exactly k + 1 finite values
+    sim[7, 0, :] = -np.inf
+    sim[7, 0, :5] = [3, 1, 3, 2, 0]                      # k finite values with a tie, then padding
+    want = torch.topk(torch.from_numpy(sim.copy()), 5, dim=2, sorted=False).indices.numpy()
+    got = topk_last_axis(sim.copy(), 5)
+    assert got.shape == want.shape
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(topk_last_axis(sim[0].copy(), 5), want[0])

@@ -139,6 +139,45 @@ def test_inline_localize_recovers_rotation(client: httpx.Client) -> None:
     assert "decode_ms" in res["timings_ms"] and "extract_ms" in res["timings_ms"]
 
 
+def test_navtech_npy_transport_gives_the_pngs_answer(client: httpx.Client) -> None:
+    """An .npy of the PNG's pixels sent with scan_layout=navtech is the same scan: the same answer, also by
+    reference (POST /scans) and through the Python client; other layouts and bad values are refused."""
+    import io
+
+    import cv2
+
+    png = _png(4, 5, roll=25)
+    buf = io.BytesIO()
+    np.save(buf, cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED))
+    raw = buf.getvalue()
+
+    def answer(r: httpx.Response) -> tuple:
+        assert r.status_code == 200, r.text
+        j = r.json()
+        return j["status"], j["keyframe"]["keyframe_id"], j["pose"], j["num_inliers"], j["confidence"]
+
+    want = answer(client.post("/localize", data={"map_id": "route-a"}, files={"scan": ("q.png", png)}))
+    got = answer(client.post("/localize", data={"map_id": "route-a", "scan_layout": "navtech"},
+                             files={"scan": ("q.npy", raw)}))
+    assert got == want and want[0] == "localized"
+    up = client.post("/scans", data={"scan_layout": "navtech"}, files={"scan": ("q.npy", raw)})
+    assert up.status_code == 201, up.text
+    assert answer(client.post("/localize", json={"map_id": "route-a", "scan_id": up.json()["scan_id"]})) == want
+    via = ReRadarClient(str(client.base_url)).localize("route-a", scan_bytes=raw, filename="q.npy",
+                                                       scan_layout="navtech")
+    assert (via.status, via.keyframe.keyframe_id if via.keyframe else None) == want[:2]
+    # the same array read as a polar .npy (the default) is another scan: the metadata columns become range bins
+    polar = client.post("/localize", data={"map_id": "route-a"}, files={"scan": ("q.npy", raw)})
+    assert polar.status_code == 200
+    bad = client.post("/localize", data={"map_id": "route-a", "scan_layout": "raw"}, files={"scan": ("q.npy", raw)})
+    assert bad.status_code == 400 and "scan_layout" in bad.json()["detail"]
+    floats = io.BytesIO()
+    np.save(floats, np.zeros((100, 11 + 200), np.float32))
+    r = client.post("/localize", data={"map_id": "route-a", "scan_layout": "navtech"},
+                    files={"scan": ("q.npy", floats.getvalue())})
+    assert r.status_code == 422 and "uint8" in r.json()["detail"]
+
+
 def test_unknown_place_is_not_localized(client: httpx.Client) -> None:
     files = {"scan": ("q.png", _png(999, 0), "image/png")}
     res = client.post("/localize", data={"map_id": "route-a"}, files=files).json()

@@ -181,3 +181,47 @@ def test_unset_keys_from_compose_and_loopback_binding(monkeypatch: pytest.Monkey
     compose = (Path(__file__).resolve().parents[2] / "docker" / "compose.yaml").read_text()
     assert "${RERADAR_BIND:-127.0.0.1}:${RERADAR_PORT:-8080}:8080" in compose
     assert DEV_API_KEY not in compose and 'RERADAR_API_KEY: "${RERADAR_API_KEY:-}"' in compose
+
+
+def test_workers_share_map_arrays_across_a_map_update(tmp_path: Path, fake_map: Path) -> None:
+    """Two registries on one maps folder (two worker processes' view): one arrays file for the map, shared;
+    when the map is replaced (deleted and registered again with other content) the new version gets its own
+    file, the registry still holding the old version keeps answering from its mapping, and unused files go."""
+    import shutil
+
+    from service_test_fakes import FakeExtractor, make_scan
+
+    import service.core.registry as reg
+    from maps.store import open_map, write_map
+
+    ext = FakeExtractor()
+    maps_dir = tmp_path / "maps"
+    maps_dir.mkdir()
+    shutil.copyfile(fake_map, maps_dir / "route.h5")
+    a = reg.MapRegistry(Settings(maps_dir=maps_dir, load_demo_map=False), ext)
+    b = reg.MapRegistry(Settings(maps_dir=maps_dir, load_demo_map=False), ext)
+    a.load_all()
+    b.load_all()
+    db_a, db_b = a.ready("route"), b.ready("route")
+    assert db_a.arrays is not None and db_b.arrays is not None
+    assert db_a.arrays.path == db_b.arrays.path and len(list((maps_dir / ".arrays").glob("*.rrarr"))) == 1
+    query = ext.describe(make_scan(3, 7))
+    before = db_b.localize(query)
+
+    with open_map(fake_map) as m:  # the same map with its keyframe order reversed: other content
+        feats = [m.read_keyframe(i) for i in reversed(range(len(m)))]
+        meta, poses = m.metadata, m.poses[::-1].copy()
+    a.delete("route")
+    staged = a.staging_dir() / "new.h5"
+    write_map(staged, meta, feats, poses)
+    a.register_file("route", staged)
+    new_path = a.ready("route").arrays.path  # type: ignore[union-attr]
+    assert new_path != db_b.arrays.path and new_path.is_file()
+    again = db_b.localize(query)  # b has not reloaded yet: the old version, from its own mapping
+    assert (again.status, again.best.keyframe_id if again.best else None) == \
+           (before.status, before.best.keyframe_id if before.best else None)
+    b.forget("route")
+    b.prune_map_arrays()  # the old file is younger than 10 minutes: kept for now
+    assert len(list((maps_dir / ".arrays").glob("*.rrarr"))) == 2
+    a.close()
+    b.close()

@@ -25,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_ops_fleet import _free_port, _redis_server  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
+_SERVER: dict[str, object] = {}  # the running server's process and folder, for tests that inspect them
 
 
 def test_workers_without_redis_are_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -49,6 +50,7 @@ def two_workers(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     proc = subprocess.Popen([sys.executable, "-m", "reradar_cli", "serve", "--port", str(port), "--workers", "2",
                              "--log-level", "warning"], cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}"
+    _SERVER.update(proc=proc, root=root)
     try:
         deadline = time.monotonic() + 300
         while True:
@@ -136,3 +138,42 @@ def test_scan_id_and_tracking_session_across_workers(two_workers: str) -> None:
     assert first["mode"] == "global"
     later = [_localize(two_workers, session, _scan(i)) for _ in range(6)]
     assert [a["mode"] for a in later] == ["tracking"] * 6
+
+
+def _descendants(pid: int) -> list[int]:
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            try:
+                kids = [int(k) for k in (task / "children").read_text().split()]
+            except OSError:
+                continue
+            out += kids
+            todo += kids
+    return out
+
+
+def test_workers_share_one_memory_mapped_map_arrays_file(two_workers: str) -> None:
+    """Both worker processes serve the demo map's keyframes from the same mapped file (one inode)."""
+    proc, root = _SERVER["proc"], _SERVER["root"]
+    assert isinstance(proc, subprocess.Popen) and isinstance(root, Path)
+    files = sorted((root / "maps" / ".arrays").glob("*.rrarr"))
+    assert len(files) == 1, files
+    ino = files[0].stat().st_ino
+    deadline = time.monotonic() + 180
+    while True:  # the second worker may still be loading on a busy machine
+        mappers = []
+        for pid in _descendants(proc.pid):
+            try:
+                lines = Path(f"/proc/{pid}/maps").read_text().splitlines()
+            except OSError:
+                continue
+            inodes = {int(line.split()[4]) for line in lines if line.endswith(".rrarr")}
+            if inodes:
+                assert inodes == {ino}, f"worker {pid} maps another arrays file"
+                mappers.append(pid)
+        if len(mappers) >= 2 or time.monotonic() > deadline:
+            break
+        time.sleep(1)
+    assert len(mappers) == 2, f"expected both workers to map {files[0].name}, saw {mappers}"

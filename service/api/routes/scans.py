@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, File, Form, UploadFile, status
 from starlette.concurrency import run_in_threadpool
 
 from service.api.deps import StateDep
-from service.api.scan_input import read_scan_upload
+from service.api.scan_input import SCAN_LAYOUT_DESCRIPTION, read_scan_upload
 from service.api.schemas import ErrorResponse, ScanInfo
 from service.core.errors import BadRequestError
 
@@ -21,17 +21,19 @@ _ERRORS: dict[int | str, dict[str, Any]] = {400: {"model": ErrorResponse}, 413: 
              responses=_ERRORS)
 async def upload_scan(
     state: StateDep,
-    scan: Annotated[UploadFile, File(description="Navtech polar PNG or (A, R) .npy array.")],
+    scan: Annotated[UploadFile, File(description="Navtech polar PNG or .npy array (see scan_layout).")],
     preset: Annotated[str | None, Form(description="Radar preset (default: inferred from the bin count).")] = None,
+    scan_layout: Annotated[Literal["polar", "navtech"], Form(description=SCAN_LAYOUT_DESCRIPTION)] = "polar",
 ) -> ScanInfo:
     """Decode the scan, compute its global and local features, cache them and return a ``scan_id``."""
     from reradar_core.io.presets import PRESETS
 
     if preset is not None and preset.lower() not in PRESETS:
         raise BadRequestError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
-    data, filename = await read_scan_upload(scan, state.settings.max_scan_pixels)
+    data, filename = await read_scan_upload(scan, state.settings.max_scan_pixels, scan_layout)
     timings: dict[str, float] = {}
-    features, scan_preset = await run_in_threadpool(state.describe_upload, data, filename, preset, timings)
+    features, scan_preset = await run_in_threadpool(state.describe_upload, data, filename, preset, timings,
+                                                    scan_layout)
     state.metrics.observe_stages(timings)
     entry = state.cache.put(features, scan_preset)
     return ScanInfo(scan_id=entry.scan_id, timestamp_us=int(features.timestamp_us), preset=scan_preset,
