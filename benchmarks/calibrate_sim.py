@@ -14,7 +14,8 @@ Overrides (``--set``, repeatable), applied on top of the suite's definition:
                                  cond.*.FIELD applies to every condition
     profile.NAME.FIELD=V         WorldProfile field (e.g. profile.offroad.tree_per_tile=2)
     traversal.FIELD=V            Traversal option (traffic_per_km, persistent_car_fraction, transient_car_prob,
-                                 car_reflectivity, car_transmission, snow_bank_reflectivity)
+                                 car_reflectivity, car_transmission, snow_bank_reflectivity,
+                                 snow_bank_transmission, snow_bank_daily_fraction)
     query.lateral_m=V            the query drive's lateral offset from its route, metres
     db.every=N, query.every=N    frame step of the database / query drive (protocol spacing)
     route.speed_min=V, route.speed_max=V   cruise speed range of both drives (synthetic routes), m/s
@@ -98,7 +99,8 @@ def _traversal(world: W.World, seed: int, cond: T.Condition, ov: dict[str, objec
     kw.update({k.split(".", 1)[1]: v for k, v in ov.items() if k.startswith("traversal.")})
     attrs = {"persistent_car_fraction": "PERSISTENT_CAR_FRACTION", "transient_car_prob": "TRANSIENT_CAR_PROB",
              "car_reflectivity": "CAR_REFLECTIVITY",
-             "snow_bank_reflectivity": "SNOW_BANK_REFLECTIVITY"}
+             "snow_bank_reflectivity": "SNOW_BANK_REFLECTIVITY", "snow_bank_transmission": "SNOW_BANK_TRANSMISSION",
+             "snow_bank_daily_fraction": "SNOW_BANK_DAILY_FRACTION"}
     trav = T.Traversal(world, seed, cond, **{k: v for k, v in kw.items() if k not in attrs})  # type: ignore[arg-type]
     for k, attr in attrs.items():
         if k in kw:
