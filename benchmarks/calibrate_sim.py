@@ -18,6 +18,7 @@ Overrides (``--set``, repeatable), applied on top of the suite's definition:
                                  snow_bank_transmission, snow_bank_daily_fraction)
     query.lateral_m=V            the query drive's lateral offset from its route, metres
     db.every=N, query.every=N    frame step of the database / query drive (protocol spacing)
+    db.condition=NAME            weather condition of the database drive (e.g. snow_cover: a winter map)
     route.speed_min=V, route.speed_max=V   cruise speed range of both drives (synthetic routes), m/s
 
 Renders are cached under ``.cache/reradar/calib/`` by (suite, subset, overrides, simulator source hash).
@@ -122,6 +123,8 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
     q_def = next(s for s in q_defs if s.name == query_seq) if query_seq else q_defs[0]
     if "db.every" in ov:
         db_def = replace(db_def, every=int(ov["db.every"]))  # type: ignore[call-overload]
+    if "db.condition" in ov:  # e.g. a winter map (snow banks on both days) instead of the clear one
+        db_def = replace(db_def, condition=str(ov["db.condition"]))
     if "query.every" in ov:
         q_def = replace(q_def, every=int(ov["query.every"]))  # type: ignore[call-overload]
     if "route.speed_max" in ov:  # drive speeds of both drives (protocol spacing at a fixed frame step)
