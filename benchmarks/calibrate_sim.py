@@ -15,10 +15,11 @@ Overrides (``--set``, repeatable), applied on top of the suite's definition:
     profile.NAME.FIELD=V         WorldProfile field (e.g. profile.offroad.tree_per_tile=2)
     traversal.FIELD=V            Traversal option (traffic_per_km, persistent_car_fraction, transient_car_prob,
                                  car_reflectivity, car_transmission, snow_bank_reflectivity, traffic_lanes,
-                                 median_m, ego_clearance_m)
+                                 median_m, ego_clearance_m, snow_bank_transmission, snow_bank_daily_fraction)
     query.lateral_m=V            the query drive's lateral offset from its route, metres
     db.lateral_m=V               the database drive's lateral offset from its route, metres (v5)
     db.every=N, query.every=N    frame step of the database / query drive (protocol spacing)
+    db.condition=NAME            weather condition of the database drive (e.g. snow_cover: a winter map)
     route.speed_min=V, route.speed_max=V   cruise speed range of both drives (synthetic routes), m/s
 
 Renders are cached under ``.cache/reradar/calib/`` by (suite, subset, overrides, simulator source hash).
@@ -99,7 +100,8 @@ def _traversal(world: W.World, seed: int, cond: T.Condition, ov: dict[str, objec
     kw.update({k.split(".", 1)[1]: v for k, v in ov.items() if k.startswith("traversal.")})
     attrs = {"persistent_car_fraction": "PERSISTENT_CAR_FRACTION", "transient_car_prob": "TRANSIENT_CAR_PROB",
              "car_reflectivity": "CAR_REFLECTIVITY",
-             "snow_bank_reflectivity": "SNOW_BANK_REFLECTIVITY", "ego_clearance_m": "EGO_CLEARANCE_M"}
+             "snow_bank_reflectivity": "SNOW_BANK_REFLECTIVITY", "ego_clearance_m": "EGO_CLEARANCE_M",
+             "snow_bank_transmission": "SNOW_BANK_TRANSMISSION", "snow_bank_daily_fraction": "SNOW_BANK_DAILY_FRACTION"}
     trav = T.Traversal(world, seed, cond, **{k: v for k, v in kw.items() if k not in attrs})  # type: ignore[arg-type]
     for k, attr in attrs.items():
         if k in kw:
@@ -122,6 +124,8 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
     q_def = next(s for s in q_defs if s.name == query_seq) if query_seq else q_defs[0]
     if "db.every" in ov:
         db_def = replace(db_def, every=int(ov["db.every"]))  # type: ignore[call-overload]
+    if "db.condition" in ov:  # e.g. a winter map (snow banks on both days) instead of the clear one
+        db_def = replace(db_def, condition=str(ov["db.condition"]))
     if "query.every" in ov:
         q_def = replace(q_def, every=int(ov["query.every"]))  # type: ignore[call-overload]
     if "route.speed_max" in ov:  # drive speeds of both drives (protocol spacing at a fixed frame step)

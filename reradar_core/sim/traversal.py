@@ -96,6 +96,14 @@ class Traversal:
     CAR_TRANSMISSION = 0.0
     #: Reflectivity of the ploughed snow banks along the kerbs (v3: 0.6).
     SNOW_BANK_REFLECTIVITY = 0.6
+    #: One-way fraction of the beam passing a snow bank (what lies behind it stays visible; v4: 0.6). A
+    #: ploughed bank is 0.5-1.5 m high, lower than the cars for which the Boreas suites take 0.8
+    #: (docs/SIMULATOR.md, "ReFeree and RingKey: what the simulator gets wrong").
+    SNOW_BANK_TRANSMISSION = 0.6
+    #: Share of the 1 m kerb samples whose bank (70 % present) is drawn anew on every traversal; the others
+    #: follow one pattern shared by every traversal of the world (driveways, hydrants, crossings are cleared
+    #: at the same places every day). v4: 1.0, the whole pattern re-drawn per traversal.
+    SNOW_BANK_DAILY_FRACTION = 1.0
 
     #: Lane width of the multi-lane traffic option, metres (Korean / UK urban arterials: 3.25-3.65 m).
     LANE_WIDTH_M = 3.5
@@ -181,8 +189,12 @@ class Traversal:
                 idx = idx[road.chain[idx] == road.chain[idx + 1]]
                 w = self.world.profile.road_half_width_m + 0.3
                 for side in (1.0, -1.0):
-                    present = _hash_uniform(idx.astype(np.uint64) * np.uint64(2) + np.uint64(side > 0),
-                                            stable_seed(self.seed, "snowbank")) < 0.7
+                    ids = idx.astype(np.uint64) * np.uint64(2) + np.uint64(side > 0)
+                    present = _hash_uniform(ids, stable_seed(self.seed, "snowbank")) < 0.7
+                    if self.SNOW_BANK_DAILY_FRACTION < 1.0:  # v4 (1.0): every sample drawn per traversal
+                        daily = _hash_uniform(ids, stable_seed(self.world.seed, "snowbank-daily"))
+                        fixed = _hash_uniform(ids, stable_seed(self.world.seed, "snowbank-fixed")) < 0.7
+                        present = np.where(daily < self.SNOW_BANK_DAILY_FRACTION, present, fixed)
                     j = idx[present]
                     tan_a, tan_b = road.tangents[j], road.tangents[j + 1]
                     na = np.stack([-tan_a[:, 1], tan_a[:, 0]], axis=1)
@@ -190,5 +202,5 @@ class Traversal:
                     seg = np.concatenate([road.points[j] + side * w * na, road.points[j + 1] + side * w * nb], axis=1)
                     d, _ = road.nearest(0.5 * (seg[:, :2] + seg[:, 2:]))
                     seg = seg[d > w - 0.8]
-                    out.add_segments(seg, self.SNOW_BANK_REFLECTIVITY, 0.6, 1.0, low=True)
+                    out.add_segments(seg, self.SNOW_BANK_REFLECTIVITY, self.SNOW_BANK_TRANSMISSION, 1.0, low=True)
         return out
