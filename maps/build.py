@@ -66,7 +66,8 @@ def build_map(
         out: map file to write.
         extractor: the descriptor model (its id and weights hash go into the map).
         load_scan: returns scan i.
-        poses: (N, 3) float64 ``T_map_keyframe`` of each scan (x m, y m, yaw rad).
+        poses: (N, 3) float64 ``T_map_keyframe`` of each scan (x m, y m, yaw rad) at its mid-sweep time
+            (``Sequence.mid_sweep_poses``, docs/CONVENTIONS.md; the map records ``pose_time = mid_sweep``).
         radar_preset: preset name recorded in the map.
         batch_size: scans per network batch.
         max_keypoints: optional cap on stored keypoints per keyframe (map size).

@@ -33,6 +33,8 @@ from reradar_core.features import ScanFeatures
 
 __all__ = [
     "SCHEMA_VERSION",
+    "POSE_TIME_MID_SWEEP",
+    "POSE_TIME_FIRST_AZIMUTH",
     "MapMetadata",
     "KeyframeMap",
     "MapWriter",
@@ -49,6 +51,10 @@ logger = logging.getLogger(__name__)
 
 #: Version of the on-disk layout; readers refuse other versions.
 SCHEMA_VERSION = 1
+#: ``MapMetadata.pose_time`` values: keyframe poses at the scan's mid-sweep time (written now) or at its first
+#: azimuth (maps from before 2026-11-30, which have no ``pose_time`` attribute).
+POSE_TIME_MID_SWEEP = "mid_sweep"
+POSE_TIME_FIRST_AZIMUTH = "first_azimuth"
 
 _ATTR_FIELDS = (
     "schema_version",
@@ -82,6 +88,10 @@ class MapMetadata:
         source: free text saying what the map was built from (a dataset path, an upload).
         name: human-readable map name.
         schema_version: layout version (``SCHEMA_VERSION`` when written by this code).
+        pose_time: what time of each keyframe scan ``/poses`` refers to: ``mid_sweep`` (the mean azimuth time,
+            docs/CONVENTIONS.md; written by this code) or ``first_azimuth`` (maps written before the attribute
+            existed: their poses sit half a sweep back along the track, ~1 m at 8 m/s; opening one logs a
+            warning - rebuild it).
     """
 
     model_id: str
@@ -96,6 +106,7 @@ class MapMetadata:
     source: str = ""
     name: str = ""
     schema_version: int = SCHEMA_VERSION
+    pose_time: str = POSE_TIME_MID_SWEEP
 
     def to_dict(self) -> dict[str, object]:
         return asdict(self)
@@ -166,7 +177,22 @@ def _read_metadata(f: h5py.File, path: Path) -> MapMetadata:
         source=s("source"),
         name=s("name"),
         schema_version=version,
+        pose_time=_pose_time(attrs, path),
     )
+
+
+def _pose_time(attrs: h5py.AttributeManager, path: Path) -> str:
+    """The map's ``pose_time`` attribute; ``first_azimuth`` (with a warning) for maps written without it."""
+    if "pose_time" not in attrs:
+        logger.warning("%s: map has no pose_time attribute - its keyframe poses are first-azimuth poses, half a "
+                       "sweep behind the mid-sweep poses answers refer to (docs/CONVENTIONS.md); rebuild it",
+                       path.name)
+        return POSE_TIME_FIRST_AZIMUTH
+    v = attrs["pose_time"]
+    value = v.decode() if isinstance(v, bytes) else str(v)
+    if value not in (POSE_TIME_MID_SWEEP, POSE_TIME_FIRST_AZIMUTH):
+        raise MapFormatError(f"{path}: unknown pose_time {value!r} (expected {POSE_TIME_MID_SWEEP!r})")
+    return value
 
 
 def _open_h5(path: Path) -> h5py.File:
@@ -446,7 +472,7 @@ class MapWriter:
         meta["schema_version"] = SCHEMA_VERSION
         if not meta["created_utc"]:
             meta["created_utc"] = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
-        for key in _ATTR_FIELDS:
+        for key in (*_ATTR_FIELDS, "pose_time"):
             f.attrs[key] = meta[key]
         f.flush()
         f.close()

@@ -8,7 +8,17 @@ import h5py
 import numpy as np
 import pytest
 
-from maps.store import SCHEMA_VERSION, MapMetadata, MapWriter, check_model, open_map, read_metadata, write_map
+from maps.store import (
+    POSE_TIME_FIRST_AZIMUTH,
+    POSE_TIME_MID_SWEEP,
+    SCHEMA_VERSION,
+    MapMetadata,
+    MapWriter,
+    check_model,
+    open_map,
+    read_metadata,
+    write_map,
+)
 from reradar_core.errors import MapFormatError, ModelMismatchError
 from reradar_core.features import ScanFeatures
 
@@ -148,3 +158,18 @@ def test_links_and_external_storage_are_refused(tmp_path: Path) -> None:
         m.read_keyframe(0)
         with pytest.raises(MapFormatError, match="link"):
             m.read_keyframe(1)
+
+
+def test_pose_time_is_recorded_and_old_maps_are_flagged(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    rng = np.random.default_rng(3)
+    path = write_map(tmp_path / "m.h5", _meta(), _features(rng, 3), np.zeros((3, 3)))
+    assert read_metadata(path).pose_time == POSE_TIME_MID_SWEEP
+    with h5py.File(path, "a") as f:  # a map written before the attribute existed
+        del f.attrs["pose_time"]
+    with caplog.at_level("WARNING", logger="maps.store"):
+        assert read_metadata(path).pose_time == POSE_TIME_FIRST_AZIMUTH
+    assert "first-azimuth" in caplog.text and "rebuild" in caplog.text
+    with h5py.File(path, "a") as f:
+        f.attrs["pose_time"] = "noon"
+    with pytest.raises(MapFormatError, match="pose_time"):
+        read_metadata(path)
