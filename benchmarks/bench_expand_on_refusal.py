@@ -26,7 +26,6 @@ if str(ROOT) not in sys.path:
 
 from reradar_core.baselines.ours import Ours, prepared_to_features  # noqa: E402
 from reradar_core.benchmark.runner import BenchConfig, prepare_sequence  # noqa: E402
-from reradar_core.localization.confidence_fit import _localizer  # noqa: E402
 from reradar_core.localization.pipeline import LocalizationConfig  # noqa: E402
 from reradar_core.sim.suites import build_suite  # noqa: E402
 
@@ -45,7 +44,8 @@ def main() -> None:
     bc = BenchConfig(radius_m=bench.radius_m, rotation_stress=False, progress=False)
     db_seq = bench.load(bench.database[0])
     db = prepare_sequence([method], db_seq, bc)[method.name]
-    loc = _localizer(method, db.records, db_seq.mid_sweep_poses(), on)
+    index = method.build_index([method.describe_prepared(r) for r in db.records])
+    loc = method.localizer(index, db.records, db_seq.mid_sweep_poses())  # the benchmark's own Localizer
     qpath = next(p for p in bench.queries if args.query in str(p))
     q = prepare_sequence([method], bench.load(qpath), bc)[method.name]
     feats = [prepared_to_features(r) for r in q.records]
