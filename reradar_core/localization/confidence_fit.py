@@ -200,10 +200,11 @@ def fit_from_data(d: FitData, l2: float = 1.0, max_wrong_fraction: float = 0.005
                                  top_n=TOP_N)
     p = np.where(d.has_pose, model.predict(d.cues), 0.0)
     fit_all = ~d.heldout
-    bar_per_split = {str(s): choose_min_confidence(p[fit_all & (d.split == s)], d.correct[fit_all & (d.split == s)],
-                                                   d.eligible[fit_all & (d.split == s)],
-                                                   int((fit_all & (d.split == s)).sum()), max_wrong_fraction)
-                     for s in np.unique(d.split)}
+
+    def split_bar(rows: np.ndarray) -> float:
+        return choose_min_confidence(p[rows], d.correct[rows], d.eligible[rows], int(rows.sum()), max_wrong_fraction)
+
+    bar_per_split = {str(s): split_bar(fit_all & (d.split == s)) for s in np.unique(d.split)}
     bar_cost = (choose_min_confidence_by_cost(p[fit_all], d.correct[fit_all], d.eligible[fit_all], wrong_cost)
                 if wrong_cost is not None else 0.0)
     bar = max([bar_cost, *bar_per_split.values()])

@@ -391,7 +391,8 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
     Args:
         query: the query scan's features.
         candidates: retrieved keyframes (``rank`` 0 = best); the first ``top_k`` are screened, more up to
-            ``max_candidates`` only when none of those aligns well (see ``LocalizationConfig``).
+            ``max_candidates`` only when none of those aligns well or the answer is refused (see
+            ``LocalizationConfig``: ``expand_below_screen_score``, ``expand_on_refusal``).
         config: settings; default ``LocalizationConfig()``.
     """
     config = config or LocalizationConfig()
@@ -408,25 +409,27 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
 
     guided = config.pose_method == "guided"
     limit = min(len(pool), config.num_to_retrieve)
-    if guided and len(ordered) > config.verify_k:
-        screen(ordered)
-        while max(scores.values()) < config.expand_below_screen_score and len(ordered) < limit:
-            batch = pool[len(ordered): min(limit, len(ordered) + config.top_k)]
-            screen(batch)
-            ordered += batch
-        timings["screen_ms"] = (time.perf_counter() - t0) * 1e3
-    done: dict[int, CandidateVerification] = {}
-    while True:
-        result = _verify_and_decide(query, ordered, scores, done, config, timings, t0)
-        # refused: screen the next top_k retrieved candidates and verify the best new ones (``expand_on_refusal``)
-        if (result.localized or not guided or not config.expand_on_refusal or len(ordered) >= limit
-                or len(ordered) <= config.verify_k):
-            return result
+
+    def screen_next() -> None:  # the next ``top_k`` retrieved candidates join the screened ones
         t1 = time.perf_counter()
         batch = pool[len(ordered): min(limit, len(ordered) + config.top_k)]
         screen(batch)
-        ordered += batch
+        ordered.extend(batch)
         timings["screen_ms"] = timings.get("screen_ms", 0.0) + (time.perf_counter() - t1) * 1e3
+
+    if guided and len(ordered) > config.verify_k:
+        screen(ordered)
+        timings["screen_ms"] = (time.perf_counter() - t0) * 1e3
+        while max(scores.values()) < config.expand_below_screen_score and len(ordered) < limit:
+            screen_next()
+    done: dict[int, CandidateVerification] = {}
+    while True:
+        result = _verify_and_decide(query, ordered, scores, done, config, timings, t0)
+        # refused: screen the next block and verify the best new ones (``expand_on_refusal``)
+        if (result.localized or not guided or not config.expand_on_refusal or len(ordered) >= limit
+                or len(ordered) <= config.verify_k):
+            return result
+        screen_next()
 
 
 def _verify_and_decide(query: ScanFeatures, ordered: list[Candidate], scores: dict[int, float],
