@@ -160,9 +160,10 @@ def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: n
             (docs/CONVENTIONS.md): a pose-estimating method localizes against the first and its poses are
             scored against the second. None: ``db_poses`` / ``query_poses``.
     """
-    pose_method = sr_rule(method) == "pose" and pose_refs is not None
-    kf_poses = pose_refs[0] if pose_method and pose_refs is not None else db_poses
-    gt_poses = pose_refs[1] if pose_method and pose_refs is not None else None
+    rule = sr_rule(method)
+    refs = pose_refs if rule == "pose" else None
+    kf_poses = refs[0] if refs is not None else db_poses
+    gt_poses = refs[1] if refs is not None else None
     if fit:
         method.fit(db.records)
     index = method.build_index([method.describe_prepared(r) for r in db.records])
@@ -190,7 +191,6 @@ def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: n
         elif r.heading_rad is not None:
             # heading-only: the keyframe's position, the estimated yaw (only the yaw is scored)
             est[i] = compose(db_poses[r.index], np.array([0.0, 0.0, r.heading_rad]))
-    rule = sr_rule(method)
     outcome = make_outcome(retrieved, dist, est, query_poses, db_poses, radius_m, rule, gt_poses)
     summary = summarise(outcome, query_poses, db_poses, radius_m, rule, gt_poses)
     search_ms = 1e3 * t_total / max(q, 1)
@@ -232,8 +232,11 @@ def _rotation_indices(n: int, limit: int | None) -> np.ndarray:
 
 
 def _rotation_stress(pair: BenchPair, methods: Seq[PlaceRecognitionMethod], dbp: dict[str, PreparedSet],
-                     qp: dict[str, PreparedSet], config: BenchConfig, bar: tqdm | None = None) -> dict[str, Any]:
-    """Recall@1 (over revisit queries) of the same queries with and without a random heading offset."""
+                     qp: dict[str, PreparedSet], config: BenchConfig, mid: tuple[np.ndarray, np.ndarray],
+                     bar: tqdm | None = None) -> dict[str, Any]:
+    """Recall@1 (over revisit queries) of the same queries with and without a random heading offset.
+
+    ``mid``: the pair's (database, query) mid-sweep poses (``evaluate_method``'s ``pose_refs``)."""
     n = len(pair.query)
     idx = _rotation_indices(n, config.rotation_limit)
     query = pair.query.subset(idx)
@@ -242,7 +245,7 @@ def _rotation_stress(pair: BenchPair, methods: Seq[PlaceRecognitionMethod], dbp:
     q_poses = query.poses.poses
     rq_poses = rotate_pose(q_poses, yaw)
     db_poses = pair.database.poses.poses
-    db_mid, q_mid = pair.database.mid_sweep_poses(), query.mid_sweep_poses()
+    db_mid, q_mid = mid[0], mid[1][idx]
     stress: dict[str, Any] = {}
     for m in methods:
         base_set = PreparedSet([qp[m.name].records[i] for i in idx], qp[m.name].compute_ms[idx])
@@ -327,7 +330,7 @@ def run_benchmark(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod], o
                 logger.info("%s %s: Recall@1 %s%% (revisit queries)", pair.name, m.name, run.summary["recall@1"])
             results["sequences"][pair.name] = seq_res
             if config.rotation_stress:
-                results["rotation_stress"][pair.name] = _rotation_stress(pair, methods, dbp, qp, config, bar)
+                results["rotation_stress"][pair.name] = _rotation_stress(pair, methods, dbp, qp, config, mid, bar)
     finally:
         bar.close()
     results["settings"]["load_average_1min_at_end"] = os.getloadavg()[0]

@@ -468,14 +468,19 @@ def load_scan(path: str | Path, preset: str | RadarPreset | None = None) -> Rada
     raise ScanFormatError(f"{path}: unsupported scan format {suffix!r} (use .png or .npy)")
 
 
+def _npy_from_bytes(data: bytes) -> np.ndarray:
+    """An uploaded .npy (no pickles), or a ``ScanFormatError`` that says why it is not one."""
+    try:
+        return np.load(io.BytesIO(data), allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise ScanFormatError(f"upload is not a readable .npy array ({exc})") from exc
+
+
 def decode_navtech_npy_bytes(data: bytes, preset: str | RadarPreset | None = None) -> RadarScan:
     """Decode an .npy array holding a Navtech PNG's pixels (uint8 (A, 11 + R): the metadata columns, then the
     range bins) - the same scan as the PNG, with the same azimuths and timestamps, without PNG's inflate
     (~5-10 ms per sweep) for 2.7x the bytes (``NpyLayout`` ``navtech``)."""
-    try:
-        array = np.load(io.BytesIO(data), allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:
-        raise ScanFormatError(f"upload is not a readable .npy array ({exc})") from exc
+    array = _npy_from_bytes(data)
     if array.dtype != np.uint8 or array.ndim != 2:
         raise ScanFormatError(f"a Navtech .npy (scan_layout navtech) must be a 2-D uint8 array of the PNG's pixels, "
                               f"got dtype {array.dtype} shape {array.shape}")
@@ -494,11 +499,7 @@ def load_scan_bytes(data: bytes, filename: str = "scan.png", preset: str | Radar
     if suffix == ".npy":
         if npy_layout == "navtech":
             return decode_navtech_npy_bytes(data, preset)
-        try:
-            array = np.load(io.BytesIO(data), allow_pickle=False)
-        except (OSError, ValueError, EOFError) as exc:
-            raise ScanFormatError(f"upload is not a readable .npy array ({exc})") from exc
-        return read_polar_npy(array=array, preset=preset or "oxford")
+        return read_polar_npy(array=_npy_from_bytes(data), preset=preset or "oxford")
     if suffix in (".png", ""):
         return decode_navtech_png_bytes(data, preset)
     raise ScanFormatError(f"unsupported scan format {suffix!r} (upload a Navtech .png or a polar .npy)")
