@@ -175,7 +175,9 @@ def test_expansion_screens_further_only_when_no_candidate_aligns() -> None:
 def test_a_refused_answer_screens_further() -> None:
     """A decoy at rank 0 (an alias holding 75 % of the true keyframe's landmarks, at another place) screens well
     enough to stop the score-based expansion but is refused by the floor; the true keyframe at rank 25 is then
-    found by screening the next blocks (``expand_on_refusal``). Without it the query is refused after 10."""
+    found by screening deeper (``expand_on_refusal``): by default all the rest up to ``max_candidates`` in one
+    round, with ``refusal_block`` in blocks of that size (stopping at the block that localizes). Without it the
+    query is refused after 10."""
     rng = np.random.default_rng(11)
     kfs = [_keyframe(rng, ts=i) for i in range(40)]
     poses = np.column_stack([np.arange(40) * 50.0, np.zeros(40), np.zeros(40)])
@@ -193,10 +195,16 @@ def test_a_refused_answer_screens_further() -> None:
     decoy = next(c for c in res.candidates if c.keyframe_id == 5)
     assert decoy.screen_score is not None and decoy.screen_score >= 0.4 and decoy.inlier_ratio < 0.65
     assert res.localized and res.best is not None and res.best.keyframe_id == 33 and res.best.rank == 25
-    assert len(res.candidates) == 30  # two more blocks of 10 screened after the refusal, not all 40
+    assert len(res.candidates) == 40  # one deeper round: every retrieved candidate up to max_candidates
     np.testing.assert_allclose(res.T_map_query[:2], compose(poses[33], T_kf_query)[:2], atol=0.15)
+    blocks = localize(query, _candidates(kfs, poses, order), LocalizationConfig(**base, refusal_block=10))
+    assert blocks.localized and blocks.best is not None and blocks.best.keyframe_id == 33
+    assert len(blocks.candidates) == 30  # two more blocks of 10 screened after the refusal, not all 40
+    np.testing.assert_array_equal(blocks.T_map_query, res.T_map_query)
     off = localize(query, _candidates(kfs, poses, order), LocalizationConfig(**base, expand_on_refusal=False))
     assert off.status == "not_localized" and len(off.candidates) == 10 and off.best.keyframe_id == 5
+    with pytest.raises(ConfigError):
+        LocalizationConfig(refusal_block=0)
 
 
 def test_verification_stops_once_an_answer_is_confident() -> None:
