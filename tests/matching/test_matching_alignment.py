@@ -154,3 +154,27 @@ def test_topk_last_axis_is_torch_topks_order(n: int) -> None:
     assert got.shape == want.shape
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(topk_last_axis(sim[0].copy(), 5), want[0])
+
+
+def test_batched_refinement_is_the_per_hypothesis_refinement_bit_for_bit() -> None:
+    """``_refine_all`` (one KD-tree query per iteration for all hypotheses) returns exactly what refining each
+    hypothesis on its own returns: same pose bits, same masks - for good, poor and hopeless starts, and for
+    hypotheses that stop early (fewer than 3 landmarks associated)."""
+    from reradar_core.matching.alignment import _refine, _refine_all
+
+    T = np.array([3.5, -2.0, np.radians(37.0)])
+    src, _, dst, _ = _scene(T, seed=4)
+    grid = build_landmark_grid(dst)
+    rng = np.random.default_rng(2)
+    starts = [T + rng.normal(0, s, 3) * [1, 1, 0.05] for s in (0.0, 0.3, 1.0, 3.0, 10.0)]
+    starts += [np.array([500.0, 500.0, 0.0]), np.array([0.0, 0.0, np.pi])]  # nothing (or little) associates
+    for thresholds in ((2.0, 1.0, 0.75, 0.75), (3.0,), (0.5, 2.0)):
+        got = _refine_all(src, grid, starts, thresholds)
+        want = [_refine(src, grid, p, thresholds) for p in starts]
+        assert len(got) == len(want)
+        for (pose, mask), (pose_ref, mask_ref) in zip(got, want, strict=True):
+            assert pose.tobytes() == pose_ref.tobytes()
+            np.testing.assert_array_equal(mask, mask_ref)
+    assert _refine_all(src, grid, [], (2.0,)) == []
+    pose, mask = _refine_all(src, grid, starts, (2.0, 1.0))[0]
+    assert mask.sum() >= 0.7 * (len(src) - 60) and np.linalg.norm(pose[:2] - T[:2]) < 0.3
