@@ -198,3 +198,21 @@ def test_batched_refinement_skips_no_look_up_it_needs_on_exact_radii() -> None:
             pose_ref, mask_ref = _refine(src, grid, start, thresholds)
             assert pose.tobytes() == pose_ref.tobytes()
             np.testing.assert_array_equal(mask, mask_ref)
+
+
+@pytest.mark.parametrize("cell_m", [0.5, 0.3])
+@pytest.mark.parametrize("rows", [128, 300])
+def test_count_within_columns_equals_the_distance_lookup(cell_m: float, rows: int) -> None:
+    """The scorer's column layout (one pose per column; the division by a power-of-two cell done as a
+    multiplication; a uint8 sum below 256 rows) counts exactly what the distance look-up counts."""
+    rng = np.random.default_rng(6)
+    grid = build_landmark_grid(rng.uniform(-40, 40, (120, 2)), cell_m)
+    x = rng.uniform(-70, 70, (rows, 50))
+    y = rng.uniform(-70, 70, (rows, 50))
+    x[:4, 0] = [np.nan, np.inf, -np.inf, 1e12]
+    x[:, 1] = np.round(x[:, 1] / cell_m) * cell_m  # exactly on cell edges
+    for thr in (0.75, 1.5, 3.0):
+        with np.errstate(invalid="ignore"):  # non-finite points: a cast warning, and never within
+            expected = (grid.lookup(x, y) < thr).sum(axis=0)
+            np.testing.assert_array_equal(grid._count_within_columns(x, y, thr), expected)
+            np.testing.assert_array_equal(grid.count_within(x.T, y.T, thr), expected)
