@@ -297,6 +297,19 @@ def _apply(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ np.array([[c, s], [-s, c]]) + pose[:2]
 
 
+def _apply_all(poses: list[np.ndarray], points: np.ndarray) -> np.ndarray:
+    """``np.stack([_apply(p, points) for p in poses])``, (H, N, 2), exactly: the same rotation matrices and
+    one stacked matmul (numpy runs the same 2-D product on every slice; its FMA rounding is not that of an
+    element-wise x c - y s, so the product itself is kept)."""
+    rot = np.empty((len(poses), 2, 2))
+    for h, pose in enumerate(poses):
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        rot[h] = ((c, s), (-s, c))
+    xy = np.matmul(points, rot)
+    xy += np.array([pose[:2] for pose in poses])[:, None, :]
+    return xy
+
+
 def _refine(src: np.ndarray, grid: LandmarkGrid, pose: np.ndarray,
             thresholds: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
     """One hypothesis refined (the reference of ``_refine_all``): (3,) pose and (N,) bool association mask."""
@@ -310,7 +323,8 @@ def _refine(src: np.ndarray, grid: LandmarkGrid, pose: np.ndarray,
     return pose, mask
 
 
-#: a landmark's possible rounding in the look-up distances, metres (far above float64's ~1e-14 m at map scale)
+#: slack on the skip test of ``_refine_all``, metres: far above the rounding of positions and distances
+#: (~1e-14 m at map scale)
 _SKIP_SLACK_M = 1e-6
 
 
@@ -320,9 +334,10 @@ def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
 
     - each iteration's nearest-landmark look-ups of all still-refining hypotheses go to the KD-tree in one
       call (~13 us of overhead per call; the tree's answer for a point does not depend on the other points);
-    - a landmark that had no destination landmark within the previous radius ``r0`` and has moved by ``d``
-      since (its new position under the new pose) has none within ``r0 - d`` now, so when the radius shrinks
-      to ``r < r0 - d`` (less a rounding slack) its look-up is skipped: the tree would answer "none" too;
+    - every look-up tells how far the nearest destination landmark was from the point's position then (its
+      distance, or at least the radius when none was within it). A point that has moved by ``d`` since is
+      at least that minus ``d`` from every landmark now, so when that exceeds the new radius (plus a rounding
+      slack) its look-up is skipped: the tree would answer "none" too;
     - each hypothesis keeps its own ``_apply`` and ``fit_rigid_2d`` (same arithmetic).
 
     Args: (N, 2) float64 ``src``; (3,) float64 poses; the association radii (metres).
@@ -332,27 +347,34 @@ def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
     out: list[tuple[np.ndarray, np.ndarray]] = [(p, np.zeros(n, dtype=bool)) for p in poses]
     active = list(range(len(poses)))
     current = list(poses)
-    prev_xy = prev_found = None
-    prev_thr = 0.0
+    # per point of each refining hypothesis: where it was last looked up, and a lower bound on its distance
+    # to the nearest destination landmark there (metres)
+    seen_xy = seen_m = None
     for thr in thresholds:
         if not active:
             break
-        xy = np.stack([_apply(current[h], src) for h in active])  # (A, N, 2)
-        found = np.zeros((len(active), n), dtype=bool)
-        nn = np.zeros((len(active), n), dtype=np.intp)
+        xy = _apply_all([current[h] for h in active], src)  # (A, N, 2)
         ask = None  # all points
-        if prev_xy is not None and prev_thr - thr > _SKIP_SLACK_M:
-            moved = xy - prev_xy
-            moved = np.hypot(moved[..., 0], moved[..., 1])
-            ask = prev_found | ~(moved < prev_thr - thr - _SKIP_SLACK_M)  # NaN: asked
+        if seen_m is not None:
+            moved = xy - seen_xy
+            ask = ~(seen_m - np.hypot(moved[..., 0], moved[..., 1]) > thr + _SKIP_SLACK_M)  # NaN: asked
+            if ask.all():
+                ask = None
         if ask is None:
-            dist, idx = grid.tree.query(xy.reshape(-1, 2), distance_upper_bound=thr)
-            found.reshape(-1)[:] = np.isfinite(dist)
-            nn.reshape(-1)[:] = idx
+            dist, nn = grid.tree.query(xy.reshape(-1, 2), distance_upper_bound=thr)
+            dist, nn = dist.reshape(len(active), n), nn.reshape(len(active), n)
+            found = np.isfinite(dist)
+            seen_xy, seen_m = xy, np.where(found, dist, thr)
         else:
-            dist, idx = grid.tree.query(xy[ask], distance_upper_bound=thr)
-            found[ask] = np.isfinite(dist)
-            nn[ask] = idx
+            sel = np.flatnonzero(ask)
+            dist, idx = grid.tree.query(xy.reshape(-1, 2)[sel], distance_upper_bound=thr)
+            found = np.zeros((len(active), n), dtype=bool)
+            nn = np.zeros((len(active), n), dtype=np.intp)
+            hit = np.isfinite(dist)
+            found.reshape(-1)[sel] = hit
+            nn.reshape(-1)[sel] = idx
+            np.copyto(seen_xy, xy, where=ask[..., None])  # seen_xy is this loop's own array
+            seen_m.reshape(-1)[sel] = np.where(hit, dist, thr)
         rows = []
         for row, h in enumerate(active):
             mask = found[row].copy()
@@ -363,7 +385,7 @@ def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
             out[h] = (current[h], mask)
             rows.append(row)
         active = [active[r] for r in rows]
-        prev_xy, prev_found, prev_thr = xy[rows], found[rows], thr
+        seen_xy, seen_m = seen_xy[rows], seen_m[rows]
     return out
 
 

@@ -216,3 +216,15 @@ def test_count_within_columns_equals_the_distance_lookup(cell_m: float, rows: in
             expected = (grid.lookup(x, y) < thr).sum(axis=0)
             np.testing.assert_array_equal(grid._count_within_columns(x, y, thr), expected)
             np.testing.assert_array_equal(grid.count_within(x.T, y.T, thr), expected)
+
+
+def test_apply_all_is_the_stacked_apply_bit_for_bit() -> None:
+    from reradar_core.matching.alignment import _apply, _apply_all
+
+    rng = np.random.default_rng(8)
+    for n in (1, 2, 7, 128, 513):
+        pts = rng.uniform(-80, 80, (n, 2))
+        poses = [np.array([*rng.normal(0, 20, 2), rng.uniform(-7, 7)]) for _ in range(5)]
+        want = np.stack([_apply(p, pts) for p in poses])
+        assert _apply_all(poses, pts).tobytes() == want.tobytes()
+        assert _apply_all(poses[:1], pts).tobytes() == want[:1].tobytes()
