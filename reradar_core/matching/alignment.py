@@ -256,20 +256,27 @@ def _topk_pairs(desc_src: np.ndarray, desc_dst: np.ndarray, k: int) -> np.ndarra
 
 def _hypotheses(src: np.ndarray, dst: np.ndarray, pairs: np.ndarray, cfg: AlignmentConfig,
                 rng: np.random.Generator) -> np.ndarray:
+    """(V, 3) poses (x, y, yaw) of the length-consistent minimal sets among ``cfg.num_hypotheses`` seeded
+    draws of two (P, 2) index pairs (source row, destination row) into the (N, 2) / (M, 2) float64 landmarks.
+    Coordinates are gathered as contiguous x / y arrays (the same numbers as gathering rows)."""
     a = rng.integers(0, len(pairs), cfg.num_hypotheses)
     b = rng.integers(0, len(pairs), cfg.num_hypotheses)
-    s1, s2 = src[pairs[a, 0]], src[pairs[b, 0]]
-    d1, d2 = dst[pairs[a, 1]], dst[pairs[b, 1]]
-    vs, vd = s2 - s1, d2 - d1
-    ls, ld = np.hypot(vs[:, 0], vs[:, 1]), np.hypot(vd[:, 0], vd[:, 1])
-    ok = (ls > cfg.min_pair_separation_m) & (np.abs(ls - ld) < cfg.max_length_mismatch_m)
+    ps, pd = np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1])
+    sx, sy = np.ascontiguousarray(src[:, 0]), np.ascontiguousarray(src[:, 1])
+    dx, dy = np.ascontiguousarray(dst[:, 0]), np.ascontiguousarray(dst[:, 1])
+    i1, i2, j1, j2 = ps[a], ps[b], pd[a], pd[b]
+    vsx, vsy = sx[i2] - sx[i1], sy[i2] - sy[i1]
+    vdx, vdy = dx[j2] - dx[j1], dy[j2] - dy[j1]
+    ls, ld = np.hypot(vsx, vsy), np.hypot(vdx, vdy)
+    ok = np.flatnonzero((ls > cfg.min_pair_separation_m) & (np.abs(ls - ld) < cfg.max_length_mismatch_m))
     # solve only the consistent sets (~1 in 10): element-wise, so the same poses as solving all, then filtering
-    s1, s2, d1, d2, vs, vd = s1[ok], s2[ok], d1[ok], d2[ok], vs[ok], vd[ok]
-    yaw = np.arctan2(vd[:, 1], vd[:, 0]) - np.arctan2(vs[:, 1], vs[:, 0])
+    i1, i2, j1, j2 = i1[ok], i2[ok], j1[ok], j2[ok]
+    yaw = np.arctan2(vdy[ok], vdx[ok]) - np.arctan2(vsy[ok], vsx[ok])
     c, s = np.cos(yaw), np.sin(yaw)
-    ms, md = (s1 + s2) / 2, (d1 + d2) / 2  # midpoints: the rotation about them is best conditioned
-    tx = md[:, 0] - (c * ms[:, 0] - s * ms[:, 1])
-    ty = md[:, 1] - (s * ms[:, 0] + c * ms[:, 1])
+    msx, msy = (sx[i1] + sx[i2]) / 2, (sy[i1] + sy[i2]) / 2  # midpoints: the rotation about them is best
+    mdx, mdy = (dx[j1] + dx[j2]) / 2, (dy[j1] + dy[j2]) / 2  # conditioned
+    tx = mdx - (c * msx - s * msy)
+    ty = mdy - (s * msx + c * msy)
     return np.stack([tx, ty, yaw], axis=1)
 
 
@@ -295,6 +302,27 @@ def _score(poses: np.ndarray, src: np.ndarray, grid: LandmarkGrid, threshold_m: 
 def _apply(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     c, s = math.cos(pose[2]), math.sin(pose[2])
     return points @ np.array([[c, s], [-s, c]]) + pose[:2]
+
+
+def _fit_rigid(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """``fit_rigid_2d(src, dst)`` (no weights) for (n, 2) float64 arrays, n >= 2, with exactly its arithmetic
+    (same products, same pairwise sums, same order) in fewer numpy calls: (3,) float64 (x, y, yaw)."""
+    n = len(src)
+    w = np.full(n, 1.0 / n)  # = ones / ones.sum(): a sum of ones is exact
+    mu_s = w @ src
+    mu_d = w @ dst
+    a = src - mu_s
+    b = dst - mu_d
+    ab = a * b  # a0 b0, a1 b1
+    abr = a * b[:, ::-1]  # a0 b1, a1 b0
+    terms = np.empty((2, n))
+    np.subtract(abr[:, 0], abr[:, 1], out=terms[0])
+    np.add(ab[:, 0], ab[:, 1], out=terms[1])
+    terms *= w
+    yaw = math.atan2(np.sum(terms[0]), np.sum(terms[1]))
+    c, s = math.cos(yaw), math.sin(yaw)
+    ms0, ms1 = float(mu_s[0]), float(mu_s[1])
+    return np.array([float(mu_d[0]) - (c * ms0 - s * ms1), float(mu_d[1]) - (s * ms0 + c * ms1), yaw])
 
 
 def _apply_all(poses: list[np.ndarray], points: np.ndarray) -> np.ndarray:
@@ -338,7 +366,8 @@ def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
       distance, or at least the radius when none was within it). A point that has moved by ``d`` since is
       at least that minus ``d`` from every landmark now, so when that exceeds the new radius (plus a rounding
       slack) its look-up is skipped: the tree would answer "none" too;
-    - each hypothesis keeps its own ``_apply`` and ``fit_rigid_2d`` (same arithmetic).
+    - the landmarks of all hypotheses move in one stacked product (``_apply_all``) and each hypothesis is
+      fitted by ``_fit_rigid`` (``fit_rigid_2d``'s arithmetic).
 
     Args: (N, 2) float64 ``src``; (3,) float64 poses; the association radii (metres).
     Returns: per pose, the refined (3,) pose and the (N,) bool mask of the last association.
@@ -381,7 +410,7 @@ def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
             if np.count_nonzero(mask) < 3:
                 out[h] = (current[h], mask)
                 continue
-            current[h] = fit_rigid_2d(src[mask], grid.points[nn[row][mask]])
+            current[h] = _fit_rigid(src[mask], grid.points[nn[row][mask]])
             out[h] = (current[h], mask)
             rows.append(row)
         active = [active[r] for r in rows]

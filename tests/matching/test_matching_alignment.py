@@ -228,3 +228,42 @@ def test_apply_all_is_the_stacked_apply_bit_for_bit() -> None:
         want = np.stack([_apply(p, pts) for p in poses])
         assert _apply_all(poses, pts).tobytes() == want.tobytes()
         assert _apply_all(poses[:1], pts).tobytes() == want[:1].tobytes()
+
+
+def test_fit_rigid_is_fit_rigid_2d_bit_for_bit() -> None:
+    from reradar_core.matching import fit_rigid_2d
+    from reradar_core.matching.alignment import _fit_rigid
+
+    rng = np.random.default_rng(10)
+    for n in (2, 3, 8, 9, 127, 128, 129, 300, 1000):
+        src = rng.uniform(-90, 90, (n, 2))
+        yaw = rng.uniform(-4, 4)
+        rot = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+        dst = src @ rot.T + rng.normal(0, 30, 2) + rng.normal(0, 0.3, (n, 2))
+        keep = rng.random(n) < 0.6
+        keep[:2] = True
+        for s, d in ((src, dst), (src[keep], dst[keep])):  # contiguous, and rows picked by a mask
+            assert _fit_rigid(s, d).tobytes() == fit_rigid_2d(s, d).tobytes()
+
+
+def test_hypotheses_are_those_of_solving_every_draw_then_filtering() -> None:
+    """The reference: solve all drawn minimal sets with row arithmetic, keep the length-consistent ones."""
+    from reradar_core.matching.alignment import _hypotheses
+
+    rng = np.random.default_rng(12)
+    src, dst = rng.uniform(-60, 60, (300, 2)), rng.uniform(-60, 60, (280, 2))
+    pairs = np.stack([np.repeat(np.arange(300), 5), rng.integers(0, 280, 1500)], axis=1)
+    cfg = AlignmentConfig(num_hypotheses=3000, max_length_mismatch_m=10.0)
+    draw = np.random.default_rng(4)
+    a, b = draw.integers(0, len(pairs), 3000), draw.integers(0, len(pairs), 3000)
+    s1, s2, d1, d2 = src[pairs[a, 0]], src[pairs[b, 0]], dst[pairs[a, 1]], dst[pairs[b, 1]]
+    vs, vd = s2 - s1, d2 - d1
+    ls, ld = np.hypot(vs[:, 0], vs[:, 1]), np.hypot(vd[:, 0], vd[:, 1])
+    ok = (ls > cfg.min_pair_separation_m) & (np.abs(ls - ld) < cfg.max_length_mismatch_m)
+    yaw = np.arctan2(vd[:, 1], vd[:, 0]) - np.arctan2(vs[:, 1], vs[:, 0])
+    c, s = np.cos(yaw), np.sin(yaw)
+    ms, md = (s1 + s2) / 2, (d1 + d2) / 2
+    want = np.stack([md[:, 0] - (c * ms[:, 0] - s * ms[:, 1]), md[:, 1] - (s * ms[:, 0] + c * ms[:, 1]), yaw],
+                    axis=1)[ok]
+    got = _hypotheses(src, dst, pairs, cfg, np.random.default_rng(4))
+    assert 0 < len(got) < 3000 and got.tobytes() == want.tobytes()
