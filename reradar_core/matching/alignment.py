@@ -212,7 +212,8 @@ def build_landmark_grid(points_xy_m: np.ndarray, cell_m: float = 0.5, margin_m: 
 def topk_last_axis(scores: np.ndarray, k: int) -> np.ndarray:
     """Indices of the ``k`` largest entries along the last axis of float ``scores`` (any leading shape), in
     exactly the order ``torch.topk(scores, k, dim=-1, sorted=False)`` returns them - the order the seeded
-    minimal-set draws index, so the answers depend on it. ``scores`` is used as scratch space (overwritten).
+    minimal-set draws index, so the answers depend on it. ``scores`` is used as scratch space (overwritten)
+    when C-contiguous, else copied.
 
     torch's CPU kernel copies every row into a (value, index) vector and ``std::partial_sort`` s it when
     ``64 k <= n`` (then its "unsorted" output is in descending order; ties in an order of its heap's making);
@@ -220,30 +221,39 @@ def topk_last_axis(scores: np.ndarray, k: int) -> np.ndarray:
     whose ``k + 1`` largest values are distinct and not NaN (~6x faster on the screen's 5,120 rows of 512);
     the other rows, and shapes where torch selects with ``nth_element`` instead, go to ``torch.topk``.
     """
-    import torch  # loaded anyway by the model; its kernel is the reference for ties
-
     n = scores.shape[-1]
     lead = scores.shape[:-1]
     k = min(k, n)
     if k < 1 or 64 * k > n:
+        import torch  # loaded anyway by the model; its kernel is the reference for ties
+
         return torch.topk(torch.from_numpy(scores), k, dim=-1, sorted=False).indices.numpy()
-    flat = scores.reshape(-1, n)  # a view when contiguous, else a copy: scratch either way
-    rows = np.arange(flat.shape[0])
-    idx = np.empty((flat.shape[0], k + 1), np.int64)
-    val = np.empty((flat.shape[0], k + 1), flat.dtype)
+    flat = np.ascontiguousarray(scores.reshape(-1, n))  # a view when contiguous, else a copy: scratch either way
+    rows = flat.shape[0]
+    cells = flat.reshape(-1)  # a view of flat: the passes below read and write entries by flat index
+    start = np.arange(0, rows * n, n)
+    idx = np.empty((k + 1, rows), np.int64)  # pass-major, so each pass writes contiguous rows
+    val = np.empty((k + 1, rows), flat.dtype)
     for j in range(k + 1):
         i = flat.argmax(axis=1)
-        idx[:, j] = i
-        val[:, j] = flat[rows, i]
-        flat[rows, i] = -np.inf
-    unclear = np.flatnonzero((val[:, :-1] == val[:, 1:]).any(axis=1) | np.isnan(val).any(axis=1))
-    out = idx[:, :k]
+        idx[j] = i
+        i += start
+        np.take(cells, i, out=val[j])
+        cells[i] = -np.inf
+    unclear = np.isnan(val[0])
+    for j in range(k):
+        unclear |= val[j] == val[j + 1]
+        unclear |= np.isnan(val[j + 1])
+    unclear = np.flatnonzero(unclear)
+    out = np.ascontiguousarray(idx[:k].T)
     if len(unclear):  # ties or NaN: restore those rows and let torch order them as it does
+        import torch
+
         for j in reversed(range(k + 1)):  # last pass first: a pass over an all -inf rest may re-pick an index
-            flat[unclear, idx[unclear, j]] = val[unclear, j]
+            flat[unclear, idx[j, unclear]] = val[j, unclear]
         out[unclear] = torch.topk(torch.from_numpy(np.ascontiguousarray(flat[unclear])), k, dim=1,
                                   sorted=False).indices.numpy()
-    return np.ascontiguousarray(out).reshape(*lead, k)
+    return out.reshape(*lead, k)
 
 
 def _topk_pairs(desc_src: np.ndarray, desc_dst: np.ndarray, k: int) -> np.ndarray:

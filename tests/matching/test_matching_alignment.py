@@ -267,3 +267,16 @@ def test_hypotheses_are_those_of_solving_every_draw_then_filtering() -> None:
                     axis=1)[ok]
     got = _hypotheses(src, dst, pairs, cfg, np.random.default_rng(4))
     assert 0 < len(got) < 3000 and got.tobytes() == want.tobytes()
+
+
+def test_topk_last_axis_of_rows_that_are_not_contiguous() -> None:
+    """A strided view (rows not next to each other) gives the same indices as its contiguous copy."""
+    from reradar_core.matching.alignment import topk_last_axis
+
+    rng = np.random.default_rng(13)
+    wide = rng.normal(size=(60, 520)).astype(np.float32)
+    wide[3, 10:20] = 9.0  # ties: the torch path for that row
+    view = wide[:, 4:516]
+    want = topk_last_axis(np.ascontiguousarray(view), 5)
+    np.testing.assert_array_equal(topk_last_axis(view, 5), want)
+    np.testing.assert_array_equal(topk_last_axis(np.asfortranarray(view), 5), want)
