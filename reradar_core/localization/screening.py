@@ -170,9 +170,9 @@ def screen_candidates(query_points: np.ndarray, query_descriptors: np.ndarray,
         sim[:, row, len(keyframes[i].points):] = -np.inf
     num_pairs = len(sub) * k
     # every candidate's pair list as a row (pair s * k + j: the j-th best match of source landmark s), as flat
-    # indices of the paired keyframe landmarks into px / py
+    # indices of the paired keyframe landmarks into px / py (flattened: fx / fy)
     land = _topk_indices(sim, k).transpose(1, 0, 2).reshape(kb, num_pairs) + (np.arange(kb) * m_max)[:, None]
-    px, py = px.reshape(-1), py.reshape(-1)
+    fx, fy = px.reshape(-1), py.reshape(-1)
 
     # one seeded draw of minimal sets indexes every candidate's pair list (same length S * k for all)
     rng = np.random.default_rng(config.seed)
@@ -180,7 +180,7 @@ def screen_candidates(query_points: np.ndarray, query_descriptors: np.ndarray,
     b = rng.integers(0, num_pairs, config.screen_hypotheses)
     s1, s2 = src[sub[a // k]], src[sub[b // k]]  # (H, 2), shared
     la, lb = land[:, a], land[:, b]  # (K, H)
-    d1x, d1y, d2x, d2y = px[la], py[la], px[lb], py[lb]
+    d1x, d1y, d2x, d2y = fx[la], fy[la], fx[lb], fy[lb]
     vs = s2 - s1
     vdx, vdy = d2x - d1x, d2y - d1y
     ls = np.hypot(vs[:, 0], vs[:, 1])

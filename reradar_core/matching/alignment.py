@@ -387,14 +387,15 @@ def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
     active = list(range(len(poses)))
     current = list(poses)
     # per point of each refining hypothesis: where it was last looked up, and a lower bound on its distance
-    # to the nearest destination landmark there (metres)
-    seen_xy = seen_m = None
-    for thr in thresholds:
+    # to the nearest destination landmark there (metres; nothing known before the first look-up)
+    seen_xy = np.zeros((len(poses), n, 2))
+    seen_m = np.full((len(poses), n), -np.inf)
+    for it, thr in enumerate(thresholds):
         if not active:
             break
         xy = _apply_all([current[h] for h in active], src)  # (A, N, 2)
         ask = None  # all points
-        if seen_m is not None:
+        if it:
             moved = xy - seen_xy
             ask = ~(seen_m - np.hypot(moved[..., 0], moved[..., 1]) > thr + _SKIP_SLACK_M)  # NaN: asked
             if ask.all():
