@@ -76,41 +76,52 @@ def _topk_indices(sim: np.ndarray, k: int) -> np.ndarray:
 
 
 def _cells(a: np.ndarray, b: np.ndarray, sign: float, t: np.ndarray, origin: np.ndarray,
-           cell: np.ndarray) -> np.ndarray:
-    """floor(((a + sign * b) + t - origin) / cell) as int64, computed in place in ``a``."""
+           cell: np.ndarray, inverse: bool) -> np.ndarray:
+    """floor(((a + sign * b) + t - origin) / cell) as int64, computed in place in ``a``; with ``inverse``,
+    ``cell`` holds 1 / cell, a power of two, and the division is that multiplication (the same number:
+    scaling by a power of two is exact)."""
     if sign < 0:
         a -= b
     else:
         a += b
     a += t
     a -= origin
-    a /= cell
+    if inverse:
+        a *= cell
+    else:
+        a /= cell
     np.floor(a, out=a)
     return a.astype(np.int64)
 
 
 #: hypotheses scored at once (x 128 scored landmarks: ~0.5 MB per float64 temporary)
-_SCORE_BLOCK = 256
+_SCORE_BLOCK = 512
 
 
-def _aligned_counts(scored: np.ndarray, c: np.ndarray, s: np.ndarray, tx: np.ndarray, ty: np.ndarray,
-                    cand: np.ndarray, origins: np.ndarray, cells: np.ndarray, sizes: np.ndarray,
-                    offsets: np.ndarray, near: np.ndarray) -> np.ndarray:
-    """(V,) scored landmarks that V hypotheses (rotation cos / sin, translation, candidate) put on a cell of
-    their candidate's alignment mask (``near``: every candidate's mask concatenated, last entry "outside")."""
-    # grid cell of every scored landmark under every hypothesis, (V, P); in place, in the arithmetic order of
+def _aligned_counts(sx: np.ndarray, sy: np.ndarray, c: np.ndarray, s: np.ndarray, tx: np.ndarray,
+                    ty: np.ndarray, cand: np.ndarray, origins: np.ndarray, cells: np.ndarray, inverse: bool,
+                    sizes: np.ndarray, offsets: np.ndarray, near: np.ndarray) -> np.ndarray:
+    """(V,) scored landmarks ((P, 1) x, y) that V hypotheses (rotation cos / sin, translation, candidate) put
+    on a cell of their candidate's alignment mask (``near``: every candidate's mask concatenated, last entry
+    "outside"); ``cells`` (and ``inverse``) as ``_cells`` takes them."""
+    # grid cell of every scored landmark under every hypothesis, (P, V): hypotheses along the contiguous axis,
+    # so the per-hypothesis operands broadcast along long rows (fast); in place, in the arithmetic order of
     # ``LandmarkGrid.lookup`` (floor((x - origin) / cell)), so the cells are exactly the same
-    go, gc = origins[cand][:, None], cells[cand][:, None]
-    gi = _cells(c[:, None] * scored[None, :, 0], s[:, None] * scored[None, :, 1], -1.0, tx[:, None], go, gc)
-    gj = _cells(s[:, None] * scored[None, :, 0], c[:, None] * scored[None, :, 1], 1.0, ty[:, None], go, gc)
-    gn = sizes[cand][:, None]
-    inside = gi.view(np.uint64) < gn.astype(np.uint64)  # negative cells wrap to huge unsigned values
-    inside &= gj.view(np.uint64) < gn.astype(np.uint64)
+    go, gc = origins[cand], cells[cand]
+    gi = _cells(sx * c, sy * s, -1.0, tx, go, gc, inverse)
+    gj = _cells(sx * s, sy * c, 1.0, ty, go, gc, inverse)
+    gn = sizes[cand]
+    gnu = gn.astype(np.uint64)
+    inside = gi.view(np.uint64) < gnu  # negative cells wrap to huge unsigned values
+    inside &= gj.view(np.uint64) < gnu
     gj *= gn
     gj += gi
-    gj += offsets[cand][:, None]
+    gj += offsets[cand]
     np.putmask(gj, ~inside, len(near) - 1)
-    return near[gj].sum(axis=1, dtype=np.int64)
+    hits = near[gj]
+    if hits.shape[0] < 256:  # a uint8 sum cannot wrap: no cast per element
+        return np.add.reduce(hits, axis=0, dtype=np.uint8).astype(np.int64)
+    return hits.sum(axis=0, dtype=np.int64)
 
 
 def screen_candidates(query_points: np.ndarray, query_descriptors: np.ndarray,
@@ -146,45 +157,59 @@ def screen_candidates(query_points: np.ndarray, query_descriptors: np.ndarray,
     m_max = max(len(keyframes[i].points) for i in batch)
     kb = len(batch)
     desc = np.zeros((kb, m_max, q.shape[1]), np.float32)
-    pts = np.zeros((kb, m_max, 2), np.float64)
+    px = np.zeros((kb, m_max), np.float64)  # landmark x, y (metres): separate, so the gathers below are contiguous
+    py = np.zeros((kb, m_max), np.float64)
     for row, i in enumerate(batch):
         m = len(keyframes[i].points)
         desc[row, :m] = keyframes[i].descriptors
-        pts[row, :m] = keyframes[i].points
+        px[row, :m] = keyframes[i].points[:, 0]
+        py[row, :m] = keyframes[i].points[:, 1]
     # one BLAS product for all candidates (a batched np.matmul over a transposed view would not use BLAS)
     sim = (q @ desc.reshape(kb * m_max, -1).T).reshape(len(sub), kb, m_max)  # (S, K, M)
     for row, i in enumerate(batch):  # padding never wins the top-k
         sim[:, row, len(keyframes[i].points):] = -np.inf
-    idx = _topk_indices(sim, k).transpose(1, 0, 2)  # (K, S, k)
+    num_pairs = len(sub) * k
+    # every candidate's pair list as a row (pair s * k + j: the j-th best match of source landmark s), as flat
+    # indices of the paired keyframe landmarks into px / py (flattened: fx / fy)
+    land = _topk_indices(sim, k).transpose(1, 0, 2).reshape(kb, num_pairs) + (np.arange(kb) * m_max)[:, None]
+    fx, fy = px.reshape(-1), py.reshape(-1)
 
     # one seeded draw of minimal sets indexes every candidate's pair list (same length S * k for all)
     rng = np.random.default_rng(config.seed)
-    num_pairs = len(sub) * k
     a = rng.integers(0, num_pairs, config.screen_hypotheses)
     b = rng.integers(0, num_pairs, config.screen_hypotheses)
     s1, s2 = src[sub[a // k]], src[sub[b // k]]  # (H, 2), shared
-    rows = np.arange(kb)[:, None]
-    d1 = pts[rows, idx[:, a // k, a % k]]  # (K, H, 2)
-    d2 = pts[rows, idx[:, b // k, b % k]]
-    vs, vd = s2 - s1, d2 - d1
+    la, lb = land[:, a], land[:, b]  # (K, H)
+    d1x, d1y, d2x, d2y = fx[la], fy[la], fx[lb], fy[lb]
+    vs = s2 - s1
+    vdx, vdy = d2x - d1x, d2y - d1y
     ls = np.hypot(vs[:, 0], vs[:, 1])
-    ld = np.hypot(vd[..., 0], vd[..., 1])
+    ld = np.hypot(vdx, vdy)
     ok = (ls > config.min_pair_separation_m)[None, :] & (np.abs(ls[None, :] - ld) < config.max_length_mismatch_m)
-    cand, hyp = np.nonzero(ok)  # candidate-major order
-    if len(cand) == 0:
+    sel = np.flatnonzero(ok)  # candidate-major order
+    if len(sel) == 0:
         return out
-    yaw = np.arctan2(vd[cand, hyp, 1], vd[cand, hyp, 0]) - np.arctan2(vs[hyp, 1], vs[hyp, 0])
+    cand, hyp = np.divmod(sel, ok.shape[1])
+    yaw = np.arctan2(vdy.reshape(-1)[sel], vdx.reshape(-1)[sel]) - np.arctan2(vs[hyp, 1], vs[hyp, 0])
     c, s = np.cos(yaw), np.sin(yaw)
     ms = (s1[hyp] + s2[hyp]) / 2
-    md = (d1[cand, hyp] + d2[cand, hyp]) / 2
-    tx = md[:, 0] - (c * ms[:, 0] - s * ms[:, 1])
-    ty = md[:, 1] - (s * ms[:, 0] + c * ms[:, 1])
+    mdx = (d1x.reshape(-1)[sel] + d2x.reshape(-1)[sel]) / 2
+    mdy = (d1y.reshape(-1)[sel] + d2y.reshape(-1)[sel]) / 2
+    tx = mdx - (c * ms[:, 0] - s * ms[:, 1])
+    ty = mdy - (s * ms[:, 0] + c * ms[:, 1])
 
     scored = src[:: max(1, n // config.score_points)]  # (P, 2)
+    sx, sy = scored[:, 0:1], scored[:, 1:2]  # (P, 1)
     grids = [keyframes[i].grid for i in batch]
     sizes = np.array([g.n for g in grids], np.int64)
     origins = np.array([g.origin_m for g in grids])
     cells = np.array([g.cell_m for g in grids])
+    with np.errstate(divide="ignore", over="ignore"):
+        inv = 1.0 / cells
+    # cells that are powers of two (0.5 m) with a finite inverse: multiply by it instead of dividing
+    inverse = bool(np.all((cells > 0) & (np.frexp(cells)[0] == 0.5) & np.isfinite(inv)))
+    if inverse:
+        cells = inv
     offsets = np.concatenate([[0], np.cumsum(sizes * sizes)[:-1]])
     near = np.concatenate([g.near for g in grids] + [np.zeros(1, np.uint8)])  # last cell: "outside"
     counts = np.empty(len(cand), np.int64)  # aligned query landmarks per hypothesis
@@ -192,8 +217,8 @@ def screen_candidates(query_points: np.ndarray, query_descriptors: np.ndarray,
     # element-wise, so the cells - and the scores - do not depend on the block size)
     for lo in range(0, len(cand), _SCORE_BLOCK):
         sl = slice(lo, lo + _SCORE_BLOCK)
-        counts[sl] = _aligned_counts(scored, c[sl], s[sl], tx[sl], ty[sl], cand[sl], origins, cells, sizes,
-                                     offsets, near)
+        counts[sl] = _aligned_counts(sx, sy, c[sl], s[sl], tx[sl], ty[sl], cand[sl], origins, cells, inverse,
+                                     sizes, offsets, near)
     best = np.zeros(kb, np.int64)
     np.maximum.at(best, cand, counts)
     out[batch] = best / len(scored)

@@ -157,6 +157,33 @@ class LandmarkGrid:
         np.putmask(j, ~inside, n * n)
         return self.within_mask(threshold_m)[j].sum(axis=1, dtype=np.int64)
 
+    def _count_within_columns(self, x: np.ndarray, y: np.ndarray, threshold_m: float) -> np.ndarray:
+        """``count_within(x.T, y.T, threshold_m)`` for (P, V) points (column = one hypothesis), exactly (same
+        cells), faster: the division by a power-of-two cell is the (exact) multiplication by its inverse,
+        and the 0 / 1 hits of fewer than 256 rows are summed without a cast per element."""
+        n = self.size
+        inv = 1.0 / self.cell_m
+        exact = self.cell_m > 0 and math.frexp(self.cell_m)[0] == 0.5 and math.isfinite(inv)
+        i = x - self.origin_m
+        j = y - self.origin_m
+        if exact:
+            i *= inv
+            j *= inv
+        else:
+            i /= self.cell_m
+            j /= self.cell_m
+        i = np.floor(i, out=i).astype(np.int64)
+        j = np.floor(j, out=j).astype(np.int64)
+        inside = i.view(np.uint64) < np.uint64(n)  # negative cells wrap to huge unsigned values
+        inside &= j.view(np.uint64) < np.uint64(n)
+        j *= n
+        j += i
+        np.putmask(j, ~inside, n * n)
+        hits = self.within_mask(threshold_m)[j]
+        if hits.shape[0] < 256:
+            return np.add.reduce(hits, axis=0, dtype=np.uint8).astype(np.int64)
+        return hits.sum(axis=0, dtype=np.int64)
+
     def lookup(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Distance to the nearest landmark at points (x, y) (any shape); far outside the grid = large."""
         if self.distance_m is None:
@@ -185,7 +212,8 @@ def build_landmark_grid(points_xy_m: np.ndarray, cell_m: float = 0.5, margin_m: 
 def topk_last_axis(scores: np.ndarray, k: int) -> np.ndarray:
     """Indices of the ``k`` largest entries along the last axis of float ``scores`` (any leading shape), in
     exactly the order ``torch.topk(scores, k, dim=-1, sorted=False)`` returns them - the order the seeded
-    minimal-set draws index, so the answers depend on it. ``scores`` is used as scratch space (overwritten).
+    minimal-set draws index, so the answers depend on it. ``scores`` is used as scratch space (overwritten)
+    when C-contiguous, else copied.
 
     torch's CPU kernel copies every row into a (value, index) vector and ``std::partial_sort`` s it when
     ``64 k <= n`` (then its "unsorted" output is in descending order; ties in an order of its heap's making);
@@ -193,30 +221,39 @@ def topk_last_axis(scores: np.ndarray, k: int) -> np.ndarray:
     whose ``k + 1`` largest values are distinct and not NaN (~6x faster on the screen's 5,120 rows of 512);
     the other rows, and shapes where torch selects with ``nth_element`` instead, go to ``torch.topk``.
     """
-    import torch  # loaded anyway by the model; its kernel is the reference for ties
-
     n = scores.shape[-1]
     lead = scores.shape[:-1]
     k = min(k, n)
     if k < 1 or 64 * k > n:
+        import torch  # loaded anyway by the model; its kernel is the reference for ties
+
         return torch.topk(torch.from_numpy(scores), k, dim=-1, sorted=False).indices.numpy()
-    flat = scores.reshape(-1, n)  # a view when contiguous, else a copy: scratch either way
-    rows = np.arange(flat.shape[0])
-    idx = np.empty((flat.shape[0], k + 1), np.int64)
-    val = np.empty((flat.shape[0], k + 1), flat.dtype)
+    flat = np.ascontiguousarray(scores.reshape(-1, n))  # a view when contiguous, else a copy: scratch either way
+    rows = flat.shape[0]
+    cells = flat.reshape(-1)  # a view of flat: the passes below read and write entries by flat index
+    start = np.arange(0, rows * n, n)
+    idx = np.empty((k + 1, rows), np.int64)  # pass-major, so each pass writes contiguous rows
+    val = np.empty((k + 1, rows), flat.dtype)
     for j in range(k + 1):
         i = flat.argmax(axis=1)
-        idx[:, j] = i
-        val[:, j] = flat[rows, i]
-        flat[rows, i] = -np.inf
-    unclear = np.flatnonzero((val[:, :-1] == val[:, 1:]).any(axis=1) | np.isnan(val).any(axis=1))
-    out = idx[:, :k]
+        idx[j] = i
+        i += start
+        np.take(cells, i, out=val[j])
+        cells[i] = -np.inf
+    unclear = np.isnan(val[0])
+    for j in range(k):
+        unclear |= val[j] == val[j + 1]
+        unclear |= np.isnan(val[j + 1])
+    unclear = np.flatnonzero(unclear)
+    out = np.ascontiguousarray(idx[:k].T)
     if len(unclear):  # ties or NaN: restore those rows and let torch order them as it does
+        import torch
+
         for j in reversed(range(k + 1)):  # last pass first: a pass over an all -inf rest may re-pick an index
-            flat[unclear, idx[unclear, j]] = val[unclear, j]
+            flat[unclear, idx[j, unclear]] = val[j, unclear]
         out[unclear] = torch.topk(torch.from_numpy(np.ascontiguousarray(flat[unclear])), k, dim=1,
                                   sorted=False).indices.numpy()
-    return np.ascontiguousarray(out).reshape(*lead, k)
+    return out.reshape(*lead, k)
 
 
 def _topk_pairs(desc_src: np.ndarray, desc_dst: np.ndarray, k: int) -> np.ndarray:
@@ -229,35 +266,46 @@ def _topk_pairs(desc_src: np.ndarray, desc_dst: np.ndarray, k: int) -> np.ndarra
 
 def _hypotheses(src: np.ndarray, dst: np.ndarray, pairs: np.ndarray, cfg: AlignmentConfig,
                 rng: np.random.Generator) -> np.ndarray:
+    """(V, 3) poses (x, y, yaw) of the length-consistent minimal sets among ``cfg.num_hypotheses`` seeded
+    draws of two (P, 2) index pairs (source row, destination row) into the (N, 2) / (M, 2) float64 landmarks.
+    Coordinates are gathered as contiguous x / y arrays (the same numbers as gathering rows)."""
     a = rng.integers(0, len(pairs), cfg.num_hypotheses)
     b = rng.integers(0, len(pairs), cfg.num_hypotheses)
-    s1, s2 = src[pairs[a, 0]], src[pairs[b, 0]]
-    d1, d2 = dst[pairs[a, 1]], dst[pairs[b, 1]]
-    vs, vd = s2 - s1, d2 - d1
-    ls, ld = np.hypot(vs[:, 0], vs[:, 1]), np.hypot(vd[:, 0], vd[:, 1])
-    ok = (ls > cfg.min_pair_separation_m) & (np.abs(ls - ld) < cfg.max_length_mismatch_m)
-    yaw = np.arctan2(vd[:, 1], vd[:, 0]) - np.arctan2(vs[:, 1], vs[:, 0])
+    ps, pd = np.ascontiguousarray(pairs[:, 0]), np.ascontiguousarray(pairs[:, 1])
+    sx, sy = np.ascontiguousarray(src[:, 0]), np.ascontiguousarray(src[:, 1])
+    dx, dy = np.ascontiguousarray(dst[:, 0]), np.ascontiguousarray(dst[:, 1])
+    i1, i2, j1, j2 = ps[a], ps[b], pd[a], pd[b]
+    vsx, vsy = sx[i2] - sx[i1], sy[i2] - sy[i1]
+    vdx, vdy = dx[j2] - dx[j1], dy[j2] - dy[j1]
+    ls, ld = np.hypot(vsx, vsy), np.hypot(vdx, vdy)
+    ok = np.flatnonzero((ls > cfg.min_pair_separation_m) & (np.abs(ls - ld) < cfg.max_length_mismatch_m))
+    # solve only the consistent sets (~1 in 10): element-wise, so the same poses as solving all, then filtering
+    i1, i2, j1, j2 = i1[ok], i2[ok], j1[ok], j2[ok]
+    yaw = np.arctan2(vdy[ok], vdx[ok]) - np.arctan2(vsy[ok], vsx[ok])
     c, s = np.cos(yaw), np.sin(yaw)
-    ms, md = (s1 + s2) / 2, (d1 + d2) / 2  # midpoints: the rotation about them is best conditioned
-    tx = md[:, 0] - (c * ms[:, 0] - s * ms[:, 1])
-    ty = md[:, 1] - (s * ms[:, 0] + c * ms[:, 1])
-    return np.stack([tx, ty, yaw], axis=1)[ok]
+    msx, msy = (sx[i1] + sx[i2]) / 2, (sy[i1] + sy[i2]) / 2  # midpoints: the rotation about them is best
+    mdx, mdy = (dx[j1] + dx[j2]) / 2, (dy[j1] + dy[j2]) / 2  # conditioned
+    tx = mdx - (c * msx - s * msy)
+    ty = mdy - (s * msx + c * msy)
+    return np.stack([tx, ty, yaw], axis=1)
 
 
-#: hypotheses scored at once, so the (block, 128) temporaries stay in the CPU cache
-_SCORE_BLOCK = 256
+#: hypotheses scored at once, so the (128, block) temporaries stay in the CPU cache
+_SCORE_BLOCK = 512
 
 
 def _score(poses: np.ndarray, src: np.ndarray, grid: LandmarkGrid, threshold_m: float) -> np.ndarray:
     """Source landmarks within ``threshold_m`` of a destination landmark under each pose (element-wise
-    arithmetic in blocks of poses: the counts do not depend on the block size)."""
+    arithmetic in blocks of poses: the counts do not depend on the block size, nor on the layout)."""
     out = np.empty(len(poses), np.int64)
+    sx, sy = src[:, 0:1], src[:, 1:2]
     for lo in range(0, len(poses), _SCORE_BLOCK):
         p = poses[lo:lo + _SCORE_BLOCK]
-        c, s = np.cos(p[:, 2:3]), np.sin(p[:, 2:3])
-        x = c * src[None, :, 0] - s * src[None, :, 1] + p[:, 0:1]
-        y = s * src[None, :, 0] + c * src[None, :, 1] + p[:, 1:2]
-        out[lo:lo + _SCORE_BLOCK] = grid.count_within(x, y, threshold_m)
+        c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
+        # (P, V): one column per pose, so the per-pose operands broadcast along long rows (fast)
+        x = c * sx - s * sy + p[:, 0]
+        y = s * sx + c * sy + p[:, 1]
+        out[lo:lo + _SCORE_BLOCK] = grid._count_within_columns(x, y, threshold_m)
     return out
 
 
@@ -266,8 +314,43 @@ def _apply(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ np.array([[c, s], [-s, c]]) + pose[:2]
 
 
+def _fit_rigid(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """``fit_rigid_2d(src, dst)`` (no weights) for (n, 2) float64 arrays, n >= 2, with exactly its arithmetic
+    (same products, same pairwise sums, same order) in fewer numpy calls: (3,) float64 (x, y, yaw)."""
+    n = len(src)
+    w = np.full(n, 1.0 / n)  # = ones / ones.sum(): a sum of ones is exact
+    mu_s = w @ src
+    mu_d = w @ dst
+    a = src - mu_s
+    b = dst - mu_d
+    ab = a * b  # a0 b0, a1 b1
+    abr = a * b[:, ::-1]  # a0 b1, a1 b0
+    terms = np.empty((2, n))
+    np.subtract(abr[:, 0], abr[:, 1], out=terms[0])
+    np.add(ab[:, 0], ab[:, 1], out=terms[1])
+    terms *= w
+    yaw = math.atan2(np.sum(terms[0]), np.sum(terms[1]))
+    c, s = math.cos(yaw), math.sin(yaw)
+    ms0, ms1 = float(mu_s[0]), float(mu_s[1])
+    return np.array([float(mu_d[0]) - (c * ms0 - s * ms1), float(mu_d[1]) - (s * ms0 + c * ms1), yaw])
+
+
+def _apply_all(poses: list[np.ndarray], points: np.ndarray) -> np.ndarray:
+    """``np.stack([_apply(p, points) for p in poses])``, (H, N, 2), exactly: the same rotation matrices and
+    one stacked matmul (numpy runs the same 2-D product on every slice; its FMA rounding is not that of an
+    element-wise x c - y s, so the product itself is kept)."""
+    rot = np.empty((len(poses), 2, 2))
+    for h, pose in enumerate(poses):
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        rot[h] = ((c, s), (-s, c))
+    xy = np.matmul(points, rot)
+    xy += np.array([pose[:2] for pose in poses])[:, None, :]
+    return xy
+
+
 def _refine(src: np.ndarray, grid: LandmarkGrid, pose: np.ndarray,
             thresholds: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """One hypothesis refined (the reference of ``_refine_all``): (3,) pose and (N,) bool association mask."""
     mask = np.zeros(len(src), dtype=bool)
     for thr in thresholds:
         dist, nn = grid.tree.query(_apply(pose, src), distance_upper_bound=thr)
@@ -276,6 +359,74 @@ def _refine(src: np.ndarray, grid: LandmarkGrid, pose: np.ndarray,
             return pose, mask
         pose = fit_rigid_2d(src[mask], grid.points[nn[mask]])
     return pose, mask
+
+
+#: slack on the skip test of ``_refine_all``, metres: far above the rounding of positions and distances
+#: (~1e-14 m at map scale)
+_SKIP_SLACK_M = 1e-6
+
+
+def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
+                thresholds: tuple[float, ...]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``[_refine(src, grid, p, thresholds) for p in poses]``, exactly (same pose bits, same masks), faster:
+
+    - each iteration's nearest-landmark look-ups of all still-refining hypotheses go to the KD-tree in one
+      call (~13 us of overhead per call; the tree's answer for a point does not depend on the other points);
+    - every look-up tells how far the nearest destination landmark was from the point's position then (its
+      distance, or at least the radius when none was within it). A point that has moved by ``d`` since is
+      at least that minus ``d`` from every landmark now, so when that exceeds the new radius (plus a rounding
+      slack) its look-up is skipped: the tree would answer "none" too;
+    - the landmarks of all hypotheses move in one stacked product (``_apply_all``) and each hypothesis is
+      fitted by ``_fit_rigid`` (``fit_rigid_2d``'s arithmetic).
+
+    Args: (N, 2) float64 ``src``; (3,) float64 poses; the association radii (metres).
+    Returns: per pose, the refined (3,) pose and the (N,) bool mask of the last association.
+    """
+    n = len(src)
+    out: list[tuple[np.ndarray, np.ndarray]] = [(p, np.zeros(n, dtype=bool)) for p in poses]
+    active = list(range(len(poses)))
+    current = list(poses)
+    # per point of each refining hypothesis: where it was last looked up, and a lower bound on its distance
+    # to the nearest destination landmark there (metres; nothing known before the first look-up)
+    seen_xy = np.zeros((len(poses), n, 2))
+    seen_m = np.full((len(poses), n), -np.inf)
+    for it, thr in enumerate(thresholds):
+        if not active:
+            break
+        xy = _apply_all([current[h] for h in active], src)  # (A, N, 2)
+        ask = None  # all points
+        if it:
+            moved = xy - seen_xy
+            ask = ~(seen_m - np.hypot(moved[..., 0], moved[..., 1]) > thr + _SKIP_SLACK_M)  # NaN: asked
+            if ask.all():
+                ask = None
+        if ask is None:
+            dist, nn = grid.tree.query(xy.reshape(-1, 2), distance_upper_bound=thr)
+            dist, nn = dist.reshape(len(active), n), nn.reshape(len(active), n)
+            found = np.isfinite(dist)
+            seen_xy, seen_m = xy, np.where(found, dist, thr)
+        else:
+            sel = np.flatnonzero(ask)
+            dist, idx = grid.tree.query(xy.reshape(-1, 2)[sel], distance_upper_bound=thr)
+            found = np.zeros((len(active), n), dtype=bool)
+            nn = np.zeros((len(active), n), dtype=np.intp)
+            hit = np.isfinite(dist)
+            found.reshape(-1)[sel] = hit
+            nn.reshape(-1)[sel] = idx
+            np.copyto(seen_xy, xy, where=ask[..., None])  # seen_xy is this loop's own array
+            seen_m.reshape(-1)[sel] = np.where(hit, dist, thr)
+        rows = []
+        for row, h in enumerate(active):
+            mask = found[row].copy()
+            if np.count_nonzero(mask) < 3:
+                out[h] = (current[h], mask)
+                continue
+            current[h] = _fit_rigid(src[mask], grid.points[nn[row][mask]])
+            out[h] = (current[h], mask)
+            rows.append(row)
+        active = [active[r] for r in rows]
+        seen_xy, seen_m = seen_xy[rows], seen_m[rows]
+    return out
 
 
 def screen_alignment(points_src: np.ndarray, desc_src: np.ndarray, points_dst: np.ndarray,
@@ -353,8 +504,8 @@ def estimate_pose_guided(points_src: np.ndarray, desc_src: np.ndarray, points_ds
         return fail("no_consistent_hypothesis")
     step = max(1, n // config.score_points)
     scores = _score(hyp, src[::step], grid, config.score_threshold_m)
-    refined = [_refine(src, grid, hyp[h], config.refine_thresholds_m)
-               for h in np.argsort(-scores, kind="stable")[: config.refine_candidates]]
+    best = np.argsort(-scores, kind="stable")[: config.refine_candidates]
+    refined = _refine_all(src, grid, [hyp[h] for h in best], config.refine_thresholds_m)
     pose, best_mask = max(refined, key=lambda r: int(r[1].sum()))  # first of equals: best-scored hypothesis
     best_pose = np.array([pose[0], pose[1], wrap_angle(pose[2])])
     k = int(best_mask.sum())

@@ -56,3 +56,21 @@ def test_scores_do_not_depend_on_the_scoring_block(monkeypatch) -> None:  # type
     default = screen_candidates(q_pts, q_desc, kfs, cfg)
     monkeypatch.setattr(screening, "_SCORE_BLOCK", 7)  # many blocks, a ragged last one
     np.testing.assert_array_equal(screen_candidates(q_pts, q_desc, kfs, cfg), default)
+
+
+def test_batched_scores_equal_single_candidate_scores_for_other_cells_and_many_scored_landmarks() -> None:
+    """A cell that is not a power of two (divided, not multiplied by its inverse) and 300 scored landmarks
+    (summed in int64, not uint8): still the single-candidate scores. (Every keyframe has >= 64 k landmarks, so
+    the single-candidate top-k orders its pairs as the batched one does.)"""
+    rng = np.random.default_rng(4)
+    for cfg in (AlignmentConfig(grid_cell_m=0.3), AlignmentConfig(score_points=300),
+                AlignmentConfig(grid_cell_m=0.25, top_k_matches=3)):
+        kfs = [(rng.uniform(-60, 60, (m, 2)), _unit(rng.normal(size=(m, 16)))) for m in (400, 330, 350)]
+        sel = rng.choice(350, 300, replace=False)
+        q_pts = np.vstack([transform_points(inverse(np.array([-4.0, 1.0, 2.5])), kfs[2][0][sel]),
+                           rng.uniform(-60, 60, (40, 2))])
+        q_desc = _unit(np.vstack([kfs[2][1][sel] + 0.05 * rng.normal(size=(300, 16)), rng.normal(size=(40, 16))]))
+        batched = screen_candidates(q_pts, q_desc, [screen_keyframe(p, d, cfg) for p, d in kfs], cfg)
+        single = [screen_alignment(q_pts, q_desc, p, d, cfg) for p, d in kfs]
+        np.testing.assert_array_equal(batched, single)
+        assert int(np.argmax(batched)) == 2 and batched[2] > 0.6

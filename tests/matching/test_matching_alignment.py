@@ -154,3 +154,129 @@ def test_topk_last_axis_is_torch_topks_order(n: int) -> None:
     assert got.shape == want.shape
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(topk_last_axis(sim[0].copy(), 5), want[0])
+
+
+def test_batched_refinement_is_the_per_hypothesis_refinement_bit_for_bit() -> None:
+    """``_refine_all`` (one KD-tree query per iteration for all hypotheses) returns exactly what refining each
+    hypothesis on its own returns: same pose bits, same masks - for good, poor and hopeless starts, and for
+    hypotheses that stop early (fewer than 3 landmarks associated)."""
+    from reradar_core.matching.alignment import _refine, _refine_all
+
+    T = np.array([3.5, -2.0, np.radians(37.0)])
+    src, _, dst, _ = _scene(T, seed=4)
+    grid = build_landmark_grid(dst)
+    rng = np.random.default_rng(2)
+    starts = [T + rng.normal(0, s, 3) * [1, 1, 0.05] for s in (0.0, 0.3, 1.0, 3.0, 10.0)]
+    starts += [np.array([500.0, 500.0, 0.0]), np.array([0.0, 0.0, np.pi])]  # nothing (or little) associates
+    for thresholds in ((2.0, 1.0, 0.75, 0.75), (3.0,), (0.5, 2.0)):
+        got = _refine_all(src, grid, starts, thresholds)
+        want = [_refine(src, grid, p, thresholds) for p in starts]
+        assert len(got) == len(want)
+        for (pose, mask), (pose_ref, mask_ref) in zip(got, want, strict=True):
+            assert pose.tobytes() == pose_ref.tobytes()
+            np.testing.assert_array_equal(mask, mask_ref)
+    assert _refine_all(src, grid, [], (2.0,)) == []
+    pose, mask = _refine_all(src, grid, starts, (2.0, 1.0))[0]
+    assert mask.sum() >= 0.7 * (len(src) - 60) and np.linalg.norm(pose[:2] - T[:2]) < 0.3
+
+
+def test_batched_refinement_skips_no_look_up_it_needs_on_exact_radii() -> None:
+    """Landmarks on a lattice, so many query landmarks lie exactly at the association radii (the skipped
+    look-ups are those that cannot find a landmark within the shrinking radius): still the per-hypothesis
+    answer, bit for bit."""
+    from reradar_core.matching.alignment import _refine, _refine_all
+
+    rng = np.random.default_rng(3)
+    for trial in range(40):
+        dst = rng.integers(-20, 20, (150, 2)).astype(float) * 0.5
+        src = rng.integers(-20, 20, (120, 2)).astype(float) * 0.25
+        grid = build_landmark_grid(dst)
+        starts = [np.zeros(3)] + [np.array([*rng.normal(0, 0.5, 2), rng.normal(0, 0.05)]) for _ in range(4)]
+        thresholds = ((2.0, 1.0, 0.75, 0.75), (1.5, 1.0, 0.5, 0.25), (1.0, 0.5))[trial % 3]
+        got = _refine_all(src, grid, starts, thresholds)
+        for (pose, mask), start in zip(got, starts, strict=True):
+            pose_ref, mask_ref = _refine(src, grid, start, thresholds)
+            assert pose.tobytes() == pose_ref.tobytes()
+            np.testing.assert_array_equal(mask, mask_ref)
+
+
+@pytest.mark.parametrize("cell_m", [0.5, 0.3])
+@pytest.mark.parametrize("rows", [128, 300])
+def test_count_within_columns_equals_the_distance_lookup(cell_m: float, rows: int) -> None:
+    """The scorer's column layout (one pose per column; the division by a power-of-two cell done as a
+    multiplication; a uint8 sum below 256 rows) counts exactly what the distance look-up counts."""
+    rng = np.random.default_rng(6)
+    grid = build_landmark_grid(rng.uniform(-40, 40, (120, 2)), cell_m)
+    x = rng.uniform(-70, 70, (rows, 50))
+    y = rng.uniform(-70, 70, (rows, 50))
+    x[:4, 0] = [np.nan, np.inf, -np.inf, 1e12]
+    x[:, 1] = np.round(x[:, 1] / cell_m) * cell_m  # exactly on cell edges
+    for thr in (0.75, 1.5, 3.0):
+        with np.errstate(invalid="ignore"):  # non-finite points: a cast warning, and never within
+            expected = (grid.lookup(x, y) < thr).sum(axis=0)
+            np.testing.assert_array_equal(grid._count_within_columns(x, y, thr), expected)
+            np.testing.assert_array_equal(grid.count_within(x.T, y.T, thr), expected)
+
+
+def test_apply_all_is_the_stacked_apply_bit_for_bit() -> None:
+    from reradar_core.matching.alignment import _apply, _apply_all
+
+    rng = np.random.default_rng(8)
+    for n in (1, 2, 7, 128, 513):
+        pts = rng.uniform(-80, 80, (n, 2))
+        poses = [np.array([*rng.normal(0, 20, 2), rng.uniform(-7, 7)]) for _ in range(5)]
+        want = np.stack([_apply(p, pts) for p in poses])
+        assert _apply_all(poses, pts).tobytes() == want.tobytes()
+        assert _apply_all(poses[:1], pts).tobytes() == want[:1].tobytes()
+
+
+def test_fit_rigid_is_fit_rigid_2d_bit_for_bit() -> None:
+    from reradar_core.matching import fit_rigid_2d
+    from reradar_core.matching.alignment import _fit_rigid
+
+    rng = np.random.default_rng(10)
+    for n in (2, 3, 8, 9, 127, 128, 129, 300, 1000):
+        src = rng.uniform(-90, 90, (n, 2))
+        yaw = rng.uniform(-4, 4)
+        rot = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+        dst = src @ rot.T + rng.normal(0, 30, 2) + rng.normal(0, 0.3, (n, 2))
+        keep = rng.random(n) < 0.6
+        keep[:2] = True
+        for s, d in ((src, dst), (src[keep], dst[keep])):  # contiguous, and rows picked by a mask
+            assert _fit_rigid(s, d).tobytes() == fit_rigid_2d(s, d).tobytes()
+
+
+def test_hypotheses_are_those_of_solving_every_draw_then_filtering() -> None:
+    """The reference: solve all drawn minimal sets with row arithmetic, keep the length-consistent ones."""
+    from reradar_core.matching.alignment import _hypotheses
+
+    rng = np.random.default_rng(12)
+    src, dst = rng.uniform(-60, 60, (300, 2)), rng.uniform(-60, 60, (280, 2))
+    pairs = np.stack([np.repeat(np.arange(300), 5), rng.integers(0, 280, 1500)], axis=1)
+    cfg = AlignmentConfig(num_hypotheses=3000, max_length_mismatch_m=10.0)
+    draw = np.random.default_rng(4)
+    a, b = draw.integers(0, len(pairs), 3000), draw.integers(0, len(pairs), 3000)
+    s1, s2, d1, d2 = src[pairs[a, 0]], src[pairs[b, 0]], dst[pairs[a, 1]], dst[pairs[b, 1]]
+    vs, vd = s2 - s1, d2 - d1
+    ls, ld = np.hypot(vs[:, 0], vs[:, 1]), np.hypot(vd[:, 0], vd[:, 1])
+    ok = (ls > cfg.min_pair_separation_m) & (np.abs(ls - ld) < cfg.max_length_mismatch_m)
+    yaw = np.arctan2(vd[:, 1], vd[:, 0]) - np.arctan2(vs[:, 1], vs[:, 0])
+    c, s = np.cos(yaw), np.sin(yaw)
+    ms, md = (s1 + s2) / 2, (d1 + d2) / 2
+    want = np.stack([md[:, 0] - (c * ms[:, 0] - s * ms[:, 1]), md[:, 1] - (s * ms[:, 0] + c * ms[:, 1]), yaw],
+                    axis=1)[ok]
+    got = _hypotheses(src, dst, pairs, cfg, np.random.default_rng(4))
+    assert 0 < len(got) < 3000 and got.tobytes() == want.tobytes()
+
+
+def test_topk_last_axis_of_rows_that_are_not_contiguous() -> None:
+    """A strided view (rows not next to each other) gives the same indices as its contiguous copy."""
+    from reradar_core.matching.alignment import topk_last_axis
+
+    rng = np.random.default_rng(13)
+    wide = rng.normal(size=(60, 520)).astype(np.float32)
+    wide[3, 10:20] = 9.0  # ties: the torch path for that row
+    view = wide[:, 4:516]
+    want = topk_last_axis(np.ascontiguousarray(view), 5)
+    np.testing.assert_array_equal(topk_last_axis(view, 5), want)
+    np.testing.assert_array_equal(topk_last_axis(np.asfortranarray(view), 5), want)
