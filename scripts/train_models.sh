@@ -9,6 +9,8 @@
 #
 # Step counts, not wall-clock budgets, end every run, so the same command gives the same weights on any
 # machine (1 torch thread, seed 0). On the 2-core CPU: stage 1 ~22 min, each stage 2 ~7 min when run alone.
+# Stage 2 ends with learned whitening of the projection (--learned-whitening: matching pairs of the split's own
+# training scans; docs/MODEL.md, "Learned whitening"); a run that resumes a finished checkpoint only re-fits it.
 # Defaults of `reradar train` used here (docs/MODEL.md): NetVLAD over the sensor disc only (ModelConfig.disc_mask,
 # on; --no-disc-mask turns it off) and random in-batch negatives (hard negatives from a memory bank,
 # --hard-negatives N, did not win on validation and stay opt-in). Checkpoints written before the disc mask existed
@@ -37,16 +39,16 @@ train_one() {
         --steps "$STAGE1_STEPS" --minutes 600 "${extra[@]}" ;;
     our-3-boreas)
       reradar train --name our-3-boreas --split train-target-boreas --init "$(init our-1)" --lr 1e-4 \
-        --steps "$STAGE2_STEPS" --minutes 600 "${extra[@]}" ;;
+        --steps "$STAGE2_STEPS" --minutes 600 --learned-whitening "${extra[@]}" ;;
     our-3-loop)
       reradar train --name our-3-loop --split train-target-loop --init "$(init our-1)" --lr 1e-4 \
-        --steps "$STAGE2_STEPS" --minutes 600 "${extra[@]}" ;;
+        --steps "$STAGE2_STEPS" --minutes 600 --learned-whitening "${extra[@]}" ;;
     our-3-offroad)
       reradar train --name our-3-offroad --split train-target-offroad --init "$(init our-1)" --lr 1e-4 \
-        --steps "$STAGE2_STEPS" --minutes 600 "${extra[@]}" ;;
+        --steps "$STAGE2_STEPS" --minutes 600 --learned-whitening "${extra[@]}" ;;
     our-3-boreas-resnet)
       reradar train --name our-3-boreas-resnet --backbone resnet --split train-target-boreas \
-        --init "$(init our-1-resnet)" --lr 1e-4 --steps "$STAGE2_STEPS" --minutes 600 "${extra[@]}" ;;
+        --init "$(init our-1-resnet)" --lr 1e-4 --steps "$STAGE2_STEPS" --minutes 600 --learned-whitening "${extra[@]}" ;;
     *) echo "unknown model $1 (choose: our-1 our-1-resnet our-3-boreas our-3-loop our-3-offroad our-3-boreas-resnet)" >&2
        exit 2 ;;
   esac

@@ -137,6 +137,10 @@ def register(app: typer.Typer) -> None:
         hard_negatives: int = typer.Option(0, help="Negatives per query (of 14, even) mined from a memory bank "
                                            "of global descriptors instead of drawn at random (0 = off)."),
         hard_refresh: int = typer.Option(100, help="Refresh the hard-negative memory bank every K steps."),
+        learned_whitening: bool = typer.Option(False, "--learned-whitening", help="After the last step, replace "
+                                               "the projection by learned whitening from matching pairs of the "
+                                               "training scans (other traversals within 10 m, turned copies); "
+                                               "docs/MODEL.md, 'Learned whitening'."),
         no_disc_mask: bool = typer.Option(False, "--no-disc-mask", help="NetVLAD over all F' cells, not only "
                                           "the sensor disc (ModelConfig.disc_mask; the behaviour before it)."),
     ) -> None:
@@ -144,7 +148,8 @@ def register(app: typer.Typer) -> None:
         seqs = [SeqSpec(p, f"seq:{p.resolve()}") for p in sequence]
         vals: list[tuple[SeqSpec, SeqSpec]] = []
         note = ""
-        extra: dict = {"hard_negatives": hard_negatives, "hard_refresh_every": hard_refresh}
+        extra: dict = {"hard_negatives": hard_negatives, "hard_refresh_every": hard_refresh,
+                       "learned_whitening": learned_whitening}
         if split is not None:
             from reradar_core.training.suites import suite_training_data
 

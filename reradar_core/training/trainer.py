@@ -52,6 +52,12 @@ class TrainConfig:
             steps; ``hard_negatives / 2`` anchors of each batch are drawn from the ``hard_pool`` nearest bank
             descriptors of an anchor already in the batch, among places farther than ``neg_radius_m +
             pos_radius_m`` (``TupleSampler.sample``). The bank is saved in checkpoints, so resuming stays exact.
+        learned_whitening: after the last step, replace the projection by learned whitening of the raw NetVLAD
+            vectors of the training scans (``training.whitening``): matching pairs are each scan with its
+            nearest scan of another traversal within ``pos_radius_m``, plus, with ``whitening_rotation_pairs``,
+            each scan with a copy turned by a random heading (seeded). ``whitening_shrinkage``: see
+            ``learned_whitening``. Off by default (the paper trains the projection end to end); the shipped
+            stage-2 models use it (docs/MODEL.md, "Learned whitening").
         num_threads: torch CPU threads. Default 1: on the shared 2-core machine two threads ran 3-6x slower
             per step than one whenever other processes competed for the cores (OpenMP threads waiting on
             each other), while on an idle machine two threads gain only ~1.6x.
@@ -78,6 +84,9 @@ class TrainConfig:
     hard_negatives: int = 0
     hard_refresh_every: int = 100
     hard_pool: int = 10
+    learned_whitening: bool = False
+    whitening_shrinkage: float = 0.1
+    whitening_rotation_pairs: bool = True
     seed: int = 0
     num_threads: int = 1
     device: str = "auto"
@@ -247,6 +256,48 @@ class Trainer:
         self.bank = np.ascontiguousarray(np.concatenate(out).astype(np.float32))
         self.bank_step = self.step
 
+    @torch.no_grad()
+    def raw_vlad(self, items: np.ndarray, yaw_rad: np.ndarray | None = None) -> np.ndarray:
+        """(len(items), K*C) float64 raw NetVLAD vectors (eval mode) of training scans: centre crops, or views
+        turned by ``yaw_rad`` (one heading per item, radians) about the sensor."""
+        w = self.config.model.cartesian_width_px
+        was = self.net.training
+        self.net.eval()
+        out = []
+        for chunk in np.array_split(np.arange(len(items)), max(1, math.ceil(len(items) / 32))):
+            imgs = np.stack([self.data.view(int(items[k]), w, np.array([0.0, 0.0, 0.0 if yaw_rad is None
+                                                                       else float(yaw_rad[k])]))
+                             for k in chunk]).astype(np.float32)
+            x = torch.from_numpy(imgs)[:, None].to(self.device)
+            out.append(self.net.vlad(self.net.backbone(self.net.mask_input(x))).double().cpu().numpy())
+        self.net.train(was)
+        return np.concatenate(out)
+
+    @torch.no_grad()
+    def fit_learned_whitening(self) -> dict[str, Any]:
+        """Replace the projection by learned whitening (``TrainConfig.learned_whitening``); returns a summary."""
+        from reradar_core.training.whitening import learned_whitening, matching_pairs
+
+        c = self.config
+        if self.net.proj is None:
+            raise ConfigError("learned whitening needs a projection (output_dim); this model has none")
+        items = np.arange(len(self.data))
+        raw = self.raw_vlad(items)
+        pairs = matching_pairs(self.data.xy, self.data.seq_index, self.data.group, c.pos_radius_m)
+        a, b = raw[pairs[:, 0]], raw[pairs[:, 1]]
+        summary: dict[str, Any] = {"scans": int(len(items)), "traversal_pairs": int(len(pairs)),
+                                   "rotation_pairs": 0, "shrinkage": c.whitening_shrinkage}
+        if c.whitening_rotation_pairs:
+            rng = np.random.default_rng([c.seed, 20_000_003])
+            turned = self.raw_vlad(items, rng.uniform(0.0, 2 * math.pi, len(items)))
+            a, b = np.concatenate([a, raw]), np.concatenate([b, turned])
+            summary["rotation_pairs"] = int(len(items))
+        weight, bias = learned_whitening(a, b, raw, self.net.proj.out_features, c.whitening_shrinkage)
+        self.net.proj.weight.copy_(torch.from_numpy(weight).float())
+        self.net.proj.bias.copy_(torch.from_numpy(bias).float())
+        logger.info("learned whitening: %s", summary)
+        return summary
+
     # ------------------------------------------------------------------ validation
     @torch.no_grad()
     def validate(self) -> dict[str, float]:
@@ -373,13 +424,22 @@ class Trainer:
             bar.update(1)
             bar.set_postfix(loss=f"{np.mean(losses[-20:]):.3f}", r1=f"{last_val.get('r1', float('nan')):.3f}")
         bar.close()
+        whitening = None
+        if c.learned_whitening:
+            # the checkpoint keeps the trained projection: a resumed run fits the whitening again, never on top
+            self.save_checkpoint()
+            before = self.validate() if self.val_pairs else {}
+            whitening = {**self.fit_learned_whitening(), "val_recall_at_1_before": before.get("r1")}
         final = self.validate() if self.val_pairs else {}
         self.history.append({"step": self.step, "final": True,
                              "loss": float(np.mean(losses[-50:])) if losses else None, **final})
-        self.save_checkpoint()
+        if whitening is None:
+            self.save_checkpoint()
         summary = {"steps": self.step, "train_time_s": round(self.elapsed_s, 1),
                    "val_recall_at_1": final.get("r1"), "val_recall_at_1_raw_netvlad": final.get("r1_raw"),
                    "val_queries": final.get("val_queries"), "history": self.history,
                    "train_config": c.to_dict(), "adapted": self.adapted}
+        if whitening is not None:
+            summary["learned_whitening"] = whitening
         self.net.to("cpu")  # shipped weights and the e2cnn export live on the CPU
         return export_plain(self.net), summary
