@@ -276,10 +276,12 @@ def _sim_scans() -> list[RadarScan]:
 
 
 def test_shipped_model_under_arbitrary_yaw_known_answer():
-    """docs/MODEL.md "Invariance at any angle": a simulated scan rotated by arbitrary angles (azimuths shifted,
-    rendered exactly from the polar scan). Measured with our-3-boreas on these two scans: raw NetVLAD cosine
-    >= 0.980 (with or without the disc mask), the 256-d PCA-whitened global descriptor only 0.83 (mask) /
-    0.79 (no mask) at worst — the projection, not the image corners, loses the invariance. 90 degrees stays
+    """docs/MODEL.md "Invariance at any angle" and "Learned whitening": a simulated scan rotated by arbitrary
+    angles (azimuths shifted, rendered exactly from the polar scan). Measured with our-3-boreas on these two
+    scans: raw NetVLAD cosine >= 0.980. The learned-whitening projection spreads places apart (the two scans'
+    cosine fell from 0.42 to 0.15), so the rotated copy's cosine to its original is lower than with the
+    PCA-whitened projection before it (0.61-0.74, was 0.86-0.93) but its margin over the other place is larger
+    (>= 0.51, was >= 0.37): retrieval under rotation improved, the absolute cosine did not. 90 degrees stays
     exact."""
     from reradar_core.geometry.cartesian import polar_to_cartesian
 
@@ -302,7 +304,9 @@ def test_shipped_model_under_arbitrary_yaw_known_answer():
         g, v = desc([rotated(s, deg) for s in scans])
         raw = (v * v0).sum(1) / (np.linalg.norm(v, axis=1) * np.linalg.norm(v0, axis=1))
         glob = (g * g0).sum(1)
+        other = (g * g0[::-1]).sum(1)  # the rotated scan against the other place
         assert raw.min() >= 0.97, (deg, raw)
-        assert glob.min() >= 0.80, (deg, glob)
+        assert glob.min() >= 0.55, (deg, glob)
+        assert (glob - other).min() >= 0.45, (deg, glob, other)
     g90, _ = desc([rotated(s, 90.0) for s in scans])
     assert ((g90 * g0).sum(1) >= 0.999).all()
