@@ -80,16 +80,18 @@ class LocalizationConfig:
     """Localization settings.
 
     Attributes:
-        top_k: keyframes retrieved by global descriptor and checked geometrically (default 20). With
-            ``guided`` they are all screened and the best ``verify_k`` verified in full: on boreas-sim
-            (our-3-boreas, 130 snow-cover queries) Recall@1 after re-ranking was 0.45 with the old setting
-            (5 verified in full), 0.61 with 20 screened / 3 verified and 0.69 with 40 / 3 - the landmark
-            alignment ranks places far better than the global descriptor alone (docs/BENCHMARKS.md).
-        verify_k: screened candidates verified in full by the ``guided`` estimator (default 3).
+        top_k: keyframes retrieved by global descriptor and checked geometrically (default 10). With
+            ``guided`` they are all screened and the best ``verify_k`` verified in full. With the descriptors
+            of before learned whitening the landmark screen had to rank 20 (on boreas-sim Recall@1 after
+            re-ranking was 0.61 with 20 screened / 3 verified, 0.69 with 40 / 3); with the learned-whitening
+            models 10 screened / 2 verified give the same correct answers on the training splits as 20 / 3
+            (1,238 of 1,642 runs, every 2nd query), 1 wrong answer fewer, and 30 % less localization time
+            (docs/BENCHMARKS.md, "Learned whitening: ten candidates are enough").
+        verify_k: screened candidates verified in full by the ``guided`` estimator (default 2).
         max_candidates / expand_below_screen_score: ``guided`` only: while no screened candidate aligns at
             least ``expand_below_screen_score`` (0.6) of the query's landmarks, the next ``top_k`` retrieved
             candidates are screened too, up to ``max_candidates`` (60; callers retrieve that many, features are
-            loaded lazily). Confident queries stop after ``top_k``; on offroad-sim every query the default
+            loaded lazily). Confident queries stop after ``top_k``; on offroad-sim every query the 20-candidate
             settings missed had its right keyframe at retrieval rank 21-56 and a best screen score <= 0.59.
             ``max_candidates <= top_k`` disables the expansion.
         expand_on_refusal: ``guided`` only: when the answer over the screened candidates is refused (floor,
@@ -138,8 +140,8 @@ class LocalizationConfig:
             docs/MODEL.md "Confidence"); 0 = the floor alone (the decision before the confidence).
     """
 
-    top_k: int = 20
-    verify_k: int = 3
+    top_k: int = 10
+    verify_k: int = 2
     max_candidates: int = 60
     expand_below_screen_score: float = 0.6
     expand_on_refusal: bool = True

@@ -127,7 +127,7 @@ def test_top_k_limits_verified_candidates() -> None:
     rng = np.random.default_rng(4)
     kfs = [_keyframe(rng) for _ in range(6)]
     query = _query_from(kfs[5], np.array([0.0, 0.0, 0.0]), rng)
-    res = localize(query, _candidates(kfs, np.zeros((6, 3)), list(range(6))), LocalizationConfig(top_k=3))
+    res = localize(query, _candidates(kfs, np.zeros((6, 3)), list(range(6))), LocalizationConfig(top_k=3, verify_k=3))
     assert len(res.candidates) == 3 and res.status == "not_localized"
 
 
