@@ -89,21 +89,22 @@ class LocalizationConfig:
             (docs/BENCHMARKS.md, "Learned whitening: ten candidates are enough").
         verify_k: screened candidates verified in full by the ``guided`` estimator (default 2).
         max_candidates / expand_below_screen_score: ``guided`` only: while no screened candidate aligns at
-            least ``expand_below_screen_score`` (0.6) of the query's landmarks, the next ``top_k`` retrieved
-            candidates are screened too, up to ``max_candidates`` (60; callers retrieve that many, features are
-            loaded lazily). Confident queries stop after ``top_k``; on offroad-sim every query the 20-candidate
-            settings missed had its right keyframe at retrieval rank 21-56 and a best screen score <= 0.59.
-            ``max_candidates <= top_k`` disables the expansion.
+            least ``expand_below_screen_score`` (0.6) of the query's landmarks, the next ``expansion_block``
+            retrieved candidates are screened too, up to ``max_candidates`` (60; callers retrieve that many,
+            features are loaded lazily). Confident queries stop after ``top_k``; on offroad-sim every query the
+            20-candidate settings missed had its right keyframe at retrieval rank 21-56 and a best screen score
+            <= 0.59. ``max_candidates <= top_k`` disables the expansion.
         expand_on_refusal: ``guided`` only: when the answer over the screened candidates is refused (floor,
-            ambiguity or confidence), the next ``refusal_block`` retrieved candidates are screened and the best
-            ``verify_k`` of them not yet verified are verified, and the decision is taken again over all of
-            them, up to ``max_candidates``. Only refused queries pay for it. On the Boreas snow-cover drive 25
-            of the 31 revisit queries the pipeline got wrong had their right keyframe outside the 20 screened
-            (retrieval rank 20-320) while a wrong one screened >= 0.6, so the score-based expansion never ran.
-        refusal_block: candidates screened per deeper round after a refusal; None (default) = all the rest up
-            to ``max_candidates`` in one round, so a refused query pays at most one more screen and
-            ``verify_k`` more verifications (bounded tail latency); ``top_k`` gives rounds of 20 (up to two
-            more rounds of verifications).
+            ambiguity or confidence), the next ``expansion_block`` retrieved candidates are screened and the
+            best ``verify_k`` of them not yet verified are verified, and the decision is taken again over all
+            of them, up to ``max_candidates``. Only refused queries pay for it. On the Boreas snow-cover drive
+            25 of the 31 revisit queries the pipeline got wrong had their right keyframe outside the 20
+            screened (retrieval rank 20-320) while a wrong one screened >= 0.6, so the score-based expansion
+            never ran.
+        expansion_block: candidates screened per expansion round (both expansions above); None (default) =
+            all the rest up to ``max_candidates`` in one round: one batched screen instead of up to five (each
+            screen call has a fixed cost), and a refused query pays at most one more screen and ``verify_k``
+            more verifications, which bounds the tail latency; ``top_k`` gives the former rounds of ``top_k``.
         stop_verify_ratio: ``guided`` only: the screened candidates are verified best-screened first, and the
             rest are skipped once one aligns at least this fraction of the query's landmarks (None: verify all
             ``verify_k``); the skipped ones keep reason ``screened_out``. Default 0.7: on the boreas-sim
@@ -145,7 +146,7 @@ class LocalizationConfig:
     max_candidates: int = 60
     expand_below_screen_score: float = 0.6
     expand_on_refusal: bool = True
-    refusal_block: int | None = None
+    expansion_block: int | None = None
     stop_verify_ratio: float | None = 0.7
     min_inliers: int = 12
     min_inlier_ratio: float | None = None
@@ -175,8 +176,8 @@ class LocalizationConfig:
     def __post_init__(self) -> None:
         if self.top_k < 1 or self.verify_k < 1:
             raise ConfigError(f"top_k and verify_k must be >= 1, got {self.top_k} and {self.verify_k}")
-        if self.refusal_block is not None and self.refusal_block < 1:
-            raise ConfigError(f"refusal_block must be >= 1 or None, got {self.refusal_block}")
+        if self.expansion_block is not None and self.expansion_block < 1:
+            raise ConfigError(f"expansion_block must be >= 1 or None, got {self.expansion_block}")
         if self.max_candidates < 1 or not 0.0 <= self.expand_below_screen_score <= 1.0:
             raise ConfigError("max_candidates must be >= 1 and expand_below_screen_score in [0, 1], got "
                               f"{self.max_candidates} and {self.expand_below_screen_score}")
@@ -430,7 +431,7 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
         screen(ordered)
         timings["screen_ms"] = (time.perf_counter() - t0) * 1e3
         while max(scores.values()) < config.expand_below_screen_score and len(ordered) < limit:
-            screen_next(config.top_k)
+            screen_next(config.expansion_block or limit)
     done: dict[int, CandidateVerification] = {}
     while True:
         result = _verify_and_decide(query, ordered, scores, done, config, timings, t0)
@@ -438,7 +439,7 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
         if (result.localized or not guided or not config.expand_on_refusal or len(ordered) >= limit
                 or len(ordered) <= config.verify_k):
             return result
-        screen_next(config.refusal_block or limit)
+        screen_next(config.expansion_block or limit)
 
 
 def _verify_and_decide(query: ScanFeatures, ordered: list[Candidate], scores: dict[int, float],

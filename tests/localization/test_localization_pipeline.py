@@ -138,8 +138,9 @@ def test_config_validation(kwargs: dict) -> None:
 
 
 def test_expansion_screens_further_only_when_no_candidate_aligns() -> None:
-    """True keyframe at rank 25: screening 10 finds nothing good, so the next blocks of 10 are screened (lazily
-    loaded); with the expansion disabled the query is not localized. A confident query loads only 10."""
+    """True keyframe at rank 25: screening 10 finds nothing good, so the rest up to ``max_candidates`` is
+    screened in one round (lazily loaded), or in blocks of ``expansion_block`` until one aligns well; with the
+    expansion disabled the query is not localized. A confident query loads only 10."""
     rng = np.random.default_rng(7)
     kfs = [_keyframe(rng, ts=i) for i in range(40)]
     poses = np.column_stack([np.arange(40) * 50.0, np.zeros(40), np.zeros(40)])
@@ -161,8 +162,14 @@ def test_expansion_screens_further_only_when_no_candidate_aligns() -> None:
     assert cfg.num_to_retrieve == 40
     res = localize(query, lazy(order), cfg)
     assert res.localized and res.best is not None and res.best.keyframe_id == 33 and res.best.rank == 25
-    assert len(res.candidates) == 30 and len(loaded) == 30  # three blocks of 10 screened, the rest never read
+    assert len(res.candidates) == 40 and len(loaded) == 40  # 10, then the other 30 in one round
     np.testing.assert_allclose(res.T_map_query[:2], compose(poses[33], T_kf_query)[:2], atol=0.15)
+
+    loaded.clear()
+    blocks = localize(query, lazy(order), LocalizationConfig(top_k=10, verify_k=2, max_candidates=40,
+                                                             expansion_block=10))
+    assert blocks.localized and blocks.best is not None and blocks.best.keyframe_id == 33
+    assert len(blocks.candidates) == 30 and len(loaded) == 30  # three blocks of 10 screened, the rest never read
 
     off = localize(query, lazy(order), LocalizationConfig(top_k=10, verify_k=2, max_candidates=10))
     assert off.status == "not_localized" and len(off.candidates) == 10
@@ -197,14 +204,14 @@ def test_a_refused_answer_screens_further() -> None:
     assert res.localized and res.best is not None and res.best.keyframe_id == 33 and res.best.rank == 25
     assert len(res.candidates) == 40  # one deeper round: every retrieved candidate up to max_candidates
     np.testing.assert_allclose(res.T_map_query[:2], compose(poses[33], T_kf_query)[:2], atol=0.15)
-    blocks = localize(query, _candidates(kfs, poses, order), LocalizationConfig(**base, refusal_block=10))
+    blocks = localize(query, _candidates(kfs, poses, order), LocalizationConfig(**base, expansion_block=10))
     assert blocks.localized and blocks.best is not None and blocks.best.keyframe_id == 33
     assert len(blocks.candidates) == 30  # two more blocks of 10 screened after the refusal, not all 40
     np.testing.assert_array_equal(blocks.T_map_query, res.T_map_query)
     off = localize(query, _candidates(kfs, poses, order), LocalizationConfig(**base, expand_on_refusal=False))
     assert off.status == "not_localized" and len(off.candidates) == 10 and off.best.keyframe_id == 5
     with pytest.raises(ConfigError):
-        LocalizationConfig(refusal_block=0)
+        LocalizationConfig(expansion_block=0)
 
 
 def test_verification_stops_once_an_answer_is_confident() -> None:
