@@ -5,6 +5,8 @@ Run with ``reradar serve`` or ``uvicorn service.main:app``.
 
 from __future__ import annotations
 
+import gc
+
 import fcntl
 import logging
 from collections.abc import AsyncIterator, Iterator
@@ -168,6 +170,11 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
             return state
 
         state = await run_in_threadpool(load)
+        # the model and the loaded maps live as long as the process: keep them out of the cyclic garbage
+        # collector's full passes, which otherwise walk every keyframe object (a ~100 ms pause every few dozen
+        # requests on a 555-keyframe map; docs/BENCHMARKS.md, "Tail latency")
+        gc.collect()
+        gc.freeze()
         app.state.guard = build_guard(cfg, spool_dir=state.registry.staging_dir())
         metrics.set_model(state.extractor.model_id, state.extractor.weights_sha256)  # ops: reradar_model_info
         if not app.state.guard.policy.vehicle_keys:

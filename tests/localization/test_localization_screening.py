@@ -58,6 +58,24 @@ def test_scores_do_not_depend_on_the_scoring_block(monkeypatch) -> None:  # type
     np.testing.assert_array_equal(screen_candidates(q_pts, q_desc, kfs, cfg), default)
 
 
+def test_scores_do_not_depend_on_the_similarity_block(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    # the descriptor similarities are computed in blocks of candidates (bounded temporaries): 1 per block, two
+    # blocks with a ragged last one, and all at once give the same scores
+    import reradar_core.localization.screening as screening
+
+    rng = np.random.default_rng(5)
+    cfg = AlignmentConfig()
+    kfs = [screen_keyframe(rng.uniform(-60, 60, (m, 2)), _unit(rng.normal(size=(m, 16))), cfg)
+           for m in (400, 330, 350, 380, 420)]
+    q_pts, q_desc = rng.uniform(-60, 60, (260, 2)), _unit(rng.normal(size=(260, 16)))
+    results = []
+    for block in (1, 3, 100):
+        monkeypatch.setattr(screening, "_SIM_BLOCK", block)
+        results.append(screen_candidates(q_pts, q_desc, kfs, cfg))
+    np.testing.assert_array_equal(results[0], results[2])
+    np.testing.assert_array_equal(results[1], results[2])
+
+
 def test_batched_scores_equal_single_candidate_scores_for_other_cells_and_many_scored_landmarks() -> None:
     """A cell that is not a power of two (divided, not multiplied by its inverse) and 300 scored landmarks
     (summed in int64, not uint8): still the single-candidate scores. (Every keyframe has >= 64 k landmarks, so
