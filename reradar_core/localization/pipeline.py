@@ -90,12 +90,10 @@ class LocalizationConfig:
         verify_k: screened candidates verified in full by the ``guided`` estimator (default 2).
         max_candidates / expand_below_screen_score: ``guided`` only: while no screened candidate aligns at
             least ``expand_below_screen_score`` (0.6) of the query's landmarks, the next ``expansion_block``
-            retrieved candidates are screened too, up to ``max_candidates`` (40; callers retrieve that many,
-            features are loaded lazily). Confident queries stop after ``top_k``. With the descriptors before
-            learned whitening every offroad-sim query the 20-candidate settings missed had its right keyframe
-            at retrieval rank 21-56 (hence 60); with the learned-whitening models 40 gave 1,238 correct / 0
-            wrong answers on the training splits vs 1,237 / 0 with 60, in 19 % less time.
-            ``max_candidates <= top_k`` disables the expansion.
+            retrieved candidates are screened too, up to ``max_candidates`` (60; callers retrieve that many,
+            features are loaded lazily). Confident queries stop after ``top_k``; on offroad-sim every query the
+            20-candidate settings missed had its right keyframe at retrieval rank 21-56 and a best screen score
+            <= 0.59. ``max_candidates <= top_k`` disables the expansion.
         expand_on_refusal: ``guided`` only: when the answer over the screened candidates is refused (floor,
             ambiguity or confidence), the next ``expansion_block`` retrieved candidates are screened and the
             best ``verify_k`` of them not yet verified are verified, and the decision is taken again over all
@@ -145,7 +143,7 @@ class LocalizationConfig:
 
     top_k: int = 10
     verify_k: int = 2
-    max_candidates: int = 40
+    max_candidates: int = 60
     expand_below_screen_score: float = 0.6
     expand_on_refusal: bool = True
     expansion_block: int | None = None
