@@ -86,7 +86,7 @@ class LocalizationConfig:
             re-ranking was 0.61 with 20 screened / 3 verified, 0.69 with 40 / 3); with the learned-whitening
             models 10 screened / 2 verified give the same correct answers on the training splits as 20 / 3
             (1,238 of 1,642 runs, every 2nd query), 1 wrong answer fewer, and 30 % less localization time
-            (docs/BENCHMARKS.md, "Learned whitening: ten candidates are enough").
+            (docs/BENCHMARKS.md, "Learned whitening, ten candidates, one deeper round").
         verify_k: screened candidates verified in full by the ``guided`` estimator (default 2).
         max_candidates / expand_below_screen_score: ``guided`` only: while no screened candidate aligns at
             least ``expand_below_screen_score`` (0.6) of the query's landmarks, the next ``expansion_block``
