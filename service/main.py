@@ -5,9 +5,8 @@ Run with ``reradar serve`` or ``uvicorn service.main:app``.
 
 from __future__ import annotations
 
-import gc
-
 import fcntl
+import gc
 import logging
 from collections.abc import AsyncIterator, Iterator
 from contextlib import asynccontextmanager, contextmanager
