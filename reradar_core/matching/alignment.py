@@ -147,15 +147,7 @@ class LandmarkGrid:
     def count_within(self, x: np.ndarray, y: np.ndarray, threshold_m: float) -> np.ndarray:
         """Per row of the (V, P) points (x, y): how many are closer than ``threshold_m`` to a landmark -
         exactly ``(lookup(x, y) < threshold_m).sum(axis=1)`` (same cells), without the float look-up."""
-        n = self.size
-        i = np.floor((x - self.origin_m) / self.cell_m).astype(np.int64)
-        j = np.floor((y - self.origin_m) / self.cell_m).astype(np.int64)
-        inside = i.view(np.uint64) < np.uint64(n)  # negative cells wrap to huge unsigned values
-        inside &= j.view(np.uint64) < np.uint64(n)
-        j *= n
-        j += i
-        np.putmask(j, ~inside, n * n)
-        return self.within_mask(threshold_m)[j].sum(axis=1, dtype=np.int64)
+        return self._count_within_columns(np.asarray(x).T, np.asarray(y).T, threshold_m)
 
     def _count_within_columns(self, x: np.ndarray, y: np.ndarray, threshold_m: float) -> np.ndarray:
         """``count_within(x.T, y.T, threshold_m)`` for (P, V) points (column = one hypothesis), exactly (same
@@ -314,27 +306,6 @@ def _apply(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ np.array([[c, s], [-s, c]]) + pose[:2]
 
 
-def _fit_rigid(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """``fit_rigid_2d(src, dst)`` (no weights) for (n, 2) float64 arrays, n >= 2, with exactly its arithmetic
-    (same products, same pairwise sums, same order) in fewer numpy calls: (3,) float64 (x, y, yaw)."""
-    n = len(src)
-    w = np.full(n, 1.0 / n)  # = ones / ones.sum(): a sum of ones is exact
-    mu_s = w @ src
-    mu_d = w @ dst
-    a = src - mu_s
-    b = dst - mu_d
-    ab = a * b  # a0 b0, a1 b1
-    abr = a * b[:, ::-1]  # a0 b1, a1 b0
-    terms = np.empty((2, n))
-    np.subtract(abr[:, 0], abr[:, 1], out=terms[0])
-    np.add(ab[:, 0], ab[:, 1], out=terms[1])
-    terms *= w
-    yaw = math.atan2(np.sum(terms[0]), np.sum(terms[1]))
-    c, s = math.cos(yaw), math.sin(yaw)
-    ms0, ms1 = float(mu_s[0]), float(mu_s[1])
-    return np.array([float(mu_d[0]) - (c * ms0 - s * ms1), float(mu_d[1]) - (s * ms0 + c * ms1), yaw])
-
-
 def _apply_all(poses: list[np.ndarray], points: np.ndarray) -> np.ndarray:
     """``np.stack([_apply(p, points) for p in poses])``, (H, N, 2), exactly: the same rotation matrices and
     one stacked matmul (numpy runs the same 2-D product on every slice; its FMA rounding is not that of an
@@ -377,7 +348,7 @@ def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
       at least that minus ``d`` from every landmark now, so when that exceeds the new radius (plus a rounding
       slack) its look-up is skipped: the tree would answer "none" too;
     - the landmarks of all hypotheses move in one stacked product (``_apply_all``) and each hypothesis is
-      fitted by ``_fit_rigid`` (``fit_rigid_2d``'s arithmetic).
+      fitted by ``fit_rigid_2d``.
 
     Args: (N, 2) float64 ``src``; (3,) float64 poses; the association radii (metres).
     Returns: per pose, the refined (3,) pose and the (N,) bool mask of the last association.
@@ -421,7 +392,7 @@ def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
             if np.count_nonzero(mask) < 3:
                 out[h] = (current[h], mask)
                 continue
-            current[h] = _fit_rigid(src[mask], grid.points[nn[row][mask]])
+            current[h] = fit_rigid_2d(src[mask], grid.points[nn[row][mask]])
             out[h] = (current[h], mask)
             rows.append(row)
         active = [active[r] for r in rows]

@@ -127,19 +127,28 @@ def fit_rigid_2d(points_src: np.ndarray, points_dst: np.ndarray,
     """
     src = np.asarray(points_src, dtype=np.float64)
     dst = np.asarray(points_dst, dtype=np.float64)
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
-    w = w / w.sum()
+    n = len(src)
+    if weights is None:
+        w = np.full(n, 1.0 / n)  # = ones / ones.sum(): a sum of ones is exact
+    else:
+        w = np.asarray(weights, dtype=np.float64)
+        w = w / w.sum()
     mu_s = w @ src
     mu_d = w @ dst
     a = src - mu_s
     b = dst - mu_d
-    # In 2-D the optimal rotation angle is atan2(sum w (a x b), sum w (a . b)).
-    s_cross = np.sum(w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
-    s_dot = np.sum(w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
-    yaw = math.atan2(s_cross, s_dot)
+    # In 2-D the optimal rotation angle is atan2(sum w (a x b), sum w (a . b)); both sums from one (2, N)
+    # array of terms (the guided estimator fits hundreds of times per query: fewer numpy calls)
+    ab = a * b  # a0 b0, a1 b1
+    abr = a * b[:, ::-1]  # a0 b1, a1 b0
+    terms = np.empty((2, n))
+    np.subtract(abr[:, 0], abr[:, 1], out=terms[0])
+    np.add(ab[:, 0], ab[:, 1], out=terms[1])
+    terms *= w
+    yaw = math.atan2(np.sum(terms[0]), np.sum(terms[1]))
     c, s = math.cos(yaw), math.sin(yaw)
-    t = mu_d - np.array([c * mu_s[0] - s * mu_s[1], s * mu_s[0] + c * mu_s[1]])
-    return np.array([t[0], t[1], yaw])
+    ms0, ms1 = float(mu_s[0]), float(mu_s[1])
+    return np.array([float(mu_d[0]) - (c * ms0 - s * ms1), float(mu_d[1]) - (s * ms0 + c * ms1), yaw])
 
 
 def _residuals_sq(pose: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
