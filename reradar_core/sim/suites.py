@@ -323,6 +323,8 @@ SUITES: dict[str, SuiteDef] = {
         sequences=(
             SequenceDef("session2", "train", replace(_LOOP, speed_seed=7, lateral_m=-1.0), traversal_seed=112,
                         condition="rain", every=3),
+            SequenceDef("session3-reverse", "train", replace(_LOOP, speed_seed=9, reverse=True, lateral_m=3.5),
+                        traversal_seed=113, every=3),
         ),
         single_session=True,
         purpose="training",
