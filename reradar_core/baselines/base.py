@@ -104,6 +104,12 @@ class PlaceRecognitionMethod(ABC):
         """Database descriptors -> whatever ``distance`` searches (default: a stacked array)."""
         return np.stack([np.asarray(d) for d in db_descs])
 
+    def ready_database(self, index: Any, db_prepared: Sequence[Prepared],  # noqa: B027 - optional hook
+                       db_poses: np.ndarray) -> None:
+        """Build whatever ``localize`` keeps per database beyond ``build_index`` (no-op by default). The
+        benchmark calls it after ``build_index`` and outside the timed queries, as the service loads a map
+        before it answers: per-query times then hold no one-off database work for any method."""
+
     @abstractmethod
     def distance(self, q_desc: np.ndarray, index: Any) -> np.ndarray:
         """(N,) float64 distances from one query descriptor to every database entry (lower = closer)."""

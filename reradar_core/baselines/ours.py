@@ -83,16 +83,20 @@ class Ours(PlaceRecognitionMethod):
         return index.distances(q_desc)
 
     def localizer(self, index: Any, db_prepared: Sequence[Prepared], db_poses: np.ndarray) -> Any:
-        """The ``Localizer`` over this database (built once per database, as the service keeps one per map)."""
+        """The ``Localizer`` over this database (built once per database, as the service keeps one per map),
+        every keyframe's screen data read at construction, as the service preloads a map that fits its cache."""
         from reradar_core.localization import InMemoryKeyframes, Localizer
 
         key = (id(index), id(db_prepared))
         if self._localizer_of != key:
             keyframes = InMemoryKeyframes(lambda j: prepared_to_features(db_prepared[j]), db_poses,
                                           np.array([int(np.asarray(p["timestamp_us"])) for p in db_prepared]))
-            self._localizer = Localizer(index, keyframes, self.localization)
+            self._localizer = Localizer(index, keyframes, self.localization, preload=True)
             self._localizer_of = key
         return self._localizer
+
+    def ready_database(self, index: Any, db_prepared: Sequence[Prepared], db_poses: np.ndarray) -> None:
+        self.localizer(index, db_prepared, db_poses)
 
     def localize(self, q_prepared: Prepared, q_desc: np.ndarray, index: Any,
                  db_prepared: Sequence[Prepared], db_poses: np.ndarray) -> Retrieval:
