@@ -146,20 +146,20 @@ def polar_resize(power: np.ndarray, num_azimuths: int, num_range: int) -> np.nda
 __all__ += ["polar_resize", "EuclideanIndex"]
 
 
-_LANDMARK_MEMO: list[tuple[np.ndarray, object, object]] = []
+_LANDMARK_MEMO: list[tuple[np.ndarray, object, float | None, object]] = []
 
 
-def landmarks_for(scan: RadarScan, config: object = None) -> object:
-    """``detect_landmarks(scan, config)``, memoised for the last few scans: the benchmark hands the same scan
-    object to every method, and ReFeree and every ReRadar model need the same Cen 2018 landmarks."""
+def landmarks_for(scan: RadarScan, config: object = None, max_range_m: float | None = None) -> object:
+    """``detect_landmarks(scan, config, max_range_m)``, memoised for the last few scans: the benchmark hands the
+    same scan object to every method, and every ReRadar model needs the same Cen 2018 landmarks."""
     from reradar_core.landmarks import Cen2018Config, detect_landmarks
 
     config = config if config is not None else Cen2018Config()
-    for power, cfg, lm in _LANDMARK_MEMO:
-        if power is scan.power and cfg == config:
+    for power, cfg, rng, lm in _LANDMARK_MEMO:
+        if power is scan.power and cfg == config and rng == max_range_m:
             return lm
-    lm = detect_landmarks(scan, config)  # type: ignore[arg-type]
-    _LANDMARK_MEMO.append((scan.power, config, lm))
+    lm = detect_landmarks(scan, config, max_range_m)  # type: ignore[arg-type]
+    _LANDMARK_MEMO.append((scan.power, config, max_range_m, lm))
     del _LANDMARK_MEMO[:-4]
     return lm
 

@@ -68,7 +68,9 @@ class Ours(PlaceRecognitionMethod):
                 "sha": str(getattr(self.extractor, "weights_sha256", "")), "v": 1}
 
     def prepare(self, scan: RadarScan) -> Prepared:
-        lm = landmarks_for(scan, getattr(self.extractor, "landmark_config", None))
+        # only the landmarks within the image's reach: the keypoints are the same, the detector looks less far
+        lm = landmarks_for(scan, getattr(self.extractor, "landmark_config", None),
+                           getattr(self.extractor, "landmark_range_m", None))
         return features_to_prepared(self.extractor.describe(scan, landmarks=lm))
 
     def describe_prepared(self, prepared: Prepared) -> np.ndarray:

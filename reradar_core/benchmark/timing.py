@@ -51,7 +51,7 @@ def stage_timings(extractor: Any, query_scans: Sequence[RadarScan], db_features:
         t1 = time.perf_counter()
         g, fmap = extractor.run_images(img[None])
         t2 = time.perf_counter()
-        lm = detect_landmarks(scan, extractor.landmark_config)
+        lm = detect_landmarks(scan, extractor.landmark_config, getattr(extractor, "landmark_range_m", None))
         feats = extractor.features_from_outputs(scan, g[0], fmap[0], lm)  # keypoints + local descriptors
         res = localizer.localize(feats, cfg)
         t3 = time.perf_counter()

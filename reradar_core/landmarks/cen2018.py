@@ -22,6 +22,7 @@ Everything is vectorised over the whole scan (one ``cv2.sepFilter2D`` call for t
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -140,11 +141,17 @@ class _Workspace:
         self.e = np.empty(block, np.float32)
         self.f = np.empty(block, np.float32)
         self.mask_u8 = np.empty(block, np.uint8)
+        self.qn = np.empty(block, np.float32)  # q / sigma_q of a response on the first bins only
         self.y = np.empty(shape, np.float32)
         self.kept = np.empty(shape, bool)
         self.padded = np.zeros((n_az, n_bins + 2), np.int8)
         self.edges = np.empty(n_az * (n_bins + 2) - 1, np.int8)
         self.edge_mask = np.empty(n_az * (n_bins + 2) - 1, bool)
+
+
+def _leading(buf: np.ndarray, rows: int, width: int) -> np.ndarray:
+    """A contiguous (rows, width) array over the start of scratch buffer ``buf`` (width <= its own)."""
+    return buf.reshape(-1)[: rows * width].reshape(rows, width)
 
 
 _shared_ws: _Workspace | None = None
@@ -166,27 +173,45 @@ def _workspace(shape: tuple[int, int]) -> Iterator[_Workspace]:
         _shared_lock.release()
 
 
-def _response_into(s: np.ndarray, config: Cen2018Config, ws: _Workspace) -> np.ndarray:
-    """Compute the normalised response y / sigma_q into ``ws.y``; returns sigma_q (A,) float64.
+def _response_into(s: np.ndarray, config: Cen2018Config, ws: _Workspace, width: int | None = None,
+                   y: np.ndarray | None = None) -> np.ndarray:
+    """Compute the normalised response y / sigma_q into ``ws.y`` (or ``y``); returns sigma_q (A,) float64.
 
     The published formulas are evaluated on q / sigma_q and p / sigma_q (p is linear in q, so p / sigma_q is
     the filtered q / sigma_q): every term then has unit scale, y / sigma_q > z_q is the detection test, and
     no per-row broadcasting is needed after the first two steps. Rows are processed in blocks of
     ``_BLOCK_ROWS`` (every step is per row, so blocking changes no result).
+
+    With ``width`` (< R) only the first ``width`` bins of y are computed, into the contiguous (A, width)
+    ``y``: the row statistics (mean, sigma_q) still use whole rows, and every bin of y depends only on the
+    bins within the Gaussian's half length of it, so y is the same as the whole row's except in the last
+    half kernel (+ the element-wise ops' scalar tails) of the width, which the caller discards.
     """
     kernel = _gaussian_kernel(config.sigma_bins).reshape(1, -1)
     sigma_all = np.empty(s.shape[0], dtype=np.float64)
+    narrow = width is not None and width < s.shape[1]
     for r0 in range(0, s.shape[0], _BLOCK_ROWS):
         r1 = min(r0 + _BLOCK_ROWS, s.shape[0])
         n = r1 - r0
-        sigma_all[r0:r1] = _response_block(s[r0:r1], kernel, ws.q[:n], ws.p[:n], ws.d[:n], ws.e[:n], ws.f[:n],
-                                           ws.mask_u8[:n], ws.y[r0:r1])
+        if narrow:
+            assert width is not None and y is not None
+            sigma_all[r0:r1] = _response_block(
+                s[r0:r1], kernel, ws.q[:n], _leading(ws.p, n, width), ws.d[:n], _leading(ws.e, n, width),
+                _leading(ws.f, n, width), ws.mask_u8[:n], y[r0:r1], qn=_leading(ws.qn, n, width))
+        else:
+            sigma_all[r0:r1] = _response_block(s[r0:r1], kernel, ws.q[:n], ws.p[:n], ws.d[:n], ws.e[:n],
+                                               ws.f[:n], ws.mask_u8[:n], ws.y[r0:r1] if y is None else y[r0:r1])
     return sigma_all
 
 
 def _response_block(s: np.ndarray, kernel: np.ndarray, q: np.ndarray, p: np.ndarray, d: np.ndarray,
-                    nqp: np.ndarray, npp: np.ndarray, mask_u8: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """One block of rows: y / sigma_q into ``y`` using the scratch arrays; returns the rows' sigma_q."""
+                    nqp: np.ndarray, npp: np.ndarray, mask_u8: np.ndarray, y: np.ndarray,
+                    qn: np.ndarray | None = None) -> np.ndarray:
+    """One block of rows: y / sigma_q into ``y`` using the scratch arrays; returns the rows' sigma_q.
+
+    ``q``, ``d`` and ``mask_u8`` span whole rows (the row statistics); with ``qn`` (contiguous, narrower),
+    the response is computed on its first bins only: ``p``, ``nqp``, ``npp`` and ``y`` then have its shape.
+    """
     # float64 accumulation for the row means; everything per bin stays float32 (as the reference code).
     mean = cv2.reduce(s, 1, cv2.REDUCE_AVG, dtype=cv2.CV_64F).astype(np.float32)
     np.subtract(s, mean, out=q)
@@ -200,7 +225,11 @@ def _response_block(s: np.ndarray, kernel: np.ndarray, q: np.ndarray, p: np.ndar
     has_neg = (n_neg > 0) & (sum_sq > 0)
     sigma_q[has_neg] = np.sqrt(sum_sq[has_neg] / n_neg[has_neg])
 
-    np.multiply(q, (1.0 / sigma_q).astype(np.float32)[:, None], out=q)  # q / sigma_q
+    if qn is None:
+        np.multiply(q, (1.0 / sigma_q).astype(np.float32)[:, None], out=q)  # q / sigma_q
+    else:  # the first bins only (each product is the same number)
+        np.multiply(q[:, : qn.shape[1]], (1.0 / sigma_q).astype(np.float32)[:, None], out=qn)
+        q, d = qn, _leading(d, qn.shape[0], qn.shape[1])  # d's whole-row values are no longer needed
     # Anchor at index len // 2 as the reference (OpenCV's default anchor for odd lengths such as 51).
     cv2.filter2D(q, cv2.CV_32F, kernel, dst=p, anchor=(kernel.shape[1] // 2, 0), delta=0.0,
                  borderType=cv2.BORDER_REFLECT_101)  # p / sigma_q
@@ -234,12 +263,42 @@ def cen2018_response(power: np.ndarray, config: Cen2018Config = Cen2018Config())
     return ws.y * sigma_q.astype(np.float32)[:, None], (config.z_q * sigma_q).astype(np.float32)
 
 
-def detect_landmarks(scan: RadarScan, config: Cen2018Config | None = None) -> Landmarks:
+#: bins computed beyond the last one a range-limited detection needs: the Gaussian's half length is added
+#: to this; it also keeps the element-wise OpenCV ops' scalar tails (at most one SIMD width) out of the bins used
+_NARROW_MARGIN_BINS = 64
+
+
+def _runs(kept: np.ndarray, padded: np.ndarray, edges: np.ndarray,
+          edge_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(row, middle column) of every run of True in the (A, W) ``kept``, row-major; ``padded`` (A, W + 2),
+    ``edges`` and ``edge_mask`` (A (W + 2) - 1,) are scratch."""
+    # One False column each side of every row, so each run has a start and an end and no run crosses rows;
+    # then the flat rising/falling edges give the runs.
+    padded[:, 0] = 0
+    padded[:, -1] = 0
+    padded[:, 1:-1] = kept
+    flat = padded.reshape(-1)
+    np.subtract(flat[1:], flat[:-1], out=edges)
+    starts = np.flatnonzero(np.equal(edges, 1, out=edge_mask))
+    ends = np.flatnonzero(np.equal(edges, -1, out=edge_mask))  # one past the run's last element
+    stride = padded.shape[1]
+    row = starts // stride
+    start_col = starts % stride  # edge index k -> padded column k % stride + 1 -> scan column k % stride
+    col = start_col + (ends - starts) // 2  # middle element (index len // 2), as the reference code
+    return row, col
+
+
+def detect_landmarks(scan: RadarScan, config: Cen2018Config | None = None,
+                     max_range_m: float | None = None) -> Landmarks:
     """Detect Cen 2018 landmarks on a polar scan.
 
     Args:
         scan: the polar scan (power (A, R) in [0, 1]); azimuths flagged invalid yield no keypoints.
         config: detector parameters; ``None`` uses the defaults with the preset's minimum range.
+        max_range_m: when given, only the landmarks with ``range_m <= max_range_m`` are returned: exactly
+            those of the detection without it (same values, same order). The response is then computed only
+            as far out as they need (e.g. ~45 % of a Boreas scan for the descriptor model's 128 m image), and
+            again over whole rows for the rows where a run of detections reaches the computed bins' edge.
 
     Returns:
         ``Landmarks`` (positions in the scan's sensor frame, metres). Without a cap they are sorted by
@@ -252,33 +311,53 @@ def detect_landmarks(scan: RadarScan, config: Cen2018Config | None = None) -> La
     n_az, n_bins = scan.power.shape
     min_range = int(min(min_range, n_bins))
 
+    # bins a range-limited detection computes: every landmark within the range is the middle of a run that
+    # ends before bin ``valid - 1`` unless its row has a detection there (those rows: whole rows, below)
+    valid = n_bins
+    if max_range_m is not None and config.max_keypoints is None and scan.range_resolution_m > 0:
+        last = math.floor((float(max_range_m) - scan.range_offset_m) / scan.range_resolution_m) + 1
+        valid = max(min_range, last, 0) + 2
+    width = valid + 3 * int(config.sigma_bins) // 2 + _NARROW_MARGIN_BINS
+    if width >= n_bins:
+        valid = width = n_bins
+
     s = np.ascontiguousarray(scan.power, dtype=np.float32)
     with _workspace(s.shape) as ws:
-        sigma_q = _response_into(s, config, ws)
-        y, kept = ws.y, ws.kept
-        np.greater(y, config.z_q, out=kept)
+        y = _leading(ws.y, n_az, width)
+        sigma_q = _response_into(s, config, ws, width, y)
+        kept = _leading(ws.kept, n_az, valid)
+        np.greater(y[:, :valid] if valid < width else y, config.z_q, out=kept)
         kept[:, :min_range] = False
         kept[~scan.valid] = False
-
-        # Runs of kept bins per row: one False column each side of every row, so each run has a start and an
-        # end and no run crosses rows; then the flat rising/falling edges give the runs.
-        ws.padded[:, 1:-1] = kept
-        flat = ws.padded.reshape(-1)
-        np.subtract(flat[1:], flat[:-1], out=ws.edges)
-        starts = np.flatnonzero(np.equal(ws.edges, 1, out=ws.edge_mask))
-        ends = np.flatnonzero(np.equal(ws.edges, -1, out=ws.edge_mask))  # one past the run's last element
-        stride = n_bins + 2
-        row = starts // stride
-        start_col = starts % stride  # edge index k -> padded column k % stride + 1 -> scan column k % stride
-        col = start_col + (ends - starts) // 2  # middle element (index len // 2), as the reference code
-
+        # rows where a run of detections reaches the last computed bin may continue past it: those rows again,
+        # whole (their row statistics and every bin are the same numbers as in the whole scan's pass)
+        longer = np.flatnonzero(kept[:, valid - 1]) if valid < n_bins else np.zeros(0, np.int64)
+        kept[longer] = False
+        row, col = _runs(kept, _leading(ws.padded, n_az, valid + 2), ws.edges[: n_az * (valid + 2) - 1],
+                         ws.edge_mask[: n_az * (valid + 2) - 1])
         strength = (y[row, col] * sigma_q[row]).astype(np.float32)
+    if len(longer):
+        sub = s[longer]
+        wx = _Workspace(sub.shape)
+        sigma_x = _response_into(sub, config, wx)
+        kept_x = np.greater(wx.y, config.z_q, out=wx.kept)
+        kept_x[:, :min_range] = False  # (invalid rows were never among them)
+        row_x, col_x = _runs(kept_x, wx.padded, wx.edges, wx.edge_mask)
+        strength_x = (wx.y[row_x, col_x] * sigma_x[row_x]).astype(np.float32)
+        order = np.argsort(np.concatenate([row, longer[row_x]]), kind="stable")  # row-major again
+        row = np.concatenate([row, longer[row_x]])[order]
+        col = np.concatenate([col, col_x])[order]
+        strength = np.concatenate([strength, strength_x])[order]
     if config.max_keypoints is not None and row.size > config.max_keypoints:
         order = np.argsort(-strength, kind="stable")[: config.max_keypoints]
         row, col, strength = row[order], col[order], strength[order]
 
     azimuth_rad = scan.azimuths[row]
     range_m = scan.range_offset_m + col * scan.range_resolution_m
+    if max_range_m is not None:
+        near = range_m <= max_range_m
+        row, col, strength, azimuth_rad, range_m = row[near], col[near], strength[near], azimuth_rad[near], \
+            range_m[near]
     xy = polar_to_metric(azimuth_rad, range_m)
     return Landmarks(
         azimuth_index=row.astype(np.int64),

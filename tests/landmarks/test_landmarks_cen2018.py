@@ -201,3 +201,39 @@ def test_concurrent_calls_agree_with_sequential():
         np.testing.assert_array_equal(got.azimuth_index, want.azimuth_index)
         np.testing.assert_array_equal(got.range_bin, want.range_bin)
         np.testing.assert_array_equal(got.strength, want.strength)
+
+
+def _fields(lm) -> list[bytes]:
+    return [np.asarray(getattr(lm, a)).tobytes() for a in
+            ("azimuth_index", "range_bin", "azimuth_rad", "range_m", "xy_m", "strength")]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_max_range_gives_exactly_the_near_landmarks(seed):
+    """A range-limited detection (response computed on the first bins only, whole rows where a run reaches
+    the edge of those) returns the full detection's landmarks within the range, bit for bit, in order."""
+    scan = _noise_scan(seed, n_az=24, n_bins=1200, preset="boreas")
+    res = scan.range_resolution_m
+    rng = np.random.default_rng(seed)
+    for row in range(0, 24, 2):  # targets everywhere, some long runs across the ranges tried below
+        centre = int(rng.integers(60, 1150))
+        scan.power[row, centre - 40: centre + 40] = 0.9
+    full = detect_landmarks(scan)
+    assert len(full) > 50
+    edges = [scan.range_offset_m + b * res for b in (300, 301, 500, 700)]
+    for max_range in [0.0, 5.0, 18.3, 31.7, 45.0, *edges, 70.0, 1e6]:
+        near = full.subset(full.range_m <= max_range)
+        assert _fields(detect_landmarks(scan, max_range_m=max_range)) == _fields(near), max_range
+
+
+def test_max_range_with_a_run_through_the_computed_edge():
+    scan = _noise_scan(5, n_az=8, n_bins=1200, preset="boreas")
+    scan.power[3, 250:900] = 0.95  # one run far past the edge of a 20 m detection: its middle is beyond it
+    scan.power[5, 200:420] = 0.95  # its middle (bin 310, ~18.5 m) is within 20 m, its end (~25 m) is not
+    full = detect_landmarks(scan)
+    near = detect_landmarks(scan, max_range_m=20.0)
+    assert _fields(near) == _fields(full.subset(full.range_m <= 20.0))
+    assert (5, 310) in set(zip(near.azimuth_index.tolist(), near.range_bin.tolist(), strict=True))
+    capped = Cen2018Config(max_keypoints=10)  # a cap picks among all landmarks: the range filters after it
+    full_c = detect_landmarks(scan, capped)
+    assert _fields(detect_landmarks(scan, capped, 20.0)) == _fields(full_c.subset(full_c.range_m <= 20.0))

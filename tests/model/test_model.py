@@ -310,3 +310,25 @@ def test_shipped_model_under_arbitrary_yaw_known_answer():
         assert (glob - other).min() >= 0.45, (deg, glob, other)
     g90, _ = desc([rotated(s, 90.0) for s in scans])
     assert ((g90 * g0).sum(1) >= 0.999).all()
+
+
+@pytest.mark.parametrize("shape", [(1, 16, 101, 101), (2, 3, 100, 100), (1, 2, 7, 9), (1, 1, 2, 2), (1, 1, 1, 1)])
+@pytest.mark.parametrize("kernel,stride,padding", [(3, 2, 1), (2, 2, 0), (3, 1, 1), (5, 3, 2)])
+def test_sliced_max_pool_equals_max_pool2d(shape, kernel, stride, padding):
+    from reradar_core.model.network import SlicedMaxPool2d
+
+    if shape[-1] + 2 * padding < kernel or shape[-2] + 2 * padding < kernel:
+        pytest.skip("output would be empty")
+    g = torch.Generator().manual_seed(sum(shape) + kernel)
+    x = torch.relu(torch.randn(shape, generator=g))
+    x[0, 0, 0, 0] = float("nan")  # propagates the same way
+    x.view(-1)[-1] = float("-inf")
+    ref = torch.nn.MaxPool2d(kernel, stride, padding)
+    assert SlicedMaxPool2d.replaces(ref)
+    got = SlicedMaxPool2d(kernel, stride, padding)(x)
+    want = ref(x)
+    assert got.shape == want.shape
+    assert torch.equal(got.isnan(), want.isnan())
+    assert torch.equal(got.nan_to_num(), want.nan_to_num())
+    assert not SlicedMaxPool2d.replaces(torch.nn.MaxPool2d(3, 2, 1, ceil_mode=True))
+    assert not SlicedMaxPool2d.replaces(torch.nn.MaxPool2d(3, 2, 1, dilation=2))
