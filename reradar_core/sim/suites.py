@@ -318,7 +318,8 @@ SUITES: dict[str, SuiteDef] = {
         car_transmission=0.8,
     ),
     "train-target-loop": SuiteDef(
-        "train-target-loop", "another session on the loop-sim street grid (other speeds, own seed, rain)",
+        "train-target-loop", "another session on the loop-sim street grid (other speeds, own seed, rain) and a "
+        "third driven the other way round in the far lane (clear)",
         preset="mulran", layout="mulran", profile="urban", world_seed=11, road_routes=(_LOOP,),
         sequences=(
             SequenceDef("session2", "train", replace(_LOOP, speed_seed=7, lateral_m=-1.0), traversal_seed=112,
