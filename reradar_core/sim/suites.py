@@ -19,8 +19,8 @@ Evaluation suites mirror the paper's protocols:
 
 Training splits (never query sequences): ``train-source`` (synthetic looped routes in other worlds, mixed
 profiles and conditions), ``train-target-boreas`` (two more traversals of the Boreas route, laterally offset,
-own seeds, ``snow_cover`` and ``falling_snow``), ``train-target-loop`` (another session on the loop-sim grid),
-``train-target-offroad`` (a third drive on the off-road route).
+own seeds, ``snow_cover`` and ``falling_snow``), ``train-target-loop`` (two more sessions on the loop-sim grid, one
+driven the other way round), ``train-target-offroad`` (a third drive on the off-road route).
 
 ``build_suite(name)`` renders what is missing into ``cache_dir("sim", "v<SIM_VERSION>", name)`` (a sequence
 is complete when its marker file holds the current simulator version) and returns a ``SuiteData``.
