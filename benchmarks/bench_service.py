@@ -268,7 +268,8 @@ def bench_http(requests: int, warmup: int, threads: int, map_path: Path | None =
 
 
 # ---------------------------------------------------------------------------------------------- localizer
-def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_noise: float, seed: int = 0) -> dict:
+def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_noise: float, seed: int = 0,
+                    model: str = "default") -> dict:
     """The ``Localizer`` offline (features precomputed; no HTTP, no decoding) on every scan of each query
     sequence: global localization with verification stopping at the localized bar (the default) and with all
     ``verify_k`` verified, and tracking mode through the drive with the ground-truth motion (seeded noise of
@@ -286,7 +287,7 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
 
     torch.set_num_threads(1)
     limit_blas_threads(1)
-    ext = DescriptorExtractor.from_pretrained()
+    ext = DescriptorExtractor.from_pretrained(model)  # the map's model (a mismatch is refused on open)
     db = MapDatabase.open(map_path, ext.model_id, ext.weights_sha256, keyframe_cache_size=None, preload=True)
     out: dict = {"map": str(map_path), "num_keyframes": len(db), "odometry_noise": odometry_noise}
 
@@ -437,6 +438,7 @@ def main() -> int:
     p.add_argument("--sequences", type=Path, nargs="*", default=[], help="--localizer: query sequence folders")
     p.add_argument("--every", type=int, default=1, help="--localizer: use every n-th scan")
     p.add_argument("--odometry-noise", type=float, default=0.05, help="--localizer: odometry noise / step")
+    p.add_argument("--model", default="default", help="--localizer: the descriptor model the map was built with")
     p.add_argument("--measure-open", nargs=2, metavar=("MAP", "KIND"), help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.measure_open:
@@ -464,7 +466,8 @@ def main() -> int:
     if args.localizer:
         if args.http_map is None or not args.sequences:
             p.error("--localizer needs --http-map MAP.h5 and --sequences SEQ [SEQ ...]")
-        results["localizer"] = bench_localizer(args.http_map, args.sequences, args.every, args.odometry_noise)
+        results["localizer"] = bench_localizer(args.http_map, args.sequences, args.every, args.odometry_noise,
+                                           model=args.model)
     if args.all or args.rerank:
         results["rerank"] = bench_rerank(args.suite, args.threads, args.top_k, args.ransac_threshold_m)
     results["load_avg_end"] = _load_avg()
