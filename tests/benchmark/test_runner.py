@@ -108,3 +108,40 @@ def test_descriptor_recall_at_1_known_answer():
     assert descriptor_recall_at_1(by_descriptor, positive, q, db, 20.0) == pytest.approx(200.0 / 3)
     # a method that does not re-rank reports none (its headline Recall@1 is the descriptor's)
     assert descriptor_recall_at_1(np.full(4, -1), positive, q, db, 20.0) is None
+
+
+def test_per_database_work_runs_once_before_the_timed_queries():
+    """``ready_database`` (a method's one-off work per database, e.g. ReRadar's preloaded screen data) runs once,
+    after ``build_index`` and before the first query, so per-query times never include it."""
+    from reradar_core.baselines.base import PlaceRecognitionMethod
+    from reradar_core.benchmark.runner import PreparedSet, evaluate_method
+
+    events: list[str] = []
+
+    class Toy(PlaceRecognitionMethod):
+        name = "toy"
+
+        def prepare(self, scan):  # noqa: ANN001, ANN202 - records are built directly below
+            raise AssertionError("not called: the records are prepared already")
+
+        def describe_prepared(self, prepared):  # noqa: ANN001, ANN202
+            return np.asarray(prepared["x"], np.float64)
+
+        def build_index(self, db_descs):  # noqa: ANN001, ANN202
+            events.append("index")
+            return super().build_index(db_descs)
+
+        def ready_database(self, index, db_prepared, db_poses):  # noqa: ANN001, ANN202
+            events.append("ready")
+
+        def distance(self, q_desc, index):  # noqa: ANN001, ANN202
+            events.append("query")
+            return np.abs(index[:, 0] - q_desc[0])
+
+    db_poses = np.array([[0.0, 0.0, 0.0], [50.0, 0.0, 0.0], [100.0, 0.0, 0.0]])
+    q_poses = np.array([[1.0, 0.0, 0.0], [99.0, 0.0, 0.0]])
+    db = PreparedSet([{"x": [p[0]]} for p in db_poses], np.zeros(3))
+    q = PreparedSet([{"x": [p[0]]} for p in q_poses], np.zeros(2))
+    run = evaluate_method(Toy(), db, db_poses, q, q_poses, 20.0)
+    assert events == ["index", "ready", "query", "query"]
+    assert run.summary["recall@1"] == pytest.approx(100.0)
