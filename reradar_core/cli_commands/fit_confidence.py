@@ -37,11 +37,13 @@ def register(app: typer.Typer) -> None:
         progress: bool = typer.Option(True, help="Progress bars."),
         threads: int = typer.Option(1, min=1, help="Torch threads (the machine is shared)."),
     ) -> None:
-        """Localize training-split queries, fit the confidence model, write its JSON and a reliability diagram."""
+        """Localize training-split queries, fit the confidence model and the aligned-landmark floor, write its JSON
+        and a reliability diagram."""
         import torch
 
         from reradar_core.localization.confidence import DEFAULT_MODEL_PATH
         from reradar_core.localization.confidence_fit import (
+            PROBE_FLOOR,
             FitData,
             collect_split,
             fit_from_data,
@@ -52,7 +54,8 @@ def register(app: typer.Typer) -> None:
 
         torch.set_num_threads(threads)
         names = [s.strip() for s in splits.split(",") if s.strip()]
-        runs_path = cache_dir("confidence") / f"runs-v{SIM_VERSION}-{'+'.join(names)}-step{query_step}.npz"
+        runs_path = cache_dir("confidence") / (f"runs-v{SIM_VERSION}-{'+'.join(names)}-step{query_step}"
+                                             f"-floor{PROBE_FLOOR:.2f}-with-unseen.npz")
         try:
             from_cache = reuse and runs_path.is_file()
             if from_cache:
@@ -75,8 +78,10 @@ def register(app: typer.Typer) -> None:
         model.save(target)
         ho = data.has_pose & data.heldout
         fit = data.has_pose & ~data.heldout
-        plot_reliability({"held-out training runs": (model.predict(data.cues[ho]), data.correct[ho]),
-                          "fit runs": (model.predict(data.cues[fit]), data.correct[fit])}, plot,
+        unseen = data.has_pose & data.unseen
+        plot_reliability({"held-out runs": (model.predict(data.cues[ho]), data.correct[ho]),
+                          "fit runs": (model.predict(data.cues[fit]), data.correct[fit]),
+                          "unseen sessions (all)": (model.predict(data.cues[unseen]), data.correct[unseen])}, plot,
                          f"answer confidence on training splits\n{', '.join(names)}\nheld-out ECE "
                          f"{report['ece_heldout']:.3f} (10 bins)", bar=model.min_confidence)
         typer.echo(json.dumps({"model": target.name, "coef": dict(zip(model.cue_names, model.coef.round(3).tolist(),

@@ -180,6 +180,10 @@ class ConfidenceModel:
         min_confidence: the decision bar recommended with these coefficients (chosen at fit time on the
             training split; ``LocalizationConfig.min_confidence`` None uses it), in [0, 1].
         place_radius_m: the cues' place radius (``confidence_cues``), metres; top_n: their agreement count.
+        min_aligned_ratio: the aligned-landmark floor fitted with these coefficients (the share of the query's
+            landmarks the winner must align before the confidence is asked; ``LocalizationConfig``'s
+            ``min_inlier_ratio`` None uses it with the ``guided`` estimator), in [0, 1]. Chosen at fit time on
+            the training splits' sessions that train no weights; 0.5 in models fitted before it existed.
         meta: provenance (command, data, sizes, calibration figures); informational.
     """
 
@@ -191,6 +195,7 @@ class ConfidenceModel:
     min_confidence: float = 0.5
     place_radius_m: float = 20.0
     top_n: int = 5
+    min_aligned_ratio: float = 0.5
     meta: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -207,6 +212,8 @@ class ConfidenceModel:
             raise ConfigError("confidence model scale must be > 0")
         if not math.isfinite(self.intercept) or not 0.0 <= self.min_confidence <= 1.0:
             raise ConfigError("confidence model intercept must be finite and min_confidence in [0, 1]")
+        if not 0.0 <= self.min_aligned_ratio <= 1.0:
+            raise ConfigError(f"confidence model min_aligned_ratio must be in [0, 1], got {self.min_aligned_ratio}")
 
     def predict(self, cues: ConfidenceCues | np.ndarray) -> Any:
         """Probability that the pose is within the success thresholds.
@@ -226,7 +233,8 @@ class ConfidenceModel:
         return {"format_version": CONFIDENCE_FORMAT_VERSION, "cue_names": list(self.cue_names),
                 "mean": self.mean.tolist(), "scale": self.scale.tolist(), "coef": self.coef.tolist(),
                 "intercept": float(self.intercept), "min_confidence": float(self.min_confidence),
-                "place_radius_m": float(self.place_radius_m), "top_n": int(self.top_n), "meta": self.meta}
+                "place_radius_m": float(self.place_radius_m), "top_n": int(self.top_n),
+                "min_aligned_ratio": float(self.min_aligned_ratio), "meta": self.meta}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ConfidenceModel:
@@ -236,7 +244,9 @@ class ConfidenceModel:
         try:
             return cls(tuple(d["cue_names"]), np.asarray(d["mean"]), np.asarray(d["scale"]),
                        np.asarray(d["coef"]), float(d["intercept"]), float(d["min_confidence"]),
-                       float(d["place_radius_m"]), int(d["top_n"]), dict(d.get("meta", {})))
+                       float(d["place_radius_m"]), int(d["top_n"]),
+                       # absent in files fitted before the floor was fitted: the fixed floor of then
+                       float(d.get("min_aligned_ratio", 0.5)), dict(d.get("meta", {})))
         except KeyError as exc:
             raise ConfigError(f"confidence model JSON lacks the field {exc}") from None
 
@@ -295,8 +305,8 @@ def fit_confidence_model(x: np.ndarray, y: np.ndarray, l2: float = 1.0, min_conf
 
     res = minimize(loss, np.zeros(a.shape[1]), jac=True, method="L-BFGS-B", options={"maxiter": 1000})
     w = np.asarray(res.x, dtype=np.float64)
-    return ConfidenceModel(CUE_NAMES, mean, scale, w[:-1], float(w[-1]), min_confidence, place_radius_m,
-                           top_n, dict(meta or {}))
+    return ConfidenceModel(CUE_NAMES, mean, scale, w[:-1], float(w[-1]), min_confidence=min_confidence,
+                           place_radius_m=place_radius_m, top_n=top_n, meta=dict(meta or {}))
 
 
 def reliability_bins(p: np.ndarray, y: np.ndarray, bins: int = 10) -> dict[str, np.ndarray]:

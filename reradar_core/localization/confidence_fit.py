@@ -1,19 +1,25 @@
 """Fit the shipped ``ConfidenceModel`` on training splits (``reradar fit-confidence``).
 
 Data (never a benchmark query sequence): for each target training split (``reradar_core.training.suites``)
-its own traversals are the queries and the benchmark suite's *database* sequence of that domain is the map -
-the same pairing the target-adapted descriptor was trained on. Each query is localized by the service's
-``Localizer`` with the split's target-adapted model (``our-3-<domain>``) and the aligned-ratio floor alone
-(``min_confidence=0``); its label is 1 when the winner's pose is within the paper's success thresholds
-(``localization_success``: translation error < R of the suite, heading error < 10 deg), else 0. Queries are
-run twice where useful: on the full map, and on a map of the first half of the database keyframes for the
-queries that have no keyframe of that half within R - no-match queries, whose every pose is a wrong answer
-(labels 0), as a user sees on an unmapped road.
+its sessions are the queries and the benchmark suite's *database* sequence of that domain is the map - the
+same pairing the target-adapted descriptor was trained on. Two kinds of session: the split's training
+traversals (the descriptor trained on all but their tails) and its ``confidence`` sessions, which train no
+weights - queries like a deployment's, on which a descriptor's landmarks align less than on scans it has
+seen (rows marked ``unseen``). Each query is localized by the service's ``Localizer`` with the split's
+target-adapted model (``our-3-<domain>``) and the aligned-ratio floor alone at its lowest candidate value
+(``PROBE_FLOOR``, ``min_confidence=0``); its label is 1 when the winner's pose is within the paper's success
+thresholds (``localization_success``: translation error < R of the suite, heading error < 10 deg), else 0.
+Queries are run twice where useful: on the full map, and on a map of the first half of the database keyframes
+for the queries that have no keyframe of that half within R - no-match queries, whose every pose is a wrong
+answer (labels 0), as a user sees on an unmapped road.
 
-Held-out split: the last ``holdout`` (15 %) of each query sequence - the tail the descriptor was validated on
-and never trained on - gives the reliability numbers (ECE, diagram, wrong-answer rate at the bar); the rest
-fits the coefficients and chooses the bar. Everything is deterministic (the localizer is seeded, the split is by
-position).
+Held-out split: the last ``holdout`` (15 %) of each query sequence - for the training traversals the tail the
+descriptor was validated on and never trained on - gives the reliability numbers (ECE, diagram, wrong-answer
+rate at the bar); the rest fits the coefficients and chooses the floor (judged on the unseen sessions) and the
+bar (``fit_from_data``). A floor above the probe's is applied through the ``aligned_ratio`` cue: the runs'
+deeper search on refusal (``expand_on_refusal``) then ran less often than it would at that floor, which can
+only undercount that floor's correct answers. Everything is deterministic (the localizer is seeded, the split
+is by position).
 """
 
 from __future__ import annotations
@@ -56,6 +62,9 @@ TOP_N = 5
 # refusal costs the vehicle one more scan (0.25 s at 4 Hz) before it asks again; a confident wrong pose can pull
 # its state estimate hundreds of metres off until something else notices. A product choice, stated, not fitted.
 DEFAULT_WRONG_COST = 10.0
+#: the aligned-landmark floors the fit chooses from (``fit_from_data``); the runs are collected at the lowest
+PROBE_FLOOR = 0.25
+FLOOR_GRID = (0.25, 0.30, 0.35, 0.40, 0.45, 0.50)
 
 
 @dataclass
@@ -70,6 +79,7 @@ class FitData:
         revisit: (Q,) bool the map has a keyframe within R of the query.
         heldout: (Q,) bool the query lies in its sequence's held-out tail.
         split: (Q,) str training split of the row.
+        unseen: (Q,) bool the query's session trained no weights (a ``confidence`` session of the split).
     """
 
     cues: np.ndarray
@@ -79,21 +89,22 @@ class FitData:
     revisit: np.ndarray
     heldout: np.ndarray
     split: np.ndarray
+    unseen: np.ndarray
 
     @staticmethod
     def concat(parts: list[FitData]) -> FitData:
         return FitData(*(np.concatenate([getattr(p, f) for p in parts]) for f in
-                         ("cues", "has_pose", "correct", "eligible", "revisit", "heldout", "split")))
+                         ("cues", "has_pose", "correct", "eligible", "revisit", "heldout", "split", "unseen")))
 
     def save(self, path: Path) -> None:
         np.savez_compressed(path, **{f: getattr(self, f) for f in
-                                     ("cues", "has_pose", "correct", "eligible", "revisit", "heldout", "split")})
+                                     ("cues", "has_pose", "correct", "eligible", "revisit", "heldout", "split", "unseen")})
 
     @staticmethod
     def load(path: Path) -> FitData:
         z = np.load(path, allow_pickle=False)
-        return FitData(z["cues"], z["has_pose"], z["correct"], z["eligible"], z["revisit"], z["heldout"],
-                       z["split"])
+        return FitData(*(z[f] for f in ("cues", "has_pose", "correct", "eligible", "revisit", "heldout", "split",
+                                         "unseen")))
 
 
 def _localizer(method: Any, records: list[Any], poses: np.ndarray, config: Any) -> Any:
@@ -107,14 +118,20 @@ def _localizer(method: Any, records: list[Any], poses: np.ndarray, config: Any) 
     return Localizer(index, keyframes, config)
 
 
-def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progress: bool = True) -> FitData:
-    """Localize the split's training queries on its domain's map and label the answers (module docstring).
+def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progress: bool = True,
+                  min_inlier_ratio: float = PROBE_FLOOR) -> FitData:
+    """Localize the split's sessions on its domain's map and label the answers (module docstring).
+
+    Both kinds of session run: the split's training traversals (the model trained on all but their tails) and
+    its ``confidence`` sessions (no weight trained on them; rows marked ``unseen``).
 
     Args:
         split: a key of ``SPLIT_MODELS``.
         query_step: use every ``query_step``-th query scan (1 = all).
         holdout: fraction at the end of each query sequence held out for the reliability numbers.
         progress: progress bars.
+        min_inlier_ratio: the aligned-landmark floor of the runs; the lowest floor the fit may choose
+            (``PROBE_FLOOR``): a higher floor is applied afterwards through the ``aligned_ratio`` cue.
     """
     from tqdm import tqdm
 
@@ -129,7 +146,8 @@ def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progre
     assert bench_name is not None
     bench = build_suite(bench_name, progress=progress)
     radius = bench.radius_m
-    config = replace(LocalizationConfig(), min_confidence=0.0)  # the floor alone: every answer is labelled
+    # the floor alone, at its lowest candidate value: every answer is labelled
+    config = replace(LocalizationConfig(), min_confidence=0.0, min_inlier_ratio=min_inlier_ratio)
     method = Ours(SPLIT_MODELS[split], localization=config)
     bc = BenchConfig(radius_m=radius, rotation_stress=False, progress=progress)
     db_seq = bench.load(bench.database[0])
@@ -138,8 +156,9 @@ def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progre
     half = len(db.records) // 2
     maps = {"full": (_localizer(method, db.records, db_poses, config), db_poses),
             "half": (_localizer(method, db.records[:half], db_poses[:half], config), db_poses[:half])}
-    rows: list[tuple[np.ndarray, bool, bool, bool, bool, bool]] = []
-    for qpath in data.training:
+    rows: list[tuple[np.ndarray, bool, bool, bool, bool, bool, bool]] = []
+    sessions = [(p, False) for p in data.training] + [(p, True) for p in data.confidence]
+    for qpath, unseen in sessions:
         qseq = data.load(qpath).subset(slice(None, None, query_step))
         q = prepare_sequence([method], qseq, bc)[method.name]
         gt = qseq.mid_sweep_poses()
@@ -161,18 +180,17 @@ def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progre
                     e_t, e_r = localization_errors(est, gt[i][None])
                     ok = bool(localization_success(e_t, e_r, radius)[0]) and rev[int(i)]
                 rows.append((cues.as_array() if cues is not None else np.zeros(len(CUE_NAMES)),
-                             cues is not None, ok, res.localized, rev[int(i)], i >= (1.0 - holdout) * n))
+                             cues is not None, ok, res.localized, rev[int(i)], i >= (1.0 - holdout) * n, unseen))
     m = len(rows)
-    return FitData(np.array([r[0] for r in rows]).reshape(m, len(CUE_NAMES)),
-                   np.array([r[1] for r in rows], bool), np.array([r[2] for r in rows], bool),
-                   np.array([r[3] for r in rows], bool), np.array([r[4] for r in rows], bool),
-                   np.array([r[5] for r in rows], bool), np.array([split] * m))
+    cols = list(zip(*rows, strict=True)) if rows else [()] * 7
+    return FitData(np.array(cols[0], np.float64).reshape(m, len(CUE_NAMES)),
+                   *(np.array(c, bool) for c in cols[1:6]), np.array([split] * m), np.array(cols[6], bool))
 
 
-def _rates(p: np.ndarray, d: FitData, mask: np.ndarray, bar: float) -> dict[str, float]:
+def _rates(p: np.ndarray, d: FitData, eligible: np.ndarray, mask: np.ndarray, bar: float) -> dict[str, float]:
     """Wrong / correct ``localized`` answers (percent of the runs in ``mask``) with and without the bar."""
     n = max(int(mask.sum()), 1)
-    old = d.eligible & mask
+    old = eligible & mask
     new = old & (p >= bar)
     return {"runs": int(mask.sum()),
             "wrong_pct_floor_only": 100.0 * float((old & ~d.correct).sum()) / n,
@@ -183,47 +201,75 @@ def _rates(p: np.ndarray, d: FitData, mask: np.ndarray, bar: float) -> dict[str,
 
 def fit_from_data(d: FitData, l2: float = 1.0, max_wrong_fraction: float = 0.005,
                   meta: dict[str, Any] | None = None,
-                  wrong_cost: float | None = DEFAULT_WRONG_COST) -> tuple[ConfidenceModel, dict[str, Any]]:
-    """Fit on the non-held-out runs with a pose, choose the bar there, report on the held-out runs.
+                  wrong_cost: float | None = DEFAULT_WRONG_COST,
+                  floors: tuple[float, ...] = FLOOR_GRID) -> tuple[ConfidenceModel, dict[str, Any]]:
+    """Fit on the non-held-out runs with a pose, choose the floor and the bar there, report on the held-out runs.
 
-    The bar is the higher of two, both on the fit runs: the lowest at which wrong answers are at most
-    ``max_wrong_fraction`` of the runs of *every* split (``choose_min_confidence`` per split: the issue's
-    target holds per suite, not pooled), and the one that minimises ``wrong_cost`` x wrong answers + refused
-    correct answers (``choose_min_confidence_by_cost``; None: not used).
+    For each candidate aligned-landmark floor (``floors``, each at least the runs' probe floor) the bar is the
+    higher of two, both on the fit runs: the lowest at which wrong answers are at most ``max_wrong_fraction``
+    of the runs of *every* split and of each split's unseen sessions on their own (``choose_min_confidence``
+    per group: the issue's target holds per suite, not pooled), and the one that minimises ``wrong_cost`` x
+    wrong answers + refused correct answers (``choose_min_confidence_by_cost``; None: not used). The floor is
+    the one whose (floor, bar) pair costs least - ``wrong_cost`` x wrong + correct poses left unanswered - on
+    the fit runs of the unseen sessions (all fit runs when there are none): queries like a deployment's, which
+    the descriptor never trained on. Ties go to the higher floor.
 
     Returns:
-        The model (its ``meta`` holds the report) and the report: sizes, ECE (10 bins) on the held-out runs
-        with a pose, wrong / correct answer rates (percent of runs) with the floor alone and with the bar.
+        The model (its ``meta`` holds the report; ``min_aligned_ratio`` the floor, ``min_confidence`` the bar)
+        and the report: sizes, ECE (10 bins) on the held-out runs with a pose, the per-floor table, wrong /
+        correct answer rates (percent of runs) with the floor alone and with the bar.
     """
     fit_rows = d.has_pose & ~d.heldout
     model = fit_confidence_model(d.cues[fit_rows], d.correct[fit_rows], l2=l2, place_radius_m=PLACE_RADIUS_M,
                                  top_n=TOP_N)
     p = np.where(d.has_pose, model.predict(d.cues), 0.0)
     fit_all = ~d.heldout
+    aligned = d.cues[:, CUE_NAMES.index("aligned_ratio")]
+    judge = fit_all & d.unseen if (fit_all & d.unseen).any() else fit_all
+    groups = {f"{s}{'/unseen' if u else ''}": fit_all & (d.split == s) & (d.unseen == u)
+              for s in np.unique(d.split) for u in (False, True) if (fit_all & (d.split == s) & (d.unseen == u)).any()}
 
-    def split_bar(rows: np.ndarray) -> float:
-        return choose_min_confidence(p[rows], d.correct[rows], d.eligible[rows], int(rows.sum()), max_wrong_fraction)
+    def choose(floor: float) -> dict[str, Any]:
+        el = d.eligible & (aligned >= floor)
+        per_group = {g: choose_min_confidence(p[r], d.correct[r], el[r], int(r.sum()), max_wrong_fraction)
+                     for g, r in groups.items()}
+        bar_cost = (choose_min_confidence_by_cost(p[fit_all], d.correct[fit_all], el[fit_all], wrong_cost)
+                    if wrong_cost is not None else 0.0)
+        bar = max([bar_cost, *per_group.values()])
+        acc = el & (p >= bar)
+        wrong = int((acc & ~d.correct & judge).sum())
+        unanswered = int((d.correct & ~acc & judge).sum())
+        return {"floor": floor, "bar": bar, "bar_cost": bar_cost, "bar_max_wrong_per_group": per_group,
+                "eligible": el, "judged_correct": int((acc & d.correct & judge).sum()), "judged_wrong": wrong,
+                "judged_cost": (wrong_cost or 1.0) * wrong + unanswered}
 
-    bar_per_split = {str(s): split_bar(fit_all & (d.split == s)) for s in np.unique(d.split)}
-    bar_cost = (choose_min_confidence_by_cost(p[fit_all], d.correct[fit_all], d.eligible[fit_all], wrong_cost)
-                if wrong_cost is not None else 0.0)
-    bar = max([bar_cost, *bar_per_split.values()])
+    table = [choose(f) for f in sorted(floors, reverse=True)]
+    best = table[0]
+    for row in table[1:]:
+        if row["judged_cost"] < best["judged_cost"]:  # strictly better: ties keep the higher floor
+            best = row
+    floor, bar, el = best["floor"], best["bar"], best["eligible"]
     ho = d.has_pose & d.heldout
+    kinds = {"training sessions": ~d.unseen, "unseen sessions": d.unseen}
     report: dict[str, Any] = {
         "runs": int(len(d.correct)), "fit_runs_with_pose": int(fit_rows.sum()),
         "fit_positives": int(d.correct[fit_rows].sum()), "heldout_runs_with_pose": int(ho.sum()),
-        "heldout_positives": int(d.correct[ho].sum()),
+        "heldout_positives": int(d.correct[ho].sum()), "unseen_runs": int(d.unseen.sum()),
         "ece_heldout": expected_calibration_error(p[ho], d.correct[ho]),
         "ece_fit": expected_calibration_error(p[fit_rows], d.correct[fit_rows]),
-        "ece_heldout_above_floor": expected_calibration_error(p[ho & d.eligible], d.correct[ho & d.eligible]),
-        "heldout_runs_above_floor": int((ho & d.eligible).sum()),
-        "max_wrong_fraction": max_wrong_fraction, "min_confidence": bar,
-        "bar_max_wrong_per_split": bar_per_split, "wrong_cost": wrong_cost, "bar_cost": bar_cost,
-        "fit": _rates(p, d, ~d.heldout, bar), "heldout": _rates(p, d, d.heldout, bar),
-        "per_split_heldout": {s: _rates(p, d, d.heldout & (d.split == s), bar) for s in np.unique(d.split)},
+        "ece_heldout_above_floor": expected_calibration_error(p[ho & el], d.correct[ho & el]),
+        "heldout_runs_above_floor": int((ho & el).sum()),
+        "max_wrong_fraction": max_wrong_fraction, "wrong_cost": wrong_cost,
+        "floors": [{k: v for k, v in r.items() if k != "eligible"} for r in table],
+        "min_aligned_ratio": floor, "min_confidence": bar,
+        "bar_max_wrong_per_group": best["bar_max_wrong_per_group"], "bar_cost": best["bar_cost"],
+        "fit": _rates(p, d, el, ~d.heldout, bar), "heldout": _rates(p, d, el, d.heldout, bar),
+        "per_split_heldout": {f"{s}, {k}": _rates(p, d, el, d.heldout & (d.split == s) & m, bar)
+                              for s in np.unique(d.split) for k, m in kinds.items()
+                              if (d.heldout & (d.split == s) & m).any()},
     }
     full_meta = {**(meta or {}), "report": report}
-    model = replace(model, min_confidence=bar, meta=full_meta)
+    model = replace(model, min_confidence=bar, min_aligned_ratio=floor, meta=full_meta)
     return model, report
 
 

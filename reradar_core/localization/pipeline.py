@@ -71,8 +71,6 @@ REASON_LOW_CONFIDENCE = "low_confidence"
 
 Status = Literal["localized", "not_localized"]
 PoseMethod = Literal["guided", "mutual_nn"]
-#: default minimum inliers / query landmarks for the guided estimator (see ``LocalizationConfig``)
-GUIDED_MIN_INLIER_RATIO = 0.50
 
 
 @dataclass(frozen=True)
@@ -115,13 +113,12 @@ class LocalizationConfig:
         min_inliers: RANSAC inliers the best candidate needs to count as localized. Random
             correspondences between unrelated scans rarely agree on more than a handful of points under a
             2 m threshold, so 12 rejects unknown places while real revisits have tens of inliers.
-        min_inlier_ratio: minimum inlier ratio of the winner; None = the method's default: ``guided`` 0.50
-            (inliers / query landmarks). Per candidate, 95 % of wrong places align at most 0.36 of 512
-            landmarks on boreas-sim, but the winner is the best of 20 screened candidates, so wrong winners
-            reach higher: with 20 screened / 3 verified (our-3-boreas, 260 boreas-sim queries) a 0.40 bar
-            answered 17 % of all queries with a wrong pose (precision 0.71), 0.50 answers 2.7 % wrongly
-            (precision 0.93) and loses 5 points of correct answers (docs/BENCHMARKS.md). Real Oxford pairs
-            up to 9 frames (17 m) apart align >= 0.50. ``mutual_nn``: 0 (inliers / matches, disabled).
+        min_inlier_ratio: minimum inlier ratio of the winner (the floor: inliers / query landmarks) before the
+            confidence is asked; None = the method's default: ``guided`` the floor fitted with the shipped
+            confidence model (``ConfidenceModel.min_aligned_ratio``, chosen by ``reradar fit-confidence`` on
+            the training splits' sessions that train no weights, docs/MODEL.md "Confidence"; 0.50 before,
+            a value once read off boreas-sim queries, where the floor alone had to keep wrong winners out);
+            ``mutual_nn``: 0 (inliers / matches, disabled).
         match_ratio: optional Lowe ratio for descriptor matching (None: mutual nearest neighbours only).
         rerank: True = choose the verified candidate with the most inliers (geometric re-ranking);
             False = verify only the top-1 retrieval (plain retrieval, for comparison).
@@ -171,7 +168,7 @@ class LocalizationConfig:
         """``min_inlier_ratio``, or the pose method's default when it is None."""
         if self.min_inlier_ratio is not None:
             return self.min_inlier_ratio
-        return GUIDED_MIN_INLIER_RATIO if self.pose_method == "guided" else 0.0
+        return default_confidence_model().min_aligned_ratio if self.pose_method == "guided" else 0.0
 
     def __post_init__(self) -> None:
         if self.top_k < 1 or self.verify_k < 1:

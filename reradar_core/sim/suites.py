@@ -115,7 +115,9 @@ class SequenceDef:
     """One rendered sequence of a suite."""
 
     name: str
-    role: str  # "database", "query" or "train"
+    # "database", "query", "train" (trains weights) or "confidence" (a training split's session that no weight
+    # ever trains on: it fits the confidence model and the aligned-landmark floor, docs/MODEL.md "Confidence")
+    role: str
     route: RouteDef
     traversal_seed: int
     condition: str = "clear"
@@ -170,6 +172,8 @@ class SuiteData:
         queries: query sequence folders.
         query_conditions: condition of each query folder.
         training: training sequence folders (never queries).
+        confidence: sessions of a training split that train no weights; they fit the answer confidence and
+            the aligned-landmark floor (``reradar fit-confidence``), like unseen queries would.
         single_session: database and queries come from one drive (MulRan-style split).
         purpose: ``benchmark`` (paper protocols), ``training``, ``calibration`` or ``test`` (smoke).
     """
@@ -183,6 +187,7 @@ class SuiteData:
     queries: list[Path] = field(default_factory=list)
     query_conditions: list[str] = field(default_factory=list)
     training: list[Path] = field(default_factory=list)
+    confidence: list[Path] = field(default_factory=list)
     single_session: bool = False
     purpose: str = "benchmark"
 
@@ -312,6 +317,9 @@ SUITES: dict[str, SuiteDef] = {
             # adapted model lost to the source-only one on falling-snow queries (Recall@1 21 % vs 54 %)
             SequenceDef("2021-08-05-lane-2-falling_snow", "train", replace(_BOREAS_MAP, lateral_m=-2.0),
                         traversal_seed=8052, condition="falling_snow", every=6, offset=3),
+            # trains no weights: fits the confidence and the floor on a session the model has never seen
+            SequenceDef("2021-08-05-lane1-rain-confidence", "confidence", replace(_BOREAS_MAP, lateral_m=1.0),
+                        traversal_seed=8053, condition="rain", every=6, offset=1),
         ),
         purpose="training",
         traffic_per_km=4.0,
@@ -326,6 +334,12 @@ SUITES: dict[str, SuiteDef] = {
                         condition="rain", every=3),
             SequenceDef("session3-reverse", "train", replace(_LOOP, speed_seed=9, reverse=True, lateral_m=3.5),
                         traversal_seed=113, every=3),
+            # train no weights: fit the confidence and the floor on sessions the model has never seen
+            SequenceDef("session4-confidence", "confidence", replace(_LOOP, speed_seed=11, lateral_m=1.0),
+                        traversal_seed=114, condition="snow_cover", every=3, offset=1),
+            SequenceDef("session5-reverse-confidence", "confidence",
+                        replace(_LOOP, speed_seed=13, reverse=True, lateral_m=2.5), traversal_seed=115,
+                        condition="falling_snow", every=3, offset=2),
         ),
         single_session=True,
         purpose="training",
@@ -336,6 +350,9 @@ SUITES: dict[str, SuiteDef] = {
         sequences=(
             SequenceDef("day3-falling_snow", "train", replace(_OFFROAD, lateral_m=-0.8, speed_seed=3),
                         traversal_seed=213, condition="falling_snow", every=4),
+            # trains no weights: fits the confidence and the floor on a drive the model has never seen
+            SequenceDef("day4-snow_cover-confidence", "confidence", replace(_OFFROAD, lateral_m=0.5, speed_seed=4),
+                        traversal_seed=214, condition="snow_cover", every=4, offset=2),
         ),
         radius_m=25.0,
         purpose="training",
@@ -484,6 +501,8 @@ def build_suite(name: str, root: str | Path | None = None, progress: bool = True
         elif seq.role == "query":
             data.queries.append(out)
             data.query_conditions.append(seq.condition)
+        elif seq.role == "confidence":
+            data.confidence.append(out)
         else:
             data.training.append(out)
     return data

@@ -3,6 +3,7 @@ the pipeline's decision and the service's ``confidence`` field."""
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 from collections.abc import Iterator
@@ -204,15 +205,16 @@ def test_fit_bar_holds_the_wrong_rate_on_every_split() -> None:
     split = np.where(np.arange(n) < n // 2, "train-target-loop", "train-target-boreas")
     # the second split has no wrong answers above the floor: pooled, the first could have twice its share
     correct[n // 2:] = True
-    data = FitData(x, np.ones(n, bool), correct, x[:, 0] >= 0.3, np.ones(n, bool), np.zeros(n, bool), split)
-    model, report = fit_from_data(data, max_wrong_fraction=0.005, wrong_cost=None)
+    data = FitData(x, np.ones(n, bool), correct, x[:, 0] >= 0.3, np.ones(n, bool), np.zeros(n, bool), split,
+                   np.zeros(n, bool))
+    model, report = fit_from_data(data, max_wrong_fraction=0.005, wrong_cost=None, floors=(0.3,))
     p = model.predict(x)
     for s in ("train-target-loop", "train-target-boreas"):
         k = split == s
         assert (k & data.eligible & (p >= model.min_confidence) & ~correct).sum() <= 0.005 * k.sum()
-    assert report["bar_cost"] == 0.0 and model.min_confidence == max(report["bar_max_wrong_per_split"].values())
+    assert report["bar_cost"] == 0.0 and model.min_confidence == max(report["bar_max_wrong_per_group"].values())
     # with a cost the bar can only rise
-    model_c, report_c = fit_from_data(data, max_wrong_fraction=0.005, wrong_cost=10.0)
+    model_c, report_c = fit_from_data(data, max_wrong_fraction=0.005, wrong_cost=10.0, floors=(0.3,))
     assert model_c.min_confidence == max(report_c["bar_cost"], model.min_confidence)
 
 
@@ -314,12 +316,13 @@ def test_fit_from_data_chooses_the_bar_on_fit_runs_and_reports_held_out(tmp_path
     x[:, 0] = rng.uniform(0.0, 1.0, n)
     correct = rng.uniform(size=n) < 1.0 / (1.0 + np.exp(-(12.0 * (x[:, 0] - 0.5))))
     data = FitData(x, np.ones(n, bool), correct, x[:, 0] >= 0.3, np.ones(n, bool),
-                   np.arange(n) >= int(0.8 * n), np.array(["train-target-loop"] * n))
+                   np.arange(n) >= int(0.8 * n), np.array(["train-target-loop"] * n), np.arange(n) % 3 == 0)
     path = tmp_path / "runs.npz"
     data.save(path)
     back = FitData.load(path)
     np.testing.assert_array_equal(back.cues, data.cues)
-    model, report = fit_from_data(back, max_wrong_fraction=0.005)
+    np.testing.assert_array_equal(back.unseen, data.unseen)
+    model, report = fit_from_data(back, max_wrong_fraction=0.005, floors=(0.3,))
     assert model.min_confidence == report["min_confidence"] and model.meta["report"] == report
     fit = ~data.heldout
     p = model.predict(x)
@@ -328,3 +331,53 @@ def test_fit_from_data_chooses_the_bar_on_fit_runs_and_reports_held_out(tmp_path
     assert report["fit"]["wrong_pct_with_bar"] <= 0.5 < report["fit"]["wrong_pct_floor_only"]
     assert report["heldout"]["runs"] == int(data.heldout.sum())
     assert 0.0 <= report["ece_heldout"] < 0.1  # labels follow the model's own law
+
+
+def _floor_data(rng: np.random.Generator, n: int, low_aligned_correct: bool):
+    """Runs at a probe floor of 0.25: cue 1 (log_aligned) decides correctness above aligned 0.5; below it the
+    answers are right as often (``low_aligned_correct``) or always wrong, with the same cue-1 law."""
+    from reradar_core.localization.confidence_fit import FitData
+
+    x = rng.normal(size=(n, len(CUE_NAMES)))
+    x[:, 0] = rng.uniform(0.25, 1.0, n)
+    correct = x[:, 1] > 0.0
+    if not low_aligned_correct:
+        correct &= x[:, 0] >= 0.5
+    return FitData(x, np.ones(n, bool), correct, np.ones(n, bool), np.ones(n, bool), np.arange(n) >= int(0.8 * n),
+                   np.array(["train-target-loop"] * n), np.ones(n, bool))
+
+
+def test_fit_chooses_the_floor_on_the_unseen_sessions() -> None:
+    from reradar_core.localization.confidence_fit import FLOOR_GRID, fit_from_data
+
+    rng = np.random.default_rng(11)
+    # right answers below 0.5 aligned that the other cues recognise: the lowest floor answers them
+    model, report = fit_from_data(_floor_data(rng, 3000, True), max_wrong_fraction=0.005)
+    assert model.min_aligned_ratio == report["min_aligned_ratio"] == min(FLOOR_GRID)
+    assert [r["floor"] for r in report["floors"]] == sorted(FLOOR_GRID, reverse=True)
+    costs = {r["floor"]: r["judged_cost"] for r in report["floors"]}
+    assert costs[min(FLOOR_GRID)] < costs[0.5]
+    # below 0.5 every answer is wrong: a lower floor can only add wrong answers, so the floor stays at 0.5
+    model, report = fit_from_data(_floor_data(rng, 3000, False), max_wrong_fraction=0.005)
+    assert model.min_aligned_ratio == 0.5
+    # the fitted floor is what the guided pipeline uses when the config leaves it open
+    back = ConfidenceModel.from_dict(json.loads(json.dumps(model.to_dict())))
+    assert back.min_aligned_ratio == 0.5
+
+
+def test_pipeline_floor_comes_from_the_confidence_model(monkeypatch: pytest.MonkeyPatch) -> None:
+    import reradar_core.localization.pipeline as pipeline
+    from reradar_core.localization.pipeline import LocalizationConfig
+
+    c = len(CUE_NAMES)
+    known = ConfidenceModel(CUE_NAMES, np.zeros(c), np.ones(c), np.zeros(c), 0.0, min_aligned_ratio=0.35)
+    monkeypatch.setattr(pipeline, "default_confidence_model", lambda: known)
+    assert LocalizationConfig().effective_min_inlier_ratio == 0.35
+    assert LocalizationConfig(min_inlier_ratio=0.6).effective_min_inlier_ratio == 0.6
+    assert LocalizationConfig(pose_method="mutual_nn").effective_min_inlier_ratio == 0.0
+    # files fitted before the floor was fitted keep the fixed floor of then
+    d = known.to_dict()
+    del d["min_aligned_ratio"]
+    assert ConfidenceModel.from_dict(d).min_aligned_ratio == 0.5
+    with pytest.raises(ConfigError):
+        ConfidenceModel(CUE_NAMES, np.zeros(c), np.ones(c), np.zeros(c), 0.0, min_aligned_ratio=1.5)

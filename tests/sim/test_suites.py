@@ -62,7 +62,7 @@ def test_suite_definitions():
     for name, suite in SUITES.items():
         roles = {s.role for s in suite.sequences}
         if name.startswith("train-"):
-            assert roles == {"train"}
+            assert roles <= {"train", "confidence"} and "train" in roles
         else:
             assert {"database", "query"} <= roles
     assert SUITES["offroad-sim"].radius_m == 25.0 and SUITES["boreas-sim"].radius_m == 20.0
@@ -71,6 +71,11 @@ def test_suite_definitions():
     assert suite_names("benchmark") == ["boreas-sim", "loop-sim", "loop-sim-hard", "offroad-sim",
                                            "offroad-sim-hard"]
     assert all(n.startswith("train-") for n in suite_names("training"))
+    # every target split has a session that trains no weights, for the confidence and floor fit
+    for name in ("train-target-boreas", "train-target-loop", "train-target-offroad"):
+        assert any(s.role == "confidence" for s in SUITES[name].sequences)
+        seeds = [s.traversal_seed for s in SUITES[name].sequences]
+        assert len(seeds) == len(set(seeds))
     # the Boreas training traversal is never one of the query traversals
     q_seeds = {s.traversal_seed for s in SUITES["boreas-sim"].sequences}
     assert not q_seeds & {s.traversal_seed for s in SUITES["train-target-boreas"].sequences}
