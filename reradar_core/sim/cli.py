@@ -98,7 +98,8 @@ def register(app: typer.Typer) -> None:
                                "database": [str(p) for p in data.database],
                                "queries": [str(p) for p in data.queries],
                                "query_conditions": data.query_conditions,
-                               "training": [str(p) for p in data.training]}, indent=2))
+                               "training": [str(p) for p in data.training],
+                               "confidence": [str(p) for p in data.confidence]}, indent=2))
 
     @app.command("sim-report")
     def sim_report(

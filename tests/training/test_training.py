@@ -247,3 +247,20 @@ def test_hard_negatives_must_be_even_and_at_most_num_negatives():
     with pytest.raises(ConfigError, match="hard_negatives"):
         TrainConfig(hard_negatives=16)
     assert TrainConfig(hard_negatives=8).hard_pairs == 4
+
+
+def test_target_split_plan_never_reads_its_confidence_sessions(monkeypatch, tmp_path):
+    """The sessions kept for the confidence / floor fit train no weights: not in the plan's train or val."""
+    import reradar_core.sim.suites as suites
+    from reradar_core.sim.suites import SuiteData
+    from reradar_core.training.suites import suite_training_data
+
+    split = SuiteData("train-target-loop", tmp_path / "split", "mulran", "mulran", 20.0,
+                      training=[tmp_path / "session2", tmp_path / "session3"],
+                      confidence=[tmp_path / "session4-confidence"], purpose="training")
+    bench = SuiteData("loop-sim", tmp_path / "bench", "mulran", "mulran", 20.0, database=[tmp_path / "lap1"],
+                      queries=[tmp_path / "laps2-3"])
+    monkeypatch.setattr(suites, "build_suite", lambda name, progress=True: split if name.startswith("train") else bench)
+    plan = suite_training_data("train-target-loop", progress=False)
+    read = {s.path for s in plan.train} | {s.path for pair in plan.val for s in pair}
+    assert read == {tmp_path / "session2", tmp_path / "session3", tmp_path / "lap1"}
