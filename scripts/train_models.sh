@@ -41,7 +41,7 @@ train_one() {
       reradar train --name our-3-boreas --split train-target-boreas --init "$(init our-1)" --lr 1e-4 \
         --steps "$STAGE2_STEPS" --minutes 600 --learned-whitening "${extra[@]}" ;;
     our-3-loop)
-      reradar train --name our-3-loop --split train-target-loop --init "$(init our-1)" --lr 1e-4 \
+      reradar train --name our-3-loop --split train-target-loop,train-target-loop-open --init "$(init our-1)" --lr 1e-4 \
         --steps "$STAGE2_STEPS" --minutes 600 --learned-whitening "${extra[@]}" ;;
     our-3-offroad)
       reradar train --name our-3-offroad --split train-target-offroad --init "$(init our-1)" --lr 1e-4 \

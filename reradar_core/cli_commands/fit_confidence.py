@@ -15,7 +15,7 @@ from reradar_core.errors import ReRadarError
 def register(app: typer.Typer) -> None:
     @app.command("fit-confidence")
     def fit_confidence(
-        splits: str = typer.Option("train-target-boreas,train-target-loop,train-target-offroad",
+        splits: str = typer.Option("train-target-boreas,train-target-loop,train-target-loop-open,train-target-offroad",
                                    help="Comma-separated training splits (never benchmark query sequences)."),
         query_step: int = typer.Option(1, min=1, help="Use every N-th query scan of each split."),
         holdout: float = typer.Option(0.15, min=0.05, max=0.5,

@@ -52,6 +52,7 @@ logger = logging.getLogger(__name__)
 SPLIT_MODELS: dict[str, str] = {
     "train-target-boreas": "our-3-boreas",
     "train-target-loop": "our-3-loop",
+    "train-target-loop-open": "our-3-loop",
     "train-target-offroad": "our-3-offroad",
 }
 

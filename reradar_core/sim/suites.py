@@ -20,7 +20,8 @@ Evaluation suites mirror the paper's protocols:
 Training splits (never query sequences): ``train-source`` (synthetic looped routes in other worlds, mixed
 profiles and conditions), ``train-target-boreas`` (two more traversals of the Boreas route, laterally offset,
 own seeds, ``snow_cover`` and ``falling_snow``), ``train-target-loop`` (two more sessions on the loop-sim grid, one
-driven the other way round), ``train-target-offroad`` (a third drive on the off-road route).
+driven the other way round), ``train-target-loop-open`` (two sessions on the loop-sim-hard boulevards, one reversed;
+the loop model trains on both loop splits), ``train-target-offroad`` (a third drive on the off-road route).
 
 ``build_suite(name)`` renders what is missing into ``cache_dir("sim", "v<SIM_VERSION>", name)`` (a sequence
 is complete when its marker file holds the current simulator version) and returns a ``SuiteData``.
@@ -340,6 +341,24 @@ SUITES: dict[str, SuiteDef] = {
             SequenceDef("session5-reverse-confidence", "confidence",
                         replace(_LOOP, speed_seed=13, reverse=True, lateral_m=2.5), traversal_seed=115,
                         condition="falling_snow", every=3, offset=2),
+        ),
+        single_session=True,
+        purpose="training",
+    ),
+    "train-target-loop-open": SuiteDef(
+        "train-target-loop-open", "sessions on the loop-sim-hard boulevards (urban-open world): one driven the "
+        "same way (clear; its tail validates), one the other way round (rain), one the same way in snow cover "
+        "(fits the confidence only)",
+        preset="mulran", layout="mulran", profile="urban-open", world_seed=12, road_routes=(_LOOP_OPEN,),
+        sequences=(
+            # the same way as the map: its tail meets the map's tail (a reversed session's tail does not)
+            SequenceDef("session1", "train", replace(_LOOP_OPEN, speed_seed=7, lateral_m=1.0), traversal_seed=124,
+                        every=3, offset=2),
+            SequenceDef("session2-reverse", "train", replace(_LOOP_OPEN, speed_seed=5, reverse=True, lateral_m=2.5),
+                        traversal_seed=122, condition="rain", every=3),
+            # trains no weights: fits the confidence and the floor on a session the model has never seen
+            SequenceDef("session3-confidence", "confidence", replace(_LOOP_OPEN, speed_seed=6, lateral_m=-1.0),
+                        traversal_seed=123, condition="snow_cover", every=3, offset=1),
         ),
         single_session=True,
         purpose="training",

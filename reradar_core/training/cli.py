@@ -117,7 +117,8 @@ def register(app: typer.Typer) -> None:
     def train_cmd(
         name: str = typer.Option(..., help="Model name: writes <out-dir>/<name>.pt and .json."),
         split: str | None = typer.Option(None, help="Simulated training split: train-source, "
-                                         "train-target-boreas|loop|offroad, smoke (see docs/MODEL.md)."),
+                                         "train-target-boreas|loop|loop-open|offroad, smoke (see docs/MODEL.md); "
+                                         "several, comma-separated, train on all of them (same recall radius)."),
         sequence: list[Path] = typer.Option([], "--sequence", help="Training sequence folder (repeatable)."),
         val_db: Path | None = typer.Option(None, help="Validation database sequence folder."),
         val_query: Path | None = typer.Option(None, help="Validation query sequence folder."),
@@ -153,11 +154,14 @@ def register(app: typer.Typer) -> None:
         if split is not None:
             from reradar_core.training.suites import suite_training_data
 
-            plan = suite_training_data(split)
-            seqs += plan.train
-            vals += plan.val
-            note = plan.note
-            extra["recall_radius_m"] = plan.radius_m
+            plans = [suite_training_data(s.strip()) for s in split.split(",") if s.strip()]
+            if len({p.radius_m for p in plans}) > 1:
+                raise typer.BadParameter(f"splits {split!r} have different recall radii; train them separately")
+            for plan in plans:
+                seqs += plan.train
+                vals += plan.val
+            note = "; ".join(p.note for p in plans)
+            extra["recall_radius_m"] = plans[0].radius_m
         if val_db is not None and val_query is not None:
             vals.append((SeqSpec(val_db, "val"), SeqSpec(val_query, "val")))
         if not seqs:

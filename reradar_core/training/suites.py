@@ -28,6 +28,7 @@ TRAINING_SPLITS = {
     "train-source": None,
     "train-target-boreas": "boreas-sim",
     "train-target-loop": "loop-sim",
+    "train-target-loop-open": "loop-sim-hard",
     "train-target-offroad": "offroad-sim",
     "smoke": None,
 }

@@ -203,7 +203,7 @@ class LocalizeResponse(_Model):
     status: Literal["localized", "not_localized"]
     reason: str | None = Field(default=None, description=(
         "Why not localized: no_candidate, too_few_matches, too_few_inliers (under 12 aligned landmarks or under "
-        "the aligned-ratio floor fitted with the confidence model, 35 % of the query's landmarks), ambiguous (a "
+        "the aligned-ratio floor fitted with the confidence model, 30 % of the query's landmarks), ambiguous (a "
         "rival pose aligns as many landmarks), low_confidence (below min_confidence), inconsistent_with_prior "
         "(tracking)."))
     map_id: str

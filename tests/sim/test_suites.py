@@ -56,7 +56,7 @@ def test_suite_definitions():
     for name in ("smoke", "boreas-sim", "loop-sim", "loop-sim-hard", "offroad-sim", "offroad-sim-hard",
                  "train-source",
                  "train-target-boreas",
-                 "train-target-loop", "train-target-offroad"):
+                 "train-target-loop", "train-target-loop-open", "train-target-offroad"):
         assert name in SUITES
     # training splits never contain query sequences, evaluation suites always do
     for name, suite in SUITES.items():
@@ -72,7 +72,7 @@ def test_suite_definitions():
                                            "offroad-sim-hard"]
     assert all(n.startswith("train-") for n in suite_names("training"))
     # every target split has a session that trains no weights, for the confidence and floor fit
-    for name in ("train-target-boreas", "train-target-loop", "train-target-offroad"):
+    for name in ("train-target-boreas", "train-target-loop", "train-target-loop-open", "train-target-offroad"):
         assert any(s.role == "confidence" for s in SUITES[name].sequences)
         seeds = [s.traversal_seed for s in SUITES[name].sequences]
         assert len(seeds) == len(set(seeds))

@@ -264,3 +264,40 @@ def test_target_split_plan_never_reads_its_confidence_sessions(monkeypatch, tmp_
     plan = suite_training_data("train-target-loop", progress=False)
     read = {s.path for s in plan.train} | {s.path for pair in plan.val for s in pair}
     assert read == {tmp_path / "session2", tmp_path / "session3", tmp_path / "lap1"}
+
+
+def test_train_takes_several_splits_and_merges_their_plans(monkeypatch, tmp_path):
+    """`reradar train --split a,b` trains on both splits' sequences and validates on both splits' pairs."""
+    import json
+
+    from typer.testing import CliRunner
+
+    import reradar_core.training.cli as tcli
+    import reradar_core.training.suites as tsuites
+    from reradar_cli import app
+    from reradar_core.training.suites import SeqSpec, TrainingPlan
+
+    def plan(split, progress=True):
+        p = tmp_path / split
+        radius = 25.0 if split == "far" else 20.0
+        return TrainingPlan(train=[SeqSpec(p / "t", f"world:{split}")], val=[(SeqSpec(p / "db", "v"), SeqSpec(p / "q", "v"))],
+                            note=f"plan {split}", radius_m=radius)
+
+    seen = {}
+
+    def fake_train_main(name, seqs, vals, **kw):
+        seen.update(seqs=seqs, vals=vals, kw=kw)
+        out = tmp_path / f"{name}.pt"
+        out.write_bytes(b"")
+        out.with_suffix(".json").write_text(json.dumps({"model_id": "m", "steps": 1, "train_time_s": 0.0}))
+        return out
+
+    monkeypatch.setattr(tsuites, "suite_training_data", plan)
+    monkeypatch.setattr(tcli, "train_main", fake_train_main)
+    r = CliRunner().invoke(app, ["train", "--name", "x", "--split", "a,b"])
+    assert r.exit_code == 0, r.output
+    assert [s.path for s in seen["seqs"]] == [tmp_path / "a" / "t", tmp_path / "b" / "t"]
+    assert len(seen["vals"]) == 2 and seen["kw"]["data_note"] == "plan a; plan b"
+    assert seen["kw"]["recall_radius_m"] == 20.0
+    bad = CliRunner().invoke(app, ["train", "--name", "x", "--split", "a,far"])
+    assert bad.exit_code != 0 and "recall radii" in bad.output
