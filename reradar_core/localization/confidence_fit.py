@@ -25,7 +25,7 @@ is by position).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -94,18 +94,15 @@ class FitData:
 
     @staticmethod
     def concat(parts: list[FitData]) -> FitData:
-        return FitData(*(np.concatenate([getattr(p, f) for p in parts]) for f in
-                         ("cues", "has_pose", "correct", "eligible", "revisit", "heldout", "split", "unseen")))
+        return FitData(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(FitData)))
 
     def save(self, path: Path) -> None:
-        np.savez_compressed(path, **{f: getattr(self, f) for f in
-                                     ("cues", "has_pose", "correct", "eligible", "revisit", "heldout", "split", "unseen")})
+        np.savez_compressed(path, **{f.name: getattr(self, f.name) for f in fields(self)})
 
     @staticmethod
     def load(path: Path) -> FitData:
         z = np.load(path, allow_pickle=False)
-        return FitData(*(z[f] for f in ("cues", "has_pose", "correct", "eligible", "revisit", "heldout", "split",
-                                         "unseen")))
+        return FitData(*(z[f.name] for f in fields(FitData)))
 
 
 def _localizer(method: Any, records: list[Any], poses: np.ndarray, config: Any) -> Any:
