@@ -225,7 +225,8 @@ def fit_from_data(d: FitData, l2: float = 1.0, max_wrong_fraction: float = 0.005
     aligned = d.cues[:, CUE_NAMES.index("aligned_ratio")]
     judge = fit_all & d.unseen if (fit_all & d.unseen).any() else fit_all
     groups = {f"{s}{'/unseen' if u else ''}": fit_all & (d.split == s) & (d.unseen == u)
-              for s in np.unique(d.split) for u in (False, True) if (fit_all & (d.split == s) & (d.unseen == u)).any()}
+              for s in np.unique(d.split) for u in (False, True)}
+    groups = {g: rows for g, rows in groups.items() if rows.any()}
 
     def choose(floor: float) -> dict[str, Any]:
         el = d.eligible & (aligned >= floor)

@@ -490,12 +490,9 @@ def estimate_pose_guided(points_src: np.ndarray, desc_src: np.ndarray, points_ds
     best = np.argsort(-scores, kind="stable")[: config.refine_candidates]
     refined = _refine_all(src, grid, [hyp[h] for h in best], config.refine_thresholds_m)
     pose, best_mask = max(refined, key=lambda r: int(r[1].sum()))  # first of equals: best-scored hypothesis
-    for thr in config.polish_thresholds_m if int(best_mask.sum()) >= 3 else ():
-        dist, nn = grid.tree.query(_apply(pose, src), distance_upper_bound=thr)
-        near = np.isfinite(dist)
-        if near.sum() < 3:
-            break
-        pose = fit_rigid_2d(src[near], grid.points[nn[near]])
+    if int(best_mask.sum()) >= 3:
+        # the polish is the refinement step at the smaller radii; its association mask is not the count's
+        pose, _ = _refine(src, grid, pose, config.polish_thresholds_m)
     best_pose = np.array([pose[0], pose[1], wrap_angle(pose[2])])
     k = int(best_mask.sum())
     if k < config.min_inliers:

@@ -155,6 +155,8 @@ def register(app: typer.Typer) -> None:
             from reradar_core.training.suites import suite_training_data
 
             plans = [suite_training_data(s.strip()) for s in split.split(",") if s.strip()]
+            if not plans:
+                raise typer.BadParameter(f"--split {split!r} names no split")
             if len({p.radius_m for p in plans}) > 1:
                 raise typer.BadParameter(f"splits {split!r} have different recall radii; train them separately")
             for plan in plans:
