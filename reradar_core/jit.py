@@ -6,8 +6,10 @@ run as compiled loops that do the same floating-point operations in the same ord
 re-association and no fused multiply-add: the results are the same numbers, tested against the numpy path).
 Without numba, or with ``RERADAR_JIT=0`` in the environment, the numpy path runs: same answers, slower.
 
-Compiled code is cached on disk (``cache=True``: next to the sources, or in ``NUMBA_CACHE_DIR`` when that
-folder is read-only), so only the first process on a machine pays the compilation (~1-3 s per kernel).
+Compiled code is cached on disk (``cache=True``: next to the sources, or in ``NUMBA_CACHE_DIR`` - the image
+sets ``/data/cache/numba`` - or the user's cache folder when the sources are read-only), so only the first
+process on a machine pays the compilation (~1-3 s per kernel); the service compiles or loads them at start-up
+(``matching.kernels.warm_up``), never in a request.
 Kernels release the GIL (``nogil``), so a threaded server runs them in parallel.
 """
 
@@ -15,12 +17,13 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 __all__ = ["jit_enabled", "njit"]
 
 _F = TypeVar("_F", bound=Callable[..., Any])
 
+_numba: Any
 try:  # numba is optional: the ``server`` extra installs it, a library user may not have it
     import numba as _numba
 except ImportError:  # pragma: no cover - exercised where numba is absent
@@ -38,4 +41,7 @@ def njit(fn: _F) -> _F:
     then: callers check ``jit_enabled()`` first and take the numpy path)."""
     if _numba is None:  # pragma: no cover
         return fn
-    return _numba.njit(cache=True, nogil=True)(fn)  # type: ignore[no-any-return]
+    try:
+        return cast(_F, _numba.njit(cache=True, nogil=True)(fn))
+    except RuntimeError:  # pragma: no cover - no writable cache folder: compile in every process instead
+        return cast(_F, _numba.njit(nogil=True)(fn))

@@ -21,8 +21,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from reradar_core.jit import jit_enabled
 from reradar_core.matching import AlignmentConfig, build_landmark_grid, screen_alignment
 from reradar_core.matching.alignment import topk_last_axis
+from reradar_core.matching.kernels import count_aligned_screen
 
 __all__ = ["ScreenGrid", "build_screen_grid", "ScreenKeyframe", "screen_keyframe", "screen_candidates"]
 
@@ -223,13 +225,17 @@ def screen_candidates(query_points: np.ndarray, query_descriptors: np.ndarray,
         cells = inv
     offsets = np.concatenate([[0], np.cumsum(sizes * sizes)[:-1]])
     near = np.concatenate([g.near for g in grids] + [np.zeros(1, np.uint8)])  # last cell: "outside"
-    counts = np.empty(len(cand), np.int64)  # aligned query landmarks per hypothesis
-    # in blocks of hypotheses, so the (block, P) temporaries stay in the CPU cache (the arithmetic is
-    # element-wise, so the cells - and the scores - do not depend on the block size)
-    for lo in range(0, len(cand), _SCORE_BLOCK):
-        sl = slice(lo, lo + _SCORE_BLOCK)
-        counts[sl] = _aligned_counts(sx, sy, c[sl], s[sl], tx[sl], ty[sl], cand[sl], origins, cells, inverse,
-                                     sizes, offsets, near)
+    if jit_enabled():  # one compiled loop, the same arithmetic (``matching.kernels``)
+        counts = count_aligned_screen(np.ascontiguousarray(scored[:, 0]), np.ascontiguousarray(scored[:, 1]),
+                                      c, s, tx, ty, cand, origins, cells, inverse, sizes, offsets, near)
+    else:
+        counts = np.empty(len(cand), np.int64)  # aligned query landmarks per hypothesis
+        # in blocks of hypotheses, so the (block, P) temporaries stay in the CPU cache (the arithmetic is
+        # element-wise, so the cells - and the scores - do not depend on the block size)
+        for lo in range(0, len(cand), _SCORE_BLOCK):
+            sl = slice(lo, lo + _SCORE_BLOCK)
+            counts[sl] = _aligned_counts(sx, sy, c[sl], s[sl], tx[sl], ty[sl], cand[sl], origins, cells,
+                                         inverse, sizes, offsets, near)
     best = np.zeros(kb, np.int64)
     np.maximum.at(best, cand, counts)
     out[batch] = best / len(scored)

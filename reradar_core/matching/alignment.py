@@ -35,6 +35,8 @@ from scipy.spatial import cKDTree
 
 from reradar_core.errors import ConfigError
 from reradar_core.geometry.se2 import wrap_angle
+from reradar_core.jit import jit_enabled
+from reradar_core.matching.kernels import count_aligned_pose
 from reradar_core.matching.ransac import RigidEstimate, fit_rigid_2d
 
 __all__ = ["AlignmentConfig", "LandmarkGrid", "build_landmark_grid", "estimate_pose_guided", "screen_alignment",
@@ -301,6 +303,13 @@ _SCORE_BLOCK = 512
 def _score(poses: np.ndarray, src: np.ndarray, grid: LandmarkGrid, threshold_m: float) -> np.ndarray:
     """Source landmarks within ``threshold_m`` of a destination landmark under each pose (element-wise
     arithmetic in blocks of poses: the counts do not depend on the block size, nor on the layout)."""
+    if jit_enabled() and grid.size > 0:  # one compiled loop, the same arithmetic (``matching.kernels``)
+        inv = 1.0 / grid.cell_m
+        exact = grid.cell_m > 0 and math.frexp(grid.cell_m)[0] == 0.5 and math.isfinite(inv)
+        return count_aligned_pose(np.ascontiguousarray(src[:, 0]), np.ascontiguousarray(src[:, 1]),
+                                  np.cos(poses[:, 2]), np.sin(poses[:, 2]), np.ascontiguousarray(poses[:, 0]),
+                                  np.ascontiguousarray(poses[:, 1]), grid.origin_m, inv if exact else grid.cell_m,
+                                  exact, grid.size, grid.within_mask(threshold_m))
     out = np.empty(len(poses), np.int64)
     sx, sy = src[:, 0:1], src[:, 1:2]
     for lo in range(0, len(poses), _SCORE_BLOCK):
