@@ -138,7 +138,7 @@ def register_from_prior(query: ScanFeatures, grid: LandmarkGrid, T_keyframe_quer
     for radius in radii:
         c, s = math.cos(pose[2]), math.sin(pose[2])
         moved = src @ np.array([[c, s], [-s, c]]) + pose[:2]
-        dist, nn = grid.tree.query(moved, distance_upper_bound=radius)
+        dist, nn = grid.nearest(moved, radius)  # the KD-tree's answers (compiled look-up when available)
         mask = np.isfinite(dist)
         if mask.sum() < 3:
             return Registration(pose, int(mask.sum()), float(mask.sum() / n))

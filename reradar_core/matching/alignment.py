@@ -37,6 +37,7 @@ from reradar_core.errors import ConfigError
 from reradar_core.geometry.se2 import wrap_angle
 from reradar_core.jit import jit_enabled
 from reradar_core.matching.kernels import count_aligned_pose
+from reradar_core.matching.nn_kernels import LandmarkBuckets, bucket_landmarks, nearest_within
 from reradar_core.matching.ransac import RigidEstimate, fit_rigid_2d
 
 __all__ = ["AlignmentConfig", "LandmarkGrid", "build_landmark_grid", "estimate_pose_guided", "screen_alignment",
@@ -105,7 +106,8 @@ class AlignmentConfig:
 
 @dataclass
 class LandmarkGrid:
-    """Distance (metres) from each grid cell to the nearest landmark, plus a KD-tree of the landmarks.
+    """Distance (metres) from each grid cell to the nearest landmark, plus a KD-tree of the landmarks (and,
+    with the compiled kernels, the landmarks sorted into buckets: ``nearest``).
 
     Attributes:
         distance_m: (n, n) float32, row = y cell, column = x cell; None for a grid made ``from_within_mask``
@@ -124,6 +126,8 @@ class LandmarkGrid:
 
     _within: dict[float, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
     _size: int = field(default=0, repr=False, compare=False)
+    #: ``buckets()``: built on first use (None then), False when the landmarks cannot be bucketed
+    _buckets: LandmarkBuckets | None | bool = field(default=None, repr=False, compare=False)
 
     @classmethod
     def from_within_mask(cls, packed: np.ndarray, n: int, origin_m: float, cell_m: float, threshold_m: float,
@@ -190,6 +194,37 @@ class LandmarkGrid:
             return np.add.reduce(hits, axis=0, dtype=np.uint8).astype(np.int64)
         return hits.sum(axis=0, dtype=np.int64)
 
+    def buckets(self) -> LandmarkBuckets | None:
+        """The landmarks sorted into ``_BUCKET_CELL_M`` cells for the compiled nearest-landmark look-up
+        (``nearest``), built once (~25 KB for 512 landmarks over ~120 m, at most ~45 KB); None without
+        landmarks or with non-finite ones (the KD-tree answers then). Two threads may both build it: the same
+        arrays, either one kept."""
+        if self._buckets is None:
+            m = len(self.points)
+            ok = m > 0 and bool(np.all(np.isfinite(self.points)))
+            self._buckets = (bucket_landmarks(self.points, _BUCKET_CELL_M, max(_BUCKET_MIN_CELLS, 16 * m))
+                             if ok else False)
+        return self._buckets if isinstance(self._buckets, LandmarkBuckets) else None
+
+    def nearest(self, xy: np.ndarray, bound_m: float = math.inf) -> tuple[np.ndarray, np.ndarray]:
+        """``self.tree.query(xy, distance_upper_bound=bound_m)`` for (K, 2) float64 points (metres), the same
+        numbers: (K,) float64 distance (``inf`` for none within the bound) and (K,) int64 landmark index
+        (N for none). With the compiled kernels (``reradar_core.jit``) the bucket look-up answers and the tree
+        only answers the points it flags (ties, a distance at the bound, non-finite points); else the tree."""
+        buckets = self.buckets() if jit_enabled() else None
+        if buckets is None or not bound_m > 0:
+            return self.tree.query(xy, distance_upper_bound=bound_m)  # type: ignore[no-any-return]
+        unbounded = not math.isfinite(bound_m)
+        # no bound: search one cell's radius; the nearest within it is the nearest of all, and a point with none
+        # within it goes to the tree
+        dist, idx, unsure = nearest_within(xy, buckets.cell_m if unbounded else bound_m, buckets, len(self.points))
+        if unbounded:
+            unsure |= idx == len(self.points)
+        ask = np.flatnonzero(unsure)
+        if len(ask):  # the tree's answer for a point does not depend on the other points asked with it
+            dist[ask], idx[ask] = self.tree.query(np.asarray(xy)[ask], distance_upper_bound=bound_m)
+        return dist, idx
+
     def lookup(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Distance to the nearest landmark at points (x, y) (any shape); far outside the grid = large."""
         if self.distance_m is None:
@@ -200,6 +235,15 @@ class LandmarkGrid:
         inside = (i >= 0) & (i < n) & (j >= 0) & (j < n)
         d = self.distance_m[np.clip(j, 0, n - 1), np.clip(i, 0, n - 1)]
         return np.where(inside, d, np.float32(1e9))
+
+
+#: smallest side of the buckets of ``LandmarkGrid.nearest``, metres: the largest default association radius
+#: (``refine_thresholds_m``), the fastest side measured (``nn_kernels.bucket_landmarks``; any side gives the
+#: same answers)
+_BUCKET_CELL_M = 2.0
+#: cells a bucket grid may have regardless of the number of landmarks (16 per landmark above that; 4 bytes
+#: each, so 32 KB with 512 landmarks): 2 m cells over up to ~180 x 180 m
+_BUCKET_MIN_CELLS = 8192
 
 
 def build_landmark_grid(points_xy_m: np.ndarray, cell_m: float = 0.5, margin_m: float = 5.0) -> LandmarkGrid:
@@ -345,7 +389,7 @@ def _refine(src: np.ndarray, grid: LandmarkGrid, pose: np.ndarray,
     """One hypothesis refined (the reference of ``_refine_all``): (3,) pose and (N,) bool association mask."""
     mask = np.zeros(len(src), dtype=bool)
     for thr in thresholds:
-        dist, nn = grid.tree.query(_apply(pose, src), distance_upper_bound=thr)
+        dist, nn = grid.nearest(_apply(pose, src), thr)
         mask = np.isfinite(dist)
         if mask.sum() < 3:
             return pose, mask
@@ -368,6 +412,8 @@ def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
       distance, or at least the radius when none was within it). A point that has moved by ``d`` since is
       at least that minus ``d`` from every landmark now, so when that exceeds the new radius (plus a rounding
       slack) its look-up is skipped: the tree would answer "none" too;
+    - with the compiled kernels (``LandmarkGrid.nearest``) every point is looked up instead: the bucket
+      look-up (~40 ns a point) costs less than the skip test's numpy passes, and gives the tree's answers;
     - the landmarks of all hypotheses move in one stacked product (``_apply_all``) and each hypothesis is
       fitted by ``fit_rigid_2d``.
 
@@ -378,25 +424,28 @@ def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
     out: list[tuple[np.ndarray, np.ndarray]] = [(p, np.zeros(n, dtype=bool)) for p in poses]
     active = list(range(len(poses)))
     current = list(poses)
+    skip = not (jit_enabled() and grid.buckets() is not None)  # the skip test pays only with the KD-tree
     # per point of each refining hypothesis: where it was last looked up, and a lower bound on its distance
     # to the nearest destination landmark there (metres; nothing known before the first look-up)
-    seen_xy = np.zeros((len(poses), n, 2))
-    seen_m = np.full((len(poses), n), -np.inf)
+    shape = (len(poses) if skip else 0, n)
+    seen_xy = np.zeros((*shape, 2))
+    seen_m = np.full(shape, -np.inf)
     for it, thr in enumerate(thresholds):
         if not active:
             break
         xy = _apply_all([current[h] for h in active], src)  # (A, N, 2)
         ask = None  # all points
-        if it:
+        if it and skip:
             moved = xy - seen_xy
             ask = ~(seen_m - np.hypot(moved[..., 0], moved[..., 1]) > thr + _SKIP_SLACK_M)  # NaN: asked
             if ask.all():
                 ask = None
         if ask is None:
-            dist, nn = grid.tree.query(xy.reshape(-1, 2), distance_upper_bound=thr)
+            dist, nn = grid.nearest(xy.reshape(-1, 2), thr)
             dist, nn = dist.reshape(len(active), n), nn.reshape(len(active), n)
             found = np.isfinite(dist)
-            seen_xy, seen_m = xy, np.where(found, dist, thr)
+            if skip:
+                seen_xy, seen_m = xy, np.where(found, dist, thr)
         else:
             sel = np.flatnonzero(ask)
             dist, idx = grid.tree.query(xy.reshape(-1, 2)[sel], distance_upper_bound=thr)
@@ -417,7 +466,8 @@ def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
             out[h] = (current[h], mask)
             rows.append(row)
         active = [active[r] for r in rows]
-        seen_xy, seen_m = seen_xy[rows], seen_m[rows]
+        if skip:
+            seen_xy, seen_m = seen_xy[rows], seen_m[rows]
     return out
 
 
@@ -511,7 +561,7 @@ def estimate_pose_guided(points_src: np.ndarray, desc_src: np.ndarray, points_ds
         est = fail("ambiguous", best_pose, best_mask)
         est.ambiguity = ambiguity
         return est
-    residual, _ = grid.tree.query(_apply(best_pose, src[best_mask]))
+    residual, _ = grid.nearest(_apply(best_pose, src[best_mask]))
     return RigidEstimate(True, best_pose, k, k / n, best_mask, None, len(hyp), float(np.sqrt(np.mean(residual**2))),
                          ambiguity)
 

@@ -102,4 +102,8 @@ def warm_up() -> bool:
     count_aligned_pose(one, one, one, one, one, one, 0.0, 2.0, True, 2, mask)
     count_aligned_screen(one, one, one, one, one, one, np.zeros(1, np.int64), one, np.full(1, 2.0), True,
                          np.full(1, 2, np.int64), np.zeros(1, np.int64), mask)
+    from reradar_core.matching.nn_kernels import bucket_landmarks, nearest_within
+
+    pts = np.array([[0.0, 0.0], [3.0, 1.0]])
+    nearest_within(pts, 2.0, bucket_landmarks(pts, 2.0, 64), len(pts))
     return True
