@@ -40,6 +40,7 @@ from reradar_core.localization.tracking import (
     tracking_candidates,
     within_gate,
 )
+from reradar_core.matching.kernels import warm_up
 from reradar_core.retrieval import GlobalIndex, similarity_to_distance
 
 _Item = TypeVar("_Item")
@@ -81,6 +82,7 @@ class Localizer:
         self.keyframes = keyframes
         self.config = config or LocalizationConfig()
         self.cache = KeyframeCache(keyframes, self.config.alignment, max_cached=cache_size)
+        warm_up()  # the compiled kernels (numba) are compiled or loaded now, not in the first query
         if preload:
             self.cache.preload()
 
