@@ -37,7 +37,7 @@ from reradar_core.errors import ConfigError
 from reradar_core.geometry.se2 import wrap_angle
 from reradar_core.jit import jit_enabled
 from reradar_core.matching.kernels import count_aligned_pose
-from reradar_core.matching.nn_kernels import LandmarkBuckets, bucket_landmarks, nearest_within
+from reradar_core.matching.nn_kernels import LandmarkBuckets, bucket_landmarks, nearest_within, refine_poses
 from reradar_core.matching.ransac import RigidEstimate, fit_rigid_2d
 
 __all__ = ["AlignmentConfig", "LandmarkGrid", "build_landmark_grid", "estimate_pose_guided", "screen_alignment",
@@ -367,26 +367,37 @@ def _score(poses: np.ndarray, src: np.ndarray, grid: LandmarkGrid, threshold_m: 
 
 
 def _apply(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N, 2) ``points`` moved by ``pose`` (x, y, yaw): x c - y s + x0, x s + y c + y0, element-wise (the
+    compiled refinement does the same operations, ``nn_kernels.refine_poses``)."""
     c, s = math.cos(pose[2]), math.sin(pose[2])
-    return points @ np.array([[c, s], [-s, c]]) + pose[:2]
+    x, y = points[:, 0], points[:, 1]
+    out = np.empty((len(points), 2))
+    out[:, 0] = c * x - s * y + pose[0]
+    out[:, 1] = s * x + c * y + pose[1]
+    return out
 
 
 def _apply_all(poses: list[np.ndarray], points: np.ndarray) -> np.ndarray:
-    """``np.stack([_apply(p, points) for p in poses])``, (H, N, 2), exactly: the same rotation matrices and
-    one stacked matmul (numpy runs the same 2-D product on every slice; its FMA rounding is not that of an
-    element-wise x c - y s, so the product itself is kept)."""
-    rot = np.empty((len(poses), 2, 2))
-    for h, pose in enumerate(poses):
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        rot[h] = ((c, s), (-s, c))
-    xy = np.matmul(points, rot)
-    xy += np.array([pose[:2] for pose in poses])[:, None, :]
-    return xy
+    """``np.stack([_apply(p, points) for p in poses])``, (H, N, 2), exactly (the same element-wise operations
+    with the same ``math.cos`` / ``math.sin`` values, broadcast over the poses)."""
+    cs = np.array([[math.cos(p[2]), math.sin(p[2]), p[0], p[1]] for p in poses]).reshape(-1, 4)
+    c, s, x0, y0 = (cs[:, i:i + 1] for i in range(4))  # (H, 1) each
+    x, y = points[:, 0], points[:, 1]
+    out = np.empty((len(poses), len(points), 2))
+    out[..., 0] = c * x - s * y + x0
+    out[..., 1] = s * x + c * y + y0
+    return out
 
 
 def _refine(src: np.ndarray, grid: LandmarkGrid, pose: np.ndarray,
             thresholds: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
     """One hypothesis refined (the reference of ``_refine_all``): (3,) pose and (N,) bool association mask."""
+    buckets = grid.buckets() if jit_enabled() and thresholds else None
+    if buckets is not None:  # compiled (``nn_kernels.refine_poses``), the same numbers
+        poses, masks, unsure = refine_poses(src, np.asarray(pose, np.float64)[None], thresholds, grid.points,
+                                            buckets)
+        if not unsure[0]:
+            return poses[0], masks[0]
     mask = np.zeros(len(src), dtype=bool)
     for thr in thresholds:
         dist, nn = grid.nearest(_apply(pose, src), thr)
@@ -412,30 +423,34 @@ def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
       distance, or at least the radius when none was within it). A point that has moved by ``d`` since is
       at least that minus ``d`` from every landmark now, so when that exceeds the new radius (plus a rounding
       slack) its look-up is skipped: the tree would answer "none" too;
-    - with the compiled kernels (``LandmarkGrid.nearest``) every point is looked up instead: the bucket
-      look-up (~40 ns a point) costs less than the skip test's numpy passes, and gives the tree's answers;
-    - the landmarks of all hypotheses move in one stacked product (``_apply_all``) and each hypothesis is
-      fitted by ``fit_rigid_2d``.
+    - the landmarks of all hypotheses move at once (``_apply_all``) and each hypothesis is fitted by
+      ``fit_rigid_2d``;
+    - with the compiled kernels the whole loop runs compiled (``nn_kernels.refine_poses``: bucket look-ups,
+      the same fit's operations in the same order), and the KD-tree path only for a hypothesis whose look-ups
+      hit a tie or a distance at a radius.
 
     Args: (N, 2) float64 ``src``; (3,) float64 poses; the association radii (metres).
     Returns: per pose, the refined (3,) pose and the (N,) bool mask of the last association.
     """
     n = len(src)
+    buckets = grid.buckets() if jit_enabled() and poses and thresholds else None
+    if buckets is not None:  # compiled (``nn_kernels.refine_poses``); a hypothesis it is unsure of: the tree
+        refined, masks, unsure = refine_poses(src, np.stack(poses), thresholds, grid.points, buckets)
+        return [_refine(src, grid, poses[h], thresholds) if unsure[h] else (refined[h], masks[h])
+                for h in range(len(poses))]
     out: list[tuple[np.ndarray, np.ndarray]] = [(p, np.zeros(n, dtype=bool)) for p in poses]
     active = list(range(len(poses)))
     current = list(poses)
-    skip = not (jit_enabled() and grid.buckets() is not None)  # the skip test pays only with the KD-tree
     # per point of each refining hypothesis: where it was last looked up, and a lower bound on its distance
     # to the nearest destination landmark there (metres; nothing known before the first look-up)
-    shape = (len(poses) if skip else 0, n)
-    seen_xy = np.zeros((*shape, 2))
-    seen_m = np.full(shape, -np.inf)
+    seen_xy = np.zeros((len(poses), n, 2))
+    seen_m = np.full((len(poses), n), -np.inf)
     for it, thr in enumerate(thresholds):
         if not active:
             break
         xy = _apply_all([current[h] for h in active], src)  # (A, N, 2)
         ask = None  # all points
-        if it and skip:
+        if it:
             moved = xy - seen_xy
             ask = ~(seen_m - np.hypot(moved[..., 0], moved[..., 1]) > thr + _SKIP_SLACK_M)  # NaN: asked
             if ask.all():
@@ -444,8 +459,7 @@ def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
             dist, nn = grid.nearest(xy.reshape(-1, 2), thr)
             dist, nn = dist.reshape(len(active), n), nn.reshape(len(active), n)
             found = np.isfinite(dist)
-            if skip:
-                seen_xy, seen_m = xy, np.where(found, dist, thr)
+            seen_xy, seen_m = xy, np.where(found, dist, thr)
         else:
             sel = np.flatnonzero(ask)
             dist, idx = grid.tree.query(xy.reshape(-1, 2)[sel], distance_upper_bound=thr)
@@ -466,8 +480,7 @@ def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
             out[h] = (current[h], mask)
             rows.append(row)
         active = [active[r] for r in rows]
-        if skip:
-            seen_xy, seen_m = seen_xy[rows], seen_m[rows]
+        seen_xy, seen_m = seen_xy[rows], seen_m[rows]
     return out
 
 

@@ -124,31 +124,41 @@ def fit_rigid_2d(points_src: np.ndarray, points_dst: np.ndarray,
 
     Returns:
         (3,) float64 T_dst_src = (x, y, yaw).
+
+    Unweighted, every sum is taken left to right (``_sequential_sum``): the compiled refinement
+    (``matching.kernels``) does the same operations in the same order, so both give the same numbers - a BLAS
+    product's summation order is the library's and the machine's, a loop's is not.
     """
     src = np.asarray(points_src, dtype=np.float64)
     dst = np.asarray(points_dst, dtype=np.float64)
     n = len(src)
     if weights is None:
-        w = np.full(n, 1.0 / n)  # = ones / ones.sum(): a sum of ones is exact
-    else:
-        w = np.asarray(weights, dtype=np.float64)
-        w = w / w.sum()
+        # centroids, then yaw = atan2(sum (a x b), sum (a . b)) over the centred points a, b
+        ms0, ms1 = _sequential_sum(src[:, 0]) / n, _sequential_sum(src[:, 1]) / n
+        md0, md1 = _sequential_sum(dst[:, 0]) / n, _sequential_sum(dst[:, 1]) / n
+        a0, a1 = src[:, 0] - ms0, src[:, 1] - ms1
+        b0, b1 = dst[:, 0] - md0, dst[:, 1] - md1
+        yaw = math.atan2(_sequential_sum(a0 * b1 - a1 * b0), _sequential_sum(a0 * b0 + a1 * b1))
+        c, s = math.cos(yaw), math.sin(yaw)
+        return np.array([md0 - (c * ms0 - s * ms1), md1 - (s * ms0 + c * ms1), yaw])
+    w = np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
     mu_s = w @ src
     mu_d = w @ dst
     a = src - mu_s
     b = dst - mu_d
-    # In 2-D the optimal rotation angle is atan2(sum w (a x b), sum w (a . b)); both sums from one (2, N)
-    # array of terms (the guided estimator fits hundreds of times per query: fewer numpy calls)
+    # In 2-D the optimal rotation angle is atan2(sum w (a x b), sum w (a . b))
     ab = a * b  # a0 b0, a1 b1
     abr = a * b[:, ::-1]  # a0 b1, a1 b0
-    terms = np.empty((2, n))
-    np.subtract(abr[:, 0], abr[:, 1], out=terms[0])
-    np.add(ab[:, 0], ab[:, 1], out=terms[1])
-    terms *= w
-    yaw = math.atan2(np.sum(terms[0]), np.sum(terms[1]))
+    yaw = math.atan2(float(np.sum(w * (abr[:, 0] - abr[:, 1]))), float(np.sum(w * (ab[:, 0] + ab[:, 1]))))
     c, s = math.cos(yaw), math.sin(yaw)
     ms0, ms1 = float(mu_s[0]), float(mu_s[1])
     return np.array([float(mu_d[0]) - (c * ms0 - s * ms1), float(mu_d[1]) - (s * ms0 + c * ms1), yaw])
+
+
+def _sequential_sum(x: np.ndarray) -> float:
+    """x[0] + x[1] + ... added left to right (``np.cumsum`` is a running sum; ``np.sum`` adds pairwise)."""
+    return float(np.cumsum(x)[-1]) if len(x) else 0.0
 
 
 def _residuals_sq(pose: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
