@@ -22,38 +22,17 @@ from reradar_core.jit import jit_enabled, njit
 __all__ = ["count_aligned_pose", "count_aligned_screen", "warm_up"]
 
 
-@njit
 def count_aligned_pose(sx: np.ndarray, sy: np.ndarray, c: np.ndarray, s: np.ndarray, tx: np.ndarray,
                        ty: np.ndarray, origin: float, cell: float, inverse: bool, n: int,
-                       mask: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+                       mask: np.ndarray) -> np.ndarray:
     """(V,) int64: for each hypothesis v (cos ``c[v]``, sin ``s[v]``, translation ``tx[v], ty[v]`` metres),
     how many of the (P,) float64 points (``sx``, ``sy``, metres) land on a 1 of the (n * n + 1,) uint8 row-major
-    ``mask`` (last entry: outside). Arithmetic of ``alignment._score`` + ``LandmarkGrid._count_within_columns``:
-    x = c sx - s sy + tx, y = s sx + c sy + ty, then the cell."""
-    num_v = c.shape[0]
-    num_p = sx.shape[0]
-    out = np.zeros(num_v, np.int64)
-    nf = float(n)
-    for v in range(num_v):
-        cv, sv, tv, uv = c[v], s[v], tx[v], ty[v]
-        k = 0
-        for p in range(num_p):
-            x = cv * sx[p] - sv * sy[p] + tv
-            y = sv * sx[p] + cv * sy[p] + uv
-            fi = x - origin
-            fj = y - origin
-            if inverse:
-                fi *= cell
-                fj *= cell
-            else:
-                fi /= cell
-                fj /= cell
-            fi = math.floor(fi)
-            fj = math.floor(fj)
-            if fi >= 0.0 and fi < nf and fj >= 0.0 and fj < nf:
-                k += mask[int(fj) * n + int(fi)]
-        out[v] = k
-    return out
+    ``mask`` (last entry: outside): ``alignment._score`` + ``LandmarkGrid._count_within_columns``, whose
+    x = c sx - s sy + tx is the screen's sx c - sy s + tx (a product does not depend on its operands' order),
+    so one keyframe's ``count_aligned_screen``."""
+    return count_aligned_screen(sx, sy, c, s, tx, ty, np.zeros(len(c), np.int64), np.array([float(origin)]),
+                                np.array([float(cell)]), inverse, np.array([n], np.int64), np.zeros(1, np.int64),
+                                mask)
 
 
 @njit
@@ -99,7 +78,6 @@ def warm_up() -> bool:
         return False
     one = np.zeros(1)
     mask = np.zeros(5, np.uint8)
-    count_aligned_pose(one, one, one, one, one, one, 0.0, 2.0, True, 2, mask)
     count_aligned_screen(one, one, one, one, one, one, np.zeros(1, np.int64), one, np.full(1, 2.0), True,
                          np.full(1, 2, np.int64), np.zeros(1, np.int64), mask)
     from reradar_core.matching.nn_kernels import bucket_landmarks, nearest_within

@@ -182,10 +182,11 @@ def test_batched_refinement_is_the_per_hypothesis_refinement_bit_for_bit() -> No
     assert mask.sum() >= 0.7 * (len(src) - 60) and np.linalg.norm(pose[:2] - T[:2]) < 0.3
 
 
-def test_batched_refinement_skips_no_look_up_it_needs_on_exact_radii() -> None:
+@pytest.mark.parametrize("jit", ["0", "1"])  # the numpy path (skipped look-ups) and the compiled refinement
+def test_batched_refinement_skips_no_look_up_it_needs_on_exact_radii(monkeypatch, jit) -> None:  # type: ignore[no-untyped-def]
     """Landmarks on a lattice, so many query landmarks lie exactly at the association radii (the skipped
-    look-ups are those that cannot find a landmark within the shrinking radius): still the per-hypothesis
-    answer, bit for bit."""
+    look-ups are those that cannot find a landmark within the shrinking radius; the compiled look-ups flag
+    those ties for the KD-tree): still the per-hypothesis answer of the KD-tree path, bit for bit."""
     from reradar_core.matching.alignment import _refine, _refine_all
 
     rng = np.random.default_rng(3)
@@ -195,7 +196,9 @@ def test_batched_refinement_skips_no_look_up_it_needs_on_exact_radii() -> None:
         grid = build_landmark_grid(dst)
         starts = [np.zeros(3)] + [np.array([*rng.normal(0, 0.5, 2), rng.normal(0, 0.05)]) for _ in range(4)]
         thresholds = ((2.0, 1.0, 0.75, 0.75), (1.5, 1.0, 0.5, 0.25), (1.0, 0.5))[trial % 3]
+        monkeypatch.setenv("RERADAR_JIT", jit)
         got = _refine_all(src, grid, starts, thresholds)
+        monkeypatch.setenv("RERADAR_JIT", "0")
         for (pose, mask), start in zip(got, starts, strict=True):
             pose_ref, mask_ref = _refine(src, grid, start, thresholds)
             assert pose.tobytes() == pose_ref.tobytes()

@@ -8,7 +8,6 @@ from scipy.spatial import cKDTree
 from reradar_core.geometry.se2 import inverse, transform_points
 from reradar_core.jit import jit_enabled
 from reradar_core.matching import LandmarkGrid, build_landmark_grid, estimate_pose_guided
-from reradar_core.matching.alignment import _refine, _refine_all
 from reradar_core.matching.nn_kernels import bucket_landmarks, nearest_within
 
 pytest.importorskip("numba")
@@ -170,22 +169,3 @@ def test_estimate_pose_guided_is_the_same_with_and_without_the_kernel(monkeypatc
         assert np.float64(a.rmse_m).tobytes() == np.float64(b.rmse_m).tobytes()
     if case < 4:
         assert b.success and np.linalg.norm(b.pose[:2] - T[:2]) < 0.5
-
-
-def test_refine_all_with_the_kernel_is_the_tree_reference(monkeypatch) -> None:
-    """``_refine_all`` looks every point up with the kernel (no skip test): still the KD-tree path's
-    per-hypothesis refinement, bit for bit, on a lattice where many points lie exactly at the radii."""
-    rng = np.random.default_rng(4)
-    for trial in range(30):
-        dst = rng.integers(-20, 20, (150, 2)).astype(float) * 0.5
-        src = rng.integers(-20, 20, (120, 2)).astype(float) * 0.25
-        grid = build_landmark_grid(dst)
-        starts = [np.zeros(3)] + [np.array([*rng.normal(0, 0.5, 2), rng.normal(0, 0.05)]) for _ in range(4)]
-        thresholds = ((2.0, 1.0, 0.75, 0.75), (1.5, 1.0, 0.5, 0.25), (1.0, 0.5))[trial % 3]
-        monkeypatch.setenv("RERADAR_JIT", "1")
-        got = _refine_all(src, grid, starts, thresholds)
-        monkeypatch.setenv("RERADAR_JIT", "0")
-        for (pose, mask), start in zip(got, starts, strict=True):
-            pose_ref, mask_ref = _refine(src, grid, start, thresholds)
-            assert pose.tobytes() == pose_ref.tobytes()
-            np.testing.assert_array_equal(mask, mask_ref)
