@@ -23,7 +23,7 @@ import numpy as np
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose, inverse, wrap_angle
-from reradar_core.matching import LandmarkGrid, fit_rigid_2d
+from reradar_core.matching import LandmarkGrid, refine_pose
 
 __all__ = ["PosePrior", "TrackingConfig", "tracking_candidates", "register_from_prior", "Registration"]
 
@@ -127,24 +127,19 @@ class Registration:
 
 def register_from_prior(query: ScanFeatures, grid: LandmarkGrid, T_keyframe_query: np.ndarray,
                         radii: tuple[float, ...]) -> Registration:
-    """Refine ``T_keyframe_query`` by iterated nearest-landmark association (KD-tree of ``grid``) with the
-    given shrinking radii and a least-squares rigid fit per step; inliers are counted at the last radius."""
+    """Refine ``T_keyframe_query`` by iterated nearest-landmark association with ``grid``'s landmarks within
+    the given shrinking radii and a least-squares rigid fit per step (``matching.refine_pose``, the guided
+    estimator's refinement); inliers are counted at the last radius."""
     src = np.asarray(query.keypoints_xy_m, np.float64).reshape(-1, 2)
     n = len(src)
     pose = np.asarray(T_keyframe_query, np.float64).reshape(3).copy()
     if n < 3 or len(grid.points) < 3:
         return Registration(pose, 0, 0.0)
-    mask = np.zeros(n, bool)
-    for radius in radii:
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        moved = src @ np.array([[c, s], [-s, c]]) + pose[:2]
-        dist, nn = grid.nearest(moved, radius)  # the KD-tree's answers (compiled look-up when available)
-        mask = np.isfinite(dist)
-        if mask.sum() < 3:
-            return Registration(pose, int(mask.sum()), float(mask.sum() / n))
-        pose = fit_rigid_2d(src[mask], grid.points[nn[mask]])
-    pose = np.array([pose[0], pose[1], wrap_angle(pose[2])])
+    pose, mask = refine_pose(src, grid, pose, radii)
     k = int(mask.sum())
+    if k < 3:  # stopped early: the pose of the last step that associated enough
+        return Registration(pose, k, k / n)
+    pose = np.array([pose[0], pose[1], wrap_angle(pose[2])])
     return Registration(pose, k, k / n)
 
 

@@ -5,6 +5,7 @@ from reradar_core.matching.alignment import (
     LandmarkGrid,
     build_landmark_grid,
     estimate_pose_guided,
+    refine_pose,
     screen_alignment,
 )
 from reradar_core.matching.descriptors import cosine_similarity, match_descriptors
@@ -15,6 +16,7 @@ __all__ = [
     "LandmarkGrid",
     "build_landmark_grid",
     "estimate_pose_guided",
+    "refine_pose",
     "screen_alignment",
     "RansacConfig",
     "RigidEstimate",

@@ -40,8 +40,8 @@ from reradar_core.matching.kernels import count_aligned_pose
 from reradar_core.matching.nn_kernels import LandmarkBuckets, bucket_landmarks, nearest_within, refine_poses
 from reradar_core.matching.ransac import RigidEstimate, fit_rigid_2d
 
-__all__ = ["AlignmentConfig", "LandmarkGrid", "build_landmark_grid", "estimate_pose_guided", "screen_alignment",
-           "topk_last_axis"]
+__all__ = ["AlignmentConfig", "LandmarkGrid", "build_landmark_grid", "estimate_pose_guided", "refine_pose",
+           "screen_alignment", "topk_last_axis"]
 
 
 @dataclass(frozen=True)
@@ -389,9 +389,12 @@ def _apply_all(poses: list[np.ndarray], points: np.ndarray) -> np.ndarray:
     return out
 
 
-def _refine(src: np.ndarray, grid: LandmarkGrid, pose: np.ndarray,
+def refine_pose(src: np.ndarray, grid: LandmarkGrid, pose: np.ndarray,
             thresholds: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """One hypothesis refined (the reference of ``_refine_all``): (3,) pose and (N,) bool association mask."""
+    """Refine the (3,) pose T_dst_src (x m, y m, yaw rad) of the (N, 2) source landmarks against ``grid``'s by
+    iterated nearest-landmark association within each of the shrinking ``thresholds`` (metres) and a
+    least-squares fit per step (stopping when fewer than 3 associate): the refined (3,) pose (yaw not wrapped)
+    and the (N,) bool mask of the last association. The reference of ``_refine_all``; tracking's registration."""
     buckets = grid.buckets() if jit_enabled() and thresholds else None
     if buckets is not None:  # compiled (``nn_kernels.refine_poses``), the same numbers
         poses, masks, unsure = refine_poses(src, np.asarray(pose, np.float64)[None], thresholds, grid.points,
@@ -415,7 +418,7 @@ _SKIP_SLACK_M = 1e-6
 
 def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
                 thresholds: tuple[float, ...]) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``[_refine(src, grid, p, thresholds) for p in poses]``, exactly (same pose bits, same masks), faster:
+    """``[refine_pose(src, grid, p, thresholds) for p in poses]``, exactly (same pose bits, same masks), faster:
 
     - each iteration's nearest-landmark look-ups of all still-refining hypotheses go to the KD-tree in one
       call (~13 us of overhead per call; the tree's answer for a point does not depend on the other points);
@@ -436,7 +439,7 @@ def _refine_all(src: np.ndarray, grid: LandmarkGrid, poses: list[np.ndarray],
     buckets = grid.buckets() if jit_enabled() and poses and thresholds else None
     if buckets is not None:  # compiled (``nn_kernels.refine_poses``); a hypothesis it is unsure of: the tree
         refined, masks, unsure = refine_poses(src, np.stack(poses), thresholds, grid.points, buckets)
-        return [_refine(src, grid, poses[h], thresholds) if unsure[h] else (refined[h], masks[h])
+        return [refine_pose(src, grid, poses[h], thresholds) if unsure[h] else (refined[h], masks[h])
                 for h in range(len(poses))]
     out: list[tuple[np.ndarray, np.ndarray]] = [(p, np.zeros(n, dtype=bool)) for p in poses]
     active = list(range(len(poses)))
@@ -564,7 +567,7 @@ def estimate_pose_guided(points_src: np.ndarray, desc_src: np.ndarray, points_ds
     pose, best_mask = max(refined, key=lambda r: int(r[1].sum()))  # first of equals: best-scored hypothesis
     if int(best_mask.sum()) >= 3:
         # the polish is the refinement step at the smaller radii; its association mask is not the count's
-        pose, _ = _refine(src, grid, pose, config.polish_thresholds_m)
+        pose, _ = refine_pose(src, grid, pose, config.polish_thresholds_m)
     best_pose = np.array([pose[0], pose[1], wrap_angle(pose[2])])
     k = int(best_mask.sum())
     if k < config.min_inliers:

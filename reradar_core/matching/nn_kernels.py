@@ -246,14 +246,14 @@ def _refine_kernel(src: np.ndarray, poses: np.ndarray, thresholds: np.ndarray, p
 
 def refine_poses(src: np.ndarray, poses: np.ndarray, thresholds: tuple[float, ...], points: np.ndarray,
                  buckets: LandmarkBuckets) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``alignment._refine`` of every pose at once: iterated association of the (N, 2) float64 source points
+    """``alignment.refine_pose`` of every pose at once: iterated association of the (N, 2) float64 source points
     (metres) with their nearest of the (M, 2) ``points`` within each radius of ``thresholds`` and a least-squares
     fit (``ransac.fit_rigid_2d``), stopping when fewer than 3 associate.
 
     Returns:
         (H, 3) float64 refined poses, (H, N) bool masks of the last association, and (H,) bool ``unsure``:
         hypotheses where a look-up hit a (near-)tie, a distance at a radius or a non-finite point - their pose
-        and mask are undefined: refine those with the KD-tree (``alignment._refine``).
+        and mask are undefined: refine those with the KD-tree (``alignment.refine_pose``).
     """
     b = buckets
     return _refine_kernel(np.ascontiguousarray(src, dtype=np.float64), np.ascontiguousarray(poses, np.float64),

@@ -162,7 +162,7 @@ def test_batched_refinement_is_the_per_hypothesis_refinement_bit_for_bit() -> No
     """``_refine_all`` (one KD-tree query per iteration for all hypotheses) returns exactly what refining each
     hypothesis on its own returns: same pose bits, same masks - for good, poor and hopeless starts, and for
     hypotheses that stop early (fewer than 3 landmarks associated)."""
-    from reradar_core.matching.alignment import _refine, _refine_all
+    from reradar_core.matching.alignment import _refine_all, refine_pose
 
     T = np.array([3.5, -2.0, np.radians(37.0)])
     src, _, dst, _ = _scene(T, seed=4)
@@ -172,7 +172,7 @@ def test_batched_refinement_is_the_per_hypothesis_refinement_bit_for_bit() -> No
     starts += [np.array([500.0, 500.0, 0.0]), np.array([0.0, 0.0, np.pi])]  # nothing (or little) associates
     for thresholds in ((2.0, 1.0, 0.75, 0.75), (3.0,), (0.5, 2.0)):
         got = _refine_all(src, grid, starts, thresholds)
-        want = [_refine(src, grid, p, thresholds) for p in starts]
+        want = [refine_pose(src, grid, p, thresholds) for p in starts]
         assert len(got) == len(want)
         for (pose, mask), (pose_ref, mask_ref) in zip(got, want, strict=True):
             assert pose.tobytes() == pose_ref.tobytes()
@@ -187,7 +187,7 @@ def test_batched_refinement_skips_no_look_up_it_needs_on_exact_radii(monkeypatch
     """Landmarks on a lattice, so many query landmarks lie exactly at the association radii (the skipped
     look-ups are those that cannot find a landmark within the shrinking radius; the compiled look-ups flag
     those ties for the KD-tree): still the per-hypothesis answer of the KD-tree path, bit for bit."""
-    from reradar_core.matching.alignment import _refine, _refine_all
+    from reradar_core.matching.alignment import _refine_all, refine_pose
 
     rng = np.random.default_rng(3)
     for trial in range(40):
@@ -200,7 +200,7 @@ def test_batched_refinement_skips_no_look_up_it_needs_on_exact_radii(monkeypatch
         got = _refine_all(src, grid, starts, thresholds)
         monkeypatch.setenv("RERADAR_JIT", "0")
         for (pose, mask), start in zip(got, starts, strict=True):
-            pose_ref, mask_ref = _refine(src, grid, start, thresholds)
+            pose_ref, mask_ref = refine_pose(src, grid, start, thresholds)
             assert pose.tobytes() == pose_ref.tobytes()
             np.testing.assert_array_equal(mask, mask_ref)
 
