@@ -162,8 +162,6 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
             from reradar_core.matching.kernels import warm_up
 
             warm_up()  # compiled query-path kernels (numba): compiled or loaded now, not in the first request
-            if hasattr(ext, "warm_up"):
-                ext.warm_up()  # the network's trace for one scan (DescriptorExtractor._forward)
             registry = ops.make_registry(ext)  # ops: queued builds with Redis
             with startup_lock(cfg.maps_dir):  # workers of `reradar serve --workers N` start at the same time
                 if cfg.load_demo_map:

@@ -14,8 +14,6 @@ import hashlib
 import json
 import logging
 import math
-import os
-import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -34,9 +32,6 @@ from reradar_core.model.network import DescriptorNet, fuse_batchnorm
 __all__ = ["DescriptorExtractor", "sample_feature_map", "DEFAULT_MAX_KEYPOINTS", "file_sha256"]
 
 logger = logging.getLogger(__name__)
-
-#: input shapes whose traced network ``DescriptorExtractor._forward`` keeps (batch sizes of map building)
-_MAX_TRACES = 8
 
 DEFAULT_MAX_KEYPOINTS = 512  # strongest landmarks kept per scan: enough for RANSAC, keeps maps small
 
@@ -103,8 +98,6 @@ class DescriptorExtractor:
         self.landmark_config = landmark_config
         for p in self.net.parameters():
             p.requires_grad_(False)
-        self._traces: dict[tuple[int, ...], Any] = {}  # input shape -> traced network (``_forward``)
-        self._trace_lock = threading.Lock()
 
     # ---------------------------------------------------------------- construction
     @classmethod
@@ -165,33 +158,8 @@ class DescriptorExtractor:
         x = torch.as_tensor(np.asarray(images, dtype=np.float32))
         if x.ndim == 2:
             x = x[None]
-        g, f = self._forward(x[:, None])
+        g, f = self.net(x[:, None])
         return g.numpy(), f.numpy()
-
-    def warm_up(self) -> None:
-        """Trace the network for one scan's image now (``_forward``), so that no request pays for it."""
-        w = self.cartesian.width_px
-        self.run_images(np.zeros((1, w, w), np.float32))
-
-    def _forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``self.net(x)`` through a TorchScript trace of the network for ``x``'s shape (``torch.jit.trace``,
-        made on first use, at most ``_MAX_TRACES`` shapes): the same operators with the same weights, so the
-        same numbers (tested), without the Python module calls (~0.5-1.5 ms of a ~5 ms forward at batch 1).
-        The network has no data-dependent control flow, so a trace is valid for every input of its shape.
-        ``RERADAR_JIT=0`` runs the module itself."""
-        if os.environ.get("RERADAR_JIT", "1") == "0":
-            return self.net(x)  # type: ignore[no-any-return]
-        key = tuple(x.shape)
-        traced = self._traces.get(key)
-        if traced is None:
-            if len(self._traces) >= _MAX_TRACES:
-                return self.net(x)  # type: ignore[no-any-return]
-            with self._trace_lock:
-                traced = self._traces.get(key)
-                if traced is None:
-                    traced = torch.jit.trace(self.net, torch.zeros(key), check_trace=False)
-                    self._traces[key] = traced
-        return traced(x)  # type: ignore[no-any-return]
 
     def cartesian_image(self, scan: RadarScan) -> np.ndarray:
         return polar_to_cartesian(scan, self.cartesian)

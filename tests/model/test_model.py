@@ -336,20 +336,3 @@ def test_sliced_max_pool_equals_max_pool2d(shape, pool):
     assert torch.equal(got.nan_to_num(), want.nan_to_num())
     assert not SlicedMaxPool2d.replaces(torch.nn.MaxPool2d(3, 2, 1, ceil_mode=True))
     assert not SlicedMaxPool2d.replaces(torch.nn.MaxPool2d(3, 2, 1, dilation=2))
-
-
-def test_traced_forward_gives_the_module_s_numbers(extractor, monkeypatch):
-    """``DescriptorExtractor._forward`` runs a trace per input shape: the same outputs as the module, bit for
-    bit, at batch 1 and 3; ``RERADAR_JIT=0`` runs the module itself."""
-    rng = np.random.default_rng(5)
-    counts = []
-    for batch in (1, 3, 1):
-        images = rng.random((batch, 201, 201)).astype(np.float32)
-        monkeypatch.setenv("RERADAR_JIT", "0")
-        g0, f0 = extractor.run_images(images)
-        monkeypatch.setenv("RERADAR_JIT", "1")
-        g1, f1 = extractor.run_images(images)
-        assert np.array_equal(g0, g1) and np.array_equal(f0, f1)
-        counts.append(len(extractor._traces))
-    assert {(1, 1, 201, 201), (3, 1, 201, 201)} <= set(extractor._traces)
-    assert counts[2] == counts[1]  # the batch-1 trace is reused, not made again
