@@ -80,8 +80,10 @@ def warm_up() -> bool:
     mask = np.zeros(5, np.uint8)
     count_aligned_screen(one, one, one, one, one, one, np.zeros(1, np.int64), one, np.full(1, 2.0), True,
                          np.full(1, 2, np.int64), np.zeros(1, np.int64), mask)
-    from reradar_core.matching.nn_kernels import bucket_landmarks, nearest_within
+    from reradar_core.matching.nn_kernels import bucket_landmarks, nearest_within, refine_poses
 
     pts = np.array([[0.0, 0.0], [3.0, 1.0]])
-    nearest_within(pts, 2.0, bucket_landmarks(pts, 2.0, 64), len(pts))
+    buckets = bucket_landmarks(pts, 2.0, 64)
+    nearest_within(pts, 2.0, buckets, len(pts))
+    refine_poses(pts, np.zeros((1, 3)), (2.0, 1.0), pts, buckets)
     return True
