@@ -8,8 +8,8 @@ Without numba, or with ``RERADAR_JIT=0`` in the environment, the numpy path runs
 
 Compiled code is cached on disk (``cache=True``: next to the sources, or in ``NUMBA_CACHE_DIR`` - the image
 sets ``/data/cache/numba`` - or the user's cache folder when the sources are read-only), so only the first
-process on a machine pays the compilation (~1-3 s per kernel); the service compiles or loads them at start-up
-(``matching.kernels.warm_up``), never in a request.
+process on a machine pays the compilation (~1-3 s per kernel); every ``Localizer`` compiles or loads them
+when it is made (``matching.kernels.warm_up``; the service makes one per map at start-up), never in a query.
 Kernels release the GIL (``nogil``), so a threaded server runs them in parallel.
 """
 

@@ -159,9 +159,6 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
             torch.set_num_threads(cfg.torch_threads)
             limit_blas_threads(cfg.blas_threads)
             ext = extractor or load_default_extractor(cfg.model)
-            from reradar_core.matching.kernels import warm_up
-
-            warm_up()  # compiled query-path kernels (numba): compiled or loaded now, not in the first request
             registry = ops.make_registry(ext)  # ops: queued builds with Redis
             with startup_lock(cfg.maps_dir):  # workers of `reradar serve --workers N` start at the same time
                 if cfg.load_demo_map:

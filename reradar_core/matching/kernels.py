@@ -70,7 +70,6 @@ def count_aligned_screen(sx: np.ndarray, sy: np.ndarray, c: np.ndarray, s: np.nd
     return out
 
 
-
 def warm_up() -> bool:
     """Compile (or load from the disk cache) every kernel of the query path now, with tiny inputs, so that no
     request pays for it; returns whether the kernels run (``jit_enabled``)."""

@@ -126,8 +126,8 @@ def fit_rigid_2d(points_src: np.ndarray, points_dst: np.ndarray,
         (3,) float64 T_dst_src = (x, y, yaw).
 
     Unweighted, every sum is taken left to right (``_sequential_sum``): the compiled refinement
-    (``matching.kernels``) does the same operations in the same order, so both give the same numbers - a BLAS
-    product's summation order is the library's and the machine's, a loop's is not.
+    (``matching.nn_kernels.refine_poses``) does the same operations in the same order, so both give the same
+    numbers - a BLAS product's summation order is the library's and the machine's, a loop's is not.
     """
     src = np.asarray(points_src, dtype=np.float64)
     dst = np.asarray(points_dst, dtype=np.float64)
