@@ -20,11 +20,12 @@ QUERY_KIND_COLUMNS = (("recall@1_all", "Recall@1 all (%)", "{:.2f}"), ("sr_all",
 
 #: How the results define "rejected" for each kind of method (printed under the tables, docs/BENCHMARKS.md).
 REJECTION_NOTE = ("Rejected: ReRadar (methods with a full pose) rejects a query when it answers `not_localized` "
-                  "(fewer than 50 % of its landmarks align, an ambiguous pose, or a confidence below the bar fitted on "
-                  "the training splits); the retrieval-only and heading-only baselines "
-                  "(RingKey, RaPlace, RadVLAD, ResNet18-NetVLAD, ReFeree) always answer: no distance threshold is "
-                  "chosen (one tuned on the query sequence would be a defect), so their rejection figures are – "
-                  "(not applicable), and every answer they give to a query without a match is a wrong place.")
+                  "(fewer of its landmarks align than the floor, an ambiguous pose, or a confidence below the bar; "
+                  "floor and bar are fitted on the training splits with the confidence model, docs/MODEL.md); the "
+                  "retrieval-only and heading-only baselines (RingKey, RaPlace, RadVLAD, ResNet18-NetVLAD, ReFeree) "
+                  "always answer: no distance threshold is chosen (one tuned on the query sequence would be a "
+                  "defect), so their rejection figures are – (not applicable), and every answer they give to a query "
+                  "without a match is a wrong place.")
 
 
 def _fmt(v: Any, fmt: str) -> str:

@@ -24,7 +24,12 @@ import numpy as np
 from reradar_core.jit import jit_enabled
 from reradar_core.matching import AlignmentConfig, build_landmark_grid, screen_alignment
 from reradar_core.matching.alignment import topk_last_axis
-from reradar_core.matching.kernels import count_aligned_screen
+from reradar_core.matching.kernels import (
+    PAIR_BORDERLINE,
+    PAIR_CONSISTENT,
+    best_aligned_screen,
+    consistent_pairs_screen,
+)
 
 __all__ = ["ScreenGrid", "build_screen_grid", "ScreenKeyframe", "screen_keyframe", "screen_candidates"]
 
@@ -192,22 +197,40 @@ def screen_candidates(query_points: np.ndarray, query_descriptors: np.ndarray,
     a = rng.integers(0, num_pairs, config.screen_hypotheses)
     b = rng.integers(0, num_pairs, config.screen_hypotheses)
     s1, s2 = src[sub[a // k]], src[sub[b // k]]  # (H, 2), shared
-    la, lb = land[:, a], land[:, b]  # (K, H)
-    d1x, d1y, d2x, d2y = fx[la], fy[la], fx[lb], fy[lb]
     vs = s2 - s1
-    vdx, vdy = d2x - d1x, d2y - d1y
     ls = np.hypot(vs[:, 0], vs[:, 1])
-    ld = np.hypot(vdx, vdy)
-    ok = (ls > config.min_pair_separation_m)[None, :] & (np.abs(ls[None, :] - ld) < config.max_length_mismatch_m)
-    sel = np.flatnonzero(ok)  # candidate-major order
-    if len(sel) == 0:
-        return out
-    cand, hyp = np.divmod(sel, ok.shape[1])
-    yaw = np.arctan2(vdy.reshape(-1)[sel], vdx.reshape(-1)[sel]) - np.arctan2(vs[hyp, 1], vs[hyp, 0])
+    if jit_enabled():  # the same verdicts without the (K, H) gathers (``matching.kernels``)
+        verdict = np.empty((kb, len(a)), np.int8)
+        consistent_pairs_screen(land, a, b, fx, fy, ls, ls > config.min_pair_separation_m,
+                                config.max_length_mismatch_m, verdict)
+        edge = np.flatnonzero(verdict.reshape(-1) == PAIR_BORDERLINE)
+        if len(edge):  # within the kernel's margin: the numpy expression decides
+            g, h = np.divmod(edge, len(a))
+            la, lb = land[g, a[h]], land[g, b[h]]
+            ld = np.hypot(fx[lb] - fx[la], fy[lb] - fy[la])
+            verdict.reshape(-1)[edge] = np.abs(ls[h] - ld) < config.max_length_mismatch_m
+        sel = np.flatnonzero(verdict.reshape(-1) == PAIR_CONSISTENT)  # candidate-major order
+        if len(sel) == 0:
+            return out
+        cand, hyp = np.divmod(sel, len(a))
+        la, lb = land[cand, a[hyp]], land[cand, b[hyp]]
+        d1x, d1y, d2x, d2y = fx[la], fy[la], fx[lb], fy[lb]
+    else:
+        la, lb = land[:, a], land[:, b]  # (K, H)
+        d1x, d1y, d2x, d2y = fx[la], fy[la], fx[lb], fy[lb]
+        vdx, vdy = d2x - d1x, d2y - d1y
+        ld = np.hypot(vdx, vdy)
+        ok = (ls > config.min_pair_separation_m)[None, :] & (np.abs(ls[None, :] - ld) < config.max_length_mismatch_m)
+        sel = np.flatnonzero(ok)  # candidate-major order
+        if len(sel) == 0:
+            return out
+        cand, hyp = np.divmod(sel, ok.shape[1])
+        d1x, d1y, d2x, d2y = (d.reshape(-1)[sel] for d in (d1x, d1y, d2x, d2y))
+    yaw = np.arctan2(d2y - d1y, d2x - d1x) - np.arctan2(vs[hyp, 1], vs[hyp, 0])
     c, s = np.cos(yaw), np.sin(yaw)
     ms = (s1[hyp] + s2[hyp]) / 2
-    mdx = (d1x.reshape(-1)[sel] + d2x.reshape(-1)[sel]) / 2
-    mdy = (d1y.reshape(-1)[sel] + d2y.reshape(-1)[sel]) / 2
+    mdx = (d1x + d2x) / 2
+    mdy = (d1y + d2y) / 2
     tx = mdx - (c * ms[:, 0] - s * ms[:, 1])
     ty = mdy - (s * ms[:, 0] + c * ms[:, 1])
 
@@ -223,12 +246,14 @@ def screen_candidates(query_points: np.ndarray, query_descriptors: np.ndarray,
     inverse = bool(np.all((cells > 0) & (np.frexp(cells)[0] == 0.5) & np.isfinite(inv)))
     if inverse:
         cells = inv
-    offsets = np.concatenate([[0], np.cumsum(sizes * sizes)[:-1]])
-    near = np.concatenate([g.near for g in grids] + [np.zeros(1, np.uint8)])  # last cell: "outside"
-    if jit_enabled():  # one compiled loop, the same arithmetic (``matching.kernels``)
-        counts = count_aligned_screen(np.ascontiguousarray(scored[:, 0]), np.ascontiguousarray(scored[:, 1]),
-                                      c, s, tx, ty, cand, origins, cells, inverse, sizes, offsets, near)
+    if jit_enabled():  # one compiled loop, the same arithmetic (``matching.kernels``), on the packed masks
+        packed = np.concatenate([g.packed for g in grids])
+        bit_offsets = np.concatenate([[0], np.cumsum([len(g.packed) for g in grids])[:-1]]).astype(np.int64) * 8
+        best = best_aligned_screen(np.ascontiguousarray(scored[:, 0]), np.ascontiguousarray(scored[:, 1]),
+                                   c, s, tx, ty, cand, origins, cells, inverse, sizes, bit_offsets, packed, kb)
     else:
+        offsets = np.concatenate([[0], np.cumsum(sizes * sizes)[:-1]])
+        near = np.concatenate([g.near for g in grids] + [np.zeros(1, np.uint8)])  # last cell: "outside"
         counts = np.empty(len(cand), np.int64)  # aligned query landmarks per hypothesis
         # in blocks of hypotheses, so the (block, P) temporaries stay in the CPU cache (the arithmetic is
         # element-wise, so the cells - and the scores - do not depend on the block size)
@@ -236,8 +261,8 @@ def screen_candidates(query_points: np.ndarray, query_descriptors: np.ndarray,
             sl = slice(lo, lo + _SCORE_BLOCK)
             counts[sl] = _aligned_counts(sx, sy, c[sl], s[sl], tx[sl], ty[sl], cand[sl], origins, cells,
                                          inverse, sizes, offsets, near)
-    best = np.zeros(kb, np.int64)
-    np.maximum.at(best, cand, counts)
+        best = np.zeros(kb, np.int64)
+        np.maximum.at(best, cand, counts)
     out[batch] = best / len(scored)
     return out
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from reradar_core.jit import jit_enabled, njit
 
-__all__ = ["count_aligned_pose", "count_aligned_screen", "warm_up"]
+__all__ = ["best_aligned_screen", "consistent_pairs_screen", "count_aligned_pose", "count_aligned_screen", "warm_up"]
 
 
 def count_aligned_pose(sx: np.ndarray, sy: np.ndarray, c: np.ndarray, s: np.ndarray, tx: np.ndarray,
@@ -70,6 +70,87 @@ def count_aligned_screen(sx: np.ndarray, sy: np.ndarray, c: np.ndarray, s: np.nd
     return out
 
 
+@njit
+def best_aligned_screen(sx: np.ndarray, sy: np.ndarray, c: np.ndarray, s: np.ndarray, tx: np.ndarray,
+                        ty: np.ndarray, cand: np.ndarray, origins: np.ndarray, cells: np.ndarray,
+                        inverse: bool, sizes: np.ndarray, bit_offsets: np.ndarray, packed: np.ndarray,
+                        num_candidates: int) -> np.ndarray:  # pragma: no cover - compiled
+    """(K,) int64: each candidate's largest ``count_aligned_screen`` count over its hypotheses (0 without any),
+    read from the bit-packed masks (``packed``: every ``ScreenGrid.packed`` concatenated, candidate g's mask
+    starting at bit ``bit_offsets[g]``, ``np.packbits``' big-endian bit order), so the masks are never unpacked.
+
+    A hypothesis stops counting once the points left cannot lift it above its candidate's best so far: the
+    maximum is the same number, and most hypotheses (wrong minimal sets) end early.
+    """
+    num_v = c.shape[0]
+    num_p = sx.shape[0]
+    best = np.zeros(num_candidates, np.int64)
+    for v in range(num_v):
+        cv, sv, tv, uv = c[v], s[v], tx[v], ty[v]
+        g = cand[v]
+        go, gc, n, off = origins[g], cells[g], sizes[g], bit_offsets[g]
+        nf = float(n)
+        bar = best[g]
+        k = 0
+        for p in range(num_p):
+            if k + num_p - p <= bar:  # even every remaining point aligned would not beat the best
+                break
+            fi = sx[p] * cv - sy[p] * sv + tv - go
+            fj = sx[p] * sv + sy[p] * cv + uv - go
+            if inverse:
+                fi *= gc
+                fj *= gc
+            else:
+                fi /= gc
+                fj /= gc
+            fi = math.floor(fi)
+            fj = math.floor(fj)
+            if fi >= 0.0 and fi < nf and fj >= 0.0 and fj < nf:
+                bit = off + int(fj) * n + int(fi)
+                k += (packed[bit >> 3] >> (7 - (bit & 7))) & 1
+        if k > bar:
+            best[g] = k
+    return best
+
+
+#: ``consistent_pairs_screen``'s verdicts
+PAIR_REJECTED, PAIR_CONSISTENT, PAIR_BORDERLINE = 0, 1, 2
+
+
+@njit
+def consistent_pairs_screen(land: np.ndarray, a: np.ndarray, b: np.ndarray, fx: np.ndarray, fy: np.ndarray,
+                            ls: np.ndarray, source_ok: np.ndarray, max_mismatch_m: float,
+                            verdict: np.ndarray) -> None:  # pragma: no cover - compiled
+    """The screen's length-consistency test of every candidate's minimal sets, without the (K, H) temporaries.
+
+    Minimal set h of candidate g pairs keyframe landmarks ``land[g, a[h]]`` and ``land[g, b[h]]`` (flat
+    indices into ``fx`` / ``fy``, metres) with two query landmarks ``ls[h]`` metres apart; the numpy path keeps
+    it when ``source_ok[h]`` and ``abs(ls[h] - hypot(dx, dy)) < max_mismatch_m``. Here the length is compared
+    squared, with a margin (1e-9 of the lengths, far above the rounding of either form) that makes every
+    verdict outside it the numpy path's; the few minimal sets within it are marked ``PAIR_BORDERLINE`` in
+    ``verdict`` (K, H) int8 for the caller to decide with the numpy expression itself.
+    """
+    num_k, num_h = verdict.shape
+    for g in range(num_k):
+        for h in range(num_h):
+            if not source_ok[h]:
+                verdict[g, h] = PAIR_REJECTED
+                continue
+            i, j = land[g, a[h]], land[g, b[h]]
+            dx = fx[j] - fx[i]
+            dy = fy[j] - fy[i]
+            d2 = dx * dx + dy * dy
+            lo = ls[h] - max_mismatch_m
+            hi = ls[h] + max_mismatch_m
+            eps = 1e-9 * (hi + 1.0)
+            if d2 >= (hi + eps) * (hi + eps) or (lo - eps > 0.0 and d2 <= (lo - eps) * (lo - eps)):
+                verdict[g, h] = PAIR_REJECTED
+            elif d2 < (hi - eps) * (hi - eps) and (lo + eps <= 0.0 or d2 > (lo + eps) * (lo + eps)):
+                verdict[g, h] = PAIR_CONSISTENT
+            else:
+                verdict[g, h] = PAIR_BORDERLINE
+
+
 def warm_up() -> bool:
     """Compile (or load from the disk cache) every kernel of the query path now, with tiny inputs, so that no
     request pays for it; returns whether the kernels run (``jit_enabled``)."""
@@ -79,6 +160,10 @@ def warm_up() -> bool:
     mask = np.zeros(5, np.uint8)
     count_aligned_screen(one, one, one, one, one, one, np.zeros(1, np.int64), one, np.full(1, 2.0), True,
                          np.full(1, 2, np.int64), np.zeros(1, np.int64), mask)
+    best_aligned_screen(one, one, one, one, one, one, np.zeros(1, np.int64), one, np.full(1, 2.0), True,
+                        np.full(1, 2, np.int64), np.zeros(1, np.int64), mask, 1)
+    consistent_pairs_screen(np.zeros((1, 1), np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64), one, one,
+                            one, np.ones(1, bool), 3.0, np.zeros((1, 1), np.int8))
     from reradar_core.matching.nn_kernels import bucket_landmarks, nearest_within, refine_poses
 
     pts = np.array([[0.0, 0.0], [3.0, 1.0]])

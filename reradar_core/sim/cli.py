@@ -79,8 +79,9 @@ def register(app: typer.Typer) -> None:
 
     @app.command("sim-suite")
     def sim_suite(
-        name: str = typer.Argument(..., help="Suite: smoke, boreas-sim, loop-sim, offroad-sim, train-source, "
-                                             "train-target-boreas, train-target-loop, train-target-offroad."),
+        name: str = typer.Argument(..., help="Suite: smoke, boreas-sim, loop-sim, loop-sim-hard, offroad-sim, "
+                                             "offroad-sim-hard, calib-oxford, train-source, train-target-boreas, "
+                                             "train-target-loop, train-target-loop-open, train-target-offroad."),
         root: Path = typer.Option(None, help="Output folder (default: the cache, sim/<name>)."),
         every: int = typer.Option(None, help="Override the suite's frame step."),
         limit: int = typer.Option(None, help="Cap scans per sequence."),

@@ -114,6 +114,15 @@ def test_boreas_suite_needs_trajectories_with_clear_error(tmp_path):
         build_suite("boreas-sim", root=tmp_path, progress=False, trajectory_dir=tmp_path / "none")
 
 
+def test_cli_sim_suite_help_names_every_suite():
+    from reradar_cli import app
+
+    res = CliRunner().invoke(app, ["sim-suite", "--help"], terminal_width=400)
+    assert res.exit_code == 0, res.output
+    text = " ".join(res.output.split())
+    assert all(name in text for name in SUITES), [n for n in SUITES if n not in text]
+
+
 def test_cli_sim_renders_a_trajectory(tmp_path):
     from reradar_cli import app
 
