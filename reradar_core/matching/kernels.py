@@ -36,6 +36,28 @@ def count_aligned_pose(sx: np.ndarray, sy: np.ndarray, c: np.ndarray, s: np.ndar
 
 
 @njit
+def _mask_cell(x: float, y: float, c: float, s: float, tx: float, ty: float, origin: float, cell: float,
+               inverse: bool, n: int) -> int:  # pragma: no cover - compiled
+    """Row-major index ``j * n + i`` of the mask cell where the hypothesis (cos ``c``, sin ``s``, translation
+    ``tx, ty``) puts the point (x, y), or -1 off the n x n grid. Arithmetic of ``screening._cells``:
+    x' = x c - y s + tx, y' = x s + y c + ty, then floor((x' - origin) * cell) (``inverse``) or / cell."""
+    fi = x * c - y * s + tx - origin
+    fj = x * s + y * c + ty - origin
+    if inverse:
+        fi *= cell
+        fj *= cell
+    else:
+        fi /= cell
+        fj /= cell
+    fi = math.floor(fi)
+    fj = math.floor(fj)
+    nf = float(n)
+    if fi >= 0.0 and fi < nf and fj >= 0.0 and fj < nf:
+        return int(fj) * n + int(fi)
+    return -1
+
+
+@njit
 def count_aligned_screen(sx: np.ndarray, sy: np.ndarray, c: np.ndarray, s: np.ndarray, tx: np.ndarray,
                          ty: np.ndarray, cand: np.ndarray, origins: np.ndarray, cells: np.ndarray,
                          inverse: bool, sizes: np.ndarray, offsets: np.ndarray,
@@ -51,21 +73,11 @@ def count_aligned_screen(sx: np.ndarray, sy: np.ndarray, c: np.ndarray, s: np.nd
         cv, sv, tv, uv = c[v], s[v], tx[v], ty[v]
         g = cand[v]
         go, gc, n, off = origins[g], cells[g], sizes[g], offsets[g]
-        nf = float(n)
         k = 0
         for p in range(num_p):
-            fi = sx[p] * cv - sy[p] * sv + tv - go
-            fj = sx[p] * sv + sy[p] * cv + uv - go
-            if inverse:
-                fi *= gc
-                fj *= gc
-            else:
-                fi /= gc
-                fj /= gc
-            fi = math.floor(fi)
-            fj = math.floor(fj)
-            if fi >= 0.0 and fi < nf and fj >= 0.0 and fj < nf:
-                k += near[off + int(fj) * n + int(fi)]
+            cell = _mask_cell(sx[p], sy[p], cv, sv, tv, uv, go, gc, inverse, n)
+            if cell >= 0:
+                k += near[off + cell]
         out[v] = k
     return out
 
@@ -89,24 +101,14 @@ def best_aligned_screen(sx: np.ndarray, sy: np.ndarray, c: np.ndarray, s: np.nda
         cv, sv, tv, uv = c[v], s[v], tx[v], ty[v]
         g = cand[v]
         go, gc, n, off = origins[g], cells[g], sizes[g], bit_offsets[g]
-        nf = float(n)
         bar = best[g]
         k = 0
         for p in range(num_p):
             if k + num_p - p <= bar:  # even every remaining point aligned would not beat the best
                 break
-            fi = sx[p] * cv - sy[p] * sv + tv - go
-            fj = sx[p] * sv + sy[p] * cv + uv - go
-            if inverse:
-                fi *= gc
-                fj *= gc
-            else:
-                fi /= gc
-                fj /= gc
-            fi = math.floor(fi)
-            fj = math.floor(fj)
-            if fi >= 0.0 and fi < nf and fj >= 0.0 and fj < nf:
-                bit = off + int(fj) * n + int(fi)
+            cell = _mask_cell(sx[p], sy[p], cv, sv, tv, uv, go, gc, inverse, n)
+            if cell >= 0:
+                bit = off + cell
                 k += (packed[bit >> 3] >> (7 - (bit & 7))) & 1
         if k > bar:
             best[g] = k
