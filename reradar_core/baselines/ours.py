@@ -2,7 +2,8 @@
 
 The same code path as the service: a ``reradar_core.localization.Localizer`` over the database (FAISS
 ``GlobalIndex`` on the unit global descriptors, keyframes in memory) retrieves, screens (landmark alignment of
-the top 10, and of up to 60 when none aligns well or the answer is refused) and verifies (full guided pose
+the top 10, and of up to 60 when none aligns well or the answer is refused: that deeper round coarsely, its
+best 5 in full) and verifies (full guided pose
 estimation of the best 2, re-ranking by inliers), which gives the answer keyframe and ``T_map_query``. ``distance`` (PR curves) is the
 Euclidean distance between unit descriptors over the whole database.
 Model names come from ``reradar_core.model.available_models()`` (e.g. ``default``, ``our-1``, ``our-3-...``).

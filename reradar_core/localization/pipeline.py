@@ -136,6 +136,15 @@ class LocalizationConfig:
             the bar stored with the shipped confidence model (chosen at fit time on the training splits: wrong
             answers <= 0.5 % of every split's queries and the least 10 x wrong + refused-correct cost,
             docs/MODEL.md "Confidence"); 0 = the floor alone (the decision before the confidence).
+        prescreen_keep / prescreen_source_points / prescreen_hypotheses: ``guided`` only: an expansion round
+            (either expansion above) of more than ``prescreen_keep`` (5) candidates is first screened coarsely,
+            with ``prescreen_source_points`` (64, of the full screen's 256) query landmarks paired by descriptor and
+            ``prescreen_hypotheses`` (1,000, of 1,500) minimal sets (``prescreen_alignment``), and only its best
+            ``prescreen_keep`` by that score are screened in full; the others keep the coarse score as their
+            ``screen_score``. The first ``top_k`` are always screened in full. None = every candidate in full
+            (before). Chosen on the training splits (never a benchmark query; docs/BENCHMARKS.md "Session 9"):
+            most deep rounds are queries with no map keyframe near, which the full screen of ~50 candidates made
+            3-4x as slow as a confident query.
     """
 
     top_k: int = 10
@@ -154,6 +163,16 @@ class LocalizationConfig:
     ransac: RansacConfig = field(default_factory=RansacConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     min_confidence: float | None = None
+    prescreen_keep: int | None = 5
+    prescreen_source_points: int = 64
+    prescreen_hypotheses: int = 1000
+
+    @property
+    def prescreen_alignment(self) -> AlignmentConfig:
+        """The coarse screen's settings: ``alignment`` with ``prescreen_source_points`` source landmarks and
+        ``prescreen_hypotheses`` minimal sets."""
+        return replace(self.alignment, screen_source_points=self.prescreen_source_points,
+                       screen_hypotheses=self.prescreen_hypotheses)
 
     @property
     def num_to_retrieve(self) -> int:
@@ -188,6 +207,11 @@ class LocalizationConfig:
             raise ConfigError(f"pose_method must be 'guided' or 'mutual_nn', got {self.pose_method!r}")
         if self.min_confidence is not None and not 0.0 <= self.min_confidence <= 1.0:
             raise ConfigError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
+        if self.prescreen_keep is not None and self.prescreen_keep < 1:
+            raise ConfigError(f"prescreen_keep must be >= 1 or None, got {self.prescreen_keep}")
+        if self.prescreen_source_points < 2 or self.prescreen_hypotheses < 1:
+            raise ConfigError("prescreen_source_points must be >= 2 and prescreen_hypotheses >= 1, got "
+                              f"{self.prescreen_source_points} and {self.prescreen_hypotheses}")
 
     @property
     def effective_min_confidence(self) -> float:
@@ -266,7 +290,8 @@ class CandidateVerification:
         num_matches: mutual nearest-neighbour descriptor matches; num_inliers: RANSAC inliers;
         inlier_ratio: inliers / matches (0 without matches).
         screen_score: ``guided`` only: fraction of query landmarks aligned by the cheap screen, in [0, 1]
-            (None when not screened); candidates not among the best ``verify_k`` keep 0 inliers and reason
+            (None when not screened; the coarse prescreen's score for a candidate of an expansion round outside
+            its best ``prescreen_keep``); candidates not among the best ``verify_k`` keep 0 inliers and reason
             ``screened_out``.
         ambiguity: ``guided`` only: the pose estimator's best rival pose's alignment score / the answer's
             (``RigidEstimate.ambiguity``; None where not computed).
@@ -409,9 +434,10 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
     ordered = pool[: config.top_k] if config.rerank else pool[:1]
     scores: dict[int, float] = {}
 
-    def screen(batch: list[Candidate]) -> None:  # all candidates of a block at once (``screening``)
+    def screen(batch: list[Candidate], alignment: AlignmentConfig = config.alignment) -> None:
+        # all candidates of a block at once (``screening``)
         values = screen_candidates(query.keypoints_xy_m, query.local_descriptors,
-                                   [c.screen_data(config.alignment) for c in batch], config.alignment)
+                                   [c.screen_data(config.alignment) for c in batch], alignment)
         scores.update({c.rank: float(v) for c, v in zip(batch, values, strict=True)})
 
     guided = config.pose_method == "guided"
@@ -420,7 +446,13 @@ def localize(query: ScanFeatures, candidates: list[Candidate],
     def screen_next(block: int) -> None:  # the next ``block`` retrieved candidates join the screened ones
         t1 = time.perf_counter()
         batch = pool[len(ordered): min(limit, len(ordered) + block)]
-        screen(batch)
+        keep = config.prescreen_keep
+        if keep is not None and len(batch) > keep:
+            # coarse scores for the whole round, then the full screen of its best ``keep`` (``prescreen_keep``)
+            screen(batch, config.prescreen_alignment)
+            screen(sorted(batch, key=lambda c: (-scores[c.rank], c.rank))[:keep])
+        else:
+            screen(batch)
         ordered.extend(batch)
         timings["screen_ms"] = timings.get("screen_ms", 0.0) + (time.perf_counter() - t1) * 1e3
 

@@ -56,7 +56,8 @@ def _default_maps_dir() -> Path:
 class Settings(BaseSettings):
     """Service configuration. Every field can be set as ``RERADAR_<FIELD>`` (e.g. ``RERADAR_API_KEY``)."""
 
-    model_config = SettingsConfigDict(env_prefix="RERADAR_", extra="ignore", env_nested_delimiter="__")
+    model_config = SettingsConfigDict(env_prefix="RERADAR_", extra="ignore", env_nested_delimiter="__",
+                                      env_parse_none_str="none")  # "none" sets an optional field to None
 
     environment: Literal["development", "production"] = Field(
         default="development", description=(

@@ -179,6 +179,55 @@ def test_expansion_screens_further_only_when_no_candidate_aligns() -> None:
     assert confident.localized and confident.best.keyframe_id == 33 and len(loaded) == 10
 
 
+def test_prescreen_keeps_the_best_of_a_deep_round_for_the_full_screen() -> None:
+    """True keyframe at rank 25 of 40: with ``prescreen_keep`` the 30 candidates of the deeper round get the
+    coarse screen's scores (``prescreen_alignment``: fewer source landmarks and minimal sets), and only the best 5
+    of them the full screen; the true keyframe is among those and is found, with the full screen's score. The
+    first ``top_k`` are screened in full either way; a round no larger than ``prescreen_keep`` is screened in
+    full directly."""
+    from reradar_core.localization.screening import screen_candidates
+
+    rng = np.random.default_rng(7)
+    kfs = [_keyframe(rng, ts=i) for i in range(40)]
+    poses = np.column_stack([np.arange(40) * 50.0, np.zeros(40), np.zeros(40)])
+    T_kf_query = np.array([2.0, -1.0, np.deg2rad(60.0)])
+    query = _query_from(kfs[33], T_kf_query, rng)
+    order = [i for i in range(40) if i != 33]
+    order.insert(25, 33)
+    cfg = LocalizationConfig(top_k=10, verify_k=2, max_candidates=40, prescreen_keep=5)
+    res = localize(query, _candidates(kfs, poses, order), cfg)
+    assert res.localized and res.best is not None and res.best.keyframe_id == 33 and res.best.rank == 25
+    np.testing.assert_allclose(res.T_map_query[:2], compose(poses[33], T_kf_query)[:2], atol=0.15)
+    assert len(res.candidates) == 40 and all(c.screen_score is not None for c in res.candidates)
+
+    def scores(ranks: list[int], alignment: AlignmentConfig) -> np.ndarray:
+        cands = _candidates(kfs, poses, order)
+        return screen_candidates(query.keypoints_xy_m, query.local_descriptors,
+                                 [cands[r].screen_data(cfg.alignment) for r in ranks], alignment)
+
+    got = {c.rank: c.screen_score for c in res.candidates}
+    deep = list(range(10, 40))
+    coarse = scores(deep, cfg.prescreen_alignment)
+    kept = sorted(deep, key=lambda r: (-coarse[r - 10], r))[:5]
+    assert 25 in kept
+    full = scores(kept, cfg.alignment)
+    assert [got[r] for r in kept] == full.tolist()  # the full screen's numbers for the kept five
+    assert [got[r] for r in deep if r not in kept] == [coarse[r - 10] for r in deep if r not in kept]
+    assert [got[r] for r in range(10)] == scores(list(range(10)), cfg.alignment).tolist()
+    assert cfg.prescreen_alignment.screen_source_points == 64 and cfg.prescreen_alignment.screen_hypotheses == 1000
+
+    # a round of at most ``prescreen_keep`` candidates: the full screen only
+    small = localize(query, _candidates(kfs, poses, order), LocalizationConfig(
+        top_k=10, verify_k=2, max_candidates=40, expansion_block=10, prescreen_keep=10))
+    assert small.localized and small.best.keyframe_id == 33
+    got = {c.rank: c.screen_score for c in small.candidates}
+    assert [got[r] for r in range(20, 30)] == scores(list(range(20, 30)), cfg.alignment).tolist()
+    with pytest.raises(ConfigError):
+        LocalizationConfig(prescreen_keep=0)
+    with pytest.raises(ConfigError):
+        LocalizationConfig(prescreen_source_points=1)
+
+
 def test_a_refused_answer_screens_further() -> None:
     """A decoy at rank 0 (an alias holding 75 % of the true keyframe's landmarks, at another place) screens well
     enough to stop the score-based expansion but is refused by the floor; the true keyframe at rank 25 is then

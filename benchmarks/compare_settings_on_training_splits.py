@@ -1,0 +1,135 @@
+"""Compare ``LocalizationConfig`` variants on the TRAINING splits (never a benchmark query sequence).
+
+The pairing of ``reradar fit-confidence`` (``localization.confidence_fit.collect_split``): each split's sessions
+(its training traversals and its ``confidence`` sessions) are localized on its benchmark domain's database
+drive (the "full" map), and the queries without a map keyframe within the radius once more on the first half
+of that drive (the "half" map, where most queries have no match). Every variant localizes every query in one
+process, in alternating order (load changes hit all alike), at the shipped floor and bar. Prints, per split and
+in total: correct / wrong ``localized`` answers (SR rule: within the suite's radius and 10 degrees), revisits
+refused, answers that differ from the first variant, and the mean localize time per run.
+
+    OPENBLAS_NUM_THREADS=1 python benchmarks/compare_settings_on_training_splits.py \\
+        --splits train-target-loop,train-target-loop-open --step 2 \\
+        --variant base= --variant "pre5=prescreen_keep=5"
+    # the same with another model on every split (a cross-domain check): --model our-3-boreas
+
+A variant is ``NAME=FIELD=VALUE[,FIELD=VALUE...]`` over ``LocalizationConfig``'s fields (int, float, None,
+true / false); ``NAME=`` is the default config.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from dataclasses import fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from reradar_core.baselines.ours import Ours, prepared_to_features  # noqa: E402
+from reradar_core.benchmark.runner import BenchConfig, prepare_sequence  # noqa: E402
+from reradar_core.evaluation.metrics import has_revisit, localization_errors, localization_success  # noqa: E402
+from reradar_core.localization.confidence_fit import SPLIT_MODELS, _localizer  # noqa: E402
+from reradar_core.localization.pipeline import LocalizationConfig  # noqa: E402
+from reradar_core.sim.suites import build_suite  # noqa: E402
+from reradar_core.training.suites import TRAINING_SPLITS  # noqa: E402
+
+
+def _value(text: str) -> Any:
+    low = text.strip().lower()
+    if low == "none":
+        return None
+    if low in ("true", "false"):
+        return low == "true"
+    try:
+        return int(text)
+    except ValueError:
+        return float(text)
+
+
+def parse_variant(spec: str) -> tuple[str, LocalizationConfig]:
+    """``NAME=FIELD=VALUE,...`` -> (name, config)."""
+    name, _, body = spec.partition("=")
+    known = {f.name for f in fields(LocalizationConfig)}
+    changes: dict[str, Any] = {}
+    for item in filter(None, body.split(",")):
+        key, _, val = item.partition("=")
+        if key not in known:
+            raise SystemExit(f"unknown LocalizationConfig field {key!r} in variant {spec!r}")
+        changes[key] = _value(val)
+    return name, replace(LocalizationConfig(), **changes)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--splits", default=",".join(SPLIT_MODELS))
+    ap.add_argument("--step", type=int, default=2, help="every N-th query scan of each session")
+    ap.add_argument("--model", default="", help="one model for every split (default: each split's own)")
+    ap.add_argument("--variant", action="append", required=True)
+    args = ap.parse_args()
+    variants = dict(parse_variant(v) for v in args.variant)
+    names = list(variants)
+    totals = {n: np.zeros(5) for n in names}  # correct, wrong, refused revisits, differs, seconds
+    runs_total = 0
+    print(f"load average {os.getloadavg()[0]:.2f}", flush=True)
+    for split in filter(None, args.splits.split(",")):
+        data = build_suite(split, progress=False)
+        bench = build_suite(TRAINING_SPLITS[split], progress=False)
+        method = Ours(args.model or SPLIT_MODELS[split], localization=variants[names[0]])
+        bc = BenchConfig(radius_m=bench.radius_m, rotation_stress=False, progress=False)
+        db_seq = bench.load(bench.database[0])
+        db = prepare_sequence([method], db_seq, bc)[method.name]
+        db_poses = db_seq.mid_sweep_poses()
+        half = len(db.records) // 2
+        maps = {"full": (_localizer(method, db.records, db_poses, variants[names[0]]), db_poses),
+                "half": (_localizer(method, db.records[:half], db_poses[:half], variants[names[0]]),
+                         db_poses[:half])}
+        per = {n: np.zeros(5) for n in names}
+        runs = 0
+        for qpath in list(data.training) + list(data.confidence):
+            qseq = data.load(qpath).subset(slice(None, None, args.step))
+            q = prepare_sequence([method], qseq, bc)[method.name]
+            gt = qseq.mid_sweep_poses()
+            for map_name, (loc, poses) in maps.items():
+                revisit = has_revisit(gt[:, :2], poses[:, :2], bench.radius_m)
+                todo = np.arange(len(q.records)) if map_name == "full" else np.flatnonzero(~revisit)
+                for k, i in enumerate(todo):
+                    f = prepared_to_features(q.records[int(i)])
+                    answers = {}
+                    for n in (names if k % 2 == 0 else names[::-1]):
+                        t0 = time.perf_counter()
+                        r = loc.localize(f, variants[n])
+                        per[n][4] += time.perf_counter() - t0
+                        if r.localized:
+                            e_t, e_r = localization_errors(np.asarray(r.T_map_query)[None], gt[int(i)][None])
+                            ok = bool(localization_success(e_t, e_r, bench.radius_m)[0]) and bool(revisit[i])
+                            per[n][0 if ok else 1] += 1
+                            answers[n] = (r.best.keyframe_id if r.best else -1, ok)
+                        else:
+                            per[n][2] += bool(revisit[i]) and map_name == "full"
+                            answers[n] = None
+                    for n in names[1:]:
+                        per[n][3] += answers[n] != answers[names[0]]
+                    runs += 1
+        runs_total += runs
+        for n in names:
+            totals[n] += per[n]
+            c, w, rr, d, s = per[n]
+            print(f"{split:24} {n:12} runs {runs:5d}  correct {int(c):5d}  wrong {int(w):3d}  revisits refused "
+                  f"{int(rr):4d}  differ {int(d):3d}  localize {s / max(runs, 1) * 1e3:6.2f} ms/run", flush=True)
+    for n in names:
+        c, w, rr, d, s = totals[n]
+        print(f"{'total':24} {n:12} runs {runs_total:5d}  correct {int(c):5d}  wrong {int(w):3d}  revisits refused "
+              f"{int(rr):4d}  differ {int(d):3d}  localize {s / max(runs_total, 1) * 1e3:6.2f} ms/run")
+    print(f"load average {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
