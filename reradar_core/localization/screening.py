@@ -1,9 +1,9 @@
 """Landmark-alignment screen of many candidate keyframes at once (vectorised ``screen_alignment``).
 
-``reradar_core.matching.screen_alignment`` scores one keyframe: pair each of 128-256 query landmarks with its 5
+``reradar_core.matching.screen_alignment`` scores one keyframe: pair each of ~256 query landmarks with its 5
 most similar keyframe landmarks (local descriptors), draw 1,500 two-point minimal sets, keep those whose
 lengths agree, and count the query landmarks each hypothesis puts within ``score_threshold_m`` of a keyframe
-landmark. Per candidate that is a (128-256) x M similarity product, a top-k, ~150 surviving hypotheses and a table
+landmark. Per candidate that is a 256 x M similarity product, a top-k, ~150 surviving hypotheses and a table
 look-up - each too small for numpy to be efficient, so 20-60 candidates cost 1.5 ms each in Python overhead.
 
 Here the same steps run once for all candidates: one batched similarity product and top-k, minimal sets drawn

@@ -60,10 +60,7 @@ class AlignmentConfig:
         refine_thresholds_m: association radii of the refinement iterations (coarse to fine).
         refine_candidates: best-scoring hypotheses that are refined.
         screen_hypotheses: minimal sets drawn by ``screen_alignment`` (the cheap candidate screen).
-        screen_source_points: source landmarks paired by descriptor in the screen (every ``N // this``-th of the
-            N: 128-256 of them). 128 since session 9 (256 before): on the training splits the same correct and
-            wrong answers with each split's model, 2 more correct with a cross-domain one, 14 % less localize
-            time (docs/BENCHMARKS.md "Session 9").
+        screen_source_points: source landmarks (evenly subsampled) paired by descriptor in the screen.
         min_inliers: landmarks associated at the final radius for the pose to count.
         grid_cell_m: cell of the destination distance grid.
         ambiguity_separation_m, ambiguity_separation_rad: a hypothesis farther than this (translation, or
@@ -85,7 +82,7 @@ class AlignmentConfig:
     refine_thresholds_m: tuple[float, ...] = (2.0, 1.0, 0.75, 0.75)
     refine_candidates: int = 5
     screen_hypotheses: int = 1500
-    screen_source_points: int = 128
+    screen_source_points: int = 256
     min_inliers: int = 12
     grid_cell_m: float = 0.5
     ambiguity_separation_m: float = 5.0
