@@ -13,8 +13,8 @@ refused, answers that differ from the first variant, and the mean localize time 
         --variant base= --variant "pre5=prescreen_keep=5"
     # the same with another model on every split (a cross-domain check): --model our-3-boreas
 
-A variant is ``NAME=FIELD=VALUE[,FIELD=VALUE...]`` over ``LocalizationConfig``'s fields (int, float, None,
-true / false); ``NAME=`` is the default config.
+A variant is ``NAME=FIELD=VALUE[,FIELD=VALUE...]`` over ``LocalizationConfig``'s fields (int, float, none,
+true / false; ``alignment.FIELD`` for the nested ``AlignmentConfig``); ``NAME=`` is the default config.
 """
 
 from __future__ import annotations
@@ -57,14 +57,20 @@ def _value(text: str) -> Any:
 def parse_variant(spec: str) -> tuple[str, LocalizationConfig]:
     """``NAME=FIELD=VALUE,...`` -> (name, config)."""
     name, _, body = spec.partition("=")
-    known = {f.name for f in fields(LocalizationConfig)}
-    changes: dict[str, Any] = {}
+    config = LocalizationConfig()
     for item in filter(None, body.split(",")):
         key, _, val = item.partition("=")
-        if key not in known:
+        outer, _, inner = key.partition(".")  # ``alignment.screen_hypotheses``: a field of a nested config
+        if outer not in {f.name for f in fields(config)}:
             raise SystemExit(f"unknown LocalizationConfig field {key!r} in variant {spec!r}")
-        changes[key] = _value(val)
-    return name, replace(LocalizationConfig(), **changes)
+        if inner:
+            sub = getattr(config, outer)
+            if inner not in {f.name for f in fields(sub)}:
+                raise SystemExit(f"unknown field {key!r} in variant {spec!r}")
+            config = replace(config, **{outer: replace(sub, **{inner: _value(val)})})
+        else:
+            config = replace(config, **{outer: _value(val)})
+    return name, config
 
 
 def main() -> None:
