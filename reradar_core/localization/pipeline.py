@@ -138,10 +138,10 @@ class LocalizationConfig:
             docs/MODEL.md "Confidence"); 0 = the floor alone (the decision before the confidence).
         prescreen_keep / prescreen_source_points / prescreen_hypotheses: ``guided`` only: an expansion round
             (either expansion above) of more than ``prescreen_keep`` (5) candidates is first screened coarsely,
-            with ``prescreen_source_points`` (64, of the full screen's 256) query landmarks paired by descriptor and
-            ``prescreen_hypotheses`` (1,000, of 1,500) minimal sets (``prescreen_alignment``), and only its best
-            ``prescreen_keep`` by that score are screened in full; the others keep the coarse score as their
-            ``screen_score``. The first ``top_k`` are always screened in full. None = every candidate in full
+            pairing every (N // ``prescreen_source_points``)-th of the N query landmarks by descriptor (64; the
+            full screen 256) and drawing ``prescreen_hypotheses`` (1,000 of the full screen's 1,500) minimal sets
+            (``prescreen_alignment``), and only its best ``prescreen_keep`` by that score are screened in full;
+            the others keep the coarse score as their ``screen_score``. The first ``top_k`` are always screened in full. None = every candidate in full
             (before). Chosen on the training splits (never a benchmark query; docs/BENCHMARKS.md "Session 9"):
             most deep rounds are queries with no map keyframe near, which the full screen of ~50 candidates made
             3-4x as slow as a confident query.
