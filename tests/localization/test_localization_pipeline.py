@@ -137,10 +137,9 @@ def test_config_validation(kwargs: dict) -> None:
         LocalizationConfig(**kwargs)
 
 
-def test_expansion_screens_further_only_when_no_candidate_aligns() -> None:
-    """True keyframe at rank 25: screening 10 finds nothing good, so the rest up to ``max_candidates`` is
-    screened in one round (lazily loaded), or in blocks of ``expansion_block`` until one aligns well; with the
-    expansion disabled the query is not localized. A confident query loads only 10."""
+def _true_keyframe_at_rank_25() -> tuple[list[ScanFeatures], np.ndarray, np.ndarray, ScanFeatures, list[int]]:
+    """40 keyframes 50 m apart, a query seen from keyframe 33 and a retrieval order that ranks it 25th:
+    (keyframes, poses, T_kf_query, query, order)."""
     rng = np.random.default_rng(7)
     kfs = [_keyframe(rng, ts=i) for i in range(40)]
     poses = np.column_stack([np.arange(40) * 50.0, np.zeros(40), np.zeros(40)])
@@ -148,6 +147,14 @@ def test_expansion_screens_further_only_when_no_candidate_aligns() -> None:
     query = _query_from(kfs[33], T_kf_query, rng)
     order = [i for i in range(40) if i != 33]
     order.insert(25, 33)
+    return kfs, poses, T_kf_query, query, order
+
+
+def test_expansion_screens_further_only_when_no_candidate_aligns() -> None:
+    """True keyframe at rank 25: screening 10 finds nothing good, so the rest up to ``max_candidates`` is
+    screened in one round (lazily loaded), or in blocks of ``expansion_block`` until one aligns well; with the
+    expansion disabled the query is not localized. A confident query loads only 10."""
+    kfs, poses, T_kf_query, query, order = _true_keyframe_at_rank_25()
     loaded: list[int] = []
 
     def lazy(order_: list[int]) -> list[Candidate]:
@@ -187,13 +194,7 @@ def test_prescreen_keeps_the_best_of_a_deep_round_for_the_full_screen() -> None:
     full directly."""
     from reradar_core.localization.screening import screen_candidates
 
-    rng = np.random.default_rng(7)
-    kfs = [_keyframe(rng, ts=i) for i in range(40)]
-    poses = np.column_stack([np.arange(40) * 50.0, np.zeros(40), np.zeros(40)])
-    T_kf_query = np.array([2.0, -1.0, np.deg2rad(60.0)])
-    query = _query_from(kfs[33], T_kf_query, rng)
-    order = [i for i in range(40) if i != 33]
-    order.insert(25, 33)
+    kfs, poses, T_kf_query, query, order = _true_keyframe_at_rank_25()
     cfg = LocalizationConfig(top_k=10, verify_k=2, max_candidates=40, prescreen_keep=5)
     res = localize(query, _candidates(kfs, poses, order), cfg)
     assert res.localized and res.best is not None and res.best.keyframe_id == 33 and res.best.rank == 25
