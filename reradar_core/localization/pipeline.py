@@ -141,10 +141,10 @@ class LocalizationConfig:
             pairing every (N // ``prescreen_source_points``)-th of the N query landmarks by descriptor (64; the
             full screen 256) and drawing ``prescreen_hypotheses`` (1,000 of the full screen's 1,500) minimal sets
             (``prescreen_alignment``), and only its best ``prescreen_keep`` by that score are screened in full;
-            the others keep the coarse score as their ``screen_score``. The first ``top_k`` are always screened in full. None = every candidate in full
-            (before). Chosen on the training splits (never a benchmark query; docs/BENCHMARKS.md "Session 9"):
-            most deep rounds are queries with no map keyframe near, which the full screen of ~50 candidates made
-            3-4x as slow as a confident query.
+            the others keep the coarse score as their ``screen_score``. The first ``top_k`` are always screened
+            in full. None = every candidate in full (before). Chosen on the training splits (never a benchmark
+            query; docs/BENCHMARKS.md "Session 9"): most deep rounds are queries with no map keyframe near, which
+            the full screen of ~50 candidates made 3-4x as slow as a confident query.
     """
 
     top_k: int = 10

@@ -193,7 +193,7 @@ class CandidateResult(_Model):
     screen_score: float | None = Field(default=None, description=(
         "Fraction of query landmarks aligned by the cheap landmark-alignment screen, 0-1 (null if not screened); "
         "for a candidate of a deeper search round outside that round's best prescreen_keep (5), the coarse "
-        "prescreen's fraction (64 query landmarks paired, 1,000 minimal sets)."))
+        "prescreen's fraction (every (N // 64)-th of the N query landmarks paired, 1,000 minimal sets)."))
     reason: str | None = Field(default=None, description=(
         "Why this candidate gave no pose: screened_out (not among the best verify_k), too_few_inliers, ..."))
     relative_pose: Pose2D | None = Field(default=None, description="Query pose in the keyframe's sensor frame.")
