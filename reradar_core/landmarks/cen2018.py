@@ -15,8 +15,10 @@ Per azimuth (row) of the power s in [0, 1]:
 5. keep range bins j >= min_range with y > z_q sigma_q; one keypoint at the middle element (index len // 2)
    of each contiguous run of kept bins.
 
-Everything is vectorised over the whole scan (one ``cv2.sepFilter2D`` call for the Gaussian, runs found with
-``np.diff`` on the kept mask).
+With numba (``reradar_core.jit``) the compiled detector runs (``cen2018_kernels``): p and y only where they
+can decide, the same keypoints up to float32 rounding at the threshold, ~2.5x faster. Without it (or with
+``RERADAR_JIT=0``) everything is vectorised over the whole scan (one ``cv2.filter2D`` call for the Gaussian,
+runs found with ``np.diff`` on the kept mask).
 """
 
 from __future__ import annotations
@@ -35,6 +37,8 @@ from reradar_core.errors import ConfigError
 from reradar_core.geometry.cartesian import polar_to_metric
 from reradar_core.io.presets import get_preset
 from reradar_core.io.scan import RadarScan
+from reradar_core.jit import jit_enabled
+from reradar_core.landmarks.cen2018_kernels import certain_band, detect_rows
 
 __all__ = ["Cen2018Config", "Landmarks", "detect_landmarks", "cen2018_response"]
 
@@ -322,32 +326,14 @@ def detect_landmarks(scan: RadarScan, config: Cen2018Config | None = None,
         valid = width = n_bins
 
     s = np.ascontiguousarray(scan.power, dtype=np.float32)
-    with _workspace(s.shape) as ws:
-        y = _leading(ws.y, n_az, width)
-        sigma_q = _response_into(s, config, ws, width, y)
-        kept = _leading(ws.kept, n_az, valid)
-        np.greater(y[:, :valid] if valid < width else y, config.z_q, out=kept)
-        kept[:, :min_range] = False
-        kept[~scan.valid] = False
-        # rows where a run of detections reaches the last computed bin may continue past it: those rows again,
-        # whole (their row statistics and every bin are the same numbers as in the whole scan's pass)
-        longer = np.flatnonzero(kept[:, valid - 1]) if valid < n_bins else np.zeros(0, np.int64)
-        kept[longer] = False
-        row, col = _runs(kept, _leading(ws.padded, n_az, valid + 2), ws.edges[: n_az * (valid + 2) - 1],
-                         ws.edge_mask[: n_az * (valid + 2) - 1])
-        strength = (y[row, col] * sigma_q[row]).astype(np.float32)
-    if len(longer):
-        sub = s[longer]
-        wx = _Workspace(sub.shape)
-        sigma_x = _response_into(sub, config, wx)
-        kept_x = np.greater(wx.y, config.z_q, out=wx.kept)
-        kept_x[:, :min_range] = False  # (invalid rows were never among them)
-        row_x, col_x = _runs(kept_x, wx.padded, wx.edges, wx.edge_mask)
-        strength_x = (wx.y[row_x, col_x] * sigma_x[row_x]).astype(np.float32)
-        order = np.argsort(np.concatenate([row, longer[row_x]]), kind="stable")  # row-major again
-        row = np.concatenate([row, longer[row_x]])[order]
-        col = np.concatenate([col, col_x])[order]
-        strength = np.concatenate([strength, strength_x])[order]
+    if jit_enabled() and n_az > 0 and n_bins > 0:
+        # the compiled detector: y only where it decides (``cen2018_kernels``; equal up to float32 rounding)
+        band = certain_band(float(config.z_q))
+        row, col, strength = detect_rows(s, np.ascontiguousarray(scan.valid, dtype=bool),
+                                         _gaussian_kernel(config.sigma_bins), float(config.z_q), min_range,
+                                         valid, _SIGMA_Q_FALLBACK, band[0], band[1])
+    else:
+        row, col, strength = _detect_vectorised(s, scan.valid, config, min_range, valid, width)
     if config.max_keypoints is not None and row.size > config.max_keypoints:
         order = np.argsort(-strength, kind="stable")[: config.max_keypoints]
         row, col, strength = row[order], col[order], strength[order]
@@ -367,3 +353,37 @@ def detect_landmarks(scan: RadarScan, config: Cen2018Config | None = None,
         xy_m=xy.reshape(-1, 2),
         strength=strength,
     )
+
+
+def _detect_vectorised(s: np.ndarray, valid_rows: np.ndarray, config: Cen2018Config, min_range: int, valid: int,
+                       width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows, middle bins and strengths of the runs (row-major) with the vectorised response: bins up to
+    ``width`` computed, ``min_range:valid`` tested, whole rows again where a run reaches ``valid - 1``."""
+    n_az, n_bins = s.shape
+    with _workspace(s.shape) as ws:
+        y = _leading(ws.y, n_az, width)
+        sigma_q = _response_into(s, config, ws, width, y)
+        kept = _leading(ws.kept, n_az, valid)
+        np.greater(y[:, :valid] if valid < width else y, config.z_q, out=kept)
+        kept[:, :min_range] = False
+        kept[~valid_rows] = False
+        # rows where a run of detections reaches the last computed bin may continue past it: those rows again,
+        # whole (their row statistics and every bin are the same numbers as in the whole scan's pass)
+        longer = np.flatnonzero(kept[:, valid - 1]) if valid < n_bins else np.zeros(0, np.int64)
+        kept[longer] = False
+        row, col = _runs(kept, _leading(ws.padded, n_az, valid + 2), ws.edges[: n_az * (valid + 2) - 1],
+                         ws.edge_mask[: n_az * (valid + 2) - 1])
+        strength = (y[row, col] * sigma_q[row]).astype(np.float32)
+    if len(longer):
+        sub = s[longer]
+        wx = _Workspace(sub.shape)
+        sigma_x = _response_into(sub, config, wx)
+        kept_x = np.greater(wx.y, config.z_q, out=wx.kept)
+        kept_x[:, :min_range] = False  # (invalid rows were never among them)
+        row_x, col_x = _runs(kept_x, wx.padded, wx.edges, wx.edge_mask)
+        strength_x = (wx.y[row_x, col_x] * sigma_x[row_x]).astype(np.float32)
+        order = np.argsort(np.concatenate([row, longer[row_x]]), kind="stable")  # row-major again
+        row = np.concatenate([row, longer[row_x]])[order]
+        col = np.concatenate([col, col_x])[order]
+        strength = np.concatenate([strength, strength_x])[order]
+    return row, col, strength

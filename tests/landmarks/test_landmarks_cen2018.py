@@ -14,6 +14,12 @@ from reradar_core.landmarks import Cen2018Config, cen2018_response, detect_landm
 N_AZ, N_BINS = 32, 3768  # Oxford geometry, fewer azimuths to keep the tests fast
 
 
+@pytest.fixture(autouse=True, params=["1", "0"], ids=["compiled", "vectorised"])
+def _detector_path(request, monkeypatch):
+    """Every test runs with the compiled detector (where numba is installed) and the vectorised one."""
+    monkeypatch.setenv("RERADAR_JIT", request.param)
+
+
 def _noise_scan(seed: int = 0, n_az: int = N_AZ, n_bins: int = N_BINS, preset: str = "oxford") -> RadarScan:
     """A speckle-like noise floor (mean ~0.05) like the real Oxford scans (mean power 0.045)."""
     rng = np.random.default_rng(seed)
