@@ -8,8 +8,8 @@ Without numba, or with ``RERADAR_JIT=0`` in the environment, the numpy path runs
 
 One kernel is equal only up to float32 rounding: the Cen 2018 detector (``landmarks.cen2018_kernels``), whose
 vectorised path rests on OpenCV's convolution and exp, which no compiled loop reproduces bit for bit; a keypoint
-differs only where the response lies within ~1e-6 of the threshold (16 of 963,359 on simulated scans, none of
-35,093 on the real Oxford scans).
+differs only where the response lies within ~1e-6 of the threshold (24 of 907,254 on simulated scans, none of
+35,093 on the real Oxford scans: ``benchmarks/compare_detectors.py``).
 
 Compiled code is cached on disk (``cache=True``: next to the sources, or in ``NUMBA_CACHE_DIR`` - the image
 sets ``/data/cache/numba`` - or the user's cache folder when the sources are read-only), so only the first

@@ -16,7 +16,7 @@ Per azimuth (row) of the power s in [0, 1]:
    of each contiguous run of kept bins.
 
 With numba (``reradar_core.jit``) the compiled detector runs (``cen2018_kernels``): p and y only where they
-can decide, the same keypoints up to float32 rounding at the threshold, ~2.5x faster. Without it (or with
+can decide, the same keypoints up to float32 rounding at the threshold, 2.0-2.3x faster. Without it (or with
 ``RERADAR_JIT=0``) everything is vectorised over the whole scan (one ``cv2.filter2D`` call for the Gaussian,
 runs found with ``np.diff`` on the kept mask).
 """

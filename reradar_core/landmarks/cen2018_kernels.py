@@ -7,19 +7,21 @@ function of the bin's own q / sigma_q = x and of p / sigma_q = p only, with
     y = x - d exp(-d^2 / 2) - p exp(-p^2 / 2),   d = x - p,
 
 and both subtracted terms are bounded (|t exp(-t^2 / 2)| <= exp(-1/2)); y is also non-decreasing in x. So, over
-every possible p, y > z_q is impossible below some x_lo(z_q) and certain above some x_hi(z_q) (z_q = 3: 2.40 and
-3.70; ``certain_band``, computed numerically with a 0.01 safety margin). Per azimuth this kernel computes the
-row statistics, x for the bins in use, and p and y only for bins with x_lo < x < x_hi (~4 % of the bins of a
-simulated MulRan scan) and at the middle of each run (the keypoint's strength): the same keypoints, ~2.5x faster.
+every possible p, y > z_q is impossible below some x_lo(z_q) and certain above some x_hi(z_q) (z_q = 3: 2.39 and
+3.71 with the margin; ``certain_band``, computed numerically with a 0.01 safety margin). Per azimuth this kernel computes the
+row statistics, x for the bins in use, and p and y only for bins with x_lo < x < x_hi (3-4 % of the bins of the
+simulated and the real Oxford scans) and at the middle of each run (the keypoint's strength): the same keypoints,
+2.0-2.3x faster.
 
 Not the same numbers to the last bit as the vectorised path: OpenCV's convolution and ``cv2.exp`` have their own
 summation orders and exp approximation, which no compiled loop reproduces. Here p is summed in float32 in a fixed
 order (pairs of symmetric taps, four accumulators), exp is the C library's, the row mean is summed in float64
 (exact for 8-bit power levels in any order) and the negative half's sum of squares in float64 with re-associated
 (vectorised) additions; so y differs from the vectorised path's by float32 rounding (~1e-6 relative), and a
-keypoint differs only where y lies that close to the threshold: 2 of 387,492 keypoints on 120 simulated MulRan,
-Boreas and OORD scans (docs/BENCHMARKS.md, session 10). Results are deterministic on a machine; the float64 sum of
-squares may round differently on a CPU with other vector widths (1e-16 relative, below float32's resolution).
+keypoint differs only where y lies that close to the threshold: 24 of 907,254 keypoints on 320 simulated MulRan,
+Boreas and OORD scans, none of 35,093 on the real Oxford scans (``benchmarks/compare_detectors.py``). Results
+are deterministic on a machine; the float64 sum of squares may round differently on a CPU with other vector
+widths (1e-16 relative, below float32's resolution).
 """
 
 from __future__ import annotations
