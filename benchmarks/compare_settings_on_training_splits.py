@@ -1,6 +1,6 @@
 """Compare ``LocalizationConfig`` variants on the TRAINING splits (never a benchmark query sequence).
 
-The pairing of ``reradar fit-confidence`` (``localization.confidence_fit.collect_split``): each split's sessions
+The pairing of ``reradar fit-confidence`` (``localization.confidence_fit.split_runs``): each split's sessions
 (its training traversals and its ``confidence`` sessions) are localized on its benchmark domain's database
 drive (the "full" map), and the queries without a map keyframe within the radius once more on the first half
 of that drive (the "half" map, where most queries have no match). Every variant localizes every query in one
@@ -33,13 +33,10 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from reradar_core.baselines.ours import Ours, prepared_to_features  # noqa: E402
-from reradar_core.benchmark.runner import BenchConfig, prepare_sequence  # noqa: E402
-from reradar_core.evaluation.metrics import has_revisit, localization_errors, localization_success  # noqa: E402
-from reradar_core.localization.confidence_fit import SPLIT_MODELS, _localizer  # noqa: E402
+from reradar_core.baselines.ours import Ours  # noqa: E402
+from reradar_core.evaluation.metrics import localization_errors, localization_success  # noqa: E402
+from reradar_core.localization.confidence_fit import SPLIT_MODELS, split_runs  # noqa: E402
 from reradar_core.localization.pipeline import LocalizationConfig  # noqa: E402
-from reradar_core.sim.suites import build_suite  # noqa: E402
-from reradar_core.training.suites import TRAINING_SPLITS  # noqa: E402
 
 
 def _value(text: str) -> Any:
@@ -86,44 +83,27 @@ def main() -> None:
     runs_total = 0
     print(f"load average {os.getloadavg()[0]:.2f}", flush=True)
     for split in filter(None, args.splits.split(",")):
-        data = build_suite(split, progress=False)
-        bench = build_suite(TRAINING_SPLITS[split], progress=False)
         method = Ours(args.model or SPLIT_MODELS[split], localization=variants[names[0]])
-        bc = BenchConfig(radius_m=bench.radius_m, rotation_stress=False, progress=False)
-        db_seq = bench.load(bench.database[0])
-        db = prepare_sequence([method], db_seq, bc)[method.name]
-        db_poses = db_seq.mid_sweep_poses()
-        half = len(db.records) // 2
-        maps = {"full": (_localizer(method, db.records, db_poses, variants[names[0]]), db_poses),
-                "half": (_localizer(method, db.records[:half], db_poses[:half], variants[names[0]]),
-                         db_poses[:half])}
+        radius, split_run_iter = split_runs(split, method, variants[names[0]], args.step, progress=False)
         per = {n: np.zeros(5) for n in names}
         runs = 0
-        for qpath in list(data.training) + list(data.confidence):
-            qseq = data.load(qpath).subset(slice(None, None, args.step))
-            q = prepare_sequence([method], qseq, bc)[method.name]
-            gt = qseq.mid_sweep_poses()
-            for map_name, (loc, poses) in maps.items():
-                revisit = has_revisit(gt[:, :2], poses[:, :2], bench.radius_m)
-                todo = np.arange(len(q.records)) if map_name == "full" else np.flatnonzero(~revisit)
-                for k, i in enumerate(todo):
-                    f = prepared_to_features(q.records[int(i)])
-                    answers = {}
-                    for n in (names if k % 2 == 0 else names[::-1]):
-                        t0 = time.perf_counter()
-                        r = loc.localize(f, variants[n])
-                        per[n][4] += time.perf_counter() - t0
-                        if r.localized:
-                            e_t, e_r = localization_errors(np.asarray(r.T_map_query)[None], gt[int(i)][None])
-                            ok = bool(localization_success(e_t, e_r, bench.radius_m)[0]) and bool(revisit[i])
-                            per[n][0 if ok else 1] += 1
-                            answers[n] = (r.best.keyframe_id if r.best else -1, ok)
-                        else:
-                            per[n][2] += bool(revisit[i]) and map_name == "full"
-                            answers[n] = None
-                    for n in names[1:]:
-                        per[n][3] += answers[n] != answers[names[0]]
-                    runs += 1
+        for k, run in enumerate(split_run_iter):
+            answers = {}
+            for n in (names if k % 2 == 0 else names[::-1]):
+                t0 = time.perf_counter()
+                r = run.localizer.localize(run.features, variants[n])
+                per[n][4] += time.perf_counter() - t0
+                if r.localized:
+                    e_t, e_r = localization_errors(np.asarray(r.T_map_query)[None], run.T_map_query[None])
+                    ok = bool(localization_success(e_t, e_r, radius)[0]) and run.revisit
+                    per[n][0 if ok else 1] += 1
+                    answers[n] = (r.best.keyframe_id if r.best else -1, ok)
+                else:
+                    per[n][2] += run.revisit and run.map_name == "full"
+                    answers[n] = None
+            for n in names[1:]:
+                per[n][3] += answers[n] != answers[names[0]]
+            runs += 1
         runs_total += runs
         for n in names:
             totals[n] += per[n]

@@ -25,6 +25,7 @@ is by position).
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
@@ -44,7 +45,7 @@ from reradar_core.localization.confidence import (
     reliability_bins,
 )
 
-__all__ = ["SPLIT_MODELS", "FitData", "collect_split", "fit_from_data", "plot_reliability"]
+__all__ = ["SPLIT_MODELS", "FitData", "SplitRun", "collect_split", "fit_from_data", "plot_reliability", "split_runs"]
 
 logger = logging.getLogger(__name__)
 
@@ -116,6 +117,85 @@ def _localizer(method: Any, records: list[Any], poses: np.ndarray, config: Any) 
     return Localizer(index, keyframes, config)
 
 
+@dataclass
+class SplitRun:
+    """One localization of the pairing (module docstring): a query of a session on the full or the half map.
+
+    Attributes:
+        features: the query's ``ScanFeatures``.
+        T_map_query: (3,) float64 ground truth at the query's mid-sweep time (x m, y m, yaw rad).
+        revisit: the map has a keyframe within the suite's radius of the query.
+        map_name: ``full`` (the whole database drive) or ``half`` (its first half; no-match queries only).
+        localizer: the ``Localizer`` of that map.
+        index: the query's position in its (subsampled) session; session_size: the session's length.
+        unseen: the session is a ``confidence`` session (no weight trained on it).
+    """
+
+    features: Any
+    T_map_query: np.ndarray
+    revisit: bool
+    map_name: str
+    localizer: Any
+    index: int
+    session_size: int
+    unseen: bool
+
+
+def split_runs(split: str, method: Any, config: Any, query_step: int = 1,
+               progress: bool = True) -> tuple[float, Iterator[SplitRun]]:
+    """The pairing's localizations of one split, in a fixed order: for each session (training traversals, then
+    ``confidence`` sessions), every query on the full map, then the no-match queries on the half map.
+
+    Args:
+        split: a key of ``SPLIT_MODELS`` (``TRAINING_SPLITS`` names its benchmark domain).
+        method: the ``Ours`` method whose features and localizers are used.
+        config: the ``LocalizationConfig`` the localizers are built with.
+        query_step: use every ``query_step``-th query scan (1 = all).
+        progress: progress bars.
+
+    Returns:
+        The suite's radius (metres) and the runs (a generator: features are computed session by session).
+    """
+    from reradar_core.benchmark.runner import BenchConfig, prepare_sequence
+    from reradar_core.sim.suites import build_suite
+    from reradar_core.training.suites import TRAINING_SPLITS
+
+    data = build_suite(split, progress=progress)
+    bench_name = TRAINING_SPLITS[split]
+    assert bench_name is not None
+    bench = build_suite(bench_name, progress=progress)
+    radius = bench.radius_m
+    bc = BenchConfig(radius_m=radius, rotation_stress=False, progress=progress)
+
+    def runs() -> Iterator[SplitRun]:
+        from tqdm import tqdm
+
+        from reradar_core.baselines.ours import prepared_to_features
+
+        db_seq = bench.load(bench.database[0])
+        db = prepare_sequence([method], db_seq, bc)[method.name]
+        db_poses = db_seq.mid_sweep_poses()  # keyframe poses at mid-sweep, as in a map (docs/CONVENTIONS.md)
+        half = len(db.records) // 2
+        maps = {"full": (_localizer(method, db.records, db_poses, config), db_poses),
+                "half": (_localizer(method, db.records[:half], db_poses[:half], config), db_poses[:half])}
+        sessions = [(p, False) for p in data.training] + [(p, True) for p in data.confidence]
+        for qpath, unseen in sessions:
+            qseq = data.load(qpath).subset(slice(None, None, query_step))
+            q = prepare_sequence([method], qseq, bc)[method.name]
+            gt = qseq.mid_sweep_poses()
+            n = len(q.records)
+            for map_name, (loc, poses) in maps.items():
+                revisit = has_revisit(gt, poses, radius)
+                # the half map serves the no-match queries only (a revisit there repeats the full map's)
+                todo = np.arange(n) if map_name == "full" else np.flatnonzero(~revisit)
+                for i in tqdm(todo, desc=f"{split}/{qseq.name} on the {map_name} map", disable=not progress,
+                              leave=False):
+                    yield SplitRun(prepared_to_features(q.records[int(i)]), gt[int(i)], bool(revisit[i]), map_name,
+                                   loc, int(i), n, unseen)
+
+    return radius, runs()
+
+
 def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progress: bool = True,
                   min_inlier_ratio: float = PROBE_FLOOR) -> FitData:
     """Localize the split's sessions on its domain's map and label the answers (module docstring).
@@ -131,54 +211,25 @@ def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progre
         min_inlier_ratio: the aligned-landmark floor of the runs; the lowest floor the fit may choose
             (``PROBE_FLOOR``): a higher floor is applied afterwards through the ``aligned_ratio`` cue.
     """
-    from tqdm import tqdm
-
-    from reradar_core.baselines.ours import Ours, prepared_to_features
-    from reradar_core.benchmark.runner import BenchConfig, prepare_sequence
+    from reradar_core.baselines.ours import Ours
     from reradar_core.localization.pipeline import LocalizationConfig
-    from reradar_core.sim.suites import build_suite
-    from reradar_core.training.suites import TRAINING_SPLITS
 
-    data = build_suite(split, progress=progress)
-    bench_name = TRAINING_SPLITS[split]
-    assert bench_name is not None
-    bench = build_suite(bench_name, progress=progress)
-    radius = bench.radius_m
     # the floor alone, at its lowest candidate value: every answer is labelled
     config = replace(LocalizationConfig(), min_confidence=0.0, min_inlier_ratio=min_inlier_ratio)
     method = Ours(SPLIT_MODELS[split], localization=config)
-    bc = BenchConfig(radius_m=radius, rotation_stress=False, progress=progress)
-    db_seq = bench.load(bench.database[0])
-    db = prepare_sequence([method], db_seq, bc)[method.name]
-    db_poses = db_seq.mid_sweep_poses()  # keyframe poses at mid-sweep, as in a map (docs/CONVENTIONS.md)
-    half = len(db.records) // 2
-    maps = {"full": (_localizer(method, db.records, db_poses, config), db_poses),
-            "half": (_localizer(method, db.records[:half], db_poses[:half], config), db_poses[:half])}
+    radius, runs = split_runs(split, method, config, query_step, progress)
     rows: list[tuple[np.ndarray, bool, bool, bool, bool, bool, bool]] = []
-    sessions = [(p, False) for p in data.training] + [(p, True) for p in data.confidence]
-    for qpath, unseen in sessions:
-        qseq = data.load(qpath).subset(slice(None, None, query_step))
-        q = prepare_sequence([method], qseq, bc)[method.name]
-        gt = qseq.mid_sweep_poses()
-        n = len(q.records)
-        picks = np.arange(n)
-        for map_name, (loc, poses) in maps.items():
-            revisit = has_revisit(gt[picks], poses, radius)
-            # the half map serves the no-match queries only (a revisit there repeats the full map's)
-            todo = picks if map_name == "full" else picks[~revisit]
-            rev = dict(zip(picks.tolist(), revisit.tolist(), strict=True))
-            for i in tqdm(todo, desc=f"{split}/{qseq.name} on the {map_name} map", disable=not progress,
-                          leave=False):
-                res = loc.localize(prepared_to_features(q.records[i]), config)
-                cues = cues_from_result(res, PLACE_RADIUS_M, TOP_N)
-                ok = False
-                if cues is not None:
-                    assert res.best is not None and res.best.T_keyframe_query is not None
-                    est = np.asarray(compose(res.best.T_map_keyframe, res.best.T_keyframe_query))[None]
-                    e_t, e_r = localization_errors(est, gt[i][None])
-                    ok = bool(localization_success(e_t, e_r, radius)[0]) and rev[int(i)]
-                rows.append((cues.as_array() if cues is not None else np.zeros(len(CUE_NAMES)),
-                             cues is not None, ok, res.localized, rev[int(i)], i >= (1.0 - holdout) * n, unseen))
+    for run in runs:
+        res = run.localizer.localize(run.features, config)
+        cues = cues_from_result(res, PLACE_RADIUS_M, TOP_N)
+        ok = False
+        if cues is not None:
+            assert res.best is not None and res.best.T_keyframe_query is not None
+            est = np.asarray(compose(res.best.T_map_keyframe, res.best.T_keyframe_query))[None]
+            e_t, e_r = localization_errors(est, run.T_map_query[None])
+            ok = bool(localization_success(e_t, e_r, radius)[0]) and run.revisit
+        rows.append((cues.as_array() if cues is not None else np.zeros(len(CUE_NAMES)), cues is not None, ok,
+                     res.localized, run.revisit, run.index >= (1.0 - holdout) * run.session_size, run.unseen))
     m = len(rows)
     cols = list(zip(*rows, strict=True)) if rows else [()] * 7
     return FitData(np.array(cols[0], np.float64).reshape(m, len(CUE_NAMES)),
