@@ -31,7 +31,7 @@ logger = logging.getLogger(__name__)
 COMPLETE_MARKER = ".reradar_complete"
 #: Bumped whenever the world or sensor model changes what is rendered: cached sequences rendered by another
 #: version are re-rendered instead of being reused.
-SIM_VERSION = "4"
+SIM_VERSION = "5"
 _STARTED = ".reradar_render_version"
 
 

@@ -73,14 +73,26 @@ def test_attitude_changes_the_ground_only_with_the_option(road):
     assert not np.array_equal(a.power, c.power)
 
 
-def test_no_suite_uses_the_v5_options_yet():
-    """The hard-suite ablation adopted none of them (docs/SIMULATOR.md): every suite keeps v4's world, traffic and
-    sensor, so every render stays byte-identical to v4; ``suite_profile`` is the profile itself."""
+def test_v5_changes_only_the_kaist_like_world():
+    """Simulator v5 adopted one override (docs/SIMULATOR.md, "Simulator v5"): ``loop-sim`` and its training split
+    ``train-target-loop`` (same world, seed 11) render the ``urban`` profile with a continuous facade on 40 % of the
+    tile sides instead of 80 %. Every other suite keeps v4's world, traffic and sensor (byte-identical renders);
+    for them ``suite_profile`` is the profile itself."""
+    kaist = {"loop-sim", "train-target-loop"}
     for name, s in SUITES.items():
-        assert s.profile_overrides == () and s.sensor_overrides == (), name
+        assert s.sensor_overrides == (), name
         assert s.traffic_lanes is None and s.median_m == 0.0 and s.ego_clearance_m is None, name
-        if s.profile != "mixed":
-            assert suite_profile(s) is PROFILES[s.profile]
+        if name in kaist:
+            assert s.profile_overrides == (("frontage_prob", 0.4),), name
+            prof = suite_profile(s)
+            assert prof.name == "urban" and prof.frontage_prob == 0.4
+            assert prof.frontage_prob != PROFILES["urban"].frontage_prob
+            assert replace(prof, frontage_prob=PROFILES["urban"].frontage_prob) == PROFILES["urban"]
+        else:
+            assert s.profile_overrides == (), name
+            if s.profile != "mixed":
+                assert suite_profile(s) is PROFILES[s.profile]
+    assert SUITES["loop-sim"].world_seed == SUITES["train-target-loop"].world_seed
     hard = replace(SUITES["loop-sim-hard"], profile_overrides=(("road_half_width_m", 14.0),))
     prof = suite_profile(hard)
     assert prof.name == "urban-open" and prof.road_half_width_m == 14.0  # same name: same tile seeds
