@@ -3,12 +3,19 @@ byte with an earlier simulator version's renders in the cache (default v4): the 
 left those suites as they were (docs/SIMULATOR.md).
 
     RERADAR_CACHE_DIR=... python benchmarks/verify_sim_identity.py --against 4 loop-sim offroad-sim train-source
+
+With ``--carry-over``, every suite whose compared scans are all identical is taken over into the current
+version's cache instead of being rendered again: each complete sequence folder of the old version is copied as
+hard links (no extra disk; the old cache is not modified), and its completion marker, render-version file and
+``reradar_sim.json`` are written anew for the current version, the latter with a ``carried_over_from`` note.
+A suite with any difference, or a sequence already complete in the current version, is left alone.
 """
 
 from __future__ import annotations
 
 import argparse
 import hashlib
+import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -17,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from reradar_core.paths import cache_dir  # noqa: E402
 from reradar_core.sim.suites import build_suite  # noqa: E402
+from reradar_core.sim.writer import SIM_VERSION, carry_over  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -24,19 +32,31 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("suites", nargs="+")
     ap.add_argument("--against", default="4", help="simulator version of the reference renders")
     ap.add_argument("--trajectory-dir", default=None, help="real Boreas trajectories (Boreas suites)")
+    ap.add_argument("--carry-over", action="store_true",
+                    help="take identical suites over into the current version's cache (hard links)")
     a = ap.parse_args(argv)
     bad = n = 0
     for name in a.suites:
         tmp = Path(tempfile.mkdtemp())
         data = build_suite(name, root=tmp, progress=False, limit=2, trajectory_dir=a.trajectory_dir)
-        for out in data.database + data.queries + data.training:
+        suite_bad = 0
+        outs = data.database + data.queries + data.training + data.confidence
+        for out in outs:
             ref = cache_dir("sim", f"v{a.against}", name) / out.name
             for p in sorted(out.rglob("*.png")):
                 q = ref / p.relative_to(out)
                 same = q.is_file() and hashlib.md5(q.read_bytes()).digest() == hashlib.md5(p.read_bytes()).digest()
-                bad += not same
+                suite_bad += not same
                 n += 1
                 print(name, out.name, p.name, "identical" if same else "DIFFERENT", flush=True)
+        bad += suite_bad
+        shutil.rmtree(tmp, ignore_errors=True)
+        if a.carry_over and not suite_bad and SIM_VERSION != a.against:
+            for out in outs:
+                src = cache_dir("sim", f"v{a.against}", name) / out.name
+                dst = cache_dir("sim", f"v{SIM_VERSION}", name) / out.name
+                done = carry_over(src, dst, a.against)
+                print(name, out.name, f"carried over v{a.against} -> v{SIM_VERSION}" if done else "not carried over")
     print(f"{n} scans compared, differences: {bad}")
     return int(bad > 0)
 

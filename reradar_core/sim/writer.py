@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import shutil
 import time
 from pathlib import Path
 
@@ -23,7 +25,7 @@ from reradar_core.io.scan import encode_navtech_png_bytes
 from reradar_core.sim.sensor import SensorConfig, render_scan, scan_seed
 from reradar_core.sim.traversal import Traversal
 
-__all__ = ["COMPLETE_MARKER", "SIM_VERSION", "render_sequence", "is_complete"]
+__all__ = ["COMPLETE_MARKER", "SIM_VERSION", "carry_over", "render_sequence", "is_complete"]
 
 logger = logging.getLogger(__name__)
 
@@ -39,6 +41,43 @@ def is_complete(root: str | Path) -> bool:
     """True when ``root`` holds a finished render made by this simulator version."""
     marker = Path(root) / COMPLETE_MARKER
     return marker.is_file() and marker.read_text().split()[:1] == [SIM_VERSION]
+
+
+def _replace_file(path: Path, text: str) -> None:
+    """Write ``path`` as a new file (a hard-linked original keeps its content)."""
+    if path.exists():
+        path.unlink()
+    path.write_text(text)
+
+
+def carry_over(src: Path, dst: Path, old_version: str) -> bool:
+    """Take a render of an earlier simulator version over as this version's, without rendering it again.
+
+    For a sequence that this version renders byte-identically (``benchmarks/verify_sim_identity.py`` checks it):
+    the complete folder ``src`` (made by ``old_version``) is copied to ``dst`` as hard links (no extra disk),
+    then its completion marker, render-version file and ``reradar_sim.json`` are written anew in ``dst`` as new
+    files, so ``src`` keeps its own; the JSON gets a ``carried_over_from`` note. The marker is written last.
+
+    Returns:
+        True when carried over; False (nothing changed) when ``src`` is not a complete render of
+        ``old_version`` or ``dst`` already is a complete render of this version.
+    """
+    marker = src / COMPLETE_MARKER
+    if not marker.is_file() or marker.read_text().split()[:1] != [old_version] or is_complete(dst):
+        return False
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(src, dst, copy_function=os.link)
+    count = marker.read_text().split()[1:]
+    meta_path = dst / "reradar_sim.json"
+    if meta_path.is_file():
+        meta = json.loads(meta_path.read_text())
+        meta["sim_version"] = SIM_VERSION
+        meta["carried_over_from"] = f"{old_version} (byte-identical render, benchmarks/verify_sim_identity.py)"
+        _replace_file(meta_path, json.dumps(meta, indent=2))
+    _replace_file(dst / _STARTED, SIM_VERSION + "\n")
+    _replace_file(dst / COMPLETE_MARKER, " ".join([SIM_VERSION, *count]) + "\n")  # last: the folder is complete
+    return True
 
 
 def _clear_stale(out: Path, layout: str) -> None:

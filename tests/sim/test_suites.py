@@ -217,3 +217,33 @@ def test_road_files_are_read_on_their_own_terms(tmp_path):
     np.testing.assert_allclose(load_road_xy(relative, "s")[:, 0], [4.0, 5.0])  # in time order
     with pytest.raises(PoseFileError, match="ambiguous"):
         load_road_xy(relative)
+
+
+def test_carry_over_takes_a_render_to_the_current_version_and_leaves_the_old_one(tmp_path, monkeypatch):
+    """A byte-identical earlier render becomes this version's by hard links; the old folder keeps its own marker,
+    render-version file and metadata (known answer: marker ``<version> <count>``)."""
+    import json
+
+    from reradar_core.sim import writer
+
+    monkeypatch.setattr(writer, "SIM_VERSION", "new")
+    src, dst = tmp_path / "vold" / "seq", tmp_path / "vnew" / "seq"
+    (src / "radar").mkdir(parents=True)
+    (src / "radar" / "1.png").write_bytes(b"scan")
+    (src / "reradar_sim.json").write_text(json.dumps({"sim_version": "old", "world_seed": 3}))
+    (src / writer._STARTED).write_text("old\n")
+    assert not writer.carry_over(src, dst, "old")  # not complete yet: nothing to take over
+    assert not dst.exists()
+    (src / writer.COMPLETE_MARKER).write_text("old 1\n")
+    dst.parent.mkdir()
+    assert writer.carry_over(src, dst, "old")
+    assert writer.is_complete(dst) and (dst / writer.COMPLETE_MARKER).read_text() == "new 1\n"
+    assert (dst / writer._STARTED).read_text() == "new\n"
+    meta = json.loads((dst / "reradar_sim.json").read_text())
+    assert meta["sim_version"] == "new" and meta["world_seed"] == 3 and "old" in meta["carried_over_from"]
+    assert (dst / "radar" / "1.png").stat().st_ino == (src / "radar" / "1.png").stat().st_ino  # a hard link
+    # the old render is untouched
+    assert (src / writer.COMPLETE_MARKER).read_text() == "old 1\n" and (src / writer._STARTED).read_text() == "old\n"
+    assert json.loads((src / "reradar_sim.json").read_text())["sim_version"] == "old"
+    assert not writer.carry_over(src, dst, "old")  # already complete in this version
+    assert not writer.carry_over(src, tmp_path / "other", "older")  # src is not a render of that version
