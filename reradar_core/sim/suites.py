@@ -13,6 +13,7 @@ Evaluation suites mirror the paper's protocols:
 - ``offroad-sim`` (Hydro-like): OORD-like vegetation/terrain route driven at 3-7 m/s, two drives on
   different days (clear / rain), every 5th frame as in the OORD benchmark. OORD preset, Oxford layout, 25 m.
 - ``offroad-sim-hard`` (Two Lochs-like): another, faster off-road route; the query drive goes the other way.
+  Since simulator v6 both off-road suites vary their land use along the route (``zone_contrast`` 0.8).
 - Calibration of these against the paper's real-data tables: docs/BENCHMARKS.md.
 - ``calib-oxford``: Oxford-format city drive, 12 scans per weather condition, for ``reradar sim-report``
   against the real Oxford scans.
@@ -215,6 +216,13 @@ _LOOP = RouteDef("loop", seed=11, laps=3, block_m=(90.0, 160.0), n_blocks=3)
 # against the published KAIST03 Recall@1 of the four hand-made baselines (docs/SIMULATOR.md, "Simulator v5");
 # the loop split's sessions share the world, so they get it too.
 _KAIST_CAMPUS: tuple[tuple[str, float], ...] = (("frontage_prob", 0.4),)
+# v6: the OORD-like routes pass through changing land use (forest, open moor, loch shore, plantation), not one
+# statistically uniform off-road world: built and vegetation densities vary along the route by 1 +- 0.8 over
+# ~150 m zones (`WorldProfile.zone_contrast`; the `offroad` profile: 0). With a uniform world the ring
+# descriptors (RingKey, ReFeree) confuse places along the whole route (docs/SIMULATOR.md, "Simulator v6");
+# the off-road training split shares the `offroad-sim` world, so it gets it too. `train-source`'s off-road
+# worlds stay uniform (they train the stage-1 model only).
+_OORD_ZONES: tuple[tuple[str, float], ...] = (("zone_contrast", 0.8),)
 _LOOP_OPEN = RouteDef("loop", seed=12, laps=3, block_m=(120.0, 200.0), n_blocks=3)
 # off-road tracks are driven at 3-7 m/s (11-25 km/h), not at urban speeds: at the OORD protocol's every 5th
 # frame that puts database scans ~5 m apart (simulator v2 drove 6-12 m/s: ~10 m, RingKey 72.5 % -> 85.0 %)
@@ -279,6 +287,7 @@ SUITES: dict[str, SuiteDef] = {
     "offroad-sim": SuiteDef(
         "offroad-sim", "OORD-like off-road route: map drive clear, query drive another day in rain",
         preset="oord", layout="oxford", profile="offroad", world_seed=21, road_routes=(_OFFROAD,),
+        profile_overrides=_OORD_ZONES,
         sequences=(
             SequenceDef("day1-clear", "database", _OFFROAD, traversal_seed=211, every=5),
             SequenceDef("day2-rain", "query", replace(_OFFROAD, lateral_m=0.8, speed_seed=2),
@@ -290,6 +299,7 @@ SUITES: dict[str, SuiteDef] = {
         "offroad-sim-hard", "Two Lochs-like off-road pair: a faster gravel route (6-12 m/s), the query drive "
         "goes the other way round",
         preset="oord", layout="oxford", profile="offroad", world_seed=22, road_routes=(_OFFROAD_HARD,),
+        profile_overrides=_OORD_ZONES,
         sequences=(
             SequenceDef("day1-clear", "database", _OFFROAD_HARD, traversal_seed=221, every=5),
             # headings differ by ~180 deg from the map's: only rotation-invariant descriptors survive
@@ -374,6 +384,7 @@ SUITES: dict[str, SuiteDef] = {
     "train-target-offroad": SuiteDef(
         "train-target-offroad", "third drive on the off-road route (falling snow)",
         preset="oord", layout="oxford", profile="offroad", world_seed=21, road_routes=(_OFFROAD,),
+        profile_overrides=_OORD_ZONES,
         sequences=(
             SequenceDef("day3-falling_snow", "train", replace(_OFFROAD, lateral_m=-0.8, speed_seed=3),
                         traversal_seed=213, condition="falling_snow", every=4),

@@ -33,7 +33,7 @@ logger = logging.getLogger(__name__)
 COMPLETE_MARKER = ".reradar_complete"
 #: Bumped whenever the world or sensor model changes what is rendered: cached sequences rendered by another
 #: version are re-rendered instead of being reused.
-SIM_VERSION = "5"
+SIM_VERSION = "6"
 _STARTED = ".reradar_render_version"
 
 

@@ -73,12 +73,14 @@ def test_attitude_changes_the_ground_only_with_the_option(road):
     assert not np.array_equal(a.power, c.power)
 
 
-def test_v5_changes_only_the_kaist_like_world():
+def test_only_the_kaist_like_and_oord_like_worlds_differ_from_v4():
     """Simulator v5 adopted one override (docs/SIMULATOR.md, "Simulator v5"): ``loop-sim`` and its training split
     ``train-target-loop`` (same world, seed 11) render the ``urban`` profile with a continuous facade on 40 % of the
-    tile sides instead of 80 %. Every other suite keeps v4's world, traffic and sensor (byte-identical renders);
-    for them ``suite_profile`` is the profile itself."""
+    tile sides instead of 80 %. Simulator v6 another ("Simulator v6"): the off-road suites and their training split
+    vary their land use along the route (``zone_contrast`` 0.8). Every other suite keeps v4's world, traffic and
+    sensor (byte-identical renders); for them ``suite_profile`` is the profile itself."""
     kaist = {"loop-sim", "train-target-loop"}
+    oord = {"offroad-sim", "offroad-sim-hard", "train-target-offroad"}
     for name, s in SUITES.items():
         assert s.sensor_overrides == (), name
         assert s.traffic_lanes is None and s.median_m == 0.0 and s.ego_clearance_m is None, name
@@ -88,11 +90,16 @@ def test_v5_changes_only_the_kaist_like_world():
             assert prof.name == "urban" and prof.frontage_prob == 0.4
             assert prof.frontage_prob != PROFILES["urban"].frontage_prob
             assert replace(prof, frontage_prob=PROFILES["urban"].frontage_prob) == PROFILES["urban"]
+        elif name in oord:
+            assert s.profile_overrides == (("zone_contrast", 0.8),), name
+            prof = suite_profile(s)
+            assert prof.name == "offroad" and prof.zone_contrast == 0.8 and PROFILES["offroad"].zone_contrast == 0.0
         else:
             assert s.profile_overrides == (), name
             if s.profile != "mixed":
                 assert suite_profile(s) is PROFILES[s.profile]
     assert SUITES["loop-sim"].world_seed == SUITES["train-target-loop"].world_seed
+    assert SUITES["offroad-sim"].world_seed == SUITES["train-target-offroad"].world_seed
     hard = replace(SUITES["loop-sim-hard"], profile_overrides=(("road_half_width_m", 14.0),))
     prof = suite_profile(hard)
     assert prof.name == "urban-open" and prof.road_half_width_m == 14.0  # same name: same tile seeds
