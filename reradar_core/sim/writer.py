@@ -50,13 +50,22 @@ def _replace_file(path: Path, text: str) -> None:
     path.write_text(text)
 
 
+def _link_or_copy(src: str, dst: str) -> None:
+    """Hard link ``src`` at ``dst``; a plain copy where the file system cannot link (another device)."""
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
 def carry_over(src: Path, dst: Path, old_version: str) -> bool:
     """Take a render of an earlier simulator version over as this version's, without rendering it again.
 
     For a sequence that this version renders byte-identically (``benchmarks/verify_sim_identity.py`` checks it):
-    the complete folder ``src`` (made by ``old_version``) is copied to ``dst`` as hard links (no extra disk),
-    then its completion marker, render-version file and ``reradar_sim.json`` are written anew in ``dst`` as new
-    files, so ``src`` keeps its own; the JSON gets a ``carried_over_from`` note. The marker is written last.
+    the complete folder ``src`` (made by ``old_version``) is copied to ``dst`` as hard links (no extra disk; a
+    plain copy across file systems), then its completion marker, render-version file and ``reradar_sim.json``
+    are written anew in ``dst`` as new files, so ``src`` keeps its own; the JSON gets a ``carried_over_from``
+    note. The marker is written last.
 
     Returns:
         True when carried over; False (nothing changed) when ``src`` is not a complete render of
@@ -67,7 +76,7 @@ def carry_over(src: Path, dst: Path, old_version: str) -> bool:
         return False
     if dst.exists():
         shutil.rmtree(dst)
-    shutil.copytree(src, dst, copy_function=os.link)
+    shutil.copytree(src, dst, copy_function=_link_or_copy)
     count = marker.read_text().split()[1:]
     meta_path = dst / "reradar_sim.json"
     if meta_path.is_file():
