@@ -15,6 +15,8 @@ from tqdm import tqdm
 from reradar_core.errors import ConfigError
 from reradar_core.io.datasets import (
     LAYOUTS,
+    SIM_META_FILE,
+    read_sequence_meta,
     scan_path,
     write_sequence_meta,
     write_sequence_poses,
@@ -41,13 +43,6 @@ def is_complete(root: str | Path) -> bool:
     """True when ``root`` holds a finished render made by this simulator version."""
     marker = Path(root) / COMPLETE_MARKER
     return marker.is_file() and marker.read_text().split()[:1] == [SIM_VERSION]
-
-
-def _replace_file(path: Path, text: str) -> None:
-    """Write ``path`` as a new file (a hard-linked original keeps its content)."""
-    if path.exists():
-        path.unlink()
-    path.write_text(text)
 
 
 def _link_or_copy(src: str, dst: str) -> None:
@@ -78,14 +73,14 @@ def carry_over(src: Path, dst: Path, old_version: str) -> bool:
         shutil.rmtree(dst)
     shutil.copytree(src, dst, copy_function=_link_or_copy)
     count = marker.read_text().split()[1:]
-    meta_path = dst / "reradar_sim.json"
-    if meta_path.is_file():
-        meta = json.loads(meta_path.read_text())
+    # every rewrite renames a new file over the link (``_write_atomic``), so ``src`` keeps its own files
+    meta = read_sequence_meta(dst)
+    if meta:
         meta["sim_version"] = SIM_VERSION
         meta["carried_over_from"] = f"{old_version} (byte-identical render, benchmarks/verify_sim_identity.py)"
-        _replace_file(meta_path, json.dumps(meta, indent=2))
-    _replace_file(dst / _STARTED, SIM_VERSION + "\n")
-    _replace_file(dst / COMPLETE_MARKER, " ".join([SIM_VERSION, *count]) + "\n")  # last: the folder is complete
+        _write_atomic(dst / SIM_META_FILE, json.dumps(meta, indent=2, sort_keys=True).encode())
+    _write_atomic(dst / _STARTED, f"{SIM_VERSION}\n".encode())
+    _write_atomic(dst / COMPLETE_MARKER, (" ".join([SIM_VERSION, *count]) + "\n").encode())  # last: complete
     return True
 
 
