@@ -12,6 +12,7 @@ refused, answers that differ from the first variant, and the mean localize time 
         --splits train-target-loop,train-target-loop-open --step 2 \\
         --variant base= --variant "pre5=prescreen_keep=5"
     # the same with another model on every split (a cross-domain check): --model our-3-boreas
+    # two models whose training traversals differ, on the sessions neither trained on: --sessions unseen --model PATH.pt
 
 A variant is ``NAME=FIELD=VALUE[,FIELD=VALUE...]`` over ``LocalizationConfig``'s fields (int, float, none,
 true / false; ``alignment.FIELD`` for the nested ``AlignmentConfig``); ``NAME=`` is the default config.
@@ -75,6 +76,9 @@ def main() -> None:
     ap.add_argument("--splits", default=",".join(SPLIT_MODELS))
     ap.add_argument("--step", type=int, default=2, help="every N-th query scan of each session")
     ap.add_argument("--model", default="", help="one model for every split (default: each split's own)")
+    ap.add_argument("--sessions", choices=("all", "unseen", "training"), default="all",
+                    help="unseen: only the splits' confidence sessions (no weight trained on them; compares models "
+                         "whose training traversals differ); training: only the training traversals")
     ap.add_argument("--variant", action="append", required=True)
     args = ap.parse_args()
     variants = dict(parse_variant(v) for v in args.variant)
@@ -87,7 +91,8 @@ def main() -> None:
         radius, split_run_iter = split_runs(split, method, variants[names[0]], args.step, progress=False)
         per = {n: np.zeros(5) for n in names}
         runs = 0
-        for k, run in enumerate(split_run_iter):
+        keep = {"all": (False, True), "unseen": (True,), "training": (False,)}[args.sessions]
+        for k, run in enumerate(r for r in split_run_iter if r.unseen in keep):
             answers = {}
             for n in (names if k % 2 == 0 else names[::-1]):
                 t0 = time.perf_counter()

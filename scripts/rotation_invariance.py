@@ -9,8 +9,15 @@ unrotated scan is reported (min / mean over scans and angles), for each disc-mas
 - ``fmap``: only F' cells inside the inscribed circle (``disc_mask=True``, the default);
 - ``fmap+input``: also the input image zeroed outside the circle (``disc_mask_input=True``).
 
+With ``--angles`` the yaws are the given ones and a per-angle table is printed, with a reference row: the
+cosine between consecutive scans of the folder (the next frame, same heading; on the real Oxford scans 1.6-2.5 m
+of driving), i.e. how far a small move shifts the same descriptor (docs/MODEL.md, "What the whitened cosine
+measures").
+
 Usage:
     python scripts/rotation_invariance.py --scans PATH/radar --models our-3-boreas our-1 [--limit 8] [--json f]
+    python scripts/rotation_invariance.py --scans PATH/radar --models our-3-boreas --variants fmap \
+        --angles 0.1 0.25 0.5 1 2 5 45 90
 """
 
 from __future__ import annotations
@@ -73,13 +80,15 @@ def main() -> None:
     ap.add_argument("--stride", type=int, default=1, help="take every n-th scan of the folder")
     ap.add_argument("--step", type=float, default=5.0)
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS))
+    ap.add_argument("--angles", type=float, nargs="+", default=None,
+                    help="these yaws (deg) instead of the --step grid, with a per-angle table and a next-frame row")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     paths = sorted(Path(args.scans).glob("*.png"))[:: args.stride][: args.limit]
     if not paths:
         raise SystemExit(f"no .png scans in {args.scans}")
     scans = [load_scan(p) for p in paths]
-    thetas = np.arange(args.step, 360.0, args.step)
+    thetas = np.asarray(args.angles, float) if args.angles else np.arange(args.step, 360.0, args.step)
     results = {}
     for name in args.models:
         ex = DescriptorExtractor.from_pretrained(name)
@@ -93,9 +102,22 @@ def main() -> None:
                                         "min_at_deg": float(thetas[int(np.argmin(c.min(0)))]),
                                         "mean_non90": float(c[:, non90].mean()),
                                         "per_theta_mean": per_theta.round(5).tolist()}
+            steps90 = f"{c[:, ~non90].min():.5f}" if (~non90).any() else "-"
             print(f"{name:14s} {var:11s} scans {len(scans)}: min {c.min():.4f} at {thetas[np.argmin(c.min(0))]:.0f} "
-                  f"deg, mean {c.mean():.4f}, 90-deg steps min {c[:, ~non90].min():.5f}; raw NetVLAD min {raw.min():.4f} "
+                  f"deg, mean {c.mean():.4f}, 90-deg steps min {steps90}; raw NetVLAD min {raw.min():.4f} "
                   f"mean {raw.mean():.4f}", flush=True)
+            if args.angles:
+                print("| yaw (deg) | descriptor cosine min / mean | raw NetVLAD min / mean |\n|---|---|---|")
+                for j, th in enumerate(thetas):
+                    print(f"| {th:g} | {c[:, j].min():.3f} / {c[:, j].mean():.3f} | {raw[:, j].min():.3f} / "
+                          f"{raw[:, j].mean():.3f} |")
+                g, v = descriptors(ex, np.stack([polar_to_cartesian(sc, ex.cartesian) for sc in scans]))
+                nxt, nxt_raw = _cos(g[1:], g[:-1]), _cos(v[1:], v[:-1])
+                print(f"| next frame, same heading | {nxt.min():.3f} / {nxt.mean():.3f} | {nxt_raw.min():.3f} / "
+                      f"{nxt_raw.mean():.3f} |", flush=True)
+                results[f"{name}/{var}"]["next_frame"] = {"min": float(nxt.min()), "mean": float(nxt.mean()),
+                                                          "raw_min": float(nxt_raw.min()),
+                                                          "raw_mean": float(nxt_raw.mean())}
     if args.json:
         Path(args.json).write_text(json.dumps({"scans": [p.name for p in paths], "thetas": thetas.tolist(),
                                                "results": results}, indent=2))
