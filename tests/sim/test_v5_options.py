@@ -73,14 +73,17 @@ def test_attitude_changes_the_ground_only_with_the_option(road):
     assert not np.array_equal(a.power, c.power)
 
 
-def test_only_the_kaist_like_and_oord_like_worlds_differ_from_v4():
+def test_only_the_kaist_oord_and_boreas_worlds_differ_from_v4():
     """Simulator v5 adopted one override (docs/SIMULATOR.md, "Simulator v5"): ``loop-sim`` and its training split
     ``train-target-loop`` (same world, seed 11) render the ``urban`` profile with a continuous facade on 40 % of the
     tile sides instead of 80 %. Simulator v6 another ("Simulator v6"): the off-road suites and their training split
-    vary their land use along the route (``zone_contrast`` 0.8). Every other suite keeps v4's world, traffic and
-    sensor (byte-identical renders); for them ``suite_profile`` is the profile itself."""
+    vary their land use along the route (``zone_contrast`` 0.8). Simulator v7 a third ("Simulator v7"): the Boreas
+    suite and its training split run on 16 m arterials (``road_half_width_m`` 8, the ``suburban`` profile: 6).
+    Every other suite keeps v4's world, traffic and sensor (byte-identical renders); for them ``suite_profile`` is
+    the profile itself."""
     kaist = {"loop-sim", "train-target-loop"}
     oord = {"offroad-sim", "offroad-sim-hard", "train-target-offroad"}
+    boreas = {"boreas-sim", "train-target-boreas"}
     for name, s in SUITES.items():
         assert s.sensor_overrides == (), name
         assert s.traffic_lanes is None and s.median_m == 0.0 and s.ego_clearance_m is None, name
@@ -94,13 +97,31 @@ def test_only_the_kaist_like_and_oord_like_worlds_differ_from_v4():
             assert s.profile_overrides == (("zone_contrast", 0.8),), name
             prof = suite_profile(s)
             assert prof.name == "offroad" and prof.zone_contrast == 0.8 and PROFILES["offroad"].zone_contrast == 0.0
+        elif name in boreas:
+            assert s.profile_overrides == (("road_half_width_m", 8.0),), name
+            prof = suite_profile(s)
+            assert prof.name == "suburban" and PROFILES["suburban"].road_half_width_m == 6.0
+            assert replace(prof, road_half_width_m=6.0) == PROFILES["suburban"]
         else:
             assert s.profile_overrides == (), name
             if s.profile != "mixed":
                 assert suite_profile(s) is PROFILES[s.profile]
     assert SUITES["loop-sim"].world_seed == SUITES["train-target-loop"].world_seed
     assert SUITES["offroad-sim"].world_seed == SUITES["train-target-offroad"].world_seed
+    assert SUITES["boreas-sim"].world_seed == SUITES["train-target-boreas"].world_seed
     hard = replace(SUITES["loop-sim-hard"], profile_overrides=(("road_half_width_m", 14.0),))
     prof = suite_profile(hard)
     assert prof.name == "urban-open" and prof.road_half_width_m == 14.0  # same name: same tile seeds
     assert Traversal.EGO_CLEARANCE_M == 7.0
+
+
+def test_boreas_arterials_put_the_kerbs_8_m_from_the_centreline():
+    """v7's Boreas override moves the kerbs (and so everything set back from them) from 6 m to 8 m on each side of
+    a straight road: every kerb segment of a tile on the road lies at |y| = the profile's road half width."""
+    road = straight_road(400.0)  # along y = 0
+    for half in (6.0, 8.0):
+        prof = replace(PROFILES["suburban"], road_half_width_m=half)
+        prim = World(road, seed=3, profile=prof).tile(0, 0)
+        kerb = prim.seg[(prim.seg_low == 1) & np.isclose(prim.seg[:, 1], prim.seg[:, 3])]
+        assert len(kerb) > 5
+        np.testing.assert_allclose(np.abs(kerb[:, [1, 3]]), half, atol=0.05)
