@@ -4,9 +4,9 @@ the same route, with the default ``LocalizationConfig`` and with one setting low
 localized / successful (20 m, 10 deg) / wrong answers and the localization stage's CPU time per query
 (``time.thread_time``; features computed once beforehand).
 
-    reradar build-map --dataset .cache/reradar/sim/v6/train-target-boreas/2021-08-05-lane-2-falling_snow --out M
+    reradar build-map --dataset .cache/reradar/sim/v<SIM_VERSION>/train-target-boreas/2021-08-05-lane-2-falling_snow --out M
     python benchmarks/bench_speed_settings.py --map M \
-        --queries .cache/reradar/sim/v6/train-target-boreas/2021-08-05-lane2-snow_cover --every 4
+        --queries .cache/reradar/sim/v<SIM_VERSION>/train-target-boreas/2021-08-05-lane2-snow_cover --every 4
 """
 
 from __future__ import annotations

@@ -85,13 +85,13 @@ def main() -> None:
     names = list(variants)
     totals = {n: np.zeros(5) for n in names}  # correct, wrong, refused revisits, differs, seconds
     runs_total = 0
+    keep = {"all": (False, True), "unseen": (True,), "training": (False,)}[args.sessions]  # SplitRun.unseen values
     print(f"load average {os.getloadavg()[0]:.2f}", flush=True)
     for split in filter(None, args.splits.split(",")):
         method = Ours(args.model or SPLIT_MODELS[split], localization=variants[names[0]])
         radius, split_run_iter = split_runs(split, method, variants[names[0]], args.step, progress=False)
         per = {n: np.zeros(5) for n in names}
         runs = 0
-        keep = {"all": (False, True), "unseen": (True,), "training": (False,)}[args.sessions]
         for k, run in enumerate(r for r in split_run_iter if r.unseen in keep):
             answers = {}
             for n in (names if k % 2 == 0 else names[::-1]):

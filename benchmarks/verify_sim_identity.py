@@ -41,8 +41,9 @@ def main(argv: list[str] | None = None) -> int:
         data = build_suite(name, root=tmp, progress=False, limit=2, trajectory_dir=a.trajectory_dir)
         suite_bad = 0
         outs = data.database + data.queries + data.training + data.confidence
+        old_root = cache_dir("sim", f"v{a.against}", name)
         for out in outs:
-            ref = cache_dir("sim", f"v{a.against}", name) / out.name
+            ref = old_root / out.name
             for p in sorted(out.rglob("*.png")):
                 q = ref / p.relative_to(out)
                 same = q.is_file() and hashlib.md5(q.read_bytes()).digest() == hashlib.md5(p.read_bytes()).digest()
@@ -52,10 +53,9 @@ def main(argv: list[str] | None = None) -> int:
         bad += suite_bad
         shutil.rmtree(tmp, ignore_errors=True)
         if a.carry_over and not suite_bad and SIM_VERSION != a.against:
+            new_root = cache_dir("sim", f"v{SIM_VERSION}", name)  # creates the folder: only when carrying over
             for out in outs:
-                src = cache_dir("sim", f"v{a.against}", name) / out.name
-                dst = cache_dir("sim", f"v{SIM_VERSION}", name) / out.name
-                done = carry_over(src, dst, a.against)
+                done = carry_over(old_root / out.name, new_root / out.name, a.against)
                 print(name, out.name, f"carried over v{a.against} -> v{SIM_VERSION}" if done else "not carried over")
     print(f"{n} scans compared, differences: {bad}")
     return int(bad > 0)

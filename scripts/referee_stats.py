@@ -11,7 +11,7 @@ consecutive scans (the real folder, and ``--consecutive`` N scans rendered along
 memory, one traversal, every frame), how far the ReFeree-R descriptor (free-space counts per 80-bin ring) and
 the RingKey descriptor (mean power per ring) move between scans 1, 3 and 10 frames apart.
 
-``--sim`` takes any sequence folder (e.g. ``<cache>/sim/v6/calib-oxford/clear``); its scans are not consecutive
+``--sim`` takes any sequence folder (e.g. ``<cache>/sim/v<SIM_VERSION>/calib-oxford/clear``); its scans are not consecutive
 (every 24th frame), so it gets no descriptor-change columns. Ranges are in metres, so presets with other bin
 sizes compare. The real folder is read, never copied.
 """
