@@ -17,6 +17,8 @@ Overrides (``--set``, repeatable), applied on top of the suite's definition:
                                  car_reflectivity, car_transmission, snow_bank_reflectivity, traffic_lanes,
                                  median_m, ego_clearance_m, snow_bank_transmission, snow_bank_daily_fraction)
     query.lateral_m=V            the query drive's lateral offset from its route, metres
+    query.seed=N, query.condition=NAME, query.offset=N
+                                 the query drive's traversal seed, weather condition and first frame (session 13)
     db.lateral_m=V               the database drive's lateral offset from its route, metres (v5)
     db.every=N, query.every=N    frame step of the database / query drive (protocol spacing)
     db.condition=NAME            weather condition of the database drive (e.g. snow_cover: a winter map)
@@ -128,6 +130,14 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
         db_def = replace(db_def, condition=str(ov["db.condition"]))
     if "query.every" in ov:
         q_def = replace(q_def, every=int(ov["query.every"]))  # type: ignore[call-overload]
+    # the query drive's own randomness (traffic, parked cars, the day's snow banks, per-scan noise), weather and
+    # first frame, to tell a condition's effect from its day's draw (session 13)
+    if "query.seed" in ov:
+        q_def = replace(q_def, traversal_seed=int(ov["query.seed"]))  # type: ignore[call-overload]
+    if "query.condition" in ov:
+        q_def = replace(q_def, condition=str(ov["query.condition"]))
+    if "query.offset" in ov:
+        q_def = replace(q_def, offset=int(ov["query.offset"]))  # type: ignore[call-overload]
     if "route.speed_max" in ov:  # drive speeds of both drives (protocol spacing at a fixed frame step)
         sp = (float(ov["route.speed_min"]), float(ov["route.speed_max"]))  # type: ignore[arg-type]
         db_def = replace(db_def, route=replace(db_def.route, speed_mps=sp))

@@ -5,8 +5,14 @@ rigid transform, for every scan pair 1..10 frames apart (about 2-20 m). Reports,
 translation error e_t (m), rotation error e_r (deg), RANSAC success and the paper's localization success
 (e_t < 25 m and e_r < 10 deg, OORD radius) plus a strict success (e_t < 1 m, e_r < 2 deg).
 
+With ``--localizer`` every pair instead runs through the service's ``Localizer`` (the shipped
+``LocalizationConfig``: floor, confidence bar, deeper search) on a one-keyframe map holding the earlier scan at
+its odometry pose, and the table counts, per gap, the answers ``localized`` within 2 m / 2 deg (correct),
+``localized`` outside them (a confident wrong pose, what issue 11 forbids) and refused, with the confidences.
+
 Usage:
     python scripts/real_oxford_pose.py ../shared/data/real-oxford [--model default] [--max-keypoints 512]
+    python scripts/real_oxford_pose.py ../shared/data/real-oxford --rotate-seed 0 --localizer
 """
 
 from __future__ import annotations
@@ -44,6 +50,9 @@ def main() -> None:
     ap.add_argument("--rotate-seed", type=int, default=None,
                     help="turn every query scan by a random whole-azimuth heading (seeded) before describing it")
     ap.add_argument("--json", default=None, help="also write the per-gap table as JSON here")
+    ap.add_argument("--localizer", action="store_true",
+                    help="run every pair through the service's Localizer on a one-keyframe map (shipped floor, "
+                         "confidence bar and search) and count correct / wrong / refused answers")
     args = ap.parse_args()
 
     seq = load_sequence(args.folder, layout="oxford")
@@ -62,6 +71,9 @@ def main() -> None:
         dyaw = shift * 2 * np.pi / scans[0].num_azimuths
     print(f"pose method {args.pose_method}; model {ex.name} ({ex.model_id}), {len(scans)} scans, "
           f"{np.mean([len(f.keypoints_xy_m) for f in feats]):.0f} keypoints per scan in the image")
+    if args.localizer:
+        _localizer_table(feats, qfeats, poses, dyaw, args)
+        return
     cfg = RansacConfig()
     radius = radius_for("oxford")
     rows = []
@@ -111,6 +123,59 @@ def main() -> None:
     if args.json:
         with open(args.json, "w") as fh:
             json.dump({"model": ex.name, "model_id": ex.model_id, "rows": rows}, fh, indent=2)
+
+
+def _localizer_table(feats: list, qfeats: list, poses: np.ndarray, dyaw: np.ndarray, args: argparse.Namespace) -> None:
+    """Per gap: the ``Localizer``'s answers for query j on the map {scan i = j - gap at poses[i]}."""
+    from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer
+    from reradar_core.retrieval import GlobalIndex
+
+    config = LocalizationConfig()
+    print("| gap (frames) | pairs | mean distance (m) | localized within 2 m / 2 deg | localized outside (wrong) | "
+          "refused | confidence of correct answers (min) | confidence of wrong answers (max) | refusal reasons |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    rows: list[dict[str, object]] = []
+    n_good = n_bad = n_refused = 0
+    all_wrong: list[tuple[int, int, float, float, float]] = []
+    for gap in range(1, args.max_gap + 1):
+        good, bad, refused, dist, conf_good, conf_bad, reasons = 0, 0, 0, [], [], [], []
+        for i in range(len(feats) - gap):
+            j = i + gap
+            T_map_query_gt = poses[j].copy()
+            T_map_query_gt[2] -= dyaw[j]  # the query scan was turned (see main)
+            keyframes = InMemoryKeyframes([feats[i]], poses[i][None], np.array([feats[i].timestamp_us]))
+            loc = Localizer(GlobalIndex(np.asarray(feats[i].global_descriptor, np.float32).reshape(1, -1)),
+                            keyframes, config)
+            res = loc.localize(qfeats[j])
+            dist.append(float(np.hypot(*(poses[j][:2] - poses[i][:2]))))
+            if not res.localized or res.T_map_query is None:
+                refused += 1
+                reasons.append(str(res.reason))
+                continue
+            e_t, e_r = localization_errors(res.T_map_query[None], T_map_query_gt[None])
+            if localization_success(e_t, e_r, 2.0, 2.0)[0]:
+                good += 1
+                conf_good.append(res.confidence)
+            else:
+                bad += 1
+                conf_bad.append(res.confidence)
+                all_wrong.append((i, j, float(e_t[0]), float(e_r[0]), res.confidence))
+        n_good, n_bad, n_refused = n_good + good, n_bad + bad, n_refused + refused
+        lo_good, hi_bad = min(conf_good, default=float("nan")), max(conf_bad, default=float("nan"))
+        why = sorted(set(reasons))
+        rows.append({"gap": gap, "pairs": good + bad + refused, "distance_m": float(np.mean(dist)), "correct": good,
+                     "wrong": bad, "refused": refused, "min_confidence_correct": lo_good,
+                     "max_confidence_wrong": hi_bad, "refusal_reasons": why})
+        print(f"| {gap} | {good + bad + refused} | {np.mean(dist):.1f} | {good} | {bad} | {refused} | "
+              f"{lo_good:.3f} | {hi_bad:.3f} | {', '.join(why) or '-'} |")
+    total = {"pairs": n_good + n_bad + n_refused, "correct": n_good, "wrong": n_bad, "refused": n_refused}
+    print(f"\nall pairs: {total['pairs']}, localized within 2 m / 2 deg {total['correct']}, localized outside "
+          f"(wrong) {total['wrong']}, refused {total['refused']}")
+    for i, j, off_m, off_deg, c in all_wrong:
+        print(f"  wrong: scan {i} -> {j}: {off_m:.2f} m, {off_deg:.2f} deg off at confidence {c:.3f}")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump({"mode": "localizer", "rows": rows, "total": total}, fh, indent=2)
 
 
 if __name__ == "__main__":

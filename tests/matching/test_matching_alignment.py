@@ -344,3 +344,48 @@ def test_polish_fits_the_pose_to_the_closest_pairs_and_keeps_the_count() -> None
     np.testing.assert_array_equal(polished.inlier_mask, plain.inlier_mask)
     with pytest.raises(Exception, match="polish_thresholds_m"):
         AlignmentConfig(polish_thresholds_m=(0.5, 0.0))
+
+
+def _corridor(T_dst_src: np.ndarray, descriptor_shift_m: float):
+    """A corridor: two rows of posts along x (a landmark every 3 m, so they align at every 3 m shift along the
+    road) and 40 poles (which align at the true pose only). The query's descriptors are those of the place
+    ``descriptor_shift_m`` further along x: every descriptor pair then points 0.5-10.5 m away from the truth,
+    like the few true pairs left between real scans 15 m apart.
+    (A corridor is also symmetric under a half turn; the poles break that.)"""
+    rng = np.random.default_rng(21)
+    x = np.arange(-60.0, 60.0, 3.0)
+    walls = np.vstack([np.column_stack([x, np.full(len(x), y)]) for y in (-8.0, 8.0)])
+    poles = np.column_stack([rng.uniform(-50, 50, 40), rng.choice([-1, 1], 40) * rng.uniform(10, 30, 40)])
+    dst = np.vstack([walls, poles])
+    src = transform_points(inverse(T_dst_src), dst) + rng.normal(0, 0.05, size=dst.shape)
+    desc_dst = _coarse_descriptors(dst)
+    desc_src = _coarse_descriptors(dst + np.array([descriptor_shift_m, 0.0]))
+    return src, desc_src, dst, desc_dst
+
+
+def test_local_search_finds_the_true_pose_along_a_corridor_when_no_hypothesis_is_near_it() -> None:
+    """Known answer: without the local search every hypothesis lies metres along the corridor and the walls
+    align there (the poles do not); the local search around that answer reaches the true pose, where the
+    poles align too (more landmarks), and takes it."""
+    T = np.array([2.0, 0.5, math.radians(30.0)])
+    src, dsrc, dst, ddst = _corridor(T, descriptor_shift_m=5.5)
+    plain = estimate_pose_guided(src, dsrc, dst, ddst, AlignmentConfig(local_search_m=0.0))
+    searched = estimate_pose_guided(src, dsrc, dst, ddst, AlignmentConfig())
+    assert math.hypot(*(plain.pose[:2] - T[:2])) > 2.0  # the hypotheses alone: a wrong place on the corridor
+    assert searched.success
+    assert math.hypot(*(searched.pose[:2] - T[:2])) < 0.1
+    assert np.degrees(angle_diff(searched.pose[2], T[2])) < 0.2
+    assert searched.num_inliers > plain.num_inliers
+    assert searched.num_inliers >= 0.95 * len(src)
+
+
+def test_local_search_leaves_a_right_answer_alone_and_rejects_bad_settings() -> None:
+    T = np.array([3.5, -2.0, np.radians(137.0)])
+    src, dsrc, dst, ddst = _scene(T)
+    plain = estimate_pose_guided(src, dsrc, dst, ddst, AlignmentConfig(local_search_m=0.0))
+    searched = estimate_pose_guided(src, dsrc, dst, ddst, AlignmentConfig())
+    np.testing.assert_array_equal(searched.pose, plain.pose)
+    assert searched.num_inliers == plain.num_inliers
+    for bad in ({"local_search_m": -1.0}, {"local_search_step_m": 0.0}, {"local_search_starts": 0}):
+        with pytest.raises(Exception, match="local_search"):
+            AlignmentConfig(**bad)
