@@ -37,7 +37,7 @@ if str(ROOT) not in sys.path:
 from reradar_core.baselines.raplace import RaPlace  # noqa: E402
 from reradar_core.baselines.referee import ReFeree  # noqa: E402
 from reradar_core.baselines.ringkey import RingKey  # noqa: E402
-from reradar_core.io.datasets import load_sequence, read_oxford_odometry  # noqa: E402
+from reradar_core.io.datasets import Sequence, load_sequence, read_oxford_odometry  # noqa: E402
 from reradar_core.io.poses import PoseSequence  # noqa: E402
 from reradar_core.io.presets import get_preset  # noqa: E402
 from reradar_core.io.scan import RadarScan  # noqa: E402
@@ -64,6 +64,30 @@ def gap_distances(scans: list[RadarScan]) -> dict[str, np.ndarray]:
         dist = np.stack([m.distance(d, index) for d in descs])  # type: ignore[attr-defined]
         n = len(scans)
         out[name] = np.array([np.mean([dist[i, i + g] for i in range(n - g)]) for g in range(1, n)])
+    return out
+
+
+def real_stretch(folder: Path, margin_frames: int = 80) -> tuple[Sequence, PoseSequence, np.ndarray]:
+    """The real Oxford scans, the stretch of their integrated odometry ``margin_frames`` either side (the road of
+    the simulated world; poses T_first_scan) and each real scan's frame index within that stretch, (N,) int64."""
+    real = load_sequence(folder, layout="oxford")
+    odo = read_oxford_odometry(folder / "radar_odometry.csv")
+    idx = np.searchsorted(odo.timestamps_us, real.poses.timestamps_us)
+    if np.any(odo.timestamps_us[np.minimum(idx, len(odo) - 1)] != real.poses.timestamps_us):
+        raise SystemExit("the real scans' timestamps are not in radar_odometry.csv")
+    lo, hi = max(0, int(idx[0]) - margin_frames), min(len(odo), int(idx[-1]) + margin_frames + 1)
+    return real, PoseSequence(odo.timestamps_us[lo:hi], odo.xy[lo:hi], odo.yaw[lo:hi]), (idx - lo).astype(np.int64)
+
+
+def render_at(trav: Traversal, traj: PoseSequence, times_us: np.ndarray, frames: np.ndarray,
+              sensor: SensorConfig = SensorConfig()) -> list[RadarScan]:
+    """Oxford-preset scans of ``trav`` starting at ``times_us`` along ``traj`` (per-scan noise seeded by the frame
+    index), quantised to 8 bits like the real PNGs."""
+    preset = get_preset("oxford")
+    out = []
+    for t, k in zip(times_us, frames, strict=True):
+        s = render_scan(trav, traj, int(t), preset, scan_seed(trav.seed, int(k)), sensor)
+        out.append(replace(s, power=np.round(s.power * 255).astype(np.float32) / 255.0))
     return out
 
 
@@ -103,14 +127,8 @@ def main() -> None:
     ap.add_argument("--label", default="", help="row label for --json")
     args = ap.parse_args()
 
-    real = load_sequence(args.folder, layout="oxford")
+    real, traj, frames = real_stretch(Path(args.folder), args.margin_frames)
     real_scans = [real.load_scan(i) for i in range(len(real))]
-    odo = read_oxford_odometry(Path(args.folder) / "radar_odometry.csv")
-    idx = np.searchsorted(odo.timestamps_us, real.poses.timestamps_us)
-    if np.any(odo.timestamps_us[np.minimum(idx, len(odo) - 1)] != real.poses.timestamps_us):
-        raise SystemExit("the real scans' timestamps are not in radar_odometry.csv")
-    lo, hi = max(0, int(idx[0]) - args.margin_frames), min(len(odo), int(idx[-1]) + args.margin_frames + 1)
-    traj = PoseSequence(odo.timestamps_us[lo:hi], odo.xy[lo:hi], odo.yaw[lo:hi])
 
     overrides = dict(kv.split("=", 1) for kv in args.set)
     unknown = [k for k in overrides if not k.startswith(("profile.", "cond.", "sensor."))]
@@ -120,17 +138,12 @@ def main() -> None:
     condition = _with(get_condition(args.condition), "cond.", overrides)
     sensor = _with(SensorConfig(), "sensor.", overrides)
 
-    preset = get_preset("oxford")
     t0 = time.perf_counter()
     results = {"real": gap_distances(real_scans)}
     all_sims: list[RadarScan] = []
     for w in (int(s) for s in args.worlds.split(",")):
-        world = World(RoadNetwork([traj.xy]), seed=w, profile=profile)
-        trav = Traversal(world, w + 1, condition)
-        sims = []
-        for k, t in enumerate(real.poses.timestamps_us):
-            s = render_scan(trav, traj, int(t), preset, scan_seed(trav.seed, int(idx[k] - lo)), sensor)
-            sims.append(replace(s, power=np.round(s.power * 255).astype(np.float32) / 255.0))
+        trav = Traversal(World(RoadNetwork([traj.xy]), seed=w, profile=profile), w + 1, condition)
+        sims = render_at(trav, traj, real.poses.timestamps_us, frames, sensor)
         results[f"world {w}"] = gap_distances(sims)
         all_sims += sims
     sim_mean = {m: np.mean([results[k][m] for k in results if k != "real"], axis=0) for m in results["real"]}

@@ -13,21 +13,18 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable
-from dataclasses import fields, replace
+from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from descriptor_decorrelation import real_stretch, render_at  # noqa: E402
 
 from reradar_core.baselines.ringkey import ring_key  # noqa: E402
-from reradar_core.io.datasets import load_sequence, read_oxford_odometry  # noqa: E402
-from reradar_core.io.poses import PoseSequence  # noqa: E402
-from reradar_core.io.presets import get_preset  # noqa: E402
 from reradar_core.io.scan import RadarScan  # noqa: E402
-from reradar_core.sim.sensor import SensorConfig, render_scan, scan_seed  # noqa: E402
 from reradar_core.sim.traversal import Traversal  # noqa: E402
 from reradar_core.sim.world import Primitives, RoadNetwork, World  # noqa: E402
 
@@ -83,13 +80,7 @@ def near_ring_figures(scans: list[RadarScan]) -> tuple[float, float, float]:
 def main() -> None:
     if len(sys.argv) != 2:
         raise SystemExit(__doc__)
-    folder = Path(sys.argv[1])
-    real = load_sequence(folder, layout="oxford")
-    odo = read_oxford_odometry(folder / "radar_odometry.csv")
-    idx = np.searchsorted(odo.timestamps_us, real.poses.timestamps_us)
-    lo, hi = max(0, int(idx[0]) - 80), min(len(odo), int(idx[-1]) + 81)
-    traj = PoseSequence(odo.timestamps_us[lo:hi], odo.xy[lo:hi], odo.yaw[lo:hi])
-    preset = get_preset("oxford")
+    real, traj, frames = real_stretch(Path(sys.argv[1]))
     ref = near_ring_figures([real.load_scan(i) for i in range(len(real))])
     print("| scans | rings 0-4 mean | their change per 1.9 m | RingKey distance per 1.9 m (x real) |")
     print("|---|---|---|---|")
@@ -109,10 +100,7 @@ def main() -> None:
             per_world = []
             for w in (1, 2, 3):
                 trav = Traversal(World(RoadNetwork([traj.xy]), seed=w, profile="urban"), w + 1, "clear")
-                sims = [render_scan(trav, traj, int(t), preset, scan_seed(trav.seed, k), SensorConfig())
-                        for k, t in enumerate(real.poses.timestamps_us)]
-                per_world.append(near_ring_figures(
-                    [replace(s, power=np.round(s.power * 255).astype(np.float32) / 255.0) for s in sims]))
+                per_world.append(near_ring_figures(render_at(trav, traj, real.poses.timestamps_us, frames)))
             m = np.mean(per_world, axis=0)
             print(f"| {name} | {m[0]:.4f} | {m[1]:.4f} | {m[2]:.4f} ({m[2] / ref[2]:.2f}) |")
     finally:
