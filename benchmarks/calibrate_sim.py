@@ -92,6 +92,18 @@ def _condition(name: str, ov: dict[str, object]) -> T.Condition:
     return replace(c, **kw) if kw else c
 
 
+def sensor_with(base: SensorConfig, ov: dict[str, object]) -> SensorConfig:
+    """``base`` with the ``sensor.FIELD`` overrides."""
+    kw = {k.split(".", 1)[1]: v for k, v in ov.items() if k.startswith("sensor.")}
+    return replace(base, **kw) if kw else base  # type: ignore[arg-type]
+
+
+def profile_with(base: W.WorldProfile, ov: dict[str, object]) -> W.WorldProfile:
+    """``base`` with the ``profile.NAME.FIELD`` overrides of its own name."""
+    kw = {k.split(".")[2]: v for k, v in ov.items() if k.startswith(f"profile.{base.name}.")}
+    return replace(base, **kw) if kw else base  # type: ignore[arg-type]
+
+
 def _traversal(world: W.World, seed: int, cond: T.Condition, ov: dict[str, object],
                traffic_per_km: float = 12.0, car_transmission: float = 0.0, traffic_lanes: int | None = None,
                median_m: float = 0.0, ego_clearance_m: float | None = None) -> T.Traversal:
@@ -155,12 +167,9 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
         z = np.load(cache, allow_pickle=False)
         return {k: z[k] for k in z.files} | {"radius": float(z["radius"]), "preset": str(z["preset"])}
 
-    sensor = replace(SensorConfig(**dict(suite.sensor_overrides)),  # type: ignore[arg-type]
-                     **{k.split(".", 1)[1]: v for k, v in ov.items() if k.startswith("sensor.")})  # type: ignore[arg-type]
+    sensor = sensor_with(SensorConfig(**dict(suite.sensor_overrides)), ov)  # type: ignore[arg-type]
     road = W.RoadNetwork([S._route_trajectory(replace(r, lateral_m=0.0), None).xy for r in suite.road_routes])
-    base = S.suite_profile(suite)
-    kw = {k.split(".")[2]: v for k, v in ov.items() if k.startswith(f"profile.{suite.profile}.")}
-    world = W.World(road, seed=suite.world_seed, profile=replace(base, **kw) if kw else base)  # type: ignore[arg-type]
+    world = W.World(road, seed=suite.world_seed, profile=profile_with(S.suite_profile(suite), ov))
 
     def times(seq: S.SequenceDef):
         traj = S._route_trajectory(seq.route, None)
@@ -336,4 +345,5 @@ if __name__ == "__main__":
     raise SystemExit(main())
 
 
-__all__ = ["render_subset", "recall_at_1", "parse_overrides", "calibration_table", "PUBLISHED"]
+__all__ = ["render_subset", "recall_at_1", "parse_overrides", "sensor_with", "profile_with", "calibration_table",
+           "PUBLISHED"]

@@ -10,11 +10,14 @@ metre than real ones makes that baseline harder (or easier) than on real data, w
 
 The simulated scans are quantised to 8 bits like the real PNGs. The same scans' intensity statistics
 (``reradar_core.sim.stats``: mean, median, 99th percentile, zero bins, bins above the far-range floor, Cen 2018
-keypoints) are printed beside, so that a sensor change is judged on both. ``--set profile.FIELD=V`` / ``cond.FIELD=V`` /
-``sensor.FIELD=V`` override the world profile, the weather condition and the sensor (ablations, one at a time).
+keypoints) are printed beside, so that a sensor change is judged on both.
+
+``--set`` overrides the world profile, the weather condition and the sensor (ablations, one at a time) with
+``benchmarks/calibrate_sim.py``'s keys: ``profile.urban.FIELD=V``, ``cond.clear.FIELD=V``, ``sensor.FIELD=V`` (the
+rows recorded on 2026-12-01 before 15:40 UTC wrote the profile keys without the profile name).
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/descriptor_decorrelation.py ../shared/data/real-oxford \\
-        --worlds 1,2,3 [--set profile.parked_car_slot_prob=0.9] [--json rows.jsonl --label L]
+        --worlds 1,2,3 [--set profile.urban.parked_car_slot_prob=0.9] [--json rows.jsonl --label L]
 """
 
 from __future__ import annotations
@@ -24,15 +27,17 @@ import json
 import os
 import sys
 import time
-from dataclasses import fields, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import TypeVar
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from calibrate_sim import _condition, parse_overrides, profile_with, sensor_with  # noqa: E402
 
 from reradar_core.baselines.raplace import RaPlace  # noqa: E402
 from reradar_core.baselines.referee import ReFeree  # noqa: E402
@@ -43,10 +48,9 @@ from reradar_core.io.presets import get_preset  # noqa: E402
 from reradar_core.io.scan import RadarScan  # noqa: E402
 from reradar_core.sim.sensor import SensorConfig, render_scan, scan_seed  # noqa: E402
 from reradar_core.sim.stats import scan_statistics, summarize  # noqa: E402
-from reradar_core.sim.traversal import Traversal, get_condition  # noqa: E402
+from reradar_core.sim.traversal import Traversal  # noqa: E402
 from reradar_core.sim.world import PROFILES, RoadNetwork, World  # noqa: E402
 
-_Config = TypeVar("_Config")
 GAPS = (1, 2, 3, 5, 8, 10)
 STATS = ("mean", "p50", "p99", "frac_zero", "frac_above_floor", "keypoints")
 
@@ -91,28 +95,6 @@ def render_at(trav: Traversal, traj: PoseSequence, times_us: np.ndarray, frames:
     return out
 
 
-def _value(text: str) -> object:
-    """``true`` / ``false``, an int, a float, else the text."""
-    if text.lower() in ("true", "false"):
-        return text.lower() == "true"
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return text
-
-
-def _with(obj: _Config, prefix: str, overrides: dict[str, str]) -> _Config:
-    """``obj`` with the overrides whose key starts with ``prefix`` (a dataclass; unknown fields are errors)."""
-    names = {f.name for f in fields(obj)}  # type: ignore[arg-type]
-    chosen = {k[len(prefix):]: _value(v) for k, v in overrides.items() if k.startswith(prefix)}
-    bad = sorted(set(chosen) - names)
-    if bad:
-        raise SystemExit(f"unknown {prefix[:-1]} field(s) {bad}")
-    return replace(obj, **chosen)  # type: ignore[type-var]
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folder", help="real-oxford folder (radar/<t>.png + radar_odometry.csv)")
@@ -122,7 +104,8 @@ def main() -> None:
     ap.add_argument("--margin-frames", type=int, default=80,
                     help="odometry frames either side of the real scans that make the simulated world's road")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="profile.FIELD=V, cond.FIELD=V or sensor.FIELD=V (repeatable)")
+                    help="profile.NAME.FIELD=V, cond.NAME.FIELD=V or sensor.FIELD=V, as benchmarks/calibrate_sim.py "
+                         "takes them (repeatable)")
     ap.add_argument("--json", default=None, help="append one JSON row here")
     ap.add_argument("--label", default="", help="row label for --json")
     args = ap.parse_args()
@@ -130,13 +113,14 @@ def main() -> None:
     real, traj, frames = real_stretch(Path(args.folder), args.margin_frames)
     real_scans = [real.load_scan(i) for i in range(len(real))]
 
-    overrides = dict(kv.split("=", 1) for kv in args.set)
+    overrides = parse_overrides(args.set)
     unknown = [k for k in overrides if not k.startswith(("profile.", "cond.", "sensor."))]
     if unknown:
-        raise SystemExit(f"unknown override(s) {unknown}: use profile.FIELD, cond.FIELD or sensor.FIELD")
-    profile = _with(PROFILES[args.profile], "profile.", overrides)
-    condition = _with(get_condition(args.condition), "cond.", overrides)
-    sensor = _with(SensorConfig(), "sensor.", overrides)
+        raise SystemExit(f"unknown override(s) {unknown}: use profile.{args.profile}.FIELD, "
+                         f"cond.{args.condition}.FIELD or sensor.FIELD")
+    profile = profile_with(PROFILES[args.profile], overrides)
+    condition = _condition(args.condition, overrides)
+    sensor = sensor_with(SensorConfig(), overrides)
 
     t0 = time.perf_counter()
     results = {"real": gap_distances(real_scans)}
