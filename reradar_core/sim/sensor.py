@@ -28,7 +28,7 @@ from reradar_core.io.poses import PoseSequence
 from reradar_core.io.presets import RadarPreset, get_preset
 from reradar_core.io.scan import RadarScan
 from reradar_core.sim.traversal import Traversal
-from reradar_core.sim.world import Primitives, _hash_uniform, stable_seed
+from reradar_core.sim.world import ELEV_GROUND, ELEV_VEHICLE, Primitives, _hash_uniform, stable_seed
 
 __all__ = ["SensorConfig", "render_scan", "sweep_poses"]
 
@@ -75,6 +75,13 @@ class SensorConfig:
             smoothly with time (sum of sinusoids of 1.5-12 s periods, phases from the traversal seed).
         mount_height_m: height of the antenna above the ground (only used with ``attitude_deg``): the beam's
             depression angle in level attitude is atan(mount_height_m / ground_peak_m).
+        vehicle_elevation_scale: cars (parked and moving; not buses / trucks, which are taller than the antenna)
+            are lit through the ground's elevation pattern with its ranges scaled by this factor: a roof-mounted
+            antenna looks over a car next to it, and an object whose top lies a fraction f of the antenna height
+            below it meets the beam at the depression the ground meets at 1/f times its range, so f ~ 0.25 for a
+            1.5 m car under a 2 m mount. 0 = cars lit at every range (v7).
+        hard_point_gain: factor on the cross-section of the hard point scatterers (poles, façade details, posts,
+            trunks; 1 = v7).
     """
 
     oversample: int = 2
@@ -105,6 +112,8 @@ class SensorConfig:
     dominant_fraction: float = 0.0
     attitude_deg: float = 0.0
     mount_height_m: float = 2.0
+    vehicle_elevation_scale: float = 0.0
+    hard_point_gain: float = 1.0
 
 
 def sweep_poses(trajectory: PoseSequence, t0_us: int, preset: RadarPreset, oversample: int = 1
@@ -290,7 +299,12 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
         cos_inc = np.abs(den) / seg_len[si]
         amp = refl[si] * (rough[si] * cos_inc + (1 - rough[si]) * cos_inc ** 8) / K
         # objects at ground level are lit only where the elevation beam reaches the ground
-        amp = np.where(low[si] > 0, amp * _elevation_gain(t, cfg, None if peak_f is None else peak_f[ri]), amp)
+        peak_hit = cfg.ground_peak_m if peak_f is None else peak_f[ri]
+        amp = np.where(low[si] == ELEV_GROUND, amp * _elevation_gain(t, cfg, None if peak_f is None else peak_f[ri]),
+                       amp)
+        if cfg.vehicle_elevation_scale > 0:
+            amp = np.where(low[si] == ELEV_VEHICLE,
+                           amp * _elevation_gain(t, cfg, cfg.vehicle_elevation_scale * np.asarray(peak_hit)), amp)
         # glint along the surface and with the viewing direction (windows, seams, ribs of a façade)
         seg_ids = _point_ids(0.5 * (s[:, :2] + s[:, 2:]))
         view = np.arctan2(rdy, rdx)[ok] + uu[ok] * seg_len[si] * (2 * np.pi / cfg.glint_length_m)
@@ -370,6 +384,8 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
         bearing = np.arctan2(poses[j, 1] - pts[:, 1], poses[j, 0] - pts[:, 0])
         rcs = rcs * _aspect_gain(_point_ids(pts), bearing, cfg)
         rcs = np.where(kind == 1, rcs * cond.leaf_factor, rcs)
+        if cfg.hard_point_gain != 1.0:
+            rcs = np.where(kind == 0, rcs * cfg.hard_point_gain, rcs)
         rcs = np.where(kind == 2, rcs * cond.ground_factor
                        * _elevation_gain(rp, cfg, None if peak_f is None else peak_f[j]), rcs)
         # 1 m tolerance: a scatterer on a wall (façade detail) is not shadowed by the wall it sits on, even

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from reradar_core.errors import ConfigError
-from reradar_core.sim.world import Primitives, World, _hash_uniform, car_segments, stable_seed
+from reradar_core.sim.world import ELEV_VEHICLE, Primitives, World, _hash_uniform, car_segments, stable_seed
 
 __all__ = ["CONDITIONS", "Condition", "Traversal", "get_condition"]
 
@@ -171,7 +171,7 @@ class Traversal:
         out = Primitives()
         cars = self.parked_cars(static)
         if len(cars):
-            out.add_segments(car_segments(cars), self.CAR_REFLECTIVITY, self.CAR_TRANSMISSION, 0.5)
+            out.add_segments(car_segments(cars), self.CAR_REFLECTIVITY, self.CAR_TRANSMISSION, 0.5, ELEV_VEHICLE)
         veh = self.moving_vehicles(t_s, center_xy, radius_m)
         if len(veh):
             from reradar_core.sim.world import rectangle_segments
@@ -180,7 +180,7 @@ class Traversal:
             n_seg = np.array([len(r) for r in rects])
             car = np.repeat(veh[:, 3] <= 5.0, n_seg)  # cars vs buses / trucks (taller than the sensor: opaque)
             out.add_segments(np.concatenate(rects), np.where(car, self.CAR_REFLECTIVITY, 2.5),
-                             np.where(car, self.CAR_TRANSMISSION, 0.0), 0.5)
+                             np.where(car, self.CAR_TRANSMISSION, 0.0), 0.5, np.where(car, ELEV_VEHICLE, 0.0))
         if self.condition.snow_banks and self.world.profile.kerb_reflectivity > 0:
             road = self.world.road
             idx = np.asarray(road.tree.query_ball_point(center_xy, radius_m), dtype=np.int64)

@@ -66,6 +66,12 @@ def _hash_uniform(ids: np.ndarray, salt: int) -> np.ndarray:
     return (z >> np.uint64(11)).astype(np.float64) / float(1 << 53)
 
 
+#: Elevation classes of segments (``Primitives.seg_low``): objects at ground level (kerbs, snow banks) are lit
+#: through the ground's elevation pattern; vehicles below the antenna through ``SensorConfig.vehicle_elevation_scale``.
+ELEV_GROUND = 1.0
+ELEV_VEHICLE = 2.0
+
+
 @dataclass(frozen=True)
 class WorldProfile:
     """Densities and materials of one kind of environment. Densities are per 100 m of road or per hectare."""
@@ -99,6 +105,9 @@ class WorldProfile:
     # types (chosen per tile by a hash), so the same arrangement of buildings, trees, walls and clutter recurs
     # along the route as rows of identical apartment blocks or plantation stands do; 0 = every tile unique (v4)
     tile_types: int = 0
+    # façade details (windows, pipes, balconies: hard point scatterers on building outlines) relative to v7's
+    # density (3 per building segment near roads, 1.5 per metre of far walls); issue 10's near-range probe
+    facade_detail_scale: float = 1.0
 
 
 PROFILES: dict[str, WorldProfile] = {
@@ -136,7 +145,8 @@ class Primitives:
     seg_refl: np.ndarray = field(default_factory=lambda: np.zeros(0))
     seg_trans: np.ndarray = field(default_factory=lambda: np.zeros(0))
     seg_rough: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    seg_low: np.ndarray = field(default_factory=lambda: np.zeros(0))  # 1 = at ground level (kerb, bank)
+    # elevation class: 0 = taller than the antenna, lit at every range; ELEV_GROUND (kerb, bank); ELEV_VEHICLE
+    seg_low: np.ndarray = field(default_factory=lambda: np.zeros(0))
     disc: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     disc_refl: np.ndarray = field(default_factory=lambda: np.zeros(0))
     disc_trans: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -157,14 +167,15 @@ class Primitives:
         return out
 
     def add_segments(self, seg: np.ndarray, refl: np.ndarray | float, trans: np.ndarray | float,
-                     rough: np.ndarray | float, low: bool = False) -> None:
+                     rough: np.ndarray | float, low: bool | float | np.ndarray = False) -> None:
+        """Append segments; ``low``: elevation class (False / 0, True / ``ELEV_GROUND``, ``ELEV_VEHICLE``)."""
         seg = np.asarray(seg, dtype=np.float64).reshape(-1, 4)
         n = len(seg)
         self.seg = np.concatenate([self.seg, seg])
         self.seg_refl = np.concatenate([self.seg_refl, np.broadcast_to(refl, (n,))])
         self.seg_trans = np.concatenate([self.seg_trans, np.broadcast_to(trans, (n,))])
         self.seg_rough = np.concatenate([self.seg_rough, np.broadcast_to(rough, (n,))])
-        self.seg_low = np.concatenate([self.seg_low, np.full(n, 1.0 if low else 0.0)])
+        self.seg_low = np.concatenate([self.seg_low, np.broadcast_to(np.asarray(low, dtype=np.float64), (n,))])
 
     def add_points(self, xy: np.ndarray, rcs: np.ndarray | float, kind: int) -> None:
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
@@ -432,7 +443,7 @@ class World:
                 prim.add_segments(seg, rng.lognormal(np.log(2.0), 0.4, len(seg)), pr.building_transmission,
                                   rng.uniform(0.5, 0.95, len(seg)))
                 if len(seg):
-                    n_det = int(rng.poisson(len(seg) * 3.0))
+                    n_det = int(rng.poisson(len(seg) * 3.0 * pr.facade_detail_scale))
                     k = rng.integers(0, len(seg), n_det)
                     u = rng.uniform(0, 1, n_det)[:, None]
                     prim.add_points(seg[k, :2] + u * (seg[k, 2:] - seg[k, :2]),
@@ -502,7 +513,7 @@ class World:
                 prim.add_segments(segs, rng.lognormal(np.log(2.0), 0.4, len(segs)), pr.building_transmission,
                                   rng.uniform(0.5, 0.95, len(segs)))
                 # façade details (windows, pipes, balconies): strong points on the walls
-                n_det = int(rng.poisson(length * 1.5))
+                n_det = int(rng.poisson(length * 1.5 * pr.facade_detail_scale))
                 if n_det:
                     k = rng.integers(0, len(segs), n_det)
                     u = rng.uniform(0, 1, n_det)[:, None]

@@ -10,7 +10,7 @@ import numpy as np
 from reradar_core.sim.sensor import SensorConfig, _ground_peaks, attitude, render_scan, scan_seed
 from reradar_core.sim.suites import SUITES, suite_profile
 from reradar_core.sim.traversal import Traversal
-from reradar_core.sim.world import PROFILES, World
+from reradar_core.sim.world import ELEV_VEHICLE, PROFILES, Primitives, World
 
 from .conftest import CLEAN, T0, linear_trajectory, straight_road
 
@@ -125,3 +125,48 @@ def test_boreas_arterials_put_the_kerbs_8_m_from_the_centreline():
         kerb = prim.seg[(prim.seg_low == 1) & np.isclose(prim.seg[:, 1], prim.seg[:, 3])]
         assert len(kerb) > 5
         np.testing.assert_allclose(np.abs(kerb[:, [1, 3]]), half, atol=0.05)
+
+
+def _window_peak(scan, az_deg: float, range_m: float) -> float:
+    """Brightest bin within +-2 azimuths / +-0.8 m of (az_deg clockwise from forward, range_m)."""
+    row = int(round(az_deg / 360.0 * scan.num_azimuths)) % scan.num_azimuths
+    rows = [(row + k) % scan.num_azimuths for k in range(-2, 3)]
+    b = int(round((range_m - scan.range_offset_m) / scan.range_resolution_m))
+    w = int(0.8 / scan.range_resolution_m)
+    return float(scan.power[rows, b - w:b + w + 1].max())
+
+
+def test_hard_point_gain_scales_the_cross_section_in_db():
+    """A pole's cross-section times 0.1 is 10 dB less: with the log compression (``db_span`` 100 dB per unit of
+    image value) its bin drops by 0.1, the noise elsewhere stays; the default (1.0) leaves the scan as it was."""
+    trav = Traversal(World(straight_road(), seed=0, profile="empty"), seed=1, traffic_per_km=0.0)
+    extra = Primitives()
+    extra.add_points(np.array([[30.0, 0.0]]), 40.0, 0)  # hard point 30 m ahead
+    traj = linear_trajectory()
+    base = render_scan(trav, traj, T0, "oxford", 5, CLEAN, extra=extra)
+    same = render_scan(trav, traj, T0, "oxford", 5, replace(CLEAN, hard_point_gain=1.0), extra=extra)
+    np.testing.assert_array_equal(base.power, same.power)
+    dim = render_scan(trav, traj, T0, "oxford", 5, replace(CLEAN, hard_point_gain=0.1), extra=extra)
+    drop = _window_peak(base, 0.0, 30.0) - _window_peak(dim, 0.0, 30.0)
+    assert abs(drop - 10.0 / CLEAN.db_span) < 0.01
+    np.testing.assert_array_equal(base.power[200:300], dim.power[200:300])  # behind the vehicle: noise only
+
+
+def test_vehicle_elevation_scale_dims_cars_next_to_the_sensor_only():
+    """A car's side 4 m to the right is lit through the ground's elevation pattern scaled by the option: at
+    scale 1 its power gain is the ground's at 4 m (logistic((4 - 16) / 6) = 0.12, i.e. 9.2 dB less); the same
+    car 60 m to the left keeps > 0.99 of its power. Kerbs and buildings are not cars."""
+    world = World(straight_road(), seed=0, profile="empty")
+    trav = Traversal(world, seed=1, traffic_per_km=0.0)
+    extra = Primitives()
+    extra.add_segments(np.array([[-2.3, -4.0, 2.3, -4.0], [-2.3, 60.0, 2.3, 60.0]]), 2.5, 0.0, 0.5, ELEV_VEHICLE)
+    traj = linear_trajectory()
+    v7 = render_scan(trav, traj, T0, "oxford", 5, CLEAN, extra=extra)
+    tall = Primitives()
+    tall.add_segments(extra.seg, 2.5, 0.0, 0.5)  # the same outline as a tall object
+    np.testing.assert_array_equal(v7.power, render_scan(trav, traj, T0, "oxford", 5, CLEAN, extra=tall).power)
+    low = render_scan(trav, traj, T0, "oxford", 5, replace(CLEAN, vehicle_elevation_scale=1.0), extra=extra)
+    gain_4m = 1.0 / (1.0 + np.exp(-(4.0 - 16.0) / 6.0))
+    drop_near = _window_peak(v7, 90.0, 4.0) - _window_peak(low, 90.0, 4.0)
+    assert abs(drop_near - 10 * np.log10(1 / gain_4m) / CLEAN.db_span) < 0.01
+    assert _window_peak(v7, 270.0, 60.0) - _window_peak(low, 270.0, 60.0) < 0.005
