@@ -216,6 +216,10 @@ _LOOP = RouteDef("loop", seed=11, laps=3, block_m=(90.0, 160.0), n_blocks=3)
 # against the published KAIST03 Recall@1 of the four hand-made baselines (docs/SIMULATOR.md, "Simulator v5");
 # the loop split's sessions share the world, so they get it too.
 _KAIST_CAMPUS: tuple[tuple[str, float], ...] = (("frontage_prob", 0.4),)
+# v4 (Boreas) and v8 (MulRan): the roof-mounted radar's main lobe passes above a passenger car's roof, so 80 % of
+# the beam goes over it and what stands behind a car stays visible (docs/SIMULATOR.md, "Simulator v4" and
+# "Simulator v8"); buses and trucks stay opaque
+_ROOF_RADAR_CAR_TRANSMISSION = 0.8
 # v6: the OORD-like routes pass through changing land use (forest, open moor, loch shore, plantation), not one
 # statistically uniform off-road world: built and vegetation densities vary along the route by 1 +- 0.8 over
 # ~150 m zones (`WorldProfile.zone_contrast`; the `offroad` profile: 0). With a uniform world the ring
@@ -264,7 +268,7 @@ SUITES: dict[str, SuiteDef] = {
         ),
         traffic_per_km=4.0,
         # v4: the roof-mounted radar's beam passes over most of a car (docs/SIMULATOR.md, simulator v4)
-        car_transmission=0.8,
+        car_transmission=_ROOF_RADAR_CAR_TRANSMISSION,
     ),
     "loop-sim": SuiteDef(
         "loop-sim", "single session, three laps of a street grid: lap 1 = database, laps 2-3 = queries",
@@ -277,6 +281,7 @@ SUITES: dict[str, SuiteDef] = {
                         every=3),
         ),
         single_session=True,
+        car_transmission=_ROOF_RADAR_CAR_TRANSMISSION,  # v8
     ),
     "loop-sim-hard": SuiteDef(
         "loop-sim-hard", "single session on wide, sparse boulevards (DCC01-like): lap 1 = database, laps 2-3 "
@@ -289,6 +294,7 @@ SUITES: dict[str, SuiteDef] = {
                                                             lateral_m=3.5), traversal_seed=121, every=3),
         ),
         single_session=True,
+        car_transmission=_ROOF_RADAR_CAR_TRANSMISSION,  # v8
     ),
     "offroad-sim": SuiteDef(
         "offroad-sim", "OORD-like off-road route: map drive clear, query drive another day in rain",
@@ -348,7 +354,7 @@ SUITES: dict[str, SuiteDef] = {
         ),
         purpose="training",
         traffic_per_km=4.0,
-        car_transmission=0.8,
+        car_transmission=_ROOF_RADAR_CAR_TRANSMISSION,
     ),
     "train-target-loop": SuiteDef(
         "train-target-loop", "another session on the loop-sim street grid (other speeds, own seed, rain) and a "
@@ -368,6 +374,7 @@ SUITES: dict[str, SuiteDef] = {
                         condition="falling_snow", every=3, offset=2),
         ),
         single_session=True,
+        car_transmission=_ROOF_RADAR_CAR_TRANSMISSION,  # v8
         purpose="training",
     ),
     "train-target-loop-open": SuiteDef(
@@ -375,6 +382,7 @@ SUITES: dict[str, SuiteDef] = {
         "same way (clear; its tail validates), one the other way round (rain), one the same way in snow cover "
         "(fits the confidence only)",
         preset="mulran", layout="mulran", profile="urban-open", world_seed=12, road_routes=(_LOOP_OPEN,),
+        car_transmission=_ROOF_RADAR_CAR_TRANSMISSION,  # v8
         sequences=(
             # the same way as the map: its tail meets the map's tail (a reversed session's tail does not)
             SequenceDef("session1", "train", replace(_LOOP_OPEN, speed_seed=7, lateral_m=1.0), traversal_seed=124,

@@ -35,7 +35,7 @@ logger = logging.getLogger(__name__)
 COMPLETE_MARKER = ".reradar_complete"
 #: Bumped whenever the world or sensor model changes what is rendered: cached sequences rendered by another
 #: version are re-rendered instead of being reused.
-SIM_VERSION = "7"
+SIM_VERSION = "8"
 _STARTED = ".reradar_render_version"
 
 

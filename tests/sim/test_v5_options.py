@@ -80,7 +80,8 @@ def test_only_the_kaist_oord_and_boreas_worlds_differ_from_v4():
     vary their land use along the route (``zone_contrast`` 0.8). Simulator v7 a third ("Simulator v7"): the Boreas
     suite and its training split run on 16 m arterials (``road_half_width_m`` 8, the ``suburban`` profile: 6).
     Every other suite keeps v4's world, traffic and sensor (byte-identical renders); for them ``suite_profile`` is
-    the profile itself."""
+    the profile itself. (Simulator v8 changes no world: it lets the beam pass over cars on the MulRan suites, as
+    v4 did on the Boreas ones; ``test_world.py``.)"""
     kaist = {"loop-sim", "train-target-loop"}
     oord = {"offroad-sim", "offroad-sim-hard", "train-target-offroad"}
     boreas = {"boreas-sim", "train-target-boreas"}

@@ -125,13 +125,18 @@ def test_suburban_profile_has_fewer_street_parking_slots_and_building_transmissi
     assert np.array_equal(prim.seg_trans[~turned], opaque.seg_trans[~turned])
 
 
-def test_car_transmission_option_boreas_suites_only():
-    """v4: cars let 80 % of the beam pass over them on the Boreas suites (roof-mounted radar); every other
-    suite keeps v3's opaque cars; buses / trucks stay opaque."""
+def test_car_transmission_option_boreas_and_mulran_suites_only():
+    """v4: cars let 80 % of the beam pass over them on the Boreas suites (roof-mounted radar); v8: on the MulRan
+    suites too (the loop suites and their training splits); the off-road, Oxford-calibration, source and smoke
+    suites keep v3's opaque cars; buses / trucks stay opaque."""
     from reradar_core.sim.suites import SUITES
 
-    assert SUITES["boreas-sim"].car_transmission == SUITES["train-target-boreas"].car_transmission == 0.8
-    assert all(s.car_transmission == 0.0 for n, s in SUITES.items() if "boreas" not in n)
+    roof = {"boreas-sim", "train-target-boreas", "loop-sim", "loop-sim-hard", "train-target-loop",
+            "train-target-loop-open"}
+    assert {n for n, s in SUITES.items() if s.profile != "mixed" and s.purpose != "test"
+            and s.preset in ("boreas", "mulran")} == roof
+    assert all(SUITES[n].car_transmission == 0.8 for n in roof)
+    assert all(s.car_transmission == 0.0 for n, s in SUITES.items() if n not in roof)
     road = straight_road(400.0)
     world = World(road, seed=0, profile="urban")
     static = world.query(np.array([0.0, 0.0]), 150.0)
