@@ -13,7 +13,8 @@ The simulated scans are quantised to 8 bits like the real PNGs. The same scans' 
 keypoints) are printed beside, so that a sensor change is judged on both.
 
 ``--set`` overrides the world profile, the weather condition and the sensor (ablations, one at a time) with
-``benchmarks/calibrate_sim.py``'s keys: ``profile.urban.FIELD=V``, ``cond.clear.FIELD=V``, ``sensor.FIELD=V`` (the
+``benchmarks/calibrate_sim.py``'s keys: ``profile.urban.FIELD=V``, ``cond.clear.FIELD=V``, ``sensor.FIELD=V``, and
+``traversal.car_transmission=V`` (the
 rows recorded on 2026-12-01 before 15:40 UTC wrote the profile keys without the profile name).
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/descriptor_decorrelation.py ../shared/data/real-oxford \\
@@ -114,10 +115,12 @@ def main() -> None:
     real_scans = [real.load_scan(i) for i in range(len(real))]
 
     overrides = parse_overrides(args.set)
-    unknown = [k for k in overrides if not k.startswith(("profile.", "cond.", "sensor."))]
+    unknown = [k for k in overrides if not k.startswith(("profile.", "cond.", "sensor."))
+               and k != "traversal.car_transmission"]
     if unknown:
         raise SystemExit(f"unknown override(s) {unknown}: use profile.{args.profile}.FIELD, "
-                         f"cond.{args.condition}.FIELD or sensor.FIELD")
+                         f"cond.{args.condition}.FIELD, sensor.FIELD or traversal.car_transmission")
+    car_transmission = overrides.get("traversal.car_transmission")
     profile = profile_with(PROFILES[args.profile], overrides)
     condition = _condition(args.condition, overrides)
     sensor = sensor_with(SensorConfig(), overrides)
@@ -126,7 +129,8 @@ def main() -> None:
     results = {"real": gap_distances(real_scans)}
     all_sims: list[RadarScan] = []
     for w in (int(s) for s in args.worlds.split(",")):
-        trav = Traversal(World(RoadNetwork([traj.xy]), seed=w, profile=profile), w + 1, condition)
+        trav = Traversal(World(RoadNetwork([traj.xy]), seed=w, profile=profile), w + 1, condition,
+                         car_transmission=None if car_transmission is None else float(car_transmission))  # type: ignore[arg-type]
         sims = render_at(trav, traj, real.poses.timestamps_us, frames, sensor)
         results[f"world {w}"] = gap_distances(sims)
         all_sims += sims
