@@ -299,12 +299,11 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
         cos_inc = np.abs(den) / seg_len[si]
         amp = refl[si] * (rough[si] * cos_inc + (1 - rough[si]) * cos_inc ** 8) / K
         # objects at ground level are lit only where the elevation beam reaches the ground
-        peak_hit = cfg.ground_peak_m if peak_f is None else peak_f[ri]
-        amp = np.where(low[si] == ELEV_GROUND, amp * _elevation_gain(t, cfg, None if peak_f is None else peak_f[ri]),
-                       amp)
-        if cfg.vehicle_elevation_scale > 0:
-            amp = np.where(low[si] == ELEV_VEHICLE,
-                           amp * _elevation_gain(t, cfg, cfg.vehicle_elevation_scale * np.asarray(peak_hit)), amp)
+        peak_hit = None if peak_f is None else peak_f[ri]
+        amp = np.where(low[si] == ELEV_GROUND, amp * _elevation_gain(t, cfg, peak_hit), amp)
+        if cfg.vehicle_elevation_scale > 0:  # cars: the same pattern, its ranges scaled (``SensorConfig``)
+            veh_peak = cfg.vehicle_elevation_scale * (cfg.ground_peak_m if peak_hit is None else peak_hit)
+            amp = np.where(low[si] == ELEV_VEHICLE, amp * _elevation_gain(t, cfg, veh_peak), amp)
         # glint along the surface and with the viewing direction (windows, seams, ribs of a façade)
         seg_ids = _point_ids(0.5 * (s[:, :2] + s[:, 2:]))
         view = np.arctan2(rdy, rdx)[ok] + uu[ok] * seg_len[si] * (2 * np.pi / cfg.glint_length_m)
