@@ -23,6 +23,7 @@ Overrides (``--set``, repeatable), applied on top of the suite's definition:
     db.every=N, query.every=N    frame step of the database / query drive (protocol spacing)
     db.condition=NAME            weather condition of the database drive (e.g. snow_cover: a winter map)
     route.speed_min=V, route.speed_max=V   cruise speed range of both drives (synthetic routes), m/s
+    route.max_lateral_accel=V    corner speed cap of both drives (synthetic routes), m/s^2 (session 14)
 
 Renders are cached under ``.cache/reradar/calib/`` by (suite, subset, overrides, simulator source hash).
 
@@ -154,6 +155,10 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
         sp = (float(ov["route.speed_min"]), float(ov["route.speed_max"]))  # type: ignore[arg-type]
         db_def = replace(db_def, route=replace(db_def.route, speed_mps=sp))
         q_def = replace(q_def, route=replace(q_def.route, speed_mps=sp))
+    if "route.max_lateral_accel" in ov:  # corner speed cap of both drives (the world's roads stay as they are)
+        cap = float(ov["route.max_lateral_accel"])  # type: ignore[arg-type]
+        db_def = replace(db_def, route=replace(db_def.route, max_lateral_accel_mps2=cap))
+        q_def = replace(q_def, route=replace(q_def.route, max_lateral_accel_mps2=cap))
     if "query.lateral_m" in ov:
         q_def = replace(q_def, route=replace(q_def.route, lateral_m=float(ov["query.lateral_m"])))  # type: ignore[arg-type]
     if "db.lateral_m" in ov:

@@ -99,6 +99,8 @@ class RouteDef:
         speed_seed: seed of the speed profile (loop routes: a new session drives at other speeds).
         reverse: drive the loop route's waypoints in the opposite direction (revisits heading the other way).
         speed_mps: range of cruise speeds of the drive (loop routes), m/s.
+        max_lateral_accel_mps2: loop routes: corner speed cap (``drive_route``); None = corners at cruise speed
+            (simulator v1-v8, docs/SIMULATOR.md "Known defect").
     """
 
     kind: str
@@ -111,6 +113,7 @@ class RouteDef:
     speed_seed: int = 0
     reverse: bool = False
     speed_mps: tuple[float, float] = (6.0, 12.0)
+    max_lateral_accel_mps2: float | None = None
 
 
 @dataclass(frozen=True)
@@ -439,12 +442,14 @@ def suite_names(purpose: str | None = None) -> list[str]:
 @lru_cache(maxsize=16)
 def _loop_drive(route_seed: int, laps: int, block_m: tuple[float, float], n_blocks: int,
                 speed_seed: int, reverse: bool = False,
-                speed_mps: tuple[float, float] = (6.0, 12.0)) -> PoseSequence:
+                speed_mps: tuple[float, float] = (6.0, 12.0),
+                max_lateral_accel_mps2: float | None = None) -> PoseSequence:
     wp = synthetic_loop_route(route_seed, block_m=block_m, n_blocks=n_blocks, laps=laps)
     if reverse:
         wp = wp[::-1].copy()
     return drive_route(wp, seed=route_seed * 1000 + speed_seed, speed_mps=speed_mps,
-                       start_time_us=1_600_000_000_000_000 + speed_seed * 86_400_000_000)
+                       start_time_us=1_600_000_000_000_000 + speed_seed * 86_400_000_000,
+                       max_lateral_accel_mps2=max_lateral_accel_mps2)
 
 
 def _route_trajectory(route: RouteDef, traj_dir: Path | None) -> PoseSequence:
@@ -459,7 +464,7 @@ def _route_trajectory(route: RouteDef, traj_dir: Path | None) -> PoseSequence:
         traj = load_trajectory(f)
     elif route.kind == "loop":
         traj = _loop_drive(route.seed, route.laps, route.block_m, route.n_blocks, route.speed_seed, route.reverse,
-                           route.speed_mps)
+                           route.speed_mps, route.max_lateral_accel_mps2)
     else:
         raise ConfigError(f"unknown route kind {route.kind!r}")
     if route.lateral_m:

@@ -60,7 +60,8 @@ def offset_trajectory(traj: PoseSequence, lateral_m: float = 0.0, time_shift_us:
 
 def drive_route(waypoints: np.ndarray, seed: int, start_time_us: int = 1_600_000_000_000_000,
                 speed_mps: tuple[float, float] = (6.0, 12.0), rate_hz: float = 20.0,
-                corner_radius_m: float = 8.0) -> PoseSequence:
+                corner_radius_m: float = 8.0, max_lateral_accel_mps2: float | None = None,
+                max_longitudinal_accel_mps2: float = 2.0) -> PoseSequence:
     """Drive along a waypoint polyline with rounded corners and a smoothly varying speed (plus short stops).
 
     Args:
@@ -70,6 +71,13 @@ def drive_route(waypoints: np.ndarray, seed: int, start_time_us: int = 1_600_000
         speed_mps: range of cruise speeds.
         rate_hz: pose rate of the output.
         corner_radius_m: corner rounding (Chaikin cuts), metres.
+        max_lateral_accel_mps2: None (simulator v1-v8): the speed ignores the path's curvature, so corners are taken
+            at cruise speed (up to 2.7 g on the loop routes; docs/SIMULATOR.md, "Known defect"). A value caps the
+            speed at sqrt(a / curvature) (curvature over +-1 m of path), reached and left at
+            ``max_longitudinal_accel_mps2`` (braking before the corner, accelerating after it); urban drivers
+            corner at 2-4 m/s^2.
+        max_longitudinal_accel_mps2: braking / acceleration into and out of a corner (with
+            ``max_lateral_accel_mps2``), m/s^2.
 
     Returns:
         PoseSequence with yaw along the direction of travel.
@@ -93,6 +101,8 @@ def drive_route(waypoints: np.ndarray, seed: int, start_time_us: int = 1_600_000
     knots = np.arange(0, s[-1] + 100, 100.0)
     v_knots = rng.uniform(*speed_mps, len(knots))
     dt = 1.0 / rate_hz
+    corner_v = _corner_speed_limit(line, s, max_lateral_accel_mps2, max_longitudinal_accel_mps2) \
+        if max_lateral_accel_mps2 is not None else None
     t_list, s_list = [0.0], [0.0]
     stops = set(np.nonzero(rng.random(len(knots)) < 0.08)[0].tolist())
     cur_s, cur_t, last_knot = 0.0, 0.0, 0
@@ -105,6 +115,8 @@ def drive_route(waypoints: np.ndarray, seed: int, start_time_us: int = 1_600_000
                 t_list.append(cur_t)
                 s_list.append(cur_s)
         v = float(np.interp(cur_s, knots, v_knots))
+        if corner_v is not None:
+            v = min(v, float(np.interp(cur_s, *corner_v)))
         cur_s = min(s[-1], cur_s + v * dt)
         cur_t += dt
         t_list.append(cur_t)
@@ -119,6 +131,34 @@ def drive_route(waypoints: np.ndarray, seed: int, start_time_us: int = 1_600_000
     y2 = np.interp(np.minimum(sa + eps, s[-1]), s, line[:, 1]) - np.interp(np.maximum(sa - eps, 0), s, line[:, 1])
     yaw = np.arctan2(y2, x2)
     return PoseSequence(start_time_us + np.round(t * 1e6).astype(np.int64), np.column_stack([x, y]), yaw)
+
+
+def _corner_speed_limit(line: np.ndarray, s: np.ndarray, lateral: float, longitudinal: float,
+                        step_m: float = 0.5, half_window_m: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """(arc positions (M,), speed limits (M,) m/s) along the polyline ``line`` (N, 2) with arc lengths ``s`` (N,):
+    sqrt(lateral / curvature), curvature = heading change over +-``half_window_m`` of path / its length, its
+    largest value within +-2 m (a rounded polyline corner's curvature sits at its vertices), then limited so that
+    the speed changes by at most ``longitudinal`` m/s^2 along the path (v^2 <= v'^2 + 2 a ds)."""
+    grid = np.arange(0.0, s[-1] + step_m, step_m)
+
+    def heading(at: np.ndarray) -> np.ndarray:
+        lo, hi = np.maximum(at - 0.25, 0.0), np.minimum(at + 0.25, s[-1])
+        return np.arctan2(np.interp(hi, s, line[:, 1]) - np.interp(lo, s, line[:, 1]),
+                          np.interp(hi, s, line[:, 0]) - np.interp(lo, s, line[:, 0]))
+
+    a, b = np.maximum(grid - half_window_m, 0.0), np.minimum(grid + half_window_m, s[-1])
+    turn = np.abs(np.angle(np.exp(1j * (heading(b) - heading(a)))))
+    curvature = turn / np.maximum(b - a, 1e-9)
+    reach = int(round(2.0 / step_m))
+    padded = np.pad(curvature, reach, mode="edge")
+    curvature = np.lib.stride_tricks.sliding_window_view(padded, 2 * reach + 1).max(axis=1)
+    v2 = lateral / np.maximum(curvature, 1e-9)  # squared speed limit
+    ds2 = 2.0 * longitudinal * step_m
+    for i in range(len(v2) - 2, -1, -1):  # brake before a corner
+        v2[i] = min(v2[i], v2[i + 1] + ds2)
+    for i in range(1, len(v2)):  # accelerate out of it
+        v2[i] = min(v2[i], v2[i - 1] + ds2)
+    return grid, np.sqrt(v2)
 
 
 def synthetic_loop_route(seed: int, block_m: tuple[float, float] = (70.0, 140.0), n_blocks: int = 3,

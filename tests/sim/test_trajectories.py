@@ -1,0 +1,48 @@
+"""Synthetic drives (``drive_route``): the corner speed cap (session 14's defect, docs/SIMULATOR.md "Known defect")."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from reradar_core.sim.trajectories import _corner_speed_limit, drive_route
+
+#: an L-shaped route: 300 m east, then 300 m north (one right-angle corner, rounded to ~8 m)
+L_ROUTE = np.array([[0.0, 0.0], [300.0, 0.0], [300.0, 300.0]])
+
+
+def _lateral_accel(traj) -> tuple[np.ndarray, np.ndarray]:
+    """(speed m/s, |speed x yaw rate| m/s^2) at 20 Hz along ``traj``."""
+    t = np.arange(traj.timestamps_us[0], traj.timestamps_us[-1], 50_000)
+    p = traj.interpolate(t)
+    v = np.hypot(*np.diff(p[:, :2], axis=0).T) / 0.05
+    w = np.diff(np.unwrap(p[:, 2])) / 0.05
+    return v, np.abs(v * w)
+
+
+def test_default_corners_at_cruise_speed_and_the_cap_slows_down():
+    fast = drive_route(L_ROUTE, seed=3, speed_mps=(10.0, 10.0))
+    capped = drive_route(L_ROUTE, seed=3, speed_mps=(10.0, 10.0), max_lateral_accel_mps2=3.0)
+    _, a_fast = _lateral_accel(fast)
+    v_cap, a_cap = _lateral_accel(capped)
+    assert a_fast.max() > 8.0  # v1-v8: the corner at 10 m/s
+    assert a_cap.max() < 3.0 * 1.3  # within the curvature estimate's tolerance of the cap
+    # straight stretches keep the cruise speed; the corner is slower; the path is the same
+    assert np.isclose(np.median(v_cap), 10.0, atol=0.05) and v_cap.min() < 6.0
+    assert np.allclose(capped.xy[-1], fast.xy[-1]) and capped.timestamps_us[-1] > fast.timestamps_us[-1]
+
+
+def test_speed_limit_ramps_at_the_longitudinal_acceleration():
+    """sqrt(a / curvature) at the corner, infinite-like on the straights, and v^2 changes by at most 2 a_long ds."""
+    line = np.array([[0.0, 0.0], [100.0, 0.0], [100.0, 100.0]])
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
+    grid, vmax = _corner_speed_limit(line, s, lateral=3.0, longitudinal=2.0)
+    assert vmax[np.argmin(np.abs(grid - 100.0))] < 3.0  # the unrounded kink: a very tight corner
+    assert vmax[0] > 15.0 and vmax[-1] > 15.0
+    assert np.all(np.abs(np.diff(vmax ** 2)) <= 2 * 2.0 * 0.5 + 1e-9)
+
+
+def test_default_is_unchanged():
+    a = drive_route(L_ROUTE, seed=5)
+    b = drive_route(L_ROUTE, seed=5, max_lateral_accel_mps2=None)
+    np.testing.assert_array_equal(a.timestamps_us, b.timestamps_us)
+    np.testing.assert_array_equal(a.xy, b.xy)
