@@ -13,8 +13,8 @@ The simulated scans are quantised to 8 bits like the real PNGs. The same scans' 
 keypoints) are printed beside, so that a sensor change is judged on both.
 
 ``--set`` overrides the world profile, the weather condition and the sensor (ablations, one at a time) with
-``benchmarks/calibrate_sim.py``'s keys: ``profile.urban.FIELD=V``, ``cond.clear.FIELD=V``, ``sensor.FIELD=V``, and
-``traversal.car_transmission=V`` (the
+``benchmarks/calibrate_sim.py``'s keys: ``profile.urban.FIELD=V``, ``cond.clear.FIELD=V``, ``sensor.FIELD=V`` and
+``traversal.FIELD=V`` (the
 rows recorded on 2026-12-01 before 15:40 UTC wrote the profile keys without the profile name).
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/descriptor_decorrelation.py ../shared/data/real-oxford \\
@@ -38,7 +38,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from calibrate_sim import _condition, parse_overrides, profile_with, sensor_with  # noqa: E402
+from calibrate_sim import _condition, _traversal, parse_overrides, profile_with, sensor_with  # noqa: E402
 
 from reradar_core.baselines.raplace import RaPlace  # noqa: E402
 from reradar_core.baselines.referee import ReFeree  # noqa: E402
@@ -105,7 +105,8 @@ def main() -> None:
     ap.add_argument("--margin-frames", type=int, default=80,
                     help="odometry frames either side of the real scans that make the simulated world's road")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="profile.NAME.FIELD=V, cond.NAME.FIELD=V or sensor.FIELD=V, as benchmarks/calibrate_sim.py "
+                    help="profile.NAME.FIELD=V, cond.NAME.FIELD=V, sensor.FIELD=V or traversal.FIELD=V, as "
+                         "benchmarks/calibrate_sim.py "
                          "takes them (repeatable)")
     ap.add_argument("--json", default=None, help="append one JSON row here")
     ap.add_argument("--label", default="", help="row label for --json")
@@ -115,12 +116,10 @@ def main() -> None:
     real_scans = [real.load_scan(i) for i in range(len(real))]
 
     overrides = parse_overrides(args.set)
-    unknown = [k for k in overrides if not k.startswith(("profile.", "cond.", "sensor."))
-               and k != "traversal.car_transmission"]
+    unknown = [k for k in overrides if not k.startswith(("profile.", "cond.", "sensor.", "traversal."))]
     if unknown:
         raise SystemExit(f"unknown override(s) {unknown}: use profile.{args.profile}.FIELD, "
-                         f"cond.{args.condition}.FIELD, sensor.FIELD or traversal.car_transmission")
-    car_transmission = overrides.get("traversal.car_transmission")
+                         f"cond.{args.condition}.FIELD, sensor.FIELD or traversal.FIELD")
     profile = profile_with(PROFILES[args.profile], overrides)
     condition = _condition(args.condition, overrides)
     sensor = sensor_with(SensorConfig(), overrides)
@@ -129,8 +128,7 @@ def main() -> None:
     results = {"real": gap_distances(real_scans)}
     all_sims: list[RadarScan] = []
     for w in (int(s) for s in args.worlds.split(",")):
-        trav = Traversal(World(RoadNetwork([traj.xy]), seed=w, profile=profile), w + 1, condition,
-                         car_transmission=None if car_transmission is None else float(car_transmission))  # type: ignore[arg-type]
+        trav = _traversal(World(RoadNetwork([traj.xy]), seed=w, profile=profile), w + 1, condition, overrides)
         sims = render_at(trav, traj, real.poses.timestamps_us, frames, sensor)
         results[f"world {w}"] = gap_distances(sims)
         all_sims += sims

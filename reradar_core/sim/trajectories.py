@@ -73,7 +73,7 @@ def drive_route(waypoints: np.ndarray, seed: int, start_time_us: int = 1_600_000
         corner_radius_m: corner rounding (Chaikin cuts), metres.
         max_lateral_accel_mps2: None (simulator v1-v8): the speed ignores the path's curvature, so corners are taken
             at cruise speed (up to 2.7 g on the loop routes; docs/SIMULATOR.md, "Known defect"). A value caps the
-            speed at sqrt(a / curvature) (curvature over +-1 m of path), reached and left at
+            speed at sqrt(a / curvature) (``_corner_speed_limit``), reached and left at
             ``max_longitudinal_accel_mps2`` (braking before the corner, accelerating after it); urban drivers
             corner at 2-4 m/s^2.
         max_longitudinal_accel_mps2: braking / acceleration into and out of a corner (with
@@ -126,11 +126,16 @@ def drive_route(waypoints: np.ndarray, seed: int, start_time_us: int = 1_600_000
     x = np.interp(sa, s, line[:, 0])
     y = np.interp(sa, s, line[:, 1])
     # heading from the path tangent at each arc position (stable while stopped)
-    eps = 0.5
-    x2 = np.interp(np.minimum(sa + eps, s[-1]), s, line[:, 0]) - np.interp(np.maximum(sa - eps, 0), s, line[:, 0])
-    y2 = np.interp(np.minimum(sa + eps, s[-1]), s, line[:, 1]) - np.interp(np.maximum(sa - eps, 0), s, line[:, 1])
-    yaw = np.arctan2(y2, x2)
+    yaw = _tangent_heading(line, s, sa, 0.5)
     return PoseSequence(start_time_us + np.round(t * 1e6).astype(np.int64), np.column_stack([x, y]), yaw)
+
+
+def _tangent_heading(line: np.ndarray, s: np.ndarray, at: np.ndarray, eps_m: float) -> np.ndarray:
+    """Heading (rad) of the polyline ``line`` (N, 2), arc lengths ``s`` (N,), at arc positions ``at``: the chord
+    from ``at - eps_m`` to ``at + eps_m`` (clipped to the path's ends)."""
+    lo, hi = np.maximum(at - eps_m, 0), np.minimum(at + eps_m, s[-1])
+    return np.arctan2(np.interp(hi, s, line[:, 1]) - np.interp(lo, s, line[:, 1]),
+                      np.interp(hi, s, line[:, 0]) - np.interp(lo, s, line[:, 0]))
 
 
 def _corner_speed_limit(line: np.ndarray, s: np.ndarray, lateral: float, longitudinal: float,
@@ -140,14 +145,8 @@ def _corner_speed_limit(line: np.ndarray, s: np.ndarray, lateral: float, longitu
     largest value within +-2 m (a rounded polyline corner's curvature sits at its vertices), then limited so that
     the speed changes by at most ``longitudinal`` m/s^2 along the path (v^2 <= v'^2 + 2 a ds)."""
     grid = np.arange(0.0, s[-1] + step_m, step_m)
-
-    def heading(at: np.ndarray) -> np.ndarray:
-        lo, hi = np.maximum(at - 0.25, 0.0), np.minimum(at + 0.25, s[-1])
-        return np.arctan2(np.interp(hi, s, line[:, 1]) - np.interp(lo, s, line[:, 1]),
-                          np.interp(hi, s, line[:, 0]) - np.interp(lo, s, line[:, 0]))
-
     a, b = np.maximum(grid - half_window_m, 0.0), np.minimum(grid + half_window_m, s[-1])
-    turn = np.abs(np.angle(np.exp(1j * (heading(b) - heading(a)))))
+    turn = np.abs(np.angle(np.exp(1j * (_tangent_heading(line, s, b, 0.25) - _tangent_heading(line, s, a, 0.25)))))
     curvature = turn / np.maximum(b - a, 1e-9)
     reach = int(round(2.0 / step_m))
     padded = np.pad(curvature, reach, mode="edge")
