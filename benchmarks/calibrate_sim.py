@@ -23,7 +23,11 @@ Overrides (``--set``, repeatable), applied on top of the suite's definition:
     db.every=N, query.every=N    frame step of the database / query drive (protocol spacing)
     db.condition=NAME            weather condition of the database drive (e.g. snow_cover: a winter map)
     route.speed_min=V, route.speed_max=V   cruise speed range of both drives (synthetic routes), m/s
-    route.max_lateral_accel=V    corner speed cap of both drives (synthetic routes), m/s^2 (session 14)
+    world.grid_lines=N           a whole street grid around the loop route: its block lines extended across the
+                                 area plus N more parallel streets each side (session 15 probe);
+                                 world.grid_extend_m=V how far the lines reach beyond the route (default 300 m)
+    route.max_lateral_accel=V    corner speed cap of both drives (synthetic routes), m/s^2 (session 14; 3.5 since
+                                 simulator v9; "none" = v1-v8's corners at cruise speed)
 
 Renders are cached under ``.cache/reradar/calib/`` by (suite, subset, overrides, simulator source hash).
 
@@ -67,6 +71,22 @@ def _parse_value(v: str) -> object:
     if v.lower() in ("true", "false"):
         return v.lower() == "true"
     return v
+
+
+def street_grid(route: S.RouteDef, extra: int, extend_m: float) -> list[np.ndarray]:
+    """(2, 2) straight road centrelines of a street grid around a loop route (session 15 probe): every grid line of
+    the route's blocks (``synthetic_loop_route``'s xs / ys), extended ``extend_m`` beyond the route's extent, plus
+    ``extra`` parallel lines on each side at the route's mean block size. Metres, world frame."""
+    from reradar_core.sim.world import stable_seed
+
+    rng = np.random.default_rng(stable_seed(route.seed, "route"))  # the block sizes synthetic_loop_route draws
+    xs = np.concatenate([[0.0], np.cumsum(rng.uniform(*route.block_m, route.n_blocks))])
+    ys = np.concatenate([[0.0], np.cumsum(rng.uniform(*route.block_m, 2))])
+    step = float(np.mean(route.block_m))
+    xs = np.concatenate([xs.min() - step * np.arange(extra, 0, -1), xs, xs.max() + step * np.arange(1, extra + 1)])
+    ys = np.concatenate([ys.min() - step * np.arange(extra, 0, -1), ys, ys.max() + step * np.arange(1, extra + 1)])
+    x0, x1, y0, y1 = xs.min() - extend_m, xs.max() + extend_m, ys.min() - extend_m, ys.max() + extend_m
+    return ([np.array([[x, y0], [x, y1]]) for x in xs] + [np.array([[x0, y], [x1, y]]) for y in ys])
 
 
 def parse_overrides(items: list[str]) -> dict[str, object]:
@@ -156,7 +176,8 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
         db_def = replace(db_def, route=replace(db_def.route, speed_mps=sp))
         q_def = replace(q_def, route=replace(q_def.route, speed_mps=sp))
     if "route.max_lateral_accel" in ov:  # corner speed cap of both drives (the world's roads stay as they are)
-        cap = float(ov["route.max_lateral_accel"])  # type: ignore[arg-type]
+        raw = str(ov["route.max_lateral_accel"])
+        cap = None if raw.lower() == "none" else float(raw)
         db_def = replace(db_def, route=replace(db_def.route, max_lateral_accel_mps2=cap))
         q_def = replace(q_def, route=replace(q_def.route, max_lateral_accel_mps2=cap))
     if "query.lateral_m" in ov:
@@ -173,7 +194,11 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
         return {k: z[k] for k in z.files} | {"radius": float(z["radius"]), "preset": str(z["preset"])}
 
     sensor = sensor_with(SensorConfig(**dict(suite.sensor_overrides)), ov)  # type: ignore[arg-type]
-    road = W.RoadNetwork([S._route_trajectory(replace(r, lateral_m=0.0), None).xy for r in suite.road_routes])
+    lines = [S._route_trajectory(replace(r, lateral_m=0.0), None).xy for r in suite.road_routes]
+    if "world.grid_lines" in ov:  # session 15: a whole street grid around the loop route (a planned district)
+        lines += [g for r in suite.road_routes if r.kind == "loop"
+                  for g in street_grid(r, int(ov["world.grid_lines"]), float(ov.get("world.grid_extend_m", 300.0)))]  # type: ignore[arg-type]
+    road = W.RoadNetwork(lines)
     world = W.World(road, seed=suite.world_seed, profile=profile_with(S.suite_profile(suite), ov))
 
     def times(seq: S.SequenceDef):

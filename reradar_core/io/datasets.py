@@ -353,7 +353,9 @@ def write_sequence_scan(root: str | Path, layout: str, scan: RadarScan) -> Path:
 
 
 def write_sequence_poses(root: str | Path, layout: str, poses: PoseSequence) -> Path:
-    """Write one pose per scan (T_world_sensor at each scan timestamp) in ``layout``'s pose file."""
+    """Write ``poses`` (T_world_sensor at their timestamps: every scan's, and any others, e.g. the drive's between
+    scans) in ``layout``'s pose file; ``load_sequence`` looks each scan's pose up by its timestamp and keeps the
+    whole track for interpolation."""
     root = Path(root)
     if layout == "boreas":
         return write_boreas_radar_poses(poses, root / "applanix" / "radar_poses.csv")

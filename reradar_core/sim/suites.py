@@ -71,6 +71,10 @@ logger = logging.getLogger(__name__)
 TRAJECTORY_DIR_ENV = "RERADAR_TRAJECTORY_DIR"
 BOREAS_MAP_FILE = "boreas-2021-08-05-13-34.radar_poses.csv"
 BOREAS_QUERY_FILE = "boreas-2021-09-02-11-42.radar_poses.csv"
+#: Simulator v9: the synthetic (loop) routes slow down for corners to this lateral acceleration, m/s^2 (0.36 g). The
+#: real Boreas drives peak at 3.0-3.8 m/s^2 on their rendered poses; v1-v8 cornered at cruise speed, up to 2.7 g
+#: (docs/SIMULATOR.md, "Simulator v9").
+CORNER_LATERAL_ACCEL_MPS2 = 3.5
 
 
 def boreas_trajectory_dir(path: str | Path | None = None) -> Path:
@@ -99,8 +103,9 @@ class RouteDef:
         speed_seed: seed of the speed profile (loop routes: a new session drives at other speeds).
         reverse: drive the loop route's waypoints in the opposite direction (revisits heading the other way).
         speed_mps: range of cruise speeds of the drive (loop routes), m/s.
-        max_lateral_accel_mps2: loop routes: corner speed cap (``drive_route``); None = corners at cruise speed
-            (simulator v1-v8, docs/SIMULATOR.md "Known defect").
+        max_lateral_accel_mps2: loop routes: corner speed cap (``drive_route``), m/s^2. Default 3.5 (simulator
+            v9: the largest lateral acceleration of the real Boreas drives is 3.0-3.8 m/s^2, docs/SIMULATOR.md
+            "Simulator v9"); None = corners at cruise speed (simulator v1-v8, up to 2.7 g).
     """
 
     kind: str
@@ -113,7 +118,7 @@ class RouteDef:
     speed_seed: int = 0
     reverse: bool = False
     speed_mps: tuple[float, float] = (6.0, 12.0)
-    max_lateral_accel_mps2: float | None = None
+    max_lateral_accel_mps2: float | None = CORNER_LATERAL_ACCEL_MPS2
 
 
 @dataclass(frozen=True)
@@ -443,13 +448,13 @@ def suite_names(purpose: str | None = None) -> list[str]:
 def _loop_drive(route_seed: int, laps: int, block_m: tuple[float, float], n_blocks: int,
                 speed_seed: int, reverse: bool = False,
                 speed_mps: tuple[float, float] = (6.0, 12.0),
-                max_lateral_accel_mps2: float | None = None) -> PoseSequence:
+                max_lateral_accel_mps2: float | None = None, lateral_m: float = 0.0) -> PoseSequence:
     wp = synthetic_loop_route(route_seed, block_m=block_m, n_blocks=n_blocks, laps=laps)
     if reverse:
         wp = wp[::-1].copy()
     return drive_route(wp, seed=route_seed * 1000 + speed_seed, speed_mps=speed_mps,
                        start_time_us=1_600_000_000_000_000 + speed_seed * 86_400_000_000,
-                       max_lateral_accel_mps2=max_lateral_accel_mps2)
+                       max_lateral_accel_mps2=max_lateral_accel_mps2, lateral_m=lateral_m)
 
 
 def _route_trajectory(route: RouteDef, traj_dir: Path | None) -> PoseSequence:
@@ -463,8 +468,12 @@ def _route_trajectory(route: RouteDef, traj_dir: Path | None) -> PoseSequence:
             )
         traj = load_trajectory(f)
     elif route.kind == "loop":
+        if route.max_lateral_accel_mps2 is not None:
+            # v9: the lane is driven at its own corner speeds (the inner lane of a corner is the tighter curve)
+            return _loop_drive(route.seed, route.laps, route.block_m, route.n_blocks, route.speed_seed,
+                               route.reverse, route.speed_mps, route.max_lateral_accel_mps2, route.lateral_m)
         traj = _loop_drive(route.seed, route.laps, route.block_m, route.n_blocks, route.speed_seed, route.reverse,
-                           route.speed_mps, route.max_lateral_accel_mps2)
+                           route.speed_mps, None)
     else:
         raise ConfigError(f"unknown route kind {route.kind!r}")
     if route.lateral_m:

@@ -61,7 +61,7 @@ def offset_trajectory(traj: PoseSequence, lateral_m: float = 0.0, time_shift_us:
 def drive_route(waypoints: np.ndarray, seed: int, start_time_us: int = 1_600_000_000_000_000,
                 speed_mps: tuple[float, float] = (6.0, 12.0), rate_hz: float = 20.0,
                 corner_radius_m: float = 8.0, max_lateral_accel_mps2: float | None = None,
-                max_longitudinal_accel_mps2: float = 2.0) -> PoseSequence:
+                max_longitudinal_accel_mps2: float = 2.0, lateral_m: float = 0.0) -> PoseSequence:
     """Drive along a waypoint polyline with rounded corners and a smoothly varying speed (plus short stops).
 
     Args:
@@ -72,12 +72,17 @@ def drive_route(waypoints: np.ndarray, seed: int, start_time_us: int = 1_600_000
         rate_hz: pose rate of the output.
         corner_radius_m: corner rounding (Chaikin cuts), metres.
         max_lateral_accel_mps2: None (simulator v1-v8): the speed ignores the path's curvature, so corners are taken
-            at cruise speed (up to 2.7 g on the loop routes; docs/SIMULATOR.md, "Known defect"). A value caps the
+            at cruise speed (up to 2.7 g on the loop routes; docs/SIMULATOR.md, "Known defect"; the suites'
+            routes use 3.5 since simulator v9). A value caps the
             speed at sqrt(a / curvature) (``_corner_speed_limit``), reached and left at
             ``max_longitudinal_accel_mps2`` (braking before the corner, accelerating after it); urban drivers
             corner at 2-4 m/s^2.
         max_longitudinal_accel_mps2: braking / acceleration into and out of a corner (with
             ``max_lateral_accel_mps2``), m/s^2.
+        lateral_m: drive a lane this far to the left of the (rounded) waypoint path, metres. The lane is offset
+            before the speed profile is made, so the corner cap holds on the inner lane of a corner (whose radius is
+            smaller by ``lateral_m``); ``offset_trajectory`` of a centre-line drive is the same path at the centre
+            line's speeds.
 
     Returns:
         PoseSequence with yaw along the direction of travel.
@@ -94,6 +99,8 @@ def drive_route(waypoints: np.ndarray, seed: int, start_time_us: int = 1_600_000
         q = a + frac * (b - a)
         r = b - frac * (b - a)
         line = np.concatenate([line[:1], np.stack([q, r], axis=1).reshape(-1, 2), line[-1:]])
+    if lateral_m:
+        line = _offset_polyline(line, lateral_m)
     d = np.linalg.norm(np.diff(line, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(d)])
     rng = np.random.default_rng(stable_seed(seed, "speed"))
@@ -128,6 +135,16 @@ def drive_route(waypoints: np.ndarray, seed: int, start_time_us: int = 1_600_000
     # heading from the path tangent at each arc position (stable while stopped)
     yaw = _tangent_heading(line, s, sa, 0.5)
     return PoseSequence(start_time_us + np.round(t * 1e6).astype(np.int64), np.column_stack([x, y]), yaw)
+
+
+def _offset_polyline(line: np.ndarray, lateral_m: float) -> np.ndarray:
+    """(N, 2) polyline moved ``lateral_m`` to the left of its direction of travel, vertex by vertex along the
+    normal of the mean of the adjacent segment directions (the rounded corners keep the offset path smooth)."""
+    seg = np.diff(line, axis=0)
+    seg /= np.maximum(np.linalg.norm(seg, axis=1, keepdims=True), 1e-12)
+    tangent = np.concatenate([seg[:1], seg[:-1] + seg[1:], seg[-1:]])
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
+    return line + lateral_m * np.column_stack([-tangent[:, 1], tangent[:, 0]])
 
 
 def _tangent_heading(line: np.ndarray, s: np.ndarray, at: np.ndarray, eps_m: float) -> np.ndarray:

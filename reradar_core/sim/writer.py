@@ -27,7 +27,7 @@ from reradar_core.io.scan import encode_navtech_png_bytes
 from reradar_core.sim.sensor import SensorConfig, render_scan, scan_seed
 from reradar_core.sim.traversal import Traversal
 
-__all__ = ["COMPLETE_MARKER", "SIM_VERSION", "carry_over", "render_sequence", "is_complete"]
+__all__ = ["COMPLETE_MARKER", "SIM_VERSION", "carry_over", "pose_track", "render_sequence", "is_complete"]
 
 logger = logging.getLogger(__name__)
 
@@ -35,7 +35,7 @@ logger = logging.getLogger(__name__)
 COMPLETE_MARKER = ".reradar_complete"
 #: Bumped whenever the world or sensor model changes what is rendered: cached sequences rendered by another
 #: version are re-rendered instead of being reused.
-SIM_VERSION = "8"
+SIM_VERSION = "10"
 _STARTED = ".reradar_render_version"
 
 
@@ -107,6 +107,25 @@ def _write_atomic(path: Path, data: bytes) -> None:
     os.replace(tmp, path)
 
 
+def pose_track(trajectory: PoseSequence, times_us: np.ndarray, sweep_period_s: float) -> PoseSequence:
+    """The poses a sequence's pose file holds: one at every scan start time ``times_us`` (N,) plus every pose
+    of ``trajectory`` from the first scan's start to the end of the last sweep (simulator v10).
+
+    Real pose files hold the vehicle's poses at least at every scan the sensor took, and readers interpolate
+    them at any other time: the mid-sweep time that keyframe poses and pose ground truth refer to
+    (``Sequence.mid_sweep_poses``). A render of every n-th scan that wrote only its own scans' poses (v1-v9) left
+    0.75-2 s between rows, and at a corner a linear interpolation over that gap put the mid-sweep heading up to
+    6 degrees off the drive's (docs/SIMULATOR.md, "Simulator v10").
+    """
+    t = np.asarray(times_us, dtype=np.int64)
+    tr = trajectory.timestamps_us
+    end = int(t[-1]) + int(round(sweep_period_s * 1e6))
+    inner = tr[(tr > t[0]) & (tr <= end)]
+    stamps = np.union1d(t, inner)
+    poses = trajectory.interpolate(stamps)
+    return PoseSequence(stamps, poses[:, :2], poses[:, 2])
+
+
 def render_sequence(out_dir: str | Path, traversal: Traversal, trajectory: PoseSequence, times_us: np.ndarray,
                     scan_indices: np.ndarray | None = None, preset: str = "boreas", layout: str | None = None,
                     config: SensorConfig = SensorConfig(), progress: bool = True, meta: dict | None = None,
@@ -154,8 +173,7 @@ def render_sequence(out_dir: str | Path, traversal: Traversal, trajectory: PoseS
         _write_atomic(scan_path(out, layout, int(t0)), encode_navtech_png_bytes(scan))
         rendered += 1
     poses = trajectory.interpolate(times_us)
-    gt = PoseSequence(times_us, poses[:, :2], poses[:, 2])
-    write_sequence_poses(out, layout, gt)
+    write_sequence_poses(out, layout, pose_track(trajectory, times_us, p.sweep_period_s))
     info = {
         "preset": p.name,
         "layout": layout,

@@ -247,3 +247,24 @@ def test_carry_over_takes_a_render_to_the_current_version_and_leaves_the_old_one
     assert json.loads((src / "reradar_sim.json").read_text())["sim_version"] == "old"
     assert not writer.carry_over(src, dst, "old")  # already complete in this version
     assert not writer.carry_over(src, tmp_path / "other", "older")  # src is not a render of that version
+
+
+@pytest.mark.parametrize("suite_name", ["smoke", "loop-sim", "offroad-sim"])  # boreas, mulran, oxford layouts
+def test_subsampled_render_keeps_the_drive_for_mid_sweep_ground_truth(suite_name, tmp_path):
+    """v10: a render of every n-th scan writes the drive's poses between its scans too, so the mid-sweep pose
+    ground truth (and a map's keyframe poses) is the drive's own pose at the mean azimuth time, in every layout;
+    each scan's own pose is the drive's at its start time."""
+    from reradar_core.io.presets import mid_sweep_times_us
+    from reradar_core.sim.suites import _route_trajectory
+
+    data = build_suite(suite_name, root=tmp_path / suite_name, progress=False, limit=3)
+    sdef = next(d for d in SUITES[suite_name].sequences if d.role == "query")
+    seq = data.query_sequences()[0]
+    assert SUITES[suite_name].sequences[0].every > 1 or sdef.every > 1  # subsampled: rows between scans matter
+    drive = _route_trajectory(sdef.route, None)
+    np.testing.assert_allclose(seq.poses.poses, drive.interpolate(seq.timestamps_us), atol=1e-6)
+    assert len(seq.track) > 3 * len(seq)  # the drive between the scans, not one row per scan
+    truth = drive.interpolate(mid_sweep_times_us(seq.timestamps_us, seq.preset))
+    mid = seq.mid_sweep_poses()
+    np.testing.assert_allclose(mid[:, :2], truth[:, :2], atol=1e-6)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (mid[:, 2] - truth[:, 2]))), 0.0, atol=1e-9)
