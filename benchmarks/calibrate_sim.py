@@ -75,13 +75,11 @@ def _parse_value(v: str) -> object:
 
 def street_grid(route: S.RouteDef, extra: int, extend_m: float) -> list[np.ndarray]:
     """(2, 2) straight road centrelines of a street grid around a loop route (session 15 probe): every grid line of
-    the route's blocks (``synthetic_loop_route``'s xs / ys), extended ``extend_m`` beyond the route's extent, plus
+    the route's blocks (``synthetic_loop_grid``), extended ``extend_m`` beyond the route's extent, plus
     ``extra`` parallel lines on each side at the route's mean block size. Metres, world frame."""
-    from reradar_core.sim.world import stable_seed
+    from reradar_core.sim.trajectories import synthetic_loop_grid
 
-    rng = np.random.default_rng(stable_seed(route.seed, "route"))  # the block sizes synthetic_loop_route draws
-    xs = np.concatenate([[0.0], np.cumsum(rng.uniform(*route.block_m, route.n_blocks))])
-    ys = np.concatenate([[0.0], np.cumsum(rng.uniform(*route.block_m, 2))])
+    xs, ys = synthetic_loop_grid(route.seed, block_m=route.block_m, n_blocks=route.n_blocks)
     step = float(np.mean(route.block_m))
     xs = np.concatenate([xs.min() - step * np.arange(extra, 0, -1), xs, xs.max() + step * np.arange(1, extra + 1)])
     ys = np.concatenate([ys.min() - step * np.arange(extra, 0, -1), ys, ys.max() + step * np.arange(1, extra + 1)])

@@ -16,6 +16,7 @@ __all__ = [
     "offset_trajectory",
     "synthetic_loop_route",
     "drive_route",
+    "synthetic_loop_grid",
     "scan_times",
 ]
 
@@ -177,6 +178,21 @@ def _corner_speed_limit(line: np.ndarray, s: np.ndarray, lateral: float, longitu
     return grid, np.sqrt(v2)
 
 
+def synthetic_loop_grid(seed: int, block_m: tuple[float, float] = (70.0, 140.0), n_blocks: int = 3,
+                        origin: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """The street grid ``synthetic_loop_route`` drives around (same seed, blocks and origin): the x of its
+    north-south streets, (n_blocks + 1,), and the y of its east-west streets, (3,), metres."""
+    return _loop_grid_lines(np.random.default_rng(stable_seed(seed, "route")), block_m, n_blocks, origin)
+
+
+def _loop_grid_lines(rng: np.random.Generator, block_m: tuple[float, float], n_blocks: int,
+                     origin: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    widths = rng.uniform(*block_m, n_blocks)
+    heights = rng.uniform(*block_m, 2)
+    return (np.concatenate([[0.0], np.cumsum(widths)]) + origin[0],
+            np.concatenate([[0.0], np.cumsum(heights)]) + origin[1])
+
+
 def synthetic_loop_route(seed: int, block_m: tuple[float, float] = (70.0, 140.0), n_blocks: int = 3,
                          laps: int = 2, origin: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
     """Waypoints of a route around a small street grid that is driven ``laps`` times (revisits for the
@@ -186,10 +202,7 @@ def synthetic_loop_route(seed: int, block_m: tuple[float, float] = (70.0, 140.0)
         (N, 2) waypoints, metres.
     """
     rng = np.random.default_rng(stable_seed(seed, "route"))
-    widths = rng.uniform(*block_m, n_blocks)
-    heights = rng.uniform(*block_m, 2)
-    xs = np.concatenate([[0.0], np.cumsum(widths)]) + origin[0]
-    ys = np.concatenate([[0.0], np.cumsum(heights)]) + origin[1]
+    xs, ys = _loop_grid_lines(rng, block_m, n_blocks, origin)
     outer = [(xs[0], ys[0]), (xs[-1], ys[0]), (xs[-1], ys[-1]), (xs[0], ys[-1])]
     pts: list[tuple[float, float]] = []
     for lap in range(laps):

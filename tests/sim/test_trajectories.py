@@ -93,3 +93,16 @@ def test_lateral_lane_is_the_offset_path_at_its_own_speeds():
     _, a_outer = _lateral_accel(outer)
     _, a_shifted = _lateral_accel(shifted)
     assert a_outer.max() < 3.0 * 1.3 < a_shifted.max()
+
+
+def test_loop_grid_holds_every_street_the_loop_route_drives():
+    """``synthetic_loop_grid`` gives the street grid ``synthetic_loop_route`` drives around (same seed): every
+    waypoint lies on one of its north-south streets and one of its east-west streets."""
+    from reradar_core.sim.trajectories import synthetic_loop_grid, synthetic_loop_route
+
+    for seed in (11, 12, 500):
+        xs, ys = synthetic_loop_grid(seed, block_m=(120.0, 200.0), n_blocks=3)
+        wp = synthetic_loop_route(seed, block_m=(120.0, 200.0), n_blocks=3, laps=3)
+        assert xs.shape == (4,) and ys.shape == (3,) and np.all(np.diff(xs) >= 120.0) and np.all(np.diff(ys) >= 120.0)
+        assert np.all(np.min(np.abs(wp[:, :1] - xs[None, :]), axis=1) < 1e-9)
+        assert np.all(np.min(np.abs(wp[:, 1:] - ys[None, :]), axis=1) < 1e-9)
