@@ -468,12 +468,13 @@ def _route_trajectory(route: RouteDef, traj_dir: Path | None) -> PoseSequence:
             )
         traj = load_trajectory(f)
     elif route.kind == "loop":
-        if route.max_lateral_accel_mps2 is not None:
-            # v9: the lane is driven at its own corner speeds (the inner lane of a corner is the tighter curve)
-            return _loop_drive(route.seed, route.laps, route.block_m, route.n_blocks, route.speed_seed,
-                               route.reverse, route.speed_mps, route.max_lateral_accel_mps2, route.lateral_m)
+        # v9: with a corner cap the lane itself is driven, at its own corner speeds (a centre-line drive shifted
+        # sideways keeps its yaw rate, too fast on the outer lane); v1-v8 shift the centre-line drive below
+        driven_lane_m = route.lateral_m if route.max_lateral_accel_mps2 is not None else 0.0
         traj = _loop_drive(route.seed, route.laps, route.block_m, route.n_blocks, route.speed_seed, route.reverse,
-                           route.speed_mps, None)
+                           route.speed_mps, route.max_lateral_accel_mps2, driven_lane_m)
+        if driven_lane_m:
+            return traj
     else:
         raise ConfigError(f"unknown route kind {route.kind!r}")
     if route.lateral_m:

@@ -172,8 +172,8 @@ def render_sequence(out_dir: str | Path, traversal: Traversal, trajectory: PoseS
         scan = render_scan(traversal, trajectory, int(t0), p, scan_seed(traversal.seed, int(k)), config)
         _write_atomic(scan_path(out, layout, int(t0)), encode_navtech_png_bytes(scan))
         rendered += 1
-    poses = trajectory.interpolate(times_us)
-    write_sequence_poses(out, layout, pose_track(trajectory, times_us, p.sweep_period_s))
+    track = pose_track(trajectory, times_us, p.sweep_period_s)
+    write_sequence_poses(out, layout, track)
     info = {
         "preset": p.name,
         "layout": layout,
@@ -183,7 +183,7 @@ def render_sequence(out_dir: str | Path, traversal: Traversal, trajectory: PoseS
         "traversal_seed": traversal.seed,
         "condition": traversal.condition.name,
         "sim_version": SIM_VERSION,
-        "oxford_T_world_origin": [float(v) for v in poses[0]],
+        "oxford_T_world_origin": [float(v) for v in track.poses[0]],  # the first scan's pose
     }
     info.update(meta or {})
     write_sequence_meta(out, info)
