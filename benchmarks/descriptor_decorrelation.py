@@ -3,8 +3,9 @@
 A realism check against real data (never a benchmark query sequence): for the eleven real Oxford scans (about 1.9 m
 apart) and for simulated scans rendered at exactly their poses (the real odometry integrated, the world built
 around the surrounding stretch of it, several world seeds), the mean descriptor distance between scans ``g``
-frames apart, g = 1 ... 10 (1.9 ... 19 m), for RingKey, ReFeree-R and RaPlace with their reference distances
-(``reradar_core.baselines``). Place recognition works when that distance grows slowly with the distance driven
+frames apart, g = 1 ... 10 (1.9 ... 19 m), for RingKey, ReFeree-R, RaPlace and RadVLAD with their reference
+distances (``reradar_core.baselines``; RadVLAD's vocabulary is fitted on the beams of the scan set itself, as the
+reference fits it on its reference run, so the real and the simulated sets each get their own). Place recognition works when that distance grows slowly with the distance driven
 compared with the distance between unrelated places; a simulator whose descriptors change faster (or slower) per
 metre than real ones makes that baseline harder (or easier) than on real data, whatever the weather.
 
@@ -40,6 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from calibrate_sim import _condition, _traversal, parse_overrides, profile_with, sensor_with  # noqa: E402
 
+from reradar_core.baselines.radvlad import RadVLAD  # noqa: E402
 from reradar_core.baselines.raplace import RaPlace  # noqa: E402
 from reradar_core.baselines.referee import ReFeree  # noqa: E402
 from reradar_core.baselines.ringkey import RingKey  # noqa: E402
@@ -57,14 +59,17 @@ STATS = ("mean", "p50", "p99", "frac_zero", "frac_above_floor", "keypoints")
 
 
 def _methods() -> dict[str, object]:
-    return {"ringkey": RingKey(), "referee": ReFeree(), "raplace": RaPlace()}
+    return {"ringkey": RingKey(), "referee": ReFeree(), "raplace": RaPlace(), "radvlad": RadVLAD()}
 
 
 def gap_distances(scans: list[RadarScan]) -> dict[str, np.ndarray]:
     """Per method, (len(scans) - 1,) mean reference distance between scans g = 1, 2, ... frames apart."""
     out = {}
     for name, m in _methods().items():
-        descs = [m.describe_prepared(m.prepare(s)) for s in scans]  # type: ignore[attr-defined]
+        prepared = [m.prepare(s) for s in scans]  # type: ignore[attr-defined]
+        if hasattr(m, "fit"):  # RadVLAD: its vocabulary from this scan set's own beams
+            m.fit(prepared)
+        descs = [m.describe_prepared(p) for p in prepared]  # type: ignore[attr-defined]
         index = m.build_index(descs)  # type: ignore[attr-defined]
         dist = np.stack([m.distance(d, index) for d in descs])  # type: ignore[attr-defined]
         n = len(scans)
