@@ -49,7 +49,22 @@ train_one() {
     our-3-boreas-resnet)
       reradar train --name our-3-boreas-resnet --backbone resnet --split train-target-boreas \
         --init "$(init our-1-resnet)" --lr 1e-4 --steps "$STAGE2_STEPS" --minutes 600 --learned-whitening "${extra[@]}" ;;
-    *) echo "unknown model $1 (choose: our-1 our-1-resnet our-3-boreas our-3-loop our-3-offroad our-3-boreas-resnet)" >&2
+    # width 0.5 (F' C = 32; docs/MODEL.md, "Width 0.5, measured"): not shipped yet and not in the default list;
+    # `OUT_DIR=/tmp/w05 bash scripts/train_models.sh our-1-w05 our-3-offroad-w05 our-3-boreas-w05 our-3-loop-w05`
+    our-1-w05)
+      reradar train --name our-1-w05 --split train-source --lr 1e-3 --steps "$STAGE1_STEPS" --minutes 600 \
+        --width 0.5 "${extra[@]}" ;;
+    our-3-boreas-w05|our-3-loop-w05|our-3-offroad-w05)
+      local split
+      case "$1" in
+        our-3-boreas-w05) split=train-target-boreas ;;
+        our-3-loop-w05) split=train-target-loop,train-target-loop-open ;;
+        our-3-offroad-w05) split=train-target-offroad ;;
+      esac
+      reradar train --name "$1" --split "$split" --init "$(init our-1-w05)" --lr 1e-4 --steps "$STAGE2_STEPS" \
+        --minutes 600 --width 0.5 --learned-whitening "${extra[@]}" ;;
+    *) echo "unknown model $1 (choose: our-1 our-1-resnet our-3-boreas our-3-loop our-3-offroad our-3-boreas-resnet;" \
+            "width 0.5: our-1-w05 our-3-boreas-w05 our-3-loop-w05 our-3-offroad-w05)" >&2
        exit 2 ;;
   esac
 }
