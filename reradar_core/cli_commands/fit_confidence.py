@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shlex
 import sys
@@ -32,6 +33,9 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(None, help="Model JSON (default: the shipped "
                                             "reradar_core/localization/confidence_model.json)."),
         plot: Path = typer.Option(Path("docs/img/confidence_reliability.png"), help="Reliability diagram PNG."),
+        models: str = typer.Option("", help="Comma-separated SPLIT=MODEL: judge these models' answers instead of "
+                                            "each split's target-adapted one (e.g. "
+                                            "train-target-boreas=our-3-boreas-w05)."),
         reuse: bool = typer.Option(False, help="Re-fit from the runs saved by the last collection (cache) "
                                                "instead of localizing again."),
         progress: bool = typer.Option(True, help="Progress bars."),
@@ -44,32 +48,37 @@ def register(app: typer.Typer) -> None:
         from reradar_core.localization.confidence import DEFAULT_MODEL_PATH
         from reradar_core.localization.confidence_fit import (
             PROBE_FLOOR,
+            SPLIT_MODELS,
             FitData,
             collect_split,
             fit_from_data,
             plot_reliability,
+            split_models,
         )
         from reradar_core.paths import cache_dir
         from reradar_core.sim.writer import SIM_VERSION
 
         torch.set_num_threads(threads)
         names = [s.strip() for s in splits.split(",") if s.strip()]
-        runs_path = cache_dir("confidence") / (f"runs-v{SIM_VERSION}-{'+'.join(names)}-step{query_step}"
-                                             f"-floor{PROBE_FLOOR:.2f}-with-unseen.npz")
         try:
+            split_model = split_models(models, names)
+            # runs of other models than the target-adapted ones get their own cache file
+            tag = "".join(f"-{s}={m}" for s, m in split_model.items() if m != SPLIT_MODELS.get(s))
+            tag = "-models-" + hashlib.sha256(tag.encode()).hexdigest()[:12] if tag else ""
+            runs_path = cache_dir("confidence") / (f"runs-v{SIM_VERSION}-{'+'.join(names)}-step{query_step}"
+                                                 f"-floor{PROBE_FLOOR:.2f}-with-unseen{tag}.npz")
             from_cache = reuse and runs_path.is_file()
             if from_cache:
                 data = FitData.load(runs_path)
             else:
-                data = FitData.concat([collect_split(s, query_step, holdout, progress) for s in names])
+                data = FitData.concat([collect_split(s, query_step, holdout, progress, model=split_model[s])
+                                       for s in names])
                 data.save(runs_path)
             meta = {"command": "reradar " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
                     "splits": names, "sim_version": SIM_VERSION, "query_step": query_step, "holdout": holdout,
                     "runs_from_cache": from_cache,
                     "l2": l2, "label": "pose within the suite's success thresholds (e_t < R, e_r < 10 deg)"}
-            from reradar_core.localization.confidence_fit import SPLIT_MODELS
-
-            meta["models"] = {s: SPLIT_MODELS[s] for s in names}
+            meta["models"] = split_model
             model, report = fit_from_data(data, l2, max_wrong_pct / 100.0, meta, wrong_cost or None)
         except ReRadarError as exc:
             typer.echo(f"error: {exc}", err=True)

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from reradar_core.errors import ConfigError
 from reradar_core.evaluation.metrics import has_revisit, localization_errors, localization_success
 from reradar_core.geometry.se2 import compose
 from reradar_core.localization.confidence import (
@@ -45,7 +46,8 @@ from reradar_core.localization.confidence import (
     reliability_bins,
 )
 
-__all__ = ["SPLIT_MODELS", "FitData", "SplitRun", "collect_split", "fit_from_data", "plot_reliability", "split_runs"]
+__all__ = ["SPLIT_MODELS", "FitData", "SplitRun", "collect_split", "fit_from_data", "plot_reliability", "split_models",
+           "split_runs"]
 
 logger = logging.getLogger(__name__)
 
@@ -56,6 +58,32 @@ SPLIT_MODELS: dict[str, str] = {
     "train-target-loop-open": "our-3-loop",
     "train-target-offroad": "our-3-offroad",
 }
+
+
+
+def split_models(overrides: str = "", splits: list[str] | None = None) -> dict[str, str]:
+    """The model whose answers each split judges: ``SPLIT_MODELS`` with ``SPLIT=MODEL`` overrides.
+
+    Args:
+        overrides: comma-separated ``SPLIT=MODEL`` pairs (e.g. ``train-target-boreas=our-3-boreas-w05``); a model is
+            a shipped name or a ``.pt`` path, checked when it is loaded.
+        splits: the splits to return (default: every key of ``SPLIT_MODELS``).
+
+    Raises:
+        ConfigError: a pair without ``=`` or an empty side, or a split that is not a key of ``SPLIT_MODELS``.
+    """
+    out = dict(SPLIT_MODELS)
+    for item in (t.strip() for t in overrides.split(",")):
+        if not item:
+            continue
+        split, sep, model = (part.strip() for part in item.partition("="))
+        if not sep or not split or not model:
+            raise ConfigError(f"model override {item!r} is not SPLIT=MODEL")
+        if split not in SPLIT_MODELS:
+            raise ConfigError(f"model override for unknown split {split!r}; choose from {sorted(SPLIT_MODELS)}")
+        out[split] = model
+    return {s: out[s] for s in (splits if splits is not None else out)}
+
 
 #: the cues' place radius (metres) and agreement count, stored with the fitted model
 PLACE_RADIUS_M = 20.0
@@ -197,7 +225,7 @@ def split_runs(split: str, method: Any, config: Any, query_step: int = 1,
 
 
 def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progress: bool = True,
-                  min_inlier_ratio: float = PROBE_FLOOR) -> FitData:
+                  min_inlier_ratio: float = PROBE_FLOOR, model: str | None = None) -> FitData:
     """Localize the split's sessions on its domain's map and label the answers (module docstring).
 
     Both kinds of session run: the split's training traversals (the model trained on all but their tails) and
@@ -210,13 +238,14 @@ def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progre
         progress: progress bars.
         min_inlier_ratio: the aligned-landmark floor of the runs; the lowest floor the fit may choose
             (``PROBE_FLOOR``): a higher floor is applied afterwards through the ``aligned_ratio`` cue.
+        model: the model whose answers are judged (default: the split's ``SPLIT_MODELS`` entry).
     """
     from reradar_core.baselines.ours import Ours
     from reradar_core.localization.pipeline import LocalizationConfig
 
     # the floor alone, at its lowest candidate value: every answer is labelled
     config = replace(LocalizationConfig(), min_confidence=0.0, min_inlier_ratio=min_inlier_ratio)
-    method = Ours(SPLIT_MODELS[split], localization=config)
+    method = Ours(model or SPLIT_MODELS[split], localization=config)
     radius, runs = split_runs(split, method, config, query_step, progress)
     rows: list[tuple[np.ndarray, bool, bool, bool, bool, bool, bool]] = []
     for run in runs:

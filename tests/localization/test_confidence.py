@@ -381,3 +381,17 @@ def test_pipeline_floor_comes_from_the_confidence_model(monkeypatch: pytest.Monk
     assert ConfidenceModel.from_dict(d).min_aligned_ratio == 0.5
     with pytest.raises(ConfigError):
         ConfidenceModel(CUE_NAMES, np.zeros(c), np.ones(c), np.zeros(c), 0.0, min_aligned_ratio=1.5)
+
+
+def test_split_models_applies_overrides_and_refuses_bad_ones() -> None:
+    from reradar_core.localization.confidence_fit import SPLIT_MODELS, split_models
+
+    assert split_models() == SPLIT_MODELS
+    got = split_models("train-target-boreas=our-3-boreas-w05, train-target-loop = x.pt",
+                       ["train-target-boreas", "train-target-loop", "train-target-offroad"])
+    assert got == {"train-target-boreas": "our-3-boreas-w05", "train-target-loop": "x.pt",
+                   "train-target-offroad": "our-3-offroad"}
+    with pytest.raises(ConfigError, match="not SPLIT=MODEL"):
+        split_models("train-target-boreas")
+    with pytest.raises(ConfigError, match="unknown split"):
+        split_models("smoke=our-1")
