@@ -4,7 +4,7 @@
 # benchmark's target domain (our-3-boreas, our-3-loop, our-3-offroad, our-3-boreas-resnet). A model adapted to
 # one domain is the "Our (2)" cross-domain setting on the others. The simulator renders the training splits into the cache first.
 #
-#   bash scripts/train_models.sh            # all six models, in dependency order
+#   bash scripts/train_models.sh            # all ten models, in dependency order (width 0.5 first)
 #   bash scripts/train_models.sh our-1 our-3-boreas     # just these (stage 2 needs its stage-1 model)
 #
 # Step counts, not wall-clock budgets, end every run, so the same command gives the same weights on any
@@ -49,8 +49,8 @@ train_one() {
     our-3-boreas-resnet)
       reradar train --name our-3-boreas-resnet --backbone resnet --split train-target-boreas \
         --init "$(init our-1-resnet)" --lr 1e-4 --steps "$STAGE2_STEPS" --minutes 600 --learned-whitening "${extra[@]}" ;;
-    # width 0.5 (F' C = 32; docs/MODEL.md, "Width 0.5, measured"): not shipped yet and not in the default list;
-    # `OUT_DIR=/tmp/w05 bash scripts/train_models.sh our-1-w05 our-3-offroad-w05 our-3-boreas-w05 our-3-loop-w05`
+    # width 0.5 (F' C = 32; docs/MODEL.md, "Width 0.5, measured"): the suites' target-adapted models and the service
+    # default (our-3-boreas-w05) since session 16; stage 1 ~51 min, each stage 2 ~13-15 min alone on the 2-core CPU
     our-1-w05)
       reradar train --name our-1-w05 --split train-source --lr 1e-3 --steps "$STAGE1_STEPS" --minutes 600 \
         --width 0.5 "${extra[@]}" ;;
@@ -70,7 +70,8 @@ train_one() {
 }
 
 models=("$@")
-[[ ${#models[@]} -eq 0 ]] && models=(our-1 our-1-resnet our-3-boreas our-3-loop our-3-offroad our-3-boreas-resnet)
+[[ ${#models[@]} -eq 0 ]] && models=(our-1-w05 our-3-boreas-w05 our-3-loop-w05 our-3-offroad-w05
+                                     our-1 our-1-resnet our-3-boreas our-3-loop our-3-offroad our-3-boreas-resnet)
 for m in "${models[@]}"; do
   echo "== training $m"
   train_one "$m"

@@ -48,7 +48,6 @@ def register(app: typer.Typer) -> None:
         from reradar_core.localization.confidence import DEFAULT_MODEL_PATH
         from reradar_core.localization.confidence_fit import (
             PROBE_FLOOR,
-            SPLIT_MODELS,
             FitData,
             collect_split,
             fit_from_data,
@@ -62,9 +61,8 @@ def register(app: typer.Typer) -> None:
         names = [s.strip() for s in splits.split(",") if s.strip()]
         try:
             split_model = split_models(models, names)
-            # runs of other models than the target-adapted ones get their own cache file
-            tag = "".join(f"-{s}={m}" for s, m in split_model.items() if m != SPLIT_MODELS.get(s))
-            tag = "-models-" + hashlib.sha256(tag.encode()).hexdigest()[:12] if tag else ""
+            # the runs are cached per set of judged models (a model change never re-uses another model's runs)
+            tag = "-models-" + hashlib.sha256(json.dumps(split_model, sort_keys=True).encode()).hexdigest()[:12]
             runs_path = cache_dir("confidence") / (f"runs-v{SIM_VERSION}-{'+'.join(names)}-step{query_step}"
                                                  f"-floor{PROBE_FLOOR:.2f}-with-unseen{tag}.npz")
             from_cache = reuse and runs_path.is_file()

@@ -51,12 +51,12 @@ __all__ = ["SPLIT_MODELS", "FitData", "SplitRun", "collect_split", "fit_from_dat
 
 logger = logging.getLogger(__name__)
 
-#: training split -> the target-adapted model whose answers it judges
+#: training split -> the target-adapted model whose answers it judges (width 0.5 since session 16)
 SPLIT_MODELS: dict[str, str] = {
-    "train-target-boreas": "our-3-boreas",
-    "train-target-loop": "our-3-loop",
-    "train-target-loop-open": "our-3-loop",
-    "train-target-offroad": "our-3-offroad",
+    "train-target-boreas": "our-3-boreas-w05",
+    "train-target-loop": "our-3-loop-w05",
+    "train-target-loop-open": "our-3-loop-w05",
+    "train-target-offroad": "our-3-offroad-w05",
 }
 
 

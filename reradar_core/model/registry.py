@@ -22,8 +22,9 @@ __all__ = ["WEIGHTS_DIR", "DEFAULT_MODEL", "available_models", "resolve_weights"
 logger = logging.getLogger(__name__)
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-# Stage-2 ReResNet adapted on simulated Boreas-like target data (never a query sequence): "Our (3)".
-DEFAULT_MODEL = "our-3-boreas"
+# Stage-2 ReResNet adapted on simulated Boreas-like target data (never a query sequence): "Our (3)"; width 0.5 since
+# session 16 (docs/MODEL.md, "Width 0.5, measured": the descriptor alone within 0.7 points of the pipeline)
+DEFAULT_MODEL = "our-3-boreas-w05"
 
 
 def available_models(weights_dir: Path = WEIGHTS_DIR) -> list[str]:

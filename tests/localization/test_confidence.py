@@ -387,10 +387,10 @@ def test_split_models_applies_overrides_and_refuses_bad_ones() -> None:
     from reradar_core.localization.confidence_fit import SPLIT_MODELS, split_models
 
     assert split_models() == SPLIT_MODELS
-    got = split_models("train-target-boreas=our-3-boreas-w05, train-target-loop = x.pt",
+    got = split_models("train-target-boreas=our-3-boreas, train-target-loop = x.pt",
                        ["train-target-boreas", "train-target-loop", "train-target-offroad"])
-    assert got == {"train-target-boreas": "our-3-boreas-w05", "train-target-loop": "x.pt",
-                   "train-target-offroad": "our-3-offroad"}
+    assert got == {"train-target-boreas": "our-3-boreas", "train-target-loop": "x.pt",
+                   "train-target-offroad": "our-3-offroad-w05"}
     with pytest.raises(ConfigError, match="not SPLIT=MODEL"):
         split_models("train-target-boreas")
     with pytest.raises(ConfigError, match="unknown split"):
