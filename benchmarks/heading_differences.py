@@ -24,6 +24,7 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from reradar_core.geometry.se2 import wrap_angle  # noqa: E402
 from reradar_core.io.datasets import load_sequence  # noqa: E402
 from reradar_core.sim.suites import build_suite  # noqa: E402
 from reradar_core.sim.trajectories import load_trajectory  # noqa: E402
@@ -31,14 +32,9 @@ from reradar_core.sim.trajectories import load_trajectory  # noqa: E402
 SUITES = ("boreas-sim", "loop-sim", "loop-sim-hard", "offroad-sim", "offroad-sim-hard")
 
 
-def wrap(a: np.ndarray) -> np.ndarray:
-    """Angles (radians) wrapped to [-pi, pi)."""
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
 def folded_deg(dyaw: np.ndarray) -> np.ndarray:
     """|heading difference| in degrees, a reversal (|d| > 90 deg) folded by 180 deg."""
-    a = np.abs(np.degrees(wrap(dyaw)))
+    a = np.abs(np.degrees(wrap_angle(dyaw)))
     return np.where(a > 90.0, 180.0 - a, a)
 
 
@@ -52,7 +48,7 @@ def straight_mask(xy: np.ndarray, yaw: np.ndarray, half_m: float = 15.0, max_tur
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
     lo = np.searchsorted(s, s - half_m)
     hi = np.minimum(np.searchsorted(s, s + half_m), len(s) - 1)
-    turn = np.abs(np.degrees(wrap(yaw[hi] - yaw[lo])))
+    turn = np.abs(np.degrees(wrap_angle(yaw[hi] - yaw[lo])))
     return (turn < max_turn_deg) & (s[hi] - s[lo] > 1.6 * half_m)
 
 

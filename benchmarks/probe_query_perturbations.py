@@ -31,15 +31,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calibrate_sim import recall_at_1, render_subset  # noqa: E402
 
+from reradar_core.benchmark.rotation import rotate_power  # noqa: E402
 from reradar_core.io.presets import get_preset  # noqa: E402
-
-
-def turned(q: np.ndarray, deg: float) -> np.ndarray:
-    """(N, A, R) query powers turned by ``deg`` degrees: azimuths shifted by deg / 360 * A, interpolated."""
-    shift = deg / 360.0 * q.shape[1]
-    k = int(np.floor(shift))
-    f = shift - k
-    return (1.0 - f) * np.roll(q, k, axis=1) + f * np.roll(q, k + 1, axis=1)
 
 
 def with_sector_clutter(q: np.ndarray, yaw: np.ndarray, bin_m: float, mean: float, width_deg: float,
@@ -88,7 +81,7 @@ def main() -> None:
 
     print(f"| suite | query change | {' / '.join(methods)} |\n|---|---|---|")
     for deg in (float(v) for v in args.turn.split(",") if v):
-        run(f"turned {deg:g} deg", turned(q, deg))
+        run(f"turned {deg:g} deg", rotate_power(q, np.radians(deg)))
     for spec in (s for s in args.sector.split(",") if s):
         mean, width, share = (float(v) for v in spec.split(":"))
         run(f"sector clutter mean {mean:g}, {width:g} deg, share {share:g}",

@@ -13,20 +13,26 @@ import numpy as np
 from reradar_core.geometry.se2 import compose
 from reradar_core.io.scan import RadarScan
 
-__all__ = ["rotate_scan", "rotate_pose", "heading_offsets"]
+__all__ = ["rotate_power", "rotate_scan", "rotate_pose", "heading_offsets"]
 
 
-def rotate_scan(scan: RadarScan, yaw_rad: float) -> RadarScan:
-    """The scan seen by the same sensor yawed by ``yaw_rad`` (CCW): power rolled along azimuth with linear
-    interpolation between rows (azimuths, timestamps and range geometry unchanged)."""
-    n_az = scan.num_azimuths
+def rotate_power(power: np.ndarray, yaw_rad: float) -> np.ndarray:
+    """(..., A, R) polar power of one or more scans as seen by the sensor yawed by ``yaw_rad`` (CCW): rolled along
+    the azimuth axis (-2) with linear interpolation between rows; same shape, float32."""
+    n_az = power.shape[-2]
     shift = float(yaw_rad) / (2.0 * np.pi) * n_az  # rows, may be fractional
     k = int(np.floor(shift))
     frac = shift - k
-    rolled = np.roll(scan.power, k, axis=0)
+    rolled = np.roll(power, k, axis=-2)
     if frac > 1e-9:
-        rolled = (1.0 - frac) * rolled + frac * np.roll(rolled, 1, axis=0)
-    return scan.with_power(rolled.astype(np.float32))
+        rolled = (1.0 - frac) * rolled + frac * np.roll(rolled, 1, axis=-2)
+    return np.asarray(rolled, dtype=np.float32)
+
+
+def rotate_scan(scan: RadarScan, yaw_rad: float) -> RadarScan:
+    """The scan seen by the same sensor yawed by ``yaw_rad`` (CCW): ``rotate_power`` of its power (azimuths,
+    timestamps and range geometry unchanged)."""
+    return scan.with_power(rotate_power(scan.power, yaw_rad))
 
 
 def rotate_pose(T_world_sensor: np.ndarray, yaw_rad: float | np.ndarray) -> np.ndarray:
