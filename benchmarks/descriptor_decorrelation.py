@@ -5,8 +5,8 @@ apart) and for simulated scans rendered at exactly their poses (the real odometr
 around the surrounding stretch of it, several world seeds), the mean descriptor distance between scans ``g``
 frames apart, g = 1 ... 10 (1.9 ... 19 m), for RingKey, ReFeree-R, RaPlace and RadVLAD with their reference
 distances (``reradar_core.baselines``; RadVLAD's vocabulary is fitted on the beams of the scan set itself, as the
-reference fits it on its reference run, so the real and the simulated sets each get their own). Place recognition works when that distance grows slowly with the distance driven
-compared with the distance between unrelated places; a simulator whose descriptors change faster (or slower) per
+reference fits it on its reference run, so the real and the simulated sets each get their own). Place recognition
+works when that distance grows slowly with the distance driven compared with the distance between unrelated places; a simulator whose descriptors change faster (or slower) per
 metre than real ones makes that baseline harder (or easier) than on real data, whatever the weather.
 
 The simulated scans are quantised to 8 bits like the real PNGs. The same scans' intensity statistics
@@ -67,8 +67,7 @@ def gap_distances(scans: list[RadarScan]) -> dict[str, np.ndarray]:
     out = {}
     for name, m in _methods().items():
         prepared = [m.prepare(s) for s in scans]  # type: ignore[attr-defined]
-        if hasattr(m, "fit"):  # RadVLAD: its vocabulary from this scan set's own beams
-            m.fit(prepared)
+        m.fit(prepared)  # type: ignore[attr-defined]  # RadVLAD's vocabulary from this set's beams; a no-op for the rest
         descs = [m.describe_prepared(p) for p in prepared]  # type: ignore[attr-defined]
         index = m.build_index(descs)  # type: ignore[attr-defined]
         dist = np.stack([m.distance(d, index) for d in descs])  # type: ignore[attr-defined]

@@ -60,7 +60,6 @@ SPLIT_MODELS: dict[str, str] = {
 }
 
 
-
 def split_models(overrides: str = "", splits: list[str] | None = None) -> dict[str, str]:
     """The model whose answers each split judges: ``SPLIT_MODELS`` with ``SPLIT=MODEL`` overrides.
 
