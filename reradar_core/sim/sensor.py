@@ -82,6 +82,23 @@ class SensorConfig:
             1.5 m car under a 2 m mount. 0 = cars lit at every range (v7).
         hard_point_gain: factor on the cross-section of the hard point scatterers (poles, façade details, posts,
             trunks; 1 = v7).
+        azimuth_gain_db: standard deviation (dB) of a receive gain drawn afresh for every azimuth of every scan
+            (0 = none, v1-v10): the level of a whole beam, targets and noise floor alike, jumps from one azimuth to
+            the next and from one scan to the next, as in real Navtech scans (docs/SIMULATOR.md, "Beam levels").
+        azimuth_floor_db: standard deviation (dB) of the noise floor's level, drawn afresh for every azimuth of
+            every scan (0 = none, v1-v10): the receiver noise of real scans sits higher in some beams than in
+            their neighbours, so the far range, which holds mostly noise, is bright in some beams and empty in
+            others.
+        skirt_dbc: level (dB relative to a return) of the range skirt every return spreads along its own beam
+            at ``skirt_r0_m`` from it (None = no skirt, v1-v10). An FMCW radar's phase noise and range sidelobes
+            spread part of a strong return's power over the whole beam, so a beam that hits a strong target near
+            the vehicle is brighter at every range than its neighbours.
+        skirt_r0_m, skirt_exponent: the skirt falls as (1 + |dr| / skirt_r0_m)^-skirt_exponent with the range
+            offset dr from the return.
+        azimuth_gain_coupling: weight of the two neighbouring azimuths in both draws (``[c, 1, c]`` smoothing,
+            rescaled to the given standard deviation): the lag-1 correlation is 2c / (1 + 2c^2).
+            Both draws come from their own random stream (seeded by the scan seed), so at 0 every other draw,
+            and the render, is unchanged.
     """
 
     oversample: int = 2
@@ -114,6 +131,12 @@ class SensorConfig:
     mount_height_m: float = 2.0
     vehicle_elevation_scale: float = 0.0
     hard_point_gain: float = 1.0
+    azimuth_gain_db: float = 0.0
+    azimuth_floor_db: float = 0.0
+    azimuth_gain_coupling: float = 0.0
+    skirt_dbc: float | None = None
+    skirt_r0_m: float = 1.0
+    skirt_exponent: float = 2.0
 
 
 def sweep_poses(trajectory: PoseSequence, t0_us: int, preset: RadarPreset, oversample: int = 1
@@ -454,6 +477,13 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
         g2 *= (10 ** (-2 * cond.attenuation_db_per_km * rr / 1e4)).astype(np.float32)[None, :]
         power = blurred + g2 * tm_full + (near + floor)[None, :]
 
+    if cfg.skirt_dbc is not None:
+        power += _range_skirt(blurred if dominant is None else blurred + dominant, res, cfg)
+    # beam-level jitter (own stream: the main stream's draws stay as they were without it)
+    beam_rng = np.random.default_rng([scan_seed, 0xBEA4])
+    if cfg.azimuth_floor_db > 0:
+        jf = _azimuth_jitter(beam_rng, n_az, cfg.azimuth_floor_db, cfg.azimuth_gain_coupling) - np.float32(1.0)
+        power += np.float32(floor) * jf[:, None]
     # interference streaks: a few azimuths saturated across range (another radar / the vehicle's own)
     n_st = rng.poisson(cfg.streak_rate)
     for _ in range(n_st):
@@ -471,6 +501,8 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
             power = _rician(rng, n_az, n_r, cfg, dominant, power)
     elif dominant is not None:
         power += dominant
+    if cfg.azimuth_gain_db > 0:
+        power *= _azimuth_jitter(beam_rng, n_az, cfg.azimuth_gain_db, cfg.azimuth_gain_coupling)[:, None]
     np.maximum(power, 1e-12, out=power)
     # value = (10 log10 P - db_floor) / db_span, quantised to 8 bits (cv2.log: ~5x faster than np.log10)
     scale = np.float32(255.0 * 10.0 / np.log(10.0) / cfg.db_span)
@@ -479,6 +511,26 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
     val = np.round(val) / np.float32(255.0)
     azimuths = np.arange(n_az) * dth
     return RadarScan(val.astype(np.float32), azimuths, az_t, res, off, preset=p.name)
+
+
+def _range_skirt(target: np.ndarray, res: float, cfg: SensorConfig) -> np.ndarray:
+    """(A, R) float32 power every return of ``target`` (A, R) spreads along its beam: ``target`` convolved along
+    range with 10^(skirt_dbc / 10) (1 + |dr| / skirt_r0_m)^-skirt_exponent (circular-free, via FFT)."""
+    n_r = target.shape[1]
+    n_fft = 1 << int(np.ceil(np.log2(2 * n_r)))
+    dr = np.minimum(np.arange(n_fft), n_fft - np.arange(n_fft)) * res
+    kernel = 10 ** (cfg.skirt_dbc / 10) * (1.0 + dr / cfg.skirt_r0_m) ** (-cfg.skirt_exponent)
+    kernel[n_r:n_fft - n_r + 1] = 0.0  # offsets beyond the beam: no wrap-around
+    out = np.fft.irfft(np.fft.rfft(target, n_fft, axis=1) * np.fft.rfft(kernel)[None, :], n_fft, axis=1)
+    return np.maximum(out[:, :n_r], 0.0).astype(np.float32)
+
+
+def _azimuth_jitter(rng: np.random.Generator, n_az: int, std_db: float, coupling: float) -> np.ndarray:
+    """(A,) float32 linear factor per azimuth: 10^(g / 10), g zero-mean Gaussian in dB with standard deviation
+    ``std_db``, neighbouring azimuths coupled by ``coupling`` (``[c, 1, c]``, circular, rescaled)."""
+    g = rng.standard_normal(n_az)
+    g = (g + coupling * (np.roll(g, 1) + np.roll(g, -1))) / np.sqrt(1.0 + 2.0 * coupling * coupling)
+    return (10.0 ** (std_db * g / 10.0)).astype(np.float32)
 
 
 def _speckle(rng: np.random.Generator, n_az: int, n_r: int, cfg: SensorConfig) -> np.ndarray:
