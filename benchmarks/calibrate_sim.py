@@ -29,7 +29,8 @@ Overrides (``--set``, repeatable), applied on top of the suite's definition:
     route.max_lateral_accel=V    corner speed cap of both drives (synthetic routes), m/s^2 (session 14; 3.5 since
                                  simulator v9; "none" = v1-v8's corners at cruise speed)
 
-Renders are cached under ``.cache/reradar/calib/`` by (suite, subset, overrides, simulator source hash).
+Renders are cached under ``.cache/reradar/calib/`` by (suite, subset, overrides, simulator source hash), 0.3-1.3 GB
+per full-suite probe; ``--no-cache`` neither reads nor writes them, ``reradar cache --prune`` removes them all.
 
 Example (the off-road rows of the ablation table):
 
@@ -234,8 +235,9 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
     ms = 1e3 * (time.perf_counter() - t0) / (len(db_scans) + len(q_scans))
     res = {"db_scans": db_scans, "db_pose": db_pose, "db_t": db_t, "q_scans": q_scans, "q_pose": q_pose,
            "q_t": q_t, "radius": float(suite.radius_m), "preset": suite.preset, "render_ms": ms}
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(cache, **{k: np.asarray(v) for k, v in res.items()})
+    if use_cache:  # 0.3-1.3 GB per full-suite probe: `reradar cache --prune` removes them all
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(cache, **{k: np.asarray(v) for k, v in res.items()})
     return res
 
 
@@ -335,7 +337,9 @@ def main(argv: list[str] | None = None) -> int:
                     "revisits or not (the paper's MulRan Recall@1 divides by all queries)")
     ap.add_argument("--revisit-m", type=float, default=None, help="keep queries with a database scan within this "
                     "distance (default: half the recall radius)")
-    ap.add_argument("--no-cache", action="store_true")
+    ap.add_argument("--no-cache", action="store_true",
+                    help="neither read nor write the render cache (a full-suite probe's renders take 0.3-1.3 GB; "
+                         "`reradar cache --prune` removes cached ones)")
     ap.add_argument("--table", default=None, help="print the calibration table from these JSON-lines files "
                     "(comma-separated; rows chosen by --rows) and exit")
     ap.add_argument("--rows", default="", help="LABEL=REAL_SEQUENCE pairs for --table, ';'-separated")

@@ -17,6 +17,7 @@ __all__ = ["COMMANDS", "app", "main"]
 #: The help text is repeated here so listing the commands imports none of them.
 COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("reradar_core.cli_commands.info", "Print a scan's shape, timing and power statistics."),
+    "cache": ("reradar_core.cli_commands.cache", "List the cache folder's parts and sizes; --prune removes stale ones."),
     "fit-confidence": ("reradar_core.cli_commands.fit_confidence", "Fit the calibrated answer confidence on training splits."),
     "import-scans": ("reradar_core.cli_commands.import_scans",
                      "Convert polar scans of another layout or resolution into Navtech PNGs of a preset."),

@@ -1,0 +1,160 @@
+"""``reradar cache``: what the cache folder holds, and removing what no run will read again.
+
+The cache (``$RERADAR_CACHE_DIR``, default ``./.cache/reradar``; ``reradar_core.paths.cache_dir``) grows without
+bound otherwise: every simulator version renders its suites into its own ``sim/v<N>`` folder (7-9 GB for all suites
+and training splits) and never reads another version's, and ``benchmarks/calibrate_sim.py`` keeps every probe's
+renders (0.3-1.3 GB each). A full disk stops every run on the machine, so this lists each part with its size and
+whether anything still reads it, and ``--prune`` removes the parts nothing reads:
+
+- ``sim/v<N>`` for N other than the current ``SIM_VERSION`` (stale: renders are never reused across versions);
+- ``calib/`` (probe renders, re-rendered on demand by ``benchmarks/calibrate_sim.py``).
+
+Everything else (the current renders, training images, benchmark feature caches and results, confidence runs, the
+service's maps when ``RERADAR_MAPS_DIR`` is left at its default ``$RERADAR_CACHE_DIR/maps``) is listed and kept. Sizes are disk usage with hard links counted once (``verify_sim_identity --carry-over`` links a
+version's renders into the next), and what a prune frees counts only files no kept part links to.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import stat
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import typer
+
+from reradar_core.paths import cache_dir
+from reradar_core.sim.writer import SIM_VERSION
+
+__all__ = ["CachePart", "cache_parts", "prune_parts", "register"]
+
+
+@dataclass(frozen=True)
+class CachePart:
+    """One part of the cache folder.
+
+    Attributes:
+        paths: its folders.
+        what: what it holds, in words.
+        size_bytes: disk usage of its files (hard links within the part counted once).
+        stale: True when no run reads it again (``--prune`` removes it).
+        why: the reason, for the listing.
+    """
+
+    paths: tuple[Path, ...]
+    what: str
+    size_bytes: int
+    stale: bool
+    why: str
+
+
+def _inodes(folder: Path) -> dict[tuple[int, int], tuple[int, int, int]]:
+    """{(device, inode): (disk bytes, link count, links under ``folder``)} of every regular file under ``folder``."""
+    out: dict[tuple[int, int], tuple[int, int, int]] = {}
+    for dirpath, _dirs, files in os.walk(folder):
+        for f in files:
+            try:
+                st = os.lstat(os.path.join(dirpath, f))
+            except OSError:  # removed while we walk
+                continue
+            if stat.S_ISREG(st.st_mode):
+                key = (st.st_dev, st.st_ino)
+                seen = out[key][2] if key in out else 0
+                out[key] = (st.st_blocks * 512, st.st_nlink, seen + 1)
+    return out
+
+
+#: kept parts with a name of their own (the rest of ``bench/`` is listed as one part: run results)
+_KEPT = {("training", "cartesian"): "training images (Cartesian crops)", ("training", "runs"): "training runs",
+         ("bench", "features"): "benchmark feature caches", ("bench", "service"): "service benchmark maps",
+         ("confidence",): "confidence-fit runs", ("maps",): "the service's registered maps (RERADAR_MAPS_DIR default)"}
+
+
+def _parts(root: Path) -> Iterable[tuple[tuple[Path, ...], str, bool, str]]:
+    """(folders, what, stale, why) of every part of the cache under ``root``."""
+    sim = root / "sim"
+    if sim.is_dir():
+        for d in sorted((d for d in sim.iterdir() if d.is_dir()), key=lambda p: (len(p.name), p.name)):
+            version = d.name[1:] if d.name.startswith("v") else d.name
+            if version == SIM_VERSION:
+                yield (d,), f"simulator v{version} renders", False, "current simulator version"
+            else:
+                yield (d,), f"simulator v{version} renders", True, f"never read: renders are per version (now v{SIM_VERSION})"
+    if (root / "calib").is_dir():
+        yield (root / "calib",), "calibration probe renders", True, "re-rendered on demand by benchmarks/calibrate_sim.py"
+    named = {root.joinpath(*k): what for k, what in _KEPT.items()}
+    for path, what in named.items():
+        if path.is_dir():
+            yield (path,), what, False, "kept"
+    rest = [d for top in ("bench", "training") if (root / top).is_dir()
+            for d in sorted((root / top).iterdir()) if d.is_dir() and d not in named]
+    if rest:
+        yield tuple(rest), f"benchmark and training results ({len(rest)} folders)", False, "kept"
+    known = {"sim", "calib", "bench", "training", "confidence", "maps"}
+    for d in sorted(root.iterdir()):
+        if d.is_dir() and d.name not in known:
+            yield (d,), d.name, False, "kept (not written by ReRadar's own runs)"
+
+
+def cache_parts(root: Path) -> list[CachePart]:
+    """Every part of the cache folder ``root`` with its size and whether it is stale (see the module docstring)."""
+    out = []
+    for paths, what, stale, why in _parts(root):
+        size = sum(b for p in paths for b, _, _ in _inodes(p).values())
+        out.append(CachePart(paths, what, size, stale, why))
+    return out
+
+
+def reclaimable_bytes(parts: list[CachePart]) -> int:
+    """Bytes a prune of the stale ``parts`` frees: the files all of whose hard links lie in stale parts."""
+    links: dict[tuple[int, int], list[int]] = {}
+    for p in parts:
+        if p.stale:
+            for folder in p.paths:
+                for key, (size, nlink, seen) in _inodes(folder).items():
+                    links.setdefault(key, [size, nlink, 0])[2] += seen
+    return sum(size for size, nlink, seen in links.values() if seen >= nlink)
+
+
+def prune_parts(parts: list[CachePart]) -> list[Path]:
+    """Remove the stale ``parts``' folders; returns the folders removed."""
+    removed = []
+    for p in parts:
+        for folder in p.paths if p.stale else ():
+            if folder.is_dir():
+                shutil.rmtree(folder)
+                removed.append(folder)
+    return removed
+
+
+def _gb(n: int) -> str:
+    return f"{n / 1e9:.2f} GB" if n >= 1e7 else f"{n / 1e6:.1f} MB"
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("cache")
+    def cache(
+        prune: bool = typer.Option(False, "--prune", help="Remove the stale parts (old simulator versions' renders, "
+                                   "calibration probe renders)."),
+    ) -> None:
+        """List the cache folder's parts with their sizes; --prune removes what no run reads again."""
+        root = cache_dir()
+        parts = cache_parts(root)
+        free = shutil.disk_usage(root).free
+        typer.echo(f"cache {root} ({_gb(free)} free on its disk; simulator v{SIM_VERSION})")
+        typer.echo("| part | size | status |")
+        typer.echo("|---|---|---|")
+        for p in parts:
+            typer.echo(f"| {p.what} | {_gb(p.size_bytes)} | {'stale: ' if p.stale else ''}{p.why} |")
+        if not any(p.stale for p in parts):
+            typer.echo("nothing stale")
+            return
+        reclaim = reclaimable_bytes(parts)
+        if not prune:
+            typer.echo(f"stale parts hold {_gb(reclaim)}: `reradar cache --prune` removes them")
+            return
+        removed = prune_parts(parts)
+        after = shutil.disk_usage(root).free
+        typer.echo(f"removed {len(removed)} stale part(s); {_gb(max(after - free, 0))} freed on the disk")
