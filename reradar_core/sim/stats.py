@@ -121,12 +121,18 @@ def _corr(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def beam_level_statistics(scan: RadarScan) -> BeamLevelStats:
-    """Beam-to-beam level statistics of one scan (see ``BeamLevelStats``)."""
+    """Beam-to-beam level statistics of one scan (see ``BeamLevelStats``); ValueError if it ends before 100 m."""
     p = scan.power.astype(np.float64) * 255.0
     r = scan.ranges_m
-    whole = _highpass(p[:, (r >= 3.0) & (r < 165.0)].mean(axis=1))
-    far = _highpass(p[:, (r >= 100.0) & (r < 165.0)].mean(axis=1))
-    bands = [_highpass(p[:, (r >= lo) & (r < hi)].mean(axis=1)) for lo, hi in BEAM_LEVEL_BANDS_M]
+
+    def profile(lo: float, hi: float) -> np.ndarray | None:
+        m = (r >= lo) & (r < hi)
+        return _highpass(p[:, m].mean(axis=1)) if np.any(m) else None
+
+    whole, far = profile(3.0, 165.0), profile(100.0, 165.0)
+    if whole is None or far is None:
+        raise ValueError(f"scan reaches {r[-1]:.0f} m: beam-level statistics need ranges beyond 100 m")
+    bands = [b for b in (profile(lo, hi) for lo, hi in BEAM_LEVEL_BANDS_M) if b is not None]
     pairs = [_corr(a, b) for i, a in enumerate(bands) for b in bands[i + 1:]]
     coupling = float(np.mean(pairs))
     lag1 = _corr(whole, np.roll(whole, 1))

@@ -105,3 +105,13 @@ def test_beam_level_persistence_tells_scene_from_fresh_draws():
                                   .astype(np.float32), "oxford") for _ in range(4)]
     assert beam_level_persistence(same, 1) > 0.999
     assert abs(beam_level_persistence(fresh, 1)) < 0.2
+
+
+def test_beam_level_statistics_refuses_a_scan_without_a_far_range():
+    import pytest
+
+    from reradar_core.io.scan import RadarScan
+
+    short = RadarScan.from_power(np.full((400, 1000), 0.1, np.float32), "oxford")  # 1000 x 4.38 cm = 44 m
+    with pytest.raises(ValueError, match="beyond 100 m"):
+        beam_level_statistics(short)
