@@ -3,14 +3,15 @@
 The calibration rule of issue 10 asks, per simulated sequence, for every hand-made baseline within ±10 points of its
 published real-data Recall@1 and for the published order of the five. The simulated figures come from a few hundred
 revisit queries (232-517), so some verdicts are decided by a query or two. From the per-query results that
-``reradar bench`` writes (``<out>/per_query/<sequence>/<method>.npz``: ``correct``, ``positive``), this resamples the
-revisit queries (2,000 bootstrap draws, seed 0; the same draw for every method, so differences are paired) and prints
-per sequence:
+``reradar bench`` writes (``<out>/per_query/<sequence>/<method>.npz``: ``correct``, ``positive``), this prints per
+sequence:
 
-- each baseline's Recall@1 with its 95 % interval, the published value, and whether ±10 holds for the whole interval
-  ("yes"), for none of it ("no") or for part of it ("undecided");
+- each baseline's Recall@1 over the revisit queries with its 95 % Wilson interval (the one ``reradar bench`` writes as
+  ``recall@1_ci95``), the published value, and whether ±10 holds for the whole interval ("yes"), for none of it
+  ("no") or for part of it ("undecided");
 - every pair of baselines whose simulated order differs from the published one, the simulated difference with its
-  95 % interval and the published difference: a swap whose interval contains 0 is within the simulator run's own
+  95 % interval (paired bootstrap over the revisit queries, ``scipy.stats.bootstrap``, 2,000 resamples, seed 0) and
+  the published difference: a swap whose interval contains 0 is within the simulator run's own
   noise (one whose interval ends exactly at 0 is called "at the edge"). (The published values carry sampling noise of their own, not known here: the paper gives no intervals.)
 
     python benchmarks/calibration_uncertainty.py .cache/reradar/bench/{loop-sim,loop-sim-hard,offroad-sim,\\
@@ -26,10 +27,14 @@ from itertools import combinations
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import bootstrap
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(Path(__file__).resolve().parent), str(ROOT)]
 
 from calibrate_sim import PUBLISHED  # noqa: E402
+
+from reradar_core.evaluation import proportion_interval  # noqa: E402
 
 #: (suite, query sequence) -> the real sequence it stands for (docs/BENCHMARKS.md, calibration table)
 STANDS_FOR = {
@@ -44,16 +49,12 @@ METHODS = ("raplace", "radvlad", "resnet18-netvlad", "referee", "ringkey")
 HAND_MADE = ("raplace", "radvlad", "referee", "ringkey")  # ResNet18-NetVLAD* is exempt from +-10
 
 
-def bootstrap_recalls(hits: dict[str, np.ndarray], draws: int = 2000, seed: int = 0) -> dict[str, np.ndarray]:
-    """Per method, (draws,) Recall@1 (%) over the same resampled queries. ``hits``: method -> (Q,) bool."""
-    n = len(next(iter(hits.values())))
-    idx = np.random.default_rng(seed).integers(0, n, size=(draws, n))
-    return {m: 100.0 * h[idx].mean(axis=1) for m, h in hits.items()}
-
-
-def interval(x: np.ndarray) -> tuple[float, float]:
-    lo, hi = np.percentile(x, [2.5, 97.5])
-    return float(lo), float(hi)
+def difference_interval(a: np.ndarray, b: np.ndarray, draws: int = 2000, seed: int = 0) -> tuple[float, float]:
+    """95 % paired-bootstrap interval (percentile) of 100 (mean(a) - mean(b)); (Q,) bool hits of two methods."""
+    res = bootstrap((a.astype(np.float64), b.astype(np.float64)),
+                    lambda x, y, axis: 100.0 * (np.mean(x, axis=axis) - np.mean(y, axis=axis)), paired=True,
+                    vectorized=True, n_resamples=draws, method="percentile", rng=np.random.default_rng(seed))
+    return float(res.confidence_interval.low), float(res.confidence_interval.high)
 
 
 def within_verdict(lo: float, hi: float, published: float, tol: float = 10.0) -> str:
@@ -71,13 +72,12 @@ def sequence_report(run: Path, seq: str, real: str, draws: int) -> list[str]:
     for m in METHODS:
         z = np.load(per / f"{m}.npz")
         hits[m] = np.asarray(z["correct"])[np.asarray(z["positive"])]
-    boot = bootstrap_recalls(hits, draws)
     pub = PUBLISHED[real]
     lines = [f"#### {run.name} / {seq} (stands for {real}; {len(hits['ringkey'])} revisit queries)", "",
              "| method | simulated Recall@1 (95 % interval) | published | within ±10 |", "|---|---|---|---|"]
     for m in METHODS:
         r = 100.0 * hits[m].mean()
-        lo, hi = interval(boot[m])
+        lo, hi = (100.0 * v for v in proportion_interval(int(hits[m].sum()), len(hits[m])))
         verdict = within_verdict(lo, hi, pub[m]) if m in HAND_MADE else "exempt"
         lines.append(f"| {m} | {r:.2f} ({lo:.2f}–{hi:.2f}) | {pub[m]:.2f} | {verdict} |")
     swaps = []
@@ -86,7 +86,7 @@ def sequence_report(run: Path, seq: str, real: str, draws: int) -> list[str]:
         d = 100.0 * (hits[a].mean() - hits[b].mean())
         if np.sign(d) == np.sign(published_diff):
             continue
-        lo, hi = interval(boot[a] - boot[b])
+        lo, hi = difference_interval(hits[a], hits[b], draws)
         if lo < 0.0 < hi:
             verdict = "within the run noise"
         elif lo == 0.0 or hi == 0.0:

@@ -26,6 +26,7 @@ from reradar_core.evaluation import (
     localization_errors,
     localization_success,
     precision_recall_curve,
+    proportion_interval,
     retrieval_correct,
     revisit_breakdown,
     rotation_success,
@@ -87,8 +88,9 @@ def summarise(out: QueryOutcome, query_poses: np.ndarray, db_poses: np.ndarray, 
     ``heading`` (correct retrieval and rotation < 10 deg, the paper's rule for ReFeree; never rejects) or
     ``none`` (SR, ê_r, ê_t not applicable; never rejects).
 
-    Keys: ``recall@1`` / ``sr`` (over revisit queries, the headline), ``recall@1_all`` / ``sr_all`` (over all
-    queries), ``f1max``, ``e_r_deg``, ``e_t_m``, counts ``n_queries`` / ``n_revisit`` / ``n_no_match``,
+    Keys: ``recall@1`` / ``sr`` (over revisit queries, the headline) with their 95 % Wilson intervals
+    ``recall@1_ci95`` / ``sr_ci95`` ([low, high] percent, over the same revisit queries: how far the figure may lie
+    from what many more such queries would give), ``recall@1_all`` / ``sr_all`` (over all queries), ``f1max``, ``e_r_deg``, ``e_t_m``, counts ``n_queries`` / ``n_revisit`` / ``n_no_match``,
     ``rejection`` (what rejected means, None = never rejects), on no-match queries ``correct_rejection_pct``,
     ``wrong_pose_no_match_pct`` and their counts, on revisit queries ``n_rejected_revisit`` and
     ``n_wrong_pose_revisit``, and ``wrong_pose_pct`` (answered with a pose that misses the SR rule, percent of
@@ -115,7 +117,14 @@ def summarise(out: QueryOutcome, query_poses: np.ndarray, db_poses: np.ndarray, 
     if sr_rule == "pose" and len(out.retrieved):
         # answered with a pose (the method said "localized") that misses the SR rule: what a user must not get
         wrong = 100.0 * float(np.mean(answered & ~success))  # type: ignore[operator]
-    return {"recall@1": pct(b.recall_at_1_revisit), "sr": pct(b.sr_revisit),
+    def ci95(hits: np.ndarray | None) -> list[float] | None:
+        if hits is None or b.n_revisit == 0:
+            return None
+        lo, hi = proportion_interval(int(np.count_nonzero(hits[out.positive])), b.n_revisit)
+        return [100.0 * lo, 100.0 * hi]
+
+    return {"recall@1": pct(b.recall_at_1_revisit), "recall@1_ci95": ci95(out.correct),
+            "sr": pct(b.sr_revisit), "sr_ci95": ci95(success),
             "recall@1_all": pct(m.recall_at_1), "sr_all": pct(m.sr), "f1max": pct(m.f1_max),
             "e_r_deg": val(m.e_r_deg), "e_t_m": val(m.e_t_m), "n_queries": int(m.n_queries),
             "n_revisit": b.n_revisit, "n_no_match": b.n_no_match, "rejection": REJECTION_RULES[sr_rule],

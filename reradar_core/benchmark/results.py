@@ -13,7 +13,8 @@ __all__ = ["write_results", "results_markdown", "METRIC_COLUMNS", "QUERY_KIND_CO
 METRIC_COLUMNS = (("recall@1", "Recall@1 (%)", "{:.2f}"), ("f1max", "F1max (%)", "{:.2f}"),
                   ("sr", "SR (%)", "{:.2f}"), ("e_r_deg", "ê_r (°)", "{:.2f}"), ("e_t_m", "ê_t (m)", "{:.2f}"))
 #: Columns of the second table: all queries, and the queries without a match (rejection figures).
-QUERY_KIND_COLUMNS = (("recall@1_all", "Recall@1 all (%)", "{:.2f}"), ("sr_all", "SR all (%)", "{:.2f}"),
+QUERY_KIND_COLUMNS = (("recall@1_ci95", "Recall@1, 95 % interval (%)", "{0[0]:.1f}–{0[1]:.1f}"),
+                      ("recall@1_all", "Recall@1 all (%)", "{:.2f}"), ("sr_all", "SR all (%)", "{:.2f}"),
                       ("recall@1_descriptor", "Recall@1, global descriptor alone, revisits (%)", "{:.2f}"),
                       ("correct_rejection_pct", "correct rejection (%)", "{:.2f}"),
                       ("wrong_pose_no_match_pct", "wrong pose, no match (%)", "{:.2f}"))
@@ -33,6 +34,8 @@ def _fmt(v: Any, fmt: str) -> str:
 
 
 def _best(rows: dict[str, dict[str, Any]], key: str) -> set[str]:
+    if key.endswith("_ci95"):  # an interval is not ranked
+        return set()
     vals = {m: r.get(key) for m, r in rows.items() if r.get(key) is not None}
     if not vals:
         return set()

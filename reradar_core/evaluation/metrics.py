@@ -407,3 +407,18 @@ def revisit_breakdown(correct: np.ndarray, revisit: np.ndarray, success: np.ndar
         cr, wr = _rate(rej_nm, n_nm), _rate(wrong_nm, n_nm)
     return RevisitBreakdown(q, n_rev, n_nm, _rate(int((c & rv).sum()), n_rev), _rate(int(c.sum()), q),
                             sr_rev, sr_all, ans is not None, rej_nm, wrong_nm, good_nm, cr, wr, rej_rv, wrong_rv)
+
+
+def proportion_interval(successes: int, trials: int, level: float = 0.95) -> tuple[float, float]:
+    """Wilson score interval (fractions) of a rate ``successes / trials`` (``scipy.stats.binomtest``).
+
+    How far a Recall@1 or SR measured on ``trials`` queries may lie from the rate the method would reach on many
+    more queries like them: with 232-517 revisit queries per simulated sequence, 1.5-4 points either side
+    at 85-95 %. (NaN, NaN) when ``trials`` is 0.
+    """
+    if trials <= 0:
+        return float("nan"), float("nan")
+    from scipy.stats import binomtest  # scipy is an extra; the core metrics above need only numpy
+
+    ci = binomtest(int(successes), int(trials)).proportion_ci(confidence_level=level, method="wilson")
+    return float(ci.low), float(ci.high)

@@ -29,6 +29,9 @@ def test_summary_known_answer_for_pose_methods():
     # threshold at 0.3 accepts three queries, all correct; the wrong one (0.9) is rejected -> P=1, R=3/4
     assert s["f1max"] == pytest.approx(100 * 2 * 0.75 / 1.75)
     assert s["wrong_pose_pct"] == pytest.approx(25.0)  # the last query was answered with a 20-deg-off pose
+    # 95 % Wilson intervals over the 4 revisit queries: 3 of 4 correct, 2 of 4 successes
+    assert s["recall@1_ci95"] == pytest.approx([30.06, 95.44], abs=0.01)
+    assert s["sr_ci95"] == pytest.approx([15.00, 85.00], abs=0.01)
 
 
 def test_summary_heading_rule_and_not_applicable():
@@ -43,6 +46,7 @@ def test_summary_heading_rule_and_not_applicable():
     s2 = summarise(make_outcome(retrieved, np.zeros(4), np.full((4, 3), np.nan), QUERY, DB, 20.0, "none"),
                    QUERY, DB, 20.0, "none")
     assert s2["sr"] is None and s2["e_r_deg"] is None and s2["recall@1"] == pytest.approx(75.0)
+    assert s2["sr_ci95"] is None and s2["recall@1_ci95"] is not None
 
 
 def test_rotated_scan_sees_landmarks_turned_by_the_heading_offset():

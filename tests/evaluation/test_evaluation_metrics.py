@@ -162,3 +162,16 @@ def test_revisit_breakdown_hand_computed():
         revisit_breakdown(correct, revisit[:3])
     with pytest.raises(ValueError, match="answered needs success"):
         revisit_breakdown(correct, revisit, None, answered)
+
+
+def test_proportion_interval_wilson_known_answers():
+    from reradar_core.evaluation import proportion_interval
+
+    # Wilson score interval, z = 1.959964: 8 of 10 -> 0.4902 .. 0.9433; 0 of 20 -> 0 .. 0.1611; 20 of 20 -> 0.8389 .. 1
+    lo, hi = proportion_interval(8, 10)
+    assert abs(lo - 0.4902) < 5e-4 and abs(hi - 0.9433) < 5e-4
+    lo, hi = proportion_interval(0, 20)
+    assert lo == 0.0 and abs(hi - 0.1611) < 5e-4
+    lo, hi = proportion_interval(20, 20)
+    assert abs(lo - 0.8389) < 5e-4 and hi == 1.0
+    assert all(np.isnan(proportion_interval(0, 0)))
