@@ -11,8 +11,9 @@ sequence:
   ("no") or for part of it ("undecided");
 - every pair of baselines whose simulated order differs from the published one, the simulated difference with its
   95 % interval (paired bootstrap over the revisit queries, ``scipy.stats.bootstrap``, 2,000 resamples, seed 0) and
-  the published difference: a swap whose interval contains 0 is within the simulator run's own
-  noise (one whose interval ends exactly at 0 is called "at the edge"). (The published values carry sampling noise of their own, not known here: the paper gives no intervals.)
+  the published difference: a swap whose interval contains 0 is within the simulator run's own noise (one whose
+  interval ends exactly at 0 is called "at the edge"). The published values carry sampling noise of their own, not
+  known here: the paper gives no intervals.
 
     python benchmarks/calibration_uncertainty.py .cache/reradar/bench/{loop-sim,loop-sim-hard,offroad-sim,\\
         offroad-sim-hard,boreas-sim}-v10-s15-baselines

@@ -113,6 +113,14 @@ def _highpass(profile: np.ndarray, width: int = 9) -> np.ndarray:
     return profile - np.convolve(padded, kernel, mode="valid")
 
 
+def _band_profile(scan: RadarScan, lo_m: float, hi_m: float) -> np.ndarray | None:
+    """(A,) high-passed per-beam mean power (8-bit steps) over ranges [lo_m, hi_m); None if the scan has none."""
+    m = (scan.ranges_m >= lo_m) & (scan.ranges_m < hi_m)
+    if not np.any(m):
+        return None
+    return _highpass(scan.power[:, m].astype(np.float64).mean(axis=1) * 255.0)
+
+
 def _corr(a: np.ndarray, b: np.ndarray) -> float:
     """Pearson correlation; 0 where either side is constant (no jump to correlate)."""
     a, b = a - a.mean(), b - b.mean()
@@ -122,17 +130,10 @@ def _corr(a: np.ndarray, b: np.ndarray) -> float:
 
 def beam_level_statistics(scan: RadarScan) -> BeamLevelStats:
     """Beam-to-beam level statistics of one scan (see ``BeamLevelStats``); ValueError if it ends before 100 m."""
-    p = scan.power.astype(np.float64) * 255.0
-    r = scan.ranges_m
-
-    def profile(lo: float, hi: float) -> np.ndarray | None:
-        m = (r >= lo) & (r < hi)
-        return _highpass(p[:, m].mean(axis=1)) if np.any(m) else None
-
-    whole, far = profile(3.0, 165.0), profile(100.0, 165.0)
+    whole, far = _band_profile(scan, 3.0, 165.0), _band_profile(scan, 100.0, 165.0)
     if whole is None or far is None:
-        raise ValueError(f"scan reaches {r[-1]:.0f} m: beam-level statistics need ranges beyond 100 m")
-    bands = [b for b in (profile(lo, hi) for lo, hi in BEAM_LEVEL_BANDS_M) if b is not None]
+        raise ValueError(f"scan reaches {scan.ranges_m[-1]:.0f} m: beam-level statistics need ranges beyond 100 m")
+    bands = [b for b in (_band_profile(scan, lo, hi) for lo, hi in BEAM_LEVEL_BANDS_M) if b is not None]
     pairs = [_corr(a, b) for i, a in enumerate(bands) for b in bands[i + 1:]]
     coupling = float(np.mean(pairs))
     lag1 = _corr(whole, np.roll(whole, 1))
@@ -143,9 +144,10 @@ def beam_level_persistence(scans: list[RadarScan], gap: int) -> float:
     """Mean same-azimuth correlation of the high-passed per-beam mean at 100-165 m between scans ``gap`` apart in
     ``scans`` (a drive in order): near 0 when the beam-to-beam jumps are drawn afresh every scan, higher when they
     come from the scene and the scans are close enough to share it."""
-    prof = []
+    prof: list[np.ndarray] = []
     for s in scans:
-        r = s.ranges_m
-        far = (r >= 100.0) & (r < 165.0)
-        prof.append(_highpass(s.power[:, far].astype(np.float64).mean(axis=1) * 255.0))
+        far = _band_profile(s, 100.0, 165.0)
+        if far is None:
+            raise ValueError("beam-level persistence needs scans with ranges beyond 100 m")
+        prof.append(far)
     return float(np.mean([_corr(prof[i], prof[i + gap]) for i in range(len(prof) - gap)]))
