@@ -17,7 +17,7 @@ import numpy as np
 
 from reradar_core.baselines.base import Prepared
 from reradar_core.errors import ReRadarError
-from reradar_core.paths import cache_dir
+from reradar_core.paths import CACHE_SOURCE_ATTR, cache_dir
 
 __all__ = ["FeatureCache", "SCHEMA_VERSION", "sequence_key"]
 
@@ -45,9 +45,12 @@ class FeatureCache:
         seq_key: ``sequence_key(...)``.
         root: cache root; default ``cache_dir("bench", "features")``.
         enabled: False keeps everything in memory only (nothing written).
+        source_root: the sequence folder, recorded in the file (``SOURCE_ATTR``) so that ``reradar cache`` can tell
+            a cache whose sequence no longer exists (``paths.CACHE_SOURCE_ATTR``).
     """
 
-    def __init__(self, method_key: str, seq_key: str, root: Path | None = None, enabled: bool = True) -> None:
+    def __init__(self, method_key: str, seq_key: str, root: Path | None = None, enabled: bool = True,
+                 source_root: Path | None = None) -> None:
         self.enabled = enabled
         self.path = (root or cache_dir("bench", "features")) / method_key / f"{seq_key}.h5"
         self._file: h5py.File | None = None
@@ -68,6 +71,8 @@ class FeatureCache:
                 raise ReRadarError(f"{self.path}: feature cache schema {version}, expected {SCHEMA_VERSION}; "
                                    "delete the file to rebuild it")
             self._file.attrs["schema_version"] = SCHEMA_VERSION
+            if source_root is not None:  # `reradar cache --prune` drops files whose sequence folder is gone
+                self._file.attrs[CACHE_SOURCE_ATTR] = str(Path(source_root).resolve())
 
     def get(self, name: str, source: Path | None) -> tuple[Prepared, float] | None:
         """Stored (record, compute_ms) for scan ``name``, or None if missing or its source file changed."""

@@ -112,7 +112,8 @@ def prepare_sequence(methods: Seq[PlaceRecognitionMethod], seq: Sequence, config
             its own is shown when ``config.progress``.
     """
     skey = sequence_key(seq.name, seq.root)
-    caches = {m.name: FeatureCache(m.cache_key, skey, config.cache_root, config.use_cache) for m in methods}
+    caches = {m.name: FeatureCache(m.cache_key, skey, config.cache_root, config.use_cache, source_root=seq.root)
+              for m in methods}
     out: dict[str, PreparedSet] = {m.name: PreparedSet([], np.zeros(len(seq))) for m in methods}
     try:
         desc = f"{seq.name}{' ' + variant if variant else ''}: features"

@@ -7,7 +7,10 @@ renders (0.3-1.3 GB each). A full disk stops every run on the machine, so this l
 whether anything still reads it, and ``--prune`` removes the parts nothing reads:
 
 - ``sim/v<N>`` for N other than the current ``SIM_VERSION`` (stale: renders are never reused across versions);
-- ``calib/`` (probe renders, re-rendered on demand by ``benchmarks/calibrate_sim.py``).
+- ``calib/`` (probe renders, re-rendered on demand by ``benchmarks/calibrate_sim.py``);
+- training images (``training/cartesian/<key>``) and benchmark feature caches (``bench/features/<method>/<seq>.h5``)
+  derived from a sequence folder that no longer exists (each records its folder since session 17:
+  ``paths.CACHE_SOURCE_FILE`` / ``CACHE_SOURCE_ATTR``; older entries record none and are kept).
 
 Everything else (the current renders, training images, benchmark feature caches and results, confidence runs, the
 service's maps when ``RERADAR_MAPS_DIR`` is left at its default ``$RERADAR_CACHE_DIR/maps``) is listed and kept. Sizes are disk usage with hard links counted once (``verify_sim_identity --carry-over`` links a
@@ -16,6 +19,7 @@ version's renders into the next), and what a prune frees counts only files no ke
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import stat
@@ -25,10 +29,10 @@ from pathlib import Path
 
 import typer
 
-from reradar_core.paths import cache_dir
+from reradar_core.paths import CACHE_SOURCE_ATTR, CACHE_SOURCE_FILE, cache_dir
 from reradar_core.sim.writer import SIM_VERSION
 
-__all__ = ["CachePart", "cache_parts", "prune_parts", "register"]
+__all__ = ["CachePart", "cache_parts", "prune_parts", "reclaimable_bytes", "register", "source_of"]
 
 
 @dataclass(frozen=True)
@@ -50,26 +54,59 @@ class CachePart:
     why: str
 
 
-def _inodes(folder: Path) -> dict[tuple[int, int], tuple[int, int, int]]:
-    """{(device, inode): (disk bytes, link count, links under ``folder``)} of every regular file under ``folder``."""
+def _inodes(path: Path) -> dict[tuple[int, int], tuple[int, int, int]]:
+    """{(device, inode): (disk bytes, link count, links under ``path``)} of every regular file at or under
+    ``path`` (a folder or one file)."""
+    files = [str(path)] if path.is_file() else (os.path.join(d, f) for d, _dirs, fs in os.walk(path) for f in fs)
     out: dict[tuple[int, int], tuple[int, int, int]] = {}
-    for dirpath, _dirs, files in os.walk(folder):
-        for f in files:
-            try:
-                st = os.lstat(os.path.join(dirpath, f))
-            except OSError:  # removed while we walk
-                continue
-            if stat.S_ISREG(st.st_mode):
-                key = (st.st_dev, st.st_ino)
-                seen = out[key][2] if key in out else 0
-                out[key] = (st.st_blocks * 512, st.st_nlink, seen + 1)
+    for f in files:
+        try:
+            st = os.lstat(f)
+        except OSError:  # removed while we walk
+            continue
+        if stat.S_ISREG(st.st_mode):
+            key = (st.st_dev, st.st_ino)
+            seen = out[key][2] if key in out else 0
+            out[key] = (st.st_blocks * 512, st.st_nlink, seen + 1)
     return out
 
 
+def source_of(entry: Path) -> str | None:
+    """The input folder a derived cache entry records (``CACHE_SOURCE_FILE`` in a folder, ``CACHE_SOURCE_ATTR`` in an
+    HDF5 file), or None when it records none (written before session 17) or cannot be read now (in use)."""
+    try:
+        if entry.is_dir():
+            record = entry / CACHE_SOURCE_FILE
+            return str(json.loads(record.read_text())["root"]) if record.is_file() else None
+        if entry.suffix == ".h5":
+            import h5py  # the benchmark's feature files
+
+            with h5py.File(entry, "r") as f:
+                value = f.attrs.get(CACHE_SOURCE_ATTR)
+            return None if value is None else str(value)
+    except (OSError, ValueError, KeyError, TypeError):  # locked by a running benchmark, or unreadable
+        return None
+    return None
+
+
+def _derived(entries: list[Path], what: str) -> Iterable[tuple[tuple[Path, ...], str, bool, str]]:
+    """Parts of derived cache ``entries``: those whose recorded source folder is gone (stale), and the rest."""
+    gone, unknown, live = [], [], []
+    for e in entries:
+        src = source_of(e)
+        (unknown if src is None else live if Path(src).exists() else gone).append(e)
+    if gone:
+        yield tuple(gone), f"{what} of folders that no longer exist ({len(gone)})", True, "never read: their source is gone"
+    if live or unknown:
+        why = "kept" + (f" ({len(unknown)} written before sources were recorded)" if unknown else "")
+        yield tuple(live + unknown), f"{what} ({len(live) + len(unknown)})", False, why
+
+
 #: kept parts with a name of their own (the rest of ``bench/`` is listed as one part: run results)
-_KEPT = {("training", "cartesian"): "training images (Cartesian crops)", ("training", "runs"): "training runs",
-         ("bench", "features"): "benchmark feature caches", ("bench", "service"): "service benchmark maps",
+_KEPT = {("training", "runs"): "training runs", ("bench", "service"): "service benchmark maps",
          ("confidence",): "confidence-fit runs", ("maps",): "the service's registered maps (RERADAR_MAPS_DIR default)"}
+#: derived caches, judged entry by entry by the source folder each records
+_DERIVED = {("training", "cartesian"): "training images (Cartesian crops)", ("bench", "features"): "benchmark feature caches"}
 
 
 def _parts(root: Path) -> Iterable[tuple[tuple[Path, ...], str, bool, str]]:
@@ -88,6 +125,12 @@ def _parts(root: Path) -> Iterable[tuple[tuple[Path, ...], str, bool, str]]:
     for path, what in named.items():
         if path.is_dir():
             yield (path,), what, False, "kept"
+    derived = {root.joinpath(*k): what for k, what in _DERIVED.items()}
+    for path, what in derived.items():
+        if path.is_dir():
+            entries = sorted(path.iterdir()) if path.name == "cartesian" else sorted(path.glob("*/*.h5"))
+            yield from _derived([e for e in entries if e.is_dir() or e.is_file()], what)
+    named.update(derived)
     rest = [d for top in ("bench", "training") if (root / top).is_dir()
             for d in sorted((root / top).iterdir()) if d.is_dir() and d not in named]
     if rest:
@@ -119,13 +162,17 @@ def reclaimable_bytes(parts: list[CachePart]) -> int:
 
 
 def prune_parts(parts: list[CachePart]) -> list[Path]:
-    """Remove the stale ``parts``' folders; returns the folders removed."""
+    """Remove the stale ``parts``' folders and files; returns what was removed."""
     removed = []
     for p in parts:
-        for folder in p.paths if p.stale else ():
-            if folder.is_dir():
-                shutil.rmtree(folder)
-                removed.append(folder)
+        for path in p.paths if p.stale else ():
+            if path.is_dir():
+                shutil.rmtree(path)
+            elif path.is_file():
+                path.unlink()
+            else:
+                continue
+            removed.append(path)
     return removed
 
 
@@ -157,4 +204,4 @@ def register(app: typer.Typer) -> None:
             return
         removed = prune_parts(parts)
         after = shutil.disk_usage(root).free
-        typer.echo(f"removed {len(removed)} stale part(s); {_gb(max(after - free, 0))} freed on the disk")
+        typer.echo(f"removed {len(removed)} stale folder(s) / file(s); {_gb(max(after - free, 0))} freed on the disk")

@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from reradar_core.errors import ConfigError
 from reradar_core.geometry.cartesian import CartesianConfig, polar_to_cartesian
-from reradar_core.paths import cache_dir
+from reradar_core.paths import CACHE_SOURCE_FILE, cache_dir
 
 __all__ = ["CachedSequence", "TrainingSet", "TupleSampler", "cache_sequence", "crop_view", "sequence_group"]
 
@@ -109,6 +109,9 @@ def cache_sequence(seq, width_px: int = 201, resolution_m: float = 0.64, margin_
     big = CartesianConfig(width_px + 2 * margin_px, resolution_m)
     folder = cache_dir("training", "cartesian", _cache_key(seq, big))
     img_path, pose_path = folder / "images.npy", folder / "poses.npy"
+    source = folder / CACHE_SOURCE_FILE  # `reradar cache --prune` drops folders whose sequence is gone
+    if not source.is_file():
+        source.write_text(json.dumps({"root": str(Path(seq.root).resolve())}))
     if not (img_path.is_file() and pose_path.is_file()):
         # Process-unique temporary names + atomic renames: two trainers started together may render the same
         # sequence; each finishes its own copy and the last rename wins (identical content). Poses land first

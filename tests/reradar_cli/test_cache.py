@@ -1,11 +1,13 @@
 """``reradar cache``: parts of the cache folder, their sizes with hard links counted once, and a prune that removes
-only what no run reads again (old simulator versions' renders, calibration probe renders)."""
+only what no run reads again (old simulator versions' renders, calibration probe renders, training images and
+feature caches whose source folder is gone)."""
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
 
+import numpy as np
 from typer.testing import CliRunner
 
 from reradar_cli import app
@@ -47,7 +49,7 @@ def test_parts_sizes_and_staleness(tmp_path):
     parts = _by_what(cache_parts(tmp_path))
     old, cur = parts["simulator v1 renders"], parts[f"simulator v{SIM_VERSION} renders"]
     assert old.stale and not cur.stale and parts["calibration probe renders"].stale
-    assert not parts["training images (Cartesian crops)"].stale and not parts["benchmark feature caches"].stale
+    assert not parts["training images (Cartesian crops) (1)"].stale and not parts["benchmark feature caches (1)"].stale
     assert "benchmark and training results (1 folders)" in parts
     assert not parts["the service's registered maps (RERADAR_MAPS_DIR default)"].stale
     # disk usage: two 64 KiB files in each simulator version (one of them the same inode)
@@ -80,3 +82,66 @@ def test_prune_parts_removes_only_stale(tmp_path):
     _cache(tmp_path)
     removed = prune_parts(cache_parts(tmp_path))
     assert sorted(p.name for p in removed) == ["calib", "v1"]
+
+
+def test_derived_caches_of_folders_that_are_gone_are_stale(tmp_path, monkeypatch):
+    import json
+
+    import h5py
+
+    from reradar_core.paths import CACHE_SOURCE_ATTR, CACHE_SOURCE_FILE
+
+    cache, data = tmp_path / "cache", tmp_path / "data"
+    (data / "seq-here").mkdir(parents=True)
+    cart = cache / "training" / "cartesian"
+    for key, src in (("live", data / "seq-here"), ("gone", data / "seq-gone"), ("legacy", None)):
+        _file(cart / key / "images.npy")
+        if src is not None:
+            (cart / key / CACHE_SOURCE_FILE).write_text(json.dumps({"root": str(src)}))
+    feats = cache / "bench" / "features" / "ringkey-abc-a2"
+    feats.mkdir(parents=True)
+    for name, src in (("here.h5", data / "seq-here"), ("gone.h5", data / "seq-gone"), ("legacy.h5", None)):
+        with h5py.File(feats / name, "w") as f:
+            f.create_dataset("x", data=np.zeros(KB64 // 8))
+            if src is not None:
+                f.attrs[CACHE_SOURCE_ATTR] = str(src)
+    parts = _by_what(cache_parts(cache))
+    stale_imgs = parts["training images (Cartesian crops) of folders that no longer exist (1)"]
+    stale_feats = parts["benchmark feature caches of folders that no longer exist (1)"]
+    assert stale_imgs.stale and stale_imgs.paths == (cart / "gone",)
+    assert stale_feats.stale and stale_feats.paths == (feats / "gone.h5",)
+    kept = parts["training images (Cartesian crops) (2)"]
+    assert not kept.stale and "1 written before sources were recorded" in kept.why
+    assert not parts["benchmark feature caches (2)"].stale
+    monkeypatch.setenv("RERADAR_CACHE_DIR", str(cache))
+    res = CliRunner().invoke(app, ["cache", "--prune"])
+    assert res.exit_code == 0, res.output
+    assert not (cart / "gone").exists() and not (feats / "gone.h5").exists()
+    assert (cart / "live").is_dir() and (cart / "legacy").is_dir()
+    assert (feats / "here.h5").is_file() and (feats / "legacy.h5").is_file()
+
+
+def test_training_and_bench_caches_record_their_source(tmp_path, monkeypatch):
+    import json
+
+    from reradar_core.benchmark.cache import FeatureCache
+    from reradar_core.cli_commands.cache import source_of
+    from reradar_core.io.datasets import load_sequence, write_sequence_poses, write_sequence_scan
+    from reradar_core.io.poses import PoseSequence
+    from reradar_core.io.scan import RadarScan
+    from reradar_core.paths import CACHE_SOURCE_FILE
+    from reradar_core.training.data import cache_sequence
+
+    monkeypatch.setenv("RERADAR_CACHE_DIR", str(tmp_path / "cache"))
+    seq_root = tmp_path / "seq"
+    ts = 1_600_000_000_000_000 + np.arange(2, dtype=np.int64) * 250_000
+    for t in ts:
+        write_sequence_scan(seq_root, "boreas", RadarScan.from_power(np.zeros((400, 3360), np.float32), "boreas",
+                                                                     start_time_us=int(t)))
+    write_sequence_poses(seq_root, "boreas", PoseSequence(ts, np.zeros((2, 2)), np.zeros(2)))
+    cache_sequence(load_sequence(seq_root), width_px=21, margin_px=2, progress=False)
+    (folder,) = (tmp_path / "cache" / "training" / "cartesian").iterdir()
+    assert json.loads((folder / CACHE_SOURCE_FILE).read_text()) == {"root": str(seq_root.resolve())}
+    assert source_of(folder) == str(seq_root.resolve())
+    FeatureCache("m-1", "seq-1", source_root=seq_root).close()
+    assert source_of(tmp_path / "cache" / "bench" / "features" / "m-1" / "seq-1.h5") == str(seq_root.resolve())
