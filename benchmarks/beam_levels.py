@@ -77,13 +77,11 @@ def main() -> None:
     condition = _condition(args.condition, overrides)
     sensor = sensor_with(SensorConfig(), overrides)
     t0 = time.perf_counter()
-    sims: list[RadarScan] = []
     per_world = []
     for w in (int(s) for s in args.worlds.split(",")):
         trav = _traversal(World(RoadNetwork([traj.xy]), seed=w, profile=profile), w + 1, condition, overrides)
         scans = render_at(trav, traj, real.poses.timestamps_us, frames, sensor)
         per_world.append(figures(scans))
-        sims += scans
     rows = {"real": figures(real_scans),
             "simulated": {k: float(np.mean([f[k] for f in per_world])) for k in per_world[0]}}
     print(f"load average {os.getloadavg()[0]:.2f}; {time.perf_counter() - t0:.0f} s; overrides {overrides or 'none'}")

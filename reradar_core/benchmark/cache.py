@@ -45,8 +45,8 @@ class FeatureCache:
         seq_key: ``sequence_key(...)``.
         root: cache root; default ``cache_dir("bench", "features")``.
         enabled: False keeps everything in memory only (nothing written).
-        source_root: the sequence folder, recorded in the file (``SOURCE_ATTR``) so that ``reradar cache`` can tell
-            a cache whose sequence no longer exists (``paths.CACHE_SOURCE_ATTR``).
+        source_root: the sequence folder, recorded in the file (attribute ``paths.CACHE_SOURCE_ATTR``) so that
+            ``reradar cache`` can tell a cache whose sequence no longer exists.
     """
 
     def __init__(self, method_key: str, seq_key: str, root: Path | None = None, enabled: bool = True,

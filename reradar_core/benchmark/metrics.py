@@ -90,7 +90,8 @@ def summarise(out: QueryOutcome, query_poses: np.ndarray, db_poses: np.ndarray, 
 
     Keys: ``recall@1`` / ``sr`` (over revisit queries, the headline) with their 95 % Wilson intervals
     ``recall@1_ci95`` / ``sr_ci95`` ([low, high] percent, over the same revisit queries: how far the figure may lie
-    from what many more such queries would give), ``recall@1_all`` / ``sr_all`` (over all queries), ``f1max``, ``e_r_deg``, ``e_t_m``, counts ``n_queries`` / ``n_revisit`` / ``n_no_match``,
+    from what many more such queries would give), ``recall@1_all`` / ``sr_all`` (over all queries), ``f1max``,
+    ``e_r_deg``, ``e_t_m``, counts ``n_queries`` / ``n_revisit`` / ``n_no_match``,
     ``rejection`` (what rejected means, None = never rejects), on no-match queries ``correct_rejection_pct``,
     ``wrong_pose_no_match_pct`` and their counts, on revisit queries ``n_rejected_revisit`` and
     ``n_wrong_pose_revisit``, and ``wrong_pose_pct`` (answered with a pose that misses the SR rule, percent of

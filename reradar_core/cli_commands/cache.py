@@ -13,8 +13,9 @@ whether anything still reads it, and ``--prune`` removes the parts nothing reads
   ``paths.CACHE_SOURCE_FILE`` / ``CACHE_SOURCE_ATTR``; older entries record none and are kept).
 
 Everything else (the current renders, training images, benchmark feature caches and results, confidence runs, the
-service's maps when ``RERADAR_MAPS_DIR`` is left at its default ``$RERADAR_CACHE_DIR/maps``) is listed and kept. Sizes are disk usage with hard links counted once (``verify_sim_identity --carry-over`` links a
-version's renders into the next), and what a prune frees counts only files no kept part links to.
+service's maps when ``RERADAR_MAPS_DIR`` is left at its default ``$RERADAR_CACHE_DIR/maps``) is listed and kept.
+Sizes are disk usage with hard links counted once (``verify_sim_identity --carry-over`` links a version's renders
+into the next), and what a prune frees counts only files no kept part links to.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import os
 import shutil
 import stat
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import typer
@@ -45,6 +46,7 @@ class CachePart:
         size_bytes: disk usage of its files (hard links within the part counted once).
         stale: True when no run reads it again (``--prune`` removes it).
         why: the reason, for the listing.
+        inodes: its files, as ``_inodes`` gives them (walked once: sizes and what a prune frees both come from it).
     """
 
     paths: tuple[Path, ...]
@@ -52,6 +54,7 @@ class CachePart:
     size_bytes: int
     stale: bool
     why: str
+    inodes: dict[tuple[int, int], tuple[int, int, int]] = field(default_factory=dict, repr=False, compare=False)
 
 
 def _inodes(path: Path) -> dict[tuple[int, int], tuple[int, int, int]]:
@@ -128,8 +131,9 @@ def _parts(root: Path) -> Iterable[tuple[tuple[Path, ...], str, bool, str]]:
     derived = {root.joinpath(*k): what for k, what in _DERIVED.items()}
     for path, what in derived.items():
         if path.is_dir():
-            entries = sorted(path.iterdir()) if path.name == "cartesian" else sorted(path.glob("*/*.h5"))
-            yield from _derived([e for e in entries if e.is_dir() or e.is_file()], what)
+            entries = ([e for e in sorted(path.iterdir()) if e.is_dir()] if path.name == "cartesian"
+                       else sorted(path.glob("*/*.h5")))
+            yield from _derived(entries, what)
     named.update(derived)
     rest = [d for top in ("bench", "training") if (root / top).is_dir()
             for d in sorted((root / top).iterdir()) if d.is_dir() and d not in named]
@@ -145,8 +149,11 @@ def cache_parts(root: Path) -> list[CachePart]:
     """Every part of the cache folder ``root`` with its size and whether it is stale (see the module docstring)."""
     out = []
     for paths, what, stale, why in _parts(root):
-        size = sum(b for p in paths for b, _, _ in _inodes(p).values())
-        out.append(CachePart(paths, what, size, stale, why))
+        inodes: dict[tuple[int, int], tuple[int, int, int]] = {}
+        for p in paths:
+            for key, (size, nlink, seen) in _inodes(p).items():
+                inodes[key] = (size, nlink, seen + (inodes[key][2] if key in inodes else 0))
+        out.append(CachePart(paths, what, sum(b for b, _, _ in inodes.values()), stale, why, inodes))
     return out
 
 
@@ -155,9 +162,8 @@ def reclaimable_bytes(parts: list[CachePart]) -> int:
     links: dict[tuple[int, int], list[int]] = {}
     for p in parts:
         if p.stale:
-            for folder in p.paths:
-                for key, (size, nlink, seen) in _inodes(folder).items():
-                    links.setdefault(key, [size, nlink, 0])[2] += seen
+            for key, (size, nlink, seen) in p.inodes.items():
+                links.setdefault(key, [size, nlink, 0])[2] += seen
     return sum(size for size, nlink, seen in links.values() if seen >= nlink)
 
 

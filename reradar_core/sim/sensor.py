@@ -480,7 +480,8 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
     if cfg.skirt_dbc is not None:
         power += _range_skirt(blurred if dominant is None else blurred + dominant, res, cfg)
     # beam-level jitter (own stream: the main stream's draws stay as they were without it)
-    beam_rng = np.random.default_rng([scan_seed, 0xBEA4])
+    beam_rng = (np.random.default_rng([scan_seed, 0xBEA4])
+                if cfg.azimuth_floor_db > 0 or cfg.azimuth_gain_db > 0 else None)
     if cfg.azimuth_floor_db > 0:
         jf = _azimuth_jitter(beam_rng, n_az, cfg.azimuth_floor_db, cfg.azimuth_gain_coupling) - np.float32(1.0)
         power += np.float32(floor) * jf[:, None]
