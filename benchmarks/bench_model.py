@@ -2,6 +2,11 @@
 
 Usage:
     python benchmarks/bench_model.py [--threads 2] [--repeats 30] [--quick]
+    python benchmarks/bench_model.py --threads 1 --runtimes our-3-boreas-w05,our-3-boreas [--rounds 4]
+
+``--runtimes`` times the named shipped models' networks through ``DescriptorExtractor.run_images`` in ONNX Runtime
+and in torch (``reradar_core.model.runtime``), alternating the two round by round in one process, and prints the
+medians and the torch / ONNX ratio.
 
 Prints a markdown table (the one in docs/BENCHMARKS.md, "Descriptor model speed"). Random weights give the
 same speed as trained ones; the shipped default model is timed through ``DescriptorExtractor`` when present.
@@ -11,6 +16,7 @@ Measure on a quiet machine: other processes on the two cores inflate every numbe
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import time
 
@@ -52,14 +58,45 @@ def _boreas_like_scan(seed: int = 0) -> RadarScan:
     return RadarScan.from_power(power, preset="boreas")
 
 
+def bench_runtimes(names: list[str], repeats: int, rounds: int, batch: int = 16) -> None:
+    """Per model: batch-1 and batch-``batch`` network time in ONNX Runtime and torch, alternating round by round."""
+    print("| model | runtime | batch 1 (ms) | batch 16 (ms / image) | torch / ONNX, batch 1 | torch / ONNX, batch 16 |")
+    print("|---|---|---|---|---|---|")
+    for name in names:
+        exs = {rt: DescriptorExtractor.from_pretrained(name, runtime=rt) for rt in ("onnx", "torch")}
+        w = exs["torch"].cartesian.width_px
+        rng = np.random.default_rng(0)
+        x1, xb = rng.random((1, w, w), dtype=np.float32), rng.random((batch, w, w), dtype=np.float32)
+        t1: dict[str, list[float]] = {rt: [] for rt in exs}
+        tb: dict[str, list[float]] = {rt: [] for rt in exs}
+        for _ in range(rounds):
+            for rt, ex in exs.items():
+                t1[rt].append(_median_ms(lambda ex=ex, x=x1: ex.run_images(x), repeats))
+                tb[rt].append(_median_ms(lambda ex=ex, x=xb: ex.run_images(x), max(3, repeats // 5)) / batch)
+        m1 = {rt: float(np.median(v)) for rt, v in t1.items()}
+        mb = {rt: float(np.median(v)) for rt, v in tb.items()}
+        r1 = [a / b for a, b in zip(t1["torch"], t1["onnx"], strict=True)]
+        rb = [a / b for a, b in zip(tb["torch"], tb["onnx"], strict=True)]
+        for rt in exs:
+            ratios = (f"{np.median(r1):.2f} ({min(r1):.2f}-{max(r1):.2f}) | {np.median(rb):.2f} "
+                      f"({min(rb):.2f}-{max(rb):.2f})") if rt == "onnx" else " | "
+            print(f"| {name} | {rt} | {m1[rt]:.2f} | {mb[rt]:.2f} | {ratios} |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=30)
     ap.add_argument("--quick", action="store_true", help="only the default configuration")
+    ap.add_argument("--runtimes", default="", help="comma-separated shipped models: time ONNX Runtime against torch")
+    ap.add_argument("--rounds", type=int, default=4, help="alternating rounds for --runtimes")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    print(f"torch {torch.__version__}, {args.threads} threads, {platform.processor() or platform.machine()}")
+    print(f"torch {torch.__version__}, {args.threads} threads, {platform.processor() or platform.machine()}, "
+          f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    if args.runtimes:
+        bench_runtimes([n for n in args.runtimes.split(",") if n], args.repeats, args.rounds)
+        return
     configs = [ModelConfig()]
     if not args.quick:
         configs = [ModelConfig(width=0.25), ModelConfig(width=0.5), ModelConfig(width=1.0),

@@ -19,6 +19,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("reradar_core.cli_commands.info", "Print a scan's shape, timing and power statistics."),
     "cache": ("reradar_core.cli_commands.cache", "List the cache folder's parts and sizes; --prune removes stale ones."),
     "fit-confidence": ("reradar_core.cli_commands.fit_confidence", "Fit the calibrated answer confidence on training splits."),
+    "export-onnx": ("reradar_core.cli_commands.export_onnx",
+                    "Write each model's network as an ONNX graph beside its weights (faster inference)."),
     "import-scans": ("reradar_core.cli_commands.import_scans",
                      "Convert polar scans of another layout or resolution into Navtech PNGs of a preset."),
     "sim": ("reradar_core.sim.cli", "Render a simulated radar sequence along a trajectory, in a real dataset layout."),
@@ -38,7 +40,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 #: top-level modules of the optional extras (``server``, ``plot``, ...): missing ones get an install hint
 OPTIONAL_MODULES = frozenset({"torch", "e2cnn", "faiss", "cv2", "scipy", "h5py", "fastapi", "uvicorn", "starlette",
-                              "pydantic_settings", "multipart", "python_multipart", "tqdm", "matplotlib"})
+                              "pydantic_settings", "multipart", "python_multipart", "tqdm", "matplotlib", "onnx",
+                              "onnxscript", "onnxruntime"})
 
 
 def _missing_extra(name: str, exc: ModuleNotFoundError) -> typer.Exit:

@@ -175,7 +175,8 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
         gc.collect()
         gc.freeze()
         app.state.guard = build_guard(cfg, spool_dir=state.registry.staging_dir())
-        metrics.set_model(state.extractor.model_id, state.extractor.weights_sha256)  # ops: reradar_model_info
+        metrics.set_model(state.extractor.model_id, state.extractor.weights_sha256,  # ops: reradar_model_info
+                          getattr(state.extractor, "runtime", "torch"))
         if not app.state.guard.policy.vehicle_keys:
             logger.info("no RERADAR_VEHICLE_KEYS configured: scans, retrieve and localize answer loopback clients "
                         "only (and callers with the operator key)")

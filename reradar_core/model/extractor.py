@@ -1,7 +1,8 @@
 """``DescriptorExtractor``: one radar scan -> ``ScanFeatures`` (global descriptor + landmark local descriptors).
 
 Pipeline (paper, Sec. "Method"): polar scan -> Cartesian image (``polar_to_cartesian``, the model's own
-``CartesianConfig``) -> exported network -> global descriptor (NetVLAD + PCA-whitening, L2) and F'. Cen 2018
+``CartesianConfig``) -> exported network -> global descriptor (NetVLAD + PCA-whitening, L2) and F'. The network
+runs in ONNX Runtime when its exported graph lies beside the weights, in torch otherwise (``reradar_core.model.runtime``). Cen 2018
 landmarks found on the polar scan are mapped to Cartesian pixels; those inside the image are kept (the
 strongest ``max_keypoints``), F' is sampled bilinearly at each (F' cell k is centred on input pixel
 ``stride * k``, so pixel (r, c) is F' coordinate (r / stride, c / stride)), and the vectors are
@@ -28,6 +29,7 @@ from reradar_core.geometry.cartesian import CartesianConfig, metric_to_pixel, po
 from reradar_core.io.scan import RadarScan
 from reradar_core.model.config import ModelConfig
 from reradar_core.model.network import DescriptorNet, fuse_batchnorm
+from reradar_core.model.runtime import OnnxNetwork, onnx_path_for, resolve_runtime
 
 __all__ = ["DescriptorExtractor", "sample_feature_map", "DEFAULT_MAX_KEYPOINTS", "file_sha256"]
 
@@ -42,6 +44,32 @@ def file_sha256(path: str | Path) -> str:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+_logged_fallbacks: set[str] = set()
+
+
+def _onnx_network(weights: Path, sha256: str, runtime: str) -> OnnxNetwork | None:
+    """The ONNX Runtime network for ``weights`` under ``runtime`` ("auto" / "onnx" / "torch"), None for torch.
+
+    "auto" falls back to torch when the graph is missing, stale or onnxruntime is not installed, and says why once
+    per weights file (a stale graph is a warning: someone retrained without re-exporting)."""
+    if runtime == "torch":
+        return None
+    graph = onnx_path_for(weights)
+    try:
+        if not graph.is_file():
+            raise ConfigError(f"{weights.stem} has no exported graph {graph.name} beside its weights "
+                              "(`reradar export-onnx` writes it)")
+        return OnnxNetwork(graph, sha256)
+    except ConfigError as exc:
+        if runtime == "onnx":
+            raise ConfigError(f"network runtime 'onnx' asked for, but {exc}") from exc
+        if sha256 not in _logged_fallbacks:
+            _logged_fallbacks.add(sha256)
+            stale = graph.is_file()
+            (logger.warning if stale else logger.info)("descriptor network runs in torch: %s", exc)
+        return None
 
 
 def sample_feature_map(fmap: torch.Tensor | np.ndarray, rc_px: np.ndarray, stride: int) -> np.ndarray:
@@ -83,13 +111,17 @@ class DescriptorExtractor:
         descriptor_dim: D of the global descriptor.
         max_keypoints: cap on landmarks per scan (strongest kept; None = all).
 
+        runtime: "onnx" when the network runs in ONNX Runtime (``onnx_network``), else "torch".
+
     ``fuse`` folds BatchNorm into the convolutions (same function, faster); the given ``net`` is not changed.
+    ``onnx_network`` (an ``OnnxNetwork`` of the same weights; ``from_file`` finds it) runs the network instead of torch.
     """
 
     def __init__(self, net: DescriptorNet, *, weights_sha256: str = "", name: str = "",
                  metadata: dict[str, Any] | None = None, max_keypoints: int | None = DEFAULT_MAX_KEYPOINTS,
-                 landmark_config: Any = None, fuse: bool = True) -> None:
+                 landmark_config: Any = None, fuse: bool = True, onnx_network: OnnxNetwork | None = None) -> None:
         self.net = fuse_batchnorm(net) if fuse else net.eval()
+        self.onnx_network = onnx_network
         self.config: ModelConfig = net.config
         self.weights_sha256 = weights_sha256
         self.name = name
@@ -109,8 +141,14 @@ class DescriptorExtractor:
         return cls.from_file(pt, meta=meta, **kwargs)
 
     @classmethod
-    def from_file(cls, path: str | Path, meta: dict[str, Any] | None = None, **kwargs: Any) -> DescriptorExtractor:
-        """Load a weights file written by ``save_weights`` (JSON metadata next to it, same stem)."""
+    def from_file(cls, path: str | Path, meta: dict[str, Any] | None = None, *, runtime: str | None = None,
+                  **kwargs: Any) -> DescriptorExtractor:
+        """Load a weights file written by ``save_weights`` (JSON metadata next to it, same stem).
+
+        ``runtime``: "auto" (ONNX Runtime when ``<name>.onnx`` of these weights is beside the file and onnxruntime
+        is installed, torch otherwise), "onnx" (ONNX Runtime or a ``ConfigError``) or "torch"; None reads
+        ``$RERADAR_NETWORK_RUNTIME`` (default "auto"). See ``reradar_core.model.runtime``.
+        """
         path = Path(path)
         if not path.is_file():
             raise ConfigError(f"model weights file {path} does not exist; run `reradar train` or pick one of "
@@ -131,8 +169,9 @@ class DescriptorExtractor:
             net.load_state_dict(state)
         except RuntimeError as exc:
             raise ModelMismatchError(f"weights {path} do not fit model {config.model_id}: {exc}") from exc
-        return cls(net, weights_sha256=file_sha256(path), name=meta.get("name", path.stem), metadata=meta,
-                   **kwargs)
+        sha = file_sha256(path)
+        return cls(net, weights_sha256=sha, name=meta.get("name", path.stem), metadata=meta,
+                   onnx_network=_onnx_network(path, sha, resolve_runtime(runtime)), **kwargs)
 
     # ---------------------------------------------------------------- properties
     @property
@@ -151,14 +190,21 @@ class DescriptorExtractor:
     def local_dim(self) -> int:
         return self.config.feature_dim
 
+    @property
+    def runtime(self) -> str:
+        """Where the network runs: "onnx" (ONNX Runtime) or "torch"."""
+        return "onnx" if self.onnx_network is not None else "torch"
+
     # ---------------------------------------------------------------- inference
     @torch.inference_mode()
     def run_images(self, images: np.ndarray | torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         """(B, W, W) Cartesian images -> ((B, D) float32 descriptors, (B, C, h, h) float32 F')."""
-        x = torch.as_tensor(np.asarray(images, dtype=np.float32))
-        if x.ndim == 2:
-            x = x[None]
-        g, f = self.net(x[:, None])
+        arr = np.asarray(images, dtype=np.float32)
+        if arr.ndim == 2:
+            arr = arr[None]
+        if self.onnx_network is not None:
+            return self.onnx_network(arr[:, None])
+        g, f = self.net(torch.as_tensor(arr)[:, None])
         return g.numpy(), f.numpy()
 
     def cartesian_image(self, scan: RadarScan) -> np.ndarray:

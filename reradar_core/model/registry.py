@@ -2,7 +2,8 @@
 
 The ``.pt`` file holds ``{"state_dict": ...}`` of the exported plain-torch ``DescriptorNet`` (float32), so
 loading needs neither e2cnn nor training code. The JSON holds the ``ModelConfig``, training data, command,
-time, validation Recall@1 and the weights' sha256.
+time, validation Recall@1 and the weights' sha256. ``<name>.onnx`` beside them is the same network as an ONNX graph
+(``reradar_core.model.runtime``), which inference runs in ONNX Runtime when it is there.
 """
 
 from __future__ import annotations
@@ -17,7 +18,8 @@ import torch
 from reradar_core.errors import ConfigError
 from reradar_core.model.network import DescriptorNet
 
-__all__ = ["WEIGHTS_DIR", "DEFAULT_MODEL", "available_models", "resolve_weights", "save_weights"]
+__all__ = ["WEIGHTS_DIR", "DEFAULT_MODEL", "available_models", "export_weights_onnx", "resolve_weights",
+           "save_weights"]
 
 logger = logging.getLogger(__name__)
 
@@ -63,8 +65,10 @@ def resolve_weights(name: str = "default", weights_dir: Path = WEIGHTS_DIR) -> t
 
 
 def save_weights(net: DescriptorNet, path: str | Path, metadata: dict[str, Any],
-                 train_state_dict: dict[str, torch.Tensor] | None = None) -> Path:
-    """Write ``net`` (a plain, exported ``DescriptorNet``) to ``path`` (.pt) and its metadata to .json.
+                 train_state_dict: dict[str, torch.Tensor] | None = None, onnx: bool = True) -> Path:
+    """Write ``net`` (a plain, exported ``DescriptorNet``) to ``path`` (.pt), its metadata to .json and, with
+    ``onnx``, the network as an ONNX graph to .onnx (``export_weights_onnx``; skipped with a warning when the
+    exporter's packages, the ``train`` extra, are missing: inference then runs in torch).
 
     ``train_state_dict`` (the e2cnn training network's state) is stored alongside so that a later training
     stage can start from these weights (``reradar train --init NAME``); inference ignores it.
@@ -83,4 +87,25 @@ def save_weights(net: DescriptorNet, path: str | Path, metadata: dict[str, Any],
     meta.update(name=path.stem, config=net.config.to_dict(), model_id=net.config.model_id,
                 sha256=file_sha256(path))
     path.with_suffix(".json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
+    if onnx:
+        try:
+            export_weights_onnx(path, net=net)
+        except ModuleNotFoundError as exc:
+            logger.warning("no ONNX graph written for %s (%s is not installed): inference runs in torch",
+                           path.name, exc.name)
     return path
+
+
+def export_weights_onnx(path: str | Path, net: DescriptorNet | None = None) -> Path:
+    """Write ``<name>.onnx`` beside the weights file ``path`` (``<name>.pt``): its network as an ONNX graph that
+    records the file's sha256 (``reradar_core.model.runtime.export_onnx``). ``net``: the network already in memory
+    (else loaded from ``path``). Any stale graph there is removed first. Returns the graph's path."""
+    from reradar_core.model.extractor import DescriptorExtractor, file_sha256
+    from reradar_core.model.runtime import export_onnx, onnx_path_for
+
+    path = Path(path)
+    graph = onnx_path_for(path)
+    graph.unlink(missing_ok=True)
+    if net is None:
+        net = DescriptorExtractor.from_file(path, runtime="torch", fuse=False).net
+    return export_onnx(net, graph, weights_sha256=file_sha256(path))

@@ -8,7 +8,7 @@ standard process, platform and garbage-collector collectors, build and model inf
 - ``reradar_stage_duration_seconds{stage}`` histogram (decode, extract, retrieve, screen, pose, ...)
 - ``reradar_localizations_total{status}`` counter
 - ``reradar_maps_loaded``, ``reradar_scan_cache_entries`` gauges
-- ``reradar_build_info{version,python,torch,faiss}``, ``reradar_model_info{model_id,weights_sha256}``
+- ``reradar_build_info{version,python,torch,faiss,onnxruntime}``, ``reradar_model_info{model_id,weights_sha256,network_runtime}``
 
 In a fleet every replica is scraped on its own ``/metrics``; Prometheus sums them.
 """
@@ -79,12 +79,15 @@ class Metrics:
         }
         self.build_info = Info("reradar_build", "Versions of ReRadar and its runtime.", registry=r)
         self.build_info.info({"version": _version("reradar"), "python": platform.python_version(),
-                              "torch": _version("torch"), "faiss": _version("faiss-cpu")})
+                              "torch": _version("torch"), "faiss": _version("faiss-cpu"),
+                              "onnxruntime": _version("onnxruntime")})
         self.model_info = Info("reradar_model", "Descriptor model served.", registry=r)
 
-    def set_model(self, model_id: str, weights_sha256: str) -> None:
-        """Record the loaded descriptor model (``reradar_model_info``)."""
-        self.model_info.info({"model_id": model_id, "weights_sha256": weights_sha256})
+    def set_model(self, model_id: str, weights_sha256: str, network_runtime: str = "torch") -> None:
+        """Record the loaded descriptor model (``reradar_model_info``) and where its network runs ("onnx": ONNX
+        Runtime, "torch": torch; ``reradar_core.model.runtime``)."""
+        self.model_info.info({"model_id": model_id, "weights_sha256": weights_sha256,
+                              "network_runtime": network_runtime})
 
     def inc(self, name: str, value: float = 1.0, **labels: str) -> None:
         counter = self._counters[name]

@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[2]
 #: heavy or unrelated modules that must stay out of the light paths
 HEAVY = ("torch", "e2cnn", "faiss", "matplotlib", "scipy", "cv2", "h5py", "fastapi")
 NOT_SERVING = ("reradar_core.sim", "reradar_core.training", "reradar_core.baselines", "reradar_core.benchmark",
-               "matplotlib")
+               "matplotlib", "onnx", "onnxscript", "onnx_ir")  # the ONNX exporter: serving only runs the graph
 
 
 def _loaded_after(code: str) -> list[str]:
@@ -75,7 +75,14 @@ with TestClient(create_app(s)) as c:
 """
     loaded = _loaded_after(code)
     assert "reradar_core.localization.localizer" in loaded and "torch" in loaded  # it really served a request
+    assert "onnxruntime" in loaded  # the shipped model's network ran in ONNX Runtime
     assert _offending(loaded, NOT_SERVING) == []
+
+
+def test_export_onnx_refuses_an_unknown_model_with_the_known_ones() -> None:
+    res = CliRunner().invoke(app, ["export-onnx", "no-such-model"])
+    assert res.exit_code == 2
+    assert "unknown model 'no-such-model'" in res.output and "our-3-boreas-w05" in res.output
 
 
 def test_library_never_imports_maps_service_or_cli() -> None:

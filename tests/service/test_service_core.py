@@ -91,7 +91,7 @@ def test_metrics_prometheus_text() -> None:
     m.observe("reradar_http_request_duration_seconds", 0.004, method="GET", route="/maps")
     m.observe_stages({"extract_ms": 30.0, "total_ms": 50.0})
     m.set_gauge("reradar_maps_loaded", 3)
-    m.set_model("fake-model", "ab" * 32)
+    m.set_model("fake-model", "ab" * 32, "onnx")
     text = m.render()
     samples = {(s.name, tuple(sorted(s.labels.items()))): s.value
                for fam in text_string_to_metric_families(text) for s in fam.samples}
@@ -104,7 +104,8 @@ def test_metrics_prometheus_text() -> None:
     assert samples[("reradar_maps_loaded", ())] == 3 and "# TYPE reradar_maps_loaded gauge" in text
     # process, build and model info come from prometheus-client's collectors and our Info metrics
     assert ("process_resident_memory_bytes", ()) in samples
-    assert samples[("reradar_model_info", (("model_id", "fake-model"), ("weights_sha256", "ab" * 32)))] == 1
+    assert samples[("reradar_model_info", (("model_id", "fake-model"), ("network_runtime", "onnx"),
+                                          ("weights_sha256", "ab" * 32)))] == 1
     assert any(name == "reradar_build_info" and dict(labels).get("version") for name, labels in samples)
 
 

@@ -1,0 +1,195 @@
+"""Where the descriptor network runs: ONNX Runtime when an exported graph lies beside the weights, torch otherwise.
+
+The shipped weights are a torch state dict (``<name>.pt``, written by ``reradar train``). Beside it,
+``<name>.onnx`` holds the same fused network (``fuse_batchnorm``) as an ONNX graph with a free batch axis, written
+by ``export_onnx`` (``reradar train`` writes it with the weights; ``reradar export-onnx`` writes it for existing
+weights). ONNX Runtime runs it about 2x faster than torch on CPU at one thread (docs/BENCHMARKS.md, "Session 18"),
+with the same outputs to float rounding (descriptor within ~2e-7, F' within ~5e-7 relative of torch's).
+
+The graph records the sha256 of the ``.pt`` it was exported from (model property ``reradar.weights_sha256``);
+``OnnxNetwork`` refuses a graph whose record differs from the weights being loaded, so a stale ``.onnx`` left beside
+retrained weights is never run. Which runtime a ``DescriptorExtractor`` uses (``resolve_runtime``):
+
+- ``auto`` (default; ``RERADAR_NETWORK_RUNTIME`` unset): ONNX Runtime when the graph is there, matches and
+  ``onnxruntime`` is installed (the ``server`` extra), torch otherwise (logged once, saying why);
+- ``onnx``: ONNX Runtime or a ``ConfigError`` saying what is missing;
+- ``torch``: always torch (e.g. to compare the two).
+
+Threads: a session uses as many intra-op threads as torch is set to (``torch.get_num_threads()`` when it first runs
+at that setting), so the service's ``RERADAR_TORCH_THREADS`` and ``reradar bench --threads`` govern both runtimes.
+Exporting needs ``onnx`` and ``onnxscript`` (the ``train`` extra); running needs only ``onnxruntime``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import logging
+import os
+import threading
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from reradar_core.errors import ConfigError
+
+__all__ = ["ONNX_SUFFIX", "RUNTIMES", "RUNTIME_ENV", "WEIGHTS_SHA_PROPERTY", "OnnxNetwork", "export_onnx",
+           "onnx_path_for", "resolve_runtime"]
+
+logger = logging.getLogger(__name__)
+
+ONNX_SUFFIX = ".onnx"
+RUNTIME_ENV = "RERADAR_NETWORK_RUNTIME"
+RUNTIMES = ("auto", "onnx", "torch")
+#: ONNX model property: sha256 of the ``.pt`` weights file the graph was exported from
+WEIGHTS_SHA_PROPERTY = "reradar.weights_sha256"
+MODEL_ID_PROPERTY = "reradar.model_id"
+_INPUT, _OUTPUTS = "image", ("descriptor", "feature_map")
+#: largest relative difference between the exported graph's outputs and torch's that ``export_onnx`` accepts
+#: (measured: 2e-7 descriptor, 5e-7 F'; a wrong graph is off by O(1))
+EXPORT_TOLERANCE = 1e-4
+
+
+def onnx_path_for(weights_path: str | Path) -> Path:
+    """``<name>.onnx`` beside ``<name>.pt``."""
+    return Path(weights_path).with_suffix(ONNX_SUFFIX)
+
+
+def resolve_runtime(runtime: str | None) -> str:
+    """The runtime asked for: ``runtime`` if given, else ``$RERADAR_NETWORK_RUNTIME``, else "auto"."""
+    value = (runtime if runtime is not None else os.environ.get(RUNTIME_ENV, "auto")).strip().lower() or "auto"
+    if value not in RUNTIMES:
+        source = "runtime" if runtime is not None else RUNTIME_ENV
+        raise ConfigError(f"{source}={value!r} is not a network runtime; use one of {', '.join(RUNTIMES)}")
+    return value
+
+
+def export_onnx(net: Any, path: str | Path, *, weights_sha256: str) -> Path:
+    """Write ``net`` (a plain ``DescriptorNet``) as an ONNX graph (opset 20, free batch axis) to ``path``.
+
+    Input ``image``: (B, 1, W, W) float32 Cartesian images; outputs ``descriptor`` (B, D) float32 and
+    ``feature_map`` (B, C, h, h) float32, as ``DescriptorNet.forward``. BatchNorm is folded first, as the
+    extractor runs it. The graph is checked against torch on a random batch before it is written (atomically:
+    a temporary file renamed into place). Deterministic: the same weights and package versions give the same bytes.
+    """
+    import onnx
+    import torch
+
+    from reradar_core.model.network import fuse_batchnorm
+
+    path = Path(path)
+    # a copy: tracing fills the network's disc-weight cache with placeholder tensors
+    fused = fuse_batchnorm(copy.deepcopy(net))
+    w = fused.config.cartesian_width_px
+    batch = torch.export.Dim("batch", min=1, max=4096)
+    with warnings.catch_warnings(), _quiet_loggers("onnx_ir", "onnxscript", "torch.onnx", "torch.export"):
+        warnings.simplefilter("ignore")  # the exporter's notices about torch internals and its graph passes
+        program = torch.onnx.export(copy.deepcopy(fused), (torch.zeros(2, 1, w, w),), dynamo=True,
+                                    dynamic_shapes=({0: batch},), input_names=[_INPUT], output_names=list(_OUTPUTS),
+                                    optimize=True, verbose=False)
+    if program is None:  # only when exporting to a file path, which this does not
+        raise RuntimeError("torch.onnx.export returned no program")
+    model = program.model_proto
+    onnx.helper.set_model_props(model, {WEIGHTS_SHA_PROPERTY: weights_sha256,
+                                        MODEL_ID_PROPERTY: fused.config.model_id})
+    data = model.SerializeToString()
+    images = torch.rand(3, 1, w, w, generator=torch.Generator().manual_seed(0))
+    with torch.inference_mode():
+        expected = [t.numpy() for t in fused(images)]
+    got = _session(data, 1).run(None, {_INPUT: images.numpy()})
+    for name, a, b in zip(_OUTPUTS, got, expected, strict=True):
+        err = float(np.abs(a - b).max() / max(float(np.abs(b).max()), 1e-12))
+        if a.shape != b.shape or not err <= EXPORT_TOLERANCE:
+            raise RuntimeError(f"exported ONNX graph differs from the torch network on {name}: shape {a.shape} vs "
+                               f"{b.shape}, relative difference {err:.2e}")
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+    return path
+
+
+@contextlib.contextmanager
+def _quiet_loggers(*names: str) -> Iterator[None]:
+    """Raise the named loggers to ERROR for the block (the exporter logs every graph pass at INFO)."""
+    loggers = [logging.getLogger(n) for n in names]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(max(lg.getEffectiveLevel(), logging.ERROR))
+    try:
+        yield
+    finally:
+        for lg, level in zip(loggers, levels, strict=True):
+            lg.setLevel(level)
+
+
+def _session(model: str | bytes, threads: int) -> Any:
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = max(1, int(threads))
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.log_severity_level = 3  # errors only
+    # no busy-waiting pool threads on a shared machine (they would spin between requests)
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    return ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
+
+
+class OnnxNetwork:
+    """The exported network run by ONNX Runtime: (B, 1, W, W) float32 -> ((B, D) descriptors, (B, C, h, h) F').
+
+    Raises ``ConfigError`` when onnxruntime is missing, the file is not a readable graph, or it was exported from
+    other weights than ``weights_sha256``. Thread-safe (ONNX Runtime sessions are); picklable (sessions are
+    re-created after unpickling).
+    """
+
+    def __init__(self, path: str | Path, weights_sha256: str) -> None:
+        self.path = Path(path)
+        self.weights_sha256 = weights_sha256
+        self._lock = threading.Lock()
+        self._sessions: dict[int, Any] = {}
+        try:
+            import onnxruntime  # noqa: F401
+        except ModuleNotFoundError as exc:
+            raise ConfigError("onnxruntime is not installed (pip install 'reradar[server]')") from exc
+        try:
+            session = _session(str(self.path), self._threads())
+        except Exception as exc:  # onnxruntime raises its own exception types for unreadable graphs
+            raise ConfigError(f"{self.path.name} is not a readable ONNX graph: {exc}") from exc
+        props = session.get_modelmeta().custom_metadata_map
+        recorded = props.get(WEIGHTS_SHA_PROPERTY, "")
+        if recorded != weights_sha256:
+            raise ConfigError(f"{self.path.name} was exported from other weights (sha256 {recorded[:12] or 'none'}…, "
+                              f"the weights are {weights_sha256[:12]}…); re-export it with `reradar export-onnx`")
+        self.model_id = props.get(MODEL_ID_PROPERTY, "")
+        self._sessions[self._threads()] = session
+
+    @staticmethod
+    def _threads() -> int:
+        import torch
+
+        return max(1, torch.get_num_threads())
+
+    def __call__(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        threads = self._threads()
+        session = self._sessions.get(threads)
+        if session is None:
+            with self._lock:
+                session = self._sessions.get(threads) or _session(str(self.path), threads)
+                self._sessions[threads] = session
+        x = np.ascontiguousarray(images, dtype=np.float32)
+        g, f = session.run(None, {_INPUT: x})
+        return g, f
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state["_sessions"] = {}
+        del state["_lock"]
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
