@@ -22,6 +22,7 @@ Overrides (``--set``, repeatable), applied on top of the suite's definition:
     db.lateral_m=V               the database drive's lateral offset from its route, metres (v5)
     db.every=N, query.every=N    frame step of the database / query drive (protocol spacing)
     db.condition=NAME            weather condition of the database drive (e.g. snow_cover: a winter map)
+    query.sensor.FIELD=V         SensorConfig field of the query drive only (session 18: e.g. target_gain, a wet radome)
     route.speed_min=V, route.speed_max=V   cruise speed range of both drives (synthetic routes), m/s
     world.grid_lines=N           a whole street grid around the loop route: its block lines extended across the
                                  area plus N more parallel streets each side (session 15 probe);
@@ -193,6 +194,8 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
         return {k: z[k] for k in z.files} | {"radius": float(z["radius"]), "preset": str(z["preset"])}
 
     sensor = sensor_with(SensorConfig(**dict(suite.sensor_overrides)), ov)  # type: ignore[arg-type]
+    # the query drive's own sensor differences (session 18: e.g. a wet radome on one run, ``query.sensor.target_gain``)
+    q_sensor = sensor_with(sensor, {k[len("query."):]: v for k, v in ov.items() if k.startswith("query.sensor.")})
     lines = [S._route_trajectory(replace(r, lateral_m=0.0), None).xy for r in suite.road_routes]
     if "world.grid_lines" in ov:  # session 15: a whole street grid around the loop route (a planned district)
         lines += [g for r in suite.road_routes if r.kind == "loop"
@@ -220,7 +223,7 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
         ok = ok[np.linspace(0, len(ok) - 1, n_queries).round().astype(np.int64)]
     q_t, q_idx, q_pose = q_t[ok], q_idx[ok], q_pose[ok]
 
-    def render(seq: S.SequenceDef, traj, t, idx) -> np.ndarray:
+    def render(seq: S.SequenceDef, traj, t, idx, sensor: SensorConfig) -> np.ndarray:
         trav = _traversal(world, seq.traversal_seed, _condition(seq.condition, ov), ov, suite.traffic_per_km,
                           suite.car_transmission, suite.traffic_lanes, suite.median_m, suite.ego_clearance_m)
         out = []
@@ -230,8 +233,8 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
         return np.stack(out)
 
     t0 = time.perf_counter()
-    db_scans = render(db_def, db_traj, db_t, db_idx)
-    q_scans = render(q_def, q_traj, q_t, q_idx)
+    db_scans = render(db_def, db_traj, db_t, db_idx, sensor)
+    q_scans = render(q_def, q_traj, q_t, q_idx, q_sensor)
     ms = 1e3 * (time.perf_counter() - t0) / (len(db_scans) + len(q_scans))
     res = {"db_scans": db_scans, "db_pose": db_pose, "db_t": db_t, "q_scans": q_scans, "q_pose": q_pose,
            "q_t": q_t, "radius": float(suite.radius_m), "preset": suite.preset, "render_ms": ms}
