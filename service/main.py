@@ -182,8 +182,8 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
                         "only (and callers with the operator key)")
         app.state.reradar = state
         ops.start(state.registry)  # ops: follow other replicas' map changes
-        logger.info("ReRadar ready: model %s, %d map(s) in %s", state.extractor.model_id,
-                    state.registry.num_ready, cfg.maps_dir)
+        logger.info("ReRadar ready: model %s (network in %s), %d map(s) in %s", state.extractor.model_id,
+                    getattr(state.extractor, "runtime", "torch"), state.registry.num_ready, cfg.maps_dir)
         try:
             yield
         finally:

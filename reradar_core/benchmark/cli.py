@@ -136,7 +136,11 @@ def bench(
         results = run_benchmark(pairs, method_objs, out_dir, cfg, suite=label)
         results["settings"].update(threads=threads, every=every if every is not None else (1 if suite is None
                                                                                             else "suite"),
-                                   every_note=every_note, limit=limit, query_limit=query_limit, split_at=split_at)
+                                   every_note=every_note, limit=limit, query_limit=query_limit, split_at=split_at,
+                                   # where each learned method's network ran (ONNX Runtime or torch): its timings
+                                   # depend on it (reradar_core.model.runtime)
+                                   network_runtime={m.name: str(getattr(getattr(m, "extractor", None), "runtime", "torch"))
+                                                    for m in method_objs if getattr(m, "extractor", None) is not None})
         ours = [m for m in method_objs if m.provides_pose]
         if timing and ours:
             add_timing(results, _primary(ours), pairs[0], cfg, timing_scans, threads)

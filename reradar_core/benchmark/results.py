@@ -85,6 +85,10 @@ def results_markdown(results: dict[str, Any]) -> str:
     if settings.get("every_note"):
         lines.append(f"Frame spacing: {settings['every_note']}.")
         lines.append("")
+    if settings.get("network_runtime"):
+        ran = ", ".join(f"{name} in {rt}" for name, rt in settings["network_runtime"].items())
+        lines.append(f"Descriptor network: {ran} (`RERADAR_NETWORK_RUNTIME`; onnx = ONNX Runtime).")
+        lines.append("")
     seqs = results.get("sequences", {})
     pairs = settings.get("pairs", {})
     for seq in seqs:

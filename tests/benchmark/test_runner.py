@@ -66,9 +66,12 @@ def test_markdown_marks_best_and_not_applicable():
                                 "b": {"recall@1": 95.0, "f1max": 80.0, "sr": 93.0, "e_r_deg": 0.5, "e_t_m": 1.2,
                                       "ms_per_query": 2.0}}}}
     md = results_markdown(res)
+    assert "Descriptor network" not in md  # no learned method: nothing to say
     assert "| a | 90.00 | **91.00** | – | – | – |" in md
     assert "| b | **95.00** | 80.00 | **93.00** | **0.50** | **1.20** |" in md
     assert "| b | 2.0 |" in md
+    res["settings"]["network_runtime"] = {"b": "onnx"}
+    assert "Descriptor network: b in onnx (`RERADAR_NETWORK_RUNTIME`" in results_markdown(res)
 
 
 def test_cli_bench_on_real_layout_folders(loop_sequences, tmp_path, cache_env):
