@@ -85,7 +85,12 @@ class LocalizationConfig:
             models 10 screened / 2 verified give the same correct answers on the training splits as 20 / 3
             (1,238 of 1,642 runs, every 2nd query), 1 wrong answer fewer, and 30 % less localization time
             (docs/BENCHMARKS.md, "Learned whitening, ten candidates, one deeper round").
-        verify_k: screened candidates verified in full by the ``guided`` estimator (default 2).
+        verify_k: screened candidates verified in full by the ``guided`` estimator (default 1 since session 18;
+            2 before). With the width-0.5 descriptors the best-screened candidate is the right one nearly always: on
+            the training splits (every 2nd query of every session, each split's own model, 5,818 runs) 1 instead of
+            2 gave 3,887 correct / 0 wrong / 25 revisits refused against 3,889 / 0 / 23, and with ``our-3-boreas-w05``
+            on the other domains' splits (4,593 runs) 2,761 / 2 / 32 against 2,762 / 2 / 31, for 17-18 % less
+            localization time (docs/BENCHMARKS.md, "Session 18"). Expansion rounds verify ``verify_k`` more.
         max_candidates / expand_below_screen_score: ``guided`` only: while no screened candidate aligns at
             least ``expand_below_screen_score`` (0.6) of the query's landmarks, the next ``expansion_block``
             retrieved candidates are screened too, up to ``max_candidates`` (60; callers retrieve that many,
@@ -148,7 +153,7 @@ class LocalizationConfig:
     """
 
     top_k: int = 10
-    verify_k: int = 2
+    verify_k: int = 1
     max_candidates: int = 60
     expand_below_screen_score: float = 0.6
     expand_on_refusal: bool = True

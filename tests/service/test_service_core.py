@@ -48,7 +48,7 @@ def test_keys_have_no_usable_default(monkeypatch: pytest.MonkeyPatch, tmp_path: 
     monkeypatch.setenv("RERADAR_MAX_UPLOAD_MB", "1.5")
     s = Settings(maps_dir=tmp_path)
     assert s.localization.top_k == 7 and s.max_upload_bytes == int(1.5 * 2**20)
-    assert s.localization.alignment.screen_hypotheses == 700 and s.localization.verify_k == 2
+    assert s.localization.alignment.screen_hypotheses == 700 and s.localization.verify_k == 1
     assert s.localization.prescreen_keep == 5
     monkeypatch.setenv("RERADAR_LOCALIZATION__PRESCREEN_KEEP", "none")  # "none" unsets an optional setting
     monkeypatch.setenv("RERADAR_LOCALIZATION__EXPANSION_BLOCK", "10")
