@@ -67,8 +67,8 @@ def _onnx_network(weights: Path, sha256: str, runtime: str) -> OnnxNetwork | Non
             raise ConfigError(f"network runtime 'onnx' asked for, but {exc}") from exc
         if sha256 not in _logged_fallbacks:
             _logged_fallbacks.add(sha256)
-            stale = graph.is_file()
-            (logger.warning if stale else logger.info)("descriptor network runs in torch: %s", exc)
+            # a graph that is there but cannot run (stale, unreadable, no onnxruntime) is worth a warning
+            (logger.warning if graph.is_file() else logger.info)("descriptor network runs in torch: %s", exc)
         return None
 
 

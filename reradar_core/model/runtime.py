@@ -81,12 +81,13 @@ def export_onnx(net: Any, path: str | Path, *, weights_sha256: str) -> Path:
     from reradar_core.model.network import fuse_batchnorm
 
     path = Path(path)
-    # a copy: tracing fills the network's disc-weight cache with placeholder tensors
-    fused = fuse_batchnorm(copy.deepcopy(net))
+    fused = fuse_batchnorm(net)  # a copy of ``net``, BatchNorm folded
     w = fused.config.cartesian_width_px
     batch = torch.export.Dim("batch", min=1, max=4096)
     with warnings.catch_warnings(), _quiet_loggers("onnx_ir", "onnxscript", "torch.onnx", "torch.export"):
         warnings.simplefilter("ignore")  # the exporter's notices about torch internals and its graph passes
+        # a copy again: tracing fills the network's disc-weight cache with placeholder tensors, and ``fused``
+        # still has to run the check below
         program = torch.onnx.export(copy.deepcopy(fused), (torch.zeros(2, 1, w, w),), dynamo=True,
                                     dynamic_shapes=({0: batch},), input_names=[_INPUT], output_names=list(_OUTPUTS),
                                     optimize=True, verbose=False)
@@ -155,8 +156,9 @@ class OnnxNetwork:
             import onnxruntime  # noqa: F401
         except ModuleNotFoundError as exc:
             raise ConfigError("onnxruntime is not installed (pip install 'reradar[server]')") from exc
+        threads = self._threads()
         try:
-            session = _session(str(self.path), self._threads())
+            session = _session(str(self.path), threads)
         except Exception as exc:  # onnxruntime raises its own exception types for unreadable graphs
             raise ConfigError(f"{self.path.name} is not a readable ONNX graph: {exc}") from exc
         props = session.get_modelmeta().custom_metadata_map
@@ -165,7 +167,7 @@ class OnnxNetwork:
             raise ConfigError(f"{self.path.name} was exported from other weights (sha256 {recorded[:12] or 'none'}…, "
                               f"the weights are {weights_sha256[:12]}…); re-export it with `reradar export-onnx`")
         self.model_id = props.get(MODEL_ID_PROPERTY, "")
-        self._sessions[self._threads()] = session
+        self._sessions[threads] = session
 
     @staticmethod
     def _threads() -> int:
