@@ -175,15 +175,15 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
         gc.collect()
         gc.freeze()
         app.state.guard = build_guard(cfg, spool_dir=state.registry.staging_dir())
-        metrics.set_model(state.extractor.model_id, state.extractor.weights_sha256,  # ops: reradar_model_info
-                          getattr(state.extractor, "runtime", "torch"))
+        runtime = getattr(state.extractor, "runtime", "torch")  # injected extractors (tests) may not say
+        metrics.set_model(state.extractor.model_id, state.extractor.weights_sha256, runtime)  # ops: reradar_model_info
         if not app.state.guard.policy.vehicle_keys:
             logger.info("no RERADAR_VEHICLE_KEYS configured: scans, retrieve and localize answer loopback clients "
                         "only (and callers with the operator key)")
         app.state.reradar = state
         ops.start(state.registry)  # ops: follow other replicas' map changes
         logger.info("ReRadar ready: model %s (network in %s), %d map(s) in %s", state.extractor.model_id,
-                    getattr(state.extractor, "runtime", "torch"), state.registry.num_ready, cfg.maps_dir)
+                    runtime, state.registry.num_ready, cfg.maps_dir)
         try:
             yield
         finally:
