@@ -169,7 +169,7 @@ class SplitRun:
 
 
 def split_runs(split: str, method: Any, config: Any, query_step: int = 1,
-               progress: bool = True) -> tuple[float, Iterator[SplitRun]]:
+               progress: bool = True, map_step: int = 1) -> tuple[float, Iterator[SplitRun]]:
     """The pairing's localizations of one split, in a fixed order: for each session (training traversals, then
     ``confidence`` sessions), every query on the full map, then the no-match queries on the half map.
 
@@ -179,6 +179,8 @@ def split_runs(split: str, method: Any, config: Any, query_step: int = 1,
         config: the ``LocalizationConfig`` the localizers are built with.
         query_step: use every ``query_step``-th query scan (1 = all).
         progress: progress bars.
+        map_step: keep every ``map_step``-th keyframe of the database drive in both maps (1 = all; a sparser
+            map, as ``reradar build-map --min-spacing-m`` makes one).
 
     Returns:
         The suite's radius (metres) and the runs (a generator: features are computed session by session).
@@ -202,9 +204,10 @@ def split_runs(split: str, method: Any, config: Any, query_step: int = 1,
         db_seq = bench.load(bench.database[0])
         db = prepare_sequence([method], db_seq, bc)[method.name]
         db_poses = db_seq.mid_sweep_poses()  # keyframe poses at mid-sweep, as in a map (docs/CONVENTIONS.md)
-        half = len(db.records) // 2
-        maps = {"full": (_localizer(method, db.records, db_poses, config), db_poses),
-                "half": (_localizer(method, db.records[:half], db_poses[:half], config), db_poses[:half])}
+        records, db_poses = db.records[::map_step], db_poses[::map_step]
+        half = len(records) // 2
+        maps = {"full": (_localizer(method, records, db_poses, config), db_poses),
+                "half": (_localizer(method, records[:half], db_poses[:half], config), db_poses[:half])}
         sessions = [(p, False) for p in data.training] + [(p, True) for p in data.confidence]
         for qpath, unseen in sessions:
             qseq = data.load(qpath).subset(slice(None, None, query_step))

@@ -108,6 +108,9 @@ class WorldProfile:
     # façade details (windows, pipes, balconies: hard point scatterers on building outlines) relative to v7's
     # density (3 per building segment near roads, 1.5 per metre of far walls); issue 10's near-range probe
     facade_detail_scale: float = 1.0
+    # roughness of building outlines and walls relative to v10's (``Primitives.seg_rough``: 1 = diffuse,
+    # 0 = specular); < 1 makes them return mostly near normal incidence; issue 10's specular-façade probe
+    facade_roughness_scale: float = 1.0
 
 
 PROFILES: dict[str, WorldProfile] = {
@@ -441,7 +444,7 @@ class World:
                 keep &= far_from_road(0.5 * (fa + fb), sb - 0.5)
                 seg = seg[keep]
                 prim.add_segments(seg, rng.lognormal(np.log(2.0), 0.4, len(seg)), pr.building_transmission,
-                                  rng.uniform(0.5, 0.95, len(seg)))
+                                  pr.facade_roughness_scale * rng.uniform(0.5, 0.95, len(seg)))
                 if len(seg):
                     n_det = int(rng.poisson(len(seg) * 3.0 * pr.facade_detail_scale))
                     k = rng.integers(0, len(seg), n_det)
@@ -511,7 +514,7 @@ class World:
                     continue
                 # a little transmission stands for what the elevation beam sees over low buildings
                 prim.add_segments(segs, rng.lognormal(np.log(2.0), 0.4, len(segs)), pr.building_transmission,
-                                  rng.uniform(0.5, 0.95, len(segs)))
+                                  pr.facade_roughness_scale * rng.uniform(0.5, 0.95, len(segs)))
                 # façade details (windows, pipes, balconies): strong points on the walls
                 n_det = int(rng.poisson(length * 1.5 * pr.facade_detail_scale))
                 if n_det:
@@ -538,7 +541,7 @@ class World:
                 segs = np.concatenate([pts[:-1], pts[1:]], axis=1)
                 segs = segs[far_from_road(0.5 * (segs[:, :2] + segs[:, 2:]), w + 0.8)]
                 if kind == "wall":
-                    prim.add_segments(segs, rng.lognormal(np.log(1.5), 0.3), 0.0, 0.5)
+                    prim.add_segments(segs, rng.lognormal(np.log(1.5), 0.3), 0.0, 0.5 * pr.facade_roughness_scale)
                 else:
                     prim.add_segments(segs, rng.lognormal(np.log(0.8), 0.3), 0.5, 0.9)
                     prim.add_points(segs[:, :2], 1.0, 0)  # fence posts

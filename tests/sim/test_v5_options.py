@@ -171,3 +171,20 @@ def test_vehicle_elevation_scale_dims_cars_next_to_the_sensor_only():
     drop_near = _window_peak(v7, 90.0, 4.0) - _window_peak(low, 90.0, 4.0)
     assert abs(drop_near - 10 * np.log10(1 / gain_4m) / CLEAN.db_span) < 0.01
     assert _window_peak(v7, 270.0, 60.0) - _window_peak(low, 270.0, 60.0) < 0.005
+
+
+def test_facade_roughness_scale_scales_building_and_wall_roughness_only():
+    """The specular-facade probe (issue 10): the option multiplies the roughness of building outlines and walls
+    (1 = diffuse, 0 = specular) and changes no other draw; the default leaves every tile as it was."""
+    road = straight_road(400.0)
+    base = PROFILES["urban"]
+    assert base.facade_roughness_scale == 1.0
+    v10 = World(road, seed=1, profile=base).tile(1, 0)
+    half = World(road, seed=1, profile=replace(base, facade_roughness_scale=0.5)).tile(1, 0)
+    np.testing.assert_array_equal(half.seg, v10.seg)
+    np.testing.assert_array_equal(half.seg_refl, v10.seg_refl)
+    np.testing.assert_array_equal(half.pts, v10.pts)
+    opaque = v10.seg_trans < 0.2  # building outlines and walls (opaque): scaled
+    assert opaque.sum() > 10
+    np.testing.assert_allclose(half.seg_rough[opaque], 0.5 * v10.seg_rough[opaque])
+    np.testing.assert_array_equal(half.seg_rough[~opaque], v10.seg_rough[~opaque])  # kerbs, fences, rails
