@@ -79,8 +79,9 @@ def main() -> None:
     ap.add_argument("--sessions", choices=("all", "unseen", "training"), default="all",
                     help="unseen: only the splits' confidence sessions (no weight trained on them; compares models "
                          "whose training traversals differ); training: only the training traversals")
-    ap.add_argument("--map-step", type=int, default=1,
-                    help="keep every N-th keyframe of the domain's database drive (a sparser map; 1 = all)")
+    ap.add_argument("--map-spacing-m", type=float, default=0.0,
+                    help="map keyframes at least this far apart (metres), as `reradar build-map --min-spacing-m` "
+                         "keeps them (0: every scan of the domain's database drive)")
     ap.add_argument("--variant", action="append", required=True)
     args = ap.parse_args()
     variants = dict(parse_variant(v) for v in args.variant)
@@ -92,7 +93,7 @@ def main() -> None:
     for split in filter(None, args.splits.split(",")):
         method = Ours(args.model or SPLIT_MODELS[split], localization=variants[names[0]])
         radius, split_run_iter = split_runs(split, method, variants[names[0]], args.step, progress=False,
-                                             map_step=args.map_step)
+                                             map_spacing_m=args.map_spacing_m)
         per = {n: np.zeros(5) for n in names}
         runs = 0
         for k, run in enumerate(r for r in split_run_iter if r.unseen in keep):

@@ -14,25 +14,13 @@ from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.io.scan import RadarScan
 from reradar_core.localization.extractor import FeatureExtractor
+from reradar_core.localization.keyframes import select_keyframes  # re-exported: the map builder's rule
 
 __all__ = ["select_keyframes", "cap_keypoints", "build_map", "build_map_from_sequence"]
 
 logger = logging.getLogger(__name__)
 
 ProgressFn = Callable[[int, int], None]
-
-
-def select_keyframes(poses: np.ndarray, min_spacing_m: float) -> np.ndarray:
-    """Indices of scans kept as keyframes: the first, then each scan >= ``min_spacing_m`` (metres) from the
-    last kept one. ``min_spacing_m <= 0`` keeps every scan. ``poses`` (N, 3) (x m, y m, yaw rad)."""
-    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-    if min_spacing_m <= 0 or len(poses) == 0:
-        return np.arange(len(poses))
-    keep = [0]
-    for i in range(1, len(poses)):
-        if np.hypot(*(poses[i, :2] - poses[keep[-1], :2])) >= min_spacing_m:
-            keep.append(i)
-    return np.asarray(keep, dtype=np.int64)
 
 
 def cap_keypoints(features: ScanFeatures, max_keypoints: int | None) -> ScanFeatures:

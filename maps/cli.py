@@ -18,7 +18,10 @@ def build_map_command(
     layout: str | None = typer.Option(None, help="Dataset layout; detected when omitted."),
     preset: str | None = typer.Option(None, help="Radar preset; from the dataset when omitted."),
     batch_size: int = typer.Option(8, min=1, help="Scans per network batch."),
-    min_spacing_m: float = typer.Option(0.0, min=0.0, help="Keep a scan as keyframe only this far (m) from the last."),
+    min_spacing_m: float = typer.Option(0.0, min=0.0, help="Keep a scan as keyframe only this far (m) from the last. "
+                                        "The answer confidence is fitted on maps with keyframes 3.8-6.7 m apart; "
+                                        "at 12 m it refuses about 1 in 70 more revisits (docs/MODEL.md, "
+                                        "'Sparser maps')."),
     max_keypoints: int | None = typer.Option(None, min=2, help="Cap stored keypoints per keyframe."),
     name: str | None = typer.Option(None, help="Map name stored in the file (default: sequence name)."),
     overwrite: bool = typer.Option(False, help="Replace an existing map file."),
@@ -33,6 +36,9 @@ def build_map_command(
     from reradar_core.localization.extractor import load_default_extractor
 
     torch.set_num_threads(threads)
+    if out.is_dir():
+        typer.echo(f"error: {out} is a folder; --out names the map file to write (e.g. {out / 'map.h5'})", err=True)
+        raise typer.Exit(2)
     if out.exists() and not overwrite:
         typer.echo(f"error: {out} exists; pass --overwrite to replace it", err=True)
         raise typer.Exit(2)

@@ -28,8 +28,10 @@ from types import TracebackType
 import h5py
 import numpy as np
 
+from reradar_core.bounds import MAX_ABS_COORDINATE_M
 from reradar_core.errors import MapFormatError, ModelMismatchError
 from reradar_core.features import ScanFeatures
+from reradar_core.io.presets import PRESETS
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -45,6 +47,8 @@ __all__ = [
     "remove_stale_temp_files",
     "check_model",
     "read_metadata",
+    "KEYPOINT_RANGE_MARGIN_M",
+    "MAX_KEYPOINT_RANGE_M",
 ]
 
 logger = logging.getLogger(__name__)
@@ -55,6 +59,13 @@ SCHEMA_VERSION = 1
 #: azimuth (maps from before 2026-11-30, which have no ``pose_time`` attribute).
 POSE_TIME_MID_SWEEP = "mid_sweep"
 POSE_TIME_FIRST_AZIMUTH = "first_azimuth"
+#: Margin added to the longest radar range when validating keypoints, metres.
+KEYPOINT_RANGE_MARGIN_M = 50.0
+#: Largest accepted keypoint distance from its keyframe's sensor, metres: the longest maximum range of the radar
+#: presets (``reradar_core.io.presets``; 199.9 m, Boreas) plus ``KEYPOINT_RANGE_MARGIN_M``. A landmark cannot lie
+#: beyond the sensor's range, and a far keypoint would make the landmark grid built at load time grow with the
+#: square of its distance (a keypoint at 2.5 km: ~1 GB).
+MAX_KEYPOINT_RANGE_M = max(p.max_range_m for p in PRESETS.values()) + KEYPOINT_RANGE_MARGIN_M
 
 _ATTR_FIELDS = (
     "schema_version",
@@ -146,6 +157,41 @@ def _dataset(group: h5py.Group, name: str, path: Path) -> h5py.Dataset:
     return ds
 
 
+def _check_links(f: h5py.File, path: Path) -> None:
+    """Refuse a file holding any soft, external or user-defined link, anywhere (links are listed, never
+    followed): uploaded maps are untrusted and must be self-contained (~3 us per link)."""
+    found: list[str] = []
+
+    def visit(name: bytes, info: h5py.h5l.LinkInfo) -> int | None:
+        if info.type != h5py.h5l.TYPE_HARD:
+            kind = {h5py.h5l.TYPE_SOFT: "a soft link", h5py.h5l.TYPE_EXTERNAL: "an external link"}.get(
+                info.type, "a link")
+            found.append(f"'/{name.decode(errors='replace')}' is {kind}")
+            return 1  # stop at the first one
+        return None
+
+    f.id.links.visit(visit, info=True)
+    if found:
+        raise MapFormatError(f"{path}: {found[0]}; maps must be self-contained (no soft or external links)")
+
+
+def _check_keyframe(kps: np.ndarray, desc: np.ndarray, path: Path, index: int) -> None:
+    """Refuse keypoints that are not finite or lie beyond ``MAX_KEYPOINT_RANGE_M`` of the sensor, and local
+    descriptors that are not finite. ``kps`` (K, 2) float32 metres, ``desc`` (K, C) float16."""
+    if kps.ndim != 2 or kps.shape[-1] != 2:
+        raise MapFormatError(f"{path}: keyframe {index}: keypoints_xy_m has shape {kps.shape}, expected (K, 2)")
+    if not np.all(np.isfinite(kps)):
+        raise MapFormatError(f"{path}: keyframe {index}: keypoints_xy_m contain NaN/inf; keypoints must be finite")
+    if kps.size:
+        far = float(np.max(np.hypot(kps[:, 0].astype(np.float64), kps[:, 1].astype(np.float64))))
+        if far > MAX_KEYPOINT_RANGE_M:
+            raise MapFormatError(
+                f"{path}: keyframe {index}: a keypoint lies {far:.4g} m from the sensor; keypoints must be within "
+                f"the radar's range ({MAX_KEYPOINT_RANGE_M:.0f} m)")
+    if not np.all(np.isfinite(desc)):
+        raise MapFormatError(f"{path}: keyframe {index}: local_descriptors contain NaN/inf")
+
+
 def _read_metadata(f: h5py.File, path: Path) -> MapMetadata:
     attrs = f.attrs
     if "schema_version" not in attrs:
@@ -233,6 +279,7 @@ class KeyframeMap:
         self._file: h5py.File | None = _open_h5(self.path)
         self.global_descriptors: np.ndarray | None
         try:
+            _check_links(self._file, self.path)
             self.metadata = _read_metadata(self._file, self.path)
             self.timestamps_us, self.poses, self.global_descriptors = self._read_arrays(self._file)
         except MapFormatError:
@@ -260,6 +307,9 @@ class KeyframeMap:
             )
         if not (np.all(np.isfinite(poses)) and np.all(np.isfinite(g))):
             raise MapFormatError(f"{self.path}: poses or descriptors contain NaN/inf")
+        if np.any(np.abs(poses[:, :2]) > MAX_ABS_COORDINATE_M):
+            raise MapFormatError(f"{self.path}: keyframe poses must lie within +-{MAX_ABS_COORDINATE_M:.0e} m of "
+                                 f"the map origin")
         if len(f["keyframes"]) != n:
             raise MapFormatError(f"{self.path}: {len(f['keyframes'])} keyframe groups for {n} keyframes")
         return ts, poses, np.ascontiguousarray(g)
@@ -291,8 +341,11 @@ class KeyframeMap:
                     g = self.global_descriptors[index]
                 else:  # released after indexing: read the one row from disk
                     g = np.asarray(_dataset(self._file, "global_descriptors", self.path)[index], dtype=np.float32)
+            except MapFormatError:
+                raise
             except (KeyError, OSError, ValueError) as exc:
                 raise MapFormatError(f"{self.path}: keyframe {index} is damaged ({exc})") from exc
+        _check_keyframe(kps, desc, self.path, index)
         try:
             return ScanFeatures(g, kps, desc, int(self.timestamps_us[index]))
         except ValueError as exc:

@@ -75,6 +75,8 @@ def rotation_cosines(ex: DescriptorExtractor, scans: list, thetas_deg: np.ndarra
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scans", required=True, help="folder of polar PNG scans")
+    ap.add_argument("--preset", default=None,
+                    help="radar preset of the scans (needed for 3,360-bin scans: boreas, boreas-2021 or mulran)")
     ap.add_argument("--models", nargs="+", default=["our-3-boreas", "our-1"])
     ap.add_argument("--limit", type=int, default=11)
     ap.add_argument("--stride", type=int, default=1, help="take every n-th scan of the folder")
@@ -87,7 +89,7 @@ def main() -> None:
     paths = sorted(Path(args.scans).glob("*.png"))[:: args.stride][: args.limit]
     if not paths:
         raise SystemExit(f"no .png scans in {args.scans}")
-    scans = [load_scan(p) for p in paths]
+    scans = [load_scan(p, args.preset) for p in paths]
     thetas = np.asarray(args.angles, float) if args.angles else np.arange(args.step, 360.0, args.step)
     results = {}
     for name in args.models:

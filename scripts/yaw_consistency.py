@@ -64,6 +64,8 @@ def consistency_curve(ex: DescriptorExtractor, scans: list, step_deg: float = 5.
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scans", required=True, help="folder of polar PNG scans")
+    ap.add_argument("--preset", default=None,
+                    help="radar preset of the scans (needed for 3,360-bin scans: boreas, boreas-2021 or mulran)")
     ap.add_argument("--models", nargs="+", default=["default"])
     ap.add_argument("--limit", type=int, default=11)
     ap.add_argument("--step", type=float, default=5.0)
@@ -73,7 +75,7 @@ def main() -> None:
     paths = sorted(Path(args.scans).glob("*.png"))[: args.limit]
     if not paths:
         raise SystemExit(f"no .png scans in {args.scans}")
-    scans = [load_scan(p) for p in paths]
+    scans = [load_scan(p, args.preset) for p in paths]
     results = {}
     for name in args.models:
         ex = DescriptorExtractor.from_pretrained(name)

@@ -7,14 +7,44 @@ from pathlib import Path
 
 import typer
 
-__all__ = ["register"]
+__all__ = ["register", "describe_settings_error"]
+
+#: uvicorn's log levels (``--log-level``)
+LOG_LEVELS = ("critical", "error", "warning", "info", "debug", "trace")
+
+
+def _one_of(*choices: str):  # noqa: ANN202 - a typer callback
+    """A typer callback accepting only ``choices`` (case-insensitive), as a usage error otherwise."""
+
+    def check(value: str | None) -> str | None:
+        if value is not None and value.lower() not in choices:
+            raise typer.BadParameter(f"must be one of {', '.join(choices)}; got {value!r}")
+        return value.lower() if value is not None else None
+
+    return check
+
+
+def describe_settings_error(exc: ValueError) -> str:
+    """What is wrong with the RERADAR_* settings, one problem per field, without the values given: pydantic's own
+    text repeats each input (``input_value=...``), and the values include the operator and vehicle keys."""
+    from pydantic import ValidationError
+
+    if not isinstance(exc, ValidationError):
+        return str(exc)
+    problems = []
+    for err in exc.errors(include_url=False, include_input=False, include_context=False):
+        loc = "__".join(str(part) for part in err["loc"] if not isinstance(part, int))
+        msg = err["msg"].removeprefix("Value error, ")  # a validator's own message names its variables
+        problems.append(f"RERADAR_{loc.upper()}: {msg}" if loc else msg)
+    return "; ".join(problems)
 
 
 def serve_command(
     host: str = typer.Option("127.0.0.1", help="Address to bind (0.0.0.0 inside containers)."),
-    port: int = typer.Option(8080, help="TCP port."),
+    port: int = typer.Option(8080, min=1, max=65535, help="TCP port."),
     maps_dir: Path | None = typer.Option(None, help="Maps folder (default: RERADAR_MAPS_DIR or the cache)."),
-    log_level: str = typer.Option("info", help="uvicorn log level."),
+    log_level: str = typer.Option("info", callback=_one_of(*LOG_LEVELS),
+                                  help=f"uvicorn log level: {', '.join(LOG_LEVELS)}."),
     workers: int = typer.Option(1, min=1, max=64, envvar="RERADAR_WORKERS", help=(
         "Worker processes (uvicorn's supervisor restarts a dead one), each with its own model and maps and 1 "
         "torch / BLAS thread; > 1 needs RERADAR_REDIS_URL (uploaded scans and tracking sessions must be "
@@ -25,14 +55,26 @@ def serve_command(
 
     import uvicorn
 
+    from reradar_core.errors import ReRadarError
+    from reradar_core.model.registry import resolve_weights
     from service.core.config import Settings
 
     overrides = {"maps_dir": maps_dir} if maps_dir is not None else {}
     try:
         settings = Settings(**overrides)  # type: ignore[arg-type]
     except ValueError as exc:
-        typer.echo(f"error: invalid settings: {exc}", err=True)
-        raise typer.Exit(2) from exc
+        typer.echo(f"error: invalid settings: {describe_settings_error(exc)}", err=True)
+        raise typer.Exit(2) from None
+    # checked here, before the server starts, so that a bad setting is one line and not a start-up traceback
+    if settings.maps_dir.exists() and not settings.maps_dir.is_dir():
+        typer.echo(f"error: the maps folder {settings.maps_dir} is a file; give a folder (--maps-dir or "
+                   "RERADAR_MAPS_DIR)", err=True)
+        raise typer.Exit(2)
+    try:
+        resolve_weights(settings.model)
+    except ReRadarError as exc:
+        typer.echo(f"error: RERADAR_MODEL: {exc}", err=True)
+        raise typer.Exit(2) from None
     if workers == 1:
         from service.main import create_app
 
@@ -58,13 +100,21 @@ def localize_command(
     scan: Path | None = typer.Argument(None, dir_okay=False, help="Navtech PNG or .npy scan."),
     server: str = typer.Option("http://127.0.0.1:8080", "--server", help="Service base URL."),
     map_id: str = typer.Option("demo", "--map", help="Map id."),
-    top_k: int | None = typer.Option(None, help="Candidates to verify."),
+    top_k: int | None = typer.Option(None, min=1, max=100, help="Candidates to verify (1-100; default: the "
+                                     "server's)."),
+    preset: str | None = typer.Option(None, "--preset", help=(
+        "Radar preset of the scan (boreas, boreas-2021, oxford, oord, mulran): its range geometry. Default: the "
+        "server infers it from the range-bin count; a polar .npy's preset is inferred here, and refused when the "
+        "bin count fits several presets (3360: boreas, boreas-2021, mulran).")),
+    scan_layout: str | None = typer.Option(None, "--scan-layout", callback=_one_of("polar", "navtech"),
+                                           help="What an .npy scan holds: polar (A x R power, the default) or "
+                                                "navtech (the Navtech PNG's pixels, metadata columns included)."),
     as_json: bool = typer.Option(False, "--json", help="Print the full JSON response."),
     session: str | None = typer.Option(None, "--session", help="Tracking session id (the server keeps its pose)."),
     follow: Path | None = typer.Option(None, "--follow", file_okay=False, help=(
         "Replay a drive: localize every scan of this sequence folder (Boreas / Oxford / MulRan layout) in order "
         "through one tracking session, print a per-scan table and write a trajectory PNG against the "
-        "folder's ground truth. Needs the [bench] extras (dataset reader, matplotlib).")),
+        "folder's ground truth. Needs the optional bench extras (dataset reader, matplotlib).")),
     odometry: str = typer.Option("ground-truth", help=(
         "--follow: odometry sent with each scan: `ground-truth` (relative motion between the folder's poses, "
         "with --odometry-noise) or `none` (the server tracks from the last pose alone).")),
@@ -104,7 +154,10 @@ def localize_command(
             if not scan.is_file():
                 typer.echo(f"error: scan file {scan} does not exist", err=True)
                 raise typer.Exit(2)
-            res = client.localize(map_id, scan_path=scan, top_k=top_k, session_id=session)
+            if preset is None and scan.suffix.lower() == ".npy" and scan_layout != "navtech":
+                preset = _polar_npy_preset(scan)
+            res = client.localize(map_id, scan_path=scan, top_k=top_k, session_id=session, preset=preset,
+                                  scan_layout=scan_layout)
     except ReRadarAPIError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
@@ -120,6 +173,24 @@ def localize_command(
     else:
         typer.echo(f"not localized: {res.reason} ({res.num_inliers} inliers)")
     raise typer.Exit(0 if res.status == "localized" else 1)
+
+
+def _polar_npy_preset(scan: Path) -> str:
+    """The preset of a polar .npy scan, from its header's range-bin count (``infer_preset``: refused when
+    ambiguous), checked against its shape; the server would otherwise read it with Oxford geometry."""
+    from reradar_core.errors import ScanFormatError
+    from reradar_core.io.scan import check_polar_shape, infer_preset, read_npy_header
+
+    try:
+        with scan.open("rb") as fh:
+            header = read_npy_header(fh.read(1 << 16), scan.stat().st_size)
+        rows, cols = header.shape
+        preset = infer_preset(cols, scan.name)
+        check_polar_shape(rows, cols, preset, scan.name)
+    except (OSError, ScanFormatError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    return preset.name
 
 
 def demo_command(threads: int = typer.Option(1, min=1, help="torch CPU threads.")) -> None:

@@ -178,19 +178,21 @@ class ReRadarClient:
                  odometry: tuple[float, float, float] | None = None,
                  prior: tuple[float, float, float] | None = None,
                  prior_sigma: tuple[float, float] | None = None,
-                 scan_layout: str | None = None) -> LocalizeResponse:
+                 scan_layout: str | None = None, preset: str | None = None) -> LocalizeResponse:
         """Localize an inline scan (``scan_path``/``scan_bytes``, multipart) or a cached ``scan_id`` (JSON).
 
         ``scan_layout="navtech"`` with ``filename="scan.npy"``: ``scan_bytes`` is ``np.save`` of the Navtech image
         itself (uint8, 11 metadata columns + range bins, as the PNG's pixels): the same answer as the PNG, without
-        the server's PNG decompression (docs/SERVICE.md).
+        the server's PNG decompression (docs/SERVICE.md). ``preset``: the inline scan's radar preset (range
+        geometry; default: inferred by the server).
 
         Tracking mode: ``session_id`` (the server keeps the session's last pose) with ``odometry`` = motion
         since the session's previous scan (dx m forward, dy m left, dyaw deg, in that scan's frame); or an
         explicit ``prior`` = (x m, y m, yaw deg) in the map frame with ``prior_sigma`` = (m, deg).
         """
         fields: dict[str, Any] = {"map_id": map_id, "top_k": top_k, "session_id": session_id,
-                                  "scan_layout": scan_layout if scan_id is None else None}
+                                  "scan_layout": scan_layout if scan_id is None else None,
+                                  "preset": preset if scan_id is None else None}
         if odometry is not None:
             fields.update(zip(("odom_dx_m", "odom_dy_m", "odom_dyaw_deg"), map(float, odometry), strict=True))
         if prior is not None:

@@ -3,7 +3,12 @@ mode, print a per-scan table against the folder's ground truth and draw the traj
 
 Each scan is sent with one session id and the odometry since the previous scan; odometry is the ground-truth
 relative motion with seeded multiplicative noise (``odometry_noise`` x step length / turn), standing in for
-a vehicle's wheel odometry, or none at all. Success uses the paper's thresholds (20 m, 10 degrees).
+a vehicle's wheel odometry, or none at all (the server then localizes each scan globally, docs/SERVICE.md).
+
+Two bars: the paper's success (20 m, 10 degrees: the right place) and pose accuracy (2 m, 2 degrees: a pose a
+vehicle can use; the service's own pose target, README "Pose on real scans"). A ``localized`` answer beyond the
+first is ``WRONG``, one beyond the second ``OFF``; the replay fails (exit 1) on either, since a tracking
+answer 5 m behind the vehicle is the right place but the wrong pose.
 """
 
 from __future__ import annotations
@@ -21,6 +26,9 @@ __all__ = ["follow_sequence", "noisy_odometry"]
 
 SR_TRANSLATION_M = 20.0
 SR_ROTATION_DEG = 10.0
+#: pose accuracy a vehicle needs (metres, degrees)
+POSE_TRANSLATION_M = 2.0
+POSE_ROTATION_DEG = 2.0
 
 
 def noisy_odometry(T_prev_curr: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
@@ -43,7 +51,8 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
                     seed: int = 0, session: str | None = None) -> int:
     """Replay ``folder`` on map ``map_id`` with ``client`` (``service.client.ReRadarClient``).
 
-    Returns 0 when no scan was answered ``localized`` at a wrong pose, else 1 (2: unreadable folder).
+    Returns 0 when every ``localized`` answer is within ``POSE_TRANSLATION_M`` and ``POSE_ROTATION_DEG`` of the
+    ground truth, else 1 (2: unreadable folder).
     """
     from reradar_core.errors import ReRadarError
     from reradar_core.geometry.se2 import relative_pose
@@ -79,17 +88,20 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
         g = gt[i]
         row: dict[str, Any] = {"i": int(i), "mode": res.mode + ("*" if res.tracking_lost else ""),
                                "status": res.status, "ms": ms, "server_ms": res.timings_ms.get("total_ms", ms),
-                               "gt": g, "pose": None, "ok": False, "wrong": False}
+                               "gt": g, "pose": None, "ok": False, "wrong": False, "accurate": False,
+                               "err": None}
         name = seq.scan_paths[i].name
         gts = f"{g[0]:8.2f} {g[1]:8.2f} {math.degrees(g[2]):8.2f}"
         if res.status == "localized" and res.pose is not None:
             et = math.hypot(res.pose.x_m - g[0], res.pose.y_m - g[1])
             er = _yaw_err_deg(res.pose.yaw_deg, math.degrees(g[2]))
-            row.update(pose=(res.pose.x_m, res.pose.y_m), ok=et <= SR_TRANSLATION_M and er <= SR_ROTATION_DEG)
+            row.update(pose=(res.pose.x_m, res.pose.y_m), ok=et <= SR_TRANSLATION_M and er <= SR_ROTATION_DEG,
+                       accurate=et <= POSE_TRANSLATION_M and er <= POSE_ROTATION_DEG, err=(et, er))
             row["wrong"] = not row["ok"]
+            flag = "  WRONG" if row["wrong"] else ("" if row["accurate"] else "  OFF")
             echo(f"{n:4d} {name:<22} {row['mode']:<9} {res.status:<13} {res.pose.x_m:8.2f} {res.pose.y_m:8.2f} "
                  f"{res.pose.yaw_deg:8.2f} | {gts} | {et:6.2f} {er:7.2f} {res.alignment_score:5.2f} {ms:5.0f}"
-                 + ("  WRONG" if row["wrong"] else ""))
+                 + flag)
         else:
             echo(f"{n:4d} {name:<22} {row['mode']:<9} {res.status:<13} {'-':>8} {'-':>8} {'-':>8} | {gts} | "
                  f"{'-':>6} {'-':>7} {res.alignment_score:5.2f} {ms:5.0f}  ({res.reason})")
@@ -101,7 +113,7 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
         echo(f"trajectory: {png}")
     except ModuleNotFoundError:
         echo("trajectory PNG skipped: matplotlib is not installed (pip install 'reradar[plot]')")
-    return 1 if any(r["wrong"] for r in rows) else 0
+    return 1 if any(r["pose"] is not None and not r["accurate"] for r in rows) else 0
 
 
 def _summary(rows: list[dict[str, Any]], echo: Callable[[str], None]) -> None:
@@ -114,11 +126,27 @@ def _summary(rows: list[dict[str, Any]], echo: Callable[[str], None]) -> None:
     echo("")
     echo(f"success (<= {SR_TRANSLATION_M:.0f} m and <= {SR_ROTATION_DEG:.0f} deg): {ok}/{n} ({100 * ok / n:.1f} %); "
          f"localized at a wrong pose: {wrong}/{n}; not localized: {n - ok - wrong}/{n}")
+    echo(_accuracy_line(rows))
     for mode in sorted({r["mode"] for r in rows}):
         sel = [r for r in rows if r["mode"] == mode]
         echo(f"mode {mode:<9} {len(sel):4d} scans: server p50 {np.percentile([r['server_ms'] for r in sel], 50):.0f} ms, "
              f"client p50 {np.percentile([r['ms'] for r in sel], 50):.0f} ms")
     echo("(mode global* = tracking was lost and the scan was localized globally)")
+
+
+def _accuracy_line(rows: list[dict[str, Any]]) -> str:
+    """The pose-accuracy summary: answers within ``POSE_TRANSLATION_M`` / ``POSE_ROTATION_DEG`` of all scans,
+    localized answers outside it, and the median and largest error of the localized answers."""
+    n = len(rows)
+    errs = np.array([r["err"] for r in rows if r["err"] is not None], np.float64).reshape(-1, 2)
+    good = sum(bool(r["accurate"]) for r in rows)
+    head = (f"pose accuracy (<= {POSE_TRANSLATION_M:g} m and <= {POSE_ROTATION_DEG:g} deg): {good}/{n} "
+            f"({100 * good / n:.1f} %); localized outside it: {len(errs) - good}/{n}")
+    if not len(errs):
+        return head
+    med, top = np.median(errs, axis=0), errs.max(axis=0)
+    return (f"{head}; error over the {len(errs)} localized: median {med[0]:.2f} m / {med[1]:.2f} deg, "
+            f"max {top[0]:.2f} m / {top[1]:.2f} deg")
 
 
 def _plot(rows: list[dict[str, Any]], gt: np.ndarray, path: Path, title: str) -> None:
@@ -132,9 +160,13 @@ def _plot(rows: list[dict[str, Any]], gt: np.ndarray, path: Path, title: str) ->
     ax.plot(gt[:, 0] - o[0], gt[:, 1] - o[1], "-", color="0.6", lw=1.5, label="ground truth")
     styles = {"tracking": ("tab:blue", "o"), "global": ("tab:green", "s"), "global*": ("tab:orange", "^")}
     for mode, (color, marker) in styles.items():
-        pts = np.array([r["pose"] for r in rows if r["pose"] is not None and r["mode"] == mode and not r["wrong"]]).reshape(-1, 2) - o
+        pts = np.array([r["pose"] for r in rows if r["pose"] is not None and r["mode"] == mode and r["accurate"]]).reshape(-1, 2) - o
         if len(pts):
             ax.scatter(pts[:, 0], pts[:, 1], s=10, c=color, marker=marker, label=f"{mode} ({len(pts)})")
+    off = np.array([r["pose"] for r in rows if r["pose"] is not None and not r["accurate"] and not r["wrong"]]).reshape(-1, 2) - o
+    if len(off):
+        ax.scatter(off[:, 0], off[:, 1], s=30, c="tab:purple", marker="d",
+                   label=f"outside {POSE_TRANSLATION_M:g} m / {POSE_ROTATION_DEG:g} deg ({len(off)})")
     bad = np.array([r["pose"] for r in rows if r["wrong"]]).reshape(-1, 2) - o
     if len(bad):
         ax.scatter(bad[:, 0], bad[:, 1], s=40, c="tab:red", marker="x", label=f"wrong pose ({len(bad)})")

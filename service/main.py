@@ -20,12 +20,12 @@ from fastapi.openapi.utils import get_openapi
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import Response
-from starlette.routing import Match, Route
+from starlette.routing import Match
 
 from reradar_core.errors import ModelMismatchError, ReRadarError
 from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
 from reradar_core.threads import limit_malloc_arenas
-from service.api.middleware import MetricsMiddleware, RequestGuardMiddleware
+from service.api.middleware import MetricsMiddleware, RequestGuardMiddleware, leaf_routes
 from service.api.ops_middleware import OpsMiddleware
 from service.api.routes import health, localize, maps, scans
 from service.api.routes.ui import install_ui
@@ -75,19 +75,6 @@ _VEHICLE_ERRORS: tuple[int, ...] = (400, 401, 403, 404, 408, 409, 413, 415, 422,
 _OPERATOR_ERRORS: tuple[int, ...] = (400, 401, 403, 404, 408, 409, 413, 415, 422, 503)
 _PUBLIC_ERRORS: tuple[int, ...] = (503,)
 _HTTP_CODES = {404: "not_found", 405: "method_not_allowed", 400: "bad_request", 413: "payload_too_large"}
-
-
-def _leaf_routes(routes: list[Any]) -> list[Route]:
-    """The plain routes, looking inside included routers (FastAPI wraps each ``include_router``)."""
-    out: list[Route] = []
-    for route in routes:
-        if isinstance(route, Route):
-            out.append(route)
-        elif hasattr(route, "original_router"):
-            out.extend(_leaf_routes(route.original_router.routes))
-        elif hasattr(route, "routes"):
-            out.extend(_leaf_routes(route.routes))
-    return out
 
 
 def _problem_openapi(doc: dict[str, Any]) -> dict[str, Any]:
@@ -251,7 +238,7 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
         if exc.status_code == 405:
             # Starlette's Allow names the methods of the first route on the path only (GET /maps and POST /maps
             # are two routes): list them all
-            allowed = sorted({m for route in _leaf_routes(app.routes)
+            allowed = sorted({m for route in leaf_routes(app.routes)
                               if route.matches(request.scope)[0] != Match.NONE for m in (route.methods or ())})
             headers = {k: v for k, v in headers.items() if k.lower() != "allow"}
             headers["Allow"] = ", ".join(allowed)

@@ -241,20 +241,40 @@ def check_health(settings: Settings) -> bool:
 
 
 def worker_command(check: bool = False) -> None:
-    """Run a map-build worker (needs RERADAR_REDIS_URL; settings from RERADAR_* variables)."""
+    """Run a map-build worker (needs RERADAR_REDIS_URL; settings from RERADAR_* variables).
+
+    Exit status: 2 for invalid settings (no, or a malformed, RERADAR_REDIS_URL; an unknown RERADAR_MODEL), 3 when
+    Redis cannot be reached; ``check``: 0 when this host's worker is alive, else 1 (with a message when Redis cannot
+    be reached)."""
     import typer
+
+    from reradar_core.model.registry import resolve_weights
+    from service.cli import describe_settings_error
 
     try:
         settings = Settings()
     except ValueError as exc:
-        typer.echo(f"error: invalid settings: {exc}", err=True)
-        raise typer.Exit(2) from exc
+        typer.echo(f"error: invalid settings: {describe_settings_error(exc)}", err=True)
+        raise typer.Exit(2) from None
     if not settings.redis_url:
         typer.echo("error: set RERADAR_REDIS_URL (e.g. redis://127.0.0.1:6379/0): the build queue lives in Redis",
                    err=True)
         raise typer.Exit(2)
+    try:  # the URL may hold a password: never echoed, only what redis says (host and port)
+        connect(settings.redis_url).ping()
+    except ValueError as exc:
+        typer.echo(f"error: RERADAR_REDIS_URL is not a Redis URL (e.g. redis://127.0.0.1:6379/0): {exc}", err=True)
+        raise typer.Exit(2) from None
+    except redis.RedisError as exc:
+        typer.echo(f"error: cannot reach Redis (RERADAR_REDIS_URL): {exc}", err=True)
+        raise typer.Exit(1 if check else 3) from None
     if check:
         raise typer.Exit(0 if check_health(settings) else 1)
+    try:
+        resolve_weights(settings.model)
+    except ReRadarError as exc:
+        typer.echo(f"error: RERADAR_MODEL: {exc}", err=True)
+        raise typer.Exit(2) from None
     run_worker(settings)
 
 
@@ -263,7 +283,9 @@ def register(app: Any) -> None:
     import typer
 
     def worker(check: bool = typer.Option(False, "--check", help=(
-            "Exit 0 if this host's worker is alive (its health record in Redis is fresh), else 1."))) -> None:
+            "Exit 0 if this host's worker is alive (its health record in Redis is fresh), 1 if it is not or Redis "
+            "cannot be reached (with a message), 2 if the settings are invalid (RERADAR_REDIS_URL unset or "
+            "malformed)."))) -> None:
         """Run a map-build worker: queued builds from Redis (needs RERADAR_REDIS_URL; docs/OPERATIONS.md)."""
         worker_command(check)
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 from pathlib import Path
 
@@ -38,6 +39,12 @@ def _safe(text: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in text.strip())
 
 
+def _positive(value: float | None) -> float | None:
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise typer.BadParameter(f"must be a positive number of metres, got {value}")
+    return value
+
+
 def bench(
     suite: str | None = typer.Option(None, "--suite", help="Simulated suite: smoke, boreas-sim, loop-sim, "
                                      "loop-sim-hard, offroad-sim, offroad-sim-hard (rendered on first use, cached)."),
@@ -50,9 +57,9 @@ def bench(
     methods: list[str] | None = typer.Option(None, "--methods", "-m", help="Comma-separated methods "
                                              "(default: all baselines and every shipped ReRadar model)."),
     out: Path | None = typer.Option(None, "--out", help="Output folder (default: cache/bench/<suite>)."),
-    radius: float | None = typer.Option(None, "--radius", help="Correct-retrieval radius, metres (default: "
+    radius: float | None = typer.Option(None, "--radius", callback=_positive, help="Correct-retrieval radius, metres (default: "
                                         "the suite's, or 25 OORD/Oxford, 20 MulRan/Boreas)."),
-    every: int | None = typer.Option(None, "--every", help="Use every N-th scan (default 1: every scan of a "
+    every: int | None = typer.Option(None, "--every", min=1, help="Use every N-th scan (default 1: every scan of a "
                                      "folder; suites are rendered at their protocol spacing and keep it)."),
     split_at: str | None = typer.Option(None, "--split-at", help="Single-session split of one sequence: "
                                         "database = scans before, queries = scans from the split on. A scan "
@@ -63,19 +70,19 @@ def bench(
                                          "(s, ms, us, ns) when they are not absolute UTC times; never guessed."),
     split_sequence: str | None = typer.Option(None, "--split-sequence", help="Suite sequence to split with "
                                               "--split-at (default: the suite's database sequence)."),
-    limit: int | None = typer.Option(None, "--limit", help="At most this many scans per sequence after "
+    limit: int | None = typer.Option(None, "--limit", min=1, help="At most this many scans per sequence after "
                                      "subsampling."),
-    query_limit: int | None = typer.Option(None, "--query-limit", help="At most this many queries per query "
+    query_limit: int | None = typer.Option(None, "--query-limit", min=1, help="At most this many queries per query "
                                            "sequence (evenly spread; the database keeps its frames)."),
     rotation: bool = typer.Option(True, "--rotation/--no-rotation", help="Run the rotation stress test."),
-    rotation_limit: int | None = typer.Option(None, "--rotation-limit", help="Rotation stress on at most "
+    rotation_limit: int | None = typer.Option(None, "--rotation-limit", min=1, help="Rotation stress on at most "
                                               "this many queries per sequence (evenly spread)."),
     timing: bool = typer.Option(True, "--timing/--no-timing", help="Measure ReRadar's stage timings."),
-    timing_scans: int = typer.Option(20, "--timing-scans", help="Query scans for the stage timings."),
+    timing_scans: int = typer.Option(20, "--timing-scans", min=1, help="Query scans for the stage timings."),
     yaw_curve: bool = typer.Option(True, "--yaw-curve/--no-yaw-curve", help="Yaw-consistency curve of F'."),
     plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG figures."),
     cache: bool = typer.Option(True, "--cache/--no-cache", help="Use the on-disk feature cache."),
-    threads: int = typer.Option(1, "--threads", help="Torch / BLAS threads (the machine is shared)."),
+    threads: int = typer.Option(1, "--threads", min=1, help="Torch / BLAS threads (the machine is shared)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the rotation-stress heading offsets."),
 ) -> None:
     """Benchmark ReRadar against RingKey, RaPlace, RadVLAD, ResNet18-NetVLAD and ReFeree."""
@@ -96,8 +103,6 @@ def bench(
     try:
         if (suite is None) == (database is None):
             raise typer.BadParameter("give either --suite NAME or --database DIR with --query DIR")
-        if every is not None and every < 1:
-            raise typer.BadParameter(f"--every must be >= 1, got {every}")
         if suite is not None:
             if query or time_unit:
                 raise typer.BadParameter("--query and --time-unit are for folders; a suite names its own sequences")

@@ -6,7 +6,8 @@ and training splits) and never reads another version's, and ``benchmarks/calibra
 renders (0.3-1.3 GB each). A full disk stops every run on the machine, so this lists each part with its size and
 whether anything still reads it, and ``--prune`` removes the parts nothing reads:
 
-- ``sim/v<N>`` for N other than the current ``SIM_VERSION`` (stale: renders are never reused across versions);
+- ``sim/v<N>`` for N other than the current ``SIM_VERSION`` (stale: renders are never reused across versions; other
+  folders under ``sim/`` are not version folders and are kept);
 - ``calib/`` (probe renders, re-rendered on demand by ``benchmarks/calibrate_sim.py``);
 - training images (``training/cartesian/<key>``) and benchmark feature caches (``bench/features/<method>/<seq>.h5``)
   derived from a sequence folder that no longer exists (each records its folder since session 17:
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import stat
 from collections.abc import Iterable
@@ -117,8 +119,10 @@ def _parts(root: Path) -> Iterable[tuple[tuple[Path, ...], str, bool, str]]:
     sim = root / "sim"
     if sim.is_dir():
         for d in sorted((d for d in sim.iterdir() if d.is_dir()), key=lambda p: (len(p.name), p.name)):
-            version = d.name[1:] if d.name.startswith("v") else d.name
-            if version == SIM_VERSION:
+            version = d.name[1:]
+            if not re.fullmatch(r"v\d+", d.name):  # not a version folder: someone's own renders, never pruned
+                yield (d,), f"sim/{d.name}", False, "kept (not a simulator version folder sim/v<N>)"
+            elif version == SIM_VERSION:
                 yield (d,), f"simulator v{version} renders", False, "current simulator version"
             else:
                 yield (d,), f"simulator v{version} renders", True, f"never read: renders are per version (now v{SIM_VERSION})"
@@ -189,11 +193,19 @@ def _gb(n: int) -> str:
 def register(app: typer.Typer) -> None:
     @app.command("cache")
     def cache(
-        prune: bool = typer.Option(False, "--prune", help="Remove the stale parts (old simulator versions' renders, "
-                                   "calibration probe renders)."),
+        prune: bool = typer.Option(False, "--prune", help="Remove the stale parts: old simulator versions' renders "
+                                   "(sim/v<N>), calibration probe renders, and training images and benchmark "
+                                   "feature caches whose source folder no longer exists."),
     ) -> None:
         """List the cache folder's parts with their sizes; --prune removes what no run reads again."""
-        root = cache_dir()
+        try:
+            root = cache_dir()
+        except OSError as exc:  # RERADAR_CACHE_DIR names a file, or a folder that cannot be created
+            value = os.environ.get("RERADAR_CACHE_DIR", "")
+            why = "it (or a folder on its path) is a file, not a folder" if isinstance(exc, (FileExistsError, NotADirectoryError)) \
+                else (exc.strerror or str(exc))
+            typer.echo(f"error: RERADAR_CACHE_DIR={value} cannot be used as the cache folder: {why}", err=True)
+            raise typer.Exit(2) from None
         parts = cache_parts(root)
         free = shutil.disk_usage(root).free
         typer.echo(f"cache {root} ({_gb(free)} free on its disk; simulator v{SIM_VERSION})")

@@ -21,7 +21,7 @@ def register(app: typer.Typer) -> None:
                                            "model)."),
     ) -> None:
         """Write <name>.onnx beside each model's weights, so inference runs in ONNX Runtime (about 2x faster)."""
-        from reradar_core.errors import ConfigError
+        from reradar_core.errors import ReRadarError
         from reradar_core.model.registry import available_models, export_weights_onnx, resolve_weights
 
         names = list(models or available_models())
@@ -31,8 +31,8 @@ def register(app: typer.Typer) -> None:
         for name in names:
             try:
                 pt, _ = resolve_weights(name)
-            except ConfigError as exc:
+                graph = export_weights_onnx(pt)
+            except ReRadarError as exc:
                 typer.echo(f"error: {exc}", err=True)
-                raise typer.Exit(2) from exc
-            graph = export_weights_onnx(pt)
+                raise typer.Exit(2) from None
             typer.echo(f"{Path(pt).stem}: wrote {graph.name} ({graph.stat().st_size / 1e6:.1f} MB)")

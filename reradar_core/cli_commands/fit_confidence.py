@@ -10,7 +10,22 @@ from pathlib import Path
 
 import typer
 
-from reradar_core.errors import ReRadarError
+from reradar_core.errors import ConfigError, ReRadarError
+
+
+def _spacings(text: str) -> tuple[float, ...]:
+    """``--map-spacings-m``: distinct finite spacings >= 0 (metres), in the given order."""
+    out: list[float] = []
+    for item in (t.strip() for t in text.split(",")):
+        try:
+            value = float(item)
+        except ValueError:
+            raise ConfigError(f"--map-spacings-m: {item!r} is not a number of metres") from None
+        if not (value >= 0.0 and value < 1e4):
+            raise ConfigError(f"--map-spacings-m: {item!r} must be between 0 and 10000 m")
+        if value not in out:
+            out.append(value)
+    return tuple(out)
 
 
 def register(app: typer.Typer) -> None:
@@ -32,12 +47,19 @@ def register(app: typer.Typer) -> None:
                                               "answers on the fit runs (0: only the --max-wrong-pct rule)."),
         out: Path = typer.Option(None, help="Model JSON (default: the shipped "
                                             "reradar_core/localization/confidence_model.json)."),
-        plot: Path = typer.Option(Path("docs/img/confidence_reliability.png"), help="Reliability diagram PNG."),
+        plot: Path = typer.Option(None, help="Reliability diagram PNG (default: the checkout's "
+                                             "docs/img/confidence_reliability.png, else beside the model JSON)."),
         models: str = typer.Option("", help="Comma-separated SPLIT=MODEL: judge these models' answers instead of "
                                             "each split's target-adapted one (e.g. "
                                             "train-target-boreas=our-3-boreas-w05)."),
-        reuse: bool = typer.Option(False, help="Re-fit from the runs saved by the last collection (cache) "
-                                               "instead of localizing again."),
+        map_spacings_m: str = typer.Option("0", help="Comma-separated keyframe spacings (metres, as "
+                                                     "`reradar build-map --min-spacing-m`) of the maps the "
+                                                     "queries are localized on; 0 = every scan of the "
+                                                     "domain's map drive (3.8-6.7 m apart). Each spacing's "
+                                                     "runs are a group of their own for the bar."),
+        reuse: bool = typer.Option(False, help="Re-fit from the runs saved by the last collection with the same "
+                                               "splits, step, models and spacings (cache) instead of localizing "
+                                               "again; an error when there are none."),
         progress: bool = typer.Option(True, help="Progress bars."),
         threads: int = typer.Option(1, min=1, help="Torch threads (the machine is shared)."),
     ) -> None:
@@ -48,6 +70,7 @@ def register(app: typer.Typer) -> None:
         from reradar_core.localization.confidence import DEFAULT_MODEL_PATH
         from reradar_core.localization.confidence_fit import (
             PROBE_FLOOR,
+            SPLIT_MODELS,
             FitData,
             collect_split,
             fit_from_data,
@@ -60,21 +83,31 @@ def register(app: typer.Typer) -> None:
         torch.set_num_threads(threads)
         names = [s.strip() for s in splits.split(",") if s.strip()]
         try:
+            if not names:
+                raise ConfigError("--splits names no training split")
+            unknown = [s for s in names if s not in SPLIT_MODELS]
+            if unknown:
+                raise ConfigError(f"unknown training split(s) {', '.join(unknown)}; choose from "
+                                  f"{', '.join(SPLIT_MODELS)}")
+            spacings = _spacings(map_spacings_m)
             split_model = split_models(models, names)
             # the runs are cached per set of judged models (a model change never re-uses another model's runs)
             tag = "-models-" + hashlib.sha256(json.dumps(split_model, sort_keys=True).encode()).hexdigest()[:12]
+            maps_tag = "" if spacings == (0.0,) else "-maps-" + "+".join(f"{m:g}m" for m in spacings)
             runs_path = cache_dir("confidence") / (f"runs-v{SIM_VERSION}-{'+'.join(names)}-step{query_step}"
-                                                 f"-floor{PROBE_FLOOR:.2f}-with-unseen{tag}.npz")
-            from_cache = reuse and runs_path.is_file()
-            if from_cache:
+                                                 f"-floor{PROBE_FLOOR:.2f}-with-unseen{tag}{maps_tag}.npz")
+            if reuse and not runs_path.is_file():
+                raise ConfigError("--reuse: no saved runs for these splits, step, models and map spacings "
+                                  f"({runs_path.name} is not in the cache); run without --reuse to collect them")
+            if reuse:
                 data = FitData.load(runs_path)
             else:
-                data = FitData.concat([collect_split(s, query_step, holdout, progress, model=split_model[s])
-                                       for s in names])
+                data = FitData.concat([collect_split(s, query_step, holdout, progress, model=split_model[s],
+                                                     map_spacing_m=m) for s in names for m in spacings])
                 data.save(runs_path)
             meta = {"command": "reradar " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
                     "splits": names, "sim_version": SIM_VERSION, "query_step": query_step, "holdout": holdout,
-                    "runs_from_cache": from_cache,
+                    "map_spacings_m": list(spacings), "runs_from_cache": reuse,
                     "l2": l2, "label": "pose within the suite's success thresholds (e_t < R, e_r < 10 deg)"}
             meta["models"] = split_model
             model, report = fit_from_data(data, l2, max_wrong_pct / 100.0, meta, wrong_cost or None)
@@ -83,6 +116,9 @@ def register(app: typer.Typer) -> None:
             raise typer.Exit(2) from exc
         target = out or DEFAULT_MODEL_PATH
         model.save(target)
+        if plot is None:
+            docs_img = DEFAULT_MODEL_PATH.parents[2] / "docs" / "img"  # a checkout, not an installed package
+            plot = docs_img / "confidence_reliability.png" if docs_img.is_dir() else target.with_suffix(".png")
         ho = data.has_pose & data.heldout
         fit = data.has_pose & ~data.heldout
         unseen = data.has_pose & data.unseen

@@ -3,22 +3,66 @@
 from __future__ import annotations
 
 import math
-import re
 from pathlib import Path
 
+import numpy as np
 import typer
 
-from reradar_core.errors import ReRadarError
+from reradar_core.errors import ReRadarError, ScanFormatError
+from reradar_core.io.scan import has_navtech_metadata
+
+#: File names read as timestamps: 16 digits = microseconds (Boreas, Oxford), 19 digits = nanoseconds (MulRan).
+_TIMESTAMP_DIGITS = {16: 1, 19: 1000}
+
+
+def _stamp_us(src: Path, k: int) -> int:
+    """The output timestamp (µs) of source ``src``, the ``k``-th in name order: its name when that is a µs or ns
+    timestamp; ``(k + 1)`` seconds for non-numeric names. Other all-digit names are ambiguous and refused."""
+    stem = src.stem
+    if not (stem.isascii() and stem.isdigit()):
+        return (k + 1) * 1_000_000
+    if len(stem) not in _TIMESTAMP_DIGITS:
+        raise ScanFormatError(f"{src.name}: a {len(stem)}-digit numeric name is not a timestamp this command reads "
+                              "(16 digits = microseconds, 19 = nanoseconds); rename the scans to one of those forms, "
+                              "or to non-numeric names to number them 1 s apart")
+    return int(stem) // _TIMESTAMP_DIGITS[len(stem)]
+
+
+def _read_source(src: Path) -> np.ndarray:
+    """A source scan as a 2-D array: an .npy, or a greyscale (8- or 16-bit) PNG; refuses colour images and scans
+    that already are Navtech scans (their 11 metadata columns would be read as range bins)."""
+    import cv2
+
+    if src.suffix.lower() == ".npy":
+        try:
+            array = np.load(src, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as exc:
+            raise ScanFormatError(f"{src.name}: not a readable .npy array ({exc})") from None
+    else:
+        array = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+        if array is None:
+            raise ScanFormatError(f"{src.name}: not a readable image")
+        if array.ndim == 3:
+            raise ScanFormatError(f"{src.name}: a {array.shape[2]}-channel colour image; import-scans reads "
+                                  "single-channel (greyscale) power images: save the radar's power as greyscale")
+        if array.dtype == np.uint16:  # full scale of a 16-bit greyscale image
+            array = array.astype(np.float32) / 65535.0
+    if has_navtech_metadata(array):
+        raise ScanFormatError(f"{src.name}: already a Navtech scan (its first 11 columns are Navtech timestamps, "
+                              "encoder values and valid flags); it needs no import: read it directly (reradar info, "
+                              "build-map, localize) with the --preset it was recorded with")
+    return array
 
 
 def register(app: typer.Typer) -> None:
     @app.command("import-scans")
     def import_scans(
-        sources: list[Path] = typer.Argument(..., help="Foreign polar scans: greyscale PNG (no metadata) or .npy."),
+        sources: list[Path] = typer.Argument(..., help="Foreign polar scans: single-channel (greyscale) PNG without "
+                                             "Navtech metadata, or .npy."),
         out: Path = typer.Option(..., "--out", help="Folder for the Navtech PNGs (created)."),
         range_resolution: float = typer.Option(..., "--range-resolution",
                                                help="Metres per range bin of the SOURCE scans (e.g. 0.175)."),
-        preset: str = typer.Option("boreas", help="Target radar preset (boreas, oxford, oord, mulran)."),
+        preset: str = typer.Option("boreas", help="Target radar preset (boreas, boreas-2021, oxford, oord, mulran)."),
         range_offset: float = typer.Option(0.0, "--range-offset", help="Range of the source's bin 0, metres."),
         transposed: bool = typer.Option(False, "--transposed",
                                         help="Source rows are range bins and columns azimuths."),
@@ -27,29 +71,35 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Resample foreign polar scans onto a preset's range grid and write them as Navtech PNGs.
 
-        Output names are the source names when they are microsecond timestamps, else 1, 2, 3, ... seconds apart
-        in microseconds from 0 (give sequences timestamped names to keep their timing). Read them back with
-        `reradar info`, `build-map --dataset`, `localize`.
+        Output names are microsecond timestamps. Source names are read as timestamps when they are 16 digits
+        (microseconds, Boreas / Oxford) or 19 digits (nanoseconds, MulRan; converted to microseconds); other
+        numeric names are refused as ambiguous; non-numeric names are numbered 1, 2, 3, ... seconds from 0 in name
+        order (give sequences timestamped names to keep their timing). Sources that would get the same output
+        name are refused. Read the output with `reradar info`, `build-map --dataset`, `localize`.
         """
-        import cv2
-        import numpy as np
-
         from reradar_core.io.importer import ForeignScanLayout, import_polar_scan
         from reradar_core.io.scan import write_navtech_png
 
         try:
             layout = ForeignScanLayout(range_resolution, range_offset, 1 if transposed else 0,
                                        math.radians(start_azimuth_deg))
-            out.mkdir(parents=True, exist_ok=True)
-            for k, src in enumerate(sorted(sources)):
-                if src.suffix.lower() == ".npy":
-                    array = np.load(src, allow_pickle=False)
-                else:
-                    array = cv2.imread(str(src), cv2.IMREAD_GRAYSCALE)
-                    if array is None:
-                        raise ReRadarError(f"{src.name}: not a readable image")
-                stamp = int(src.stem) if re.fullmatch(r"\d{10,}", src.stem) else (k + 1) * 1_000_000
-                scan = import_polar_scan(array, layout, preset, start_time_us=stamp)
+            ordered = sorted(sources)
+            stamps = [_stamp_us(src, k) for k, src in enumerate(ordered)]
+            clashes: dict[int, list[str]] = {}
+            for src, stamp in zip(ordered, stamps, strict=True):
+                clashes.setdefault(stamp, []).append(str(src))
+            clashing = [names for names in clashes.values() if len(names) > 1]
+            if clashing:
+                shown = "; ".join(" and ".join(names) for names in clashing[:3])
+                raise ScanFormatError(f"sources with the same timestamp would overwrite each other's output: {shown}"
+                                      f"{' ...' if len(clashing) > 3 else ''}; import them into separate folders")
+            for src, stamp in zip(ordered, stamps, strict=True):
+                try:
+                    scan = import_polar_scan(_read_source(src), layout, preset, start_time_us=stamp)
+                except ScanFormatError as exc:
+                    msg = str(exc)
+                    raise ScanFormatError(msg if msg.startswith(src.name) else f"{src.name}: {msg}") from None
+                out.mkdir(parents=True, exist_ok=True)  # not before the first scan converts
                 write_navtech_png(scan, out / f"{stamp}.png")
         except (ReRadarError, OSError, ValueError) as exc:
             typer.echo(f"error: {exc}", err=True)

@@ -15,7 +15,9 @@ def register(app: typer.Typer) -> None:
     @app.command("info")
     def info(
         scan: Path = typer.Argument(..., help="Navtech polar PNG or .npy scan."),
-        preset: str = typer.Option(None, help="Radar preset (boreas, oxford, oord, mulran); inferred if omitted."),
+        preset: str = typer.Option(None, help="Radar preset (boreas, boreas-2021, oxford, oord, mulran). Inferred "
+                                   "from the range-bin count when that names one range geometry (3768: oxford); "
+                                   "needed for 3360 bins (boreas, boreas-2021 and mulran differ)."),
     ) -> None:
         """Print a scan's shape, timing and power statistics."""
         try:

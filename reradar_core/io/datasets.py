@@ -305,6 +305,16 @@ def load_sequence(path: str | Path, layout: str | None = None,
         raise DatasetError(f"unknown dataset layout {layout!r}; choose one of {LAYOUTS}")
     meta = read_sequence_meta(root)
     p = get_preset(preset if preset is not None else meta.get("preset", _DEFAULT_PRESET[layout]))
+    recorded = get_preset(meta.get("preset", _DEFAULT_PRESET[layout]))
+    if preset is not None and (p.range_resolution_m, p.range_offset_m) != (recorded.range_resolution_m,
+                                                                           recorded.range_offset_m):
+        if "preset" in meta:  # the simulator recorded the sensor: another preset would misread every range
+            raise DatasetError(f"{root}: rendered with radar preset {recorded.name!r} ({SIM_META_FILE}), not "
+                               f"{p.name!r}: its ranges would be off by {p.range_resolution_m / recorded.range_resolution_m - 1:+.0%}; "
+                               "drop the preset or pass the recorded one")
+        logger.warning("%s: a %s-layout folder read with radar preset %r (%s m/bin; the layout's own %r has %s m/bin): "
+                       "check the preset", root, layout, p.name, p.range_resolution_m, recorded.name,
+                       recorded.range_resolution_m)
     paths, stamps = _list_scans(root, layout)
     if layout == "boreas":
         pose_file = root / "applanix" / "radar_poses.csv"

@@ -14,6 +14,11 @@ Time units are never guessed from relative values. Each reader takes ``time_unit
 - Boreas ``radar_poses.csv`` and ``t,x,y,yaw`` CSVs with relative times (e.g. starting at 0) are refused with a
   message asking for the unit. A ``t,x,y,yaw`` CSV can carry the unit in its header (``t_s``, ``t_ms``,
   ``t_us``, ``t_ns``); ``write_txyyaw_csv`` writes ``t_s``.
+
+The yaw of a ``t,x,y,yaw`` CSV is in radians unless its header names the column ``yaw_deg`` (degrees) or
+``yaw_rad`` (radians, stated). A plain ``yaw`` column (or a file without a header) with any ``|yaw| > 2 pi`` is
+refused: those are almost surely degrees, and reading them as radians would turn every keyframe the wrong way.
+Positions beyond ``MAX_ABS_COORDINATE_M`` from the origin are refused in every format.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from reradar_core.bounds import MAX_ABS_COORDINATE_M
 from reradar_core.errors import PoseFileError
 from reradar_core.geometry.se2 import wrap_angle
 
@@ -40,6 +46,8 @@ __all__ = [
     "TIME_UNITS",
     "absolute_time_unit",
     "to_microseconds",
+    "MAX_ABS_COORDINATE_M",
+    "TXYYAW_YAW_HEADERS",
 ]
 
 #: Timestamp units a pose file may use: name -> microseconds per unit.
@@ -49,6 +57,11 @@ _EPOCH_WINDOW_S = (946_684_800.0, 4_102_444_800.0)
 _UNIT_SCALE_FROM_S = {"s": 1.0, "ms": 1e3, "us": 1e6, "ns": 1e9}
 #: Header names of the time column of a t,x,y,yaw CSV and the unit each declares (None: not declared).
 TXYYAW_TIME_HEADERS: dict[str, str | None] = {"t": None, "t_s": "s", "t_ms": "ms", "t_us": "us", "t_ns": "ns"}
+#: Header names of the yaw column of a t,x,y,yaw CSV and the unit each declares (``yaw``: radians, checked to
+#: be within +-2 pi; ``yaw_rad``: radians, any value).
+TXYYAW_YAW_HEADERS: dict[str, str] = {"yaw": "rad", "yaw_rad": "rad", "yaw_deg": "deg"}
+#: A plain ``yaw`` column holding a value beyond 2 pi (+ rounding slack) is taken to be in degrees and refused.
+_MAX_PLAIN_YAW_RAD = 2.0 * np.pi + 1e-6
 
 BOREAS_COLUMNS = (
     "GPSTime,easting,northing,altitude,vel_east,vel_north,vel_up,roll,pitch,heading,angvel_z,angvel_y,angvel_x"
@@ -213,6 +226,16 @@ def _parse_floats(path: Path, rows: list[tuple[int, list[str]]], cols: list[int]
     return out
 
 
+def _check_coordinates(path: Path, rows: list[tuple[int, list[str]]], xy: np.ndarray) -> None:
+    """Refuse positions ``xy`` (N, 2) metres beyond ``MAX_ABS_COORDINATE_M`` (naming the first such line)."""
+    far = np.any(np.abs(xy) > MAX_ABS_COORDINATE_M, axis=1)
+    if np.any(far):
+        lineno = rows[int(np.argmax(far))][0]
+        raise PoseFileError(f"{path}:{lineno}: position {xy[int(np.argmax(far))].tolist()} is more than "
+                            f"{MAX_ABS_COORDINATE_M:.0e} m from the origin; positions must be metres in a map or "
+                            f"UTM frame")
+
+
 def _parse_time_column(path: Path, rows: list[tuple[int, list[str]]], col: int) -> np.ndarray:
     """The time column, exactly: int64 when every value is an integer (ns stamps need all 64 bits), else
     float64. No unit is applied here."""
@@ -248,6 +271,7 @@ def read_boreas_radar_poses(path: str | Path, time_unit: str | None = None) -> P
     t_raw = _parse_time_column(path, rows, idx["GPSTime"])
     t_us = gps_time_to_us(t_raw, time_unit, f"{path}: GPSTime")
     vals = _parse_floats(path, rows, [idx["easting"], idx["northing"], idx["heading"]])
+    _check_coordinates(path, rows, vals[:, :2])
     return PoseSequence(t_us, vals[:, :2], vals[:, 2])
 
 
@@ -281,6 +305,7 @@ def read_mulran_global_pose(path: str | Path, time_unit: str | None = None) -> P
                                 f"{found}; give the unit explicitly (--time-unit {found})")
         time_unit = "ns"
     m = _parse_floats(path, rows, list(range(1, 13)))
+    _check_coordinates(path, rows, m[:, [3, 7]])
     yaw = np.arctan2(m[:, 4], m[:, 0])  # R[1,0], R[0,0]
     return PoseSequence(to_microseconds(t_raw, time_unit), m[:, [3, 7]], yaw)
 
@@ -300,13 +325,17 @@ def write_mulran_global_pose(poses: PoseSequence, path: str | Path) -> Path:
 
 
 def read_txyyaw_csv(path: str | Path, time_unit: str | None = None) -> PoseSequence:
-    """Read a plain CSV with columns ``t,x,y,yaw`` (x/y metres, yaw radians, header optional).
+    """Read a plain CSV with columns ``t,x,y,yaw`` (x/y metres, header optional).
 
     The time unit comes from ``time_unit``, else from the header (``t_s``, ``t_ms``, ``t_us``, ``t_ns``),
     else from absolute UTC times (``absolute_time_unit``); relative times without a unit are refused.
+    The yaw (counter-clockwise from +x) is in radians, or in degrees when the header names the column
+    ``yaw_deg`` (``yaw_rad`` states radians). A plain ``yaw`` column, or a file without a header, whose values
+    exceed 2 pi in magnitude is refused (almost surely degrees: name the column ``yaw_deg``).
 
     Raises:
-        PoseFileError: malformed rows, or a time unit that cannot be told (the message says what to pass).
+        PoseFileError: malformed rows, an unknown yaw column name, a plain yaw beyond 2 pi, a position beyond
+        ``MAX_ABS_COORDINATE_M``, or a time unit that cannot be told (the message says what to pass).
     """
     path = Path(path)
     if not path.is_file():
@@ -315,13 +344,30 @@ def read_txyyaw_csv(path: str | Path, time_unit: str | None = None) -> PoseSeque
         first = next(csv.reader(fh), [""])
     head = first[0].strip().lower() if first else ""
     header_unit = TXYYAW_TIME_HEADERS.get(head)
-    _, rows = _read_rows(path, 4, first[0].strip() if head in TXYYAW_TIME_HEADERS else None)
+    header, rows = _read_rows(path, 4, first[0].strip() if head in TXYYAW_TIME_HEADERS else None)
     if time_unit is not None and header_unit is not None and _check_unit(time_unit) != header_unit:
         raise PoseFileError(f"{path}:1: header says {first[0].strip()!r} but the time unit given is {time_unit!r}")
+    yaw_header = header[3] if header is not None and len(header) > 3 else None
+    yaw_name = yaw_header.lower() if yaw_header is not None else None
+    if yaw_name is not None and yaw_name not in TXYYAW_YAW_HEADERS:
+        raise PoseFileError(f"{path}:1: the 4th column is named {yaw_header!r}; name it yaw_deg (degrees), "
+                            f"yaw_rad or yaw (radians)")
     t_raw = _parse_time_column(path, rows, 0)
     vals = _parse_floats(path, rows, [1, 2, 3])
+    _check_coordinates(path, rows, vals[:, 0:2])
+    yaw = vals[:, 2]
+    if yaw_name == "yaw_deg":
+        yaw = np.radians(yaw)
+    elif yaw_name in (None, "yaw"):
+        beyond = np.abs(yaw) > _MAX_PLAIN_YAW_RAD
+        if np.any(beyond):
+            i = int(np.argmax(beyond))
+            raise PoseFileError(
+                f"{path}:{rows[i][0]}: yaw {yaw[i]:g} is beyond 2 pi, but a plain yaw column (or one without a "
+                f"header) is read as radians; these look like degrees: name the column yaw_deg in a header line "
+                f"(e.g. t_us,x,y,yaw_deg), or yaw_rad if they really are radians")
     t_us = gps_time_to_us(t_raw, time_unit or header_unit, f"{path}: column t")
-    return PoseSequence(t_us, vals[:, 0:2], vals[:, 2])
+    return PoseSequence(t_us, vals[:, 0:2], yaw)
 
 
 def write_txyyaw_csv(poses: PoseSequence, path: str | Path) -> Path:
@@ -346,13 +392,17 @@ def read_poses(path: str | Path, time_unit: str | None = None) -> PoseSequence:
     path = Path(path)
     if not path.is_file():
         raise PoseFileError(f"{path}: no such pose file")
-    with path.open() as fh:
-        first = fh.readline().strip()
-    head = first.split(",")[0].strip().lower()
-    if head == "gpstime":
-        return read_boreas_radar_poses(path, time_unit)
-    if head in TXYYAW_TIME_HEADERS or len(first.split(",")) == 4:
-        return read_txyyaw_csv(path, time_unit)
-    if len(first.split(",")) >= 13:
-        return read_mulran_global_pose(path, time_unit)
+    try:
+        with path.open() as fh:
+            first = fh.readline().strip()
+        head = first.split(",")[0].strip().lower()
+        if head == "gpstime":
+            return read_boreas_radar_poses(path, time_unit)
+        if head in TXYYAW_TIME_HEADERS or len(first.split(",")) == 4:
+            return read_txyyaw_csv(path, time_unit)
+        if len(first.split(",")) >= 13:
+            return read_mulran_global_pose(path, time_unit)
+    except UnicodeDecodeError:
+        raise PoseFileError(f"{path}: not a text pose file (binary data); expected a Boreas, MulRan or "
+                            "t,x,y,yaw CSV") from None
     raise PoseFileError(f"{path}:1: unrecognised pose file format (expected Boreas, MulRan or t,x,y,yaw CSV)")

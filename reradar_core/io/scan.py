@@ -26,7 +26,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
-import cv2
 import numpy as np
 
 from reradar_core.errors import ScanFormatError
@@ -52,6 +51,10 @@ __all__ = [
     "scan_header",
     "LOSSY_FORMATS",
     "check_navtech_layout",
+    "check_polar_shape",
+    "has_navtech_metadata",
+    "MIN_SCAN_SIDE",
+    "MAX_SCAN_SIDE",
 ]
 
 #: Metadata columns in front of the range bins in a Navtech PNG row.
@@ -147,16 +150,78 @@ class RadarScan:
         return cls(power, azimuths, timestamps, p.range_resolution_m, p.range_offset_m, preset=p.name)
 
 
-def infer_preset(num_range_bins: int) -> RadarPreset:
-    """Guess the preset from the bin count (3,768 -> oxford, 3,360 -> boreas); others -> ScanFormatError."""
-    for p in PRESETS.values():
-        if p.num_range_bins == num_range_bins:
-            return p
+def infer_preset(num_range_bins: int, source: str = "scan") -> RadarPreset:
+    """The preset of a scan with ``num_range_bins`` range bins, when the count names one range geometry: 3,768 ->
+    oxford (OORD has the same geometry). 3,360 bins fit boreas, boreas-2021 and mulran, whose bins differ in size
+    and offset: that count is ambiguous and refused, as is a count no preset has.
+
+    Raises:
+        ScanFormatError: no preset, or presets of different geometry, have that bin count; the message asks
+            for the preset (``--preset``).
+    """
+    fits = [p for p in PRESETS.values() if p.num_range_bins == num_range_bins]
+    if fits and all(_same_geometry(p, fits[0]) for p in fits):
+        return fits[0]
+    if fits:
+        raise ScanFormatError(
+            f"{source}: {num_range_bins} range bins fit several radar presets with different range geometry "
+            f"({', '.join(f'{p.name} {p.range_resolution_m} m/bin' for p in fits)}); pass the preset the scan "
+            "was recorded with (--preset)")
     raise ScanFormatError(
-        f"cannot infer the radar preset from {num_range_bins} range bins; pass the preset explicitly "
+        f"{source}: cannot infer the radar preset from {num_range_bins} range bins; pass the preset explicitly "
         f"(known: {sorted(PRESETS)}), or convert scans of another layout or resolution with "
         f"`reradar import-scans`"
     )
+
+
+def _same_geometry(a: RadarPreset, b: RadarPreset) -> bool:
+    return (a.range_resolution_m, a.range_offset_m, a.num_range_bins, a.num_azimuths, a.sweep_period_s,
+            a.landmark_min_range_bins) == (b.range_resolution_m, b.range_offset_m, b.num_range_bins,
+                                           b.num_azimuths, b.sweep_period_s, b.landmark_min_range_bins)
+
+
+def _upload_preset(num_range_bins: int, map_preset: str | RadarPreset | None = None) -> RadarPreset:
+    """The preset the service gives an uploaded Navtech scan sent without one: the target map's preset
+    (``map_preset``) when it has that bin count, else the first preset with that bin count (boreas for 3,360
+    bins, although mulran and boreas-2021 have as many). Kept for the HTTP API, whose requests may omit
+    ``preset``; files read here use ``infer_preset``, which refuses the ambiguous counts."""
+    if map_preset is not None and get_preset(map_preset).num_range_bins == num_range_bins:
+        return get_preset(map_preset)
+    for p in PRESETS.values():
+        if p.num_range_bins == num_range_bins:
+            return p
+    return infer_preset(num_range_bins, "upload")
+
+
+#: Accepted polar scan sizes (azimuths and range bins): anything smaller is not a radar sweep; larger ones
+#: would make one request monopolise the CPU.
+MIN_SCAN_SIDE = 64
+MAX_SCAN_SIDE = 8192
+
+
+def check_polar_shape(num_azimuths: int, num_range_bins: int, preset: RadarPreset, source: str = "scan") -> None:
+    """Refuse a polar (azimuths x range bins) array whose layout contradicts ``preset``: a side outside
+    ``MIN_SCAN_SIDE..MAX_SCAN_SIDE``, more azimuth rows than range bins (a transposed array), or more range bins
+    than the preset has (a scan cropped in range is accepted).
+
+    Raises:
+        ScanFormatError: what is wrong and what to do.
+    """
+    a, r = int(num_azimuths), int(num_range_bins)
+    if not (MIN_SCAN_SIDE <= a <= MAX_SCAN_SIDE and MIN_SCAN_SIDE <= r <= MAX_SCAN_SIDE):
+        raise ScanFormatError(
+            f"{source}: scan has {a} azimuths x {r} range bins; expected a full sweep with {MIN_SCAN_SIDE}.."
+            f"{MAX_SCAN_SIDE} of each (e.g. 400 x 3360 Boreas, 400 x 3768 Oxford)")
+    if a > r:
+        raise ScanFormatError(
+            f"{source}: scan has {a} rows (azimuths) x {r} columns (range bins): more azimuths than range bins, "
+            "so the array looks transposed; a polar array is (azimuths, range bins), e.g. 400 x 3360; "
+            "convert it with `reradar import-scans --transposed`")
+    if r > preset.num_range_bins:
+        raise ScanFormatError(
+            f"{source}: {r} range bins, but preset {preset.name!r} has {preset.num_range_bins} bins of "
+            f"{preset.range_resolution_m} m; pass the preset this scan was recorded with, or convert scans of "
+            "another layout or resolution with `reradar import-scans`")
 
 
 # ---- headers: sizes before decoding --------------------------------------------------------------------------
@@ -260,14 +325,21 @@ def read_npy_header(data: bytes, size: int | None = None) -> ScanHeader:
     fp = io.BytesIO(data)
     try:
         version = npy_format.read_magic(fp)
+    except (ValueError, EOFError, struct.error):
+        raise ScanFormatError("upload is not a readable .npy array (malformed .npy header)") from None
+    if version not in ((1, 0), (2, 0), (3, 0)):
+        raise ScanFormatError(f"upload is not a readable .npy array (unsupported .npy format version "
+                              f"{version[0]}.{version[1]}; numpy writes 1.0, 2.0 or 3.0)")
+    try:
         if version == (1, 0):
             shape, fortran, dtype = npy_format.read_array_header_1_0(fp)
-        elif version in ((2, 0), (3, 0)):
-            shape, fortran, dtype = npy_format.read_array_header_2_0(fp)
         else:
-            raise ValueError(f"unsupported .npy version {version}")
+            shape, fortran, dtype = npy_format.read_array_header_2_0(fp)
     except (ValueError, SyntaxError, TypeError, EOFError, struct.error) as exc:
-        raise ScanFormatError(f"upload is not a readable .npy array ({exc})") from None
+        # numpy's messages show parser internals (an AST node's address) or byte counts of the part it was given
+        short = isinstance(exc, EOFError) or str(exc).startswith("EOF")
+        what = "truncated or oversized .npy header" if short else "malformed .npy header"
+        raise ScanFormatError(f"upload is not a readable .npy array ({what})") from None
     if len(shape) != 2:
         raise ScanFormatError(f"polar array must be 2-D (azimuths x range bins), got shape {tuple(shape)}")
     if dtype.kind not in "uif" or dtype.hasobject:
@@ -301,7 +373,8 @@ def scan_header(data: bytes, size: int | None = None) -> ScanHeader:
     raise ScanFormatError(f"upload is not a Navtech PNG or .npy array ({what})")
 
 
-def _scan_from_raw(raw: np.ndarray, preset: str | RadarPreset | None, source: str) -> RadarScan:
+def _scan_from_raw(raw: np.ndarray, preset: str | RadarPreset | None, source: str,
+                   map_preset: str | RadarPreset | None = None) -> RadarScan:
     if raw.ndim != 2 or raw.dtype != np.uint8:
         raise ScanFormatError(
             f"{source}: a Navtech PNG must be 8-bit single-channel, got dtype {raw.dtype} shape {raw.shape}"
@@ -316,7 +389,10 @@ def _scan_from_raw(raw: np.ndarray, preset: str | RadarPreset | None, source: st
     encoder = meta[:, 8:10].copy().view("<u2").reshape(-1)
     valid = meta[:, 10] != 0
     num_bins = raw.shape[1] - NAVTECH_META_COLUMNS
-    p = get_preset(preset) if preset is not None else infer_preset(num_bins)
+    if preset is not None:
+        p = get_preset(preset)
+    else:
+        p = _upload_preset(num_bins, map_preset) if source == "upload" else infer_preset(num_bins, source)
     check_navtech_layout(encoder, timestamps, valid, num_bins, p, source)
     fft = raw[:, NAVTECH_META_COLUMNS:].astype(np.float32) / 255.0
     azimuths = (encoder.astype(np.float64) * _RAD_PER_TICK) % (2.0 * np.pi)
@@ -357,6 +433,25 @@ def check_navtech_layout(encoder: np.ndarray, timestamps_us: np.ndarray, valid: 
         raise ScanFormatError(
             f"{source}: {num_range_bins} range bins, but preset {preset.name!r} has {preset.num_range_bins} "
             f"bins of {preset.range_resolution_m} m; pass the preset this scan was recorded with, or {hint}")
+    _check_navtech_metadata(encoder, timestamps_us, valid, source, hint)
+
+
+def has_navtech_metadata(raw: np.ndarray) -> bool:
+    """True when the 2-D uint8 image ``raw`` already is a Navtech scan: its first ``NAVTECH_META_COLUMNS`` columns
+    hold a sweep's timestamps, encoder values and valid flags (``check_navtech_layout``'s metadata checks)."""
+    if raw.ndim != 2 or raw.dtype != np.uint8 or raw.shape[0] < 2 or raw.shape[1] <= NAVTECH_META_COLUMNS + 1:
+        return False
+    meta = np.ascontiguousarray(raw[:, :NAVTECH_META_COLUMNS])
+    try:
+        _check_navtech_metadata(meta[:, 8:10].copy().view("<u2").reshape(-1), meta[:, 0:8].copy().view("<i8").reshape(-1),
+                                meta[:, 10] != 0, "image", "")
+    except ScanFormatError:
+        return False
+    return True
+
+
+def _check_navtech_metadata(encoder: np.ndarray, timestamps_us: np.ndarray, valid: np.ndarray, source: str,
+                            hint: str) -> None:
     rows = np.flatnonzero(np.asarray(valid, dtype=bool))
     if len(rows) < 2:
         raise ScanFormatError(f"{source}: fewer than 2 azimuth rows are flagged valid (column 10); {hint}")
@@ -398,6 +493,8 @@ def read_navtech_png(path: str | Path, preset: str | RadarPreset | None = None) 
     Raises:
         ScanFormatError: unreadable file, wrong bit depth or shape (message names the file).
     """
+    import cv2
+
     path = Path(path)
     if not path.is_file():
         raise ScanFormatError(f"{path}: no such scan file")
@@ -407,20 +504,26 @@ def read_navtech_png(path: str | Path, preset: str | RadarPreset | None = None) 
     return _scan_from_raw(raw, preset, str(path))
 
 
-def decode_navtech_png_bytes(data: bytes, preset: str | RadarPreset | None = None) -> RadarScan:
+def decode_navtech_png_bytes(data: bytes, preset: str | RadarPreset | None = None,
+                             map_preset: str | RadarPreset | None = None) -> RadarScan:
     """Decode a Navtech PNG held in memory (e.g. an upload); see ``read_navtech_png``. Only PNG is decoded:
-    OpenCV would read JPEG and other lossy images too."""
+    OpenCV would read JPEG and other lossy images too. Without ``preset``, ``map_preset`` (the preset of the
+    map the scan is localized on) is used when its bin count fits (``_upload_preset``)."""
+    import cv2
+
     if data[:8] != PNG_SIGNATURE:
         raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated: no PNG signature)")
     buf = np.frombuffer(data, dtype=np.uint8)
     raw = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
     if raw is None:
         raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated)")
-    return _scan_from_raw(raw, preset, "upload")
+    return _scan_from_raw(raw, preset, "upload", map_preset)
 
 
 def encode_navtech_png_bytes(scan: RadarScan) -> bytes:
     """Encode a scan as Navtech PNG bytes (power quantised to uint8)."""
+    import cv2  # here, not at import: reading an .npy header (``reradar localize``) needs no OpenCV
+
     ok, buf = cv2.imencode(".png", _raw_from_scan(scan))
     if not ok:  # pragma: no cover - OpenCV only fails on impossible shapes
         raise ScanFormatError("could not encode scan as PNG")
@@ -435,36 +538,46 @@ def write_navtech_png(scan: RadarScan, path: str | Path) -> Path:
     return path
 
 
-def read_polar_npy(path: str | Path | None = None, preset: str | RadarPreset = "oxford",
+def read_polar_npy(path: str | Path | None = None, preset: str | RadarPreset | None = None,
                    array: np.ndarray | None = None) -> RadarScan:
     """Read a plain (A, R) polar array saved with ``np.save`` (uint8 0..255 or float in [0, 1]).
 
-    Azimuths are assumed uniform from 0; range geometry comes from ``preset``.
+    Azimuths are assumed uniform from 0; range geometry comes from ``preset``, inferred from the range-bin count
+    when None (``infer_preset``: refused when ambiguous). The shape is checked against the preset
+    (``check_polar_shape``).
     """
+    source = "upload" if path is None else str(path)
     if array is None:
         if path is None:
             raise ScanFormatError("read_polar_npy needs a path or an array")
         try:
             array = np.load(Path(path), allow_pickle=False)
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, EOFError) as exc:
             raise ScanFormatError(f"{path}: not a readable .npy array ({exc})") from exc
     if array.dtype.kind not in "uif":
-        raise ScanFormatError(f"polar array must be numeric, got dtype {array.dtype}")
+        raise ScanFormatError(f"{source}: polar array must be numeric, got dtype {array.dtype}")
+    if array.ndim != 2:
+        raise ScanFormatError(f"{source}: polar array must be 2-D (azimuths x range bins), got shape {array.shape}")
+    p = get_preset(preset) if preset is not None else infer_preset(array.shape[1], source)
+    check_polar_shape(array.shape[0], array.shape[1], p, source)
     if array.dtype != np.uint8:
         array = array.astype(np.float32)
         if array.size and np.all(np.isfinite(array)) and (array.min() < 0 or array.max() > 1):
-            raise ScanFormatError("float polar arrays must hold power in [0, 1]")
-    return RadarScan.from_power(array, preset)
+            raise ScanFormatError(f"{source}: a non-uint8 polar array must hold power as fractions of full scale "
+                                  "in [0, 1] (uint8 arrays hold 0..255); rescale it first (e.g. divide 16-bit data "
+                                  "by 65535)")
+    return RadarScan.from_power(array, p)
 
 
 def load_scan(path: str | Path, preset: str | RadarPreset | None = None) -> RadarScan:
-    """Read a scan by suffix: ``.png`` Navtech PNG, ``.npy`` polar array."""
+    """Read a scan by suffix: ``.png`` Navtech PNG, ``.npy`` polar array; the preset is inferred from the range-bin
+    count when None and refused when that count is ambiguous (``infer_preset``)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".png":
         return read_navtech_png(path, preset)
     if suffix == ".npy":
-        return read_polar_npy(path, preset or "oxford")
+        return read_polar_npy(path, preset)
     raise ScanFormatError(f"{path}: unsupported scan format {suffix!r} (use .png or .npy)")
 
 
@@ -476,7 +589,8 @@ def _npy_from_bytes(data: bytes) -> np.ndarray:
         raise ScanFormatError(f"upload is not a readable .npy array ({exc})") from exc
 
 
-def decode_navtech_npy_bytes(data: bytes, preset: str | RadarPreset | None = None) -> RadarScan:
+def decode_navtech_npy_bytes(data: bytes, preset: str | RadarPreset | None = None,
+                             map_preset: str | RadarPreset | None = None) -> RadarScan:
     """Decode an .npy array holding a Navtech PNG's pixels (uint8 (A, 11 + R): the metadata columns, then the
     range bins) - the same scan as the PNG, with the same azimuths and timestamps, without PNG's inflate
     (~5-10 ms per sweep) for 2.7x the bytes (``NpyLayout`` ``navtech``)."""
@@ -484,7 +598,7 @@ def decode_navtech_npy_bytes(data: bytes, preset: str | RadarPreset | None = Non
     if array.dtype != np.uint8 or array.ndim != 2:
         raise ScanFormatError(f"a Navtech .npy (scan_layout navtech) must be a 2-D uint8 array of the PNG's pixels, "
                               f"got dtype {array.dtype} shape {array.shape}")
-    return _scan_from_raw(array, preset, "upload")
+    return _scan_from_raw(array, preset, "upload", map_preset)
 
 
 #: What an uploaded .npy holds: ``polar`` = (A, R) power, uniform azimuths, geometry from the preset;
@@ -493,13 +607,17 @@ NpyLayout = Literal["polar", "navtech"]
 
 
 def load_scan_bytes(data: bytes, filename: str = "scan.png", preset: str | RadarPreset | None = None,
-                    npy_layout: NpyLayout = "polar") -> RadarScan:
-    """Decode an uploaded scan by its filename suffix (``.png`` or ``.npy``; an .npy as ``npy_layout``)."""
+                    npy_layout: NpyLayout = "polar", map_preset: str | RadarPreset | None = None) -> RadarScan:
+    """Decode an uploaded scan by its filename suffix (``.png`` or ``.npy``; an .npy as ``npy_layout``).
+
+    Without ``preset`` the geometry comes from ``map_preset`` (the preset of the map the scan is localized on)
+    where the scan fits it: always for a polar .npy (which carries no geometry; oxford without a map), and for
+    a Navtech PNG / .npy whose bin count is the map preset's (else the first preset with that count)."""
     suffix = Path(filename).suffix.lower()
     if suffix == ".npy":
         if npy_layout == "navtech":
-            return decode_navtech_npy_bytes(data, preset)
-        return read_polar_npy(array=_npy_from_bytes(data), preset=preset or "oxford")
+            return decode_navtech_npy_bytes(data, preset, map_preset)
+        return read_polar_npy(array=_npy_from_bytes(data), preset=preset or map_preset or "oxford")
     if suffix in (".png", ""):
-        return decode_navtech_png_bytes(data, preset)
+        return decode_navtech_png_bytes(data, preset, map_preset)
     raise ScanFormatError(f"unsupported scan format {suffix!r} (upload a Navtech .png or a polar .npy)")

@@ -11,7 +11,12 @@ target-adapted model (``our-3-<domain>``) and the aligned-ratio floor alone at i
 thresholds (``localization_success``: translation error < R of the suite, heading error < 10 deg), else 0.
 Queries are run twice where useful: on the full map, and on a map of the first half of the database keyframes
 for the queries that have no keyframe of that half within R - no-match queries, whose every pose is a wrong
-answer (labels 0), as a user sees on an unmapped road.
+answer (labels 0), as a user sees on an unmapped road. The maps hold every scan of the drive as a keyframe
+(3.8-6.7 m apart); ``reradar fit-confidence --map-spacings-m 0,12`` adds maps with keyframes 12 m apart (as
+``reradar build-map --min-spacing-m 12`` keeps them), each density a group of its own for the bar's wrong-answer
+rule (``map_group``). Not the default: fitted on both densities, every agreement cue tried gave more wrong
+answers on the held-out tails of both than the fit on the drive's maps alone (docs/MODEL.md, "Sparser maps";
+``benchmarks/confidence_map_density.py``).
 
 Held-out split: the last ``holdout`` (15 %) of each query sequence - for the training traversals the tail the
 descriptor was validated on and never trained on - gives the reliability numbers (ECE, diagram, wrong-answer
@@ -45,8 +50,10 @@ from reradar_core.localization.confidence import (
     fit_confidence_model,
     reliability_bins,
 )
+from reradar_core.localization.keyframes import select_keyframes
 
-__all__ = ["SPLIT_MODELS", "FitData", "SplitRun", "collect_split", "fit_from_data", "plot_reliability", "split_models",
+__all__ = ["SPLIT_MODELS", "FitData", "SplitRun", "collect_split", "fit_from_data", "map_group", "plot_reliability",
+           "split_models",
            "split_runs"]
 
 logger = logging.getLogger(__name__)
@@ -169,7 +176,7 @@ class SplitRun:
 
 
 def split_runs(split: str, method: Any, config: Any, query_step: int = 1,
-               progress: bool = True, map_step: int = 1) -> tuple[float, Iterator[SplitRun]]:
+               progress: bool = True, map_spacing_m: float = 0.0) -> tuple[float, Iterator[SplitRun]]:
     """The pairing's localizations of one split, in a fixed order: for each session (training traversals, then
     ``confidence`` sessions), every query on the full map, then the no-match queries on the half map.
 
@@ -179,8 +186,8 @@ def split_runs(split: str, method: Any, config: Any, query_step: int = 1,
         config: the ``LocalizationConfig`` the localizers are built with.
         query_step: use every ``query_step``-th query scan (1 = all).
         progress: progress bars.
-        map_step: keep every ``map_step``-th keyframe of the database drive in both maps (1 = all; a sparser
-            map, as ``reradar build-map --min-spacing-m`` makes one).
+        map_spacing_m: keep a database scan as a keyframe of both maps only this far (metres) from the last
+            kept one (``select_keyframes``, as ``reradar build-map --min-spacing-m``); 0 = every scan.
 
     Returns:
         The suite's radius (metres) and the runs (a generator: features are computed session by session).
@@ -204,7 +211,8 @@ def split_runs(split: str, method: Any, config: Any, query_step: int = 1,
         db_seq = bench.load(bench.database[0])
         db = prepare_sequence([method], db_seq, bc)[method.name]
         db_poses = db_seq.mid_sweep_poses()  # keyframe poses at mid-sweep, as in a map (docs/CONVENTIONS.md)
-        records, db_poses = db.records[::map_step], db_poses[::map_step]
+        keep = select_keyframes(db_poses, map_spacing_m)
+        records, db_poses = [db.records[int(i)] for i in keep], db_poses[keep]
         half = len(records) // 2
         maps = {"full": (_localizer(method, records, db_poses, config), db_poses),
                 "half": (_localizer(method, records[:half], db_poses[:half], config), db_poses[:half])}
@@ -227,7 +235,8 @@ def split_runs(split: str, method: Any, config: Any, query_step: int = 1,
 
 
 def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progress: bool = True,
-                  min_inlier_ratio: float = PROBE_FLOOR, model: str | None = None) -> FitData:
+                  min_inlier_ratio: float = PROBE_FLOOR, model: str | None = None,
+                  map_spacing_m: float = 0.0) -> FitData:
     """Localize the split's sessions on its domain's map and label the answers (module docstring).
 
     Both kinds of session run: the split's training traversals (the model trained on all but their tails) and
@@ -241,6 +250,8 @@ def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progre
         min_inlier_ratio: the aligned-landmark floor of the runs; the lowest floor the fit may choose
             (``PROBE_FLOOR``): a higher floor is applied afterwards through the ``aligned_ratio`` cue.
         model: the model whose answers are judged (default: the split's ``SPLIT_MODELS`` entry).
+        map_spacing_m: the map's keyframe spacing (``split_runs``); the rows of a sparser map than the drive's
+            are labelled ``SPLIT@Nm`` (``map_group``), so the bar holds on them on their own.
     """
     from reradar_core.baselines.ours import Ours
     from reradar_core.localization.pipeline import LocalizationConfig
@@ -248,7 +259,7 @@ def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progre
     # the floor alone, at its lowest candidate value: every answer is labelled
     config = replace(LocalizationConfig(), min_confidence=0.0, min_inlier_ratio=min_inlier_ratio)
     method = Ours(model or SPLIT_MODELS[split], localization=config)
-    radius, runs = split_runs(split, method, config, query_step, progress)
+    radius, runs = split_runs(split, method, config, query_step, progress, map_spacing_m)
     rows: list[tuple[np.ndarray, bool, bool, bool, bool, bool, bool]] = []
     for run in runs:
         res = run.localizer.localize(run.features, config)
@@ -264,7 +275,13 @@ def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progre
     m = len(rows)
     cols = list(zip(*rows, strict=True)) if rows else [()] * 7
     return FitData(np.array(cols[0], np.float64).reshape(m, len(CUE_NAMES)),
-                   *(np.array(c, bool) for c in cols[1:6]), np.array([split] * m), np.array(cols[6], bool))
+                   *(np.array(c, bool) for c in cols[1:6]), np.array([map_group(split, map_spacing_m)] * m),
+                   np.array(cols[6], bool))
+
+
+def map_group(split: str, map_spacing_m: float) -> str:
+    """The ``FitData.split`` label of a split's runs on its map with keyframes ``map_spacing_m`` apart."""
+    return split if map_spacing_m <= 0 else f"{split}@{map_spacing_m:g}m"
 
 
 def _rates(p: np.ndarray, d: FitData, eligible: np.ndarray, mask: np.ndarray, bar: float) -> dict[str, float]:

@@ -21,7 +21,23 @@ from reradar_core.features import ScanFeatures
 from reradar_core.localization.screening import ScreenKeyframe, screen_keyframe
 from reradar_core.matching import AlignmentConfig, LandmarkGrid, build_landmark_grid
 
-__all__ = ["KeyframeSource", "InMemoryKeyframes", "KeyframeCache", "CachedKeyframe"]
+__all__ = ["KeyframeSource", "InMemoryKeyframes", "KeyframeCache", "CachedKeyframe", "select_keyframes"]
+
+
+def select_keyframes(poses: np.ndarray, min_spacing_m: float) -> np.ndarray:
+    """Indices of scans kept as keyframes: the first, then each scan >= ``min_spacing_m`` (metres) from the
+    last kept one. ``min_spacing_m <= 0`` keeps every scan. ``poses`` (N, 3) (x m, y m, yaw rad).
+
+    ``reradar build-map --min-spacing-m`` (``maps.build``) and the confidence fit's sparser maps
+    (``confidence_fit.split_runs``) both use it."""
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    if min_spacing_m <= 0 or len(poses) == 0:
+        return np.arange(len(poses))
+    keep = [0]
+    for i in range(1, len(poses)):
+        if np.hypot(*(poses[i, :2] - poses[keep[-1], :2])) >= min_spacing_m:
+            keep.append(i)
+    return np.asarray(keep, dtype=np.int64)
 
 
 @runtime_checkable

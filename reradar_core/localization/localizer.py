@@ -139,7 +139,9 @@ class Localizer:
     def track(self, features: ScanFeatures, prior: PosePrior,
               config: LocalizationConfig | None = None) -> LocalizationResult:
         """Tracking mode (``localization.tracking``): register the scan to the keyframes nearest to ``prior``;
-        when no answer passes the aligned-landmark bar and the prior's gate, fall back to ``localize``.
+        when no answer passes the aligned-landmark bar and the prior's gate, fall back to ``localize``. A prior
+        looser than the registration reaches (``TrackingConfig.covers``) is not tracked from: the scan is
+        localized globally (``mode="global"``, ``tracking_lost`` False).
 
         Returns:
             ``mode="tracking"`` when tracking succeeded, else the global answer with ``tracking_lost=True``;
@@ -147,6 +149,8 @@ class Localizer:
         """
         config = config or self.config
         tcfg = config.tracking
+        if not tcfg.covers(prior):
+            return self.localize(features, config)
         t0 = time.perf_counter()
         ids = tracking_candidates(self.keyframes.poses, prior, tcfg)
         radii = tcfg.radii(prior)

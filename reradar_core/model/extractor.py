@@ -157,14 +157,21 @@ class DescriptorExtractor:
             jpath = path.with_suffix(".json")
             if not jpath.is_file():
                 raise ConfigError(f"model metadata {jpath} is missing next to {path}")
-            meta = json.loads(jpath.read_text())
+            try:
+                meta = json.loads(jpath.read_text())
+            except (OSError, ValueError) as exc:
+                raise ConfigError(f"model metadata {jpath.name} is not readable JSON ({exc})") from None
         try:
             config = ModelConfig.from_dict(meta["config"])
         except (KeyError, TypeError) as exc:
             raise ConfigError(f"model metadata for {path} has no valid 'config': {exc}") from exc
         net = DescriptorNet(config)
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-        state = {k: v.float() if v.is_floating_point() else v for k, v in blob["state_dict"].items()}
+        try:
+            blob = torch.load(path, map_location="cpu", weights_only=True)
+            state = {k: v.float() if v.is_floating_point() else v for k, v in blob["state_dict"].items()}
+        except Exception as exc:  # noqa: BLE001 - torch raises pickle, zip, EOF and runtime errors on a bad file
+            raise ConfigError(f"model weights file {path.name} is not a readable ReRadar weights file (corrupt or "
+                              f"truncated .pt: {type(exc).__name__}); re-export or re-train it") from None
         try:
             net.load_state_dict(state)
         except RuntimeError as exc:

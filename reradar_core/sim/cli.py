@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import typer
@@ -17,7 +18,17 @@ def _fail(exc: Exception) -> typer.Exit:
     return typer.Exit(2)
 
 
+def _finite(value: float) -> float:
+    if not math.isfinite(value):
+        raise typer.BadParameter(f"must be a finite number of metres, got {value}")
+    return value
+
+
 def register(app: typer.Typer) -> None:
+    from reradar_core.io.presets import PRESETS
+    from reradar_core.sim.traversal import CONDITIONS
+    from reradar_core.sim.world import PROFILES
+
     @app.command("sim")
     def sim(
         trajectory: Path = typer.Option(..., help="Pose file: Boreas radar_poses.csv, MulRan global_pose.csv or "
@@ -26,24 +37,33 @@ def register(app: typer.Typer) -> None:
         time_unit: str = typer.Option(None, "--time-unit", help="Unit of the pose file's timestamps: s, ms, us "
                                       "or ns. Needed for relative times (e.g. a t,x,y,yaw CSV starting at 0); "
                                       "absolute UTC times and MulRan's ns need none. Never guessed."),
-        out: Path = typer.Option(..., help="Output sequence folder."),
-        preset: str = typer.Option("boreas", help="Radar preset: boreas, boreas-2021, oxford, oord, mulran."),
+        out: Path = typer.Option(..., help="Output sequence folder (new or empty; or an earlier render, see "
+                                 "above)."),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Replace an earlier render with other parameters "
+                                       "in --out (only the files the simulator wrote are removed)."),
+        preset: str = typer.Option("boreas", help=f"Radar preset: {', '.join(PRESETS)}."),
         layout: str = typer.Option(None, help="Dataset layout boreas/oxford/mulran (default: the preset's)."),
-        profile: str = typer.Option("urban", help="World profile: urban or offroad."),
-        condition: str = typer.Option("clear", help="Weather: clear, rain, snow_cover, falling_snow."),
+        profile: str = typer.Option("urban", help=f"World profile: {', '.join(PROFILES)}."),
+        condition: str = typer.Option("clear", help=f"Weather: {', '.join(CONDITIONS)}."),
         seed: int = typer.Option(0, help="World seed (same seed + same roads = same world)."),
         traversal_seed: int = typer.Option(None, help="Traversal seed (traffic, parked cars, noise); "
                                                       "default seed + 1."),
         road: list[Path] = typer.Option(None, help="Extra pose files whose paths are roads of the world "
                                                    "(give the other traversals' files to share one world)."),
-        lateral: float = typer.Option(0.0, help="Drive this many metres left of the trajectory."),
-        every: int = typer.Option(1, help="Keep every K-th scan."),
-        limit: int = typer.Option(None, help="Render at most N scans."),
+        lateral: float = typer.Option(0.0, callback=_finite, help="Drive this many metres left of the trajectory."),
+        every: int = typer.Option(1, min=1, help="Keep every K-th scan."),
+        limit: int = typer.Option(None, min=1, help="Render at most N scans."),
         sweep_from_poses: bool = typer.Option(None, "--sweep-from-poses/--tile-sweeps",
                                               help="Scan times = the pose times (4 Hz radar pose files) or "
                                                    "sweeps tiling the time span at 4 Hz; default: by pose rate."),
     ) -> None:
-        """Render a simulated radar sequence along a trajectory, in a real dataset layout."""
+        """Render a simulated radar sequence along a trajectory, in a real dataset layout.
+
+        An existing --out folder is resumed (scans already rendered are kept) only when it holds a render of
+        exactly these parameters (trajectory, lateral offset, scan selection, preset, layout, world, traversal,
+        weather; recorded in the folder); a render of other parameters is refused unless --overwrite. A folder
+        holding anything else is refused.
+        """
         from reradar_core.io.poses import TIME_UNITS
         from reradar_core.sim.sensor import SensorConfig
         from reradar_core.sim.trajectories import (
@@ -70,7 +90,8 @@ def register(app: typer.Typer) -> None:
             if limit is not None:
                 idx = idx[:limit]
             render_sequence(out, trav, traj, all_t[idx], idx, preset, layout, SensorConfig(), True,
-                            meta={"trajectory": str(trajectory), "trajectory_time_unit": time_unit or "from file"})
+                            meta={"trajectory": str(trajectory), "trajectory_time_unit": time_unit or "from file",
+                                  "lateral_m": lateral}, replace=overwrite)
         except ReRadarError as exc:
             raise _fail(exc) from exc
         span = (traj.timestamps_us[-1] - traj.timestamps_us[0]) / 1e6
@@ -82,9 +103,10 @@ def register(app: typer.Typer) -> None:
         name: str = typer.Argument(..., help="Suite: smoke, boreas-sim, loop-sim, loop-sim-hard, offroad-sim, "
                                              "offroad-sim-hard, calib-oxford, train-source, train-target-boreas, "
                                              "train-target-loop, train-target-loop-open, train-target-offroad."),
-        root: Path = typer.Option(None, help="Output folder (default: the cache, sim/<name>)."),
-        every: int = typer.Option(None, help="Override the suite's frame step."),
-        limit: int = typer.Option(None, help="Cap scans per sequence."),
+        root: Path = typer.Option(None, help="Output folder (default: sim/v<simulator version>/<name> in the "
+                                  "cache, RERADAR_CACHE_DIR; with --every/--limit a sub-folder naming them)."),
+        every: int = typer.Option(None, min=1, help="Override the suite's frame step."),
+        limit: int = typer.Option(None, min=1, help="Cap scans per sequence."),
         trajectory_dir: Path = typer.Option(None, help="Folder with the real Boreas trajectories."),
     ) -> None:
         """Render a named benchmark suite or training split (skips sequences already complete)."""
@@ -106,7 +128,7 @@ def register(app: typer.Typer) -> None:
     def sim_report(
         real: Path = typer.Option(..., help="Folder of real scans (a sequence folder or *.png)."),
         sim: list[Path] = typer.Option(..., help="Simulated sequence folder(s); repeat for several conditions."),
-        limit: int = typer.Option(12, help="Scans per folder."),
+        limit: int = typer.Option(12, min=1, help="Scans per folder."),
         images: Path = typer.Option(None, help="Write preview PNGs (polar + Cartesian) with this prefix."),
     ) -> None:
         """Print real vs simulated scan statistics side by side (Markdown table)."""

@@ -563,7 +563,7 @@ def build_suite(name: str, root: str | Path | None = None, progress: bool = True
             times, idx = _sequence_times(traj, seq, use_pose_times=seq.route.kind != "loop")
             render_sequence(out, traversal, traj, times, idx, suite.preset, suite.layout, config, progress,
                             meta={"suite": name, "sequence": seq.name, "role": seq.role},
-                            desc=f"{name}/{seq.name}")
+                            desc=f"{name}/{seq.name}", replace=True)  # the suite's own folder: re-rendered
         if seq.role == "database":
             data.database.append(out)
         elif seq.role == "query":

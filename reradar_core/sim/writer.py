@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
+import re
 import shutil
 import time
 from pathlib import Path
@@ -12,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from reradar_core.errors import ConfigError
+from reradar_core.errors import ConfigError, ReRadarError
 from reradar_core.io.datasets import (
     LAYOUTS,
     SIM_META_FILE,
@@ -27,7 +29,7 @@ from reradar_core.io.scan import encode_navtech_png_bytes
 from reradar_core.sim.sensor import SensorConfig, render_scan, scan_seed
 from reradar_core.sim.traversal import Traversal
 
-__all__ = ["COMPLETE_MARKER", "SIM_VERSION", "carry_over", "pose_track", "render_sequence", "is_complete"]
+__all__ = ["COMPLETE_MARKER", "SIM_VERSION", "carry_over", "pose_track", "render_key", "render_sequence", "is_complete"]
 
 logger = logging.getLogger(__name__)
 
@@ -84,18 +86,86 @@ def carry_over(src: Path, dst: Path, old_version: str) -> bool:
     return True
 
 
-def _clear_stale(out: Path, layout: str) -> None:
-    """Remove scans a different simulator version left in ``out`` (only the layout's scan PNGs)."""
+#: What the simulator writes into a sequence folder, in any layout (relative paths): the metadata, the pose files and
+#: (``_SCAN_DIRS``) the scans. Nothing else is ever removed from an output folder.
+_WRITTEN_FILES = frozenset({SIM_META_FILE, COMPLETE_MARKER, _STARTED, "applanix/radar_poses.csv",
+                            "gt/radar_odometry.csv", "global_pose.csv"})
+_SCAN_DIRS = ("radar", "sensor_data/radar/polar")
+_SCAN_NAME = re.compile(r"\d+\.png")
+_TEMP_NAME = re.compile(r"\..+\.\d+\.tmp")  # ``_write_atomic``'s, left by an interrupted render
+
+
+def _written_by_simulator(out: Path, f: Path) -> bool:
+    rel = f.relative_to(out)
+    parent = rel.parent.as_posix()
+    return (rel.as_posix() in _WRITTEN_FILES or (parent in _SCAN_DIRS and _SCAN_NAME.fullmatch(rel.name) is not None)
+            or (parent in (".", "applanix", "gt", *_SCAN_DIRS) and _TEMP_NAME.fullmatch(rel.name) is not None))
+
+
+def render_key(traversal: Traversal, trajectory: PoseSequence, times_us: np.ndarray, scan_indices: np.ndarray,
+               preset: str, layout: str, config: SensorConfig) -> str:
+    """A digest of everything that decides a render's scans: simulator version, preset and layout, the world (seed,
+    profile, roads), the traversal (seed, condition, traffic), the driven trajectory (lateral offset included), the
+    selected scan times and their indices, and the sensor model. Equal keys render byte-identical folders."""
+    world = traversal.world
+    h = hashlib.sha256()
+    for part in (SIM_VERSION, preset, layout, world.seed, repr(world.profile), world.tile_m, traversal.seed,
+                 repr(traversal.condition), traversal.EGO_CLEARANCE_M, traversal.CAR_TRANSMISSION, repr(config)):
+        h.update(f"{part}\n".encode())
+    for arr in (world.road.points, traversal._veh_idx0, traversal._veh_speed, traversal._veh_lane, traversal._veh_size,
+                trajectory.timestamps_us, trajectory.xy, trajectory.yaw, times_us, scan_indices):
+        a = np.ascontiguousarray(arr)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()[:32]
+
+
+def _recorded_key(out: Path) -> str | None:
+    """The render key an earlier render of this simulator version recorded in ``out`` (None: none recorded)."""
     started = out / _STARTED
-    if started.is_file() and started.read_text().strip() == SIM_VERSION:
-        return
-    scan_dir = scan_path(out, layout, 0).parent
-    stale = list(scan_dir.glob("*.png")) if scan_dir.is_dir() else []
-    if stale:
-        logger.info("%s: removing %d scans rendered by another simulator version", out, len(stale))
-    for f in stale:
-        f.unlink()
-    started.write_text(SIM_VERSION + "\n")
+    words = started.read_text().split() if started.is_file() else []
+    return words[1] if len(words) == 2 and words[0] == SIM_VERSION else None
+
+
+def _differences(out: Path, info: dict) -> str:
+    """The recorded parameters of ``out``'s earlier render that differ from ``info``, for a message."""
+    try:
+        old = read_sequence_meta(out)
+    except ReRadarError:
+        old = {}
+    diff = [f"{k} {old[k]} -> {info[k]}" for k in ("sim_version", "preset", "layout", "profile", "world_seed",
+                                                   "traversal_seed", "condition", "num_scans")
+            if k in old and old[k] != info[k]]
+    return ", ".join(diff) or "its trajectory, lateral offset, scan selection or sensor model differ"
+
+
+def _prepare_folder(out: Path, key: str, info: dict, replace: bool) -> None:
+    """Make ``out`` ready for the render ``key``: resume a render of the same key; clear a render of other
+    parameters (``replace``) or refuse it; refuse a folder that holds anything but a simulator render."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out} is a file, not a folder; give a new or empty folder as the output")
+    out.mkdir(parents=True, exist_ok=True)
+    files = [f for f in out.rglob("*") if not f.is_dir()]
+    if files:
+        foreign = [f.relative_to(out).as_posix() for f in files if not _written_by_simulator(out, f)]
+        is_render = (out / _STARTED).is_file() or (out / SIM_META_FILE).is_file()
+        if foreign or not is_render:
+            shown = foreign or [f.relative_to(out).as_posix() for f in files]
+            raise ConfigError(
+                f"{out} holds files that are not a simulator render ({', '.join(sorted(shown)[:3])}"
+                f"{', ...' if len(shown) > 3 else ''}); give a new or empty folder as the output")
+        if _recorded_key(out) != key:
+            if not replace:
+                raise ConfigError(f"{out} already holds a simulator render with other parameters ("
+                                  f"{_differences(out, info)}); pass --overwrite to replace it, or give another "
+                                  "output folder")
+            logger.info("%s: removing %d files of an earlier render with other parameters", out, len(files))
+            for f in files:
+                f.unlink()
+            for d in ("radar", "sensor_data/radar/polar", "sensor_data/radar", "sensor_data", "applanix", "gt"):
+                if (out / d).is_dir() and not any((out / d).iterdir()):
+                    (out / d).rmdir()
+    _write_atomic(out / _STARTED, f"{SIM_VERSION} {key}\n".encode())
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
@@ -129,7 +199,7 @@ def pose_track(trajectory: PoseSequence, times_us: np.ndarray, sweep_period_s: f
 def render_sequence(out_dir: str | Path, traversal: Traversal, trajectory: PoseSequence, times_us: np.ndarray,
                     scan_indices: np.ndarray | None = None, preset: str = "boreas", layout: str | None = None,
                     config: SensorConfig = SensorConfig(), progress: bool = True, meta: dict | None = None,
-                    desc: str | None = None) -> Path:
+                    desc: str | None = None, replace: bool = False) -> Path:
     """Render one scan per start time in ``times_us`` into ``out_dir`` and write the layout's pose file.
 
     Args:
@@ -145,24 +215,47 @@ def render_sequence(out_dir: str | Path, traversal: Traversal, trajectory: PoseS
         progress: show a tqdm bar.
         meta: extra provenance written into ``reradar_sim.json``.
         desc: progress bar label.
+        replace: when ``out_dir`` holds a render with other parameters (another ``render_key``), remove its files
+            (only those the simulator writes) instead of refusing it.
 
     Returns:
-        ``out_dir``. Scans already on disk are kept (resume); the completion marker is written last.
+        ``out_dir``. A render of the same ``render_key`` already there is resumed: its scans are kept, scans outside
+        the selection removed. The completion marker is written last.
+
+    Raises:
+        ConfigError: ``out_dir`` is a file, holds files the simulator does not write (never removed), or holds a
+        render with other parameters and ``replace`` is False.
     """
     p = get_preset(preset)
     layout = layout or p.dataset_layout
     if layout not in LAYOUTS:
         raise ConfigError(f"unknown dataset layout {layout!r}; choose one of {LAYOUTS}")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     times_us = np.asarray(times_us, dtype=np.int64)
     if len(times_us) == 0:
         raise ConfigError(f"{out}: no scan times to render (trajectory too short for every/limit?)")
     idx = np.arange(len(times_us)) if scan_indices is None else np.asarray(scan_indices, dtype=np.int64)
+    key = render_key(traversal, trajectory, times_us, idx, p.name, layout, config)
+    info = {
+        "preset": p.name,
+        "layout": layout,
+        "num_scans": int(len(times_us)),
+        "world_seed": traversal.world.seed,
+        "profile": traversal.world.profile.name,
+        "traversal_seed": traversal.seed,
+        "condition": traversal.condition.name,
+        "sim_version": SIM_VERSION,
+        "render_key": key,
+    }
+    _prepare_folder(out, key, info, replace)
     marker = out / COMPLETE_MARKER
     if marker.exists():
         marker.unlink()
-    _clear_stale(out, layout)
+    wanted = {scan_path(out, layout, int(t0)) for t0 in times_us}
+    for d in _SCAN_DIRS:  # a resumed render keeps only its own selection
+        for f in (out / d).glob("*.png") if (out / d).is_dir() else ():
+            if f not in wanted and _SCAN_NAME.fullmatch(f.name):
+                f.unlink()
     t_start = time.perf_counter()
     rendered = 0
     bar = tqdm(list(zip(times_us, idx, strict=True)), desc=desc or out.name, unit="scan", disable=not progress)
@@ -174,17 +267,7 @@ def render_sequence(out_dir: str | Path, traversal: Traversal, trajectory: PoseS
         rendered += 1
     track = pose_track(trajectory, times_us, p.sweep_period_s)
     write_sequence_poses(out, layout, track)
-    info = {
-        "preset": p.name,
-        "layout": layout,
-        "num_scans": int(len(times_us)),
-        "world_seed": traversal.world.seed,
-        "profile": traversal.world.profile.name,
-        "traversal_seed": traversal.seed,
-        "condition": traversal.condition.name,
-        "sim_version": SIM_VERSION,
-        "oxford_T_world_origin": [float(v) for v in track.poses[0]],  # the first scan's pose
-    }
+    info["oxford_T_world_origin"] = [float(v) for v in track.poses[0]]  # the first scan's pose
     info.update(meta or {})
     write_sequence_meta(out, info)
     marker.write_text(f"{SIM_VERSION} {len(times_us)}\n")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import re
 import shlex
 import sys
 import time
@@ -12,7 +13,7 @@ from pathlib import Path
 
 import typer
 
-from reradar_core.errors import ConfigError
+from reradar_core.errors import ConfigError, ReRadarError
 from reradar_core.training.suites import SeqSpec
 
 __all__ = ["register", "train_main"]
@@ -33,6 +34,17 @@ def _cached(spec: SeqSpec, width_px: int, resolution_m: float, progress: bool):
         return seq.fraction(spec.start, spec.stop)
     seq = cache_sequence(load_sequence(spec.path), width_px, resolution_m, group=spec.group, progress=progress)
     return seq.fraction(spec.start, spec.stop)
+
+
+#: A model name is a plain file stem: it names ``<out-dir>/<name>.pt`` and must not lead out of the folder.
+_MODEL_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]*")
+
+
+def _model_name(value: str) -> str:
+    if not _MODEL_NAME.fullmatch(value):
+        raise typer.BadParameter(f"{value!r} is not a plain file name: use letters, digits, '-', '_' and '.', "
+                                 "not starting with '.' (no folders: --out-dir chooses the folder)")
+    return value
 
 
 def _command_line() -> str:
@@ -115,7 +127,8 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
 def register(app: typer.Typer) -> None:
     @app.command("train")
     def train_cmd(
-        name: str = typer.Option(..., help="Model name: writes <out-dir>/<name>.pt and .json."),
+        name: str = typer.Option(..., callback=_model_name, help="Model name (letters, digits, -, _, .): writes "
+                                 "<out-dir>/<name>.pt and .json."),
         split: str | None = typer.Option(None, help="Simulated training split: train-source, "
                                          "train-target-boreas|loop|loop-open|offroad, smoke (see docs/MODEL.md); "
                                          "several, comma-separated, train on all of them (same recall radius)."),
@@ -128,7 +141,7 @@ def register(app: typer.Typer) -> None:
         dim: int = typer.Option(256, help="PCA-whitening output dimension D (0 = raw NetVLAD)."),
         init: str | None = typer.Option(None, help="Adapt from this shipped model (name or .pt path)."),
         lr: float | None = typer.Option(None, help="AdamW learning rate (default 1e-4, 1e-5 with --init)."),
-        steps: int = typer.Option(1500, help="Maximum optimisation steps."),
+        steps: int = typer.Option(1500, min=0, help="Maximum optimisation steps."),
         minutes: float = typer.Option(60.0, help="Wall-clock budget in minutes."),
         seed: int = typer.Option(0, help="Random seed (sampling, augmentation, initialisation)."),
         threads: int = typer.Option(1, help="torch CPU threads (1 is fastest on a busy shared CPU)."),
@@ -151,29 +164,29 @@ def register(app: typer.Typer) -> None:
         note = ""
         extra: dict = {"hard_negatives": hard_negatives, "hard_refresh_every": hard_refresh,
                        "learned_whitening": learned_whitening}
-        if split is not None:
-            from reradar_core.training.suites import suite_training_data
-
-            plans = [suite_training_data(s.strip()) for s in split.split(",") if s.strip()]
-            if not plans:
-                raise typer.BadParameter(f"--split {split!r} names no split")
-            if len({p.radius_m for p in plans}) > 1:
-                raise typer.BadParameter(f"splits {split!r} have different recall radii; train them separately")
-            for plan in plans:
-                seqs += plan.train
-                vals += plan.val
-            note = "; ".join(p.note for p in plans)
-            extra["recall_radius_m"] = plans[0].radius_m
-        if val_db is not None and val_query is not None:
-            vals.append((SeqSpec(val_db, "val"), SeqSpec(val_query, "val")))
-        if not seqs:
-            raise typer.BadParameter("give --split or at least one --sequence")
         try:
+            if split is not None:
+                from reradar_core.training.suites import suite_training_data
+
+                plans = [suite_training_data(s.strip()) for s in split.split(",") if s.strip()]
+                if not plans:
+                    raise typer.BadParameter(f"--split {split!r} names no split")
+                if len({p.radius_m for p in plans}) > 1:
+                    raise typer.BadParameter(f"splits {split!r} have different recall radii; train them separately")
+                for plan in plans:
+                    seqs += plan.train
+                    vals += plan.val
+                note = "; ".join(p.note for p in plans)
+                extra["recall_radius_m"] = plans[0].radius_m
+            if val_db is not None and val_query is not None:
+                vals.append((SeqSpec(val_db, "val"), SeqSpec(val_query, "val")))
+            if not seqs:
+                raise typer.BadParameter("give --split or at least one --sequence")
             path = train_main(name, seqs, vals, backbone=backbone, width=width, clusters=clusters,
                               dim=dim or None, init=init, lr=lr, steps=steps, minutes=minutes, seed=seed,
                               threads=threads, device=device, out_dir=out_dir, run_dir=None, resume=not no_resume,
                               data_note=note, disc_mask=not no_disc_mask, **extra)
-        except ConfigError as exc:
+        except ReRadarError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from exc
         meta = json.loads(path.with_suffix(".json").read_text())

@@ -8,10 +8,11 @@ from fastapi import Depends, Path, Request, Security
 from fastapi.security import APIKeyHeader
 
 from service.core.config import MAP_ID_PATTERN
-from service.core.errors import ServiceUnavailableError, UnauthorizedError
+from service.core.errors import ServiceUnavailableError, UnauthorizedError, UnsupportedMediaError
 from service.core.state import ServiceState
 
-__all__ = ["StateDep", "ApiKeyDep", "OperatorDep", "MapIdPath", "get_state", "require_operator"]
+__all__ = ["StateDep", "ApiKeyDep", "OperatorDep", "VehicleDep", "FormDep", "MapIdPath", "get_state",
+           "require_operator", "require_vehicle", "require_form"]
 
 
 def get_state(request: Request) -> ServiceState:
@@ -37,5 +38,28 @@ def require_operator(request: Request, key: Annotated[str | None, Security(_api_
 
 OperatorDep = Annotated[None, Depends(require_operator)]
 ApiKeyDep = OperatorDep  # the name the routes used before vehicle keys existed
+
+
+def require_vehicle(request: Request) -> None:
+    """As ``require_operator``, for vehicle-class routes (``service.api.security``): the guard admitted the
+    caller with a vehicle or operator key, or as a loopback client while no vehicle key is configured."""
+    if request.scope.get("state", {}).get("principal") not in ("operator", "vehicle", "loopback"):
+        raise UnauthorizedError("this endpoint needs a vehicle or operator key in the X-API-Key header")
+
+
+VehicleDep = Annotated[None, Depends(require_vehicle)]
+
+
+def require_form(request: Request) -> None:
+    """Refuse a body that is not a form (415) before its fields are validated, so a JSON body is told the
+    encoding to use instead of "field required" for every form field. Files need multipart/form-data; an
+    url-encoded form passes here and is told which file is missing."""
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if ctype not in ("multipart/form-data", "application/x-www-form-urlencoded"):
+        raise UnsupportedMediaError(f"unsupported Content-Type {ctype or '(none)'!r}: {request.method} "
+                                    f"{request.url.path} takes multipart/form-data (form fields and files)")
+
+
+FormDep = Annotated[None, Depends(require_form)]
 
 MapIdPath = Annotated[str, Path(pattern=MAP_ID_PATTERN, description="Map id: [a-z0-9][a-z0-9_-]{0,63}.")]

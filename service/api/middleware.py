@@ -6,14 +6,16 @@ from __future__ import annotations
 import asyncio
 import tempfile
 import time
-from collections.abc import Callable
-from typing import IO
+from collections.abc import Callable, Iterable
+from typing import IO, Any
 
+from starlette.routing import Match, Route
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.security import Guard, RequestLimits, route_class
 from service.core.errors import (
     PROBLEM_MEDIA_TYPE,
+    BadRequestError,
     OverloadedError,
     PayloadTooLargeError,
     RequestTimeoutError,
@@ -23,7 +25,7 @@ from service.core.errors import (
 )
 from service.core.metrics import Metrics
 
-__all__ = ["RequestGuardMiddleware", "MetricsMiddleware"]
+__all__ = ["RequestGuardMiddleware", "MetricsMiddleware", "leaf_routes"]
 
 #: Before a refusal, up to this many body bytes are read and discarded (never stored) so that a client still
 #: sending sees the answer instead of a reset connection; larger bodies are cut off by closing the connection.
@@ -36,6 +38,35 @@ _CHUNK = 1 << 20
 #: Map uploads above this size are spooled to disk by the guard, not held in memory.
 _SPOOL_MEMORY_BYTES = 4 * 2**20
 _BODY_METHODS = ("POST", "PUT", "PATCH")
+
+
+def leaf_routes(routes: Iterable[Any]) -> list[Route]:
+    """The plain routes of an app, looking inside included routers (FastAPI wraps each ``include_router``);
+    mounts (static files) are left out."""
+    out: list[Route] = []
+    for route in routes:
+        if isinstance(route, Route):
+            out.append(route)
+        elif hasattr(route, "original_router"):
+            out.extend(leaf_routes(route.original_router.routes))
+        elif hasattr(route, "routes"):
+            out.extend(leaf_routes(route.routes))
+    return out
+
+
+def _route_match(scope: Scope) -> tuple[str | None, bool]:
+    """(template of the route that will answer ``scope``, whether it answers only with 405): the app's route
+    matching path and method, else one matching the path only (405), else (None, False) (404, or a static
+    file mount). Used before the router has run (a guard refusal records no ``route`` in the scope)."""
+    router = getattr(scope.get("app"), "router", None)
+    partial: str | None = None
+    for route in leaf_routes(getattr(router, "routes", ())):
+        match, _ = route.matches(scope)
+        if match == Match.FULL:
+            return route.path, False
+        if match == Match.PARTIAL and partial is None:
+            partial = route.path
+    return partial, partial is not None
 
 
 class _Refused(Exception):
@@ -157,7 +188,9 @@ class RequestGuardMiddleware:
     ``service.api.security``) from the headers alone; refuse a declared ``Content-Length`` above the limit
     (413); refuse a scan or map request when ``max_concurrent`` are in progress (503 + ``Retry-After``);
     receive the body within the idle and total timeouts (408) and the size limit (413), then hand it to the app.
-    ``get_guard()`` is None while the service starts: scan and map requests then get 503 too.
+    ``get_guard()`` is None while the service starts: scan and map requests then get 503 too. Two
+    ``X-API-Key`` headers are refused (400: ambiguous credentials); a request the guard would refuse whose
+    method the path does not serve is answered 405 by the app instead, with or without a key.
     """
 
     def __init__(self, app: ASGIApp, get_guard: Callable[[], Guard | None],
@@ -183,10 +216,18 @@ class RequestGuardMiddleware:
             try:
                 if guard is None:
                     raise ServiceUnavailableError("the service is still loading the model and maps; retry shortly")
-                key = headers.get(b"x-api-key", b"").decode("latin-1") or None
+                keys = [v for k, v in scope.get("headers") or [] if k.lower() == b"x-api-key"]
+                if len(keys) > 1:
+                    raise BadRequestError(f"ambiguous credentials: {len(keys)} X-API-Key headers; send exactly one")
+                key = keys[0].decode("latin-1") if keys else None
                 client = scope.get("client")
-                principal = guard.policy.authorize(kind, key, client[0] if client else None)
+                principal = guard.policy.authorize(kind, key or None, client[0] if client else None)
             except ServiceError as exc:
+                if _route_match(scope)[1]:
+                    # a method the path does not serve: 405 (with Allow) from the app, whoever asks (the answer
+                    # tells nothing the public OpenAPI document does not); no body is read
+                    await self.app(scope, receive, send)
+                    return
                 await _drain(receive, skip_drain)
                 await _reply(send, path, exc)
                 return
@@ -266,7 +307,8 @@ class MetricsMiddleware:
             await self.app(scope, receive, send_wrapper)
         finally:
             route = scope.get("route")
-            template = getattr(route, "path", None) or "unmatched"
+            # requests the guard refused never reached the router: count them under the route they asked for
+            template = getattr(route, "path", None) or _route_match(scope)[0] or "unmatched"
             method = scope["method"]
             self.metrics.inc("reradar_http_requests_total", method=method, route=template,
                              status=str(status["code"]))

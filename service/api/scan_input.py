@@ -97,9 +97,11 @@ def check_scan_upload(data: bytes, max_pixels: int, size: int | None = None,
             f"accepts up to {MAX_SCAN_SIDE} of each and {max_pixels:,} pixels (a Navtech sweep is 400 x 3,360-3,768)"
         )
     if rows < MIN_SCAN_SIDE or bins < MIN_SCAN_SIDE:
+        layout = (f" ({cols} columns, the first {NAVTECH_META_COLUMNS} of which are Navtech metadata)"
+                  if navtech else "")
         raise ScanFormatError(
-            f"scan has {rows} azimuths x {bins} range bins; expected a full sweep with {MIN_SCAN_SIDE}.."
-            f"{MAX_SCAN_SIDE} of each (e.g. 400 x 3360 Boreas, 400 x 3768 Oxford)"
+            f"scan has {rows} azimuths x {max(bins, 0)} range bins{layout}; expected a full sweep with "
+            f"{MIN_SCAN_SIDE}..{MAX_SCAN_SIDE} of each (e.g. 400 x 3360 Boreas, 400 x 3768 Oxford)"
         )
     return f"scan.{header.format}"
 
@@ -120,7 +122,8 @@ def scan_request_body(json_model: type[BaseModel], form_fields: dict[str, dict[s
                                       "description": "Navtech polar PNG or .npy array (see scan_layout)"}}
     props.update(form_fields)
     props["preset"] = {"type": "string", "enum": sorted(PRESETS),
-                       "description": "Radar preset (default: inferred from the PNG's bin count)"}
+                       "description": "Radar preset (default: the map's when the scan's bin count fits it, "
+                                      "else inferred from the PNG's bin count; a polar .npy: the map's)"}
     props["scan_layout"] = SCAN_LAYOUT_SCHEMA
     required = ["scan"] + [k for k, v in form_fields.items() if v.pop("x-required", False)]
     return {"requestBody": {"required": True, "content": {
@@ -158,6 +161,9 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
             form = await request.form(max_files=1, max_fields=16)
         except Exception as exc:  # noqa: BLE001 - the multipart parser raises several types on bad input
             raise BadRequestError(f"malformed multipart body ({exc})") from exc
+        repeated = sorted({k for k in form.keys() if len(form.getlist(k)) > 1})
+        if repeated:  # last-one-wins would silently pick a map or a prior the client may not have meant
+            raise BadRequestError(f"form fields {repeated} are given more than once; send each field once")
         upload = form.get("scan")
         if not isinstance(upload, UploadFile):
             raise BadRequestError("multipart request needs a file field named 'scan' (a Navtech PNG or .npy)")
@@ -194,7 +200,8 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         fields.pop("scan_id")
         data, filename = await read_scan_upload(upload, state.settings.max_scan_pixels, scan_layout)
         timings: dict[str, float] = {}
-        features, _ = await run_in_threadpool(state.describe_upload, data, filename, preset, timings, scan_layout)
+        features, _ = await run_in_threadpool(state.describe_upload, data, filename, preset, timings, scan_layout,
+                                              fields.get("map_id"))
         return ScanInput(features, None, fields, timings)
     raise UnsupportedMediaError(
         f"unsupported Content-Type {ctype or '(none)'!r}: send application/json with a scan_id or "

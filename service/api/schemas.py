@@ -9,6 +9,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from reradar_core.bounds import MAX_ABS_COORDINATE_M
 from service.core.ids import MAP_ID_PATTERN, SESSION_ID_PATTERN
 
 __all__ = [
@@ -167,16 +168,21 @@ class LocalizeRequest(ScanRef):
     session_id: str | None = Field(default=None, pattern=SESSION_ID_PATTERN, description=(
         "Tracking session: the server remembers this session's last pose (per map, expires after "
         "RERADAR_SESSION_TTL_S) and tracks from it."))
-    odom_dx_m: float | None = Field(default=None, ge=-1000, le=1000, description=(
+    odom_dx_m: float | None = Field(default=None, allow_inf_nan=False, ge=-1000, le=1000, description=(
         "Odometry since the session's previous scan: forward motion in that scan's frame, metres."))
-    odom_dy_m: float | None = Field(default=None, ge=-1000, le=1000, description="Odometry: leftward motion, metres.")
-    odom_dyaw_deg: float | None = Field(default=None, ge=-360, le=360, description="Odometry: heading change, degrees CCW.")
-    prior_x_m: float | None = Field(default=None, ge=-1e7, le=1e7, description="Explicit prior: map-frame x, metres.")
-    prior_y_m: float | None = Field(default=None, ge=-1e7, le=1e7, description="Explicit prior: map-frame y, metres.")
-    prior_yaw_deg: float | None = Field(default=None, ge=-360, le=360, description="Explicit prior: heading, degrees.")
-    prior_sigma_m: float | None = Field(default=None, gt=0, le=1000, description=(
+    odom_dy_m: float | None = Field(default=None, allow_inf_nan=False, ge=-1000, le=1000,
+                                    description="Odometry: leftward motion, metres.")
+    odom_dyaw_deg: float | None = Field(default=None, allow_inf_nan=False, ge=-360, le=360,
+                                        description="Odometry: heading change, degrees CCW.")
+    prior_x_m: float | None = Field(default=None, allow_inf_nan=False, ge=-MAX_ABS_COORDINATE_M,
+                                    le=MAX_ABS_COORDINATE_M, description="Explicit prior: map-frame x, metres.")
+    prior_y_m: float | None = Field(default=None, allow_inf_nan=False, ge=-MAX_ABS_COORDINATE_M,
+                                    le=MAX_ABS_COORDINATE_M, description="Explicit prior: map-frame y, metres.")
+    prior_yaw_deg: float | None = Field(default=None, allow_inf_nan=False, ge=-360, le=360,
+                                        description="Explicit prior: heading, degrees.")
+    prior_sigma_m: float | None = Field(default=None, allow_inf_nan=False, gt=0, le=1000, description=(
         "Explicit prior: position standard deviation, metres (default 2)."))
-    prior_sigma_yaw_deg: float | None = Field(default=None, gt=0, le=180, description=(
+    prior_sigma_yaw_deg: float | None = Field(default=None, allow_inf_nan=False, gt=0, le=180, description=(
         "Explicit prior: heading standard deviation, degrees (default 5)."))
 
 
@@ -205,7 +211,8 @@ class LocalizeResponse(_Model):
     status: Literal["localized", "not_localized"]
     reason: str | None = Field(default=None, description=(
         "Why not localized: no_candidate, too_few_matches, too_few_inliers (under 12 aligned landmarks or under "
-        "the aligned-ratio floor fitted with the confidence model, 30 % of the query's landmarks), ambiguous (a "
+        "the aligned-ratio floor fitted with the confidence model: min_aligned_ratio in its JSON, 35 % of the "
+        "query's landmarks), ambiguous (a "
         "rival pose aligns as many landmarks), low_confidence (below min_confidence), inconsistent_with_prior "
         "(tracking)."))
     map_id: str
@@ -233,6 +240,6 @@ class LocalizeResponse(_Model):
         "A prior was given but no consistent pose was found near it; this is the global answer."))
     session_id: str | None = None
     alignment_score: float = Field(default=0.0, description=(
-        "The decision score: fraction of the query's landmarks aligned with the keyframe's (0-1); "
-        "`localized` needs >= 0.5 and `min_inliers`. Not a calibrated probability."))
+        "Fraction of the query's landmarks aligned with the keyframe's (0-1); `localized` needs at least the "
+        "fitted floor (35 %), `min_inliers` and `confidence` at the bar. Not a calibrated probability."))
     timings_ms: dict[str, float]

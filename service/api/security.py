@@ -8,10 +8,11 @@ class      routes                                                      key (``X-
 operator   ``POST /maps``, ``DELETE /maps/{id}`` (any write under       the operator key
            ``/maps`` except retrieve)
 vehicle    ``POST /scans``, ``POST /localize``, ``POST /maps/{id}/      a vehicle key or the operator key;
-           retrieve``, and any other write method on any path          none needed from loopback clients when
-                                                                       no vehicle key is configured
+           retrieve``, any method under ``/ui/api/`` (the operator     none needed from loopback clients when
+           page's data: vehicle positions), and any other write        no vehicle key is configured
+           method on any path
 public     ``GET`` / ``HEAD`` / ``OPTIONS``: health, metrics, maps,     none
-           docs
+           docs, the operator page and its static files
 =========  ==========================================================  =====================================
 """
 
@@ -42,6 +43,8 @@ def route_class(method: str, path: str) -> RouteClass:
     path not named here (a route added later, an unknown path) is a vehicle route, never public."""
     p = path.rstrip("/") or "/"
     parts = p.split("/")
+    if len(parts) >= 3 and parts[1] == "ui" and parts[2] == "api":
+        return "vehicle"  # where vehicles were: the same rule as the routes that answer where a vehicle is
     if method in ("GET", "HEAD", "OPTIONS"):
         return "public"
     if len(parts) >= 2 and parts[1] == "maps" and not (len(parts) == 4 and parts[3] == "retrieve"):

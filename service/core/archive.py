@@ -15,9 +15,13 @@ from pathlib import Path
 
 from service.core.errors import BadRequestError, PayloadTooLargeError
 
-__all__ = ["extract_scan_archive", "SCAN_NAME_PATTERN"]
+__all__ = ["extract_scan_archive", "SCAN_NAME_PATTERN", "MAX_SCAN_TIMESTAMP_US"]
 
 SCAN_NAME_PATTERN = re.compile(r"^(\d{1,20})\.(png|npy)$")
+#: Largest timestamp a scan file may be named with, microseconds since the Unix epoch (2**62, year ~148,000):
+#: far beyond any real time, and small enough that the int64 arithmetic on timestamps (mid-sweep offsets,
+#: time-span checks) cannot overflow.
+MAX_SCAN_TIMESTAMP_US = 2**62
 
 
 def _members_zip(zf: zipfile.ZipFile) -> list[tuple[str, int, zipfile.ZipInfo]]:
@@ -33,7 +37,8 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
     """Extract the scans of ``archive`` into ``dest``; returns the scan paths sorted by timestamp.
 
     Raises:
-        BadRequestError: not a zip/tar archive, no scans, duplicate timestamps.
+        BadRequestError: not a zip/tar archive, no scans, duplicate timestamps, a timestamp (microseconds)
+            above ``MAX_SCAN_TIMESTAMP_US``.
         PayloadTooLargeError: more than ``max_files`` scans or more than ``max_total_bytes`` uncompressed.
     """
     dest.mkdir(parents=True, exist_ok=True)
@@ -43,8 +48,13 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
     def accept(name: str, size: int) -> str | None:
         nonlocal total
         base = name.replace("\\", "/").rsplit("/", 1)[-1]
-        if not SCAN_NAME_PATTERN.match(base):
+        match = SCAN_NAME_PATTERN.match(base)
+        if not match:
             return None
+        if int(match.group(1)) > MAX_SCAN_TIMESTAMP_US:
+            raise BadRequestError(f"scan archive member {base!r}: timestamp out of range (at most "
+                                  f"{MAX_SCAN_TIMESTAMP_US} us); name scan files by their timestamp in "
+                                  f"microseconds since the Unix epoch")
         if base in written:
             raise BadRequestError(f"scan archive holds two files named {base!r}")
         total += size
@@ -69,7 +79,11 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
             raise BadRequestError(f"scan archive is a corrupt zip file ({exc})") from exc
     else:
         try:
-            with tarfile.open(archive, "r:*") as tf:
+            tf = tarfile.open(archive, "r:*")  # noqa: SIM115 - closed below
+        except (tarfile.TarError, OSError, EOFError):  # tarfile's message lists every compression it tried
+            raise BadRequestError("scan archive is not a .zip, .tar or .tar.gz archive") from None
+        try:
+            with tf:
                 for member in tf:
                     if not member.isfile():
                         continue  # links, devices, folders
@@ -84,9 +98,8 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
                         shutil.copyfileobj(fobj, dst, length=1 << 20)
                     written[base] = target
         except (tarfile.TarError, OSError, EOFError) as exc:
-            raise BadRequestError(
-                f"scan archive is not a readable zip or tar(.gz) file ({exc})"
-            ) from exc
+            detail = " ".join(str(exc).split())  # one line
+            raise BadRequestError(f"scan archive is a corrupt or truncated tar(.gz) file ({detail})") from exc
     if not written:
         raise BadRequestError(
             "scan archive holds no scans: expected files named <timestamp_us>.png (Navtech) or <timestamp_us>.npy"

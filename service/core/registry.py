@@ -266,11 +266,20 @@ class MapRegistry:
             return sum(e.state == "ready" for e in self._entries.values())
 
     # ---- mutation ------------------------------------------------------------------------------------------
+    def taken_message(self, map_id: str, entry: MapEntry | None) -> str:
+        """What to tell a client registering ``map_id`` when ``entry`` (None: a file without an entry) holds it:
+        a map being built cannot be deleted here, so it says to wait for the build."""
+        if entry is not None and entry.state == "building":
+            return (f"map {map_id!r} is being built ({entry.progress:.0%}); wait until the build finishes "
+                    f"(GET /maps/{map_id} shows its state), then DELETE /maps/{map_id} to replace it, or pick "
+                    f"another id")
+        return f"map {map_id!r} already exists; DELETE /maps/{map_id} first or pick another id"
+
     def _reserve(self, map_id: str, scans_total: int = 0) -> MapEntry:
         path = self.path_for(map_id)
         with self._lock:
             if map_id in self._entries or path.exists():
-                raise ConflictError(f"map {map_id!r} already exists; DELETE /maps/{map_id} first or pick another id")
+                raise ConflictError(self.taken_message(map_id, self._entries.get(map_id)))
             entry = MapEntry(map_id, path, "building", scans_total=scans_total)
             self._entries[map_id] = entry
             return entry
@@ -299,7 +308,10 @@ class MapRegistry:
                 raise type(exc)(str(exc).replace(str(staged), "the uploaded map")) from None
             probe.close()
             install_file(staged, entry.path)
-            entry.db = self._open(entry.path)
+            try:  # opening reads every keyframe (shared arrays, preload): their checks refuse it here
+                entry.db = self._open(entry.path)
+            except ReRadarError as exc:
+                raise type(exc)(str(exc).replace(str(entry.path), "the uploaded map")) from None
             entry.scans_total = entry.scans_done = len(entry.db)
             entry.state = "ready"
             return entry

@@ -2,10 +2,16 @@
 ``service.core.shared_state.RedisSessionStore`` keeps them in Redis instead, shared by every worker and replica.
 
 A session's state is a ``PosePrior``: after a localized scan, the answer with the localizer's accuracy
-(``fix_sigma_*``); after a scan that was not localized, the previous prior moved by the reported odometry
-(its uncertainty grows), or unchanged. ``prior_for`` turns the state plus the request's odometry into the
-prior the next scan is tracked from; without odometry the vehicle may have moved anywhere nearby, so the
-prior gets ``no_odometry_sigma_*``.
+(``fix_sigma_*``); after a scan that was not localized, the prior it was tracked from (the previous state
+moved by the reported odometry: its uncertainty grows), or - when the scan came without odometry - the last
+pose marked unknown (``lost_sigma_m``). ``prior_for`` turns the state plus the request's odometry into the
+prior the next scan is tracked from.
+
+Without odometry there is no prior: the last pose says where the vehicle was, not where it is. At 8 m/s and
+4 Hz it moved 2 m; a skipped scan or a faster vehicle, 6-15 m. Registration started at the last pose settled
+next to it and passed the 18 m gate of the 6 m sigma it used to get (``reradar localize --follow`` on the QA
+drive at 8 m/s: 0.1, 0.4, 1.0 ... 7.4 m off, all ``localized``), so such a scan is localized globally, exactly
+as without a session, and the session keeps its answer for the next scan that brings odometry.
 """
 
 from __future__ import annotations
@@ -33,18 +39,18 @@ class SessionConfig:
         ttl_s: a session unused this long is forgotten (the next scan is localized globally).
         fix_sigma_m / fix_sigma_yaw_deg: uncertainty of a localized answer (measured errors are ~0.2-1 m,
             ~0.5 deg; these leave margin).
-        no_odometry_sigma_m / no_odometry_sigma_yaw_deg: prior uncertainty when no odometry is sent (a vehicle
-            at 20 m/s moves ~5 m between 4 Hz scans).
         odometry_sigma_growth: uncertainty added per metre (and per radian) of reported odometry.
+        lost_sigma_m: uncertainty of a session whose vehicle moved by an unknown amount (a scan without
+            odometry that was not localized): far above any prior the tracker covers
+            (``TrackingConfig.covers``), so its next scans are localized globally until one is localized.
     """
 
     max_sessions: int = 10_000
     ttl_s: float = 60.0
     fix_sigma_m: float = 0.5
     fix_sigma_yaw_deg: float = 1.0
-    no_odometry_sigma_m: float = 6.0
-    no_odometry_sigma_yaw_deg: float = 10.0
     odometry_sigma_growth: float = 0.1
+    lost_sigma_m: float = 1.0e4
 
 
 class SessionStore:
@@ -73,23 +79,29 @@ class SessionStore:
             return item[1]
 
     def prior_for(self, session_id: str, map_id: str, odometry: np.ndarray | None) -> PosePrior | None:
-        """The prior to track the session's next scan from, or None when the session has no state."""
+        """The prior to track the session's next scan from: the state moved by ``odometry`` ((3,) x m, y m,
+        yaw rad in the previous scan's frame). None when the session has no state or without odometry (the
+        scan is then localized globally; module docstring). The prior may still be too loose to track from
+        (after a long stretch without a fix, or a lost session): the caller asks ``TrackingConfig.covers``."""
+        if odometry is None:
+            return None
         state = self.get(session_id, map_id)
         if state is None:
             return None
-        c = self.config
-        if odometry is None:
-            return PosePrior(state.T_map_query, max(state.sigma_xy_m, c.no_odometry_sigma_m),
-                             max(state.sigma_yaw_rad, math.radians(c.no_odometry_sigma_yaw_deg)))
-        return state.moved(odometry, c.odometry_sigma_growth)
+        return state.moved(odometry, self.config.odometry_sigma_growth)
 
     def update(self, session_id: str, map_id: str, T_map_query: np.ndarray | None,
-               prior: PosePrior | None) -> None:
-        """Record the outcome of a scan: its pose when localized, else the prior it was tracked from (so
-        odometry keeps accumulating), else nothing."""
+               prior: PosePrior | None, moved_unknown: bool = False) -> None:
+        """Record the outcome of a scan: its pose when localized; else, when the scan came without odometry
+        (``moved_unknown``), the last pose with ``lost_sigma_m`` (no later scan is tracked from it); else the
+        prior it was tracked from (so odometry keeps accumulating); else nothing."""
         c = self.config
+        state: PosePrior | None
         if T_map_query is not None:
-            state: PosePrior | None = PosePrior(T_map_query, c.fix_sigma_m, math.radians(c.fix_sigma_yaw_deg))
+            state = PosePrior(T_map_query, c.fix_sigma_m, math.radians(c.fix_sigma_yaw_deg))
+        elif moved_unknown:
+            last = self.get(session_id, map_id)
+            state = None if last is None else PosePrior(last.T_map_query, c.lost_sigma_m, math.pi)
         else:
             state = prior
         if state is None:

@@ -13,6 +13,7 @@ from reradar_core.io.scan import NpyLayout, load_scan_bytes
 from reradar_core.localization import LocalizationConfig
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
+from service.core.errors import ServiceError
 from service.core.metrics import Metrics
 from service.core.registry import MapRegistry
 from service.core.scan_cache import ScanCache
@@ -47,10 +48,20 @@ class ServiceState:
         config = self.settings.localization
         return replace(config, top_k=top_k) if top_k else config
 
+    def map_preset(self, map_id: str | None) -> str | None:
+        """The radar preset recorded in map ``map_id`` (None: no such map, or it is not ready)."""
+        if not map_id:
+            return None
+        try:
+            return self.registry.ready(map_id).metadata.radar_preset
+        except ServiceError:  # unknown / building map: the route answers that after the upload is read
+            return None
+
     def describe_upload(self, data: bytes, filename: str, preset: str | None, timings_ms: dict[str, float],
-                        scan_layout: NpyLayout = "polar") -> tuple[ScanFeatures, str | None]:
+                        scan_layout: NpyLayout = "polar", map_id: str | None = None) -> tuple[ScanFeatures, str | None]:
         """Decode an uploaded scan (PNG / .npy, an .npy as ``scan_layout``) and compute its features; adds
-        ``decode_ms``/``extract_ms``.
+        ``decode_ms``/``extract_ms``. Without ``preset``, the geometry of the ready map ``map_id`` is used where
+        the scan fits it (``load_scan_bytes``'s ``map_preset``).
 
         Raises:
             ScanFormatError: empty, corrupt or wrongly shaped scans, non-finite features.
@@ -58,7 +69,7 @@ class ServiceState:
         if not data:
             raise ScanFormatError("the uploaded scan file is empty")
         t0 = time.perf_counter()
-        scan = load_scan_bytes(data, filename or "scan.png", preset, scan_layout)
+        scan = load_scan_bytes(data, filename or "scan.png", preset, scan_layout, self.map_preset(map_id))
         a, r = scan.power.shape
         if not (MIN_SCAN_SIDE <= a <= MAX_SCAN_SIDE and MIN_SCAN_SIDE <= r <= MAX_SCAN_SIDE):
             raise ScanFormatError(

@@ -1,5 +1,6 @@
 // ReRadar operator page: maps, their keyframe trajectories, build progress and the latest localizations,
-// polled from the service's own API (GET /maps, /ui/api/maps/{id}/trajectory, /ui/api/maps/{id}/localizations).
+// polled from the service's own API (GET /maps, /ui/api/maps/{id}/trajectory, /ui/api/maps/{id}/localizations;
+// the last two with the API key typed in the header, when one is).
 // No framework and no CDN: plain DOM and a 2-D canvas. Map frame: x right, y up, metres; yaw counter-clockwise.
 "use strict";
 
@@ -13,8 +14,22 @@ function el(tag, text, cls) {
   return e;
 }
 
+// The /ui/api data (where vehicles are) needs a vehicle or operator key when the service has vehicle keys
+// (none from loopback without them); the key typed in the header stays in this tab's sessionStorage.
+const keyInput = document.getElementById("api-key");
+keyInput.value = sessionStorage.getItem("reradar-api-key") || "";
+keyInput.addEventListener("change", () => {
+  sessionStorage.setItem("reradar-api-key", keyInput.value.trim());
+  state.trajectoryKey = null;
+  refresh();
+});
+
 async function getJSON(url) {
-  const r = await fetch(url, { headers: { Accept: "application/json" } });
+  const headers = { Accept: "application/json" };
+  const key = keyInput.value.trim();
+  if (key) headers["X-API-Key"] = key;
+  const r = await fetch(url, { headers });
+  if (r.status === 401 || r.status === 403) throw new Error(`${url}: HTTP ${r.status} - enter a vehicle or operator API key`);
   if (!r.ok) throw new Error(`${url}: HTTP ${r.status}`);
   return r.json();
 }
@@ -142,7 +157,7 @@ async function refresh() {
     draw();
     status.textContent = `live · ${new Date().toISOString().slice(11, 19)} UTC`;
   } catch (err) {
-    status.textContent = `API unreachable: ${err.message}`;
+    status.textContent = /HTTP 40[13]/.test(err.message) ? err.message : `API unreachable: ${err.message}`;
   }
 }
 

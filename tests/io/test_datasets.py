@@ -182,3 +182,26 @@ def test_mid_sweep_poses_interpolate_the_pose_file_also_after_subset(tmp_path):
     # every 4th scan kept: still interpolated in the file's trajectory, not between the kept scans
     sub = seq.subset(slice(None, None, 4))
     np.testing.assert_allclose(sub.mid_sweep_poses(), mid[::4], atol=1e-9)
+
+
+def test_explicit_preset_contradicting_the_recorded_one_is_refused(tmp_path):
+    """L1: a render recorded as Boreas (0.0596 m/bin) read as Oxford (0.0432 m/bin) would put every return 28 %
+    too close: refused with the recorded preset named; the recorded preset itself is accepted."""
+    root = tmp_path / "seq"
+    times = [T0, T0 + 250_000]
+    _write_scans(root, "boreas", times)
+    write_sequence_poses(root, "boreas", _track(np.array(times)))
+    write_sequence_meta(root, {"preset": "boreas", "sim_version": "10"})
+    with pytest.raises(DatasetError, match=r"rendered with radar preset 'boreas'.*not 'oxford'.*-28%"):
+        load_sequence(root, preset="oxford")
+    assert load_sequence(root, preset="boreas").preset.name == "boreas"
+    assert load_sequence(root).preset.name == "boreas"
+
+
+def test_binary_pose_file_is_a_pose_file_error(tmp_path):
+    from reradar_core.io.poses import read_poses
+
+    path = tmp_path / "grey.png"
+    path.write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(PoseFileError, match="not a text pose file"):
+        read_poses(path, "s")

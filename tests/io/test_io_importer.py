@@ -97,3 +97,47 @@ def test_cli_imports_a_folder(tmp_path):
     assert res.exit_code == 0, res.output
     scan = load_scan(tmp_path / "o" / "1600000000000000.png", "mulran")
     assert scan.num_range_bins == 3360
+
+
+def _import(tmp_path, *sources, out: str = "o"):
+    from reradar_cli import app
+
+    return CliRunner().invoke(app, ["import-scans", *map(str, sources), "--out", str(tmp_path / out),
+                                    "--range-resolution", "0.175"])
+
+
+def test_cli_refuses_sources_that_would_overwrite_each_other(tmp_path):
+    """M4: two inputs named by the same timestamp once wrote one file and said 'wrote 2'."""
+    for d in ("d1", "d2"):
+        (tmp_path / d).mkdir()
+        cv2.imwrite(str(tmp_path / d / "1566535872045000.png"), _foreign())
+        cv2.imwrite(str(tmp_path / d / "x.png"), _foreign())
+    res = _import(tmp_path, *(tmp_path / d / n for d in ("d1", "d2") for n in ("1566535872045000.png", "x.png")))
+    assert res.exit_code == 2 and "same timestamp" in res.output
+    assert "d1/1566535872045000.png" in res.output and "d2/1566535872045000.png" in res.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_reads_nanosecond_names_and_refuses_other_numeric_names(tmp_path):
+    cv2.imwrite(str(tmp_path / "1566535872045000123.png"), _foreign())  # MulRan: ns
+    res = _import(tmp_path, tmp_path / "1566535872045000123.png")
+    assert res.exit_code == 0, res.output
+    assert [p.name for p in (tmp_path / "o").iterdir()] == ["1566535872045000.png"]
+    assert load_scan(tmp_path / "o" / "1566535872045000.png", "boreas").timestamp_us == 1566535872045000
+    cv2.imwrite(str(tmp_path / "1566535872045.png"), _foreign())  # ms? 13 digits: not guessed
+    res = _import(tmp_path, tmp_path / "1566535872045.png", out="o2")
+    assert res.exit_code == 2 and "13-digit" in res.output and "16 digits" in res.output
+
+
+def test_cli_refuses_tiny_colour_and_navtech_sources(tmp_path):
+    np.save(tmp_path / "small.npy", np.zeros((3, 3), np.uint8))
+    res = _import(tmp_path, tmp_path / "small.npy")
+    assert res.exit_code == 2 and "small.npy" in res.output and "3 azimuths x 3 range bins" in res.output
+    cv2.imwrite(str(tmp_path / "rgb.png"), np.dstack([_foreign()] * 3))
+    res = _import(tmp_path, tmp_path / "rgb.png")
+    assert res.exit_code == 2 and "3-channel colour image" in res.output
+    scan = import_polar_scan(_foreign(), ForeignScanLayout(0.175), "boreas", start_time_us=1_600_000_000_000_000)
+    navtech = write_navtech_png(scan, tmp_path / "1600000000000000.png")
+    res = _import(tmp_path, navtech)
+    assert res.exit_code == 2 and "already a Navtech scan" in res.output and "needs no import" in res.output
+    assert not (tmp_path / "o").exists()

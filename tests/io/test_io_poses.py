@@ -198,3 +198,45 @@ def test_mulran_is_nanoseconds_and_refuses_absolute_times_in_another_unit(tmp_pa
     # relative ns from 0 are the format's own unit
     rel = _write(tmp_path, "rel_pose.csv", "0,1,0,0,0,0,1,0,0,0,0,1,0\n250000000,1,0,0,2,0,1,0,0,0,0,1,0\n")
     np.testing.assert_array_equal(read_mulran_global_pose(rel).timestamps_us, [0, 250_000])
+
+
+def test_txyyaw_yaw_unit_from_the_header(tmp_path):
+    rows = "1.0,0,0,90\n2.0,1,0,-180\n"
+    deg = read_txyyaw_csv(_write(tmp_path, "deg.csv", "t_s,x,y,yaw_deg\n" + rows))
+    np.testing.assert_allclose(deg.yaw, [np.pi / 2, np.pi])  # -180 deg wraps to +pi
+    rad = read_poses(_write(tmp_path, "rad.csv", "t_s,x,y,yaw_rad\n1.0,0,0,1.5\n2.0,1,0,-0.5\n"))
+    np.testing.assert_allclose(rad.yaw, [1.5, -0.5])
+    # explicit radians may exceed 2 pi (an unwrapped heading): accepted and wrapped
+    np.testing.assert_allclose(read_poses(_write(tmp_path, "unwrapped.csv", "t_s,x,y,YAW_RAD\n1.0,0,0,7.0\n")).yaw,
+                               [7.0 - 2 * np.pi])
+    # plain yaw stays radians, as before: 2 pi itself is still radians
+    np.testing.assert_allclose(read_poses(_write(tmp_path, "plain.csv", "t_s,x,y,yaw\n1.0,0,0,6.283185\n")).yaw,
+                               [6.283185 - 2 * np.pi], atol=1e-9)
+
+
+def test_plain_yaw_beyond_two_pi_is_refused_as_probable_degrees(tmp_path):
+    for name, text, line in (("plain.csv", "t_s,x,y,yaw\n1.0,0,0,0.5\n2.0,1,0,90\n", 3),
+                             ("headerless.csv", "1630597331.0,0,0,-45\n1630597332.0,1,0,0\n", 1)):
+        with pytest.raises(PoseFileError, match=rf"{name}:{line}: yaw .* beyond 2 pi.*yaw_deg") as err:
+            read_poses(_write(tmp_path, name, text))
+        assert "radians" in str(err.value)
+    with pytest.raises(PoseFileError, match="4th column is named 'heading'; name it yaw_deg"):
+        read_txyyaw_csv(_write(tmp_path, "named.csv", "t_s,x,y,heading\n1.0,0,0,0.5\n"))
+
+
+def test_positions_beyond_the_coordinate_bound_are_refused_in_every_format(tmp_path):
+    from reradar_core.io.poses import MAX_ABS_COORDINATE_M
+
+    assert MAX_ABS_COORDINATE_M == 1e7
+    with pytest.raises(PoseFileError, match=r"far.csv:3: position .* more than 1e\+07 m"):
+        read_poses(_write(tmp_path, "far.csv", "t_s,x,y,yaw\n1.0,0,0,0\n2.0,1e300,0,0\n"))
+    with pytest.raises(PoseFileError, match=r"neg.csv:2: position"):
+        read_poses(_write(tmp_path, "neg.csv", "t_s,x,y,yaw\n1.0,0,-1.0000001e7,0\n"))
+    far = PoseSequence([1_630_597_331_060_160, 1_630_597_331_310_779], [[0.0, 0.0], [0.0, 2e7]], [0.0, 0.0])
+    with pytest.raises(PoseFileError, match="position"):
+        read_boreas_radar_poses(write_boreas_radar_poses(far, tmp_path / "b.csv"))
+    with pytest.raises(PoseFileError, match="position"):
+        read_mulran_global_pose(write_mulran_global_pose(far, tmp_path / "m.csv"))
+    # a UTM position (northing below 1e7 m) is fine
+    utm = PoseSequence([1_630_597_331_060_160], [[623422.85, 9_999_999.0]], [0.1])
+    assert read_poses(write_txyyaw_csv(utm, tmp_path / "utm.csv")).xy[0, 1] == 9_999_999.0

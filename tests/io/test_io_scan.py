@@ -81,12 +81,17 @@ def test_png_byte_layout_matches_navtech(tmp_path):
     np.testing.assert_array_equal(raw[:, 11:], np.round(scan.power * 255).astype(np.uint8))
 
 
-def test_boreas_width_infers_boreas_preset(tmp_path):
-    scan = _quantised_scan(3, n_bins=3360)
-    back = read_navtech_png(write_navtech_png(scan, tmp_path / "b.png"))
+def test_boreas_width_is_ambiguous_without_a_preset(tmp_path):
+    """3,360 bins are Boreas, Boreas-2021 or MulRan (0.0596 / 0.04381 / 0.0595 m per bin): never guessed."""
+    path = write_navtech_png(_quantised_scan(3, n_bins=3360), tmp_path / "b.png")
+    with pytest.raises(ScanFormatError, match="3360 range bins fit several radar presets.*boreas.*mulran.*--preset"):
+        read_navtech_png(path)
+    back = read_navtech_png(path, "boreas")
     assert back.preset == "boreas"
     assert back.range_resolution_m == pytest.approx(0.0596)
     assert back.range_offset_m == pytest.approx(-0.31)
+    mulran = load_scan(path, "mulran")
+    assert (mulran.preset, mulran.range_resolution_m, mulran.range_offset_m) == ("mulran", 0.0595, 0.0)
 
 
 def test_npy_uint8_and_float(tmp_path):
@@ -251,3 +256,56 @@ def test_navtech_npy_decodes_to_the_pngs_scan() -> None:
     np.save(bad, np.zeros((400, 3371), np.float32))
     with pytest.raises(ScanFormatError, match="uint8"):
         decode_navtech_npy_bytes(bad.getvalue())
+
+
+def test_npy_preset_is_inferred_only_when_the_bin_count_names_one(tmp_path):
+    """M1: a polar .npy gets the geometry its width names (3,768 -> oxford), refuses to guess between the 3,360-bin
+    presets, and is read with an explicit preset exactly as asked (known bin sizes)."""
+    rng = np.random.default_rng(5)
+    np.save(tmp_path / "o.npy", rng.integers(0, 256, (400, 3768), dtype=np.uint8))
+    assert load_scan(tmp_path / "o.npy").preset == "oxford"
+    np.save(tmp_path / "b.npy", rng.integers(0, 256, (400, 3360), dtype=np.uint8))
+    with pytest.raises(ScanFormatError, match="3360 range bins fit several radar presets.*--preset"):
+        load_scan(tmp_path / "b.npy")
+    for preset, resolution, offset in (("boreas", 0.0596, -0.31), ("mulran", 0.0595, 0.0)):
+        scan = load_scan(tmp_path / "b.npy", preset)
+        assert (scan.preset, scan.range_resolution_m, scan.range_offset_m) == (preset, resolution, offset)
+
+
+@pytest.mark.parametrize("shape, preset, match", [
+    ((3360, 400), "boreas", "looks transposed"),
+    ((400, 5000), "oxford", "5000 range bins, but preset 'oxford' has 3768"),
+    ((3, 3), "oxford", "3 azimuths x 3 range bins; expected a full sweep with 64..8192"),
+])
+def test_npy_layout_contradicting_the_preset_is_refused(tmp_path, shape, preset, match):
+    np.save(tmp_path / "s.npy", np.zeros(shape, np.uint8))
+    with pytest.raises(ScanFormatError, match=match):
+        load_scan(tmp_path / "s.npy", preset)
+    # the upload path (service) applies the same check
+    with pytest.raises(ScanFormatError, match=match):
+        load_scan_bytes((tmp_path / "s.npy").read_bytes(), "s.npy", preset)
+
+
+def test_navtech_metadata_is_recognised(tmp_path):
+    from reradar_core.io.scan import has_navtech_metadata
+
+    raw = cv2.imread(str(write_navtech_png(_quantised_scan(1), tmp_path / "n.png")), cv2.IMREAD_UNCHANGED)
+    assert has_navtech_metadata(raw)
+    assert not has_navtech_metadata(raw[:, NAVTECH_META_COLUMNS:].copy())  # the same power without metadata
+    assert not has_navtech_metadata(np.random.default_rng(0).integers(0, 256, (400, 600), dtype=np.uint8))
+
+
+def test_upload_without_a_preset_takes_the_maps_where_the_scan_fits_it():
+    """The service reads an upload sent without ``preset`` with the target map's preset when the bin count fits
+    it (a 3,360-bin PNG on a Boreas-2021 map is 0.04381 m per bin, not the 0.0596 m of 2020's Boreas); a map
+    whose preset has another bin count changes nothing; a polar .npy (no geometry of its own) takes the map's."""
+    png = encode_navtech_png_bytes(_quantised_scan(4, n_bins=3360))
+    assert load_scan_bytes(png, "q.png").preset == "boreas"  # no map: the API's documented default
+    on_2021 = load_scan_bytes(png, "q.png", map_preset="boreas-2021")
+    assert (on_2021.preset, on_2021.range_resolution_m) == ("boreas-2021", pytest.approx(0.04381))
+    assert load_scan_bytes(png, "q.png", map_preset="oxford").preset == "boreas"  # 3768 bins: does not fit
+    assert load_scan_bytes(png, "q.png", preset="mulran", map_preset="boreas-2021").preset == "mulran"  # asked
+    polar = _npy_bytes(np.zeros((400, 3360), np.uint8))
+    assert load_scan_bytes(polar, "q.npy").preset == "oxford"
+    npy = load_scan_bytes(polar, "q.npy", map_preset="mulran")
+    assert (npy.preset, npy.range_resolution_m) == ("mulran", pytest.approx(0.0595))

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from maps.store import (
+    MAX_KEYPOINT_RANGE_M,
     POSE_TIME_FIRST_AZIMUTH,
     POSE_TIME_MID_SWEEP,
     SCHEMA_VERSION,
@@ -154,10 +155,8 @@ def test_links_and_external_storage_are_refused(tmp_path: Path) -> None:
     with h5py.File(path, "r+") as f:
         del f["keyframes/000001"]
         f["keyframes/000001"] = h5py.ExternalLink(str(other), "/keyframes/000000")
-    with open_map(path) as m:
-        m.read_keyframe(0)
-        with pytest.raises(MapFormatError, match="link"):
-            m.read_keyframe(1)
+    with pytest.raises(MapFormatError, match="'/keyframes/000001' is an external link"):
+        open_map(path)  # refused at open, before any keyframe is read
 
 
 def test_pose_time_is_recorded_and_old_maps_are_flagged(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
@@ -173,3 +172,85 @@ def test_pose_time_is_recorded_and_old_maps_are_flagged(tmp_path: Path, caplog: 
         f.attrs["pose_time"] = "noon"
     with pytest.raises(MapFormatError, match="pose_time"):
         read_metadata(path)
+
+
+def test_links_anywhere_are_refused_without_following_them(tmp_path: Path) -> None:
+    """A link the reader never reads (an extra member) still makes the map refused: soft, external, and in a
+    keyframe group or at the root; the external target is never opened (it does not exist)."""
+    cases = {
+        "keyframes/000001/ext": h5py.ExternalLink("/nonexistent/secret.h5", "/x"),
+        "alias": h5py.SoftLink("/poses"),
+        "keyframes/000000/dangling": h5py.SoftLink("/no/such/object"),
+    }
+    for i, (name, link) in enumerate(cases.items()):
+        path = write_map(tmp_path / f"l{i}.h5", _meta(), _features(np.random.default_rng(20 + i), 2), np.zeros((2, 3)))
+        with h5py.File(path, "r+") as f:
+            f[name] = link
+        kind = "an external link" if isinstance(link, h5py.ExternalLink) else "a soft link"
+        with pytest.raises(MapFormatError, match=f"'/{name}' is {kind}"):
+            open_map(path)
+
+
+def _map_with(tmp_path: Path, name: str, edit) -> Path:  # type: ignore[no-untyped-def]
+    rng = np.random.default_rng(30)
+    feats = [ScanFeatures(f.global_descriptor, rng.uniform(-80, 80, (5, 2)), rng.normal(size=(5, C)), f.timestamp_us)
+             for f in _features(rng, 3)]
+    path = write_map(tmp_path / f"{name}.h5", _meta(), feats, np.zeros((3, 3)))
+    with h5py.File(path, "r+") as f:
+        edit(f)
+    return path
+
+
+def test_keypoints_must_be_finite_and_within_the_radar_range(tmp_path: Path) -> None:
+    # the longest preset range (Boreas: -0.31 m + 3,359 bins x 0.0596 m = 199.886 m) plus the 50 m margin
+    assert MAX_KEYPOINT_RANGE_M == pytest.approx(249.886, abs=1e-3)
+
+    def set_kp(value: float, row: int = 0, col: int = 0):  # type: ignore[no-untyped-def]
+        def edit(f: h5py.File) -> None:
+            f["keyframes/000001/keypoints_xy_m"][row, col] = value
+        return edit
+
+    for name, value, match in (("nan", np.nan, "finite"), ("inf", np.inf, "finite"),
+                               ("huge", 1e30, "within the radar's range"),
+                               ("far", 2500.0, r"lies 250\d m from the sensor")):
+        with open_map(_map_with(tmp_path, name, set_kp(value))) as m:
+            m.read_keyframe(0)
+            with pytest.raises(MapFormatError, match=match):
+                m.read_keyframe(1)
+    # the bound is a distance from the sensor: (200, 100) is 223.6 m (kept), (200, 160) is 256.1 m (refused)
+    def set_xy(x: float, y: float):  # type: ignore[no-untyped-def]
+        def edit(f: h5py.File) -> None:
+            f["keyframes/000002/keypoints_xy_m"][0] = (x, y)
+        return edit
+
+    with open_map(_map_with(tmp_path, "near", set_xy(200.0, 100.0))) as m:
+        np.testing.assert_array_equal(m.read_keyframe(2).keypoints_xy_m[0], [200.0, 100.0])
+    with open_map(_map_with(tmp_path, "edge", set_xy(200.0, 160.0))) as m, pytest.raises(MapFormatError, match="256"):
+        m.read_keyframe(2)
+
+    def nan_desc(f: h5py.File) -> None:
+        f["keyframes/000000/local_descriptors"][2, 3] = np.nan
+
+    with open_map(_map_with(tmp_path, "desc", nan_desc)) as m, pytest.raises(MapFormatError, match="local_descriptors"):
+        m.read_keyframe(0)
+
+
+def test_keyframe_poses_beyond_the_coordinate_bound_are_refused(tmp_path: Path) -> None:
+    def far_pose(f: h5py.File) -> None:
+        f["poses"][1, 0] = 1e300
+
+    with pytest.raises(MapFormatError, match="within"):
+        open_map(_map_with(tmp_path, "pose", far_pose))
+
+
+def test_shipped_demo_map_passes_every_check() -> None:
+    """The demo map (built by `scripts/build_demo_map.py` through `maps.build.build_map`, as `reradar
+    build-map` builds) opens and every keyframe reads through the validation."""
+    from maps.paths import DEMO_MAP_PATH
+
+    with open_map(DEMO_MAP_PATH) as m:
+        assert len(m) > 0
+        for i in range(len(m)):
+            kf = m.read_keyframe(i)
+            assert np.all(np.isfinite(kf.keypoints_xy_m))
+            assert float(np.max(np.hypot(*kf.keypoints_xy_m.T.astype(np.float64)))) <= MAX_KEYPOINT_RANGE_M

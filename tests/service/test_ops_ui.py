@@ -20,10 +20,14 @@ import numpy as np
 import pytest
 
 from reradar_core.io.scan import encode_navtech_png_bytes
+from service.core.config import Settings
+from service.demo import serve_in_thread
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from service_test_fakes import (  # noqa: E402
+    API_KEY,
     N_KEYFRAMES,
+    FakeExtractor,
     keyframe_poses,
     keyframe_time,
     make_scan,
@@ -147,6 +151,33 @@ def test_operator_page_draws_trajectory_and_localizations(live: str, browser, tm
         py = int(round(h / 2 - (y - (y0 + y1) / 2) * scale))
         near = (traj | ok)[max(py - 3, 0):py + 4, max(px - 3, 0):px + 4]
         assert near.any(), f"keyframe ({x}, {y}) not drawn near pixel ({px}, {py})"
+
+
+def test_operator_page_sends_the_typed_key_when_vehicle_keys_are_configured(  # type: ignore[no-untyped-def]
+        browser, fake_map: Path, tmp_path: Path) -> None:
+    """With vehicle keys, the page's data endpoints (where vehicles are) need a key: the page says so, and
+    draws once a vehicle key is typed into its key field."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+
+    vehicle = "vehicle-key-0123456789"
+    settings = Settings(maps_dir=tmp_path / "maps", load_demo_map=False, api_key=API_KEY, vehicle_keys=vehicle)
+    with serve_in_thread(settings, FakeExtractor()) as url, httpx.Client(base_url=url, timeout=60) as c:
+        register_map_file(c, fake_map, "keyed")
+        png = encode_navtech_png_bytes(make_scan(3, keyframe_time(3)))
+        r = c.post("/localize", data={"map_id": "keyed"}, files={"scan": ("q.png", png, "image/png")},
+                   headers={"X-API-Key": vehicle})
+        assert r.status_code == 200 and r.json()["status"] == "localized", r.text
+        browser.get(url + "/")
+        status = browser.find_element(By.ID, "service-status")
+        _wait(lambda: "HTTP 401" in status.text and "API key" in status.text)
+        canvas = browser.find_element(By.ID, "trajectory")
+        assert canvas.get_attribute("data-points") == "0"
+        key = browser.find_element(By.ID, "api-key")
+        key.send_keys(vehicle, Keys.TAB)  # "change" fires when the field loses focus
+        _wait(lambda: canvas.get_attribute("data-points") == str(N_KEYFRAMES)
+              and canvas.get_attribute("data-fixes") == "1")
+        _wait(lambda: status.text.startswith("live"))
 
 
 def test_swagger_ui_renders_offline(live: str, browser) -> None:  # type: ignore[no-untyped-def]

@@ -166,9 +166,10 @@ def test_navtech_npy_transport_gives_the_pngs_answer(client: httpx.Client) -> No
     via = ReRadarClient(str(client.base_url)).localize("route-a", scan_bytes=raw, filename="q.npy",
                                                        scan_layout="navtech")
     assert (via.status, via.keyframe.keyframe_id if via.keyframe else None) == want[:2]
-    # the same array read as a polar .npy (the default) is another scan: the metadata columns become range bins
+    # the same array read as a polar .npy (the default) is another scan: the metadata columns become range bins,
+    # 11 more than the map's preset has, so it is refused (a polar .npy takes the map's geometry)
     polar = client.post("/localize", data={"map_id": "route-a"}, files={"scan": ("q.npy", raw)})
-    assert polar.status_code == 200
+    assert polar.status_code == 422 and "range bins" in polar.json()["detail"]
     bad = client.post("/localize", data={"map_id": "route-a", "scan_layout": "raw"}, files={"scan": ("q.npy", raw)})
     assert bad.status_code == 400 and "scan_layout" in bad.json()["detail"]
     floats = io.BytesIO()

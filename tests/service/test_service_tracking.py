@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 
 from reradar_core.geometry.se2 import relative_pose
@@ -35,8 +36,15 @@ def test_session_tracks_from_previous_pose_and_odometry(client: httpx.Client) ->
     assert first["status"] == "localized" and first["mode"] == "global" and first["session_id"] == "veh-1"
     assert first["keyframe"]["keyframe_id"] == 2 and first["alignment_score"] >= 0.5
     odo = relative_pose(poses[2], poses[3])  # the vehicle drove from keyframe 2 to keyframe 3
+    # 40 m of odometry: sigma 0.5 + 10 % = 4.5 m, more than the registration reaches (TrackingConfig.covers)
+    far = _localize(client, 3, session_id="veh-1", odom_dx_m=odo[0], odom_dy_m=odo[1],
+                    odom_dyaw_deg=float(odo[2]) * 180 / 3.141592653589793).json()
+    assert far["status"] == "localized" and far["mode"] == "global" and not far["tracking_lost"]
+    assert far["keyframe"]["keyframe_id"] == 3
+    # the vehicle creeps 0.2 m on: tracked from that answer plus the odometry
+    odo = relative_pose(poses[3], poses[3] + [0.2 * np.cos(poses[3, 2]), 0.2 * np.sin(poses[3, 2]), 0.0])
     second = _localize(client, 3, session_id="veh-1", odom_dx_m=odo[0], odom_dy_m=odo[1],
-                       odom_dyaw_deg=float(odo[2]) * 180 / 3.141592653589793).json()
+                       odom_dyaw_deg=0.0).json()
     assert second["status"] == "localized" and second["mode"] == "tracking" and not second["tracking_lost"]
     assert second["keyframe"]["keyframe_id"] == 3
     assert second["pose"]["x_m"] == pytest.approx(poses[3, 0], abs=0.3)

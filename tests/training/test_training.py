@@ -301,3 +301,27 @@ def test_train_takes_several_splits_and_merges_their_plans(monkeypatch, tmp_path
     assert seen["kw"]["recall_radius_m"] == 20.0
     bad = CliRunner().invoke(app, ["train", "--name", "x", "--split", "a,far"])
     assert bad.exit_code != 0 and "recall radii" in bad.output
+
+
+@pytest.mark.parametrize("name", ["../../etc/x", "a/b", ".hidden", "..", ""])
+def test_train_name_must_be_a_plain_file_stem(tmp_path, name):
+    """L3: ``--name ../../etc/x`` once wrote outside --out-dir; refused before anything is read or written."""
+    from typer.testing import CliRunner
+
+    from reradar_cli import app
+
+    res = CliRunner().invoke(app, ["train", "--name", name, "--sequence", str(tmp_path), "--steps", "0",
+                                   "--out-dir", str(tmp_path / "out")])
+    assert res.exit_code == 2 and "--name" in res.output
+    assert not (tmp_path / "out").exists() and not (tmp_path.parent / "etc").exists()
+
+
+@pytest.mark.parametrize("args, message", [(["--split", "nosuch"], "unknown training split 'nosuch'"),
+                                           (["--sequence", "nosuch"], "nosuch: sequence folder does not exist")])
+def test_train_bad_data_is_a_one_line_error(tmp_path, args, message):
+    from typer.testing import CliRunner
+
+    from reradar_cli import app
+
+    res = CliRunner().invoke(app, ["train", "--name", "x", *args, "--out-dir", str(tmp_path)])
+    assert res.exit_code == 2 and message in res.output and "Traceback" not in res.output

@@ -11,6 +11,7 @@ router = APIRouter(tags=["health"])
 
 
 @router.get("/healthz", response_model=HealthResponse, operation_id="healthz")
+@router.head("/healthz", include_in_schema=False, response_model=HealthResponse)  # load balancers probe with HEAD
 def healthz() -> HealthResponse:
     """The process is up (does not check the model or maps)."""
     return HealthResponse()
@@ -18,6 +19,7 @@ def healthz() -> HealthResponse:
 
 @router.get("/readyz", response_model=ReadyResponse, operation_id="readyz",
             responses={503: {"model": ReadyResponse, "description": "Model or maps still loading."}})
+@router.head("/readyz", include_in_schema=False, response_model=ReadyResponse)
 def readyz(request: Request) -> Response | ReadyResponse:
     """200 once the model and the maps in the maps directory are loaded, 503 before."""
     state = getattr(request.app.state, "reradar", None)

@@ -74,10 +74,11 @@ _E = {"model": ErrorResponse}
 async def localize(request: Request, state: StateDep) -> LocalizeResponse:
     """Localize one scan on a map. JSON ``{map_id, scan_id}`` for a scan uploaded with ``POST /scans``, or
     multipart/form-data with ``map_id`` and a ``scan`` file (Navtech PNG / .npy). ``status`` is
-    ``localized`` only when at least half of the query's landmarks align with the chosen keyframe's (and
-    ``min_inliers``); ``pose`` is then the query's pose in the map frame (metres, degrees). With a
-    ``session_id`` (plus odometry) or an explicit ``prior_*`` the scan is tracked from that prior (``mode``
-    ``tracking``), falling back to global localization when no consistent pose is found near it."""
+    ``localized`` only when enough of the query's landmarks align with the chosen keyframe's (the floor and
+    ``min_inliers``) and, globally, the confidence reaches its bar; ``pose`` is then the query's pose in the
+    map frame (metres, degrees). With a ``session_id`` plus odometry, or an explicit ``prior_*``, the scan is tracked from that prior (``mode``
+    ``tracking``), falling back to global localization when no consistent pose is found near it; a session
+    scan without odometry, or a prior looser than 3 m sigma, is localized globally."""
     t0 = time.perf_counter()
     inp = await read_scan_input(request, state, LocalizeRequest, _FORM_KEYS)
     map_id = inp.fields["map_id"]
@@ -85,13 +86,16 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
     config = state.localization_config(inp.fields.get("top_k"))
     session_id = inp.fields.get("session_id")
     odometry, explicit = _odometry(inp.fields), _prior(inp.fields)  # both validated on every request
+    # a session scan without odometry has no prior (the vehicle moved an unknown distance): global, as is a
+    # prior too loose for the registration to reach its error (``TrackingConfig.covers``; docs/SERVICE.md)
     prior = explicit or (state.sessions.prior_for(session_id, map_id, odometry) if session_id else None)
-    if prior is not None:
+    if prior is not None and config.tracking.covers(prior):
         result = await run_in_threadpool(db.track, inp.features, prior, config)
     else:
         result = await run_in_threadpool(db.localize, inp.features, config)
     if session_id:
-        state.sessions.update(session_id, map_id, result.T_map_query, prior)
+        state.sessions.update(session_id, map_id, result.T_map_query, prior,
+                              moved_unknown=odometry is None and explicit is None)
     timings = {**inp.timings_ms, **result.timings_ms}
     state.metrics.observe_stages(timings)
     state.metrics.inc("reradar_localizations_total", status=result.status)

@@ -15,7 +15,7 @@ from starlette.concurrency import run_in_threadpool
 from reradar_core.errors import PoseFileError
 from reradar_core.io.poses import read_poses
 from reradar_core.io.presets import PRESETS, mid_sweep_times_us
-from service.api.deps import ApiKeyDep, MapIdPath, StateDep
+from service.api.deps import ApiKeyDep, FormDep, MapIdPath, StateDep
 from service.api.scan_input import read_scan_input, scan_request_body
 from service.api.schemas import (
     ErrorResponse,
@@ -94,8 +94,9 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
     if preset is not None and preset.lower() not in PRESETS:
         raise BadRequestError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
     # early check so a large archive is not unpacked for a taken id; start_build re-checks atomically
-    if any(e.map_id == map_id for e in registry.entries()) or registry.path_for(map_id).exists():
-        raise ConflictError(f"map {map_id!r} already exists; DELETE /maps/{map_id} first or pick another id")
+    taken = next((e for e in registry.entries() if e.map_id == map_id), None)
+    if taken is not None or registry.path_for(map_id).exists():
+        raise ConflictError(registry.taken_message(map_id, taken))
     work = registry.staging_dir() / f"job-{uuid.uuid4().hex}"
     work.mkdir()
     try:
@@ -112,12 +113,14 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
             raise PoseFileError(f"poses upload is not a text CSV file ({exc})") from exc
         if len(track) < 1:
             raise PoseFileError("poses upload holds no poses")
+        # names are checked against MAX_SCAN_TIMESTAMP_US by extract_scan_archive, so they fit int64
         stamps = np.array([int(SCAN_NAME_PATTERN.match(p.name).group(1)) for p in scan_paths],  # type: ignore[union-attr]
                           dtype=np.int64)
         slack = 500_000  # pose files sample at their own rate; 0.5 s slack at the ends, as load_sequence
-        outside = (stamps < track.timestamps_us[0] - slack) | (stamps > track.timestamps_us[-1] + slack)
-        if np.any(outside):
-            bad = scan_paths[int(np.argmax(outside))].name
+        first, last = int(track.timestamps_us[0]) - slack, int(track.timestamps_us[-1]) + slack  # Python ints
+        outside = [not first <= int(t) <= last for t in stamps]
+        if any(outside):
+            bad = scan_paths[outside.index(True)].name
             raise BadRequestError(f"scan {bad} lies outside the time span of the poses file; scan files must be "
                                   f"named by their timestamp in microseconds")
         # keyframe poses at mid-sweep (docs/CONVENTIONS.md); every preset sweeps 400 azimuths at 4 Hz
@@ -132,10 +135,11 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
 
 @router.post("", response_model=MapInfo, status_code=status.HTTP_201_CREATED, operation_id="register_map",
              responses={202: {"model": MapInfo, "description": "Build job started; poll GET /maps/{id}."},
-                        400: _E, 401: _E, 409: _E, 413: _E, 422: _E})
+                        400: _E, 401: _E, 409: _E, 413: _E, 415: _E, 422: _E})
 def register_map(
     state: StateDep,
     _auth: ApiKeyDep,
+    _form: FormDep,
     response: Response,
     map_id: Annotated[str, Form(pattern=MAP_ID_PATTERN, description="New map id.")],
     map_file: Annotated[UploadFile | None, File(description="A prebuilt HDF5 map (docs/MAP_FORMAT.md).")] = None,

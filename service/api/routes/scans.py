@@ -7,7 +7,7 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, File, Form, UploadFile, status
 from starlette.concurrency import run_in_threadpool
 
-from service.api.deps import StateDep
+from service.api.deps import FormDep, StateDep
 from service.api.scan_input import SCAN_LAYOUT_DESCRIPTION, read_scan_upload
 from service.api.schemas import ErrorResponse, ScanInfo
 from service.core.errors import BadRequestError
@@ -21,6 +21,7 @@ _ERRORS: dict[int | str, dict[str, Any]] = {400: {"model": ErrorResponse}, 413: 
              responses=_ERRORS)
 async def upload_scan(
     state: StateDep,
+    _form: FormDep,
     scan: Annotated[UploadFile, File(description="Navtech polar PNG or .npy array (see scan_layout).")],
     preset: Annotated[str | None, Form(description="Radar preset (default: inferred from the bin count).")] = None,
     scan_layout: Annotated[Literal["polar", "navtech"], Form(description=SCAN_LAYOUT_DESCRIPTION)] = "polar",

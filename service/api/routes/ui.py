@@ -17,7 +17,7 @@ from fastapi.responses import FileResponse, HTMLResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 
-from service.api.deps import MapIdPath, StateDep
+from service.api.deps import MapIdPath, StateDep, VehicleDep
 
 __all__ = ["install_ui", "router", "UI_DIR", "MAX_TRAJECTORY_POINTS"]
 
@@ -70,8 +70,10 @@ def trajectory_points(poses: np.ndarray, max_points: int = MAX_TRAJECTORY_POINTS
 
 
 @router.get("/ui/api/maps/{map_id}/trajectory")
-def map_trajectory(state: StateDep, map_id: MapIdPath) -> dict[str, Any]:
-    """Keyframe positions of a ready map in the map frame: ``x_m``, ``y_m`` (metres), ``yaw_deg``."""
+def map_trajectory(state: StateDep, _auth: VehicleDep, map_id: MapIdPath) -> dict[str, Any]:
+    """Keyframe positions of a ready map in the map frame: ``x_m``, ``y_m`` (metres), ``yaw_deg``. Access as
+    the vehicle routes (``service.api.security``): a vehicle or operator key, or a loopback client while no
+    vehicle key is configured."""
     db = state.registry.ready(map_id)
     poses = np.asarray(db.map.poses, dtype=np.float64)
     keep = trajectory_points(poses)
@@ -82,9 +84,10 @@ def map_trajectory(state: StateDep, map_id: MapIdPath) -> dict[str, Any]:
 
 
 @router.get("/ui/api/maps/{map_id}/localizations")
-async def map_localizations(request: Request, state: StateDep, map_id: MapIdPath,
+async def map_localizations(request: Request, state: StateDep, _auth: VehicleDep, map_id: MapIdPath,
                             limit: Annotated[int, Query(ge=1, le=1000)] = 50) -> dict[str, Any]:
-    """The latest localizations on ``map_id``, newest first (503 when they live in an unreachable Redis)."""
+    """The latest localizations on ``map_id``, newest first (map frame, metres, degrees; 503 when they live in
+    an unreachable Redis). Access as ``map_trajectory``: these are vehicles' positions."""
     state.registry.validate_id(map_id)
     recent = request.app.state.ops.recent
     data = await run_in_threadpool(recent.latest, map_id, limit)

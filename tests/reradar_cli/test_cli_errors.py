@@ -1,0 +1,185 @@
+"""Bad input to the ``reradar`` commands is one line naming what to fix and a non-zero exit (2: usage or settings, 3:
+unreachable resources), never a traceback, and never echoes a secret; ``localize --preset`` reaches the API."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from reradar_cli import app
+
+SECRET = "SuperSecretOperatorKey-XYZ"
+
+
+def _run(args: list[str], env: dict[str, str] | None = None):
+    res = CliRunner().invoke(app, args, env=env)
+    assert "Traceback" not in res.output
+    return res
+
+
+def _help(command: str) -> str:
+    """``reradar COMMAND --help`` as one line of words (the rich panel's borders and wrapping removed)."""
+    return " ".join(_run([command, "--help"]).output.replace("│", " ").split())
+
+
+@pytest.mark.parametrize("args, what", [(["--log-level", "nosuch"], "--log-level"), (["--port", "99999"], "--port"),
+                                        (["--port", "0"], "--port")])
+def test_serve_refuses_bad_options(args, what):
+    res = _run(["serve", *args])
+    assert res.exit_code == 2 and what in res.output
+
+
+def test_serve_checks_settings_before_starting(tmp_path, monkeypatch):
+    monkeypatch.delenv("RERADAR_MAPS_DIR", raising=False)
+    a_file = tmp_path / "traj.csv"
+    a_file.write_text("t,x,y,yaw\n")
+    res = _run(["serve", "--maps-dir", str(a_file)])
+    assert res.exit_code == 2 and "is a file" in res.output
+    res = _run(["serve", "--maps-dir", str(tmp_path / "maps")], env={"RERADAR_MODEL": "nosuch"})
+    assert res.exit_code == 2 and "RERADAR_MODEL" in res.output and "unknown model 'nosuch'" in res.output
+
+
+@pytest.mark.parametrize("command", [["serve"], ["worker"]])
+def test_settings_errors_name_the_field_never_the_keys(command, tmp_path):
+    env = {"RERADAR_API_KEY": SECRET, "RERADAR_VEHICLE_KEYS": "short", "RERADAR_MAPS_DIR": str(tmp_path)}
+    res = _run(command, env=env)
+    assert res.exit_code == 2 and "RERADAR_VEHICLE_KEYS" in res.output and "at least 16 characters" in res.output
+    assert SECRET[:6] not in res.output and "short" not in res.output and "input_value" not in res.output
+    res = _run(command, env={"RERADAR_API_KEY": "short", "RERADAR_MAPS_DIR": str(tmp_path)})
+    assert res.exit_code == 2 and "RERADAR_API_KEY" in res.output and "'short'" not in res.output
+
+
+def test_worker_redis_url_errors(tmp_path):
+    env = {"RERADAR_MAPS_DIR": str(tmp_path)}
+    res = _run(["worker"], env={**env, "RERADAR_REDIS_URL": "notaurl"})
+    assert res.exit_code == 2 and "not a Redis URL" in res.output
+    res = _run(["worker"], env={**env, "RERADAR_REDIS_URL": "redis://:pass-word@127.0.0.1:1/0"})
+    assert res.exit_code == 3 and "cannot reach Redis" in res.output and "pass-word" not in res.output
+    res = _run(["worker", "--check"], env={**env, "RERADAR_REDIS_URL": "redis://127.0.0.1:1/0"})
+    assert res.exit_code == 1 and "cannot reach Redis" in res.output
+    res = _run(["worker", "--check"], env={**env, "RERADAR_REDIS_URL": ""})
+    assert res.exit_code == 2 and "RERADAR_REDIS_URL" in res.output
+    assert "2 if the settings are invalid" in _help("worker")
+
+
+def _fake_server(monkeypatch) -> list[httpx.Request]:
+    """Every request the CLI's client sends, answered 400 by a fake server (no network)."""
+    from service import client
+
+    seen: list[httpx.Request] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        seen.append(request)
+        return httpx.Response(400, json={"detail": "fake server: refused"})
+
+    init = client.ReRadarClient.__init__
+    monkeypatch.setattr(client.ReRadarClient, "__init__",
+                        lambda self, base_url, **kw: init(self, base_url, transport=httpx.MockTransport(handler)))
+    return seen
+
+
+def test_localize_sends_the_preset_and_refuses_ambiguous_npy(tmp_path, monkeypatch):
+    seen = _fake_server(monkeypatch)
+    scan = tmp_path / "b0.npy"
+    np.save(scan, np.zeros((400, 3360), np.uint8))
+    res = _run(["localize", str(scan), "--server", "http://x"])
+    assert res.exit_code == 2 and "fit several radar presets" in res.output and "--preset" in res.output
+    assert seen == []  # refused before anything is sent
+    res = _run(["localize", str(scan), "--server", "http://x", "--preset", "mulran"])
+    assert res.exit_code == 2 and "fake server: refused" in res.output
+    assert b'name="preset"\r\n\r\nmulran\r\n' in seen[-1].read()
+    np.save(tmp_path / "o.npy", np.zeros((400, 3768), np.uint8))  # unambiguous: the inferred preset is sent
+    _run(["localize", str(tmp_path / "o.npy"), "--server", "http://x"])
+    assert b'name="preset"\r\n\r\noxford\r\n' in seen[-1].read()
+    np.save(tmp_path / "t.npy", np.zeros((3360, 400), np.uint8))
+    res = _run(["localize", str(tmp_path / "t.npy"), "--server", "http://x", "--preset", "boreas"])
+    assert res.exit_code == 2  # the server checks an explicit preset (same check, io.scan.check_polar_shape)
+    res = _run(["localize", str(tmp_path / "t.npy"), "--server", "http://x"])
+    assert res.exit_code == 2 and "cannot infer the radar preset from 400 range bins" in res.output
+    res = _run(["localize", str(scan), "--top-k", "-3"])
+    assert res.exit_code == 2 and "--top-k" in res.output and "greater than or equal to 1" in res.output
+
+
+def test_localize_help_shows_the_extras_name():
+    text = _help("localize")
+    assert "Needs the optional bench extras" in text and "--preset" in text and "--scan-layout" in text
+
+
+def test_cache_dir_that_is_a_file_and_foreign_sim_folders(tmp_path):
+    a_file = tmp_path / "f"
+    a_file.write_text("x")
+    res = _run(["cache"], env={"RERADAR_CACHE_DIR": str(a_file)})
+    assert res.exit_code == 2 and "RERADAR_CACHE_DIR" in res.output and "is a file" in res.output
+    (tmp_path / "c" / "sim" / "smoke" / "database").mkdir(parents=True)
+    (tmp_path / "c" / "sim" / "smoke" / "database" / "0.png").write_bytes(b"x")
+    res = _run(["cache", "--prune"], env={"RERADAR_CACHE_DIR": str(tmp_path / "c")})
+    assert res.exit_code == 0 and "nothing stale" in res.output
+    assert (tmp_path / "c" / "sim" / "smoke" / "database" / "0.png").is_file()
+    text = _help("cache")
+    assert "source folder no longer exists" in text
+
+
+def test_corrupt_weights_are_a_config_error_naming_the_file(tmp_path):
+    from reradar_core.model.registry import available_models, resolve_weights
+
+    _, meta = resolve_weights(available_models()[0])
+    bad = tmp_path / "models" / "bad2.pt"
+    bad.parent.mkdir()
+    bad.write_bytes(b"\x80\x04not a torch zip file" * 10)
+    bad.with_suffix(".json").write_text(json.dumps(meta))
+    res = _run(["export-onnx", str(bad)])
+    assert res.exit_code == 2 and "bad2.pt is not a readable ReRadar weights file" in res.output
+    assert str(tmp_path) not in res.output  # the file by its name, no internal path
+
+
+@pytest.mark.parametrize("args, what", [(["--radius", "-5"], "--radius"), (["--limit", "0"], "--limit"),
+                                        (["--every", "0"], "--every")])
+def test_bench_numbers_are_checked(tmp_path, args, what):
+    res = _run(["bench", "--database", str(tmp_path), "--query", str(tmp_path), *args])
+    assert res.exit_code == 2 and what in res.output
+
+
+def test_help_text_has_no_swallowed_brackets():
+    """Rich markup takes ``[word]`` for a style and drops it ("Needs the  extras"): no help text may hold one."""
+    import re
+
+    from reradar_cli import COMMANDS
+    from reradar_cli.main import load_command
+
+    for name in COMMANDS:
+        cmd = load_command(name)
+        for text in [cmd.help or ""] + [getattr(p, "help", None) or "" for p in cmd.params]:
+            assert not re.search(r"(?<!\\)\[[A-Za-z][\w-]*\]", text), (name, text)
+
+
+def test_readme_lists_every_command():
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    from reradar_cli import COMMANDS
+
+    for name in COMMANDS:
+        assert f"`reradar {name}" in readme, name
+
+
+def test_fit_confidence_refuses_unknown_splits_bad_spacings_and_a_reuse_without_runs(tmp_path, monkeypatch):
+    """Each refused before anything is rendered or localized (the cache stays empty)."""
+    monkeypatch.setenv("RERADAR_CACHE_DIR", str(tmp_path / "cache"))
+    res = _run(["fit-confidence", "--splits", "nosuch", "--reuse"])
+    assert res.exit_code == 2 and "unknown training split" in res.output and "train-target-boreas" in res.output
+    res = _run(["fit-confidence", "--splits", ",", "--reuse"])
+    assert res.exit_code == 2 and "no training split" in res.output
+    res = _run(["fit-confidence", "--map-spacings-m", "0,-3", "--reuse"])
+    assert res.exit_code == 2 and "--map-spacings-m" in res.output
+    res = _run(["fit-confidence", "--reuse", "--out", str(tmp_path / "m.json")])
+    assert res.exit_code == 2 and "no saved runs" in res.output and "without --reuse" in res.output
+    assert not (tmp_path / "m.json").exists()
+    assert not any((tmp_path / "cache").rglob("*.npz"))
+
+
+def test_build_map_out_a_folder_is_one_line(tmp_path):
+    res = _run(["build-map", "--dataset", str(tmp_path), "--out", str(tmp_path), "--overwrite"])
+    assert res.exit_code == 2 and "is a folder" in res.output and "map.h5" in res.output
