@@ -4,7 +4,8 @@
     python scripts/build_demo_map.py                 # shipped default weights
     python scripts/build_demo_map.py --weights PATH  # other weights (.pt) or registry name
 
-Writes ``maps/demo/demo.h5`` (the smoke suite's database traversal, every scan a keyframe),
+Writes ``maps/demo/demo.h5`` (the smoke suite's database traversal rendered every 2nd frame, ~3.5 m apart, every
+scan a keyframe: the map density ``reradar build-map`` makes from a drive and the confidence is fitted for),
 ``maps/demo/queries/<t_us>.png`` (evenly spaced scans of the suite's *query* traversal: another drive, 1.5 m
 to the side, in snow cover) with ``maps/demo/queries/queries.csv`` (ground-truth map poses) and
 ``maps/demo/demo.json`` (provenance). Deterministic: the simulator is seeded and the network is run in eval
@@ -40,6 +41,10 @@ def main() -> int:
     parser.add_argument("--weights", default="default", help="model registry name or .pt path")
     parser.add_argument("--suite", default="smoke", help="simulator suite (database -> map, query -> queries)")
     parser.add_argument("--num-queries", type=int, default=8, help="demo query scans to ship")
+    parser.add_argument("--every", type=int, default=2,
+                        help="frame step of both traversals (the suite's own: 8, keyframes ~14 m apart; 2: ~3.5 m, "
+                             "the density the answer confidence is fitted for, docs/MODEL.md 'Sparser maps')")
+    parser.add_argument("--limit", type=int, default=80, help="scans per traversal (80 x every 2 = the suite's route)")
     parser.add_argument("--max-keypoints", type=int, default=0,
                         help="cap stored keypoints per keyframe (0: keep the extractor's keypoints, as queries get)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
@@ -53,7 +58,7 @@ def main() -> int:
 
     torch.manual_seed(0)
     torch.set_num_threads(args.threads)
-    suite = build_suite(args.suite, progress=True)
+    suite = build_suite(args.suite, progress=True, every=args.every, limit=args.limit)
     extractor = DescriptorExtractor.from_pretrained(args.weights)
     print(f"model {extractor.model_id} (weights sha256 {extractor.weights_sha256[:12]}...)")
 
@@ -86,6 +91,8 @@ def main() -> int:
         "model_id": meta.model_id,
         "weights_sha256": meta.weights_sha256,
         "max_keypoints": args.max_keypoints,
+        "every": args.every,
+        "limit": args.limit,
         "command": "python scripts/build_demo_map.py" + ("" if args.weights == "default" else f" --weights {args.weights}"),
     }
     (DEMO_DIR / "demo.json").write_text(json.dumps(info, indent=2) + "\n")

@@ -24,14 +24,10 @@ from service.core.errors import PROBLEM_MEDIA_TYPE, ConflictError, UnauthorizedE
 from service.core.registry import MapEntry, MapRegistry
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from service_test_fakes import (  # noqa: E402
-    API_KEY,
-    FakeExtractor,
-    keyframe_poses,
-    keyframe_time,
-    make_scan,
-    register_map_file,
-)
+import service_test_fakes as fakes  # noqa: E402
+from service_test_fakes import API_KEY, FakeExtractor, register_map_file  # noqa: E402
+
+keyframe_poses, keyframe_time, make_scan = fakes.keyframe_poses, fakes.keyframe_time, fakes.make_scan
 
 AUTH = {"X-API-Key": API_KEY}
 VEHICLE = "vehicle-key-0123456789"
