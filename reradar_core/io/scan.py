@@ -229,9 +229,15 @@ def check_polar_shape(num_azimuths: int, num_range_bins: int, preset: RadarPrese
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _NPY_MAGIC = b"\x93NUMPY"
 
-#: Image formats recognised by their magic bytes that are refused as scans because they are lossy: their
-#: compression artefacts would be read as radar returns.
+#: Image formats recognised by their magic bytes that are refused as scans: lossy ones (their compression
+#: artefacts would be read as radar returns) and GIF (palette-quantised, and no radar writes it).
 LOSSY_FORMATS = ("jpeg", "jpeg2000", "webp", "gif", "heif/avif")
+
+
+def why_format_refused(kind: str) -> str:
+    """Why an image format of ``LOSSY_FORMATS`` is not a scan, for a message."""
+    return "palette-quantised" if kind == "gif" else "lossy"
+
 
 _MAGIC: tuple[tuple[bytes, int, str], ...] = (
     (PNG_SIGNATURE, 0, "png"),
@@ -367,8 +373,8 @@ def scan_header(data: bytes, size: int | None = None) -> ScanHeader:
     if kind == "npy":
         return read_npy_header(data, size)
     if kind in LOSSY_FORMATS:
-        raise ScanFormatError(f"{kind.upper()} images are lossy and are not accepted as radar scans: send the "
-                              "radar's lossless Navtech PNG or an (A, R) .npy array")
+        raise ScanFormatError(f"{kind.upper()} images are {why_format_refused(kind)} and are not accepted as radar "
+                              "scans: send the radar's lossless Navtech PNG or an (A, R) .npy array")
     what = "empty file" if not data and not size else (kind.upper() if kind != "unknown" else "unrecognised format")
     raise ScanFormatError(f"upload is not a Navtech PNG or .npy array ({what})")
 

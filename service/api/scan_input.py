@@ -22,6 +22,7 @@ from reradar_core.io.scan import (
     NpyLayout,
     scan_header,
     sniff_scan_format,
+    why_format_refused,
 )
 from service.core.errors import BadRequestError, NotFoundError, PayloadTooLargeError, UnsupportedMediaError
 from service.core.state import MAX_SCAN_SIDE, MIN_SCAN_SIDE, ServiceState
@@ -85,8 +86,8 @@ def check_scan_upload(data: bytes, max_pixels: int, size: int | None = None,
     """
     kind = sniff_scan_format(data)
     if kind in LOSSY_FORMATS:
-        raise UnsupportedMediaError(f"{kind.upper()} images are lossy and are not accepted as radar scans: send "
-                                    "the radar's lossless Navtech PNG or an (A, R) .npy array")
+        raise UnsupportedMediaError(f"{kind.upper()} images are {why_format_refused(kind)} and are not accepted "
+                                    "as radar scans: send the radar's lossless Navtech PNG or an (A, R) .npy array")
     header = scan_header(data, size)
     rows, cols = header.shape
     navtech = header.format == "png" or scan_layout == "navtech"  # metadata columns in front of the bins

@@ -230,6 +230,8 @@ def test_lossy_and_unknown_formats_are_named():
     assert sniff_scan_format(encode_navtech_png_bytes(_quantised_scan())) == "png"
     with pytest.raises(ScanFormatError, match="JPEG images are lossy"):
         scan_header(jpg.tobytes())
+    with pytest.raises(ScanFormatError, match="GIF images are palette-quantised"):  # lossless, but not a scan
+        scan_header(b"GIF89a" + bytes(64))
     with pytest.raises(ScanFormatError, match="unrecognised"):
         scan_header(b"hello world")
     with pytest.raises(ScanFormatError, match="empty"):
