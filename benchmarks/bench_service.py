@@ -284,7 +284,7 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
     from reradar_core.localization import LocalizationConfig, PosePrior
     from reradar_core.model import DescriptorExtractor
     from service.core.blas import limit_blas_threads
-    from service.follow import noisy_odometry
+    from service.follow import POSE_ROTATION_DEG, POSE_TRANSLATION_M, noisy_odometry
 
     torch.set_num_threads(1)
     limit_blas_threads(1)
@@ -298,7 +298,7 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
             return "not"
         et = float(np.hypot(*(res.T_map_query[:2] - gt[:2])))
         er = float(abs(np.degrees(angle_diff(res.T_map_query[2], gt[2]))))
-        if et <= 2.0 and er <= 2.0:
+        if et <= POSE_TRANSLATION_M and er <= POSE_ROTATION_DEG:
             return "ok"
         return "off" if et <= 20.0 and er <= 10.0 else "wrong"
 

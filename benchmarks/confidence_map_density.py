@@ -34,9 +34,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from reradar_core.baselines.ours import Ours  # noqa: E402
-from reradar_core.evaluation.metrics import localization_errors, localization_success  # noqa: E402
 from reradar_core.geometry.se2 import compose  # noqa: E402
-from reradar_core.localization.confidence import CUE_NAMES, cues_from_result, default_confidence_model  # noqa: E402
+from reradar_core.localization.confidence import CUE_NAMES, default_confidence_model  # noqa: E402
 from reradar_core.localization.confidence_fit import (  # noqa: E402
     PLACE_RADIUS_M,
     PROBE_FLOOR,
@@ -44,6 +43,7 @@ from reradar_core.localization.confidence_fit import (  # noqa: E402
     TOP_N,
     FitData,
     fit_from_data,
+    label_run,
     map_group,
     split_runs,
 )
@@ -65,35 +65,21 @@ def collect(spacings: list[float], step: int, holdout: float) -> dict[str, np.nd
             n = 0
             for run in runs:
                 res = run.localizer.localize(run.features, config)
-                cues = cues_from_result(res, PLACE_RADIUS_M, TOP_N)  # the shipped definition
+                row = label_run(run, res, radius, holdout)  # the fit's own row (``collect_split``)
                 agreeing = looked = near = 0
-                ok = False
-                if cues is not None:
+                if row[1]:  # a pose: the agreement's counts, and the map keyframes near the answer
                     best = res.best
-                    assert best is not None and best.T_keyframe_query is not None
                     T = np.asarray(compose(best.T_map_keyframe, best.T_keyframe_query))
-                    others = [c for c in res.candidates if c.rank != best.rank]
-                    if others:
-                        xy = np.array([np.asarray(c.T_map_keyframe)[:2] for c in others])
-                        d = np.hypot(xy[:, 0] - T[0], xy[:, 1] - T[1])
-                        score = np.array([c.screen_score if c.screen_score is not None else c.inlier_ratio
-                                          for c in others], np.float64)
-                        top = np.argsort(-score, kind="stable")[:TOP_N]
-                        agreeing, looked = int(np.count_nonzero(d[top] <= PLACE_RADIUS_M)), len(top)
+                    looked = min(TOP_N, len(res.candidates) - 1)
+                    agreeing = round(row[0][AGREE] * looked)
                     kf_xy = np.asarray(run.localizer.keyframes.poses, np.float64)[:, :2]
                     within = np.hypot(kf_xy[:, 0] - T[0], kf_xy[:, 1] - T[1]) <= PLACE_RADIUS_M
                     within[best.keyframe_id] = False
                     near = int(np.count_nonzero(within))
-                    e_t, e_r = localization_errors(T[None], run.T_map_query[None])
-                    ok = bool(localization_success(e_t, e_r, radius)[0]) and run.revisit
-                cols["cues"].append(cues.as_array() if cues is not None else np.zeros(len(CUE_NAMES)))
-                cols["has_pose"].append(cues is not None)
-                cols["correct"].append(ok)
-                cols["eligible"].append(res.localized)
-                cols["revisit"].append(run.revisit)
-                cols["heldout"].append(run.index >= (1.0 - holdout) * run.session_size)
+                for key, value in zip(("cues", "has_pose", "correct", "eligible", "revisit", "heldout", "unseen"),
+                                      row, strict=True):
+                    cols[key].append(value)
                 cols["split"].append(map_group(split, spacing))
-                cols["unseen"].append(run.unseen)
                 cols["agreeing"].append(agreeing)
                 cols["looked_at"].append(looked)
                 cols["neighbours"].append(near)

@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
+
+if TYPE_CHECKING:  # the server's settings load lazily: the vehicle client needs none of it
+    from service.core.config import Settings
 
 __all__ = ["register", "describe_settings_error"]
 
@@ -39,6 +43,30 @@ def describe_settings_error(exc: ValueError) -> str:
     return "; ".join(problems)
 
 
+def settings_or_exit(**overrides: object) -> Settings:
+    """``Settings`` from the RERADAR_* environment (and ``overrides``), or exit 2 with one line per bad field
+    (``describe_settings_error``: never the values, which hold the keys)."""
+    from service.core.config import Settings
+
+    try:
+        return Settings(**overrides)  # type: ignore[arg-type]
+    except ValueError as exc:
+        typer.echo(f"error: invalid settings: {describe_settings_error(exc)}", err=True)
+        raise typer.Exit(2) from None
+
+
+def check_model_or_exit(settings: Settings) -> None:
+    """Exit 2 with one line when ``settings.model`` (RERADAR_MODEL) names no loadable weights."""
+    from reradar_core.errors import ReRadarError
+    from reradar_core.model.registry import resolve_weights
+
+    try:
+        resolve_weights(settings.model)
+    except ReRadarError as exc:
+        typer.echo(f"error: RERADAR_MODEL: {exc}", err=True)
+        raise typer.Exit(2) from None
+
+
 def serve_command(
     host: str = typer.Option("127.0.0.1", help="Address to bind (0.0.0.0 inside containers)."),
     port: int = typer.Option(8080, min=1, max=65535, help="TCP port."),
@@ -55,26 +83,13 @@ def serve_command(
 
     import uvicorn
 
-    from reradar_core.errors import ReRadarError
-    from reradar_core.model.registry import resolve_weights
-    from service.core.config import Settings
-
-    overrides = {"maps_dir": maps_dir} if maps_dir is not None else {}
-    try:
-        settings = Settings(**overrides)  # type: ignore[arg-type]
-    except ValueError as exc:
-        typer.echo(f"error: invalid settings: {describe_settings_error(exc)}", err=True)
-        raise typer.Exit(2) from None
+    settings = settings_or_exit(**({"maps_dir": maps_dir} if maps_dir is not None else {}))
     # checked here, before the server starts, so that a bad setting is one line and not a start-up traceback
     if settings.maps_dir.exists() and not settings.maps_dir.is_dir():
         typer.echo(f"error: the maps folder {settings.maps_dir} is a file; give a folder (--maps-dir or "
                    "RERADAR_MAPS_DIR)", err=True)
         raise typer.Exit(2)
-    try:
-        resolve_weights(settings.model)
-    except ReRadarError as exc:
-        typer.echo(f"error: RERADAR_MODEL: {exc}", err=True)
-        raise typer.Exit(2) from None
+    check_model_or_exit(settings)
     if workers == 1:
         from service.main import create_app
 

@@ -248,14 +248,9 @@ def worker_command(check: bool = False) -> None:
     be reached)."""
     import typer
 
-    from reradar_core.model.registry import resolve_weights
-    from service.cli import describe_settings_error
+    from service.cli import check_model_or_exit, settings_or_exit
 
-    try:
-        settings = Settings()
-    except ValueError as exc:
-        typer.echo(f"error: invalid settings: {describe_settings_error(exc)}", err=True)
-        raise typer.Exit(2) from None
+    settings = settings_or_exit()
     if not settings.redis_url:
         typer.echo("error: set RERADAR_REDIS_URL (e.g. redis://127.0.0.1:6379/0): the build queue lives in Redis",
                    err=True)
@@ -270,11 +265,7 @@ def worker_command(check: bool = False) -> None:
         raise typer.Exit(1 if check else 3) from None
     if check:
         raise typer.Exit(0 if check_health(settings) else 1)
-    try:
-        resolve_weights(settings.model)
-    except ReRadarError as exc:
-        typer.echo(f"error: RERADAR_MODEL: {exc}", err=True)
-        raise typer.Exit(2) from None
+    check_model_or_exit(settings)
     run_worker(settings)
 
 

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import typer
 
+from reradar_core.errors import ReRadarError
 from reradar_core.paths import CACHE_SOURCE_ATTR, CACHE_SOURCE_FILE, cache_dir
 from reradar_core.sim.writer import SIM_VERSION
 
@@ -200,11 +201,8 @@ def register(app: typer.Typer) -> None:
         """List the cache folder's parts with their sizes; --prune removes what no run reads again."""
         try:
             root = cache_dir()
-        except OSError as exc:  # RERADAR_CACHE_DIR names a file, or a folder that cannot be created
-            value = os.environ.get("RERADAR_CACHE_DIR", "")
-            why = "it (or a folder on its path) is a file, not a folder" if isinstance(exc, (FileExistsError, NotADirectoryError)) \
-                else (exc.strerror or str(exc))
-            typer.echo(f"error: RERADAR_CACHE_DIR={value} cannot be used as the cache folder: {why}", err=True)
+        except ReRadarError as exc:  # RERADAR_CACHE_DIR names a file, or a folder that cannot be created
+            typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from None
         parts = cache_parts(root)
         free = shutil.disk_usage(root).free

@@ -70,7 +70,6 @@ def register(app: typer.Typer) -> None:
         from reradar_core.localization.confidence import DEFAULT_MODEL_PATH
         from reradar_core.localization.confidence_fit import (
             PROBE_FLOOR,
-            SPLIT_MODELS,
             FitData,
             collect_split,
             fit_from_data,
@@ -83,14 +82,8 @@ def register(app: typer.Typer) -> None:
         torch.set_num_threads(threads)
         names = [s.strip() for s in splits.split(",") if s.strip()]
         try:
-            if not names:
-                raise ConfigError("--splits names no training split")
-            unknown = [s for s in names if s not in SPLIT_MODELS]
-            if unknown:
-                raise ConfigError(f"unknown training split(s) {', '.join(unknown)}; choose from "
-                                  f"{', '.join(SPLIT_MODELS)}")
-            spacings = _spacings(map_spacings_m)
             split_model = split_models(models, names)
+            spacings = _spacings(map_spacings_m)
             # the runs are cached per set of judged models (a model change never re-uses another model's runs)
             tag = "-models-" + hashlib.sha256(json.dumps(split_model, sort_keys=True).encode()).hexdigest()[:12]
             maps_tag = "" if spacings == (0.0,) else "-maps-" + "+".join(f"{m:g}m" for m in spacings)

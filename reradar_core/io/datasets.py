@@ -304,8 +304,8 @@ def load_sequence(path: str | Path, layout: str | None = None,
     if layout not in LAYOUTS:
         raise DatasetError(f"unknown dataset layout {layout!r}; choose one of {LAYOUTS}")
     meta = read_sequence_meta(root)
-    p = get_preset(preset if preset is not None else meta.get("preset", _DEFAULT_PRESET[layout]))
     recorded = get_preset(meta.get("preset", _DEFAULT_PRESET[layout]))
+    p = get_preset(preset) if preset is not None else recorded
     if preset is not None and (p.range_resolution_m, p.range_offset_m) != (recorded.range_resolution_m,
                                                                            recorded.range_offset_m):
         if "preset" in meta:  # the simulator recorded the sensor: another preset would misread every range

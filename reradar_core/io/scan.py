@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import io
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
@@ -185,12 +186,11 @@ def _upload_preset(num_range_bins: int, map_preset: str | RadarPreset | None = N
     (``map_preset``) when it has that bin count, else the first preset with that bin count (boreas for 3,360
     bins, although mulran and boreas-2021 have as many). Kept for the HTTP API, whose requests may omit
     ``preset``; files read here use ``infer_preset``, which refuses the ambiguous counts."""
-    if map_preset is not None and get_preset(map_preset).num_range_bins == num_range_bins:
-        return get_preset(map_preset)
-    for p in PRESETS.values():
-        if p.num_range_bins == num_range_bins:
-            return p
-    return infer_preset(num_range_bins, "upload")
+    fits = [p for p in PRESETS.values() if p.num_range_bins == num_range_bins]
+    wanted = get_preset(map_preset) if map_preset is not None else None
+    if wanted is not None and wanted in fits:
+        return wanted
+    return fits[0] if fits else infer_preset(num_range_bins, "upload")
 
 
 #: Accepted polar scan sizes (azimuths and range bins): anything smaller is not a radar sweep; larger ones
@@ -380,7 +380,9 @@ def scan_header(data: bytes, size: int | None = None) -> ScanHeader:
 
 
 def _scan_from_raw(raw: np.ndarray, preset: str | RadarPreset | None, source: str,
-                   map_preset: str | RadarPreset | None = None) -> RadarScan:
+                   pick_preset: Callable[[int], RadarPreset] | None = None) -> RadarScan:
+    """A Navtech PNG's pixels (uint8 (A, 11 + R)) as a scan; without ``preset`` the range-bin count picks one
+    (``pick_preset``; default ``infer_preset``, which refuses an ambiguous count)."""
     if raw.ndim != 2 or raw.dtype != np.uint8:
         raise ScanFormatError(
             f"{source}: a Navtech PNG must be 8-bit single-channel, got dtype {raw.dtype} shape {raw.shape}"
@@ -398,7 +400,7 @@ def _scan_from_raw(raw: np.ndarray, preset: str | RadarPreset | None, source: st
     if preset is not None:
         p = get_preset(preset)
     else:
-        p = _upload_preset(num_bins, map_preset) if source == "upload" else infer_preset(num_bins, source)
+        p = pick_preset(num_bins) if pick_preset is not None else infer_preset(num_bins, source)
     check_navtech_layout(encoder, timestamps, valid, num_bins, p, source)
     fft = raw[:, NAVTECH_META_COLUMNS:].astype(np.float32) / 255.0
     azimuths = (encoder.astype(np.float64) * _RAD_PER_TICK) % (2.0 * np.pi)
@@ -523,7 +525,7 @@ def decode_navtech_png_bytes(data: bytes, preset: str | RadarPreset | None = Non
     raw = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
     if raw is None:
         raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated)")
-    return _scan_from_raw(raw, preset, "upload", map_preset)
+    return _scan_from_raw(raw, preset, "upload", lambda n: _upload_preset(n, map_preset))
 
 
 def encode_navtech_png_bytes(scan: RadarScan) -> bytes:
@@ -604,7 +606,7 @@ def decode_navtech_npy_bytes(data: bytes, preset: str | RadarPreset | None = Non
     if array.dtype != np.uint8 or array.ndim != 2:
         raise ScanFormatError(f"a Navtech .npy (scan_layout navtech) must be a 2-D uint8 array of the PNG's pixels, "
                               f"got dtype {array.dtype} shape {array.shape}")
-    return _scan_from_raw(array, preset, "upload", map_preset)
+    return _scan_from_raw(array, preset, "upload", lambda n: _upload_preset(n, map_preset))
 
 
 #: What an uploaded .npy holds: ``polar`` = (A, R) power, uniform azimuths, geometry from the preset;

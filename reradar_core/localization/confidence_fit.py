@@ -52,9 +52,8 @@ from reradar_core.localization.confidence import (
 )
 from reradar_core.localization.keyframes import select_keyframes
 
-__all__ = ["SPLIT_MODELS", "FitData", "SplitRun", "collect_split", "fit_from_data", "map_group", "plot_reliability",
-           "split_models",
-           "split_runs"]
+__all__ = ["SPLIT_MODELS", "FitData", "SplitRun", "collect_split", "fit_from_data", "label_run", "map_group",
+           "plot_reliability", "split_models", "split_runs"]
 
 logger = logging.getLogger(__name__)
 
@@ -76,8 +75,15 @@ def split_models(overrides: str = "", splits: list[str] | None = None) -> dict[s
         splits: the splits to return (default: every key of ``SPLIT_MODELS``).
 
     Raises:
-        ConfigError: a pair without ``=`` or an empty side, or a split that is not a key of ``SPLIT_MODELS``.
+        ConfigError: a pair without ``=`` or an empty side, a split that is not a key of ``SPLIT_MODELS`` (in a
+            pair or in ``splits``), or an empty ``splits``.
     """
+    if splits is not None:
+        if not splits:
+            raise ConfigError("--splits names no training split")
+        unknown = [s for s in splits if s not in SPLIT_MODELS]
+        if unknown:
+            raise ConfigError(f"unknown training split(s) {', '.join(unknown)}; choose from {', '.join(SPLIT_MODELS)}")
     out = dict(SPLIT_MODELS)
     for item in (t.strip() for t in overrides.split(",")):
         if not item:
@@ -260,23 +266,28 @@ def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progre
     config = replace(LocalizationConfig(), min_confidence=0.0, min_inlier_ratio=min_inlier_ratio)
     method = Ours(model or SPLIT_MODELS[split], localization=config)
     radius, runs = split_runs(split, method, config, query_step, progress, map_spacing_m)
-    rows: list[tuple[np.ndarray, bool, bool, bool, bool, bool, bool]] = []
-    for run in runs:
-        res = run.localizer.localize(run.features, config)
-        cues = cues_from_result(res, PLACE_RADIUS_M, TOP_N)
-        ok = False
-        if cues is not None:
-            assert res.best is not None and res.best.T_keyframe_query is not None
-            est = np.asarray(compose(res.best.T_map_keyframe, res.best.T_keyframe_query))[None]
-            e_t, e_r = localization_errors(est, run.T_map_query[None])
-            ok = bool(localization_success(e_t, e_r, radius)[0]) and run.revisit
-        rows.append((cues.as_array() if cues is not None else np.zeros(len(CUE_NAMES)), cues is not None, ok,
-                     res.localized, run.revisit, run.index >= (1.0 - holdout) * run.session_size, run.unseen))
+    rows = [label_run(run, run.localizer.localize(run.features, config), radius, holdout) for run in runs]
     m = len(rows)
     cols = list(zip(*rows, strict=True)) if rows else [()] * 7
     return FitData(np.array(cols[0], np.float64).reshape(m, len(CUE_NAMES)),
                    *(np.array(c, bool) for c in cols[1:6]), np.array([map_group(split, map_spacing_m)] * m),
                    np.array(cols[6], bool))
+
+
+def label_run(run: SplitRun, res: Any, radius_m: float,
+              holdout: float) -> tuple[np.ndarray, bool, bool, bool, bool, bool, bool]:
+    """One ``FitData`` row (``cues``, ``has_pose``, ``correct``, ``eligible``, ``revisit``, ``heldout``,
+    ``unseen``) of a run's ``LocalizationResult`` ``res``: correct = the winner's pose within the success
+    thresholds (``radius_m``, 10 deg) of a revisit query."""
+    cues = cues_from_result(res, PLACE_RADIUS_M, TOP_N)
+    ok = False
+    if cues is not None:
+        assert res.best is not None and res.best.T_keyframe_query is not None
+        est = np.asarray(compose(res.best.T_map_keyframe, res.best.T_keyframe_query))[None]
+        e_t, e_r = localization_errors(est, run.T_map_query[None])
+        ok = bool(localization_success(e_t, e_r, radius_m)[0]) and run.revisit
+    return (cues.as_array() if cues is not None else np.zeros(len(CUE_NAMES)), cues is not None, ok,
+            bool(res.localized), run.revisit, run.index >= (1.0 - holdout) * run.session_size, run.unseen)
 
 
 def map_group(split: str, map_spacing_m: float) -> str:

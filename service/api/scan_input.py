@@ -18,6 +18,8 @@ from reradar_core.features import ScanFeatures
 from reradar_core.io.presets import PRESETS
 from reradar_core.io.scan import (
     LOSSY_FORMATS,
+    MAX_SCAN_SIDE,
+    MIN_SCAN_SIDE,
     NAVTECH_META_COLUMNS,
     NpyLayout,
     scan_header,
@@ -25,7 +27,7 @@ from reradar_core.io.scan import (
     why_format_refused,
 )
 from service.core.errors import BadRequestError, NotFoundError, PayloadTooLargeError, UnsupportedMediaError
-from service.core.state import MAX_SCAN_SIDE, MIN_SCAN_SIDE, ServiceState
+from service.core.state import ServiceState
 
 __all__ = ["ScanInput", "read_scan_input", "scan_request_body", "UnsupportedMediaError", "check_scan_upload",
            "read_scan_upload", "parse_scan_layout", "SCAN_LAYOUTS", "SCAN_LAYOUT_DESCRIPTION"]

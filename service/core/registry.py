@@ -33,7 +33,7 @@ from maps.database import MapDatabase
 from maps.paths import DEMO_MAP_PATH
 from maps.store import fsync_dir, install_file, open_map, read_metadata, remove_stale_temp_files
 from reradar_core.errors import MapFormatError, ModelMismatchError, ReRadarError, ScanFormatError
-from reradar_core.io.scan import RadarScan, load_scan_bytes, scan_header
+from reradar_core.io.scan import MAX_SCAN_SIDE, NAVTECH_META_COLUMNS, RadarScan, load_scan_bytes, scan_header
 from reradar_core.localization.extractor import FeatureExtractor
 from reradar_core.retrieval import IndexConfig
 from service.core.config import MAP_ID_PATTERN, Settings
@@ -371,7 +371,7 @@ class MapRegistry:
         try:
             data = path.read_bytes()
             header = scan_header(data)
-            if header.num_pixels > self.settings.max_scan_pixels or max(header.shape) > 8192 + 11:
+            if header.num_pixels > self.settings.max_scan_pixels or max(header.shape) > MAX_SCAN_SIDE + NAVTECH_META_COLUMNS:
                 raise ScanFormatError(
                     f"scan declares {header.shape[0]} x {header.shape[1]} pixels; at most "
                     f"{self.settings.max_scan_pixels:,} pixels are accepted (RERADAR_MAX_SCAN_PIXELS)")

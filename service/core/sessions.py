@@ -91,15 +91,15 @@ class SessionStore:
         return state.moved(odometry, self.config.odometry_sigma_growth)
 
     def update(self, session_id: str, map_id: str, T_map_query: np.ndarray | None,
-               prior: PosePrior | None, moved_unknown: bool = False) -> None:
-        """Record the outcome of a scan: its pose when localized; else, when the scan came without odometry
-        (``moved_unknown``), the last pose with ``lost_sigma_m`` (no later scan is tracked from it); else the
-        prior it was tracked from (so odometry keeps accumulating); else nothing."""
+               prior: PosePrior | None) -> None:
+        """Record the outcome of a scan: its pose when localized; else the prior it was tracked from (so odometry
+        keeps accumulating); else - no prior: the scan came without odometry (``prior_for``), so the vehicle
+        moved an unknown distance - the last pose with ``lost_sigma_m`` (no later scan is tracked from it)."""
         c = self.config
         state: PosePrior | None
         if T_map_query is not None:
             state = PosePrior(T_map_query, c.fix_sigma_m, math.radians(c.fix_sigma_yaw_deg))
-        elif moved_unknown:
+        elif prior is None:
             last = self.get(session_id, map_id)
             state = None if last is None else PosePrior(last.T_map_query, c.lost_sigma_m, math.pi)
         else:

@@ -19,12 +19,7 @@ from service.core.registry import MapRegistry
 from service.core.scan_cache import ScanCache
 from service.core.sessions import SessionConfig, SessionStore
 
-__all__ = ["ServiceState", "MIN_SCAN_SIDE", "MAX_SCAN_SIDE"]
-
-#: Accepted polar scan sizes (azimuths and range bins): anything smaller is not a radar sweep; larger ones
-#: would make one request monopolise the CPU.
-MIN_SCAN_SIDE = 64
-MAX_SCAN_SIDE = 8192
+__all__ = ["ServiceState"]
 
 
 @dataclass
@@ -69,13 +64,8 @@ class ServiceState:
         if not data:
             raise ScanFormatError("the uploaded scan file is empty")
         t0 = time.perf_counter()
+        # the sides were checked on the upload's header (``scan_input.check_scan_upload``, every caller's path)
         scan = load_scan_bytes(data, filename or "scan.png", preset, scan_layout, self.map_preset(map_id))
-        a, r = scan.power.shape
-        if not (MIN_SCAN_SIDE <= a <= MAX_SCAN_SIDE and MIN_SCAN_SIDE <= r <= MAX_SCAN_SIDE):
-            raise ScanFormatError(
-                f"scan has {a} azimuths x {r} range bins; expected a full sweep with {MIN_SCAN_SIDE}.."
-                f"{MAX_SCAN_SIDE} of each (e.g. 400 x 3360 Boreas, 400 x 3768 Oxford)"
-            )
         t1 = time.perf_counter()
         try:
             features = self.extractor.describe(scan)

@@ -140,7 +140,7 @@ def test_session_store_gives_no_prior_without_odometry_and_forgets_an_unknown_mo
     assert prior.sigma_xy_m == pytest.approx(0.5 + 0.1 * 6.0)
     # a scan without odometry that was not localized: the vehicle moved an unknown distance, so the next
     # scan's odometry composes onto a pose no longer known - localized globally until one is localized again
-    store.update("v", "m", None, None, moved_unknown=True)
+    store.update("v", "m", None, None)
     after = store.prior_for("v", "m", np.array([6.0, 0.0, 0.0]))
     assert after is not None and not track.covers(after)
     # a tracked scan that was not localized keeps its prior (odometry accumulates)

@@ -86,16 +86,16 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
     config = state.localization_config(inp.fields.get("top_k"))
     session_id = inp.fields.get("session_id")
     odometry, explicit = _odometry(inp.fields), _prior(inp.fields)  # both validated on every request
-    # a session scan without odometry has no prior (the vehicle moved an unknown distance): global, as is a
-    # prior too loose for the registration to reach its error (``TrackingConfig.covers``; docs/SERVICE.md)
+    # a session scan without odometry has no prior (the vehicle moved an unknown distance): global; a prior too
+    # loose for the registration to reach its error is localized globally by ``Localizer.track`` itself
+    # (``TrackingConfig.covers``; docs/SERVICE.md)
     prior = explicit or (state.sessions.prior_for(session_id, map_id, odometry) if session_id else None)
-    if prior is not None and config.tracking.covers(prior):
+    if prior is not None:
         result = await run_in_threadpool(db.track, inp.features, prior, config)
     else:
         result = await run_in_threadpool(db.localize, inp.features, config)
     if session_id:
-        state.sessions.update(session_id, map_id, result.T_map_query, prior,
-                              moved_unknown=odometry is None and explicit is None)
+        state.sessions.update(session_id, map_id, result.T_map_query, prior)
     timings = {**inp.timings_ms, **result.timings_ms}
     state.metrics.observe_stages(timings)
     state.metrics.inc("reradar_localizations_total", status=result.status)

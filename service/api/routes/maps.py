@@ -107,10 +107,7 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         arch.unlink()
         pose_path = work / "poses.csv"
         _save_upload(poses, pose_path)
-        try:
-            track = read_poses(pose_path).sorted()
-        except UnicodeDecodeError as exc:
-            raise PoseFileError(f"poses upload is not a text CSV file ({exc})") from exc
+        track = read_poses(pose_path).sorted()  # a binary file is a PoseFileError there
         if len(track) < 1:
             raise PoseFileError("poses upload holds no poses")
         # names are checked against MAX_SCAN_TIMESTAMP_US by extract_scan_archive, so they fit int64
