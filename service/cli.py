@@ -84,12 +84,7 @@ def serve_command(
     import uvicorn
 
     settings = settings_or_exit(**({"maps_dir": maps_dir} if maps_dir is not None else {}))
-    # checked here, before the server starts, so that a bad setting is one line and not a start-up traceback
-    if settings.maps_dir.exists() and not settings.maps_dir.is_dir():
-        typer.echo(f"error: the maps folder {settings.maps_dir} is a file; give a folder (--maps-dir or "
-                   "RERADAR_MAPS_DIR)", err=True)
-        raise typer.Exit(2)
-    check_model_or_exit(settings)
+    check_model_or_exit(settings)  # before the server starts: a bad setting is one line, not a start-up traceback
     if workers == 1:
         from service.main import create_app
 

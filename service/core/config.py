@@ -161,6 +161,14 @@ class Settings(BaseSettings):
                                        for v in stale))
         return self
 
+    @field_validator("maps_dir")
+    @classmethod
+    def _maps_dir_is_a_folder(cls, value: Path) -> Path:
+        # one line at start-up (serve and worker) rather than a traceback when the first map is read
+        if value.exists() and not value.is_dir():
+            raise ValueError(f"the maps folder {value} is a file; give a folder (--maps-dir or RERADAR_MAPS_DIR)")
+        return value
+
     @field_validator("api_key", "vehicle_keys", mode="before")
     @classmethod
     def _empty_is_unset(cls, value: object) -> object:

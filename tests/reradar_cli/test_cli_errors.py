@@ -40,6 +40,8 @@ def test_serve_checks_settings_before_starting(tmp_path, monkeypatch):
     a_file.write_text("t,x,y,yaw\n")
     res = _run(["serve", "--maps-dir", str(a_file)])
     assert res.exit_code == 2 and "is a file" in res.output
+    res = _run(["worker"], env={"RERADAR_MAPS_DIR": str(a_file)})  # the worker reads maps too: the same refusal
+    assert res.exit_code == 2 and "RERADAR_MAPS_DIR" in res.output and "is a file" in res.output
     res = _run(["serve", "--maps-dir", str(tmp_path / "maps")], env={"RERADAR_MODEL": "nosuch"})
     assert res.exit_code == 2 and "RERADAR_MODEL" in res.output and "unknown model 'nosuch'" in res.output
 

@@ -275,7 +275,7 @@ def test_guard_refusals_count_under_their_route_and_405_before_401(client: httpx
 
 
 def test_head_on_health_endpoints(client: httpx.Client) -> None:
-    for path in ("/healthz", "/readyz"):
+    for path in ("/healthz", "/readyz", "/"):
         r = client.head(path)
         assert r.status_code == 200 and r.content == b""
 

@@ -35,6 +35,7 @@ def _swagger_dir() -> Path:
 
 
 @router.get("/", response_class=FileResponse)
+@router.head("/", include_in_schema=False, response_class=FileResponse)  # uptime monitors probe with HEAD
 def operator_page() -> FileResponse:
     return FileResponse(UI_DIR / "index.html", media_type="text/html")
 
