@@ -156,13 +156,8 @@ class QueuedMapRegistry(MapRegistry):
         d.mkdir(exist_ok=True)
         return d
 
-    def taken_message(self, map_id: str, entry: MapEntry | None) -> str:
-        """As ``MapRegistry.taken_message``; here ``DELETE`` cancels a build, so the message says so."""
-        if entry is not None and entry.state == "building":
-            return (f"map {map_id!r} is being built ({entry.progress:.0%}); wait until the build finishes "
-                    f"(GET /maps/{map_id} shows its state), or DELETE /maps/{map_id} to cancel the build, or pick "
-                    f"another id")
-        return super().taken_message(map_id, entry)
+    #: here ``DELETE`` cancels a build (``MapRegistry.taken_message``)
+    _building_delete_hint = "or DELETE /maps/{map_id} to cancel the build"
 
     def load_all(self) -> None:
         """As ``MapRegistry.load_all``, and remove staging folders of replicas gone for over an hour."""

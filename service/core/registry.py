@@ -266,20 +266,28 @@ class MapRegistry:
             return sum(e.state == "ready" for e in self._entries.values())
 
     # ---- mutation ------------------------------------------------------------------------------------------
+    #: what a client may do about a map being built (``taken_message``): here a build cannot be cancelled
+    _building_delete_hint = "then DELETE /maps/{map_id} to replace it"
+
     def taken_message(self, map_id: str, entry: MapEntry | None) -> str:
         """What to tell a client registering ``map_id`` when ``entry`` (None: a file without an entry) holds it:
-        a map being built cannot be deleted here, so it says to wait for the build."""
+        for a map being built, to wait for the build (and ``_building_delete_hint``)."""
         if entry is not None and entry.state == "building":
+            hint = self._building_delete_hint.format(map_id=map_id)
             return (f"map {map_id!r} is being built ({entry.progress:.0%}); wait until the build finishes "
-                    f"(GET /maps/{map_id} shows its state), then DELETE /maps/{map_id} to replace it, or pick "
-                    f"another id")
+                    f"(GET /maps/{map_id} shows its state), {hint}, or pick another id")
         return f"map {map_id!r} already exists; DELETE /maps/{map_id} first or pick another id"
+
+    def check_free(self, map_id: str) -> None:
+        """Raise ``ConflictError`` (``taken_message``) when ``map_id`` is registered or its file exists."""
+        with self._lock:
+            if map_id in self._entries or self.path_for(map_id).exists():
+                raise ConflictError(self.taken_message(map_id, self._entries.get(map_id)))
 
     def _reserve(self, map_id: str, scans_total: int = 0) -> MapEntry:
         path = self.path_for(map_id)
         with self._lock:
-            if map_id in self._entries or path.exists():
-                raise ConflictError(self.taken_message(map_id, self._entries.get(map_id)))
+            self.check_free(map_id)
             entry = MapEntry(map_id, path, "building", scans_total=scans_total)
             self._entries[map_id] = entry
             return entry

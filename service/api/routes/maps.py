@@ -28,7 +28,7 @@ from service.api.schemas import (
 )
 from service.core.archive import SCAN_NAME_PATTERN, extract_scan_archive
 from service.core.config import MAP_ID_PATTERN
-from service.core.errors import BadRequestError, ConflictError
+from service.core.errors import BadRequestError
 from service.core.registry import MapEntry
 from service.core.state import ServiceState
 
@@ -94,9 +94,7 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
     if preset is not None and preset.lower() not in PRESETS:
         raise BadRequestError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
     # early check so a large archive is not unpacked for a taken id; start_build re-checks atomically
-    taken = next((e for e in registry.entries() if e.map_id == map_id), None)
-    if taken is not None or registry.path_for(map_id).exists():
-        raise ConflictError(registry.taken_message(map_id, taken))
+    registry.check_free(map_id)
     work = registry.staging_dir() / f"job-{uuid.uuid4().hex}"
     work.mkdir()
     try:
