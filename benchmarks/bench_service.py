@@ -318,7 +318,7 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
                 outc.append(judge(res, gt))
             res_seq[name] = _summarise(lat, outc)
         rng = np.random.default_rng(seed)
-        lat, outc, kinds, prior = [], [], [], None
+        lat, outc, kinds, conf, prior = [], [], [], [], None
         for n, (f, gt) in enumerate(zip(feats, gts, strict=True)):
             if prior is not None:
                 prior = prior.moved(noisy_odometry(relative_pose(gts[n - 1], gt), odometry_noise, rng))
@@ -327,6 +327,7 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
             lat.append((time.perf_counter() - t0) * 1e3)
             outc.append(judge(res, gt))
             kinds.append("tracking" if res.mode == "tracking" else ("lost" if res.tracking_lost else "global"))
+            conf.append(float(res.confidence) if res.confidence is not None else math.nan)
             if res.localized:
                 prior = PosePrior(res.T_map_query, 0.5, math.radians(1.0))
         summary = _summarise(lat, outc)
@@ -336,6 +337,9 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
         summary["tracked_p50_ms"] = _pct(list(np.asarray(lat)[tracked]), 50) if tracked.any() else math.nan
         summary["wrong_from_tracking"] = int(np.sum(tracked & (np.array(outc) == "wrong")))
         summary["outside_2m_2deg_from_tracking"] = int(np.sum(tracked & np.isin(outc, ["off", "wrong"])))
+        conf_tracked = np.asarray(conf)[tracked]
+        summary["tracked_confidence_p5"] = _pct(list(conf_tracked), 5) if tracked.any() else math.nan
+        summary["tracked_below_bar"] = int(np.sum(conf_tracked < LocalizationConfig().effective_min_confidence))
         res_seq["tracking"] = summary
         res_seq["tracked_p50_over_global_p50"] = summary["tracked_p50_ms"] / res_seq["global"]["p50_ms"]
         out[seq.name] = res_seq

@@ -110,8 +110,8 @@ def localize_command(
     scan: Path | None = typer.Argument(None, dir_okay=False, help="Navtech PNG or .npy scan."),
     server: str = typer.Option("http://127.0.0.1:8080", "--server", help="Service base URL."),
     map_id: str = typer.Option("demo", "--map", help="Map id."),
-    top_k: int | None = typer.Option(None, min=1, max=100, help="Candidates to verify (1-100; default: the "
-                                     "server's)."),
+    top_k: int | None = typer.Option(None, min=1, max=100, help="Candidates retrieved and screened (1-100; the "
+                                     "best is verified; default: the server's)."),
     preset: str | None = typer.Option(None, "--preset", help=(
         "Radar preset of the scan (boreas, boreas-2021, oxford, oord, mulran): its range geometry. Default: the "
         "server infers it from the range-bin count; a polar .npy's preset is inferred here, and refused when the "
@@ -127,7 +127,8 @@ def localize_command(
         "folder's ground truth. Needs the optional bench extras (dataset reader, matplotlib).")),
     odometry: str = typer.Option("ground-truth", help=(
         "--follow: odometry sent with each scan: `ground-truth` (relative motion between the folder's poses, "
-        "with --odometry-noise) or `none` (the server tracks from the last pose alone).")),
+        "with --odometry-noise) or `none` (no odometry: every scan is localized globally, the "
+        "session only keeps the last answer).")),
     odometry_noise: float = typer.Option(0.05, min=0.0, help=(
         "--follow: odometry noise, a fraction of each step's length (and of its turn), seeded.")),
     every: int = typer.Option(1, min=1, help="--follow: use every n-th scan."),

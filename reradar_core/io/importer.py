@@ -19,7 +19,7 @@ import numpy as np
 
 from reradar_core.errors import ScanFormatError
 from reradar_core.io.presets import RadarPreset, get_preset
-from reradar_core.io.scan import MAX_SCAN_SIDE, MIN_SCAN_SIDE, RadarScan
+from reradar_core.io.scan import RadarScan, check_scan_sides
 
 __all__ = ["ForeignScanLayout", "import_polar_scan"]
 
@@ -84,9 +84,7 @@ def import_polar_scan(array: np.ndarray, layout: ForeignScanLayout, preset: str 
         raise ScanFormatError(f"a polar scan must be a 2-D array, got shape {array.shape}")
     power = _to_unit_power(array if layout.azimuth_axis == 0 else array.T)
     n_az_src, n_bins_src = power.shape
-    if not (MIN_SCAN_SIDE <= n_az_src <= MAX_SCAN_SIDE and MIN_SCAN_SIDE <= n_bins_src <= MAX_SCAN_SIDE):
-        raise ScanFormatError(f"the scan has {n_az_src} azimuths x {n_bins_src} range bins; expected a full sweep "
-                              f"with {MIN_SCAN_SIDE}..{MAX_SCAN_SIDE} of each")
+    check_scan_sides(n_az_src, n_bins_src, "the scan")
     # 2. range: sample each beam at the preset's bin centres (vectorised over azimuths).
     r_dst = p.range_offset_m + np.arange(p.num_range_bins) * p.range_resolution_m
     x = (r_dst - layout.range_offset_m) / layout.range_resolution_m

@@ -53,6 +53,7 @@ __all__ = [
     "LOSSY_FORMATS",
     "check_navtech_layout",
     "check_polar_shape",
+    "check_scan_sides",
     "has_navtech_metadata",
     "MIN_SCAN_SIDE",
     "MAX_SCAN_SIDE",
@@ -199,6 +200,20 @@ MIN_SCAN_SIDE = 64
 MAX_SCAN_SIDE = 8192
 
 
+def check_scan_sides(num_azimuths: int, num_range_bins: int, source: str = "scan") -> None:
+    """Refuse a polar array with fewer than ``MIN_SCAN_SIDE`` or more than ``MAX_SCAN_SIDE`` azimuths or range
+    bins (not a full sweep, or a memory bomb), whatever its preset.
+
+    Raises:
+        ScanFormatError: the shape found and the one expected.
+    """
+    a, r = int(num_azimuths), int(num_range_bins)
+    if not (MIN_SCAN_SIDE <= a <= MAX_SCAN_SIDE and MIN_SCAN_SIDE <= r <= MAX_SCAN_SIDE):
+        raise ScanFormatError(
+            f"{source}: scan has {a} azimuths x {r} range bins; expected a full sweep with {MIN_SCAN_SIDE}.."
+            f"{MAX_SCAN_SIDE} of each (e.g. 400 x 3360 Boreas, 400 x 3768 Oxford)")
+
+
 def check_polar_shape(num_azimuths: int, num_range_bins: int, preset: RadarPreset, source: str = "scan") -> None:
     """Refuse a polar (azimuths x range bins) array whose layout contradicts ``preset``: a side outside
     ``MIN_SCAN_SIDE..MAX_SCAN_SIDE``, more azimuth rows than range bins (a transposed array), or more range bins
@@ -208,10 +223,7 @@ def check_polar_shape(num_azimuths: int, num_range_bins: int, preset: RadarPrese
         ScanFormatError: what is wrong and what to do.
     """
     a, r = int(num_azimuths), int(num_range_bins)
-    if not (MIN_SCAN_SIDE <= a <= MAX_SCAN_SIDE and MIN_SCAN_SIDE <= r <= MAX_SCAN_SIDE):
-        raise ScanFormatError(
-            f"{source}: scan has {a} azimuths x {r} range bins; expected a full sweep with {MIN_SCAN_SIDE}.."
-            f"{MAX_SCAN_SIDE} of each (e.g. 400 x 3360 Boreas, 400 x 3768 Oxford)")
+    check_scan_sides(a, r, source)
     if a > r:
         raise ScanFormatError(
             f"{source}: scan has {a} rows (azimuths) x {r} columns (range bins): more azimuths than range bins, "

@@ -139,7 +139,8 @@ class Localizer:
     def track(self, features: ScanFeatures, prior: PosePrior,
               config: LocalizationConfig | None = None) -> LocalizationResult:
         """Tracking mode (``localization.tracking``): register the scan to the keyframes nearest to ``prior``;
-        when no answer passes the aligned-landmark bar and the prior's gate, fall back to ``localize``. A prior
+        when no answer passes the aligned-landmark bar, the prior's gate and the confidence bar
+        (``config.effective_min_confidence``), fall back to ``localize``. A prior
         looser than the registration reaches (``TrackingConfig.covers``) is not tracked from: the scan is
         localized globally (``mode="global"``, ``tracking_lost`` False).
 
@@ -171,19 +172,23 @@ class Localizer:
                 timestamp_us=int(self.keyframes.timestamps_us[kid]), T_map_keyframe=T_map_kf, num_matches=n,
                 num_inliers=reg.num_inliers, inlier_ratio=reg.inlier_ratio,
                 T_keyframe_query=reg.T_keyframe_query if bar and consistent else None,
-                reason=None if bar and consistent else (REASON_INCONSISTENT if bar else REASON_TOO_FEW_INLIERS))
+                reason=None if bar and consistent else (REASON_INCONSISTENT if bar else REASON_TOO_FEW_INLIERS),
+                inlier_spread_m=reg.inlier_spread_m)
             verified.append(v)
             if v.T_keyframe_query is not None:
                 accepted.append((v, T_map_query))
-        track_ms = (time.perf_counter() - t0) * 1e3
         if accepted:
             best, T_map_query = max(accepted, key=lambda a: (a[0].num_inliers, -a[0].rank))
-            # same cues and model as global answers (fitted on those; the registration from a prior computes no
-            # pose ambiguity or landmark spread, so those cues are 0 here): a score, not calibrated for tracking
+            # the global answers' cues and model (fitted on global answers: the registration from a prior has no
+            # rival pose, so its ambiguity cue is 0, and its candidates are all near the prior), and their bar:
+            # a tracked answer the model doubts is localized globally instead, like a failed registration
             cues, confidence = answer_confidence(best, verified, default_confidence_model())
-            return LocalizationResult("localized", None, best, T_map_query, verified,
-                                      {"track_ms": track_ms, "verify_ms": track_ms}, confidence, cues,
-                                      mode="tracking")
+            if confidence >= config.effective_min_confidence:
+                track_ms = (time.perf_counter() - t0) * 1e3
+                return LocalizationResult("localized", None, best, T_map_query, verified,
+                                          {"track_ms": track_ms, "verify_ms": track_ms}, confidence, cues,
+                                          mode="tracking")
+        track_ms = (time.perf_counter() - t0) * 1e3
         result = self.localize(features, config)
         result.tracking_lost = True
         result.timings_ms["track_ms"] = track_ms

@@ -33,6 +33,7 @@ import numpy as np
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose, inverse, wrap_angle
+from reradar_core.localization.confidence import landmark_spread_m
 from reradar_core.matching import LandmarkGrid, refine_pose
 
 __all__ = ["PosePrior", "TrackingConfig", "tracking_candidates", "register_from_prior", "Registration"]
@@ -116,12 +117,13 @@ class TrackingConfig:
         return max(self.min_gate_yaw_rad, self.gate_sigmas * prior.sigma_yaw_rad)
 
     def radii(self, prior: PosePrior) -> tuple[float, ...]:
-        """Association radii, coarse to fine: from 2 sigma of the prior (capped) halving to the final radius."""
+        """Association radii, coarse to fine, metres: from 2 sigma of the prior (capped) halving to the final
+        radius, each radius once (``register_from_prior`` iterates at each one until the pose settles)."""
         start = min(self.max_start_radius_m, max(2.0, 2.0 * prior.sigma_xy_m))
         out = [start]
         while out[-1] / 2 > self.final_radius_m:
             out.append(out[-1] / 2)
-        return (*out, self.final_radius_m, self.final_radius_m)
+        return (*out, self.final_radius_m) if out[-1] > self.final_radius_m else tuple(out)
 
 
 def tracking_candidates(poses: np.ndarray, prior: PosePrior, config: TrackingConfig) -> np.ndarray:
@@ -135,11 +137,13 @@ def tracking_candidates(poses: np.ndarray, prior: PosePrior, config: TrackingCon
 @dataclass
 class Registration:
     """Result of ``register_from_prior``: ``T_keyframe_query`` (x m, y m, yaw rad), query landmarks within the
-    final radius of a keyframe landmark (``num_inliers``) and their fraction of the query's landmarks."""
+    final radius of a keyframe landmark (``num_inliers``), their fraction of the query's landmarks, and their
+    spatial spread in the query's sensor frame (``confidence.landmark_spread_m``, metres; the confidence cue)."""
 
     T_keyframe_query: np.ndarray
     num_inliers: int
     inlier_ratio: float
+    inlier_spread_m: float = 0.0
 
 
 #: a registration step that moves the pose less than this (metres; and ``CONVERGED_STEP_M`` / 20 m of heading,
@@ -167,20 +171,20 @@ def register_from_prior(query: ScanFeatures, grid: LandmarkGrid, T_keyframe_quer
     pose = np.asarray(T_keyframe_query, np.float64).reshape(3).copy()
     if n < 3 or len(grid.points) < 3:
         return Registration(pose, 0, 0.0)
-    k = 0
+    k, mask = 0, np.zeros(n, bool)
     for radius in radii:
         for _ in range(max(1, max_steps)):
             new, mask = refine_pose(src, grid, pose, (radius,))
             k = int(mask.sum())
             if k < 3:  # stopped: the pose of the last step that associated enough
-                return Registration(pose, k, k / n)
+                return Registration(pose, k, k / n, landmark_spread_m(src[mask]))
             moved = float(np.hypot(new[0] - pose[0], new[1] - pose[1]))
             turned = abs(float(wrap_angle(new[2] - pose[2])))
             pose = new
             if moved < converged_m and turned * 20.0 < converged_m:
                 break
     pose = np.array([pose[0], pose[1], wrap_angle(pose[2])])
-    return Registration(pose, k, k / n)
+    return Registration(pose, k, k / n, landmark_spread_m(src[mask]))
 
 
 def within_gate(T_map_query: np.ndarray, prior: PosePrior, config: TrackingConfig) -> bool:

@@ -7,6 +7,7 @@ what a real revisit changes is drawn here from the traversal seed, deterministic
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -132,6 +133,18 @@ class Traversal:
             self._veh_lane = np.sign(self._veh_lane) * (0.5 * median_m + (lane + 0.5) * self.LANE_WIDTH_M)
         self._veh_size = np.column_stack([rng.uniform(4.2, 12.0, n), rng.uniform(1.8, 2.6, n)])
         self._veh_size[rng.random(n) < 0.8] = (4.6, 1.85)  # mostly cars, some buses / trucks
+
+    def add_to_digest(self, h: Any) -> None:
+        """Feed everything that decides this traversal's renders (world seed, profile, tile size and roads; own
+        seed, condition, traffic draws and vehicle constants) into ``h``, a ``hashlib`` object (``render_key``)."""
+        world = self.world
+        for part in (world.seed, repr(world.profile), world.tile_m, self.seed, repr(self.condition),
+                     self.EGO_CLEARANCE_M, self.CAR_TRANSMISSION):
+            h.update(f"{part}\n".encode())
+        for arr in (world.road.points, self._veh_idx0, self._veh_speed, self._veh_lane, self._veh_size):
+            a = np.ascontiguousarray(arr)
+            h.update(f"{a.dtype.str}{a.shape}".encode())
+            h.update(a.tobytes())
 
     def parked_cars(self, prim: Primitives) -> np.ndarray:
         """(C, 3) x, y, yaw of the parked cars present on this traversal among ``prim``'s slots."""

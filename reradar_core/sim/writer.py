@@ -107,13 +107,12 @@ def render_key(traversal: Traversal, trajectory: PoseSequence, times_us: np.ndar
     """A digest of everything that decides a render's scans: simulator version, preset and layout, the world (seed,
     profile, roads), the traversal (seed, condition, traffic), the driven trajectory (lateral offset included), the
     selected scan times and their indices, and the sensor model. Equal keys render byte-identical folders."""
-    world = traversal.world
     h = hashlib.sha256()
-    for part in (SIM_VERSION, preset, layout, world.seed, repr(world.profile), world.tile_m, traversal.seed,
-                 repr(traversal.condition), traversal.EGO_CLEARANCE_M, traversal.CAR_TRANSMISSION, repr(config)):
+    for part in (SIM_VERSION, preset, layout):
         h.update(f"{part}\n".encode())
-    for arr in (world.road.points, traversal._veh_idx0, traversal._veh_speed, traversal._veh_lane, traversal._veh_size,
-                trajectory.timestamps_us, trajectory.xy, trajectory.yaw, times_us, scan_indices):
+    traversal.add_to_digest(h)
+    h.update(f"{config!r}\n".encode())
+    for arr in (trajectory.timestamps_us, trajectory.xy, trajectory.yaw, times_us, scan_indices):
         a = np.ascontiguousarray(arr)
         h.update(f"{a.dtype.str}{a.shape}".encode())
         h.update(a.tobytes())

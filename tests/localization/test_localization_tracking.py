@@ -46,7 +46,7 @@ def test_prior_validation_and_motion() -> None:
     np.testing.assert_allclose(p.T_map_query, [10.0, 4.0, math.pi / 2 + 0.1], atol=1e-12)  # forward = +y here
     assert p.sigma_xy_m == pytest.approx(0.5 + 0.1 * 4.0) and p.sigma_yaw_rad == pytest.approx(0.02 + 0.01)
     radii = TrackingConfig().radii(PosePrior(np.zeros(3), 10.0, 0.1))
-    assert radii[0] == 6.0 and radii[-1] == 0.75 and list(radii) == sorted(radii, reverse=True)
+    assert radii == (6.0, 3.0, 1.5, 0.75)  # 2 sigma capped at 6 m, halving, the final radius once
 
 
 def test_candidates_are_the_nearest_keyframes_within_the_gate() -> None:
@@ -89,3 +89,25 @@ def test_inconsistent_prior_falls_back_to_global_and_unknown_places_stay_unlocal
                            _unit(rng.normal(size=(150, 16))), 0)
     res = loc.track(unknown, PosePrior(poses[3].copy(), 2.0, 0.05))
     assert res.status == "not_localized" and res.tracking_lost
+
+
+def test_a_tracked_answer_below_the_confidence_bar_is_localized_globally(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The confidence bar of global answers holds for tracked ones: a registration the model doubts is not
+    answered from the prior (here every answer is scored 0.2 against the bar 0.5)."""
+    import reradar_core.localization.localizer as localizer_module
+    from reradar_core.localization import LocalizationConfig
+
+    rng = np.random.default_rng(0)
+    kfs, poses = _map(rng)
+    loc = _localizer(kfs, poses)
+    T_kf_q = np.array([6.0, -2.0, math.radians(8.0)])
+    query = _query(kfs[5], T_kf_q, rng)
+    prior = PosePrior(compose(poses[5], T_kf_q), 1.0, math.radians(2.0))
+    config = LocalizationConfig(min_confidence=0.5)
+    confident = loc.track(query, prior, config)
+    assert confident.mode == "tracking" and confident.confidence >= 0.5 and confident.best.inlier_spread_m > 10.0
+
+    real = localizer_module.answer_confidence
+    monkeypatch.setattr(localizer_module, "answer_confidence", lambda *a: (real(*a)[0], 0.2))
+    doubted = loc.track(query, prior, config)
+    assert doubted.mode == "global" and doubted.tracking_lost and "track_ms" in doubted.timings_ms
