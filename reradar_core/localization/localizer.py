@@ -183,7 +183,7 @@ class Localizer:
             # rival pose, so its ambiguity cue is 0, and its candidates are all near the prior), and their bar:
             # a tracked answer the model doubts is localized globally instead, like a failed registration
             cues, confidence = answer_confidence(best, verified, default_confidence_model())
-            if confidence >= config.effective_min_confidence:
+            if config.pose_method != "guided" or confidence >= config.effective_min_confidence:  # as ``localize``
                 track_ms = (time.perf_counter() - t0) * 1e3
                 return LocalizationResult("localized", None, best, T_map_query, verified,
                                           {"track_ms": track_ms, "verify_ms": track_ms}, confidence, cues,
