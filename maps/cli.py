@@ -34,6 +34,7 @@ def build_map_command(
     from maps.build import build_map_from_sequence
     from maps.store import read_metadata
     from reradar_core.localization.extractor import load_default_extractor
+    from reradar_core.paths import output_file
 
     torch.set_num_threads(threads)
     if out.is_dir():
@@ -43,6 +44,7 @@ def build_map_command(
         typer.echo(f"error: {out} exists; pass --overwrite to replace it", err=True)
         raise typer.Exit(2)
     try:
+        output_file(out, "--out", (".h5", ".hdf5"))  # before the network runs over the whole sequence
         extractor = load_default_extractor(model)
         kwargs: dict[str, object] = dict(batch_size=batch_size, max_keypoints=max_keypoints,
                                          overwrite=overwrite, show_progress=True)
@@ -59,11 +61,17 @@ def build_map_command(
 
 
 def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -> None:
-    """Print a map's metadata as JSON."""
-    from maps.store import read_metadata
+    """Print a map's metadata as JSON, after checking that its arrays agree with it (poses, timestamps, global
+    descriptors and keyframe groups, one per keyframe; the checks of opening a map for localization)."""
+    from maps.store import open_map
 
+    if path.is_dir():
+        typer.echo(f"error: {path} is a folder, not a map file (.h5)", err=True)
+        raise typer.Exit(2)
     try:
-        meta = read_metadata(path)
+        kf_map = open_map(path)
+        meta = kf_map.metadata
+        kf_map.close()
     except ReRadarError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc

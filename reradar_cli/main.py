@@ -52,7 +52,8 @@ def _missing_extra(name: str, exc: ModuleNotFoundError) -> typer.Exit:
 
 def _guarded(name: str, callback: Callable[..., Any]) -> Callable[..., Any]:
     """``callback`` turning a missing optional dependency (imported lazily inside a command) into an
-    actionable error instead of a traceback."""
+    actionable error instead of a traceback, and so an unreadable or unwritable file (an ``OSError``) that the
+    command did not check itself."""
 
     @functools.wraps(callback)
     def run(*args: Any, **kwargs: Any) -> Any:
@@ -62,6 +63,10 @@ def _guarded(name: str, callback: Callable[..., Any]) -> Callable[..., Any]:
             if (exc.name or "").split(".")[0] not in OPTIONAL_MODULES:
                 raise
             raise _missing_extra(name, exc) from exc
+        except OSError as exc:  # a file the user named cannot be read or written: one line, not a traceback
+            where = f": {exc.filename}" if exc.filename else ""
+            typer.echo(f"error: {exc.strerror or exc}{where}", err=True)
+            raise typer.Exit(2) from None
 
     return run
 

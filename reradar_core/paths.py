@@ -7,7 +7,7 @@ from pathlib import Path
 
 from reradar_core.errors import ConfigError
 
-__all__ = ["cache_dir", "PACKAGE_DIR", "CACHE_SOURCE_FILE", "CACHE_SOURCE_ATTR"]
+__all__ = ["cache_dir", "output_dir", "output_file", "PACKAGE_DIR", "CACHE_SOURCE_FILE", "CACHE_SOURCE_ATTR"]
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 #: A cache folder derived from one input folder names it in this JSON file (``{"root": ...}``), and an HDF5 cache
@@ -22,7 +22,8 @@ def cache_dir(*parts: str) -> Path:
     Raises:
         ConfigError: the folder cannot be created (``RERADAR_CACHE_DIR`` names a file, or no permission).
     """
-    root = Path(os.environ.get("RERADAR_CACHE_DIR", Path.cwd() / ".cache" / "reradar"))
+    # an empty value (``RERADAR_CACHE_DIR=`` in an .env file) is unset, not the current folder
+    root = Path(os.environ.get("RERADAR_CACHE_DIR") or Path.cwd() / ".cache" / "reradar")
     path = root.joinpath(*parts)
     try:
         path.mkdir(parents=True, exist_ok=True)
@@ -32,3 +33,44 @@ def cache_dir(*parts: str) -> Path:
         raise ConfigError(f"RERADAR_CACHE_DIR={os.environ.get('RERADAR_CACHE_DIR', '')} cannot be used as the "
                           f"cache folder: {why}") from None
     return path
+
+
+def _why(exc: OSError) -> str:
+    if isinstance(exc, (FileExistsError, NotADirectoryError)):
+        return "a file is in the way (it, or a folder on its path, is a file)"
+    return exc.strerror or str(exc)
+
+
+def output_dir(path: str | Path, what: str = "--out") -> Path:
+    """Create the output folder ``path`` (with its parents) before any work is done, so that a long run cannot end
+    in a failed write.
+
+    Raises:
+        ConfigError: naming ``what`` (the option) and the reason: a file in the way, no permission, ...
+    """
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"{what} {path}: cannot create the folder: {_why(exc)}") from None
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise ConfigError(f"{what} {path}: the folder is not writable")
+    return path
+
+
+def output_file(path: str | Path, what: str = "--out", suffixes: tuple[str, ...] = ()) -> Path:
+    """Check, before any work is done, that the output file ``path`` can be written: not a folder, a suffix from
+    ``suffixes`` (when given), its parent folder created and writable.
+
+    Raises:
+        ConfigError: naming ``what`` and the reason.
+    """
+    path = Path(path)
+    if path.is_dir() or str(path).endswith(os.sep):
+        raise ConfigError(f"{what} {path}: is a folder; give a file name"
+                          + (f" ending in {' or '.join(suffixes)}" if suffixes else ""))
+    if suffixes and path.suffix.lower() not in suffixes:
+        raise ConfigError(f"{what} {path}: the file name must end in {' or '.join(suffixes)}")
+    output_dir(path.parent, what)
+    return path
+

@@ -24,7 +24,7 @@ export OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1
 STAGE1_STEPS=3000   # stage 1 (source domain, from random weights), lr 1e-3
 STAGE2_STEPS=800    # stage 2 (adaptation from a stage-1 model), lr 1e-4
 
-extra=()
+extra=(--overwrite)   # retraining replaces the shipped weights of the same name
 [[ -n "${OUT_DIR:-}" ]] && extra+=(--out-dir "$OUT_DIR")
 [[ "${FRESH:-0}" == "1" ]] && extra+=(--no-resume)
 if [[ -n "${OUT_DIR:-}" ]]; then init_dir="$OUT_DIR/"; else init_dir=""; fi

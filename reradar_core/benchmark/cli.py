@@ -94,7 +94,7 @@ def bench(
     from reradar_core.benchmark.results import results_markdown, write_results
     from reradar_core.benchmark.runner import BenchConfig, run_benchmark
     from reradar_core.benchmark.suites import pairs_from_folders, pairs_from_suite, suite_spacing
-    from reradar_core.paths import cache_dir
+    from reradar_core.paths import cache_dir, output_dir
     from reradar_core.threads import limit_blas_threads
 
     torch.set_num_threads(max(1, threads))
@@ -103,6 +103,11 @@ def bench(
     try:
         if (suite is None) == (database is None):
             raise typer.BadParameter("give either --suite NAME or --database DIR with --query DIR")
+        if out is not None:  # a file in the way is found now, not after the benchmark ran
+            output_dir(out, "--out")
+        if database is not None and any(q.resolve() == database.resolve() for q in query or []):
+            raise typer.BadParameter("a --query folder is the --database folder: every query would find itself "
+                                     "(Recall@1 100 %); give another drive, or --split-at to split one drive")
         if suite is not None:
             if query or time_unit:
                 raise typer.BadParameter("--query and --time-unit are for folders; a suite names its own sequences")

@@ -7,8 +7,13 @@ renders (0.3-1.3 GB each). A full disk stops every run on the machine, so this l
 whether anything still reads it, and ``--prune`` removes the parts nothing reads:
 
 - ``sim/v<N>`` for N other than the current ``SIM_VERSION`` (stale: renders are never reused across versions; other
-  folders under ``sim/`` are not version folders and are kept);
-- ``calib/`` (probe renders, re-rendered on demand by ``benchmarks/calibrate_sim.py``);
+  folders under ``sim/`` are not version folders and are kept), when it holds a simulator render (a
+  ``.reradar_render_version`` marker within four levels) and no loose files of its own;
+- ``calib/`` (probe renders, re-rendered on demand by ``benchmarks/calibrate_sim.py``), when it holds nothing but
+  the probe's ``<suite>-<16 hex digits>.npz`` files.
+
+A folder judged by its name alone is never removed: ``RERADAR_CACHE_DIR`` set to a project or home folder by
+mistake must not lose that folder's own ``calib/`` or ``sim/v3/``.
 - training images (``training/cartesian/<key>``) and benchmark feature caches (``bench/features/<method>/<seq>.h5``)
   derived from a sequence folder that no longer exists (each records its folder since session 17:
   ``paths.CACHE_SOURCE_FILE`` / ``CACHE_SOURCE_ATTR``; older entries record none and are kept).
@@ -115,6 +120,29 @@ _KEPT = {("training", "runs"): "training runs", ("bench", "service"): "service b
 _DERIVED = {("training", "cartesian"): "training images (Cartesian crops)", ("bench", "features"): "benchmark feature caches"}
 
 
+#: the render marker the simulator writes into every sequence folder (``sim.writer``)
+_RENDER_MARKER = ".reradar_render_version"
+_CALIB_FILE = re.compile(r"[a-z0-9][a-z0-9_-]*-[0-9a-f]{16}\.npz")
+
+
+def _holds_renders(version_dir: Path, depth: int = 4) -> bool:
+    """True when ``version_dir`` (``sim/v<N>``) holds at least one simulator render (the marker within ``depth``
+    levels) and no loose files of its own: what the simulator writes there, not a folder that shares the name."""
+    if any(e.is_file() or e.is_symlink() for e in version_dir.iterdir()):
+        return False
+    level = [version_dir]
+    for _ in range(depth):
+        if any((d / _RENDER_MARKER).is_file() for d in level):
+            return True
+        level = [e for d in level for e in d.iterdir() if e.is_dir() and not e.is_symlink()]
+    return False
+
+
+def _holds_calib_renders(calib: Path) -> bool:
+    """True when ``calib/`` holds only ``benchmarks/calibrate_sim.py``'s ``<suite>-<tag>.npz`` files."""
+    return all(e.is_file() and not e.is_symlink() and _CALIB_FILE.fullmatch(e.name) for e in calib.iterdir())
+
+
 def _parts(root: Path) -> Iterable[tuple[tuple[Path, ...], str, bool, str]]:
     """(folders, what, stale, why) of every part of the cache under ``root``."""
     sim = root / "sim"
@@ -125,10 +153,15 @@ def _parts(root: Path) -> Iterable[tuple[tuple[Path, ...], str, bool, str]]:
                 yield (d,), f"sim/{d.name}", False, "kept (not a simulator version folder sim/v<N>)"
             elif version == SIM_VERSION:
                 yield (d,), f"simulator v{version} renders", False, "current simulator version"
+            elif not _holds_renders(d):
+                yield (d,), f"sim/{d.name}", False, "kept (holds no simulator render, or files of its own)"
             else:
                 yield (d,), f"simulator v{version} renders", True, f"never read: renders are per version (now v{SIM_VERSION})"
     if (root / "calib").is_dir():
-        yield (root / "calib",), "calibration probe renders", True, "re-rendered on demand by benchmarks/calibrate_sim.py"
+        if _holds_calib_renders(root / "calib"):
+            yield (root / "calib",), "calibration probe renders", True, "re-rendered on demand by benchmarks/calibrate_sim.py"
+        else:
+            yield (root / "calib",), "calib", False, "kept (holds files that are not calibration probe renders)"
     named = {root.joinpath(*k): what for k, what in _KEPT.items()}
     for path, what in named.items():
         if path.is_dir():

@@ -47,8 +47,9 @@ def register(app: typer.Typer) -> None:
                                               "answers on the fit runs (0: only the --max-wrong-pct rule)."),
         out: Path = typer.Option(None, help="Model JSON (default: the shipped "
                                             "reradar_core/localization/confidence_model.json)."),
-        plot: Path = typer.Option(None, help="Reliability diagram PNG (default: the checkout's "
-                                             "docs/img/confidence_reliability.png, else beside the model JSON)."),
+        plot: Path = typer.Option(None, help="Reliability diagram (.png, .pdf or .svg; default: with the default "
+                                             "--out the checkout's docs/img/confidence_reliability.png, else "
+                                             "<out>.png beside the model JSON)."),
         models: str = typer.Option("", help="Comma-separated SPLIT=MODEL: judge these models' answers instead of "
                                             "each split's target-adapted one (e.g. "
                                             "train-target-boreas=our-3-boreas-w05)."),
@@ -76,12 +77,19 @@ def register(app: typer.Typer) -> None:
             plot_reliability,
             split_models,
         )
-        from reradar_core.paths import cache_dir
+        from reradar_core.paths import cache_dir, output_file
         from reradar_core.sim.writer import SIM_VERSION
 
         torch.set_num_threads(threads)
         names = [s.strip() for s in splits.split(",") if s.strip()]
         try:
+            # both outputs are checked before the hour of localization, and written only when both can be
+            target = output_file(out or DEFAULT_MODEL_PATH, "--out", (".json",))
+            if plot is None:
+                docs_img = DEFAULT_MODEL_PATH.parents[2] / "docs" / "img"  # a checkout, not an installed package
+                plot = (docs_img / "confidence_reliability.png" if out is None and docs_img.is_dir()
+                        else target.with_suffix(".png"))
+            plot = output_file(plot, "--plot", (".png", ".pdf", ".svg"))
             split_model = split_models(models, names)
             spacings = _spacings(map_spacings_m)
             # the runs are cached per set of judged models (a model change never re-uses another model's runs)
@@ -107,11 +115,6 @@ def register(app: typer.Typer) -> None:
         except ReRadarError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from exc
-        target = out or DEFAULT_MODEL_PATH
-        model.save(target)
-        if plot is None:
-            docs_img = DEFAULT_MODEL_PATH.parents[2] / "docs" / "img"  # a checkout, not an installed package
-            plot = docs_img / "confidence_reliability.png" if docs_img.is_dir() else target.with_suffix(".png")
         ho = data.has_pose & data.heldout
         fit = data.has_pose & ~data.heldout
         unseen = data.has_pose & data.unseen
@@ -120,6 +123,8 @@ def register(app: typer.Typer) -> None:
                           "unseen sessions (all)": (model.predict(data.cues[unseen]), data.correct[unseen])}, plot,
                          f"answer confidence on training splits\n{', '.join(names)}\nheld-out ECE "
                          f"{report['ece_heldout']:.3f} (10 bins)", bar=model.min_confidence)
+        model.save(target)  # after the plot: a failed plot leaves the earlier model in place
+        typer.echo(f"wrote {target} and {plot}", err=True)
         typer.echo(json.dumps({"model": target.name, "coef": dict(zip(model.cue_names, model.coef.round(3).tolist(),
                                                                        strict=True)),
                                **report}, indent=2))

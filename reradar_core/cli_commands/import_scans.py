@@ -33,12 +33,17 @@ def _read_source(src: Path) -> np.ndarray:
     that already are Navtech scans (their 11 metadata columns would be read as range bins)."""
     import cv2
 
+    if src.is_dir():
+        raise ScanFormatError(f"{src}: is a folder; pass its scans (e.g. {src}/*.png)")
+    if not src.is_file():
+        raise ScanFormatError(f"{src}: no such file")
     if src.suffix.lower() == ".npy":
         try:
             array = np.load(src, allow_pickle=False)
         except (OSError, ValueError, EOFError) as exc:
             raise ScanFormatError(f"{src.name}: not a readable .npy array ({exc})") from None
     else:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)  # its warnings would repeat the error below
         array = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
         if array is None:
             raise ScanFormatError(f"{src.name}: not a readable image")
@@ -60,6 +65,8 @@ def register(app: typer.Typer) -> None:
         sources: list[Path] = typer.Argument(..., help="Foreign polar scans: single-channel (greyscale) PNG without "
                                              "Navtech metadata, or .npy."),
         out: Path = typer.Option(..., "--out", help="Folder for the Navtech PNGs (created)."),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Replace scans already in --out that have the "
+                                       "same names (timestamps)."),
         range_resolution: float = typer.Option(..., "--range-resolution",
                                                help="Metres per range bin of the SOURCE scans (e.g. 0.175)."),
         preset: str = typer.Option("boreas", help="Target radar preset (boreas, boreas-2021, oxford, oord, mulran)."),
@@ -74,16 +81,22 @@ def register(app: typer.Typer) -> None:
         Output names are microsecond timestamps. Source names are read as timestamps when they are 16 digits
         (microseconds, Boreas / Oxford) or 19 digits (nanoseconds, MulRan; converted to microseconds); other
         numeric names are refused as ambiguous; non-numeric names are numbered 1, 2, 3, ... seconds from 0 in name
-        order (give sequences timestamped names to keep their timing). Sources that would get the same output
-        name are refused. Read the output with `reradar info`, `build-map --dataset`, `localize`.
+        order (give sequences timestamped names to keep their timing); a mix of the three kinds of names is
+        refused. Sources that would get the same output name, or the name of a scan already in --out (unless
+        --overwrite), are refused. Read the output with `reradar info`, `build-map --dataset`, `localize`.
         """
         from reradar_core.io.importer import ForeignScanLayout, import_polar_scan
         from reradar_core.io.scan import write_navtech_png
+        from reradar_core.paths import output_dir
 
         try:
             layout = ForeignScanLayout(range_resolution, range_offset, 1 if transposed else 0,
                                        math.radians(start_azimuth_deg))
             ordered = sorted(sources)
+            kinds = {len(src.stem) if src.stem.isascii() and src.stem.isdigit() else "name" for src in ordered}
+            if len(kinds) > 1:  # e.g. scanA.png (numbered 1 s, 1970) among 2019 timestamps
+                raise ScanFormatError("the sources mix timestamp names (16-digit µs, 19-digit ns) and other names; "
+                                      "one sequence takes one kind: rename them, or import them separately")
             stamps = [_stamp_us(src, k) for k, src in enumerate(ordered)]
             clashes: dict[int, list[str]] = {}
             for src, stamp in zip(ordered, stamps, strict=True):
@@ -93,14 +106,26 @@ def register(app: typer.Typer) -> None:
                 shown = "; ".join(" and ".join(names) for names in clashing[:3])
                 raise ScanFormatError(f"sources with the same timestamp would overwrite each other's output: {shown}"
                                       f"{' ...' if len(clashing) > 3 else ''}; import them into separate folders")
+            if out.exists() and not out.is_dir():
+                raise ScanFormatError(f"--out {out}: is a file; --out names a folder")
+            existing = [f"{stamp}.png" for stamp in stamps if (out / f"{stamp}.png").exists()]
+            if existing and not overwrite:
+                raise ScanFormatError(f"--out {out} already holds {len(existing)} scan(s) of these names "
+                                      f"({', '.join(existing[:3])}{' ...' if len(existing) > 3 else ''}); pass "
+                                      "--overwrite to replace them, or choose another --out")
+            written = 0
             for src, stamp in zip(ordered, stamps, strict=True):
                 try:
                     scan = import_polar_scan(_read_source(src), layout, preset, start_time_us=stamp)
                 except ScanFormatError as exc:
                     msg = str(exc)
-                    raise ScanFormatError(msg if msg.startswith(src.name) else f"{src.name}: {msg}") from None
-                out.mkdir(parents=True, exist_ok=True)  # not before the first scan converts
+                    msg = msg if msg.startswith((src.name, str(src))) else f"{src}: {msg}"
+                    if written:
+                        msg += f" (the {written} scan(s) before it were written to {out})"
+                    raise ScanFormatError(msg) from None
+                output_dir(out, "--out")  # not before the first scan converts
                 write_navtech_png(scan, out / f"{stamp}.png")
+                written += 1
         except (ReRadarError, OSError, ValueError) as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from exc

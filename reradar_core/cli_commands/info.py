@@ -20,10 +20,14 @@ def register(app: typer.Typer) -> None:
                                    "needed for 3360 bins (boreas, boreas-2021 and mulran differ)."),
     ) -> None:
         """Print a scan's shape, timing and power statistics."""
+        if scan.is_dir():
+            typer.echo(f"error: {scan}: is a folder; pass one scan file (.png or .npy)", err=True)
+            raise typer.Exit(2)
         try:
             s = load_scan(scan, preset)
         except ReRadarError as exc:
-            typer.echo(f"error: {exc}", err=True)
+            msg = str(exc)  # every message names the file (some checks of the decoded power do not)
+            typer.echo(f"error: {msg if str(scan) in msg or scan.name in msg else f'{scan}: {msg}'}", err=True)
             raise typer.Exit(2) from exc
         sweep_ms = (s.timestamps_us[-1] - s.timestamps_us[0]) / 1000.0
         typer.echo(f"file: {scan}")

@@ -21,7 +21,11 @@ from reradar_core.errors import ScanFormatError
 from reradar_core.io.presets import RadarPreset, get_preset
 from reradar_core.io.scan import RadarScan, check_scan_sides
 
-__all__ = ["ForeignScanLayout", "import_polar_scan"]
+__all__ = ["ForeignScanLayout", "RANGE_RESOLUTION_BOUNDS_M", "import_polar_scan"]
+
+
+#: Range resolutions a source may have, metres per bin (radars: ~0.04-0.5 m): outside, a unit is wrong.
+RANGE_RESOLUTION_BOUNDS_M = (1e-3, 10.0)
 
 
 @dataclass(frozen=True)
@@ -44,8 +48,18 @@ class ForeignScanLayout:
         if not (np.isfinite(self.range_resolution_m) and self.range_resolution_m > 0):
             raise ScanFormatError(f"range resolution must be a positive number of metres, got "
                                   f"{self.range_resolution_m}")
+        lo, hi = RANGE_RESOLUTION_BOUNDS_M
+        if not lo <= self.range_resolution_m <= hi:
+            raise ScanFormatError(f"range resolution {self.range_resolution_m:g} m per bin is not a radar's (radars "
+                                  f"sample {lo:g}-{hi:g} m per bin; Navtech 0.044-0.175 m): check the unit (metres)")
+        if not np.isfinite(self.range_offset_m):
+            raise ScanFormatError(f"range offset must be a finite number of metres, got {self.range_offset_m}")
+        if not np.isfinite(self.start_azimuth_rad):
+            raise ScanFormatError(f"start azimuth must be a finite angle, got {self.start_azimuth_rad}")
         if self.azimuth_axis not in (0, 1):
             raise ScanFormatError(f"azimuth_axis must be 0 or 1, got {self.azimuth_axis}")
+        # one turn: a start azimuth of 1e17 rad would otherwise lose every digit of the encoder column
+        object.__setattr__(self, "start_azimuth_rad", float(np.mod(self.start_azimuth_rad, 2 * np.pi)))
 
 
 def _to_unit_power(array: np.ndarray) -> np.ndarray:
@@ -89,6 +103,12 @@ def import_polar_scan(array: np.ndarray, layout: ForeignScanLayout, preset: str 
     r_dst = p.range_offset_m + np.arange(p.num_range_bins) * p.range_resolution_m
     x = (r_dst - layout.range_offset_m) / layout.range_resolution_m
     inside = (x >= 0) & (x <= n_bins_src - 1)
+    if not inside.any():  # every output bin would be 0: a wrong offset or resolution, never a scan
+        src_lo = layout.range_offset_m
+        src_hi = layout.range_offset_m + (n_bins_src - 1) * layout.range_resolution_m
+        raise ScanFormatError(f"the scan's ranges {src_lo:g}..{src_hi:g} m (offset + bins x resolution) do not "
+                              f"overlap preset {p.name!r}'s {r_dst[0]:g}..{r_dst[-1]:g} m: check --range-offset "
+                              "and --range-resolution")
     i0 = np.clip(np.floor(x).astype(np.int64), 0, n_bins_src - 1)
     i1 = np.minimum(i0 + 1, n_bins_src - 1)
     w = (x - i0).astype(np.float32)

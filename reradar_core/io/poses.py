@@ -190,6 +190,11 @@ def gps_time_to_us(values: np.ndarray, unit: str | None = None, source: str = "t
                 f"{source}: timestamps {span} are not absolute UTC times (2000-2100) in s, ms, us or ns, so "
                 "their unit is ambiguous; give it explicitly: --time-unit s|ms|us|ns on the command line "
                 "(time_unit= in Python), or a t_s / t_ms / t_us / t_ns column header in a t,x,y,yaw CSV")
+    else:
+        absolute = absolute_time_unit(values)
+        if absolute is not None and absolute != _check_unit(unit):  # e.g. Boreas ns read as us: a 13-day drive
+            raise PoseFileError(f"{source}: the timestamps are absolute UTC times in {absolute}, not {unit}; "
+                                f"give --time-unit {absolute} (or none: absolute times need none)")
     return to_microseconds(values, unit)
 
 

@@ -76,11 +76,15 @@ def split_models(overrides: str = "", splits: list[str] | None = None) -> dict[s
 
     Raises:
         ConfigError: a pair without ``=`` or an empty side, a split that is not a key of ``SPLIT_MODELS`` (in a
-            pair or in ``splits``), or an empty ``splits``.
+            pair or in ``splits``), a pair for a split outside ``splits``, a split named twice, or an empty
+            ``splits``.
     """
     if splits is not None:
         if not splits:
             raise ConfigError("--splits names no training split")
+        repeated = sorted({s for s in splits if splits.count(s) > 1})
+        if repeated:  # each would be localized again and weigh twice in the fit
+            raise ConfigError(f"--splits names {', '.join(repeated)} more than once")
         unknown = [s for s in splits if s not in SPLIT_MODELS]
         if unknown:
             raise ConfigError(f"unknown training split(s) {', '.join(unknown)}; choose from {', '.join(SPLIT_MODELS)}")
@@ -93,6 +97,8 @@ def split_models(overrides: str = "", splits: list[str] | None = None) -> dict[s
             raise ConfigError(f"model override {item!r} is not SPLIT=MODEL")
         if split not in SPLIT_MODELS:
             raise ConfigError(f"model override for unknown split {split!r}; choose from {sorted(SPLIT_MODELS)}")
+        if splits is not None and split not in splits:
+            raise ConfigError(f"model override for {split!r}, which --splits does not fit ({', '.join(splits)})")
         out[split] = model
     return {s: out[s] for s in (splits if splits is not None else out)}
 

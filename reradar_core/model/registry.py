@@ -41,6 +41,9 @@ def resolve_weights(name: str = "default", weights_dir: Path = WEIGHTS_DIR) -> t
     candidate = Path(name)
     if candidate.suffix == ".pt" and candidate.is_file():
         pt = candidate
+    elif candidate.suffix == ".pt" or len(candidate.parts) > 1:  # a path, not a registry name
+        why = "is a folder, not a weights file" if candidate.is_dir() else "no such weights file"
+        raise ConfigError(f"{candidate}: {why} (a .pt written by `reradar train`)")
     else:
         names = available_models(weights_dir)
         if name == "default":

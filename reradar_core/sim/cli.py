@@ -24,6 +24,19 @@ def _finite(value: float) -> float:
     return value
 
 
+def _unique_labels(folders: list[Path]) -> list[str]:
+    """Column labels for ``folders``: each folder's name, with as many parent folders as it takes to tell apart
+    folders that share a name (``a/seq`` and ``b/seq``); the same folder twice gets one label twice."""
+    parts = [f.resolve().parts for f in folders]
+    labels = [p[-1] for p in parts]
+    for depth in range(2, max((len(p) for p in parts), default=1) + 1):
+        clash = {lab for lab in labels if labels.count(lab) > 1}
+        if not clash:
+            break
+        labels = ["/".join(p[-depth:]) if lab in clash else lab for lab, p in zip(labels, parts, strict=True)]
+    return labels
+
+
 def register(app: typer.Typer) -> None:
     from reradar_core.io.presets import PRESETS
     from reradar_core.sim.traversal import CONDITIONS
@@ -65,6 +78,7 @@ def register(app: typer.Typer) -> None:
         holding anything else is refused.
         """
         from reradar_core.io.poses import TIME_UNITS
+        from reradar_core.paths import output_dir
         from reradar_core.sim.sensor import SensorConfig
         from reradar_core.sim.trajectories import (
             load_road_xy,
@@ -77,6 +91,7 @@ def register(app: typer.Typer) -> None:
         from reradar_core.sim.writer import render_sequence
 
         try:
+            output_dir(out.parent, "--out")  # a file in the way is found before the trajectory is rendered
             if time_unit is not None and time_unit.strip().lower() not in TIME_UNITS:
                 raise typer.BadParameter(f"--time-unit must be one of {sorted(TIME_UNITS)}, got {time_unit!r}")
             traj = load_trajectory(trajectory, time_unit)
@@ -110,9 +125,12 @@ def register(app: typer.Typer) -> None:
         trajectory_dir: Path = typer.Option(None, help="Folder with the real Boreas trajectories."),
     ) -> None:
         """Render a named benchmark suite or training split (skips sequences already complete)."""
+        from reradar_core.paths import output_dir
         from reradar_core.sim.suites import build_suite
 
         try:
+            if root is not None:
+                output_dir(root, "--root")
             data = build_suite(name, root, True, every, limit, trajectory_dir)
         except ReRadarError as exc:
             raise _fail(exc) from exc
@@ -126,22 +144,39 @@ def register(app: typer.Typer) -> None:
 
     @app.command("sim-report")
     def sim_report(
-        real: Path = typer.Option(..., help="Folder of real scans (a sequence folder or *.png)."),
+        real: Path = typer.Option(..., help="Real scans: a sequence folder, or a folder of Navtech *.png scans."),
         sim: list[Path] = typer.Option(..., help="Simulated sequence folder(s); repeat for several conditions."),
         limit: int = typer.Option(12, min=1, help="Scans per folder."),
-        images: Path = typer.Option(None, help="Write preview PNGs (polar + Cartesian) with this prefix."),
+        preset: str = typer.Option(None, help="Radar preset of the scans (needed for 3,360-bin scans outside a "
+                                   f"sequence folder: boreas, boreas-2021 or mulran); one of {', '.join(PRESETS)}."),
+        images: Path = typer.Option(None, help="Write preview PNGs (polar + Cartesian): into this folder when it "
+                                    "exists or ends in '/', else with this file-name prefix."),
     ) -> None:
         """Print real vs simulated scan statistics side by side (Markdown table)."""
+        from reradar_core.paths import output_dir
         from reradar_core.sim.report import collect_scans, compare_table, folder_statistics, save_preview
 
+        # one column per folder: the folder's name, or its last parts when two folders share a name
+        labels = _unique_labels(sim)
+        if len(set(labels)) < len(labels):
+            raise _fail(ReRadarError("--sim names the same folder twice"))
         try:
-            cols = {"real": folder_statistics(real, limit)}
-            for s in sim:
-                cols[s.name] = folder_statistics(s, limit)
+            prefix = None
             if images is not None:
-                save_preview(collect_scans(real, 1)[0], Path(str(images) + "_real"))
-                for s in sim:
-                    save_preview(collect_scans(s, 1)[0], Path(str(images) + f"_{s.name}"))
+                into = images.is_dir() or str(images).endswith(("/", "\\"))
+                prefix = (output_dir(images, "--images") / "preview" if into
+                          else output_dir(images.parent, "--images") / images.name)
+            cols = {"real": folder_statistics(real, limit, preset)}
+            for s, label in zip(sim, labels, strict=True):
+                cols[label] = folder_statistics(s, limit, preset)
+            written: list[Path] = []
+            if prefix is not None:
+                written += save_preview(collect_scans(real, 1, preset)[0], Path(f"{prefix}_real"))
+                for s, label in zip(sim, labels, strict=True):
+                    name = label.replace("/", "_")
+                    written += save_preview(collect_scans(s, 1, preset)[0], Path(f"{prefix}_{name}"))
         except ReRadarError as exc:
             raise _fail(exc) from exc
         typer.echo(compare_table(cols))
+        for path in written:
+            typer.echo(f"wrote {path}", err=True)

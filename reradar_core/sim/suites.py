@@ -463,7 +463,7 @@ def _route_trajectory(route: RouteDef, traj_dir: Path | None) -> PoseSequence:
         f = folder / (BOREAS_MAP_FILE if route.kind == "boreas-map" else BOREAS_QUERY_FILE)
         if not f.is_file():
             raise DatasetError(
-                f"{f}: real Boreas trajectory not found; pass trajectory_dir=..., set ${TRAJECTORY_DIR_ENV}, "
+                f"{f}: real Boreas trajectory not found; pass --trajectory-dir (trajectory_dir= in Python), set ${TRAJECTORY_DIR_ENV}, "
                 "or use a suite that needs no real data (smoke, loop-sim, offroad-sim)"
             )
         traj = load_trajectory(f)

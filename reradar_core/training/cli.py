@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import re
 import shlex
 import sys
@@ -44,6 +45,12 @@ def _model_name(value: str) -> str:
     if not _MODEL_NAME.fullmatch(value):
         raise typer.BadParameter(f"{value!r} is not a plain file name: use letters, digits, '-', '_' and '.', "
                                  "not starting with '.' (no folders: --out-dir chooses the folder)")
+    return value
+
+
+def _positive_finite(value: float | None) -> float | None:
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise typer.BadParameter(f"must be a positive number, got {value}")
     return value
 
 
@@ -105,7 +112,8 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
 
     def _desc(s: SeqSpec) -> str:
         part = "" if (s.start, s.stop) == (0.0, 1.0) else f" [{s.start:.2f}, {s.stop:.2f})"
-        return f"{s.path.parent.name}/{s.path.name}{part}"
+        folder = s.path.resolve()  # a relative --sequence names its parent too (not "/db")
+        return f"{folder.parent.name}/{folder.name}{part}"
 
     meta = {
         "description": data_note,
@@ -140,13 +148,16 @@ def register(app: typer.Typer) -> None:
         clusters: int = typer.Option(32, help="NetVLAD clusters K."),
         dim: int = typer.Option(256, help="PCA-whitening output dimension D (0 = raw NetVLAD)."),
         init: str | None = typer.Option(None, help="Adapt from this shipped model (name or .pt path)."),
-        lr: float | None = typer.Option(None, help="AdamW learning rate (default 1e-4, 1e-5 with --init)."),
+        lr: float | None = typer.Option(None, callback=_positive_finite,
+                                        help="AdamW learning rate (default 1e-4, 1e-5 with --init)."),
         steps: int = typer.Option(1500, min=0, help="Maximum optimisation steps."),
-        minutes: float = typer.Option(60.0, help="Wall-clock budget in minutes."),
+        minutes: float = typer.Option(60.0, callback=_positive_finite, help="Wall-clock budget in minutes."),
         seed: int = typer.Option(0, help="Random seed (sampling, augmentation, initialisation)."),
-        threads: int = typer.Option(1, help="torch CPU threads (1 is fastest on a busy shared CPU)."),
+        threads: int = typer.Option(1, min=1, help="torch CPU threads (1 is fastest on a busy shared CPU)."),
         device: str = typer.Option("auto", help="auto (CUDA GPU when available, else CPU), cpu or cuda."),
         out_dir: Path | None = typer.Option(None, help="Where to write the weights (default: the package)."),
+        overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing <out-dir>/<name>.pt (e.g. "
+                                       "retraining a shipped model: scripts/train_models.sh passes it)."),
         no_resume: bool = typer.Option(False, "--no-resume", help="Ignore an existing checkpoint."),
         hard_negatives: int = typer.Option(0, help="Negatives per query (of 14, even) mined from a memory bank "
                                            "of global descriptors instead of drawn at random (0 = off)."),
@@ -165,6 +176,16 @@ def register(app: typer.Typer) -> None:
         extra: dict = {"hard_negatives": hard_negatives, "hard_refresh_every": hard_refresh,
                        "learned_whitening": learned_whitening}
         try:
+            from reradar_core.model.registry import WEIGHTS_DIR
+            from reradar_core.paths import output_dir
+
+            target = output_dir(out_dir or WEIGHTS_DIR, "--out-dir") / f"{name}.pt"
+            if target.exists() and not overwrite:  # before any work: a finished run must not end in a refusal
+                raise typer.BadParameter(f"{target} exists; pass --overwrite to replace it, or choose another "
+                                         "--name / --out-dir", param_hint="--name")
+            if (val_db is None) != (val_query is None):
+                raise typer.BadParameter("--val-db and --val-query go together (a validation database and its "
+                                         "queries)")
             if split is not None:
                 from reradar_core.training.suites import suite_training_data
 
@@ -192,3 +213,7 @@ def register(app: typer.Typer) -> None:
         meta = json.loads(path.with_suffix(".json").read_text())
         typer.echo(f"wrote {path} ({meta['model_id']}, {meta['steps']} steps, {meta['train_time_s']} s, "
                    f"val Recall@1 {meta.get('val_recall_at_1')})")
+        if steps > 0 and not meta["steps"]:
+            typer.echo("error: the run ended before its first optimisation step (the --minutes budget was spent "
+                       "preparing the data?): these weights are untrained", err=True)
+            raise typer.Exit(1)

@@ -363,7 +363,7 @@ class Trainer:
         saved = ck.get("config", {}).get("model")
         # options added later (e.g. disc_mask) take their defaults in checkpoints written before them
         if saved is None or ModelConfig.from_dict(saved).to_dict() != self.config.model.to_dict():
-            raise ConfigError(f"checkpoint {path} was written for another model config; use a new run dir")
+            raise ConfigError(f"checkpoint {path} was written for another model config; pass --no-resume to start over, or use another --name")
         load_trainable_state(self.net, ck["net"])
         self.opt.load_state_dict(ck["opt"])
         self.step, self.elapsed_s = int(ck["step"]), float(ck["elapsed_s"])

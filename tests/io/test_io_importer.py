@@ -111,8 +111,9 @@ def test_cli_refuses_sources_that_would_overwrite_each_other(tmp_path):
     for d in ("d1", "d2"):
         (tmp_path / d).mkdir()
         cv2.imwrite(str(tmp_path / d / "1566535872045000.png"), _foreign())
-        cv2.imwrite(str(tmp_path / d / "x.png"), _foreign())
-    res = _import(tmp_path, *(tmp_path / d / n for d in ("d1", "d2") for n in ("1566535872045000.png", "x.png")))
+        cv2.imwrite(str(tmp_path / d / "1566535872295000.png"), _foreign())
+    res = _import(tmp_path, *(tmp_path / d / n for d in ("d1", "d2")
+                              for n in ("1566535872045000.png", "1566535872295000.png")))
     assert res.exit_code == 2 and "same timestamp" in res.output
     assert "d1/1566535872045000.png" in res.output and "d2/1566535872045000.png" in res.output
     assert not (tmp_path / "o").exists()
@@ -141,3 +142,35 @@ def test_cli_refuses_tiny_colour_and_navtech_sources(tmp_path):
     res = _import(tmp_path, navtech)
     assert res.exit_code == 2 and "already a Navtech scan" in res.output and "needs no import" in res.output
     assert not (tmp_path / "o").exists()
+
+
+def test_a_source_range_that_misses_the_preset_is_refused_and_angles_wrap():
+    """QA (session 20): an offset of 500 m or NaN, or 1e-9 m bins, wrote all-zero scans and said 'wrote 1'."""
+    for layout in (dict(range_resolution_m=0.175, range_offset_m=500.0),
+                   dict(range_resolution_m=0.175, range_offset_m=-1000.0)):
+        with pytest.raises(ScanFormatError, match="do not overlap"):
+            import_polar_scan(_foreign(), ForeignScanLayout(**layout), "boreas")
+    with pytest.raises(ScanFormatError, match="finite"):
+        ForeignScanLayout(0.175, float("nan"))
+    with pytest.raises(ScanFormatError, match="not a radar's"):
+        ForeignScanLayout(1e-9)
+    turned = ForeignScanLayout(0.175, start_azimuth_rad=1e17)
+    assert 0.0 <= turned.start_azimuth_rad < 2 * np.pi
+
+
+def test_cli_never_overwrites_earlier_scans_nor_mixes_name_kinds(tmp_path):
+    """QA (session 20): a second import into the same --out replaced its scans without a word, and 'scanA.png'
+    became a 1970 scan among 2019 ones."""
+    cv2.imwrite(str(tmp_path / "1566535872045000.png"), _foreign())
+    assert _import(tmp_path, tmp_path / "1566535872045000.png").exit_code == 0
+    first = (tmp_path / "o" / "1566535872045000.png").read_bytes()
+    res = _import(tmp_path, tmp_path / "1566535872045000.png")
+    assert res.exit_code == 2 and "--overwrite" in res.output
+    assert (tmp_path / "o" / "1566535872045000.png").read_bytes() == first
+    cv2.imwrite(str(tmp_path / "scanA.png"), _foreign())
+    res = _import(tmp_path, tmp_path / "scanA.png", tmp_path / "1566535872045000.png", out="o2")
+    assert res.exit_code == 2 and "mix" in res.output and not (tmp_path / "o2").exists()
+    res = _import(tmp_path, tmp_path / "missing.png", out="o3")
+    assert res.exit_code == 2 and "no such file" in res.output and "WARN" not in res.output
+    res = _import(tmp_path, tmp_path, out="o3")
+    assert res.exit_code == 2 and "is a folder" in res.output

@@ -240,3 +240,13 @@ def test_positions_beyond_the_coordinate_bound_are_refused_in_every_format(tmp_p
     # a UTM position (northing below 1e7 m) is fine
     utm = PoseSequence([1_630_597_331_060_160], [[623422.85, 9_999_999.0]], [0.1])
     assert read_poses(write_txyyaw_csv(utm, tmp_path / "utm.csv")).xy[0, 1] == 9_999_999.0
+
+
+def test_an_explicit_unit_that_contradicts_absolute_times_is_refused(tmp_path):
+    """QA (session 20): ``--time-unit us`` on the nanosecond Boreas file read it as a 13-day drive at 7 mm/s."""
+    path = _write(tmp_path, "radar_poses.csv", BOREAS_NS)
+    with pytest.raises(PoseFileError, match="absolute UTC times in ns, not us"):
+        read_boreas_radar_poses(path, "us")
+    assert len(read_boreas_radar_poses(path, "ns")) == 3  # the right unit, stated, is fine
+    rel = _write(tmp_path, "rel.csv", "t,x,y,yaw\n0,0,0,0\n1,1,0,0\n")
+    assert read_txyyaw_csv(rel, "s").timestamps_us[-1] == 1_000_000  # relative times take any unit

@@ -395,3 +395,7 @@ def test_split_models_applies_overrides_and_refuses_bad_ones() -> None:
         split_models("train-target-boreas")
     with pytest.raises(ConfigError, match="unknown split"):
         split_models("smoke=our-1")
+    with pytest.raises(ConfigError, match="which --splits does not fit"):  # QA (session 20): was ignored
+        split_models("train-target-loop=our-1", ["train-target-boreas"])
+    with pytest.raises(ConfigError, match="more than once"):  # would be localized twice and weigh double
+        split_models("", ["train-target-boreas", "train-target-boreas"])

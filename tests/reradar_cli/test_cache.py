@@ -30,13 +30,15 @@ def _cache(root: Path) -> dict[str, Path]:
         "old_only": _file(old / "a.png"),
         "shared": _file(old / "b.png"),
         "current": _file(cur / "c.png"),
-        "calib": _file(root / "calib" / "probe.npz", 2 * KB64),
+        "calib": _file(root / "calib" / "loop-sim-hard-0123456789abcdef.npz", 2 * KB64),
         "train": _file(root / "training" / "cartesian" / "k" / "images.npy"),
         "features": _file(root / "bench" / "features" / "m" / "s.h5"),
         "result": _file(root / "bench" / "loop-sim" / "results.json", 100),
         "map": _file(root / "maps" / "city.h5"),
     }
     os.link(files["shared"], cur / "b.png")  # carried over: one file, two versions
+    for seq in (old, cur):
+        (seq / ".reradar_render_version").write_text(f"{SIM_VERSION}\n")  # what the simulator's writer leaves
     return files
 
 
@@ -145,3 +147,25 @@ def test_training_and_bench_caches_record_their_source(tmp_path, monkeypatch):
     assert source_of(folder) == str(seq_root.resolve())
     FeatureCache("m-1", "seq-1", source_root=seq_root).close()
     assert source_of(tmp_path / "cache" / "bench" / "features" / "m-1" / "seq-1.h5") == str(seq_root.resolve())
+
+
+def test_prune_never_removes_folders_that_only_share_a_name(tmp_path, monkeypatch):
+    """QA (session 20): ``RERADAR_CACHE_DIR`` pointed at a project folder, or left empty (the current folder), made
+    ``--prune`` remove that folder's own ``calib/`` and ``sim/v3/``, judged by their names alone."""
+    project = tmp_path / "project"
+    own = [_file(project / "calib" / "a.yaml", 10), _file(project / "sim" / "v3" / "run.txt", 10),
+           _file(project / "sim" / "v4" / "results" / "r.csv", 10)]
+    _file(project / "sim" / "v2" / "suite" / "seq" / "a.png", 10)
+    (project / "sim" / "v2" / "notes.txt").write_text("mine")  # a render folder with files of its own: kept
+    (project / "sim" / "v2" / "suite" / "seq" / ".reradar_render_version").write_text("2\n")
+    runner = CliRunner()
+    for env in (str(project), ""):
+        monkeypatch.setenv("RERADAR_CACHE_DIR", env)
+        monkeypatch.chdir(project)
+        res = runner.invoke(app, ["cache", "--prune"])
+        assert res.exit_code == 0, res.output
+        assert all(p.exists() for p in own) and (project / "sim" / "v2" / "notes.txt").exists()
+    # the empty variable means the default cache folder, not the current one
+    assert str(project / ".cache" / "reradar") in res.output
+    parts = _by_what(cache_parts(project))
+    assert not any(p.stale for p in parts.values()) and "kept (holds files" in parts["calib"].why

@@ -182,6 +182,71 @@ def test_fit_confidence_refuses_unknown_splits_bad_spacings_and_a_reuse_without_
     assert not any((tmp_path / "cache").rglob("*.npz"))
 
 
+@pytest.mark.parametrize("args, message", [
+    (["--out", "{tmp}/m.txt"], "must end in .json"), (["--out", "{tmp}"], "is a folder"),
+    (["--out", "{tmp}/a_file/m.json"], "a file is in the way"), (["--plot", "{tmp}/r.txt"], "must end in .png"),
+    (["--plot", "{tmp}"], "is a folder"),
+])
+def test_fit_confidence_checks_its_outputs_before_collecting(tmp_path, monkeypatch, args, message):
+    """QA (session 20): a bad --out or --plot was found only after the hour of localization (a traceback, or the
+    model written and the plot not; a folder as --plot wrote <folder>.png beside it)."""
+    monkeypatch.setenv("RERADAR_CACHE_DIR", str(tmp_path / "cache"))
+    (tmp_path / "a_file").write_text("")
+    args = [a.replace("{tmp}", str(tmp_path)) for a in args]
+    res = _run(["fit-confidence", "--splits", "train-target-boreas", *args])
+    assert res.exit_code == 2 and message in res.output
+    assert not (tmp_path / "cache" / "confidence").exists() or not any((tmp_path / "cache").rglob("*.npz"))
+
+
 def test_build_map_out_a_folder_is_one_line(tmp_path):
     res = _run(["build-map", "--dataset", str(tmp_path), "--out", str(tmp_path), "--overwrite"])
     assert res.exit_code == 2 and "is a folder" in res.output and "map.h5" in res.output
+
+
+def test_map_info_checks_the_arrays_and_build_map_checks_its_output_first(tmp_path):
+    """QA (session 20): map-info said a map without /poses was fine (it read the attributes only); build-map wrote an
+    HDF5 map under any name and failed on an unwritable --out only after the network ran."""
+    import shutil
+
+    import h5py
+
+    from maps import DEMO_MAP_PATH
+
+    good = tmp_path / "good.h5"
+    shutil.copy(DEMO_MAP_PATH, good)
+    res = _run(["map-info", str(good)])
+    assert res.exit_code == 0 and json.loads(res.output)["num_keyframes"] == 80
+    broken = tmp_path / "broken.h5"
+    shutil.copy(DEMO_MAP_PATH, broken)
+    with h5py.File(broken, "a") as f:
+        del f["poses"]
+    res = _run(["map-info", str(broken)])
+    assert res.exit_code == 2 and "poses" in res.output
+    res = _run(["map-info", str(tmp_path)])
+    assert res.exit_code == 2 and "is a folder" in res.output
+    (tmp_path / "a_file").write_text("")
+    for out, message in ((tmp_path / "m.json", "must end in .h5"), (tmp_path / "a_file" / "m.h5", "a file is in the way")):
+        res = _run(["build-map", "--dataset", str(tmp_path), "--out", str(out)])
+        assert res.exit_code == 2 and message in res.output
+
+
+def test_bench_refuses_the_database_as_a_query_and_an_unwritable_out_before_running(tmp_path):
+    """QA (session 20): ``--query`` = ``--database`` reported Recall@1 100 % without a word; an --out under a file
+    ended in a traceback after the whole benchmark had run."""
+    db = tmp_path / "db"
+    db.mkdir()
+    res = _run(["bench", "--database", str(db), "--query", str(tmp_path / "." / "db"), "-m", "ringkey"])
+    assert res.exit_code == 2 and "is the --database folder" in res.output
+    (tmp_path / "a_file").write_text("")
+    res = _run(["bench", "--database", str(db), "--query", str(tmp_path), "-m", "ringkey",
+                "--out", str(tmp_path / "a_file" / "out")])
+    assert res.exit_code == 2 and "a file is in the way" in res.output
+
+
+def test_export_onnx_names_a_missing_weights_file_as_missing(tmp_path):
+    """QA (session 20): a .pt path that does not exist was answered 'unknown model ... (or give a .pt path)'."""
+    res = _run(["export-onnx", str(tmp_path / "nonexist.pt")])
+    assert res.exit_code == 2 and "no such weights file" in res.output and "unknown model" not in res.output
+    (tmp_path / "x.pt").mkdir()
+    res = _run(["export-onnx", str(tmp_path / "x.pt")])
+    assert res.exit_code == 2 and "is a folder" in res.output

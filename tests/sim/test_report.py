@@ -60,3 +60,27 @@ def test_sim_report_cli_on_generated_folders(tmp_path):
     assert table.splitlines()[0] == "| statistic | x |"
     missing = CliRunner().invoke(app, ["sim-report", "--real", str(tmp_path / "nothing"), "--sim", str(tmp_path)])
     assert missing.exit_code == 2
+
+
+def test_sim_report_keeps_folders_that_share_a_name_and_writes_into_an_images_folder(tmp_path):
+    """QA (session 20): ``--sim a/seq --sim b/seq`` reported one column (the second overwrote the first) and
+    ``--images dir/`` wrote ``dir_*.png`` beside the folder."""
+    from reradar_cli import app
+
+    rng = np.random.default_rng(2)
+    for name, level in (("real", 0.05), ("a", 0.05), ("b", 0.2)):
+        folder = tmp_path / name / "seq"
+        for k in range(2):
+            power = (rng.random((400, 3768)) * level).astype(np.float32)
+            write_sequence_scan(folder, "oxford", _scan(power, 1_600_000_000_000_000 + k * 250_000))
+    (tmp_path / "img").mkdir()
+    res = CliRunner().invoke(app, ["sim-report", "--real", str(tmp_path / "real" / "seq"), "--sim",
+                                   str(tmp_path / "a" / "seq"), "--sim", str(tmp_path / "b" / "seq"), "--limit", "2",
+                                   "--images", str(tmp_path / "img")])
+    assert res.exit_code == 0, res.output
+    assert "| statistic | real | a/seq | b/seq |" in res.output
+    written = sorted(p.name for p in (tmp_path / "img").iterdir())
+    assert written == sorted(f"preview_{n}_{kind}.png" for n in ("real", "a_seq", "b_seq") for kind in ("cart", "polar"))
+    twice = CliRunner().invoke(app, ["sim-report", "--real", str(tmp_path / "real" / "seq"), "--sim",
+                                     str(tmp_path / "a" / "seq"), "--sim", str(tmp_path / "a" / "seq")])
+    assert twice.exit_code == 2 and "same folder twice" in twice.output

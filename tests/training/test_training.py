@@ -325,3 +325,38 @@ def test_train_bad_data_is_a_one_line_error(tmp_path, args, message):
 
     res = CliRunner().invoke(app, ["train", "--name", "x", *args, "--out-dir", str(tmp_path)])
     assert res.exit_code == 2 and message in res.output and "Traceback" not in res.output
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--lr", "-1"], "--lr"), (["--lr", "nan"], "--lr"), (["--minutes", "0"], "--minutes"),
+    (["--minutes", "nan"], "--minutes"), (["--threads", "0"], "--threads"),
+    (["--val-db", "."], "--val-db and --val-query go together"),
+])
+def test_train_refuses_bad_options_before_any_work(tmp_path, args, message):
+    """QA (session 20): ``--lr -1`` ended in the optimiser's traceback after the data was prepared, ``--minutes -1``
+    wrote untrained weights and reported success, a lone ``--val-db`` was dropped without a word."""
+    from typer.testing import CliRunner
+
+    from reradar_cli import app
+
+    res = CliRunner().invoke(app, ["train", "--name", "x", "--sequence", str(tmp_path), "--steps", "0",
+                                   "--out-dir", str(tmp_path / "out"), *args])
+    assert res.exit_code == 2 and message in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "out" / "x.pt").exists()
+
+
+def test_train_never_replaces_weights_without_overwrite_and_checks_the_folder_first(tmp_path):
+    from typer.testing import CliRunner
+
+    from reradar_cli import app
+
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "x.pt").write_bytes(b"earlier weights")
+    res = CliRunner().invoke(app, ["train", "--name", "x", "--sequence", str(tmp_path), "--steps", "0",
+                                   "--out-dir", str(tmp_path / "out")])
+    assert res.exit_code == 2 and "--overwrite" in res.output
+    assert (tmp_path / "out" / "x.pt").read_bytes() == b"earlier weights"
+    (tmp_path / "file").write_text("")
+    res = CliRunner().invoke(app, ["train", "--name", "x", "--sequence", str(tmp_path), "--steps", "0",
+                                   "--out-dir", str(tmp_path / "file" / "w")])
+    assert res.exit_code == 2 and "a file is in the way" in res.output and "Traceback" not in res.output
