@@ -130,6 +130,8 @@ app = typer.Typer(
 def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="Log debug messages.")) -> None:
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if not verbose:  # faiss logs each CPU-specific build it does not find ("No module named ...avx512") at INFO
+        logging.getLogger("faiss.loader").setLevel(logging.WARNING)
 
 
 def main() -> None:
