@@ -3,6 +3,7 @@
 __all__ = [
     "ReRadarError",
     "ScanFormatError",
+    "ScanTooLargeError",
     "PoseFileError",
     "ConfigError",
     "MapFormatError",
@@ -17,6 +18,10 @@ class ReRadarError(Exception):
 
 class ScanFormatError(ReRadarError, ValueError):
     """A radar scan file or array is corrupt, has the wrong shape, or holds non-finite values."""
+
+
+class ScanTooLargeError(ScanFormatError):
+    """A scan whose header declares more pixels, azimuths or range bins than are accepted (the service's 413)."""
 
 
 class PoseFileError(ReRadarError, ValueError):

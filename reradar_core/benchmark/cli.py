@@ -105,7 +105,7 @@ def bench(
             raise typer.BadParameter("give either --suite NAME or --database DIR with --query DIR")
         if out is not None:  # a file in the way is found now, not after the benchmark ran
             output_dir(out, "--out")
-        if database is not None and any(q.resolve() == database.resolve() for q in query or []):
+        if database is not None and split_at is None and any(q.resolve() == database.resolve() for q in query or []):
             raise typer.BadParameter("a --query folder is the --database folder: every query would find itself "
                                      "(Recall@1 100 %); give another drive, or --split-at to split one drive")
         if suite is not None:

@@ -73,7 +73,8 @@ class PoseSequence:
     """Planar poses T_world_sensor along a trajectory.
 
     Attributes:
-        timestamps_us: (N,) int64 UTC microseconds, strictly increasing after ``sorted()``.
+        timestamps_us: (N,) int64 UTC microseconds, strictly increasing after ``sorted()`` (the readers refuse
+            a file that holds one time twice).
         xy: (N, 2) float64 metres in the world (map) frame, x east / y north for GNSS data.
         yaw: (N,) float64 radians, counter-clockwise from world +x, wrapped to (-pi, pi].
     """
@@ -198,6 +199,16 @@ def gps_time_to_us(values: np.ndarray, unit: str | None = None, source: str = "t
     return to_microseconds(values, unit)
 
 
+def _refuse_repeated_times(t_us: np.ndarray, path: Path) -> None:
+    """Two poses at one time (after the conversion to µs) are two answers for one instant: refused, never one of
+    them picked (interpolation would keep either without a word)."""
+    t = np.sort(np.asarray(t_us, np.int64))
+    same = np.flatnonzero(np.diff(t) == 0)
+    if same.size:
+        raise PoseFileError(f"{path}: {same.size} timestamp(s) appear twice (first: {int(t[same[0]])} µs); each "
+                            "pose needs its own time")
+
+
 def _read_rows(path: Path, min_cols: int, header_first: str | None) -> tuple[list[str] | None, list[tuple[int, list[str]]]]:
     if not path.is_file():
         raise PoseFileError(f"{path}: no such pose file")
@@ -277,6 +288,7 @@ def read_boreas_radar_poses(path: str | Path, time_unit: str | None = None) -> P
     t_us = gps_time_to_us(t_raw, time_unit, f"{path}: GPSTime")
     vals = _parse_floats(path, rows, [idx["easting"], idx["northing"], idx["heading"]])
     _check_coordinates(path, rows, vals[:, :2])
+    _refuse_repeated_times(t_us, path)
     return PoseSequence(t_us, vals[:, :2], vals[:, 2])
 
 
@@ -312,7 +324,9 @@ def read_mulran_global_pose(path: str | Path, time_unit: str | None = None) -> P
     m = _parse_floats(path, rows, list(range(1, 13)))
     _check_coordinates(path, rows, m[:, [3, 7]])
     yaw = np.arctan2(m[:, 4], m[:, 0])  # R[1,0], R[0,0]
-    return PoseSequence(to_microseconds(t_raw, time_unit), m[:, [3, 7]], yaw)
+    t_us = to_microseconds(t_raw, time_unit)
+    _refuse_repeated_times(t_us, path)
+    return PoseSequence(t_us, m[:, [3, 7]], yaw)
 
 
 def write_mulran_global_pose(poses: PoseSequence, path: str | Path) -> Path:
@@ -372,6 +386,7 @@ def read_txyyaw_csv(path: str | Path, time_unit: str | None = None) -> PoseSeque
                 f"header) is read as radians; these look like degrees: name the column yaw_deg in a header line "
                 f"(e.g. t_us,x,y,yaw_deg), or yaw_rad if they really are radians")
     t_us = gps_time_to_us(t_raw, time_unit or header_unit, f"{path}: column t")
+    _refuse_repeated_times(t_us, path)
     return PoseSequence(t_us, vals[:, 0:2], yaw)
 
 

@@ -29,7 +29,7 @@ from typing import Literal
 
 import numpy as np
 
-from reradar_core.errors import ScanFormatError
+from reradar_core.errors import ScanFormatError, ScanTooLargeError
 from reradar_core.io.presets import ENCODER_TICKS_PER_TURN, PRESETS, RadarPreset, get_preset
 
 __all__ = [
@@ -52,6 +52,7 @@ __all__ = [
     "scan_header",
     "LOSSY_FORMATS",
     "check_navtech_layout",
+    "check_header_size",
     "check_polar_shape",
     "check_scan_sides",
     "has_navtech_metadata",
@@ -369,6 +370,31 @@ def read_npy_header(data: bytes, size: int | None = None) -> ScanHeader:
         raise ScanFormatError(f"upload is not a readable .npy array (header declares {rows} x {cols} "
                               f"{dtype} but the file is shorter: truncated?)")
     return ScanHeader("npy", (rows, cols), int(dtype.itemsize), dtype.str)
+
+
+def check_header_size(header: ScanHeader, max_pixels: int, scan_layout: str = "polar") -> tuple[int, int]:
+    """The polar (azimuths, range bins) a scan header declares, after the size checks every scan input shares
+    (uploads, archive scans of a map build): at most ``MAX_SCAN_SIDE`` of each and ``max_pixels`` pixels, at
+    least ``MIN_SCAN_SIDE`` of each. A PNG, or an .npy with ``scan_layout="navtech"``, holds the
+    ``NAVTECH_META_COLUMNS`` metadata columns before the range bins.
+
+    Raises:
+        ScanTooLargeError: too many pixels, azimuths or range bins. ScanFormatError: too few.
+    """
+    rows, cols = header.shape
+    navtech = header.format == "png" or scan_layout == "navtech"
+    bins = cols - NAVTECH_META_COLUMNS if navtech else cols
+    if rows > MAX_SCAN_SIDE or bins > MAX_SCAN_SIDE or header.num_pixels > max_pixels:
+        raise ScanTooLargeError(
+            f"scan declares {rows} azimuths x {bins} range bins ({header.num_pixels:,} pixels); accepted are up "
+            f"to {MAX_SCAN_SIDE} of each and {max_pixels:,} pixels (a Navtech sweep is 400 x 3,360-3,768)")
+    if rows < MIN_SCAN_SIDE or bins < MIN_SCAN_SIDE:
+        layout = (f" ({cols} columns, the first {NAVTECH_META_COLUMNS} of which are Navtech metadata)"
+                  if navtech else "")
+        raise ScanFormatError(
+            f"scan has {rows} azimuths x {max(bins, 0)} range bins{layout}; expected a full sweep with "
+            f"{MIN_SCAN_SIDE}..{MAX_SCAN_SIDE} of each (e.g. 400 x 3360 Boreas, 400 x 3768 Oxford)")
+    return rows, bins
 
 
 def scan_header(data: bytes, size: int | None = None) -> ScanHeader:

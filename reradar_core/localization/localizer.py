@@ -152,10 +152,12 @@ class Localizer:
         tcfg = config.tracking
         if not tcfg.covers(prior):
             return self.localize(features, config)
+        g = np.asarray(features.global_descriptor, np.float32).reshape(-1)
+        if g.shape[0] != self.index.dim:  # as ``retrieve``: the descriptor distance is a confidence cue
+            raise ConfigError(f"query descriptor has {g.shape[0]} values but the map stores {self.index.dim}")
         t0 = time.perf_counter()
         ids = tracking_candidates(self.keyframes.poses, prior, tcfg)
         radii = tcfg.radii(prior)
-        g = np.asarray(features.global_descriptor, np.float32).reshape(-1)
         n = int(features.keypoints_xy_m.shape[0])
         verified: list[CandidateVerification] = []
         accepted: list[tuple[CandidateVerification, np.ndarray]] = []
@@ -166,7 +168,7 @@ class Localizer:
             T_map_query = compose(T_map_kf, reg.T_keyframe_query)
             bar = reg.num_inliers >= config.min_inliers and reg.inlier_ratio >= config.effective_min_inlier_ratio
             consistent = within_gate(T_map_query, prior, tcfg)
-            dist = float(np.linalg.norm(self.index.vector(int(kid)) - g)) if g.shape[0] == self.index.dim else 2.0
+            dist = float(np.linalg.norm(self.index.vector(int(kid)) - g))
             v = CandidateVerification(
                 keyframe_id=int(kid), rank=rank, descriptor_distance=dist,
                 timestamp_us=int(self.keyframes.timestamps_us[kid]), T_map_keyframe=T_map_kf, num_matches=n,

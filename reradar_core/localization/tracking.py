@@ -117,8 +117,8 @@ class TrackingConfig:
         return max(self.min_gate_yaw_rad, self.gate_sigmas * prior.sigma_yaw_rad)
 
     def radii(self, prior: PosePrior) -> tuple[float, ...]:
-        """Association radii, coarse to fine, metres: from 2 sigma of the prior (capped) halving to the final
-        radius, each radius once (``register_from_prior`` iterates at each one until the pose settles)."""
+        """Association radii, coarse to fine, metres: from 2 sigma of the prior (at least 2 m, at most
+        ``max_start_radius_m``) halving to the final radius, each radius once (``register_from_prior`` iterates at each one until the pose settles)."""
         start = min(self.max_start_radius_m, max(2.0, 2.0 * prior.sigma_xy_m))
         out = [start]
         while out[-1] / 2 > self.final_radius_m:
@@ -158,7 +158,8 @@ def register_from_prior(query: ScanFeatures, grid: LandmarkGrid, T_keyframe_quer
                         converged_m: float = CONVERGED_STEP_M) -> Registration:
     """Refine ``T_keyframe_query`` by iterated nearest-landmark association with ``grid``'s landmarks within
     the given shrinking radii and a least-squares rigid fit per step (``matching.refine_pose``, the guided
-    estimator's refinement); inliers are counted at the last radius.
+    estimator's refinement); inliers are counted at the last radius. A step that associates fewer than 3
+    landmarks ends the registration as failed (0 inliers).
 
     At each radius the steps repeat until one moves the pose less than ``converged_m`` (heading: that over
     20 m, the scale of the landmarks' lever arm) or ``max_steps`` were taken. One step per radius (before)
@@ -171,18 +172,18 @@ def register_from_prior(query: ScanFeatures, grid: LandmarkGrid, T_keyframe_quer
     pose = np.asarray(T_keyframe_query, np.float64).reshape(3).copy()
     if n < 3 or len(grid.points) < 3:
         return Registration(pose, 0, 0.0)
-    k, mask = 0, np.zeros(n, bool)
+    mask = np.zeros(n, bool)
     for radius in radii:
         for _ in range(max(1, max_steps)):
             new, mask = refine_pose(src, grid, pose, (radius,))
-            k = int(mask.sum())
-            if k < 3:  # stopped: the pose of the last step that associated enough
-                return Registration(pose, k, k / n, landmark_spread_m(src[mask]))
+            if int(mask.sum()) < 3:  # lost the map: a failed registration, whatever an earlier radius aligned
+                return Registration(pose, 0, 0.0)
             moved = float(np.hypot(new[0] - pose[0], new[1] - pose[1]))
             turned = abs(float(wrap_angle(new[2] - pose[2])))
             pose = new
             if moved < converged_m and turned * 20.0 < converged_m:
                 break
+    k = int(mask.sum())
     pose = np.array([pose[0], pose[1], wrap_angle(pose[2])])
     return Registration(pose, k, k / n, landmark_spread_m(src[mask]))
 

@@ -13,15 +13,13 @@ from pydantic import BaseModel, ValidationError
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 
-from reradar_core.errors import ScanFormatError
+from reradar_core.errors import ScanTooLargeError
 from reradar_core.features import ScanFeatures
 from reradar_core.io.presets import PRESETS
 from reradar_core.io.scan import (
     LOSSY_FORMATS,
-    MAX_SCAN_SIDE,
-    MIN_SCAN_SIDE,
-    NAVTECH_META_COLUMNS,
     NpyLayout,
+    check_header_size,
     scan_header,
     sniff_scan_format,
     why_format_refused,
@@ -91,21 +89,10 @@ def check_scan_upload(data: bytes, max_pixels: int, size: int | None = None,
         raise UnsupportedMediaError(f"{kind.upper()} images are {why_format_refused(kind)} and are not accepted "
                                     "as radar scans: send the radar's lossless Navtech PNG or an (A, R) .npy array")
     header = scan_header(data, size)
-    rows, cols = header.shape
-    navtech = header.format == "png" or scan_layout == "navtech"  # metadata columns in front of the bins
-    bins = cols - NAVTECH_META_COLUMNS if navtech else cols
-    if rows > MAX_SCAN_SIDE or bins > MAX_SCAN_SIDE or header.num_pixels > max_pixels:
-        raise PayloadTooLargeError(
-            f"scan declares {rows} azimuths x {bins} range bins ({header.num_pixels:,} pixels); the service "
-            f"accepts up to {MAX_SCAN_SIDE} of each and {max_pixels:,} pixels (a Navtech sweep is 400 x 3,360-3,768)"
-        )
-    if rows < MIN_SCAN_SIDE or bins < MIN_SCAN_SIDE:
-        layout = (f" ({cols} columns, the first {NAVTECH_META_COLUMNS} of which are Navtech metadata)"
-                  if navtech else "")
-        raise ScanFormatError(
-            f"scan has {rows} azimuths x {max(bins, 0)} range bins{layout}; expected a full sweep with "
-            f"{MIN_SCAN_SIDE}..{MAX_SCAN_SIDE} of each (e.g. 400 x 3360 Boreas, 400 x 3768 Oxford)"
-        )
+    try:
+        check_header_size(header, max_pixels, scan_layout)
+    except ScanTooLargeError as exc:
+        raise PayloadTooLargeError(str(exc).replace("accepted are", "the service accepts")) from None
     return f"scan.{header.format}"
 
 

@@ -32,8 +32,14 @@ from maps.build import build_map
 from maps.database import MapDatabase
 from maps.paths import DEMO_MAP_PATH
 from maps.store import fsync_dir, install_file, open_map, read_metadata, remove_stale_temp_files
-from reradar_core.errors import MapFormatError, ModelMismatchError, ReRadarError, ScanFormatError
-from reradar_core.io.scan import MAX_SCAN_SIDE, NAVTECH_META_COLUMNS, RadarScan, load_scan_bytes, scan_header
+from reradar_core.errors import (
+    MapFormatError,
+    ModelMismatchError,
+    ReRadarError,
+    ScanFormatError,
+    ScanTooLargeError,
+)
+from reradar_core.io.scan import RadarScan, check_header_size, load_scan_bytes, scan_header
 from reradar_core.localization.extractor import FeatureExtractor
 from reradar_core.retrieval import IndexConfig
 from service.core.config import MAP_ID_PATTERN, Settings
@@ -48,6 +54,18 @@ DEMO_MAP_ID = "demo"
 _ID_RE = re.compile(MAP_ID_PATTERN)
 _STAGING = ".staging"
 _JOBS = ".jobs"
+
+
+#: how long a map that was deleted or dropped stays open for the requests already using it, seconds
+CLOSE_GRACE_S = 30.0
+
+
+def _close_later(db: MapDatabase) -> None:
+    """Close ``db`` after ``CLOSE_GRACE_S`` (a daemon timer): a request that took it before the registry let go
+    of it finishes its localization instead of meeting a closed map."""
+    closer = threading.Timer(CLOSE_GRACE_S, db.close)
+    closer.daemon = True
+    closer.start()
 
 
 def _now() -> str:
@@ -215,14 +233,9 @@ class MapRegistry:
             if not _ID_RE.match(map_id):
                 logger.warning("ignoring %s: file name is not a valid map id", path)
                 continue
-            entry = MapEntry(map_id, path, "failed")
-            try:
-                entry.db = self._open(path)
-                entry.state = "ready"
-                entry.scans_total = entry.scans_done = len(entry.db)
-            except (MapFormatError, ModelMismatchError) as exc:
-                entry.error = str(exc)
-                logger.error("map %s not served: %s", map_id, exc)
+            entry = self._load_entry(map_id, path)
+            if entry.error is not None:
+                logger.error("map %s not served: %s", map_id, entry.error)
             with self._lock:
                 self._entries[map_id] = entry
         self.prune_map_arrays()
@@ -379,10 +392,10 @@ class MapRegistry:
         try:
             data = path.read_bytes()
             header = scan_header(data)
-            if header.num_pixels > self.settings.max_scan_pixels or max(header.shape) > MAX_SCAN_SIDE + NAVTECH_META_COLUMNS:
-                raise ScanFormatError(
-                    f"scan declares {header.shape[0]} x {header.shape[1]} pixels; at most "
-                    f"{self.settings.max_scan_pixels:,} pixels are accepted (RERADAR_MAX_SCAN_PIXELS)")
+            try:  # the uploads' rule
+                check_header_size(header, self.settings.max_scan_pixels)
+            except ScanTooLargeError as exc:  # a 422 of the build (the archive itself was within the body limit)
+                raise ScanFormatError(f"{exc} (RERADAR_MAX_SCAN_PIXELS)") from None
             return load_scan_bytes(data, f"scan.{header.format}", preset)
         except ReRadarError as exc:
             raise type(exc)(f"{path.name}: {exc}") from exc
@@ -394,8 +407,8 @@ class MapRegistry:
             if entry.state == "building":
                 raise ConflictError(f"map {map_id!r} is being built; wait for the job to finish")
             del self._entries[map_id]
-        if entry.db is not None:
-            entry.db.close()
+        if entry.db is not None:  # requests already using it finish on the open file (unlinked below)
+            _close_later(entry.db)
         entry.path.unlink(missing_ok=True)
         self._drop_job(map_id)
         fsync_dir(self.maps_dir)
@@ -403,7 +416,13 @@ class MapRegistry:
         return entry
 
     def close(self) -> None:
+        """Stop the build jobs and close every loaded map (files, memory maps, keyframe caches)."""
         self._executor.shutdown(wait=True, cancel_futures=True)
+        with self._lock:
+            for entry in self._entries.values():
+                if entry.db is not None:
+                    entry.db.close()
+            self._entries.clear()
 
     # ---- shared maps folder (several replicas; service.core.shared_state) ----------------------------------
     def adopt(self, map_id: str) -> MapEntry | None:
@@ -431,12 +450,5 @@ class MapRegistry:
         with self._lock:
             entry = self._entries.pop(map_id, None)
         if entry is not None and entry.db is not None:
-            closer = threading.Timer(30.0, entry.db.close)
-            closer.daemon = True
-            closer.start()
+            _close_later(entry.db)
         return entry
-        with self._lock:
-            for entry in self._entries.values():
-                if entry.db is not None:
-                    entry.db.close()
-            self._entries.clear()

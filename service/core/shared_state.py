@@ -235,6 +235,8 @@ class RecentLocalizations:
             SharedStateUnavailableError: Redis is configured but down.
         """
         limit = max(0, min(limit, self.capacity))
+        if limit == 0:  # LRANGE 0 -1 would be the whole list
+            return []
         if self._redis is not None:
             try:
                 raw = cast(list[bytes], self._redis.lrange(self._keys.recent(map_id), 0, limit - 1))

@@ -250,3 +250,10 @@ def test_an_explicit_unit_that_contradicts_absolute_times_is_refused(tmp_path):
     assert len(read_boreas_radar_poses(path, "ns")) == 3  # the right unit, stated, is fine
     rel = _write(tmp_path, "rel.csv", "t,x,y,yaw\n0,0,0,0\n1,1,0,0\n")
     assert read_txyyaw_csv(rel, "s").timestamps_us[-1] == 1_000_000  # relative times take any unit
+
+
+def test_a_time_given_twice_is_refused(tmp_path):
+    """Code audit (session 20): two rows at one time loaded, and interpolation kept one of them silently."""
+    path = _write(tmp_path, "dup.csv", "t_s,x,y,yaw\n1,0,0,0\n1,10,0,0\n2,20,0,0\n")
+    with pytest.raises(PoseFileError, match="appear twice"):
+        read_txyyaw_csv(path)

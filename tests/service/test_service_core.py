@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import stat
 import tarfile
+import time
 import zipfile
 from pathlib import Path
 
@@ -233,3 +234,34 @@ def test_workers_share_map_arrays_across_a_map_update(tmp_path: Path, fake_map: 
     assert len(list((maps_dir / ".arrays").glob("*.rrarr"))) == 2
     a.close()
     b.close()
+
+
+def test_close_closes_every_map_and_delete_lets_requests_in_flight_finish(tmp_path, fake_map, monkeypatch):
+    """Code audit (session 20): ``MapRegistry.close`` had lost its body (the maps stayed open at shutdown: files,
+    memory maps, caches), and ``delete`` closed a map that requests taken before it may still be localizing on
+    (they met "map is closed", naming the file); now the map closes after ``CLOSE_GRACE_S``."""
+    import shutil
+
+    from service_test_fakes import FakeExtractor, make_scan
+
+    import service.core.registry as reg
+
+    monkeypatch.setattr(reg, "CLOSE_GRACE_S", 0.2)
+    ext = FakeExtractor()
+    maps_dir = tmp_path / "maps"
+    maps_dir.mkdir()
+    for name in ("kept", "doomed"):
+        shutil.copyfile(fake_map, maps_dir / f"{name}.h5")
+    registry = reg.MapRegistry(Settings(maps_dir=maps_dir, load_demo_map=False), ext)
+    registry.load_all()
+    kept, doomed = registry.ready("kept"), registry.ready("doomed")
+    query = ext.describe(make_scan(3, 7))
+    registry.delete("doomed")
+    assert not (maps_dir / "doomed.h5").exists()
+    assert doomed.localize(query).status == "localized"  # a request that held the map before the delete
+    deadline = time.monotonic() + 5.0
+    while doomed.map._file is not None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert doomed.map._file is None  # closed after the grace period
+    registry.close()
+    assert kept.map._file is None and registry.entries() == []
