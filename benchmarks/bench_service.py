@@ -279,7 +279,8 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
     from tqdm import tqdm
 
     from maps.database import MapDatabase
-    from reradar_core.geometry.se2 import angle_diff, relative_pose
+    from reradar_core.evaluation import localization_errors, localization_success, radius_for
+    from reradar_core.geometry.se2 import relative_pose
     from reradar_core.io.datasets import load_sequence
     from reradar_core.localization import LocalizationConfig, PosePrior
     from reradar_core.model import DescriptorExtractor
@@ -292,22 +293,23 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
     db = MapDatabase.open(map_path, ext.model_id, ext.weights_sha256, keyframe_cache_size=None, preload=True)
     out: dict = {"map": str(map_path), "num_keyframes": len(db), "odometry_noise": odometry_noise}
 
-    def judge(res, gt) -> str:  # noqa: ANN001
-        """``ok`` (within 2 m / 2 deg), ``off`` (within the paper's 20 m / 10 deg only), ``wrong``, ``not``."""
+    def judge(res, gt, radius_m: float) -> str:  # noqa: ANN001
+        """``ok`` (within 2 m / 2 deg), ``off`` (the paper's success only: e_t < R, e_r < 10 deg), ``wrong``,
+        ``not``."""
         if not res.localized:
             return "not"
-        et = float(np.hypot(*(res.T_map_query[:2] - gt[:2])))
-        er = float(abs(np.degrees(angle_diff(res.T_map_query[2], gt[2]))))
-        if et <= POSE_TRANSLATION_M and er <= POSE_ROTATION_DEG:
+        e_t, e_r = localization_errors(res.T_map_query[None], np.asarray(gt)[None])
+        if e_t[0] <= POSE_TRANSLATION_M and e_r[0] <= POSE_ROTATION_DEG:
             return "ok"
-        return "off" if et <= 20.0 and er <= 10.0 else "wrong"
+        return "off" if localization_success(e_t, e_r, radius_m)[0] else "wrong"
 
     for seq_dir in sequences:
         seq = load_sequence(seq_dir)
         idx = np.arange(0, len(seq), every)
         feats = [ext.describe(seq.load_scan(int(i))) for i in tqdm(idx, desc=f"features {seq.name}")]
         gts = seq.mid_sweep_poses()[idx]  # answers are mid-sweep poses
-        res_seq: dict = {"scans": len(idx)}
+        radius_m = radius_for(seq.preset.name)
+        res_seq: dict = {"scans": len(idx), "radius_m": radius_m}
         modes = {"global": LocalizationConfig(), "global_verify_all": LocalizationConfig(stop_verify_ratio=None)}
         for name, cfg in modes.items():
             lat, outc = [], []
@@ -315,7 +317,7 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
                 t0 = time.perf_counter()
                 res = db.localize(f, cfg)
                 lat.append((time.perf_counter() - t0) * 1e3)
-                outc.append(judge(res, gt))
+                outc.append(judge(res, gt, radius_m))
             res_seq[name] = _summarise(lat, outc)
         rng = np.random.default_rng(seed)
         lat, outc, kinds, conf, prior = [], [], [], [], None
@@ -325,7 +327,7 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
             t0 = time.perf_counter()
             res = db.track(f, prior) if prior is not None else db.localize(f)
             lat.append((time.perf_counter() - t0) * 1e3)
-            outc.append(judge(res, gt))
+            outc.append(judge(res, gt, radius_m))
             kinds.append("tracking" if res.mode == "tracking" else ("lost" if res.tracking_lost else "global"))
             conf.append(float(res.confidence) if res.confidence is not None else math.nan)
             if res.localized:
@@ -363,7 +365,7 @@ def bench_rerank(suite_name: str, threads: int, top_k: int, ransac_threshold_m: 
 
     from maps.build import build_map_from_sequence
     from maps.database import MapDatabase
-    from reradar_core.geometry.se2 import angle_diff
+    from reradar_core.evaluation import localization_errors, localization_success
     from reradar_core.localization import LocalizationConfig
     from reradar_core.model import DescriptorExtractor
     from reradar_core.paths import cache_dir
@@ -405,9 +407,9 @@ def bench_rerank(suite_name: str, threads: int, top_k: int, ransac_threshold_m: 
                     c["correct_place"] += 1
                 if res.localized and res.T_map_query is not None:
                     c["localized"] += 1
-                    et = float(np.hypot(*(res.T_map_query[:2] - gt[:2])))
-                    er = float(abs(np.degrees(angle_diff(res.T_map_query[2], gt[2]))))
-                    if et <= radius and er <= 10.0:
+                    e_t, e_r = localization_errors(res.T_map_query[None], np.asarray(gt)[None])
+                    et, er = float(e_t[0]), float(e_r[0])
+                    if localization_success(e_t, e_r, radius)[0]:
                         c["success"] += 1
                         c["et"].append(et)
                         c["er"].append(er)

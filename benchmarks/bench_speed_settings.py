@@ -12,7 +12,6 @@ localized / successful (20 m, 10 deg) / wrong answers and the localization stage
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import time
 from dataclasses import replace
@@ -33,6 +32,7 @@ def main() -> None:
     torch.set_num_threads(1)
     from maps.database import MapDatabase
     from maps.store import open_map
+    from reradar_core.evaluation import localization_errors, localization_success, radius_for
     from reradar_core.io.datasets import load_sequence
     from reradar_core.localization import LocalizationConfig
     from reradar_core.localization.extractor import load_default_extractor
@@ -41,8 +41,10 @@ def main() -> None:
     idx = np.arange(0, len(seq), args.every)
     extractor = load_default_extractor()
     feats = [extractor.describe(seq.load_scan(int(i))) for i in idx]
-    gt_xy, gt_yaw = seq.poses.xy[idx], seq.poses.yaw[idx]
-    db = MapDatabase(open_map(args.map), keyframe_cache_size=len(open_map(args.map)) + 1, preload=True)
+    gts = seq.mid_sweep_poses()[idx]  # the answers are mid-sweep poses (docs/CONVENTIONS.md)
+    radius_m = radius_for(seq.preset.name)
+    kf_map = open_map(args.map)
+    db = MapDatabase(kf_map, keyframe_cache_size=len(kf_map) + 1, preload=True)
     base = LocalizationConfig()
     settings = {
         "default": base,
@@ -57,22 +59,21 @@ def main() -> None:
           f"load average {os.getloadavg()[0]:.2f}")
     for name, cfg in settings.items():
         cpu, success, wrong, localized = [], 0, 0, 0
-        for f, xy, yaw in zip(feats, gt_xy, gt_yaw, strict=True):
+        for f, gt in zip(feats, gts, strict=True):
             t0 = time.thread_time()
             r = db.localize(f, cfg)
             cpu.append(time.thread_time() - t0)
-            if r.T_map_query is None:
+            if not r.localized:
                 continue
             localized += 1
-            err_t = math.hypot(*(r.T_map_query[:2] - xy))
-            err_r = abs(math.degrees(math.atan2(math.sin(r.T_map_query[2] - yaw), math.cos(r.T_map_query[2] - yaw))))
-            if err_t < 20 and err_r < 10:
+            if localization_success(*localization_errors(r.T_map_query[None], gt[None]), radius_m)[0]:
                 success += 1
             else:
                 wrong += 1
         print(f"{name:24} localized {localized:4d}  success {success:4d}  wrong {wrong:3d}  "
               f"CPU per query mean {np.mean(cpu) * 1e3:6.1f} ms, p50 {np.median(cpu) * 1e3:6.1f} ms", flush=True)
     print(f"load average {os.getloadavg()[0]:.2f}")
+    db.close()
 
 
 if __name__ == "__main__":

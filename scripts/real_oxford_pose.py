@@ -26,7 +26,6 @@ import numpy as np
 from reradar_core.evaluation.metrics import localization_errors, localization_success, radius_for
 from reradar_core.geometry.se2 import relative_pose
 from reradar_core.io.datasets import load_sequence
-from reradar_core.landmarks import detect_landmarks
 from reradar_core.matching import (
     AlignmentConfig,
     RansacConfig,
@@ -58,7 +57,7 @@ def main() -> None:
     seq = load_sequence(args.folder, layout="oxford")
     ex = DescriptorExtractor.from_pretrained(args.model, max_keypoints=args.max_keypoints or None)
     scans = [seq.load_scan(i) for i in range(len(seq))]
-    feats = [ex.describe(s, detect_landmarks(s)) for s in scans]
+    feats = [ex.describe(s) for s in scans]  # the landmarks the service detects (the extractor's settings)
     poses = seq.poses.poses
     qfeats, dyaw = feats, np.zeros(len(scans))
     if args.rotate_seed is not None:
@@ -67,7 +66,7 @@ def main() -> None:
         # query sensor turned clockwise, so T_i_j's yaw drops by that angle
         shift = np.random.default_rng(args.rotate_seed).integers(0, scans[0].num_azimuths, len(scans))
         turned = [replace(s, power=np.roll(s.power, -int(k), axis=0)) for s, k in zip(scans, shift, strict=True)]
-        qfeats = [ex.describe(s, detect_landmarks(s)) for s in turned]
+        qfeats = [ex.describe(s) for s in turned]
         dyaw = shift * 2 * np.pi / scans[0].num_azimuths
     print(f"pose method {args.pose_method}; model {ex.name} ({ex.model_id}), {len(scans)} scans, "
           f"{np.mean([len(f.keypoints_xy_m) for f in feats]):.0f} keypoints per scan in the image")

@@ -21,17 +21,15 @@ import uvicorn
 from pydantic import SecretStr
 
 from maps.paths import DEMO_MAP_PATH, DEMO_QUERIES_DIR
+from maps.store import read_metadata
+from reradar_core.evaluation import MAX_ROTATION_ERROR_DEG, localization_success, radius_for
 from reradar_core.localization.extractor import FeatureExtractor
 from service.client import ReRadarClient
 from service.core.config import Settings
 from service.core.registry import DEMO_MAP_ID
+from service.follow import answer_errors
 
-__all__ = ["QueryTruth", "read_queries_csv", "write_queries_csv", "serve_in_thread", "run_demo",
-           "SR_TRANSLATION_M", "SR_ROTATION_DEG"]
-
-#: Success thresholds of the paper for Boreas / MulRan (Sec. "Evaluation Metrics"): 20 m and 10 degrees.
-SR_TRANSLATION_M = 20.0
-SR_ROTATION_DEG = 10.0
+__all__ = ["QueryTruth", "read_queries_csv", "write_queries_csv", "serve_in_thread", "run_demo"]
 
 QUERIES_CSV = "queries.csv"
 
@@ -103,10 +101,6 @@ def serve_in_thread(settings: Settings, extractor: FeatureExtractor | None = Non
         sock.close()
 
 
-def _yaw_err_deg(a: float, b: float) -> float:
-    return abs((a - b + 180.0) % 360.0 - 180.0)
-
-
 def run_demo(map_path: Path = DEMO_MAP_PATH, queries_dir: Path = DEMO_QUERIES_DIR,
              echo: Callable[[str], None] = print, threads: int = 1) -> int:
     """Serve ``map_path`` as map ``demo``, localize every query in ``queries_dir/queries.csv`` over HTTP and
@@ -119,6 +113,8 @@ def run_demo(map_path: Path = DEMO_MAP_PATH, queries_dir: Path = DEMO_QUERIES_DI
         echo(f"error: demo map {map_path} not found; build it with `python scripts/build_demo_map.py`")
         return 2
     truth = read_queries_csv(queries_dir / QUERIES_CSV)
+    # the paper's success rule (Sec. "Evaluation Metrics"): e_t < R of the map's radar (20 m Boreas), e_r < 10 deg
+    radius_m = radius_for(read_metadata(map_path).radar_preset)
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request would bury the table
     with tempfile.TemporaryDirectory(prefix="reradar-demo-") as tmp:
         maps_dir = Path(tmp) / "maps"
@@ -146,9 +142,8 @@ def run_demo(map_path: Path = DEMO_MAP_PATH, queries_dir: Path = DEMO_QUERIES_DI
                 ms = (time.perf_counter() - t0) * 1e3
                 lat.append(ms)
                 if res.status == "localized" and res.pose is not None:
-                    et = math.hypot(res.pose.x_m - q.x_m, res.pose.y_m - q.y_m)
-                    er = _yaw_err_deg(res.pose.yaw_deg, q.yaw_deg)
-                    success = et <= SR_TRANSLATION_M and er <= SR_ROTATION_DEG
+                    et, er = answer_errors(res.pose, (q.x_m, q.y_m, math.radians(q.yaw_deg)))
+                    success = bool(localization_success(et, er, radius_m))
                     ok += success
                     wrong += not success
                     if success:
@@ -165,7 +160,7 @@ def run_demo(map_path: Path = DEMO_MAP_PATH, queries_dir: Path = DEMO_QUERIES_DI
             n = len(truth)
             mean_t = f"{np.mean(errs_t):.2f} m" if errs_t else "n/a"
             mean_r = f"{np.mean(errs_r):.2f} deg" if errs_r else "n/a"
-            echo(f"success (<= {SR_TRANSLATION_M:.0f} m and <= {SR_ROTATION_DEG:.0f} deg): {ok}/{n} "
+            echo(f"success (< {radius_m:g} m and < {MAX_ROTATION_ERROR_DEG:g} deg): {ok}/{n} "
                  f"({100.0 * ok / max(n, 1):.0f}%); mean error over successes: {mean_t}, {mean_r}; "
                  f"latency per POST /localize (inline PNG, client side): p50 {np.percentile(lat, 50):.0f} ms, "
                  f"max {np.max(lat):.0f} ms")

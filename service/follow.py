@@ -22,11 +22,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["follow_sequence", "noisy_odometry"]
+__all__ = ["answer_errors", "follow_sequence", "noisy_odometry"]
 
-SR_TRANSLATION_M = 20.0
-SR_ROTATION_DEG = 10.0
-#: pose accuracy a vehicle needs (metres, degrees)
+#: pose accuracy a vehicle needs (metres, degrees); success is the paper's rule (``evaluation.localization_success``:
+#: e_t < R of the radar's dataset, 20 m Boreas / MulRan, 25 m OORD / Oxford, and e_r < 10 degrees)
 POSE_TRANSLATION_M = 2.0
 POSE_ROTATION_DEG = 2.0
 
@@ -41,8 +40,14 @@ def noisy_odometry(T_prev_curr: np.ndarray, noise: float, rng: np.random.Generat
     return out
 
 
-def _yaw_err_deg(a: float, b: float) -> float:
-    return abs((a - b + 180.0) % 360.0 - 180.0)
+def answer_errors(pose: Any, T_map_gt: Any) -> tuple[float, float]:
+    """(translation error m, heading error deg) of an answer's ``pose`` (``x_m``, ``y_m``, ``yaw_deg``, as the API
+    returns it) against the (3,) ground truth (x m, y m, yaw rad): ``evaluation.localization_errors``."""
+    from reradar_core.evaluation import localization_errors
+
+    est = np.array([[pose.x_m, pose.y_m, math.radians(pose.yaw_deg)]])
+    e_t, e_r = localization_errors(est, np.asarray(T_map_gt, np.float64).reshape(1, 3))
+    return float(e_t[0]), float(e_r[0])
 
 
 def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str], None] = print,
@@ -55,6 +60,7 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     ground truth, else 1 (2: unreadable folder).
     """
     from reradar_core.errors import ReRadarError
+    from reradar_core.evaluation import localization_success, radius_for
     from reradar_core.geometry.se2 import relative_pose
     from reradar_core.io.datasets import load_sequence
 
@@ -67,6 +73,7 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     if limit is not None:
         idx = idx[:limit]
     gt = seq.mid_sweep_poses()  # the service answers mid-sweep poses (docs/CONVENTIONS.md)
+    radius_m = radius_for(seq.preset.name)
     rng = np.random.default_rng(seed)
     session_id = (session or f"follow-{uuid.uuid4().hex[:12]}") if tracking else None
     head = (f"{'#':>4} {'scan':<22} {'mode':<9} {'status':<13} {'x_m':>8} {'y_m':>8} {'yaw_deg':>8} | "
@@ -93,9 +100,8 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
         name = seq.scan_paths[i].name
         gts = f"{g[0]:8.2f} {g[1]:8.2f} {math.degrees(g[2]):8.2f}"
         if res.status == "localized" and res.pose is not None:
-            et = math.hypot(res.pose.x_m - g[0], res.pose.y_m - g[1])
-            er = _yaw_err_deg(res.pose.yaw_deg, math.degrees(g[2]))
-            row.update(pose=(res.pose.x_m, res.pose.y_m), ok=et <= SR_TRANSLATION_M and er <= SR_ROTATION_DEG,
+            et, er = answer_errors(res.pose, g)
+            row.update(pose=(res.pose.x_m, res.pose.y_m), ok=bool(localization_success(et, er, radius_m)),
                        accurate=et <= POSE_TRANSLATION_M and er <= POSE_ROTATION_DEG, err=(et, er))
             row["wrong"] = not row["ok"]
             flag = "  WRONG" if row["wrong"] else ("" if row["accurate"] else "  OFF")
@@ -106,7 +112,7 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
             echo(f"{n:4d} {name:<22} {row['mode']:<9} {res.status:<13} {'-':>8} {'-':>8} {'-':>8} | {gts} | "
                  f"{'-':>6} {'-':>7} {res.alignment_score:5.2f} {ms:5.0f}  ({res.reason})")
         rows.append(row)
-    _summary(rows, echo)
+    _summary(rows, echo, radius_m)
     png = out or folder.with_name(f"{folder.name}-follow.png")
     try:
         _plot(rows, gt[idx], png, f"{folder.name} on map {map_id}")
@@ -116,7 +122,7 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     return 1 if any(r["pose"] is not None and not r["accurate"] for r in rows) else 0
 
 
-def _summary(rows: list[dict[str, Any]], echo: Callable[[str], None]) -> None:
+def _summary(rows: list[dict[str, Any]], echo: Callable[[str], None], radius_m: float) -> None:
     n = len(rows)
     if not n:
         echo("no scans")
@@ -124,7 +130,7 @@ def _summary(rows: list[dict[str, Any]], echo: Callable[[str], None]) -> None:
     ok = sum(r["ok"] for r in rows)
     wrong = sum(r["wrong"] for r in rows)
     echo("")
-    echo(f"success (<= {SR_TRANSLATION_M:.0f} m and <= {SR_ROTATION_DEG:.0f} deg): {ok}/{n} ({100 * ok / n:.1f} %); "
+    echo(f"success (< {radius_m:g} m and < 10 deg): {ok}/{n} ({100 * ok / n:.1f} %); "
          f"localized at a wrong pose: {wrong}/{n}; not localized: {n - ok - wrong}/{n}")
     echo(_accuracy_line(rows))
     for mode in sorted({r["mode"] for r in rows}):

@@ -4,7 +4,7 @@ The same code path as the service: a ``reradar_core.localization.Localizer`` ove
 ``GlobalIndex`` on the unit global descriptors, keyframes in memory) retrieves, screens (landmark alignment of
 the top 10, and of up to 60 when none aligns well or the answer is refused: that deeper round coarsely, its
 best 5 in full) and verifies (full guided pose
-estimation of the best 2, re-ranking by inliers), which gives the answer keyframe and ``T_map_query``. ``distance`` (PR curves) is the
+estimation of the best ``verify_k``, 1 by default, re-ranking by inliers), which gives the answer keyframe and ``T_map_query``. ``distance`` (PR curves) is the
 Euclidean distance between unit descriptors over the whole database.
 Model names come from ``reradar_core.model.available_models()`` (e.g. ``default``, ``our-1``, ``our-3-...``).
 """
@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared, Retrieval, landmarks_for
+from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import relative_pose
 from reradar_core.io.scan import RadarScan
@@ -105,12 +106,9 @@ class Ours(PlaceRecognitionMethod):
                  db_prepared: Sequence[Prepared], db_poses: np.ndarray) -> Retrieval:
         localizer = self.localizer(index, db_prepared, db_poses)
         res = localizer.localize(prepared_to_features(q_prepared), self.localization)
-        if res.best is not None:
-            j, dist = int(res.best.keyframe_id), float(res.best.descriptor_distance)
-        else:  # nothing retrieved (empty database)
-            d = self.distance(q_desc, index)
-            j = int(np.argmin(d))
-            dist = float(d[j])
+        if res.best is None:  # nothing retrieved: the database is empty
+            raise ConfigError("the database holds no scans: nothing to localize against")
+        j, dist = int(res.best.keyframe_id), float(res.best.descriptor_distance)
         # the global descriptor's own top 1 (retrieval rank 0), before the landmark screen re-ranks
         top = min(res.candidates, key=lambda c: c.rank).keyframe_id if res.candidates else j
         if res.localized and res.T_map_query is not None:

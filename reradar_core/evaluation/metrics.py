@@ -208,9 +208,10 @@ def localization_errors(T_map_query_est: np.ndarray, T_map_query_gt: np.ndarray)
     return e_t, e_r
 
 
-def localization_success(e_t_m: np.ndarray, e_r_deg: np.ndarray, radius_m: float,
+def localization_success(e_t_m: np.ndarray | float, e_r_deg: np.ndarray | float, radius_m: float,
                          max_rot_deg: float = MAX_ROTATION_ERROR_DEG) -> np.ndarray:
-    """(Q,) bool: e_t < radius_m and e_r < max_rot_deg jointly; NaN errors are failures."""
+    """(Q,) bool (0-d for scalar errors): e_t < radius_m and e_r < max_rot_deg jointly; NaN errors are
+    failures. The one success rule of the benchmark, the demo and ``localize --follow``."""
     e_t = np.asarray(e_t_m, dtype=np.float64)
     e_r = np.asarray(e_r_deg, dtype=np.float64)
     with np.errstate(invalid="ignore"):
@@ -418,7 +419,7 @@ def proportion_interval(successes: int, trials: int, level: float = 0.95) -> tup
     """
     if trials <= 0:
         return float("nan"), float("nan")
-    from scipy.stats import binomtest  # scipy is an extra; the core metrics above need only numpy
+    from scipy.stats import binomtest  # scipy, imported where used (as ``has_revisit``'s KD-tree)
 
     ci = binomtest(int(successes), int(trials)).proportion_ci(confidence_level=level, method="wilson")
     return float(ci.low), float(ci.high)

@@ -115,9 +115,10 @@ class LocalizationConfig:
             and wrong poses unchanged (328 / 10 and 317 / 20) and cut pose-estimation time ~12 %; 0.5 (the
             ``localized`` bar) saved 35 % but cost 2 successes and added 2 wrong poses on falling snow, 0.6 one
             each (docs/BENCHMARKS.md).
-        min_inliers: RANSAC inliers the best candidate needs to count as localized. Random
-            correspondences between unrelated scans rarely agree on more than a handful of points under a
-            2 m threshold, so 12 rejects unknown places while real revisits have tens of inliers.
+        min_inliers: inliers the best candidate needs to count as localized (``guided``: query landmarks
+            within 0.75 m of a keyframe landmark after the fit; ``mutual_nn``: RANSAC inliers under 2 m).
+            Unrelated scans rarely agree on more than a handful of points, so 12 rejects unknown places while
+            real revisits have tens to hundreds.
         min_inlier_ratio: minimum inlier ratio of the winner (the floor: inliers / query landmarks) before the
             confidence is asked; None = the method's default: ``guided`` the floor fitted with the shipped
             confidence model (``ConfidenceModel.min_aligned_ratio``, chosen by ``reradar fit-confidence`` on
@@ -326,7 +327,9 @@ class LocalizationResult:
     Attributes:
         status: ``localized`` or ``not_localized``.
         reason: why not localized (``no_candidate``, ``too_few_matches``, ``too_few_inliers``,
-            ``ambiguous``: a rival pose aligns as many landmarks), else None.
+            ``ambiguous``: a rival pose aligns as many landmarks, ``low_confidence``: below the confidence bar),
+            else None. A candidate's own reason may also be ``screened_out`` or, in tracking,
+            ``inconsistent_with_prior``.
         best: the chosen candidate's verification (the best one tried even when not localized; None when
             there was no candidate).
         T_map_query: (3,) float64 absolute pose (x m, y m, yaw rad) when localized, else None.

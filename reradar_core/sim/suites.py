@@ -205,14 +205,8 @@ class SuiteData:
     def load(self, path: Path) -> Sequence:
         return load_sequence(path, self.layout, self.preset)
 
-    def database_sequences(self) -> list[Sequence]:
-        return [self.load(p) for p in self.database]
-
     def query_sequences(self) -> list[Sequence]:
         return [self.load(p) for p in self.queries]
-
-    def training_sequences(self) -> list[Sequence]:
-        return [self.load(p) for p in self.training]
 
 
 # ---------------------------------------------------------------------------------------------- definitions

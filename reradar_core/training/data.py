@@ -66,12 +66,6 @@ class CachedSequence:
         return CachedSequence(f"{self.name}[{a}:{b}]", self.group, self.images[a:b], self.poses[a:b],
                               self.resolution_m)
 
-    def centre_crop(self, width_px: int) -> np.ndarray:
-        """(N, W, W) float32 centre crops (identical to rendering at width W)."""
-        s = self.images.shape[1]
-        o = (s - width_px) // 2
-        return np.asarray(self.images[:, o:o + width_px, o:o + width_px], dtype=np.float32)
-
 
 def sequence_group(seq) -> str:
     """Place group of a sequence: the simulator's route id from ``reradar_sim.json`` when present, else the

@@ -26,12 +26,11 @@ def new_scan_id() -> str:
 
 @dataclass(frozen=True)
 class CachedScan:
-    """Features of one uploaded scan with its id, radar preset and expiry (seconds of the cache's clock)."""
+    """Features of one uploaded scan with its id and radar preset (the cache keeps it for its TTL)."""
 
     scan_id: str
     features: ScanFeatures
     preset: str | None
-    expires_at: float
 
 
 class ScanCache:
@@ -46,7 +45,7 @@ class ScanCache:
 
     def put(self, features: ScanFeatures, preset: str | None) -> CachedScan:
         """Store ``features`` under a new random id (evicting the least recently used beyond the bound)."""
-        entry = CachedScan(new_scan_id(), features, preset, self._clock() + self.ttl_s)
+        entry = CachedScan(new_scan_id(), features, preset)
         with self._lock:
             self._items[entry.scan_id] = entry
         return entry

@@ -133,7 +133,7 @@ class RedisScanStore(ScanCache):
         self._keys = keys
 
     def put(self, features: ScanFeatures, preset: str | None) -> CachedScan:
-        entry = CachedScan(new_scan_id(), features, preset, time.monotonic() + self.ttl_s)
+        entry = CachedScan(new_scan_id(), features, preset)
         try:
             self._redis.set(self._keys.scan(entry.scan_id), encode_features(features, preset),
                             px=int(self.ttl_s * 1000))
@@ -145,10 +145,7 @@ class RedisScanStore(ScanCache):
 
     def get(self, scan_id: str) -> CachedScan | None:
         try:
-            pipe = self._redis.pipeline()
-            pipe.get(self._keys.scan(scan_id))
-            pipe.pttl(self._keys.scan(scan_id))
-            blob, ttl_ms = pipe.execute()
+            blob = cast(bytes | None, self._redis.get(self._keys.scan(scan_id)))
         except redis.RedisError as exc:
             raise SharedStateUnavailableError(
                 "the shared scan store (Redis) is unavailable, so scan_id cannot be resolved; send the scan "
@@ -156,7 +153,7 @@ class RedisScanStore(ScanCache):
         if blob is None:
             return None
         features, preset = decode_features(blob)
-        return CachedScan(scan_id, features, preset, time.monotonic() + max(ttl_ms, 0) / 1e3)
+        return CachedScan(scan_id, features, preset)
 
     def __len__(self) -> int:
         return 0
@@ -412,15 +409,6 @@ class OpsRuntime:
         self.sync = MapSync(self.redis, self.keys, registry, self.settings.map_sync_interval_s, self.origin,
                             extra_reconcile=extra)
         self.sync.start()
-
-    def redis_ok(self) -> bool | None:
-        """None without Redis; else whether it answers a PING."""
-        if self.redis is None:
-            return None
-        try:
-            return bool(self.redis.ping())
-        except redis.RedisError:
-            return False
 
     def close(self) -> None:
         if self.sync is not None:

@@ -31,7 +31,6 @@ class ServiceState:
     registry: MapRegistry
     cache: ScanCache
     metrics: Metrics
-    started_at: float = field(default_factory=time.time)
     sessions: SessionStore = field(init=False)
 
     def __post_init__(self) -> None:

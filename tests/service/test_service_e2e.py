@@ -12,11 +12,10 @@ import httpx
 import pytest
 
 from maps.paths import DEMO_MAP_PATH, DEMO_QUERIES_DIR
+from reradar_core.evaluation import localization_success, radius_for
 from service.core.config import Settings
 from service.demo import (
     QUERIES_CSV,
-    SR_ROTATION_DEG,
-    SR_TRANSLATION_M,
     QueryTruth,
     read_queries_csv,
     serve_in_thread,
@@ -82,7 +81,7 @@ def test_register_upload_retrieve_localize_real_model(real_server: str, queries:
                                          "low_confidence")
                 continue
             et, er = _errors(res["pose"], q)
-            if et <= SR_TRANSLATION_M and er <= SR_ROTATION_DEG:
+            if localization_success(et, er, radius_for("boreas")):
                 localized += 1
             else:
                 wrong.append((q.file, f"{et:.1f} m", f"{er:.1f} deg"))
