@@ -24,10 +24,11 @@ from maps.store import install_file
 from reradar_core.errors import ReRadarError
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
-from service.core.jobs import ARQ_IN_PROGRESS_PREFIX, JOB_FUNCTION, BuildQueue, jobs_dir
+from service.core.errors import scrub_paths
+from service.core.jobs import ARQ_IN_PROGRESS_PREFIX, ARQ_JOB_PREFIX, JOB_FUNCTION, BuildQueue, jobs_dir
 from service.core.logs import configure_logging
 from service.core.registry import MapRegistry
-from service.core.shared_state import Keys, connect, replica_id
+from service.core.shared_state import Keys, arq_redis_settings, connect, replica_id
 
 __all__ = ["run_worker", "build_map_job", "BuildCancelledError", "register"]
 
@@ -147,10 +148,18 @@ async def build_map_job(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
         _fail(ctx, map_id, job_dir, f"{type(exc).__name__}: {exc}")
         return "failed"
     except Exception as exc:
-        attempts = int(queue.record(map_id).get("attempts", "1"))
+        # the record lives in Redis, whose hiccup may be what failed the attempt: its calls are best effort,
+        # the Retry is not (a RedisError escaping here would end the arq job for good, its record "queued")
+        try:
+            attempts = int(queue.record(map_id).get("attempts", "1"))
+        except redis.RedisError:
+            attempts = int(ctx.get("job_try", 1))
         if attempts < settings.build_max_tries:
             logger.exception("map %s: build attempt %d failed; retrying", map_id, attempts)
-            queue.update(map_id, state="queued", error=f"attempt {attempts}: {type(exc).__name__}: {exc}")
+            try:
+                queue.update(map_id, state="queued", error=f"attempt {attempts}: {type(exc).__name__}: {exc}")
+            except redis.RedisError:
+                logger.warning("map %s: the build record could not be updated (Redis); retrying anyway", map_id)
             raise Retry(defer=2) from exc
         _fail(ctx, map_id, job_dir, f"{type(exc).__name__}: {exc} (after {attempts} attempts)")
         return "failed"
@@ -158,9 +167,21 @@ async def build_map_job(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
 
 def _fail(ctx: dict[str, Any], map_id: str, job_dir: Path, error: str) -> None:
     logger.error("map %s: build failed: %s", map_id, error, extra={"map_id": map_id})
-    ctx["queue"].update(map_id, state="failed", error=error)
+    # the record is public (GET /maps/{id}): no server paths in it
+    ctx["queue"].update(map_id, state="failed", error=scrub_paths(error, [ctx["registry"].maps_dir]))
     shutil.rmtree(job_dir, ignore_errors=True)
     _publish(ctx, "failed", map_id)
+
+
+def _created_s(rec: dict[str, str]) -> float:
+    """A build record's creation time, seconds since the epoch (0 when unreadable: old enough)."""
+    import datetime as dt
+
+    try:
+        return dt.datetime.strptime(rec.get("created_utc", ""), "%Y-%m-%dT%H:%M:%SZ").replace(
+            tzinfo=dt.UTC).timestamp()
+    except ValueError:
+        return 0.0
 
 
 def release_stale_builds(queue: BuildQueue, stale_after_s: float, now: float | None = None) -> list[str]:
@@ -169,11 +190,20 @@ def release_stale_builds(queue: BuildQueue, stale_after_s: float, now: float | N
     now = time.time() if now is None else now
     released = []
     for map_id, rec in queue.records().items():
+        job_id = rec.get("job_id", "")
+        if (rec.get("state") == "queued" and job_id and rec.get("cancel") != "1"
+                and now - _created_s(rec) > stale_after_s
+                and not queue.redis.exists(ARQ_JOB_PREFIX + job_id, ARQ_IN_PROGRESS_PREFIX + job_id)):
+            # queued, but arq holds no job for it any more (a Redis interruption ended the job): nobody will
+            # build it; say so and free nothing silently
+            queue.update(map_id, state="failed", error="its queue entry was lost (a Redis interruption during "
+                         f"the build); DELETE /maps/{map_id} and register the map again")
+            logger.error("map %s: queued build has no queue entry; marked failed", map_id, extra={"map_id": map_id})
+            continue
         if rec.get("state") != "running":
             continue
         if now - float(rec.get("heartbeat") or 0.0) < stale_after_s:
             continue
-        job_id = rec.get("job_id", "")
         queue.redis.delete(ARQ_IN_PROGRESS_PREFIX + job_id)
         queue.update(map_id, state="queued", error=f"worker {rec.get('worker')} stopped responding; retrying")
         logger.warning("map %s: worker %s stopped responding; build released for a retry", map_id,
@@ -184,7 +214,6 @@ def release_stale_builds(queue: BuildQueue, stale_after_s: float, now: float | N
 
 def run_worker(settings: Settings, extractor: FeatureExtractor | None = None, burst: bool = False) -> None:
     """Run a build worker until SIGINT/SIGTERM (``burst``: until the queue is empty)."""
-    from arq.connections import RedisSettings
     from arq.worker import Worker, func
 
     configure_logging(settings.log_level, settings.log_format)
@@ -219,7 +248,7 @@ def run_worker(settings: Settings, extractor: FeatureExtractor | None = None, bu
     worker = Worker(
         functions=[func(build_map_job, name=JOB_FUNCTION, timeout=settings.build_job_timeout_s,  # type: ignore[arg-type]
                         max_tries=settings.build_max_tries + 2)],  # our record counts attempts
-        queue_name=keys.queue, redis_settings=RedisSettings.from_dsn(settings.redis_url), ctx=ctx, max_jobs=1,
+        queue_name=keys.queue, redis_settings=arq_redis_settings(settings.redis_url), ctx=ctx, max_jobs=1,
         poll_delay=0.5, burst=burst, keep_result=3600, handle_signals=True,
         health_check_interval=HEALTH_S, health_check_key=health_key(keys),
     )

@@ -54,6 +54,8 @@ __all__ = [
     "Sequence",
     "detect_layout",
     "load_sequence",
+    "check_pose_span",
+    "POSE_SPAN_SLACK_US",
     "scan_path",
     "write_sequence_poses",
     "write_sequence_scan",
@@ -345,16 +347,34 @@ def load_sequence(path: str | Path, layout: str | None = None,
         lookup = np.searchsorted(track.timestamps_us, stamps)
         poses = track.subset(lookup)
     else:
-        # Pose files sample the trajectory at their own rate; allow 0.5 s slack at the ends, no more.
-        slack = 500_000
-        lo, hi = track.timestamps_us[0] - slack, track.timestamps_us[-1] + slack
-        outside = (stamps < lo) | (stamps > hi)
-        if np.any(outside):
-            bad = paths[int(np.argmax(outside))]
-            raise DatasetError(f"{bad}: scan time lies outside the pose file's time span ({pose_file})")
+        check_pose_span(track, stamps, [str(p) for p in paths], str(pose_file))
         interp = track.interpolate(stamps)
         poses = PoseSequence(stamps, interp[:, :2], interp[:, 2])
     return Sequence(root.name, p, layout, paths, stamps, poses, root, track.sorted())
+
+
+#: how far beyond the first / last pose a scan may lie (pose files sample the trajectory at their own rate), µs
+POSE_SPAN_SLACK_US = 500_000
+
+
+def check_pose_span(track: PoseSequence, stamps_us: np.ndarray, names: list[str], pose_file: str = "the pose file"
+                    ) -> None:
+    """Refuse scans whose times lie outside ``track``'s time span (plus ``POSE_SPAN_SLACK_US`` at each end):
+    their poses would be extrapolated, i.e. guessed.
+
+    Args:
+        track: the pose file's poses, sorted. stamps_us: (N,) int64 scan times, µs. names: the N scans' names,
+            for the message. pose_file: the pose file's name, for the message.
+
+    Raises:
+        DatasetError: naming the first scan outside and the pose file.
+    """
+    t = np.asarray(stamps_us, np.int64)
+    # Python ints: a timestamp near 2^62 minus the slack must not wrap around
+    lo, hi = int(track.timestamps_us[0]) - POSE_SPAN_SLACK_US, int(track.timestamps_us[-1]) + POSE_SPAN_SLACK_US
+    outside = [not lo <= int(v) <= hi for v in t]
+    if any(outside):
+        raise DatasetError(f"{names[outside.index(True)]}: scan time lies outside the time span of {pose_file}")
 
 
 def write_sequence_scan(root: str | Path, layout: str, scan: RadarScan) -> Path:

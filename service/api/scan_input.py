@@ -142,7 +142,7 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
             raise RequestValidationError(exc.errors(include_url=False)) from None
         fields = model.model_dump()
         scan_id = fields.pop("scan_id")
-        cached = state.cache.get(scan_id)
+        cached = await run_in_threadpool(state.cache.get, scan_id)  # Redis in fleet mode: never on the event loop
         if cached is None:
             raise NotFoundError(f"unknown or expired scan_id {scan_id!r}; upload the scan again with POST /scans")
         return ScanInput(cached.features, scan_id, fields)

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import secrets
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -51,6 +52,29 @@ def is_loopback(host: str | None) -> bool:
 
 def _default_maps_dir() -> Path:
     return Path(os.environ.get("RERADAR_CACHE_DIR", Path.cwd() / ".cache" / "reradar")) / "maps"
+
+
+def redis_url_parts(url: str) -> dict[str, Any]:
+    """The connection settings of ``url`` (``redis://[[user]:password@]host[:port][/db]``, ``rediss://`` for TLS,
+    ``unix://path[?db=N]``) as redis-py reads them (a percent-encoded password decoded), after checking what
+    redis-py would silently ignore: a path other than a database number (``/0/``, ``/abc``).
+
+    Raises:
+        ValueError: a malformed URL, naming the part (never the password).
+    """
+    from urllib.parse import urlsplit
+
+    from redis.connection import parse_url
+
+    try:
+        parts = dict(parse_url(url))
+        path = urlsplit(url).path
+    except ValueError as exc:
+        raise ValueError(f"not a Redis URL ({exc}); e.g. redis://redis:6379/0") from None
+    if not url.startswith("unix://") and path not in ("", "/") and not re.fullmatch(r"/\d+", path):
+        raise ValueError(f"the path {path!r} is not a database number (e.g. "
+                          "redis://redis:6379/0)")
+    return parts
 
 
 class Settings(BaseSettings):
@@ -160,6 +184,13 @@ class Settings(BaseSettings):
             raise ValueError(", ".join(f"{v} is now RERADAR_LOCALIZATION__{v.removeprefix('RERADAR_')}"
                                        for v in stale))
         return self
+
+    @field_validator("redis_url")
+    @classmethod
+    def _redis_url_is_one_both_clients_read(cls, value: str | None) -> str | None:
+        if value:  # the service's client and the build queue's must read it alike (``redis_url_parts``)
+            redis_url_parts(value)
+        return value or None
 
     @field_validator("maps_dir")
     @classmethod

@@ -41,9 +41,9 @@ from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
 from service.core.errors import ConflictError
 from service.core.registry import MapEntry, MapRegistry
-from service.core.shared_state import SharedStateUnavailableError
+from service.core.shared_state import SharedStateUnavailableError, arq_redis_settings
 
-__all__ = ["BuildQueue", "QueuedMapRegistry", "JOB_FUNCTION", "ARQ_IN_PROGRESS_PREFIX", "jobs_dir"]
+__all__ = ["BuildQueue", "QueuedMapRegistry", "JOB_FUNCTION", "ARQ_IN_PROGRESS_PREFIX", "ARQ_JOB_PREFIX", "jobs_dir"]
 
 logger = logging.getLogger(__name__)
 
@@ -51,6 +51,8 @@ logger = logging.getLogger(__name__)
 JOB_FUNCTION = "build_map"
 #: arq's own key prefix for the lock a worker holds on a running job (``arq.constants``).
 ARQ_IN_PROGRESS_PREFIX = "arq:in-progress:"
+#: arq's key of a queued job's data (``arq.constants.job_key_prefix``)
+ARQ_JOB_PREFIX = "arq:job:"
 
 _ACTIVE = ("queued", "running")
 
@@ -94,7 +96,9 @@ class BuildQueue:
         self.redis.hset(self.keys.build(map_id), mapping={k: str(v) for k, v in fields.items()})
 
     def remove(self, map_id: str) -> None:
-        pipe = self.redis.pipeline()
+        # no MULTI: Redis refuses a transaction over its memory limit, and the rollback of a refused enqueue
+        # must still free the id (plain DEL / SREM are allowed then)
+        pipe = self.redis.pipeline(transaction=False)
         pipe.delete(self.keys.build(map_id))
         pipe.srem(self.keys.builds, map_id)
         pipe.execute()
@@ -110,10 +114,10 @@ class BuildQueue:
         if not self.redis.hsetnx(key, "job_id", job_id):
             raise ConflictError(f"map {map_id!r} is already being built (or its build failed: DELETE "
                                 f"/maps/{map_id} first)")
-        self.update(map_id, map_id=map_id, state="queued", scans_done=0, scans_total=scans_total, attempts=0,
-                    error="", worker="", heartbeat=0, cancel=0, source=source, created_utc=_now())
-        self.redis.sadd(self.keys.builds, map_id)
-        try:
+        try:  # from the claim on, a failure frees the id again ("nothing was stored")
+            self.update(map_id, map_id=map_id, state="queued", scans_done=0, scans_total=scans_total, attempts=0,
+                        error="", worker="", heartbeat=0, cancel=0, source=source, created_utc=_now())
+            self.redis.sadd(self.keys.builds, map_id)
             asyncio.run(self._enqueue(map_id, job_id))
         except BaseException:
             self.remove(map_id)
@@ -121,9 +125,8 @@ class BuildQueue:
 
     async def _enqueue(self, map_id: str, job_id: str) -> None:
         from arq import create_pool
-        from arq.connections import RedisSettings
 
-        pool = await create_pool(RedisSettings.from_dsn(self.settings.redis_url or ""),
+        pool = await create_pool(arq_redis_settings(self.settings.redis_url or ""),
                                  default_queue_name=self.keys.queue)
         try:
             await pool.enqueue_job(JOB_FUNCTION, map_id, job_id, _job_id=job_id)
@@ -131,10 +134,21 @@ class BuildQueue:
             await pool.aclose()
 
     def cancel(self, map_id: str) -> bool:
-        """Ask the worker to stop building ``map_id``; True when a queued or running build was flagged."""
+        """Stop building ``map_id``; True when a queued or running build was cancelled. A build no worker has
+        started is taken off the queue at once (its id is free again); a running one is flagged and stops at
+        its next batch."""
         rec = self.record(map_id)
         if rec.get("state") not in _ACTIVE:
             return False
+        job_id = rec.get("job_id", "")
+        if rec.get("state") == "queued" and job_id and not self.redis.exists(ARQ_IN_PROGRESS_PREFIX + job_id):
+            pipe = self.redis.pipeline(transaction=False)
+            pipe.zrem(self.keys.queue, job_id)
+            pipe.delete(ARQ_JOB_PREFIX + job_id)  # a worker that dequeues it meanwhile finds no job and skips it
+            removed = pipe.execute()
+            if removed[0]:
+                self.remove(map_id)
+                return True
         self.update(map_id, cancel=1)
         return True
 
@@ -203,8 +217,12 @@ class QueuedMapRegistry(MapRegistry):
     def delete(self, map_id: str) -> MapEntry:
         """Delete a map; a map still building is cancelled (its job stops at the next batch)."""
         entry = self.get(map_id)
+        job_id = None
         try:
+            if entry.state == "building":
+                job_id = self.queue.record(map_id).get("job_id")
             cancelled = entry.state == "building" and self.queue.cancel(map_id)
+            dropped = cancelled and not self.queue.record(map_id)  # taken off the queue before any worker ran it
         except redis.RedisError as exc:
             raise SharedStateUnavailableError(
                 f"map {map_id!r} is being built and build jobs live in Redis, which is unavailable; retry "
@@ -212,6 +230,8 @@ class QueuedMapRegistry(MapRegistry):
         if cancelled:
             with self._lock:
                 self._entries.pop(map_id, None)
+            if dropped and job_id:  # no worker will: its uploaded scans go now
+                shutil.rmtree(jobs_dir(self.maps_dir) / job_id, ignore_errors=True)
             logger.info("map %s: build cancelled", map_id, extra={"map_id": map_id})
             self._publish("cancelled", map_id)
             return entry

@@ -36,8 +36,8 @@ import redis
 from reradar_core.errors import ReRadarError
 from reradar_core.features import ScanFeatures
 from reradar_core.localization import PosePrior
-from service.core.config import Settings
-from service.core.errors import ServiceError
+from service.core.config import Settings, redis_url_parts
+from service.core.errors import ServiceError, ServiceUnavailableError
 from service.core.registry import MapRegistry
 from service.core.scan_cache import CachedScan, ScanCache, new_scan_id
 from service.core.sessions import SessionConfig, SessionStore
@@ -56,9 +56,13 @@ def replica_id() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
-class SharedStateUnavailableError(ServiceError):
-    status_code = 503
+class SharedStateUnavailableError(ServiceUnavailableError):
+    """Redis (fleet mode) is unreachable or refuses the write: a 503 with ``Retry-After`` (docs/SERVICE.md)."""
+
     code = "shared_state_unavailable"
+
+    def __init__(self, message: str, retry_after_s: int = 5) -> None:
+        super().__init__(message, retry_after_s)
 
 
 @dataclass(frozen=True)
@@ -96,6 +100,19 @@ class Keys:
         return f"{self.prefix}:queue"
 
 
+def arq_redis_settings(url: str) -> Any:
+    """arq's ``RedisSettings`` for ``url``, from ``redis_url_parts`` (arq's own ``from_dsn`` does not decode a
+    percent-encoded password and fails on paths redis-py accepts: one parser for both clients)."""
+    from arq.connections import RedisSettings
+    from redis.connection import SSLConnection
+
+    parts = redis_url_parts(url)
+    return RedisSettings(host=parts.get("host", "localhost"), port=int(parts.get("port", 6379)),
+                         unix_socket_path=parts.get("path"), database=int(parts.get("db", 0)),
+                         username=parts.get("username"), password=parts.get("password"),
+                         ssl=parts.get("connection_class") is SSLConnection)
+
+
 def connect(url: str) -> redis.Redis:
     """A Redis client with short timeouts: a dead Redis must answer 503 quickly, not hang requests."""
     return redis.Redis.from_url(url, socket_timeout=2.0, socket_connect_timeout=2.0, health_check_interval=15)
@@ -118,6 +135,15 @@ def decode_features(blob: bytes) -> tuple[ScanFeatures, str | None]:
                                 int(z["timestamp_us"]))
         preset = str(z["preset"]) or None
     return features, preset
+
+
+def _json_record(raw: bytes) -> dict[str, Any] | None:
+    """One JSON object of a Redis list, or None for a value this version cannot read (skipped, never a 500)."""
+    try:
+        item = json.loads(raw)
+    except ValueError:
+        return None
+    return item if isinstance(item, dict) else None
 
 
 class RedisScanStore(ScanCache):
@@ -152,7 +178,11 @@ class RedisScanStore(ScanCache):
                 "inline (multipart) instead, or retry later") from exc
         if blob is None:
             return None
-        features, preset = decode_features(blob)
+        try:
+            features, preset = decode_features(blob)
+        except (ValueError, KeyError, TypeError, OSError, ReRadarError):  # not a value this version wrote
+            logger.warning("scan %s: unreadable value in the shared scan store; treated as unknown", scan_id)
+            return None
         return CachedScan(scan_id, features, preset)
 
     def __len__(self) -> int:
@@ -240,7 +270,7 @@ class RecentLocalizations:
             except redis.RedisError as exc:
                 raise SharedStateUnavailableError(
                     "recent localizations live in Redis, which is unavailable; retry later") from exc
-            return [json.loads(r) for r in raw]
+            return [item for item in map(_json_record, raw) if item is not None]
         with self._lock:
             return list(self._local.get(map_id, ()))[:limit]
 

@@ -283,6 +283,25 @@ def test_cancel_a_running_build(fleet: Fleet) -> None:
     assert slow.poll() is None  # the worker lives on
 
 
+def test_cancel_a_queued_build_frees_its_id_at_once(fleet: Fleet) -> None:
+    """QA (session 20): a build cancelled while still queued held its id until a worker dequeued it (hours behind
+    a long build, forever without a worker): POST said 409 'DELETE first' and DELETE said 404."""
+    busy = fleet.a.post("/maps", data={"map_id": "busy"}, files=_archive(16, seed0=400), headers=AUTH)
+    assert busy.status_code == 202, busy.text
+    _wait(lambda: fleet.a.get("/maps/busy").json().get("scans_done", 0) >= 1, 60, "busy build running")
+    r = fleet.a.post("/maps", data={"map_id": "waiting"}, files=_archive(4, seed0=500), headers=AUTH)
+    assert r.status_code == 202, r.text  # queued behind "busy" (one build per worker)
+    job_id = fleet.redis().hget(f"{NAMESPACE}:v1:build:waiting", "job_id").decode()
+    assert fleet.b.delete("/maps/waiting", headers=AUTH).status_code == 200
+    assert not fleet.redis().exists(f"{NAMESPACE}:v1:build:waiting")
+    assert not (fleet.maps_dir / ".build-queue" / job_id).exists()
+    again = fleet.a.post("/maps", data={"map_id": "waiting"}, files=_archive(4, seed0=500), headers=AUTH)
+    assert again.status_code == 202, again.text
+    for map_id in ("waiting", "busy"):
+        assert fleet.a.delete(f"/maps/{map_id}", headers=AUTH).status_code == 200
+    _wait(lambda: not fleet.redis().exists(f"{NAMESPACE}:v1:build:busy"), 30, "busy build cancelled")
+
+
 def test_failed_build_reports_its_reason_everywhere(fleet: Fleet) -> None:
     r = fleet.a.post("/maps", data={"map_id": "broken"}, files=_archive(4, seed0=300, corrupt=2), headers=AUTH)
     assert r.status_code == 202, r.text  # the first scan is checked at once; the third only by the worker
@@ -299,8 +318,9 @@ def test_redis_down_503_on_shared_scans_localization_keeps_working(fleet: Fleet)
     up = fleet.a.post("/scans", files={"scan": ("q.png", _png(1, keyframe_time(1)))})
     # whatever the error body's shape (docs/SERVICE.md), it names the cause and what to do instead
     assert up.status_code == 503 and "shared_state_unavailable" in up.text and "inline" in up.text, up.text
+    assert int(up.headers["Retry-After"]) > 0  # QA (session 20): the documented header was missing
     by_id = fleet.b.post("/localize", json={"map_id": "city", "scan_id": "1" * 32})
-    assert by_id.status_code == 503
+    assert by_id.status_code == 503 and "Retry-After" in by_id.headers
     res = fleet.b.post("/localize", data={"map_id": "city"}, files={"scan": ("q.png", _png(4, keyframe_time(4)))})
     assert res.status_code == 200 and res.json()["status"] == "localized"
     assert fleet.a.get("/maps").status_code == 200 and fleet.a.get("/readyz").status_code == 200

@@ -304,3 +304,35 @@ def test_json_body_on_multipart_routes_is_415(client: httpx.Client) -> None:
     assert "multipart/form-data" in body["detail"] and "application/json" in body["detail"]
     body = _problem(client.post("/scans", json={"scan": "x"}), 415)
     assert "multipart/form-data" in body["detail"]
+
+
+@pytest.mark.parametrize("url, message", [("redis://h:6379/0/", "not a database number"),
+                                          ("redis://h:6379/abc", "not a database number"),
+                                          ("http://h:6379", "not a Redis URL")])
+def test_a_redis_url_both_clients_cannot_read_alike_is_refused(tmp_path, url, message) -> None:
+    """QA (session 20): ``/0/`` or ``/abc`` was accepted at start-up (redis-py ignores the path) and every queued
+    build then answered 500 (arq's parser refused it); a percent-encoded password worked for one client only."""
+    from pydantic import ValidationError
+
+    from service.core.shared_state import arq_redis_settings
+
+    with pytest.raises(ValidationError, match=message):
+        Settings(maps_dir=tmp_path, redis_url=url)
+    rs = arq_redis_settings("redis://:p%40ss%2Fw0rd@127.0.0.1:6380/3")
+    assert (rs.password, rs.port, rs.database) == ("p@ss/w0rd", 6380, 3)
+
+
+def test_unreadable_shared_values_are_unknown_not_a_500() -> None:
+    """QA (session 20): a value in the namespace this version did not write answered 500."""
+    from service.core.shared_state import Keys, RecentLocalizations, RedisScanStore
+
+    class FakeRedis:
+        def get(self, key):  # noqa: ANN001, ANN202
+            return b"garbage"
+
+        def lrange(self, key, a, b):  # noqa: ANN001, ANN202
+            return [b"garbage", b'{"status": "localized"}', b"[1, 2]"]
+
+    assert RedisScanStore(FakeRedis(), Keys(), 60.0).get("0" * 32) is None  # type: ignore[arg-type]
+    recent = RecentLocalizations(10, FakeRedis(), Keys())  # type: ignore[arg-type]
+    assert recent.latest("demo", 5) == [{"status": "localized"}]

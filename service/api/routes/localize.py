@@ -89,13 +89,16 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
     # a session scan without odometry has no prior (the vehicle moved an unknown distance): global; a prior too
     # loose for the registration to reach its error is localized globally by ``Localizer.track`` itself
     # (``TrackingConfig.covers``; docs/SERVICE.md)
-    prior = explicit or (state.sessions.prior_for(session_id, map_id, odometry) if session_id else None)
+    # the session store is Redis in fleet mode: its calls block, so they run in the threadpool, never on the event
+    # loop (a hung Redis would stall every request of the replica, health checks included)
+    prior = explicit or (await run_in_threadpool(state.sessions.prior_for, session_id, map_id, odometry)
+                         if session_id else None)
     if prior is not None:
         result = await run_in_threadpool(db.track, inp.features, prior, config)
     else:
         result = await run_in_threadpool(db.localize, inp.features, config)
     if session_id:
-        state.sessions.update(session_id, map_id, result.T_map_query, prior)
+        await run_in_threadpool(state.sessions.update, session_id, map_id, result.T_map_query, prior)
     timings = {**inp.timings_ms, **result.timings_ms}
     state.metrics.observe_stages(timings)
     state.metrics.inc("reradar_localizations_total", status=result.status)

@@ -12,9 +12,10 @@ import numpy as np
 from fastapi import APIRouter, File, Form, Request, Response, UploadFile, status
 from starlette.concurrency import run_in_threadpool
 
-from reradar_core.errors import PoseFileError
+from reradar_core.errors import DatasetError, PoseFileError
+from reradar_core.io.datasets import check_pose_span
 from reradar_core.io.poses import read_poses
-from reradar_core.io.presets import PRESETS, mid_sweep_times_us
+from reradar_core.io.presets import PRESETS, get_preset, mid_sweep_times_us
 from service.api.deps import ApiKeyDep, FormDep, MapIdPath, StateDep
 from service.api.scan_input import read_scan_input, scan_request_body
 from service.api.schemas import (
@@ -111,15 +112,12 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         # names are checked against MAX_SCAN_TIMESTAMP_US by extract_scan_archive, so they fit int64
         stamps = np.array([int(SCAN_NAME_PATTERN.match(p.name).group(1)) for p in scan_paths],  # type: ignore[union-attr]
                           dtype=np.int64)
-        slack = 500_000  # pose files sample at their own rate; 0.5 s slack at the ends, as load_sequence
-        first, last = int(track.timestamps_us[0]) - slack, int(track.timestamps_us[-1]) + slack  # Python ints
-        outside = [not first <= int(t) <= last for t in stamps]
-        if any(outside):
-            bad = scan_paths[outside.index(True)].name
-            raise BadRequestError(f"scan {bad} lies outside the time span of the poses file; scan files must be "
-                                  f"named by their timestamp in microseconds")
+        try:  # the same rule as a sequence folder's (load_sequence)
+            check_pose_span(track, stamps, [f"scan {p.name}" for p in scan_paths], "the poses file")
+        except DatasetError as exc:
+            raise BadRequestError(f"{exc}; scan files must be named by their timestamp in microseconds") from None
         # keyframe poses at mid-sweep (docs/CONVENTIONS.md); every preset sweeps 400 azimuths at 4 Hz
-        pose_arr = track.interpolate(mid_sweep_times_us(stamps, PRESETS[(preset or "boreas").lower()]))
+        pose_arr = track.interpolate(mid_sweep_times_us(stamps, get_preset(preset or "boreas")))
         entry = state.registry.start_build(map_id, scan_paths, pose_arr, preset, work,
                                            source=f"upload:{archive.filename or 'archive'}")  # type: ignore[union-attr]
         return entry, True

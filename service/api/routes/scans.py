@@ -36,7 +36,7 @@ async def upload_scan(
     features, scan_preset = await run_in_threadpool(state.describe_upload, data, filename, preset, timings,
                                                     scan_layout)
     state.metrics.observe_stages(timings)
-    entry = state.cache.put(features, scan_preset)
+    entry = await run_in_threadpool(state.cache.put, features, scan_preset)  # Redis in fleet mode
     return ScanInfo(scan_id=entry.scan_id, timestamp_us=int(features.timestamp_us), preset=scan_preset,
                     num_keypoints=int(features.keypoints_xy_m.shape[0]),
                     descriptor_dim=int(features.global_descriptor.shape[0]),
