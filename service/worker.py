@@ -15,7 +15,7 @@ import socket
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import redis
@@ -38,11 +38,24 @@ logger = logging.getLogger("service.worker")
 HEARTBEAT_S = 2.0
 #: Seconds between the worker's own health records (``reradar worker --check`` reads them).
 HEALTH_S = 10.0
+#: wait before a worker that lost Redis connects again, seconds
+RECONNECT_S = 2.0
 
 
 def health_key(keys: Keys) -> str:
-    """This worker's health record: ``<namespace>:v1:worker-health:<hostname>`` (one worker per container)."""
+    """arq's health record of this worker: ``<namespace>:v1:worker-health:<hostname>`` (one worker per container;
+    it expires, so under ``volatile-ttl`` eviction Redis drops it first)."""
     return f"{keys.prefix}:worker-health:{socket.gethostname()}"
+
+
+def heartbeat_key(keys: Keys) -> str:
+    """The hash of the workers' last signs of life (field: hostname, value: Unix time). It has no TTL, so a full
+    Redis under ``volatile-ttl`` never evicts it: ``reradar worker --check`` reads it."""
+    return f"{keys.prefix}:worker-heartbeats"
+
+
+def _beat(client: redis.Redis, keys: Keys) -> None:
+    client.hset(heartbeat_key(keys), socket.gethostname(), f"{time.time():.3f}")
 
 
 class BuildCancelledError(Exception):
@@ -75,12 +88,17 @@ def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
         return "superseded"
     if rec.get("cancel") == "1":
         raise BuildCancelledError
+    if rec.get("state") == "ready":  # finished by a worker that was stopped (SIGTERM) after arq re-queued the job
+        logger.info("job %s: map %s is built already; nothing to do", job_id, map_id)
+        return "ready"
     spec = json.loads((job_dir / "spec.json").read_text())
     poses = np.load(job_dir / "poses.npy")
     scans = [job_dir / "work" / rel for rel in spec["scans"]]
     attempts = int(queue.redis.hincrby(queue.keys.build(map_id), "attempts", 1))  # type: ignore[arg-type]
     if attempts > settings.build_max_tries:
-        raise BuildGaveUpError(f"gave up after {attempts - 1} attempts ({rec.get('error') or 'worker lost'})")
+        last = (rec.get("error") or "worker lost").removesuffix("; retrying")
+        raise BuildGaveUpError(f"gave up after {attempts - 1} attempts (the last: {last}); the uploaded scans are "
+                               f"gone: DELETE /maps/{map_id} and register the map again")
     queue.update(map_id, state="running", worker=ctx["origin"], heartbeat=time.time(), scans_done=0)
     logger.info("map %s: building job %s, attempt %d, %d scans", map_id, job_id, attempts, len(scans),
                 extra={"map_id": map_id, "job_id": job_id})
@@ -238,35 +256,55 @@ def run_worker(settings: Settings, extractor: FeatureExtractor | None = None, bu
     stop = threading.Event()
 
     def reaper() -> None:
-        while not stop.wait(min(5.0, settings.build_heartbeat_stale_s / 3)):
+        while True:
             try:
+                _beat(client, keys)
                 release_stale_builds(queue, settings.build_heartbeat_stale_s)
             except redis.RedisError as exc:
                 logger.warning("stale-build check failed: %s", exc)
+            if stop.wait(min(HEALTH_S / 2, settings.build_heartbeat_stale_s / 3)):
+                return
 
     threading.Thread(target=reaper, daemon=True, name="build-reaper").start()
-    worker = Worker(
-        functions=[func(build_map_job, name=JOB_FUNCTION, timeout=settings.build_job_timeout_s,  # type: ignore[arg-type]
-                        max_tries=settings.build_max_tries + 2)],  # our record counts attempts
-        queue_name=keys.queue, redis_settings=arq_redis_settings(settings.redis_url), ctx=ctx, max_jobs=1,
-        poll_delay=0.5, burst=burst, keep_result=3600, handle_signals=True,
-        health_check_interval=HEALTH_S, health_check_key=health_key(keys),
-    )
     logger.info("worker %s ready: queue %s, maps in %s, model %s", ctx["origin"], keys.queue,
                 settings.maps_dir, extractor.model_id)
     try:
-        worker.run()
+        while True:
+            worker = Worker(
+                functions=[func(build_map_job, name=JOB_FUNCTION, timeout=settings.build_job_timeout_s,  # type: ignore[arg-type]
+                                max_tries=settings.build_max_tries + 2)],  # our record counts attempts
+                queue_name=keys.queue, redis_settings=arq_redis_settings(settings.redis_url), ctx=ctx,
+                max_jobs=1, poll_delay=0.5, burst=burst, keep_result=3600, handle_signals=True,
+                health_check_interval=HEALTH_S, health_check_key=health_key(keys),
+            )
+            try:
+                worker.run()  # returns on SIGINT / SIGTERM (or an empty queue with ``burst``)
+                break
+            except (redis.RedisError, OSError) as exc:
+                # Redis restarted or unreachable: wait and reconnect like the API does, instead of exiting (a
+                # build in progress is released by the stale-build check and runs again)
+                if burst:
+                    raise
+                logger.error("worker %s lost Redis (%s: %s); reconnecting in %.0f s", ctx["origin"],
+                             type(exc).__name__, exc, RECONNECT_S)
+                time.sleep(RECONNECT_S)
     finally:
         stop.set()
         client.close()
 
 
-def check_health(settings: Settings) -> bool:
-    """True when this host's worker recorded its health within the last ``HEALTH_S`` + 1 seconds."""
+def check_health(settings: Settings, now: float | None = None) -> bool:
+    """True when this host's worker recorded a sign of life within the last ``HEALTH_S`` + 1 seconds."""
     try:
-        return bool(connect(settings.redis_url or "").exists(health_key(Keys(settings.redis_namespace))))
+        value = connect(settings.redis_url or "").hget(heartbeat_key(Keys(settings.redis_namespace)),
+                                                       socket.gethostname())
     except redis.RedisError:
         return False
+    try:
+        last = float(cast(bytes, value)) if value is not None else 0.0
+    except ValueError:
+        return False
+    return (time.time() if now is None else now) - last <= HEALTH_S + 1
 
 
 def worker_command(check: bool = False) -> None:
@@ -293,7 +331,11 @@ def worker_command(check: bool = False) -> None:
         typer.echo(f"error: cannot reach Redis (RERADAR_REDIS_URL): {exc}", err=True)
         raise typer.Exit(1 if check else 3) from None
     if check:
-        raise typer.Exit(0 if check_health(settings) else 1)
+        if check_health(settings):
+            raise typer.Exit(0)
+        typer.echo(f"no live worker on this host: its health record in Redis is older than {HEALTH_S + 1:.0f} s "
+                   "or missing (start `reradar worker`)", err=True)
+        raise typer.Exit(1)
     check_model_or_exit(settings)
     run_worker(settings)
 

@@ -374,7 +374,7 @@ def check_pose_span(track: PoseSequence, stamps_us: np.ndarray, names: list[str]
     lo, hi = int(track.timestamps_us[0]) - POSE_SPAN_SLACK_US, int(track.timestamps_us[-1]) + POSE_SPAN_SLACK_US
     outside = [not lo <= int(v) <= hi for v in t]
     if any(outside):
-        raise DatasetError(f"{names[outside.index(True)]}: scan time lies outside the time span of {pose_file}")
+        raise DatasetError(f"{names[outside.index(True)]}: scan time lies outside the pose file's time span ({pose_file})")
 
 
 def write_sequence_scan(root: str | Path, layout: str, scan: RadarScan) -> Path:

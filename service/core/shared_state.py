@@ -336,6 +336,7 @@ class MapSync:
     def _run(self) -> None:
         pubsub = None
         last_full = 0.0
+        down = False  # an outage is logged when it starts and when it ends, not once a second
         while not self._stop.is_set():
             try:
                 if pubsub is None:
@@ -350,8 +351,14 @@ class MapSync:
                         message = pubsub.get_message(timeout=0.0)
                     self.reconcile()
                     last_full = now
+                if down:
+                    logger.info("map sync: Redis reachable again")
+                    down = False
             except redis.RedisError as exc:
-                logger.warning("map sync: Redis unavailable (%s); retrying", exc)
+                if not down:
+                    logger.warning("map sync: Redis unavailable (%s); re-reading the shared maps folder every "
+                                   "second until it is back", exc)
+                    down = True
                 if pubsub is not None:
                     try:
                         pubsub.close()
@@ -361,6 +368,8 @@ class MapSync:
                 self._stop.wait(1.0)
                 try:
                     self.reconcile()  # the shared folder still works without Redis
+                except redis.RedisError:
+                    pass  # the folder part ran; the build records wait for Redis (logged above)
                 except Exception:  # noqa: BLE001 - never let the sync thread die
                     logger.exception("map sync pass failed")
             except Exception:  # noqa: BLE001 - never let the sync thread die

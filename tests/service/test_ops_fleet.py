@@ -283,6 +283,21 @@ def test_cancel_a_running_build(fleet: Fleet) -> None:
     assert slow.poll() is None  # the worker lives on
 
 
+def test_worker_health_survives_eviction_of_expiring_keys(fleet: Fleet) -> None:
+    """QA (session 20): under ``volatile-ttl`` a full Redis evicted the worker's 11 s health key first, so
+    ``reradar worker --check`` reported a live worker dead; its heartbeats now live in a hash without a TTL."""
+    import socket
+
+    from service.core.config import Settings
+    from service.worker import check_health
+
+    settings = Settings(maps_dir=fleet.maps_dir, redis_url=fleet.redis_url, redis_namespace=NAMESPACE)
+    _wait(lambda: check_health(settings), 20, "a worker heartbeat")
+    assert fleet.redis().ttl(f"{NAMESPACE}:v1:worker-heartbeats") == -1  # no TTL: never evicted by volatile-ttl
+    last = float(fleet.redis().hget(f"{NAMESPACE}:v1:worker-heartbeats", socket.gethostname()))
+    assert not check_health(settings, now=last + 30.0)  # a stale heartbeat is a dead worker
+
+
 def test_cancel_a_queued_build_frees_its_id_at_once(fleet: Fleet) -> None:
     """QA (session 20): a build cancelled while still queued held its id until a worker dequeued it (hours behind
     a long build, forever without a worker): POST said 409 'DELETE first' and DELETE said 404."""

@@ -113,7 +113,7 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         stamps = np.array([int(SCAN_NAME_PATTERN.match(p.name).group(1)) for p in scan_paths],  # type: ignore[union-attr]
                           dtype=np.int64)
         try:  # the same rule as a sequence folder's (load_sequence)
-            check_pose_span(track, stamps, [f"scan {p.name}" for p in scan_paths], "the poses file")
+            check_pose_span(track, stamps, [f"scan {p.name}" for p in scan_paths], "the uploaded poses file")
         except DatasetError as exc:
             raise BadRequestError(f"{exc}; scan files must be named by their timestamp in microseconds") from None
         # keyframe poses at mid-sweep (docs/CONVENTIONS.md); every preset sweeps 400 azimuths at 4 Hz
