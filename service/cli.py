@@ -67,6 +67,31 @@ def check_model_or_exit(settings: Settings) -> None:
         raise typer.Exit(2) from None
 
 
+def check_redis_credentials_or_exit(settings: Settings) -> None:
+    """Exit 2 with one line when Redis answers but refuses ``RERADAR_REDIS_URL``'s credentials: a wrong password
+    is a setting to fix, not an outage to wait out (an unreachable Redis is left to the running service, which
+    answers 503 ``shared_state_unavailable`` until it is back)."""
+    if not settings.redis_url:
+        return
+    import redis
+
+    from service.core.shared_state import connect
+
+    try:
+        connect(settings.redis_url).ping()
+    except (redis.AuthenticationError, redis.exceptions.AuthenticationWrongNumberOfArgsError) as exc:
+        typer.echo(f"error: RERADAR_REDIS_URL: Redis refuses its credentials ({exc}); fix the user / password "
+                   "in the URL", err=True)
+        raise typer.Exit(2) from None
+    except redis.ResponseError as exc:
+        if "NOAUTH" in str(exc) or "WRONGPASS" in str(exc):
+            typer.echo("error: RERADAR_REDIS_URL: Redis needs a password the URL does not hold (or holds a "
+                       "wrong one): redis://:PASSWORD@host:6379/0", err=True)
+            raise typer.Exit(2) from None
+    except redis.RedisError:
+        pass  # unreachable now: the service starts and recovers when Redis comes up
+
+
 def serve_command(
     host: str = typer.Option("127.0.0.1", help="Address to bind (0.0.0.0 inside containers)."),
     port: int = typer.Option(8080, min=1, max=65535, help="TCP port."),
@@ -85,6 +110,7 @@ def serve_command(
 
     settings = settings_or_exit(**({"maps_dir": maps_dir} if maps_dir is not None else {}))
     check_model_or_exit(settings)  # before the server starts: a bad setting is one line, not a start-up traceback
+    check_redis_credentials_or_exit(settings)
     if workers == 1:
         from service.main import create_app
 

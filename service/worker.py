@@ -310,18 +310,19 @@ def check_health(settings: Settings, now: float | None = None) -> bool:
 def worker_command(check: bool = False) -> None:
     """Run a map-build worker (needs RERADAR_REDIS_URL; settings from RERADAR_* variables).
 
-    Exit status: 2 for invalid settings (no, or a malformed, RERADAR_REDIS_URL; an unknown RERADAR_MODEL), 3 when
+    Exit status: 2 for invalid settings (no, or a malformed, RERADAR_REDIS_URL or credentials Redis refuses; an unknown RERADAR_MODEL), 3 when
     Redis cannot be reached; ``check``: 0 when this host's worker is alive, else 1 (with a message when Redis cannot
     be reached)."""
     import typer
 
-    from service.cli import check_model_or_exit, settings_or_exit
+    from service.cli import check_model_or_exit, check_redis_credentials_or_exit, settings_or_exit
 
     settings = settings_or_exit()
     if not settings.redis_url:
         typer.echo("error: set RERADAR_REDIS_URL (e.g. redis://127.0.0.1:6379/0): the build queue lives in Redis",
                    err=True)
         raise typer.Exit(2)
+    check_redis_credentials_or_exit(settings)  # a wrong password is a setting (2), not an outage (3)
     try:  # the URL may hold a password: never echoed, only what redis says (host and port)
         connect(settings.redis_url).ping()
     except ValueError as exc:

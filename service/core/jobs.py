@@ -202,9 +202,14 @@ class QueuedMapRegistry(MapRegistry):
             try:
                 self.queue.enqueue(map_id, job_id, len(scan_paths), source)
             except redis.RedisError as exc:
+                full = isinstance(exc, redis.exceptions.OutOfMemoryError) or "OOM" in str(exc)
+                logger.warning("map %s: build not queued (Redis %s)", map_id, "full" if full else "unavailable")
                 raise SharedStateUnavailableError(
-                    "map builds are queued in Redis, which is unavailable; nothing was stored, retry later "
-                    "(or upload a prebuilt map file, which needs no queue)") from exc
+                    ("map builds are queued in Redis, which is full (its maxmemory is reached: the operator must "
+                     "raise RERADAR_REDIS_MAXMEMORY or free keys)" if full else
+                     "map builds are queued in Redis, which is unavailable") +
+                    "; nothing was stored, retry later (or upload a prebuilt map file, which needs no queue)"
+                ) from exc
         except BaseException:
             shutil.rmtree(job_dir, ignore_errors=True)
             self._release(map_id)
