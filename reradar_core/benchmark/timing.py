@@ -35,7 +35,6 @@ def stage_timings(extractor: Any, query_scans: Sequence[RadarScan], db_features:
         db_features: the map's features; db_poses: (N, 3) keyframe poses.
         localization: ``LocalizationConfig`` (default settings when None).
     """
-    from reradar_core.landmarks import detect_landmarks
     from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer
     from reradar_core.retrieval import GlobalIndex
 
@@ -51,8 +50,8 @@ def stage_timings(extractor: Any, query_scans: Sequence[RadarScan], db_features:
         t1 = time.perf_counter()
         g, fmap = extractor.run_images(img[None])
         t2 = time.perf_counter()
-        lm = detect_landmarks(scan, extractor.landmark_config, getattr(extractor, "landmark_range_m", None))
-        feats = extractor.features_from_outputs(scan, g[0], fmap[0], lm)  # keypoints + local descriptors
+        # landmarks detected as ``describe`` detects them (the extractor's settings), keypoints + local descriptors
+        feats = extractor.features_from_outputs(scan, g[0], fmap[0])
         res = localizer.localize(feats, cfg)
         t3 = time.perf_counter()
         retrieve_ms = res.timings_ms.get("retrieve_ms", 0.0)

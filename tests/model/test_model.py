@@ -336,3 +336,15 @@ def test_sliced_max_pool_equals_max_pool2d(shape, pool):
     assert torch.equal(got.nan_to_num(), want.nan_to_num())
     assert not SlicedMaxPool2d.replaces(torch.nn.MaxPool2d(3, 2, 1, ceil_mode=True))
     assert not SlicedMaxPool2d.replaces(torch.nn.MaxPool2d(3, 2, 1, dilation=2))
+
+
+def test_the_stage_timings_describe_a_scan_as_describe_does():
+    """The timing script times describe's stages one by one (``benchmark.timing``): the features it localizes are
+    describe's (it detected landmarks with settings of its own before session 20)."""
+    ex = DescriptorExtractor.from_pretrained()
+    scan = _scan(3)
+    g, fmap = ex.run_images(ex.cartesian_image(scan)[None])
+    staged, whole = ex.features_from_outputs(scan, g[0], fmap[0]), ex.describe(scan)
+    np.testing.assert_array_equal(staged.keypoints_xy_m, whole.keypoints_xy_m)
+    np.testing.assert_array_equal(staged.local_descriptors, whole.local_descriptors)
+    np.testing.assert_allclose(staged.global_descriptor, whole.global_descriptor, atol=1e-6)
