@@ -348,7 +348,7 @@ def register(app: Any) -> None:
     def worker(check: bool = typer.Option(False, "--check", help=(
             "Exit 0 if this host's worker is alive (its health record in Redis is fresh), 1 if it is not or Redis "
             "cannot be reached (with a message), 2 if the settings are invalid (RERADAR_REDIS_URL unset or "
-            "malformed)."))) -> None:
+            "malformed, or credentials Redis refuses)."))) -> None:
         """Run a map-build worker: queued builds from Redis (needs RERADAR_REDIS_URL; docs/OPERATIONS.md)."""
         worker_command(check)
 

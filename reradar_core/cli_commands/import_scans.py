@@ -95,8 +95,9 @@ def register(app: typer.Typer) -> None:
             ordered = sorted(sources)
             kinds = {len(src.stem) if src.stem.isascii() and src.stem.isdigit() else "name" for src in ordered}
             if len(kinds) > 1:  # e.g. scanA.png (numbered 1 s, 1970) among 2019 timestamps
-                raise ScanFormatError("the sources mix timestamp names (16-digit µs, 19-digit ns) and other names; "
-                                      "one sequence takes one kind: rename them, or import them separately")
+                raise ScanFormatError("the sources mix kinds of names (16-digit µs timestamps, 19-digit ns "
+                                      "timestamps, other names); one sequence takes one kind: rename them, or "
+                                      "import them separately")
             stamps = [_stamp_us(src, k) for k, src in enumerate(ordered)]
             clashes: dict[int, list[str]] = {}
             for src, stamp in zip(ordered, stamps, strict=True):

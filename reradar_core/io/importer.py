@@ -19,7 +19,7 @@ import numpy as np
 
 from reradar_core.errors import ScanFormatError
 from reradar_core.io.presets import RadarPreset, get_preset
-from reradar_core.io.scan import RadarScan, check_scan_sides
+from reradar_core.io.scan import MIN_SCAN_SIDE, RadarScan, check_scan_sides
 
 __all__ = ["ForeignScanLayout", "RANGE_RESOLUTION_BOUNDS_M", "import_polar_scan"]
 
@@ -103,12 +103,12 @@ def import_polar_scan(array: np.ndarray, layout: ForeignScanLayout, preset: str 
     r_dst = p.range_offset_m + np.arange(p.num_range_bins) * p.range_resolution_m
     x = (r_dst - layout.range_offset_m) / layout.range_resolution_m
     inside = (x >= 0) & (x <= n_bins_src - 1)
-    if not inside.any():  # every output bin would be 0: a wrong offset or resolution, never a scan
+    if int(inside.sum()) < MIN_SCAN_SIDE:  # (nearly) every output bin would be 0: a wrong offset or resolution
         src_lo = layout.range_offset_m
         src_hi = layout.range_offset_m + (n_bins_src - 1) * layout.range_resolution_m
-        raise ScanFormatError(f"the scan's ranges {src_lo:g}..{src_hi:g} m (offset + bins x resolution) do not "
-                              f"overlap preset {p.name!r}'s {r_dst[0]:g}..{r_dst[-1]:g} m: check --range-offset "
-                              "and --range-resolution")
+        raise ScanFormatError(f"the scan's ranges {src_lo:g}..{src_hi:g} m (offset + bins x resolution) overlap "
+                              f"fewer than {MIN_SCAN_SIDE} range bins of the {r_dst[0]:g}..{r_dst[-1]:g} m of preset "
+                              f"{p.name!r}: check --range-offset and --range-resolution")
     i0 = np.clip(np.floor(x).astype(np.int64), 0, n_bins_src - 1)
     i1 = np.minimum(i0 + 1, n_bins_src - 1)
     w = (x - i0).astype(np.float32)

@@ -211,7 +211,7 @@ def check_scan_sides(num_azimuths: int, num_range_bins: int, source: str = "scan
     a, r = int(num_azimuths), int(num_range_bins)
     if not (MIN_SCAN_SIDE <= a <= MAX_SCAN_SIDE and MIN_SCAN_SIDE <= r <= MAX_SCAN_SIDE):
         raise ScanFormatError(
-            f"{source}: scan has {a} azimuths x {r} range bins; expected a full sweep with {MIN_SCAN_SIDE}.."
+            f"{source}: {a} azimuths x {r} range bins; expected a full sweep with {MIN_SCAN_SIDE}.."
             f"{MAX_SCAN_SIDE} of each (e.g. 400 x 3360 Boreas, 400 x 3768 Oxford)")
 
 

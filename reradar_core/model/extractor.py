@@ -171,7 +171,8 @@ class DescriptorExtractor:
             state = {k: v.float() if v.is_floating_point() else v for k, v in blob["state_dict"].items()}
         except Exception as exc:  # noqa: BLE001 - torch raises pickle, zip, EOF and runtime errors on a bad file
             raise ConfigError(f"model weights file {path.name} is not a readable ReRadar weights file (corrupt or "
-                              f"truncated .pt: {str(exc)[:120] or type(exc).__name__}); re-export or re-train it") from None
+                              f"truncated .pt: {str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__}); re-export or "
+                              "re-train it") from None
         try:
             net.load_state_dict(state)
         except RuntimeError as exc:

@@ -83,13 +83,16 @@ class BuildQueue:
 
     def records(self) -> dict[str, dict[str, str]]:
         ids = sorted(m.decode() for m in cast(set[bytes], self.redis.smembers(self.keys.builds)))
-        pipe = self.redis.pipeline()
+        pipe = self.redis.pipeline(transaction=False)
         for map_id in ids:
             pipe.hgetall(self.keys.build(map_id))
         out = {}
-        for map_id, raw in zip(ids, pipe.execute(), strict=True):
-            if raw:
+        # a key of another type under the namespace (a foreign writer) is skipped, not an outage of every pass
+        for map_id, raw in zip(ids, pipe.execute(raise_on_error=False), strict=True):
+            if isinstance(raw, dict) and raw:
                 out[map_id] = {k.decode(): v.decode() for k, v in raw.items()}
+            elif isinstance(raw, Exception):
+                logger.warning("build record of %s is unreadable (%s); skipped", map_id, raw)
         return out
 
     def update(self, map_id: str, /, **fields: object) -> None:
@@ -112,6 +115,9 @@ class BuildQueue:
         """
         key = self.keys.build(map_id)
         if not self.redis.hsetnx(key, "job_id", job_id):
+            if self.record(map_id).get("cancel") == "1":
+                raise ConflictError(f"map {map_id!r}: its cancelled build is stopping (at its next batch); "
+                                    "retry in a few seconds")
             raise ConflictError(f"map {map_id!r} is already being built (or its build failed: DELETE "
                                 f"/maps/{map_id} first)")
         try:  # from the claim on, a failure frees the id again ("nothing was stored")
@@ -287,7 +293,9 @@ class QueuedMapRegistry(MapRegistry):
                 self._swap_in_built(map_id)
         # builds that vanished (cancelled and cleaned up) leave no building entry behind
         with self._lock:
-            stale = [m for m, e in self._entries.items() if e.state == "building" and e.db is None
-                     and (m not in records or records[m].get("cancel") == "1")]
+            stale = [m for m, e in self._entries.items() if e.db is None and (
+                (e.state == "building" and (m not in records or records[m].get("cancel") == "1"))
+                # a failed build deleted through another replica: its record is gone and it never had a file
+                or (e.state == "failed" and m not in records and not e.path.exists()))]
             for m in stale:
                 self._entries.pop(m, None)

@@ -195,16 +195,29 @@ class RedisSessionStore(SessionStore):
     bounds their number, not ``max_sessions``). Redis down: the session is forgotten for that scan (it is
     localized globally, as after a session's expiry) - localizing never fails because of it."""
 
+    #: after a failed call, sessions skip Redis this long (seconds): a hung Redis costs each tracked scan two
+    #: 2 s timeouts otherwise, while it holds one of the replica's request slots
+    BACKOFF_S = 5.0
+
     def __init__(self, client: redis.Redis, keys: Keys, config: SessionConfig | None = None) -> None:
         super().__init__(config)
         self._redis = client
         self._keys = keys
+        self._skip_until = 0.0
+
+    def _failed(self, session_id: str, what: str) -> None:
+        if time.monotonic() >= self._skip_until:
+            logger.warning("tracking session %s: Redis unavailable, %s (sessions skip Redis for %.0f s)",
+                           session_id, what, self.BACKOFF_S)
+        self._skip_until = time.monotonic() + self.BACKOFF_S
 
     def get(self, session_id: str, map_id: str) -> PosePrior | None:
+        if time.monotonic() < self._skip_until:
+            return None
         try:
             blob = cast(bytes | None, self._redis.get(self._keys.session(session_id, map_id)))
         except redis.RedisError:
-            logger.warning("tracking session %s: Redis unavailable, localizing globally", session_id)
+            self._failed(session_id, "localizing globally")
             return None
         if blob is None:
             return None
@@ -218,10 +231,12 @@ class RedisSessionStore(SessionStore):
     def _store(self, session_id: str, map_id: str, state: PosePrior) -> None:
         value = json.dumps({"pose": [float(v) for v in state.T_map_query], "sigma_xy_m": state.sigma_xy_m,
                             "sigma_yaw_rad": state.sigma_yaw_rad})
+        if time.monotonic() < self._skip_until:
+            return
         try:
             self._redis.set(self._keys.session(session_id, map_id), value, px=int(self.config.ttl_s * 1000))
         except redis.RedisError:
-            logger.warning("tracking session %s: Redis unavailable, pose not kept", session_id)
+            self._failed(session_id, "pose not kept")
 
     def __len__(self) -> int:
         return 0
@@ -326,7 +341,9 @@ class MapSync:
                 logger.info("map %s loaded from the shared maps folder (%s)", map_id, entry.state,
                             extra={"map_id": map_id})
         for map_id, entry in known.items():
-            if entry.state != "building" and map_id not in on_disk and not entry.path.exists():
+            # a loaded map whose file is gone was deleted elsewhere; a failed build never had a file (its entry
+            # follows its build record: ``reconcile_builds``)
+            if entry.state == "ready" and map_id not in on_disk and not entry.path.exists():
                 registry.forget(map_id)
                 logger.info("map %s dropped: deleted by another replica", map_id, extra={"map_id": map_id})
         if self._extra is not None:

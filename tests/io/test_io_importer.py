@@ -147,8 +147,9 @@ def test_cli_refuses_tiny_colour_and_navtech_sources(tmp_path):
 def test_a_source_range_that_misses_the_preset_is_refused_and_angles_wrap():
     """QA (session 20): an offset of 500 m or NaN, or 1e-9 m bins, wrote all-zero scans and said 'wrote 1'."""
     for layout in (dict(range_resolution_m=0.175, range_offset_m=500.0),
-                   dict(range_resolution_m=0.175, range_offset_m=-1000.0)):
-        with pytest.raises(ScanFormatError, match="do not overlap"):
+                   dict(range_resolution_m=0.175, range_offset_m=-1000.0),
+                   dict(range_resolution_m=0.175, range_offset_m=199.5)):  # an overlap of half a metre
+        with pytest.raises(ScanFormatError, match="overlap fewer than 64 range bins"):
             import_polar_scan(_foreign(), ForeignScanLayout(**layout), "boreas")
     with pytest.raises(ScanFormatError, match="finite"):
         ForeignScanLayout(0.175, float("nan"))

@@ -336,3 +336,31 @@ def test_unreadable_shared_values_are_unknown_not_a_500() -> None:
     assert RedisScanStore(FakeRedis(), Keys(), 60.0).get("0" * 32) is None  # type: ignore[arg-type]
     recent = RecentLocalizations(10, FakeRedis(), Keys())  # type: ignore[arg-type]
     assert recent.latest("demo", 5) == [{"status": "localized"}]
+
+
+def test_sessions_skip_a_failing_redis_for_a_while() -> None:
+    """QA (session 20): on a hung Redis every tracked scan waited two 2 s timeouts while holding a request slot;
+    after a failure the sessions skip Redis for ``BACKOFF_S`` (the scans are localized globally meanwhile)."""
+    import numpy as np
+    import redis
+
+    from reradar_core.localization import PosePrior
+    from service.core.shared_state import Keys, RedisSessionStore
+
+    class HungRedis:
+        calls = 0
+
+        def get(self, key):  # noqa: ANN001, ANN202
+            HungRedis.calls += 1
+            raise redis.TimeoutError("timed out")
+
+        def set(self, *a, **k):  # noqa: ANN002, ANN003, ANN202
+            HungRedis.calls += 1
+            raise redis.TimeoutError("timed out")
+
+    store = RedisSessionStore(HungRedis(), Keys())  # type: ignore[arg-type]
+    assert store.get("s", "demo") is None and HungRedis.calls == 1
+    for _ in range(5):
+        assert store.get("s", "demo") is None
+        store._store("s", "demo", PosePrior(np.zeros(3), 1.0, 0.1))
+    assert HungRedis.calls == 1  # skipped for BACKOFF_S
