@@ -41,14 +41,23 @@ def _why(exc: OSError) -> str:
     return exc.strerror or str(exc)
 
 
-def output_dir(path: str | Path, what: str = "--out") -> Path:
+def output_dir(path: str | Path, what: str = "--out", create: bool = True) -> Path:
     """Create the output folder ``path`` (with its parents) before any work is done, so that a long run cannot end
-    in a failed write.
+    in a failed write; with ``create=False`` only check that it could be (a run refused later for another reason
+    then leaves no empty folder behind).
 
     Raises:
         ConfigError: naming ``what`` (the option) and the reason: a file in the way, no permission, ...
     """
     path = Path(path)
+    if not create:
+        existing = next((p for p in (path, *path.parents) if p.exists()), Path("."))
+        if not existing.is_dir():
+            raise ConfigError(f"{what} {path}: cannot create the folder: a file is in the way ({existing.name} is a "
+                              "file)")
+        if not os.access(existing, os.W_OK | os.X_OK):
+            raise ConfigError(f"{what} {path}: cannot create the folder: {existing} is not writable")
+        return path
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

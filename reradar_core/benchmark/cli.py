@@ -104,7 +104,7 @@ def bench(
         if (suite is None) == (database is None):
             raise typer.BadParameter("give either --suite NAME or --database DIR with --query DIR")
         if out is not None:  # a file in the way is found now, not after the benchmark ran
-            output_dir(out, "--out")
+            output_dir(out, "--out", create=False)
         if database is not None and split_at is None and any(q.resolve() == database.resolve() for q in query or []):
             raise typer.BadParameter("a --query folder is the --database folder: every query would find itself "
                                      "(Recall@1 100 %); give another drive, or --split-at to split one drive")

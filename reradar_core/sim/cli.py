@@ -130,7 +130,7 @@ def register(app: typer.Typer) -> None:
 
         try:
             if root is not None:
-                output_dir(root, "--root")
+                output_dir(root, "--root", create=False)
             data = build_suite(name, root, True, every, limit, trajectory_dir)
         except ReRadarError as exc:
             raise _fail(exc) from exc

@@ -455,6 +455,9 @@ def _route_trajectory(route: RouteDef, traj_dir: Path | None) -> PoseSequence:
     if route.kind in ("boreas-map", "boreas-query"):
         folder = boreas_trajectory_dir(traj_dir)
         f = folder / (BOREAS_MAP_FILE if route.kind == "boreas-map" else BOREAS_QUERY_FILE)
+        if folder.is_file():
+            raise DatasetError(f"{folder}: is a file; the trajectory folder holds the two Boreas pose files "
+                               f"({BOREAS_MAP_FILE}, {BOREAS_QUERY_FILE})")
         if not f.is_file():
             raise DatasetError(
                 f"{f}: real Boreas trajectory not found; pass --trajectory-dir (trajectory_dir= in Python), set ${TRAJECTORY_DIR_ENV}, "
