@@ -75,7 +75,7 @@ def output_file(path: str | Path, what: str = "--out", suffixes: tuple[str, ...]
         ConfigError: naming ``what`` and the reason.
     """
     path = Path(path)
-    if path.is_dir() or str(path).endswith(os.sep):
+    if path.is_dir():
         raise ConfigError(f"{what} {path}: is a folder; give a file name"
                           + (f" ending in {' or '.join(suffixes)}" if suffixes else ""))
     if suffixes and path.suffix.lower() not in suffixes:

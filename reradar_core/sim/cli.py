@@ -150,7 +150,7 @@ def register(app: typer.Typer) -> None:
         preset: str = typer.Option(None, help="Radar preset of the scans (needed for 3,360-bin scans outside a "
                                    f"sequence folder: boreas, boreas-2021 or mulran); one of {', '.join(PRESETS)}."),
         images: Path = typer.Option(None, help="Write preview PNGs (polar + Cartesian): into this folder when it "
-                                    "exists or ends in '/', else with this file-name prefix."),
+                                    "exists, else with this file-name prefix."),
     ) -> None:
         """Print real vs simulated scan statistics side by side (Markdown table)."""
         from reradar_core.paths import output_dir
@@ -163,8 +163,8 @@ def register(app: typer.Typer) -> None:
         try:
             prefix = None
             if images is not None:
-                into = images.is_dir() or str(images).endswith(("/", "\\"))
-                prefix = (output_dir(images, "--images") / "preview" if into
+                # (a Path never ends in '/': an existing folder is the one sign of "into")
+                prefix = (output_dir(images, "--images") / "preview" if images.is_dir()
                           else output_dir(images.parent, "--images") / images.name)
             cols = {"real": folder_statistics(real, limit, preset)}
             for s, label in zip(sim, labels, strict=True):
