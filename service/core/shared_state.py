@@ -61,9 +61,6 @@ class SharedStateUnavailableError(ServiceUnavailableError):
 
     code = "shared_state_unavailable"
 
-    def __init__(self, message: str, retry_after_s: int = 5) -> None:
-        super().__init__(message, retry_after_s)
-
 
 @dataclass(frozen=True)
 class Keys:
