@@ -123,6 +123,8 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
 
 
 def _summary(rows: list[dict[str, Any]], echo: Callable[[str], None], radius_m: float) -> None:
+    from reradar_core.evaluation import MAX_ROTATION_ERROR_DEG
+
     n = len(rows)
     if not n:
         echo("no scans")
@@ -130,7 +132,7 @@ def _summary(rows: list[dict[str, Any]], echo: Callable[[str], None], radius_m: 
     ok = sum(r["ok"] for r in rows)
     wrong = sum(r["wrong"] for r in rows)
     echo("")
-    echo(f"success (< {radius_m:g} m and < 10 deg): {ok}/{n} ({100 * ok / n:.1f} %); "
+    echo(f"success (< {radius_m:g} m and < {MAX_ROTATION_ERROR_DEG:g} deg): {ok}/{n} ({100 * ok / n:.1f} %); "
          f"localized at a wrong pose: {wrong}/{n}; not localized: {n - ok - wrong}/{n}")
     echo(_accuracy_line(rows))
     for mode in sorted({r["mode"] for r in rows}):

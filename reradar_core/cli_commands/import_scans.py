@@ -107,8 +107,7 @@ def register(app: typer.Typer) -> None:
                 shown = "; ".join(" and ".join(names) for names in clashing[:3])
                 raise ScanFormatError(f"sources with the same timestamp would overwrite each other's output: {shown}"
                                       f"{' ...' if len(clashing) > 3 else ''}; import them into separate folders")
-            if out.exists() and not out.is_dir():
-                raise ScanFormatError(f"--out {out}: is a file; --out names a folder")
+            output_dir(out, "--out", create=False)  # created only when the first scan converts
             existing = [f"{stamp}.png" for stamp in stamps if (out / f"{stamp}.png").exists()]
             if existing and not overwrite:
                 raise ScanFormatError(f"--out {out} already holds {len(existing)} scan(s) of these names "
@@ -124,7 +123,8 @@ def register(app: typer.Typer) -> None:
                     if written:
                         msg += f" (the {written} scan(s) before it were written to {out})"
                     raise ScanFormatError(msg) from None
-                output_dir(out, "--out")  # not before the first scan converts
+                if not written:
+                    output_dir(out, "--out")
                 write_navtech_png(scan, out / f"{stamp}.png")
                 written += 1
         except (ReRadarError, OSError, ValueError) as exc:

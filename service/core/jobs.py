@@ -139,13 +139,17 @@ class BuildQueue:
         finally:
             await pool.aclose()
 
-    def cancel(self, map_id: str) -> bool:
-        """Stop building ``map_id``; True when a queued or running build was cancelled. A build no worker has
-        started is taken off the queue at once (its id is free again); a running one is flagged and stops at
-        its next batch."""
+    def cancel(self, map_id: str) -> tuple[bool, str | None]:
+        """Stop building ``map_id``. A build no worker has started is taken off the queue at once (its id is free
+        again); a running one is flagged and stops at its next batch.
+
+        Returns:
+            (whether a queued or running build was cancelled, the job id when it was taken off the queue: its
+            files are the caller's to remove, no worker will).
+        """
         rec = self.record(map_id)
         if rec.get("state") not in _ACTIVE:
-            return False
+            return False, None
         job_id = rec.get("job_id", "")
         if rec.get("state") == "queued" and job_id and not self.redis.exists(ARQ_IN_PROGRESS_PREFIX + job_id):
             pipe = self.redis.pipeline(transaction=False)
@@ -154,9 +158,9 @@ class BuildQueue:
             removed = pipe.execute()
             if removed[0]:
                 self.remove(map_id)
-                return True
+                return True, job_id
         self.update(map_id, cancel=1)
-        return True
+        return True, None
 
 
 class QueuedMapRegistry(MapRegistry):
@@ -228,12 +232,8 @@ class QueuedMapRegistry(MapRegistry):
     def delete(self, map_id: str) -> MapEntry:
         """Delete a map; a map still building is cancelled (its job stops at the next batch)."""
         entry = self.get(map_id)
-        job_id = None
         try:
-            if entry.state == "building":
-                job_id = self.queue.record(map_id).get("job_id")
-            cancelled = entry.state == "building" and self.queue.cancel(map_id)
-            dropped = cancelled and not self.queue.record(map_id)  # taken off the queue before any worker ran it
+            cancelled, dropped_job = self.queue.cancel(map_id) if entry.state == "building" else (False, None)
         except redis.RedisError as exc:
             raise SharedStateUnavailableError(
                 f"map {map_id!r} is being built and build jobs live in Redis, which is unavailable; retry "
@@ -241,8 +241,8 @@ class QueuedMapRegistry(MapRegistry):
         if cancelled:
             with self._lock:
                 self._entries.pop(map_id, None)
-            if dropped and job_id:  # no worker will: its uploaded scans go now
-                shutil.rmtree(jobs_dir(self.maps_dir) / job_id, ignore_errors=True)
+            if dropped_job:  # taken off the queue before any worker ran it: its uploaded scans go now
+                shutil.rmtree(jobs_dir(self.maps_dir) / dropped_job, ignore_errors=True)
             logger.info("map %s: build cancelled", map_id, extra={"map_id": map_id})
             self._publish("cancelled", map_id)
             return entry
