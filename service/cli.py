@@ -67,10 +67,11 @@ def check_model_or_exit(settings: Settings) -> None:
         raise typer.Exit(2) from None
 
 
-def check_redis_credentials_or_exit(settings: Settings) -> None:
+def check_redis_credentials_or_exit(settings: Settings, unreachable_exit: int | None = None) -> None:
     """Exit 2 with one line when Redis answers but refuses ``RERADAR_REDIS_URL``'s credentials: a wrong password
-    is a setting to fix, not an outage to wait out (an unreachable Redis is left to the running service, which
-    answers 503 ``shared_state_unavailable`` until it is back)."""
+    is a setting to fix, not an outage to wait out. An unreachable Redis exits with ``unreachable_exit`` (the
+    worker, which needs its queue), or is left to the running service (None), which answers 503
+    ``shared_state_unavailable`` until it is back."""
     if not settings.redis_url:
         return
     import redis
@@ -83,13 +84,14 @@ def check_redis_credentials_or_exit(settings: Settings) -> None:
         typer.echo(f"error: RERADAR_REDIS_URL: Redis refuses its credentials ({exc}); fix the user / password "
                    "in the URL", err=True)
         raise typer.Exit(2) from None
-    except redis.ResponseError as exc:
-        if "NOAUTH" in str(exc) or "WRONGPASS" in str(exc):
+    except redis.RedisError as exc:
+        if isinstance(exc, redis.ResponseError) and ("NOAUTH" in str(exc) or "WRONGPASS" in str(exc)):
             typer.echo("error: RERADAR_REDIS_URL: Redis needs a password the URL does not hold (or holds a "
                        "wrong one): redis://:PASSWORD@host:6379/0", err=True)
             raise typer.Exit(2) from None
-    except redis.RedisError:
-        pass  # unreachable now: the service starts and recovers when Redis comes up
+        if unreachable_exit is not None:  # the URL may hold a password: only what redis says (host and port)
+            typer.echo(f"error: cannot reach Redis (RERADAR_REDIS_URL): {exc}", err=True)
+            raise typer.Exit(unreachable_exit) from None
 
 
 def serve_command(

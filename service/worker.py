@@ -25,9 +25,15 @@ from reradar_core.errors import ReRadarError
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
 from service.core.errors import scrub_paths
-from service.core.jobs import ARQ_IN_PROGRESS_PREFIX, ARQ_JOB_PREFIX, JOB_FUNCTION, BuildQueue, jobs_dir
+from service.core.jobs import (
+    ARQ_IN_PROGRESS_PREFIX,
+    ARQ_JOB_PREFIX,
+    JOB_FUNCTION,
+    BuildQueue,
+    jobs_dir,
+)
 from service.core.logs import configure_logging
-from service.core.registry import MapRegistry
+from service.core.registry import RECORD_TIME_FORMAT, MapRegistry
 from service.core.shared_state import Keys, arq_redis_settings, connect, replica_id
 
 __all__ = ["run_worker", "build_map_job", "BuildCancelledError", "register"]
@@ -135,7 +141,7 @@ def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
     finally:
         stop.set()
         beater.join(timeout=5)
-    queue.update(map_id, state="ready", scans_done=len(scans), finished_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ",
+    queue.update(map_id, state="ready", scans_done=len(scans), finished_utc=time.strftime(RECORD_TIME_FORMAT,
                                                                                           time.gmtime()))
     shutil.rmtree(job_dir, ignore_errors=True)
     _publish(ctx, "built", map_id)
@@ -196,7 +202,7 @@ def _created_s(rec: dict[str, str]) -> float:
     import datetime as dt
 
     try:
-        return dt.datetime.strptime(rec.get("created_utc", ""), "%Y-%m-%dT%H:%M:%SZ").replace(
+        return dt.datetime.strptime(rec.get("created_utc", ""), RECORD_TIME_FORMAT).replace(
             tzinfo=dt.UTC).timestamp()
     except ValueError:
         return 0.0
@@ -310,9 +316,9 @@ def check_health(settings: Settings, now: float | None = None) -> bool:
 def worker_command(check: bool = False) -> None:
     """Run a map-build worker (needs RERADAR_REDIS_URL; settings from RERADAR_* variables).
 
-    Exit status: 2 for invalid settings (no, or a malformed, RERADAR_REDIS_URL or credentials Redis refuses; an unknown RERADAR_MODEL), 3 when
-    Redis cannot be reached; ``check``: 0 when this host's worker is alive, else 1 (with a message when Redis cannot
-    be reached)."""
+    Exit status: 2 for invalid settings (no, or a malformed, RERADAR_REDIS_URL or credentials Redis refuses; an
+    unknown RERADAR_MODEL), 3 when Redis cannot be reached; ``check``: 0 when this host's worker is alive, else 1
+    (with a message when Redis cannot be reached)."""
     import typer
 
     from service.cli import check_model_or_exit, check_redis_credentials_or_exit, settings_or_exit
@@ -322,15 +328,9 @@ def worker_command(check: bool = False) -> None:
         typer.echo("error: set RERADAR_REDIS_URL (e.g. redis://127.0.0.1:6379/0): the build queue lives in Redis",
                    err=True)
         raise typer.Exit(2)
-    check_redis_credentials_or_exit(settings)  # a wrong password is a setting (2), not an outage (3)
-    try:  # the URL may hold a password: never echoed, only what redis says (host and port)
-        connect(settings.redis_url).ping()
-    except ValueError as exc:
-        typer.echo(f"error: RERADAR_REDIS_URL is not a Redis URL (e.g. redis://127.0.0.1:6379/0): {exc}", err=True)
-        raise typer.Exit(2) from None
-    except redis.RedisError as exc:
-        typer.echo(f"error: cannot reach Redis (RERADAR_REDIS_URL): {exc}", err=True)
-        raise typer.Exit(1 if check else 3) from None
+    # one PING: refused credentials are a setting (2), an unreachable Redis an outage (3; 1 for --check); a
+    # malformed URL was refused by the settings already
+    check_redis_credentials_or_exit(settings, unreachable_exit=1 if check else 3)
     if check:
         if check_health(settings):
             raise typer.Exit(0)

@@ -22,7 +22,6 @@ States of a record: ``queued``, ``running``, ``ready``, ``failed`` (with ``error
 from __future__ import annotations
 
 import asyncio
-import datetime as _dt
 import json
 import logging
 import os
@@ -40,7 +39,7 @@ import redis
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
 from service.core.errors import ConflictError
-from service.core.registry import MapEntry, MapRegistry
+from service.core.registry import MapEntry, MapRegistry, utc_now
 from service.core.shared_state import SharedStateUnavailableError, arq_redis_settings
 
 __all__ = ["BuildQueue", "QueuedMapRegistry", "JOB_FUNCTION", "ARQ_IN_PROGRESS_PREFIX", "ARQ_JOB_PREFIX", "jobs_dir"]
@@ -55,10 +54,6 @@ ARQ_IN_PROGRESS_PREFIX = "arq:in-progress:"
 ARQ_JOB_PREFIX = "arq:job:"
 
 _ACTIVE = ("queued", "running")
-
-
-def _now() -> str:
-    return _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 def jobs_dir(maps_dir: Path) -> Path:
@@ -122,7 +117,7 @@ class BuildQueue:
                                 f"/maps/{map_id} first)")
         try:  # from the claim on, a failure frees the id again ("nothing was stored")
             self.update(map_id, map_id=map_id, state="queued", scans_done=0, scans_total=scans_total, attempts=0,
-                        error="", worker="", heartbeat=0, cancel=0, source=source, created_utc=_now())
+                        error="", worker="", heartbeat=0, cancel=0, source=source, created_utc=utc_now())
             self.redis.sadd(self.keys.builds, map_id)
             asyncio.run(self._enqueue(map_id, job_id))
         except BaseException:

@@ -68,8 +68,13 @@ def _close_later(db: MapDatabase) -> None:
     closer.start()
 
 
-def _now() -> str:
-    return _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+#: UTC time format of the registry's and the build records' timestamps (``registered_utc``, ``created_utc``, ...)
+RECORD_TIME_FORMAT = "%Y-%m-%dT%H:%M:%SZ"
+
+
+def utc_now() -> str:
+    """Now, UTC, in ``RECORD_TIME_FORMAT``."""
+    return _dt.datetime.now(_dt.UTC).strftime(RECORD_TIME_FORMAT)
 
 
 @dataclass
@@ -83,7 +88,7 @@ class MapEntry:
     error: str | None = None
     scans_done: int = 0
     scans_total: int = 0
-    registered_utc: str = field(default_factory=_now)
+    registered_utc: str = field(default_factory=utc_now)
 
     @property
     def progress(self) -> float:
@@ -167,7 +172,7 @@ class MapRegistry:
                 continue
             entry = MapEntry(map_id, self.maps_dir / f"{map_id}.h5", "failed",
                              scans_total=int(record.get("scans_total") or 0),
-                             registered_utc=str(record.get("registered_utc") or _now()))
+                             registered_utc=str(record.get("registered_utc") or utc_now()))
             if record.get("state") == "failed" and record.get("error"):
                 entry.error = str(record["error"])
             else:
