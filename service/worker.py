@@ -54,14 +54,9 @@ def health_key(keys: Keys) -> str:
     return f"{keys.prefix}:worker-health:{socket.gethostname()}"
 
 
-def heartbeat_key(keys: Keys) -> str:
-    """The hash of the workers' last signs of life (field: hostname, value: Unix time). It has no TTL, so a full
-    Redis under ``volatile-ttl`` never evicts it: ``reradar worker --check`` reads it."""
-    return f"{keys.prefix}:worker-heartbeats"
-
-
 def _beat(client: redis.Redis, keys: Keys) -> None:
-    client.hset(heartbeat_key(keys), socket.gethostname(), f"{time.time():.3f}")
+    # read by ``reradar worker --check`` and by the API's note on a build no worker is taking
+    client.hset(keys.worker_heartbeats, socket.gethostname(), f"{time.time():.3f}")
 
 
 class BuildCancelledError(Exception):
@@ -302,7 +297,7 @@ def run_worker(settings: Settings, extractor: FeatureExtractor | None = None, bu
 def check_health(settings: Settings, now: float | None = None) -> bool:
     """True when this host's worker recorded a sign of life within the last ``HEALTH_S`` + 1 seconds."""
     try:
-        value = connect(settings.redis_url or "").hget(heartbeat_key(Keys(settings.redis_namespace)),
+        value = connect(settings.redis_url or "").hget(Keys(settings.redis_namespace).worker_heartbeats,
                                                        socket.gethostname())
     except redis.RedisError:
         return False

@@ -95,6 +95,8 @@ class MapInfo(_Model):
     scans_done: int = 0
     scans_total: int = 0
     error: str | None = Field(default=None, description="Why building or loading failed.")
+    note: str | None = Field(default=None, description=(
+        "While `building`: why the build may not be progressing (e.g. no map-build worker is running)."))
     model_id: str | None = None
     weights_sha256: str | None = None
     radar_preset: str | None = None

@@ -56,6 +56,19 @@ ARQ_JOB_PREFIX = "arq:job:"
 _ACTIVE = ("queued", "running")
 
 
+def build_note(rec: dict[str, str], newest_worker_beat: float | None, now: float, stale_after_s: float) -> str | None:
+    """Why an active build (record ``rec``) may not be moving, for ``GET /maps``; None while a worker is on it.
+
+    ``newest_worker_beat``: Unix time of the newest sign of life of any build worker (None: never one); a
+    worker beats every few seconds (``service.worker``), so silence for ``stale_after_s`` means none runs."""
+    if newest_worker_beat is None or now - newest_worker_beat > stale_after_s:
+        return (f"no map-build worker has reported for over {stale_after_s:g} s: the build waits until one runs "
+                "(start `reradar worker`; docs/OPERATIONS.md)")
+    if rec.get("state") == "running" and now - float(rec.get("heartbeat") or 0.0) > stale_after_s:
+        return "the worker building this map stopped reporting; a live worker will retry the build"
+    return None
+
+
 def jobs_dir(maps_dir: Path) -> Path:
     """Where queued builds keep their scans and write their map before installing it: inside the shared maps
     folder (same file system: the install is a rename), apart from the single-process build records in
@@ -92,6 +105,16 @@ class BuildQueue:
 
     def update(self, map_id: str, /, **fields: object) -> None:
         self.redis.hset(self.keys.build(map_id), mapping={k: str(v) for k, v in fields.items()})
+
+    def newest_worker_beat(self) -> float | None:
+        """Unix time of the newest sign of life of any build worker (``Keys.worker_heartbeats``); None if none."""
+        beats = []
+        for raw in cast(list[bytes], self.redis.hvals(self.keys.worker_heartbeats)):
+            try:
+                beats.append(float(raw))
+            except ValueError:  # a foreign value under the namespace
+                continue
+        return max(beats, default=None)
 
     def remove(self, map_id: str) -> None:
         # no MULTI: Redis refuses a transaction over its memory limit, and the rollback of a refused enqueue
@@ -188,6 +211,20 @@ class QueuedMapRegistry(MapRegistry):
                     shutil.rmtree(d, ignore_errors=True)
             except OSError:
                 continue
+
+    def build_note(self, entry: MapEntry) -> str | None:
+        """``build_note`` of a ``building`` entry from its job record and the workers' heartbeats (None when
+        Redis cannot say: the note is a hint, the state stays what the records last said)."""
+        if entry.state != "building":
+            return None
+        try:
+            rec = self.queue.record(entry.map_id)
+            if rec.get("state") not in _ACTIVE:
+                return None
+            return build_note(rec, self.queue.newest_worker_beat(), time.time(),
+                              self.settings.build_heartbeat_stale_s)
+        except redis.RedisError:
+            return None
 
     def start_build(self, map_id: str, scan_paths: list[Path], poses: np.ndarray, preset: str | None,
                     workdir: Path, source: str) -> MapEntry:

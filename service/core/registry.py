@@ -259,6 +259,11 @@ class MapRegistry:
             logger.warning("could not prune map arrays in %s: %s", arrays_dir, exc)
 
     # ---- queries -------------------------------------------------------------------------------------------
+    def build_note(self, entry: MapEntry) -> str | None:
+        """Why a ``building`` entry may not be moving (``QueuedMapRegistry``: no live worker); None here, where
+        this process builds the map itself."""
+        return None
+
     def entries(self) -> list[MapEntry]:
         with self._lock:
             return sorted(self._entries.values(), key=lambda e: e.map_id)

@@ -96,6 +96,12 @@ class Keys:
     def queue(self) -> str:
         return f"{self.prefix}:queue"
 
+    @property
+    def worker_heartbeats(self) -> str:
+        """Hash of the build workers' last signs of life (field: hostname, value: Unix time). It has no TTL, so
+        a full Redis under ``volatile-ttl`` never evicts it."""
+        return f"{self.prefix}:worker-heartbeats"
+
 
 def arq_redis_settings(url: str) -> Any:
     """arq's ``RedisSettings`` for ``url``, from ``redis_url_parts`` (arq's own ``from_dsn`` does not decode a

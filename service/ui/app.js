@@ -46,7 +46,8 @@ function renderMaps() {
     tr.dataset.mapId = m.id;
     if (m.id === state.selected) tr.classList.add("selected");
     tr.append(el("td", m.id));
-    tr.append(el("td", m.state + (m.error ? ` (${m.error})` : ""), `state-${m.state}`));
+    const why = m.error || m.note;
+    tr.append(el("td", m.state + (why ? ` (${why})` : ""), `state-${m.state}`));
     const prog = el("td");
     const bar = el("span", null, "bar");
     const fill = el("span");

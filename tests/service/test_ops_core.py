@@ -130,3 +130,22 @@ def test_recent_localizations_in_memory_newest_first_and_bounded() -> None:
     assert recent.latest("m", 1) == [{"i": 4}] and recent.latest("other", 5) == []
     recent.drop("m")
     assert recent.latest("m", 5) == []
+
+
+def test_build_note_names_a_missing_worker_and_a_silent_one() -> None:
+    """Session 21: a build whose only worker died read ``building`` forever with no hint; GET /maps now says why."""
+    from service.core.jobs import build_note
+
+    running = {"state": "running", "heartbeat": "1001.0"}
+    queued = {"state": "queued", "heartbeat": "0"}
+    # a worker beat 3 s ago and the build's own heartbeat is fresh: nothing to say
+    assert build_note(running, newest_worker_beat=1000.0, now=1003.0, stale_after_s=15) is None
+    assert build_note(queued, newest_worker_beat=1000.0, now=1003.0, stale_after_s=15) is None
+    # no worker ever, or none for longer than the stale time: the note says what to start
+    for beat in (None, 980.0):
+        note = build_note(queued, newest_worker_beat=beat, now=1000.0, stale_after_s=15)
+        assert note is not None and "reradar worker" in note and "15 s" in note
+    # workers are alive, but the one on this build went silent (about to be retried)
+    note = build_note({"state": "running", "heartbeat": "980.0"}, newest_worker_beat=999.0, now=1000.0,
+                      stale_after_s=15)
+    assert note is not None and "retry" in note

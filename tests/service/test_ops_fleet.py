@@ -243,6 +243,10 @@ def test_queued_build_survives_worker_kill(fleet: Fleet) -> None:
     _stop(w1, signal.SIGKILL)
     info = fleet.b.get("/maps/built").json()
     assert info["state"] == "building" and 0 < info["scans_done"] < n
+    # with no worker left, the map says what is missing (stale after 4 s here), on every replica
+    _wait(lambda: "reradar worker" in (fleet.b.get("/maps/built").json().get("note") or ""), 20, "no-worker note")
+    listed = {m["id"]: m for m in fleet.a.get("/maps").json()["data"]}
+    assert "reradar worker" in (listed["built"].get("note") or "")
     events = fleet.redis().pubsub(ignore_subscribe_messages=True)
     events.subscribe(f"{NAMESPACE}:v1:maps:events")
     fleet.start("worker-2", "worker", extra_env={"OPS_FAKE_SCAN_DELAY_S": "0.05"})
@@ -251,6 +255,7 @@ def test_queued_build_survives_worker_kill(fleet: Fleet) -> None:
     except AssertionError:
         pytest.fail(f"build not finished after the worker kill:\n{fleet.log('worker-2')}")
     assert fleet.b.get("/maps/built").json()["num_keyframes"] == n
+    assert fleet.b.get("/maps/built").json()["note"] is None
     _wait(lambda: _state(fleet.a, "built") == "ready", 5, "the rebuilt map on A")
     ops = []
     deadline = time.monotonic() + 1.0  # everything is buffered already; None also stands for skipped messages

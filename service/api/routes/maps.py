@@ -38,8 +38,8 @@ router = APIRouter(prefix="/maps", tags=["maps"])
 _E = {"model": ErrorResponse}
 
 
-def map_info(entry: MapEntry) -> MapInfo:
-    info = MapInfo(id=entry.map_id, state=entry.state, progress=entry.progress, error=entry.error,
+def map_info(entry: MapEntry, note: str | None = None) -> MapInfo:
+    info = MapInfo(id=entry.map_id, state=entry.state, progress=entry.progress, error=entry.error, note=note,
                    scans_done=entry.scans_done, scans_total=entry.scans_total,
                    registered_utc=entry.registered_utc)
     if entry.db is not None:
@@ -55,14 +55,15 @@ def map_info(entry: MapEntry) -> MapInfo:
 @router.get("", response_model=MapList, operation_id="list_maps")
 def list_maps(state: StateDep) -> MapList:
     """All registered maps with their state."""
-    data = [map_info(e) for e in state.registry.entries()]
+    data = [map_info(e, state.registry.build_note(e)) for e in state.registry.entries()]
     return MapList(data=data, count=len(data))
 
 
 @router.get("/{map_id}", response_model=MapInfo, operation_id="get_map", responses={404: _E, 422: _E})
 def get_map(state: StateDep, map_id: MapIdPath) -> MapInfo:
     """One map's state, build progress and metadata."""
-    return map_info(state.registry.get(map_id))
+    entry = state.registry.get(map_id)
+    return map_info(entry, state.registry.build_note(entry))
 
 
 def _save_upload(upload: UploadFile, target: Path) -> int:
@@ -145,7 +146,7 @@ def register_map(
     entry, building = _register(state, map_id, map_file, archive, poses, preset)
     if building:
         response.status_code = status.HTTP_202_ACCEPTED
-    return map_info(entry)
+    return map_info(entry, state.registry.build_note(entry))
 
 
 @router.delete("/{map_id}", response_model=MapInfo, operation_id="delete_map",
