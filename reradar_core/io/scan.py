@@ -529,6 +529,23 @@ def _raw_from_scan(scan: RadarScan) -> np.ndarray:
     return raw
 
 
+def png_incomplete(data: bytes) -> bool:
+    """True when ``data`` (a PNG file's bytes) ends before its ``IEND`` chunk: truncated or cut mid-chunk.
+
+    Checked before decoding so that libpng never sees a truncated file: it prints its own error line on stderr
+    (outside our logging) before OpenCV returns nothing. Walks the chunk lengths only, O(number of chunks)."""
+    pos, n = len(PNG_SIGNATURE), len(data)
+    while pos + 8 <= n:
+        length = int.from_bytes(data[pos:pos + 4], "big")
+        end = pos + 12 + length  # length, type, data, CRC
+        if end > n:
+            return True
+        if data[pos + 4:pos + 8] == b"IEND":
+            return False
+        pos = end
+    return True
+
+
 def read_navtech_png(path: str | Path, preset: str | RadarPreset | None = None) -> RadarScan:
     """Read a Navtech polar PNG (layout in the module docstring).
 
@@ -544,7 +561,10 @@ def read_navtech_png(path: str | Path, preset: str | RadarPreset | None = None) 
     path = Path(path)
     if not path.is_file():
         raise ScanFormatError(f"{path}: no such scan file")
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    data = path.read_bytes()
+    if data[:8] != PNG_SIGNATURE or png_incomplete(data):
+        raise ScanFormatError(f"{path}: not a readable PNG image (corrupt or truncated)")
+    raw = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise ScanFormatError(f"{path}: not a readable PNG image")
     return _scan_from_raw(raw, preset, str(path))
@@ -559,8 +579,9 @@ def decode_navtech_png_bytes(data: bytes, preset: str | RadarPreset | None = Non
 
     if data[:8] != PNG_SIGNATURE:
         raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated: no PNG signature)")
-    buf = np.frombuffer(data, dtype=np.uint8)
-    raw = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    if png_incomplete(data):
+        raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated: it ends before the PNG's last chunk)")
+    raw = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated)")
     return _scan_from_raw(raw, preset, "upload", lambda n: _upload_preset(n, map_preset))

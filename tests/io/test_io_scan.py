@@ -109,6 +109,24 @@ def test_npy_uint8_and_float(tmp_path):
     assert scan_b.range_resolution_m == pytest.approx(0.0596)
 
 
+def test_truncated_png_is_refused_before_libpng_prints(tmp_path, capfd):
+    """Session 21: libpng printed its own error line on stderr (outside our logs) for a truncated PNG before our
+    message; the chunk walk refuses it first, for uploads and for files."""
+    from reradar_core.io.scan import png_incomplete
+
+    data = encode_navtech_png_bytes(_quantised_scan())
+    assert not png_incomplete(data)
+    for cut in (len(data) // 2, len(data) - 5, 9):
+        assert png_incomplete(data[:cut])
+        with pytest.raises(ScanFormatError, match="corrupt or truncated"):
+            decode_navtech_png_bytes(data[:cut])
+        (tmp_path / "cut.png").write_bytes(data[:cut])
+        with pytest.raises(ScanFormatError, match="cut.png: not a readable PNG image"):
+            read_navtech_png(tmp_path / "cut.png")
+    out, err = capfd.readouterr()
+    assert "libpng" not in err + out and "incomplete" not in err + out
+
+
 def test_corrupt_png_bytes_raise_scan_format_error():
     data = encode_navtech_png_bytes(_quantised_scan())
     with pytest.raises(ScanFormatError, match="corrupt or truncated"):
