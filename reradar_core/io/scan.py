@@ -177,6 +177,18 @@ def infer_preset(num_range_bins: int, source: str = "scan") -> RadarPreset:
     )
 
 
+def range_bins_ambiguous(num_range_bins: int) -> bool:
+    """True when radar presets of different range geometry have ``num_range_bins`` bins (3,360: boreas,
+    boreas-2021 and mulran), so the count alone does not say how long a bin is."""
+    fits = [p for p in PRESETS.values() if p.num_range_bins == num_range_bins]
+    return any(not _same_geometry(p, fits[0]) for p in fits[1:])
+
+
+def same_range_geometry(a: str | RadarPreset, b: str | RadarPreset) -> bool:
+    """True when presets ``a`` and ``b`` (names or presets) describe scans alike (bins, bin size, offset, sweep)."""
+    return _same_geometry(get_preset(a), get_preset(b))
+
+
 def _same_geometry(a: RadarPreset, b: RadarPreset) -> bool:
     return (a.range_resolution_m, a.range_offset_m, a.num_range_bins, a.num_azimuths, a.sweep_period_s,
             a.landmark_min_range_bins) == (b.range_resolution_m, b.range_offset_m, b.num_range_bins,

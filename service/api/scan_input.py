@@ -123,11 +123,13 @@ def scan_request_body(json_model: type[BaseModel], form_fields: dict[str, dict[s
 
 
 async def read_scan_input(request: Request, state: ServiceState, json_model: type[BaseModel],
-                          form_keys: tuple[str, ...]) -> ScanInput:
+                          form_keys: tuple[str, ...], map_id: str | None = None) -> ScanInput:
     """Features of the request's scan and its validated fields.
 
     JSON bodies are validated with ``json_model`` and must name a cached ``scan_id``; multipart bodies carry a
-    ``scan`` file (decoded and described here) and the fields in ``form_keys``.
+    ``scan`` file (decoded and described here) and the fields in ``form_keys``. The map is ``map_id`` (a path
+    parameter) or the body's ``map_id`` field: an inline scan without a preset takes its geometry, a cached one
+    whose preset was a guess is checked against it (``ServiceState.check_cached_preset``).
 
     Raises:
         RequestValidationError (422), NotFoundError (404, unknown/expired scan id), ScanFormatError (422),
@@ -145,6 +147,9 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         cached = await run_in_threadpool(state.cache.get, scan_id)  # Redis in fleet mode: never on the event loop
         if cached is None:
             raise NotFoundError(f"unknown or expired scan_id {scan_id!r}; upload the scan again with POST /scans")
+        target = map_id or fields.get("map_id")
+        if target:
+            state.check_cached_preset(scan_id, cached.preset, cached.preset_assumed, target)
         return ScanInput(cached.features, scan_id, fields)
     if ctype == "multipart/form-data":
         try:
@@ -190,8 +195,8 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         fields.pop("scan_id")
         data, filename = await read_scan_upload(upload, state.settings.max_scan_pixels, scan_layout)
         timings: dict[str, float] = {}
-        features, _ = await run_in_threadpool(state.describe_upload, data, filename, preset, timings, scan_layout,
-                                              fields.get("map_id"))
+        features, _, _ = await run_in_threadpool(state.describe_upload, data, filename, preset, timings,
+                                                 scan_layout, map_id or fields.get("map_id"))
         return ScanInput(features, None, fields, timings)
     raise UnsupportedMediaError(
         f"unsupported Content-Type {ctype or '(none)'!r}: send application/json with a scan_id or "

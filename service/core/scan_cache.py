@@ -31,6 +31,8 @@ class CachedScan:
     scan_id: str
     features: ScanFeatures
     preset: str | None
+    #: no preset was given and none followed from the scan or a map: ``preset`` is a guess (``describe_upload``)
+    preset_assumed: bool = False
 
 
 class ScanCache:
@@ -43,9 +45,9 @@ class ScanCache:
         self._items: TTLCache[str, CachedScan] = TTLCache(maxsize=max_entries, ttl=ttl_s, timer=clock)
         self._lock = threading.Lock()  # cachetools caches are not thread-safe
 
-    def put(self, features: ScanFeatures, preset: str | None) -> CachedScan:
+    def put(self, features: ScanFeatures, preset: str | None, preset_assumed: bool = False) -> CachedScan:
         """Store ``features`` under a new random id (evicting the least recently used beyond the bound)."""
-        entry = CachedScan(new_scan_id(), features, preset)
+        entry = CachedScan(new_scan_id(), features, preset, preset_assumed)
         with self._lock:
             self._items[entry.scan_id] = entry
         return entry

@@ -122,22 +122,24 @@ def connect(url: str) -> redis.Redis:
 
 
 # ---- uploaded scans --------------------------------------------------------------------------------------
-def encode_features(features: ScanFeatures, preset: str | None) -> bytes:
-    """``ScanFeatures`` + preset as an ``.npz`` blob (no pickle): ~90 KB for 1200 keypoints x 32 float16."""
+def encode_features(features: ScanFeatures, preset: str | None, preset_assumed: bool = False) -> bytes:
+    """``ScanFeatures`` + preset (and whether it was assumed) as an ``.npz`` blob (no pickle): ~90 KB for 1200
+    keypoints x 32 float16."""
     buf = io.BytesIO()
     np.savez(buf, global_descriptor=features.global_descriptor, keypoints_xy_m=features.keypoints_xy_m,
              local_descriptors=features.local_descriptors, timestamp_us=np.int64(features.timestamp_us),
-             preset=np.array(preset or ""))
+             preset=np.array(preset or ""), preset_assumed=np.bool_(preset_assumed))
     return buf.getvalue()
 
 
-def decode_features(blob: bytes) -> tuple[ScanFeatures, str | None]:
-    """Inverse of ``encode_features``."""
+def decode_features(blob: bytes) -> tuple[ScanFeatures, str | None, bool]:
+    """Inverse of ``encode_features`` (a blob of an earlier version, without ``preset_assumed``: False)."""
     with np.load(io.BytesIO(blob), allow_pickle=False) as z:
         features = ScanFeatures(z["global_descriptor"], z["keypoints_xy_m"], z["local_descriptors"],
                                 int(z["timestamp_us"]))
         preset = str(z["preset"]) or None
-    return features, preset
+        assumed = bool(z["preset_assumed"]) if "preset_assumed" in z.files else False
+    return features, preset, assumed
 
 
 def _json_record(raw: bytes) -> dict[str, Any] | None:
@@ -161,10 +163,10 @@ class RedisScanStore(ScanCache):
         self._redis = client
         self._keys = keys
 
-    def put(self, features: ScanFeatures, preset: str | None) -> CachedScan:
-        entry = CachedScan(new_scan_id(), features, preset)
+    def put(self, features: ScanFeatures, preset: str | None, preset_assumed: bool = False) -> CachedScan:
+        entry = CachedScan(new_scan_id(), features, preset, preset_assumed)
         try:
-            self._redis.set(self._keys.scan(entry.scan_id), encode_features(features, preset),
+            self._redis.set(self._keys.scan(entry.scan_id), encode_features(features, preset, preset_assumed),
                             px=int(self.ttl_s * 1000))
         except redis.RedisError as exc:
             raise SharedStateUnavailableError(
@@ -182,11 +184,11 @@ class RedisScanStore(ScanCache):
         if blob is None:
             return None
         try:
-            features, preset = decode_features(blob)
+            features, preset, assumed = decode_features(blob)
         except (ValueError, KeyError, TypeError, OSError, ReRadarError):  # not a value this version wrote
             logger.warning("scan %s: unreadable value in the shared scan store; treated as unknown", scan_id)
             return None
-        return CachedScan(scan_id, features, preset)
+        return CachedScan(scan_id, features, preset, assumed)
 
     def __len__(self) -> int:
         return 0

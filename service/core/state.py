@@ -7,9 +7,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from reradar_core.errors import ScanFormatError
+from reradar_core.errors import ReRadarError, ScanFormatError
 from reradar_core.features import ScanFeatures
-from reradar_core.io.scan import NpyLayout, load_scan_bytes
+from reradar_core.io.presets import get_preset
+from reradar_core.io.scan import NpyLayout, load_scan_bytes, range_bins_ambiguous, same_range_geometry
 from reradar_core.localization import LocalizationConfig
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
@@ -52,10 +53,17 @@ class ServiceState:
             return None
 
     def describe_upload(self, data: bytes, filename: str, preset: str | None, timings_ms: dict[str, float],
-                        scan_layout: NpyLayout = "polar", map_id: str | None = None) -> tuple[ScanFeatures, str | None]:
+                        scan_layout: NpyLayout = "polar", map_id: str | None = None,
+                        ) -> tuple[ScanFeatures, str | None, bool]:
         """Decode an uploaded scan (PNG / .npy, an .npy as ``scan_layout``) and compute its features; adds
         ``decode_ms``/``extract_ms``. Without ``preset``, the geometry of the ready map ``map_id`` is used where
         the scan fits it (``load_scan_bytes``'s ``map_preset``).
+
+        Returns:
+            The features, the scan's preset, and whether that preset is a guess: none was given, none followed
+            from the map, and the scan does not fix one (a polar .npy carries no geometry; 3,360 range bins fit
+            presets of different bin size). ``check_cached_preset`` refuses such a scan on a map of another
+            geometry.
 
         Raises:
             ScanFormatError: empty, corrupt or wrongly shaped scans, non-finite features.
@@ -64,7 +72,11 @@ class ServiceState:
             raise ScanFormatError("the uploaded scan file is empty")
         t0 = time.perf_counter()
         # the sides were checked on the upload's header (``scan_input.check_scan_upload``, every caller's path)
-        scan = load_scan_bytes(data, filename or "scan.png", preset, scan_layout, self.map_preset(map_id))
+        map_preset = self.map_preset(map_id)
+        scan = load_scan_bytes(data, filename or "scan.png", preset, scan_layout, map_preset)
+        polar_npy = (filename or "").lower().endswith(".npy") and scan_layout == "polar"
+        assumed = (preset is None and scan.preset != map_preset
+                   and (polar_npy or range_bins_ambiguous(scan.num_range_bins)))
         t1 = time.perf_counter()
         try:
             features = self.extractor.describe(scan)
@@ -76,4 +88,26 @@ class ServiceState:
             raise ScanFormatError("the scan produced a non-finite descriptor (empty or saturated scan?)")
         timings_ms["decode_ms"] = (t1 - t0) * 1e3
         timings_ms["extract_ms"] = (t2 - t1) * 1e3
-        return features, scan.preset
+        return features, scan.preset, assumed
+
+    def check_cached_preset(self, scan_id: str, preset: str | None, assumed: bool, map_id: str) -> None:
+        """Refuse a cached scan whose preset was a guess (``describe_upload``) on a map of another range geometry:
+        its features were computed with bins of the wrong length, which no later step can undo.
+
+        Raises:
+            ScanFormatError (422): what was assumed, what the map holds, and how to upload the scan again.
+        """
+        map_preset = self.map_preset(map_id)
+        if not assumed or preset is None or map_preset is None or map_preset == preset:
+            return
+        try:
+            if same_range_geometry(preset, map_preset):
+                return
+            ours, theirs = get_preset(preset), get_preset(map_preset)
+        except ReRadarError:  # a map of a preset this version does not know: nothing to compare with
+            return
+        raise ScanFormatError(
+            f"scan_id {scan_id!r} was uploaded without a preset and read as a {ours.name} scan "
+            f"({ours.range_resolution_m} m per range bin), but map {map_id!r} holds {theirs.name} scans "
+            f"({theirs.range_resolution_m} m per range bin): upload it again with preset={theirs.name} (or "
+            f"map_id={map_id}) in POST /scans, or send it inline")

@@ -364,3 +364,46 @@ def test_sessions_skip_a_failing_redis_for_a_while() -> None:
         assert store.get("s", "demo") is None
         store._store("s", "demo", PosePrior(np.zeros(3), 1.0, 0.1))
     assert HungRedis.calls == 1  # skipped for BACKOFF_S
+
+
+def test_scan_id_with_a_guessed_preset_is_refused_on_a_map_of_another_geometry(
+        client: httpx.Client, tmp_path: Path, fake_extractor: FakeExtractor) -> None:
+    """QA (session 21): ``POST /scans`` read a 3,360-bin PNG as boreas (0.0596 m bins) without a word, and a
+    ``scan_id`` localization on a boreas-2021 map (0.04381 m) then ran with every range 1.36x too long, where the
+    same file sent inline took the map's preset. The guess is now reported (``preset_assumed``) and refused on a
+    map of another geometry; ``map_id`` on upload gives the inline behaviour."""
+    from maps.build import build_map
+    from service.core.shared_state import decode_features, encode_features
+
+    map21 = build_map(tmp_path / "m21.h5", fake_extractor,
+                      lambda i: make_scan(i, keyframe_time(i), preset="boreas-2021"), keyframe_poses(),
+                      radar_preset="boreas-2021", name="qa21", batch_size=4)
+    register_map_file(client, map21, "qa21")
+    png = ("q.png", _png(3))
+
+    guessed = client.post("/scans", files={"scan": png})
+    assert guessed.status_code == 201, guessed.text
+    assert guessed.json()["preset"] == "boreas" and guessed.json()["preset_assumed"] is True
+    sid = guessed.json()["scan_id"]
+    # the guess is the map's own preset: nothing to refuse
+    assert client.post("/localize", json={"scan_id": sid, "map_id": "qa"}).status_code == 200
+    for r in (client.post("/localize", json={"scan_id": sid, "map_id": "qa21"}),
+              client.post("/maps/qa21/retrieve", json={"scan_id": sid})):
+        detail = _problem(r, 422)["detail"]
+        assert "preset=boreas-2021" in detail and "0.0596" in detail and "0.04381" in detail
+
+    # uploaded for the map: its preset, no guess; an explicit preset is the client's word and is kept
+    for data, preset in (({"map_id": "qa21"}, "boreas-2021"), ({"preset": "boreas"}, "boreas")):
+        r = client.post("/scans", data=data, files={"scan": png})
+        assert r.status_code == 201 and r.json()["preset"] == preset and r.json()["preset_assumed"] is False
+        assert client.post("/localize", json={"scan_id": r.json()["scan_id"], "map_id": "qa21"}).status_code == 200
+    _problem(client.post("/scans", data={"map_id": "nosuch"}, files={"scan": png}), 404)
+    assert client.delete("/maps/qa21", headers=AUTH).status_code == 200
+
+    # the fleet's Redis blob carries the flag; one written before it reads as not assumed
+    feats = fake_extractor.describe(make_scan(1, keyframe_time(1)))
+    assert decode_features(encode_features(feats, "boreas", True))[1:] == ("boreas", True)
+    buf = io.BytesIO()
+    np.savez(buf, global_descriptor=feats.global_descriptor, keypoints_xy_m=feats.keypoints_xy_m,
+             local_descriptors=feats.local_descriptors, timestamp_us=np.int64(1), preset=np.array("boreas"))
+    assert decode_features(buf.getvalue())[1:] == ("boreas", False)

@@ -165,7 +165,7 @@ async def retrieve(request: Request, state: StateDep, map_id: MapIdPath) -> Retr
     (multipart)."""
     t0 = time.perf_counter()
     db = state.registry.ready(map_id)
-    inp = await read_scan_input(request, state, RetrieveRequest, ("top_k",))
+    inp = await read_scan_input(request, state, RetrieveRequest, ("top_k",), map_id)
     k = inp.fields.get("top_k") or state.settings.localization.top_k
     t1 = time.perf_counter()
     hits = await run_in_threadpool(db.retrieve, inp.features.global_descriptor, k)

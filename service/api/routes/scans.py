@@ -10,6 +10,7 @@ from starlette.concurrency import run_in_threadpool
 from service.api.deps import FormDep, StateDep
 from service.api.scan_input import SCAN_LAYOUT_DESCRIPTION, read_scan_upload
 from service.api.schemas import ErrorResponse, ScanInfo
+from service.core.config import MAP_ID_PATTERN
 from service.core.errors import BadRequestError
 
 router = APIRouter(prefix="/scans", tags=["scans"])
@@ -23,21 +24,29 @@ async def upload_scan(
     state: StateDep,
     _form: FormDep,
     scan: Annotated[UploadFile, File(description="Navtech polar PNG or .npy array (see scan_layout).")],
-    preset: Annotated[str | None, Form(description="Radar preset (default: inferred from the bin count).")] = None,
+    preset: Annotated[str | None, Form(description=(
+        "Radar preset (default: the map's, with `map_id`, when the scan fits it; else inferred from the bin "
+        "count, a guess where presets of different bin size share it: see `preset_assumed`)."))] = None,
     scan_layout: Annotated[Literal["polar", "navtech"], Form(description=SCAN_LAYOUT_DESCRIPTION)] = "polar",
+    map_id: Annotated[str | None, Form(pattern=MAP_ID_PATTERN, description=(
+        "The ready map the scan will be localized on: without `preset`, its preset is used where the scan "
+        "fits it, as for a scan sent inline."))] = None,
 ) -> ScanInfo:
     """Decode the scan, compute its global and local features, cache them and return a ``scan_id``."""
     from reradar_core.io.presets import PRESETS
 
     if preset is not None and preset.lower() not in PRESETS:
         raise BadRequestError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+    if map_id:
+        state.registry.ready(map_id)  # 404 / 409 before the upload is read
     data, filename = await read_scan_upload(scan, state.settings.max_scan_pixels, scan_layout)
     timings: dict[str, float] = {}
-    features, scan_preset = await run_in_threadpool(state.describe_upload, data, filename, preset, timings,
-                                                    scan_layout)
+    features, scan_preset, assumed = await run_in_threadpool(state.describe_upload, data, filename, preset, timings,
+                                                             scan_layout, map_id or None)
     state.metrics.observe_stages(timings)
-    entry = await run_in_threadpool(state.cache.put, features, scan_preset)  # Redis in fleet mode
+    entry = await run_in_threadpool(state.cache.put, features, scan_preset, assumed)  # Redis in fleet mode
     return ScanInfo(scan_id=entry.scan_id, timestamp_us=int(features.timestamp_us), preset=scan_preset,
+                    preset_assumed=assumed,
                     num_keypoints=int(features.keypoints_xy_m.shape[0]),
                     descriptor_dim=int(features.global_descriptor.shape[0]),
                     expires_in_s=state.settings.scan_cache_ttl_s, timings_ms=timings)
