@@ -233,7 +233,7 @@ def bench_http(requests: int, warmup: int, threads: int, map_path: Path | None =
                           "server_total_p99_ms": _pct(per[t][1]["total_ms"], 99),
                           "server_stage_mean_ms": {k: float(np.mean(v)) for k, v in sorted(per[t][1].items())},
                           "statuses": per[t][2]} for t in transports[1:]}
-            sid = client.upload_scan(scan_bytes=blobs[0][1], filename=blobs[0][0]).scan_id
+            sid = client.upload_scan(scan_bytes=blobs[0][1], filename=blobs[0][0], map_id="demo").scan_id
             lat_ref = []
             for _ in range(min(requests, 50)):
                 t0 = time.perf_counter()

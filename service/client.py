@@ -152,9 +152,10 @@ class ReRadarClient:
     # ---- scans, retrieval, localization ------------------------------------------------------------------
     def upload_scan(self, scan_path: str | Path | None = None, scan_bytes: bytes | None = None,
                     filename: str = "scan.png", preset: str | None = None,
-                    scan_layout: str | None = None) -> ScanInfo:
+                    scan_layout: str | None = None, map_id: str | None = None) -> ScanInfo:
+        """``POST /scans``; ``map_id``: the map the scan is for (its preset is used when ``preset`` is None)."""
         files = {"scan": _scan_file(scan_path, scan_bytes, filename)}
-        data = {k: v for k, v in (("preset", preset), ("scan_layout", scan_layout)) if v}
+        data = {k: v for k, v in (("preset", preset), ("scan_layout", scan_layout), ("map_id", map_id)) if v}
         return ScanInfo.model_validate(self._check(self._http.post("/scans", files=files, data=data)).json())
 
     def _scan_request(self, path: str, fields: dict[str, Any], scan_id: str | None,

@@ -287,6 +287,8 @@ def test_python_client(server: tuple[str, Path], client: httpx.Client, tmp_path:
         assert res.status == "localized" and res.keyframe is not None and res.keyframe.keyframe_id == 1
         sid = rc.upload_scan(png).scan_id
         assert rc.retrieve("route-a", scan_id=sid, top_k=2).keyframes[0].keyframe_id == 1
+        for_map = rc.upload_scan(png, map_id="route-a")  # the map's preset, not a guess
+        assert for_map.preset_assumed is False and rc.localize("route-a", scan_id=for_map.scan_id).status == "localized"
         assert rc.localize("route-a", scan_id=sid).status == "localized"
         with pytest.raises(ReRadarAPIError) as exc:
             rc.localize("missing", scan_path=png)
