@@ -62,7 +62,9 @@ def register(app: typer.Typer) -> None:
         traversal_seed: int = typer.Option(None, help="Traversal seed (traffic, parked cars, noise); "
                                                       "default seed + 1."),
         road: list[Path] = typer.Option(None, help="Extra pose files whose paths are roads of the world "
-                                                   "(give the other traversals' files to share one world)."),
+                                                   "(give the other traversals' files to share one world: the "
+                                                   "world depends on the set of roads, not on their order or "
+                                                   "driving direction)."),
         lateral: float = typer.Option(0.0, callback=_finite, help="Drive this many metres left of the trajectory."),
         every: int = typer.Option(1, min=1, help="Keep every K-th scan."),
         limit: int = typer.Option(None, min=1, help="Render at most N scans."),
@@ -87,7 +89,7 @@ def register(app: typer.Typer) -> None:
             scan_times,
         )
         from reradar_core.sim.traversal import Traversal
-        from reradar_core.sim.world import RoadNetwork, World
+        from reradar_core.sim.world import RoadNetwork, World, canonical_roads
         from reradar_core.sim.writer import render_sequence
 
         try:
@@ -96,7 +98,8 @@ def register(app: typer.Typer) -> None:
                 raise typer.BadParameter(f"--time-unit must be one of {sorted(TIME_UNITS)}, got {time_unit!r}")
             traj = load_trajectory(trajectory, time_unit)
             roads = [traj.xy] + [load_road_xy(r, time_unit) for r in (road or [])]
-            world = World(RoadNetwork(roads), seed=seed, profile=profile)
+            # one world for every traversal that names the same roads, whichever it drives and in which direction
+            world = World(RoadNetwork(canonical_roads(roads)), seed=seed, profile=profile)
             trav = Traversal(world, traversal_seed if traversal_seed is not None else seed + 1, condition)
             if lateral:
                 traj = offset_trajectory(traj, lateral)

@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 from reradar_core.errors import ConfigError
 
 __all__ = [
+    "canonical_roads",
     "PROFILES",
     "Primitives",
     "RoadNetwork",
@@ -209,6 +210,36 @@ def car_segments(slots: np.ndarray) -> np.ndarray:
     if len(slots) == 0:
         return np.zeros((0, 4))
     return np.concatenate([rectangle_segments(x, y, 4.6, 1.85, yaw) for x, y, yaw in slots])
+
+
+def canonical_roads(polylines: list[np.ndarray]) -> list[np.ndarray]:
+    """The same road polylines in an order and direction that depend only on the set of roads.
+
+    ``RoadNetwork`` resamples each polyline from its own start and keeps the earlier of two overlapping passes,
+    so the roads [A, B] and [B, A], or A and A driven the other way, build different worlds (samples up to a
+    spacing apart, kerbs and buildings placed from them). Each polyline is turned to run from its smaller end
+    point (x, then y; a closed loop counter-clockwise), and the polylines are sorted by their points: every
+    traversal that lists the same roads in any order or direction (``reradar sim --road``) shares one world.
+
+    Args:
+        polylines: (N_i, 2) float xy arrays, metres, world frame.
+
+    Returns:
+        New (N_i, 2) float64 arrays, the same points.
+    """
+    out = []
+    for line in polylines:
+        a = np.ascontiguousarray(np.asarray(line, dtype=np.float64).reshape(-1, 2))
+        if len(a) >= 2:
+            first, last = tuple(a[0]), tuple(a[-1])
+            if first == last:  # a closed loop: counter-clockwise (shoelace area > 0)
+                flip = float(np.sum(a[:-1, 0] * a[1:, 1] - a[1:, 0] * a[:-1, 1])) < 0.0
+            else:
+                flip = last < first
+            if flip:
+                a = np.ascontiguousarray(a[::-1])
+        out.append(a)
+    return sorted(out, key=lambda a: (-len(a), a.tobytes()))  # longer roads first: theirs are the kept samples
 
 
 class RoadNetwork:
