@@ -137,6 +137,10 @@ def serve_command(
 def localize_command(
     scan: Path | None = typer.Argument(None, dir_okay=False, help="Navtech PNG or .npy scan."),
     server: str = typer.Option("http://127.0.0.1:8080", "--server", help="Service base URL."),
+    api_key: str | None = typer.Option(None, "--api-key", envvar="RERADAR_CLIENT_API_KEY", show_envvar=True,
+                                       help="Vehicle (or operator) key sent as X-API-Key: needed beyond "
+                                            "loopback and whenever the server has vehicle keys. Prefer the "
+                                            "variable (a command line is visible to other users)."),
     map_id: str = typer.Option("demo", "--map", help="Map id."),
     top_k: int | None = typer.Option(None, min=1, max=100, help="Candidates retrieved and screened (1-100; the "
                                      "best is verified; default: the server's)."),
@@ -181,7 +185,7 @@ def localize_command(
         typer.echo("error: --odometry must be `ground-truth` or `none`", err=True)
         raise typer.Exit(2)
     try:
-        with ReRadarClient(server) as client:
+        with ReRadarClient(server, api_key=api_key or None) as client:
             if follow is not None:
                 from service.follow import follow_sequence
 
@@ -210,7 +214,8 @@ def localize_command(
                    f"(map {res.map_id}, keyframe {res.keyframe.keyframe_id}, {res.num_inliers} inliers, "
                    f"{res.mode}, {res.timings_ms.get('total_ms', 0):.0f} ms)")
     else:
-        typer.echo(f"not localized: {res.reason} ({res.num_inliers} inliers)")
+        typer.echo(f"not localized: {res.reason} ({res.num_inliers} inliers, {100 * res.inlier_ratio:.1f} % of "
+                   f"the landmarks aligned, confidence {res.confidence:.2f})")
     raise typer.Exit(0 if res.status == "localized" else 1)
 
 

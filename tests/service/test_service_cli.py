@@ -52,3 +52,31 @@ def test_localize_command_errors(app_and_url: tuple[typer.Typer, str], tmp_path:
     assert res.exit_code == 2 and "unknown map" in res.output
     res = CliRunner().invoke(app, ["localize", str(unknown), "--server", "http://127.0.0.1:9", "--map", "x"])
     assert res.exit_code == 3 and "cannot reach" in res.output
+
+
+def test_localize_command_sends_the_api_key(tmp_path: Path, fake_map: Path) -> None:
+    """QA (session 21): `reradar localize` had no way to send X-API-Key, so it failed (401) against any server
+    with vehicle keys or beyond loopback. `--api-key` / RERADAR_CLIENT_API_KEY now send one."""
+    from service.core.config import Settings
+    from service.demo import serve_in_thread
+    from service_test_fakes import FakeExtractor
+
+    vehicle = "vehicle-key-for-the-cli-0123"
+    settings = Settings(maps_dir=tmp_path / "maps", load_demo_map=False, api_key=API_KEY, vehicle_keys=vehicle,
+                        torch_threads=1)
+    scan = tmp_path / "q.png"
+    scan.write_bytes(encode_navtech_png_bytes(make_scan(2, 0)))
+    app = typer.Typer()
+    register(app)
+    with serve_in_thread(settings, FakeExtractor()) as url:
+        with fake_map.open("rb") as fh:
+            r = httpx.post(f"{url}/maps", data={"map_id": "keyed"}, files={"map_file": ("m.h5", fh)},
+                           headers={"X-API-Key": API_KEY})
+        assert r.status_code == 201, r.text
+        base = ["localize", str(scan), "--server", url, "--map", "keyed"]
+        res = CliRunner().invoke(app, base, env={"RERADAR_CLIENT_API_KEY": ""})
+        assert res.exit_code == 2 and "401" in res.output and "X-API-Key" in res.output
+        res = CliRunner().invoke(app, [*base, "--api-key", vehicle])
+        assert res.exit_code == 0 and res.output.startswith("localized: "), res.output
+        res = CliRunner().invoke(app, base, env={"RERADAR_CLIENT_API_KEY": vehicle})
+        assert res.exit_code == 0 and res.output.startswith("localized: "), res.output
