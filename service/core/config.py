@@ -98,7 +98,8 @@ class Settings(BaseSettings):
                        description="Descriptor model: registry name (`default` = shipped default) or a .pt path.")
     maps_dir: Path = Field(default_factory=_default_maps_dir,
                            description="Folder holding the registered maps (<map_id>.h5).")
-    load_demo_map: bool = Field(default=True, description="Copy the shipped demo map into maps_dir as map `demo`.")
+    load_demo_map: bool = Field(default=True, description=(
+        "Copy the shipped demo map into maps_dir as map `demo` (not after DELETE /maps/demo: .demo-deleted)."))
     max_upload_mb: float = Field(default=8.0, gt=0, description=(
         "Largest scan upload / request body, MB: a Navtech PNG is ~1.3 MB, a float32 .npy of the largest "
         "accepted scan 6.4 MB. The guard holds a scan request's body in memory, so this bounds what a junk body "

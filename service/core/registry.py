@@ -51,6 +51,8 @@ logger = logging.getLogger(__name__)
 
 MapState = Literal["ready", "building", "failed"]
 DEMO_MAP_ID = "demo"
+#: left in ``maps_dir`` by ``DELETE /maps/demo``: the demo map is not installed again at the next start
+DEMO_DELETED_MARKER = ".demo-deleted"
 _ID_RE = re.compile(MAP_ID_PATTERN)
 _STAGING = ".staging"
 _JOBS = ".jobs"
@@ -208,8 +210,11 @@ class MapRegistry:
     def install_demo_map(self) -> None:
         """Copy the shipped demo map to ``<maps_dir>/demo.h5`` unless a map ``demo`` exists already; an
         installed demo map built with older weights is replaced when the shipped one fits the running model
-        (a maps volume outlives image upgrades)."""
+        (a maps volume outlives image upgrades). Not after an operator deleted it (``DEMO_DELETED_MARKER``)."""
         target = self.path_for(DEMO_MAP_ID)
+        if not target.exists() and (self.maps_dir / DEMO_DELETED_MARKER).exists():
+            logger.info("demo map not installed: it was deleted (remove %s to get it back)", DEMO_DELETED_MARKER)
+            return
         if not DEMO_MAP_PATH.is_file():
             logger.warning("demo map %s is not installed; run scripts/build_demo_map.py", DEMO_MAP_PATH)
             return
@@ -419,6 +424,8 @@ class MapRegistry:
             del self._entries[map_id]
         if entry.db is not None:  # requests already using it finish on the open file (unlinked below)
             _close_later(entry.db)
+        if map_id == DEMO_MAP_ID:  # before the file goes: a crash in between leaves neither to reinstall
+            (self.maps_dir / DEMO_DELETED_MARKER).touch()
         entry.path.unlink(missing_ok=True)
         self._drop_job(map_id)
         fsync_dir(self.maps_dir)

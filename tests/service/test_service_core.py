@@ -179,6 +179,18 @@ def test_demo_map_installed_and_refreshed_after_weight_change(tmp_path: Path, mo
     registry.load_all()
     entry = registry.get("demo")
     assert entry.state == "failed" and "rebuild the map" in (entry.error or "")
+    # QA (session 21): a demo map the operator deleted came back at every start
+    registry.delete("demo")
+    registry.close()
+    registry = reg.MapRegistry(Settings(maps_dir=maps_dir), ext)
+    registry.install_demo_map()
+    registry.load_all()
+    assert not (maps_dir / "demo.h5").exists() and "demo" not in [e.map_id for e in registry.entries()]
+    registry.close()
+    (maps_dir / reg.DEMO_DELETED_MARKER).unlink()  # what the docs say to do to get it back
+    registry = reg.MapRegistry(Settings(maps_dir=maps_dir), ext)
+    registry.install_demo_map()
+    assert read_metadata(maps_dir / "demo.h5").weights_sha256 == ext.weights_sha256
     registry.close()
 
 
