@@ -46,13 +46,17 @@ def describe_settings_error(exc: ValueError) -> str:
 def settings_or_exit(**overrides: object) -> Settings:
     """``Settings`` from the RERADAR_* environment (and ``overrides``), or exit 2 with one line per bad field
     (``describe_settings_error``: never the values, which hold the keys)."""
-    from service.core.config import Settings
+    from service.core.config import Settings, unknown_variables
 
     try:
-        return Settings(**overrides)  # type: ignore[arg-type]
+        settings = Settings(**overrides)  # type: ignore[arg-type]
     except ValueError as exc:
         typer.echo(f"error: invalid settings: {describe_settings_error(exc)}", err=True)
         raise typer.Exit(2) from None
+    for var, near in unknown_variables():  # other consumers may read RERADAR_* too: a warning, not a refusal
+        typer.echo(f"warning: {var} is not a setting and is ignored" + (f" (did you mean {near}?)" if near else ""),
+                   err=True)
+    return settings
 
 
 def check_model_or_exit(settings: Settings) -> None:

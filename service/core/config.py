@@ -26,6 +26,47 @@ DEV_API_KEY = "reradar-dev-key"
 #: ``LocalizationConfig`` fields that were flat ``RERADAR_<FIELD>`` settings before they were nested.
 _RENAMED_LOCALIZATION_FIELDS = ("TOP_K", "VERIFY_K", "MAX_CANDIDATES", "EXPAND_BELOW_SCREEN_SCORE", "MIN_INLIERS")
 
+#: ``RERADAR_*`` variables that are not ``Settings`` fields but are read elsewhere (the library's cache, JIT
+#: switch, network runtime and trajectory folder, ``reradar serve --workers``, scripts/setup.sh,
+#: docker/compose.yaml, the vehicle client, a UI test): not reported as unknown settings.
+OTHER_VARIABLES = frozenset({"CACHE_DIR", "JIT", "NETWORK_RUNTIME", "TRAJECTORY_DIR", "WORKERS", "VENV", "PYTHON",
+                             "CLIENT_API_KEY", "REDIS_MAXMEMORY", "API_REPLICAS", "API_WORKERS", "BIND", "PORT",
+                             "UI_SCREENSHOT"})
+
+
+def _nested_names(config: type, prefix: str) -> set[str]:
+    """Environment names of a dataclass config's fields, nested ones joined with ``__`` (upper case)."""
+    import dataclasses
+    import typing
+
+    hints = typing.get_type_hints(config)  # the modules use postponed annotations: resolve the strings
+    names = set()
+    for f in dataclasses.fields(config):
+        name = f"{prefix}{f.name.upper()}"
+        names.add(name)
+        if isinstance(hints.get(f.name), type) and dataclasses.is_dataclass(hints[f.name]):
+            names |= _nested_names(hints[f.name], f"{name}__")
+    return names
+
+
+def unknown_variables(environ: dict[str, str] | None = None) -> list[tuple[str, str | None]]:
+    """``RERADAR_*`` variables in ``environ`` (default: the process's) that nothing reads, each with the closest
+    known name (None: nothing close): a misspelt setting is otherwise ignored without a word."""
+    import difflib
+
+    environ = dict(os.environ if environ is None else environ)
+    known = {f"RERADAR_{name}" for name in OTHER_VARIABLES}
+    known |= {f"RERADAR_{name.upper()}" for name in Settings.model_fields}
+    known |= _nested_names(LocalizationConfig, "RERADAR_LOCALIZATION__")
+    stale = {f"RERADAR_{name}" for name in _RENAMED_LOCALIZATION_FIELDS}  # refused with their own message
+    out = []
+    for var in sorted(environ):
+        if var.startswith("RERADAR_") and var.upper() not in known | stale:
+            close = difflib.get_close_matches(var.upper(), sorted(known), n=1, cutoff=0.8)
+            out.append((var, close[0] if close else None))
+    return out
+
+
 #: Shortest API key accepted (operator or vehicle).
 MIN_KEY_LENGTH = 16
 
@@ -184,6 +225,20 @@ class Settings(BaseSettings):
         if stale:
             raise ValueError(", ".join(f"{v} is now RERADAR_LOCALIZATION__{v.removeprefix('RERADAR_')}"
                                        for v in stale))
+        # the descriptor network's runtime is read by the extractor at start-up: a typo is a setting error (exit 2),
+        # not a traceback when the app's lifespan loads the model
+        from reradar_core.errors import ConfigError
+        from reradar_core.model.runtime import resolve_runtime
+
+        try:
+            resolve_runtime(None)
+        except ConfigError as exc:
+            raise ValueError(str(exc)) from None
+        # a misspelt localization field is a setting that silently does nothing: nothing else reads that prefix
+        typos = [(v, near) for v, near in unknown_variables() if v.upper().startswith("RERADAR_LOCALIZATION__")]
+        if typos:
+            raise ValueError("; ".join(f"{v} is no localization setting" + (f" (did you mean {near}?)" if near else
+                                       " (docs/SERVICE.md lists them)") for v, near in typos))
         return self
 
     @field_validator("redis_url")

@@ -20,7 +20,9 @@ from typing import Any, Literal
 __all__ = ["JsonFormatter", "configure_logging", "quiet_noisy_loggers"]
 
 #: Attributes every ``LogRecord`` has; anything else on a record came from ``extra=`` and is logged.
-_STANDARD_ATTRS = frozenset(vars(logging.LogRecord("", 0, "", 0, "", (), None))) | {"message", "asctime", "taskName"}
+_STANDARD_ATTRS = frozenset(vars(logging.LogRecord("", 0, "", 0, "", (), None))) | {"message", "asctime", "taskName",
+                                                                                    # uvicorn's terminal-coloured copy of msg
+                                                                                    "color_message"}
 
 #: Loggers that own handlers of their own and must go through ours instead.
 _FOREIGN_LOGGERS = ("uvicorn", "uvicorn.error", "uvicorn.access", "arq", "arq.worker", "arq.jobs")

@@ -100,14 +100,15 @@ def test_features_encoding_round_trip_is_exact_and_pickle_free() -> None:
     f = ScanFeatures(g / np.linalg.norm(g), rng.normal(size=(512, 2)) * 50, rng.normal(size=(512, 16)), 123456789)
     blob = encode_features(f, "boreas")
     assert len(blob) < 24_000  # what docs/OPERATIONS.md sizes Redis with
-    back, preset = decode_features(blob)
-    assert preset == "boreas" and back.timestamp_us == 123456789
+    back, preset, assumed = decode_features(blob)
+    assert preset == "boreas" and not assumed and back.timestamp_us == 123456789
     for name in ("global_descriptor", "keypoints_xy_m", "local_descriptors"):
         a, b = getattr(f, name), getattr(back, name)
         assert a.dtype == b.dtype and np.array_equal(a, b)
     assert decode_features(encode_features(f, None))[1] is None
     with np.load(io.BytesIO(blob), allow_pickle=False) as z:  # loads without pickle
-        assert set(z.files) == {"global_descriptor", "keypoints_xy_m", "local_descriptors", "timestamp_us", "preset"}
+        assert set(z.files) == {"global_descriptor", "keypoints_xy_m", "local_descriptors", "timestamp_us", "preset",
+                                "preset_assumed"}
 
 
 def test_trajectory_subsample_keeps_ends_and_bound() -> None:
@@ -149,3 +150,11 @@ def test_build_note_names_a_missing_worker_and_a_silent_one() -> None:
     note = build_note({"state": "running", "heartbeat": "980.0"}, newest_worker_beat=999.0, now=1000.0,
                       stale_after_s=15)
     assert note is not None and "retry" in note
+
+
+def test_json_lines_leave_out_uvicorns_coloured_copy() -> None:
+    """QA (session 21): uvicorn's start-up lines carried ``color_message`` (the message with terminal escape codes)."""
+    record = logging.LogRecord("uvicorn.error", logging.INFO, "", 0, "Uvicorn running on %s", ("http://x",), None)
+    record.color_message = "Uvicorn running on \x1b[1m%s\x1b[0m"
+    doc = json.loads(JsonFormatter().format(record))
+    assert doc["msg"] == "Uvicorn running on http://x" and "color_message" not in doc

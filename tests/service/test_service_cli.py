@@ -57,9 +57,10 @@ def test_localize_command_errors(app_and_url: tuple[typer.Typer, str], tmp_path:
 def test_localize_command_sends_the_api_key(tmp_path: Path, fake_map: Path) -> None:
     """QA (session 21): `reradar localize` had no way to send X-API-Key, so it failed (401) against any server
     with vehicle keys or beyond loopback. `--api-key` / RERADAR_CLIENT_API_KEY now send one."""
+    from service_test_fakes import FakeExtractor
+
     from service.core.config import Settings
     from service.demo import serve_in_thread
-    from service_test_fakes import FakeExtractor
 
     vehicle = "vehicle-key-for-the-cli-0123"
     settings = Settings(maps_dir=tmp_path / "maps", load_demo_map=False, api_key=API_KEY, vehicle_keys=vehicle,

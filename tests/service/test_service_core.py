@@ -64,6 +64,26 @@ def test_keys_have_no_usable_default(monkeypatch: pytest.MonkeyPatch, tmp_path: 
     monkeypatch.setenv("RERADAR_TOP_K", "7")  # the old flat name is refused, not silently ignored
     with pytest.raises(ValidationError, match="RERADAR_LOCALIZATION__TOP_K"):
         Settings(maps_dir=tmp_path)
+    monkeypatch.delenv("RERADAR_TOP_K")
+
+
+def test_misspelt_settings_are_refused_or_reported(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """QA (session 21): RERADAR_LOCALIZATION__TOPK=3 started a server that used top_k 10, and a typo in
+    RERADAR_NETWORK_RUNTIME ended in a traceback (exit 3) instead of the one-line settings error (exit 2)."""
+    from service.core.config import unknown_variables
+
+    for name, value, message in (("RERADAR_LOCALIZATION__TOPK", "3", "did you mean RERADAR_LOCALIZATION__TOP_K"),
+                                 ("RERADAR_LOCALIZATION__ALIGNMENT__SCREEN_HYPOTHESE", "8", "SCREEN_HYPOTHESES"),
+                                 ("RERADAR_NETWORK_RUNTIME", "gpu", "auto, onnx, torch")):
+        monkeypatch.setenv(name, value)
+        with pytest.raises(ValidationError, match=message):
+            Settings(maps_dir=tmp_path)
+        monkeypatch.delenv(name)
+    monkeypatch.setenv("RERADAR_LOCALIZATION__ALIGNMENT__SCREEN_HYPOTHESES", "8")  # nested names are known
+    assert Settings(maps_dir=tmp_path).localization.alignment.screen_hypotheses == 8
+    env = {"RERADAR_TORCH_THREAD": "2", "RERADAR_CACHE_DIR": "/c", "RERADAR_CLIENT_API_KEY": "k", "RERADAR_FOO": "1",
+           "RERADAR_MAPS_DIR": "/m", "OTHER": "1"}
+    assert unknown_variables(env) == [("RERADAR_FOO", None), ("RERADAR_TORCH_THREAD", "RERADAR_TORCH_THREADS")]
 
 
 def _feat(i: int) -> ScanFeatures:
