@@ -209,7 +209,8 @@ def _refuse_repeated_times(t_us: np.ndarray, path: Path) -> None:
                             "pose needs its own time")
 
 
-def _read_rows(path: Path, min_cols: int, header_first: str | None) -> tuple[list[str] | None, list[tuple[int, list[str]]]]:
+def _read_rows(path: Path, min_cols: int, header_first: str | None,
+               expected: str = "") -> tuple[list[str] | None, list[tuple[int, list[str]]]]:
     if not path.is_file():
         raise PoseFileError(f"{path}: no such pose file")
     rows: list[tuple[int, list[str]]] = []
@@ -222,7 +223,8 @@ def _read_rows(path: Path, min_cols: int, header_first: str | None) -> tuple[lis
                 header = [c.strip() for c in row]
                 continue
             if len(row) < min_cols:
-                raise PoseFileError(f"{path}:{lineno}: expected at least {min_cols} columns, got {len(row)}")
+                raise PoseFileError(f"{path}:{lineno}: expected at least {min_cols} columns"
+                                    f"{f' ({expected})' if expected else ''}, got {len(row)}")
             rows.append((lineno, row))
     if not rows:
         raise PoseFileError(f"{path}: no pose rows")
@@ -279,7 +281,7 @@ def read_boreas_radar_poses(path: str | Path, time_unit: str | None = None) -> P
             times in ns or µs, told apart by magnitude; relative times are refused (``gps_time_to_us``).
     """
     path = Path(path)
-    header, rows = _read_rows(path, 10, "GPSTime")
+    header, rows = _read_rows(path, 10, "GPSTime", f"a Boreas radar_poses.csv: {','.join(BOREAS_COLUMNS)}")
     idx = {name: i for i, name in enumerate(header or BOREAS_COLUMNS)}
     for need in ("GPSTime", "easting", "northing", "heading"):
         if need not in idx:
@@ -313,7 +315,7 @@ def read_mulran_global_pose(path: str | Path, time_unit: str | None = None) -> P
             are absolute UTC times in another unit (e.g. µs) is refused rather than read 1000x off.
     """
     path = Path(path)
-    _, rows = _read_rows(path, 13, None)
+    _, rows = _read_rows(path, 13, None, "a MulRan global_pose.csv: timestamp, then a 3x4 [R|t] matrix row by row")
     t_raw = _parse_time_column(path, rows, 0)
     if time_unit is None:
         found = absolute_time_unit(t_raw)
@@ -363,7 +365,7 @@ def read_txyyaw_csv(path: str | Path, time_unit: str | None = None) -> PoseSeque
         first = next(csv.reader(fh), [""])
     head = first[0].strip().lower() if first else ""
     header_unit = TXYYAW_TIME_HEADERS.get(head)
-    header, rows = _read_rows(path, 4, first[0].strip() if head in TXYYAW_TIME_HEADERS else None)
+    header, rows = _read_rows(path, 4, first[0].strip() if head in TXYYAW_TIME_HEADERS else None, "t,x,y,yaw")
     if time_unit is not None and header_unit is not None and _check_unit(time_unit) != header_unit:
         raise PoseFileError(f"{path}:1: header says {first[0].strip()!r} but the time unit given is {time_unit!r}")
     yaw_header = header[3] if header is not None and len(header) > 3 else None

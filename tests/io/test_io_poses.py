@@ -104,7 +104,7 @@ def test_malformed_boreas_names_file_and_line(tmp_path):
     with pytest.raises(PoseFileError, match=r"bad\.csv:3: non-numeric"):
         read_boreas_radar_poses(_write(tmp_path, "bad.csv", bad))
     short = HEADER + "\n1630597331060160,1,2\n"
-    with pytest.raises(PoseFileError, match=r"short\.csv:2: expected at least 10 columns"):
+    with pytest.raises(PoseFileError, match=r"short\.csv:2: expected at least 10 columns \(a Boreas radar_poses\.csv: GPSTime,easting,northing,"):
         read_boreas_radar_poses(_write(tmp_path, "short.csv", short))
     nan = BOREAS_US.replace("0.25673404594601285", "nan")
     with pytest.raises(PoseFileError, match=r"nan\.csv:3: NaN"):
