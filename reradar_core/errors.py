@@ -5,6 +5,7 @@ __all__ = [
     "ScanFormatError",
     "ScanTooLargeError",
     "PoseFileError",
+    "TimeUnitError",
     "ConfigError",
     "MapFormatError",
     "ModelMismatchError",
@@ -26,6 +27,15 @@ class ScanTooLargeError(ScanFormatError):
 
 class PoseFileError(ReRadarError, ValueError):
     """A pose file is malformed; the message names the file and line."""
+
+
+class TimeUnitError(PoseFileError):
+    """A pose file's times are relative and no unit was given. ``problem`` says what was found without the
+    command-line advice of the message, for callers (the HTTP API) that offer other ways to give the unit."""
+
+    def __init__(self, message: str, problem: str) -> None:
+        super().__init__(message)
+        self.problem = problem
 
 
 class ConfigError(ReRadarError, ValueError):

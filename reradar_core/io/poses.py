@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from reradar_core.bounds import MAX_ABS_COORDINATE_M
-from reradar_core.errors import PoseFileError
+from reradar_core.errors import PoseFileError, TimeUnitError
 from reradar_core.geometry.se2 import wrap_angle
 
 __all__ = [
@@ -187,10 +187,11 @@ def gps_time_to_us(values: np.ndarray, unit: str | None = None, source: str = "t
         if unit is None:
             v = np.asarray(values, dtype=np.float64)
             span = f"{v.min():.6g} .. {v.max():.6g}" if v.size else "none"
-            raise PoseFileError(
-                f"{source}: timestamps {span} are not absolute UTC times (2000-2100) in s, ms, us or ns, so "
-                "their unit is ambiguous; give it explicitly: --time-unit s|ms|us|ns on the command line "
-                "(time_unit= in Python), or a t_s / t_ms / t_us / t_ns column header in a t,x,y,yaw CSV")
+            problem = (f"timestamps {span} are not absolute UTC times (2000-2100) in s, ms, us or ns, so their unit "
+                       "is ambiguous")
+            raise TimeUnitError(
+                f"{source}: {problem}; give it explicitly: --time-unit s|ms|us|ns on the command line "
+                "(time_unit= in Python), or a t_s / t_ms / t_us / t_ns column header in a t,x,y,yaw CSV", problem)
     else:
         absolute = absolute_time_unit(values)
         if absolute is not None and absolute != _check_unit(unit):  # e.g. Boreas ns read as us: a 13-day drive

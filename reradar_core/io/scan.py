@@ -171,7 +171,8 @@ def infer_preset(num_range_bins: int, source: str = "scan") -> RadarPreset:
             f"({', '.join(f'{p.name} {p.range_resolution_m} m/bin' for p in fits)}); pass the preset the scan "
             "was recorded with (--preset)")
     raise ScanFormatError(
-        f"{source}: cannot infer the radar preset from {num_range_bins} range bins; pass the preset explicitly "
+        f"{source}: cannot infer the radar preset from {num_range_bins} range bins{_navtech_hint(num_range_bins)}; "
+        "pass the preset explicitly "
         f"(known: {sorted(PRESETS)}), or convert scans of another layout or resolution with "
         f"`reradar import-scans`"
     )
@@ -227,6 +228,19 @@ def check_scan_sides(num_azimuths: int, num_range_bins: int, source: str = "scan
             f"{MAX_SCAN_SIDE} of each (e.g. 400 x 3360 Boreas, 400 x 3768 Oxford)")
 
 
+#: Metadata columns in front of the range bins of a Navtech image (timestamp 8, encoder 2, valid flag 1).
+NAVTECH_METADATA_COLUMNS = 11
+
+
+def _navtech_hint(num_range_bins: int) -> str:
+    """A hint when a 'polar' array has exactly a Navtech image's width (metadata columns + a preset's bins)."""
+    bins = num_range_bins - NAVTECH_METADATA_COLUMNS
+    if any(p.num_range_bins == bins for p in PRESETS.values()):
+        return (f" ({num_range_bins} = {NAVTECH_METADATA_COLUMNS} metadata columns + {bins} range bins: a Navtech "
+                "image? send it with scan_layout=navtech, --scan-layout navtech on the command line)")
+    return ""
+
+
 def check_polar_shape(num_azimuths: int, num_range_bins: int, preset: RadarPreset, source: str = "scan") -> None:
     """Refuse a polar (azimuths x range bins) array whose layout contradicts ``preset``: a side outside
     ``MIN_SCAN_SIDE..MAX_SCAN_SIDE``, more azimuth rows than range bins (a transposed array), or more range bins
@@ -245,8 +259,8 @@ def check_polar_shape(num_azimuths: int, num_range_bins: int, preset: RadarPrese
     if r > preset.num_range_bins:
         raise ScanFormatError(
             f"{source}: {r} range bins, but preset {preset.name!r} has {preset.num_range_bins} bins of "
-            f"{preset.range_resolution_m} m; pass the preset this scan was recorded with, or convert scans of "
-            "another layout or resolution with `reradar import-scans`")
+            f"{preset.range_resolution_m} m{_navtech_hint(r)}; pass the preset this scan was recorded with, or "
+            "convert scans of another layout or resolution with `reradar import-scans`")
 
 
 # ---- headers: sizes before decoding --------------------------------------------------------------------------

@@ -329,3 +329,18 @@ def test_upload_without_a_preset_takes_the_maps_where_the_scan_fits_it():
     assert load_scan_bytes(polar, "q.npy").preset == "oxford"
     npy = load_scan_bytes(polar, "q.npy", map_preset="mulran")
     assert (npy.preset, npy.range_resolution_m) == ("mulran", pytest.approx(0.0595))
+
+
+def test_a_navtech_image_sent_as_polar_gets_a_hint():
+    """QA (session 21): an .npy of a Navtech image (11 metadata columns + 3,360 bins) sent as a polar array was
+    refused with '3371 range bins, but preset boreas has 3360' and no word on scan_layout."""
+    from reradar_core.io.presets import get_preset
+    from reradar_core.io.scan import check_polar_shape, infer_preset
+
+    with pytest.raises(ScanFormatError, match=r"3371 = 11 metadata columns \+ 3360 range bins.*scan_layout=navtech"):
+        check_polar_shape(400, 3371, get_preset("boreas"), "q.npy")
+    with pytest.raises(ScanFormatError, match=r"--scan-layout navtech"):
+        infer_preset(3779, "q.npy")  # 11 + 3768 (oxford)
+    with pytest.raises(ScanFormatError) as exc:
+        infer_preset(3000, "q.npy")
+    assert "navtech" not in str(exc.value)

@@ -407,3 +407,15 @@ def test_scan_id_with_a_guessed_preset_is_refused_on_a_map_of_another_geometry(
     np.savez(buf, global_descriptor=feats.global_descriptor, keypoints_xy_m=feats.keypoints_xy_m,
              local_descriptors=feats.local_descriptors, timestamp_us=np.int64(1), preset=np.array("boreas"))
     assert decode_features(buf.getvalue())[1:] == ("boreas", False)
+
+
+def test_relative_pose_times_over_http_get_advice_that_works_over_http(client: httpx.Client) -> None:
+    """QA (session 21): POST /maps with a t,x,y,yaw CSV starting at 0 s answered with command-line advice
+    (--time-unit, time_unit=) that the HTTP API has no field for."""
+    poses = keyframe_poses()[:4]
+    csv = "t,x,y,yaw\n" + "".join(f"{0.25 * i},{float(poses[i, 0])},{float(poses[i, 1])},0.0\n" for i in range(4))
+    files = {"archive": ("a.zip", _archive([f"{keyframe_time(i)}.png" for i in range(4)])),
+             "poses": ("p.csv", csv.encode())}
+    detail = _problem(client.post("/maps", data={"map_id": "rel-times"}, files=files, headers=AUTH), 422)["detail"]
+    assert "ambiguous" in detail and "t_s,x,y,yaw" in detail
+    assert "--time-unit" not in detail and "time_unit=" not in detail

@@ -12,7 +12,7 @@ import numpy as np
 from fastapi import APIRouter, File, Form, Request, Response, UploadFile, status
 from starlette.concurrency import run_in_threadpool
 
-from reradar_core.errors import DatasetError, PoseFileError
+from reradar_core.errors import DatasetError, PoseFileError, TimeUnitError
 from reradar_core.io.datasets import check_pose_span
 from reradar_core.io.poses import read_poses
 from reradar_core.io.presets import PRESETS, get_preset, mid_sweep_times_us
@@ -107,7 +107,11 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         arch.unlink()
         pose_path = work / "poses.csv"
         _save_upload(poses, pose_path)
-        track = read_poses(pose_path).sorted()  # a binary file is a PoseFileError there
+        try:
+            track = read_poses(pose_path).sorted()  # a binary file is a PoseFileError there
+        except TimeUnitError as exc:  # the library's advice names command-line options: say what works here
+            raise PoseFileError(f"poses file: {exc.problem}; name the time column by its unit in a header line "
+                                "(t_s, t_ms, t_us or t_ns, e.g. `t_s,x,y,yaw`), or send absolute UTC times") from None
         if len(track) < 1:
             raise PoseFileError("poses upload holds no poses")
         # names are checked against MAX_SCAN_TIMESTAMP_US by extract_scan_archive, so they fit int64
