@@ -419,3 +419,21 @@ def test_relative_pose_times_over_http_get_advice_that_works_over_http(client: h
     detail = _problem(client.post("/maps", data={"map_id": "rel-times"}, files=files, headers=AUTH), 422)["detail"]
     assert "ambiguous" in detail and "t_s,x,y,yaw" in detail
     assert "--time-unit" not in detail and "time_unit=" not in detail
+
+
+def test_made_up_methods_cannot_grow_the_metrics(client: httpx.Client) -> None:
+    """QA (session 21): every invented method name (`curl -X QA123`) became new metric series: 25,000 requests
+    made /metrics 45 MB. Unknown methods now count as `other`."""
+    for i in range(20):
+        client.request(f"QA{i}X", "/healthz")
+    metrics = client.get("/metrics").text
+    assert "QA0X" not in metrics and "QA19X" not in metrics
+    assert 'reradar_http_requests_total{method="other",route="/healthz",' in metrics
+
+
+def test_localizations_of_an_unknown_map_are_404(client: httpx.Client) -> None:
+    """QA (session 21): the operator page's localizations route answered 200 with no data for an unknown map,
+    where every other map route answers 404."""
+    body = _problem(client.get("/ui/api/maps/no-such-map/localizations"), 404)
+    assert "unknown map 'no-such-map'" in body["detail"]
+    assert client.get("/ui/api/maps/qa/localizations").status_code == 200

@@ -88,8 +88,9 @@ def map_trajectory(state: StateDep, _auth: VehicleDep, map_id: MapIdPath) -> dic
 async def map_localizations(request: Request, state: StateDep, _auth: VehicleDep, map_id: MapIdPath,
                             limit: Annotated[int, Query(ge=1, le=1000)] = 50) -> dict[str, Any]:
     """The latest localizations on ``map_id``, newest first (map frame, metres, degrees; 503 when they live in
-    an unreachable Redis). Access as ``map_trajectory``: these are vehicles' positions."""
-    state.registry.validate_id(map_id)
+    an unreachable Redis; 404 for an unknown map, as every map route). Access as ``map_trajectory``: these are
+    vehicles' positions."""
+    state.registry.get(map_id)
     recent = request.app.state.ops.recent
     data = await run_in_threadpool(recent.latest, map_id, limit)
     return {"map_id": map_id, "data": data, "count": len(data)}
