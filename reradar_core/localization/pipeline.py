@@ -151,6 +151,15 @@ class LocalizationConfig:
             in full. None = every candidate in full (before). Chosen on the training splits (never a benchmark
             query; docs/BENCHMARKS.md "Session 9"): most deep rounds are queries with no map keyframe near, which
             the full screen of ~50 candidates made 3-4x as slow as a confident query.
+        min_place_margin: the winner must out-screen every candidate at a different place (keyframe farther than
+            the confidence model's ``place_radius_m``, 20 m, from the answer) by at least this fraction of the
+            query's landmarks, else the answer is ``ambiguous`` (None: no such rule). Two places that fit the scan
+            equally well are an unknown place, never a guess: the confidence's margin cue weighs such a tie, but
+            a map with one drive at two positions (two GNSS offsets, look-alike streets) still gave ties answered
+            at confidence 0.9998, 500 m off (QA, session 21). Default 0.02, chosen on the training splits (every
+            2nd query of every session, each split's own model, 5,818 runs; docs/BENCHMARKS.md "Session 21"):
+            3,886 correct / 0 wrong / 26 revisits refused against 3,887 / 0 / 25 without the rule; 0.05 and 0.1
+            refused 6 and 42 correct answers.
     """
 
     top_k: int = 10
@@ -172,6 +181,7 @@ class LocalizationConfig:
     prescreen_keep: int | None = 5
     prescreen_source_points: int = 64
     prescreen_hypotheses: int = 1000
+    min_place_margin: float | None = 0.02
 
     @property
     def prescreen_alignment(self) -> AlignmentConfig:
@@ -215,6 +225,8 @@ class LocalizationConfig:
             raise ConfigError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
         if self.prescreen_keep is not None and self.prescreen_keep < 1:
             raise ConfigError(f"prescreen_keep must be >= 1 or None, got {self.prescreen_keep}")
+        if self.min_place_margin is not None and not 0.0 <= self.min_place_margin <= 1.0:
+            raise ConfigError(f"min_place_margin must be in [0, 1] or None, got {self.min_place_margin}")
         if self.prescreen_source_points < 2 or self.prescreen_hypotheses < 1:
             raise ConfigError("prescreen_source_points must be >= 2 and prescreen_hypotheses >= 1, got "
                               f"{self.prescreen_source_points} and {self.prescreen_hypotheses}")
@@ -513,6 +525,9 @@ def _verify_and_decide(query: ScanFeatures, ordered: list[Candidate], scores: di
     if not ok:
         reason = best.reason if best.reason in (REASON_TOO_FEW_MATCHES, REASON_AMBIGUOUS) else REASON_TOO_FEW_INLIERS
         return LocalizationResult("not_localized", reason, best, None, verified, timings, confidence, cues)
+    if config.min_place_margin is not None and cues is not None and cues.margin < config.min_place_margin:
+        # another place screens about as well: which one wins is chance (``min_place_margin``)
+        return LocalizationResult("not_localized", REASON_AMBIGUOUS, best, None, verified, timings, confidence, cues)
     if config.pose_method == "guided" and confidence < config.effective_min_confidence:
         return LocalizationResult("not_localized", REASON_LOW_CONFIDENCE, best, None, verified, timings,
                                   confidence, cues)

@@ -219,7 +219,8 @@ class LocalizeResponse(_Model):
         "Why not localized: no_candidate, too_few_matches, too_few_inliers (under 12 aligned landmarks or under "
         "the aligned-ratio floor fitted with the confidence model: min_aligned_ratio in its JSON, 35 % of the "
         "query's landmarks), ambiguous (a "
-        "rival pose aligns as many landmarks), low_confidence (below min_confidence), inconsistent_with_prior "
+        "rival pose aligns as many landmarks, or a keyframe at another place, over 20 m from the answer, screens "
+        "within 2 % of the query's landmarks of the winner: localization.min_place_margin), low_confidence (below min_confidence), inconsistent_with_prior "
         "(tracking)."))
     map_id: str
     scan_id: str | None

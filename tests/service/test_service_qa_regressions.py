@@ -437,3 +437,26 @@ def test_localizations_of_an_unknown_map_are_404(client: httpx.Client) -> None:
     body = _problem(client.get("/ui/api/maps/no-such-map/localizations"), 404)
     assert "unknown map 'no-such-map'" in body["detail"]
     assert client.get("/ui/api/maps/qa/localizations").status_code == 200
+
+
+def test_a_place_that_fits_twice_is_ambiguous_not_a_guess(client: httpx.Client, tmp_path: Path,
+                                                          fake_extractor: FakeExtractor) -> None:
+    """QA (session 21): a map holding one drive twice, 500 m apart (two GNSS offsets, look-alike streets), answered
+    6 of 8 queries `localized` on the wrong copy at confidence 0.9998: the tie with a candidate at another place
+    lowered the confidence's margin cue but did not refuse. `min_place_margin` now makes such a tie `ambiguous`."""
+    from maps.build import build_map
+
+    n = fakes.N_KEYFRAMES
+    poses = keyframe_poses()
+    twice = np.concatenate([poses, poses + np.array([500.0, 0.0, 0.0])])
+    path = build_map(tmp_path / "twice.h5", fake_extractor, lambda i: make_scan(i % n, keyframe_time(i)), twice,
+                     radar_preset="boreas", name="twice", batch_size=4)
+    register_map_file(client, path, "twice")
+    for i in (2, 5):
+        scan = {"scan": ("q.png", _png(i))}
+        res = client.post("/localize", data={"map_id": "twice"}, files=scan).json()
+        assert res["status"] == "not_localized" and res["reason"] == "ambiguous" and res["pose"] is None
+        # the same scan on the map with one copy of the drive: localized at its keyframe
+        one = client.post("/localize", data={"map_id": "qa"}, files=scan).json()
+        assert one["status"] == "localized" and one["keyframe"]["keyframe_id"] == i
+    assert client.delete("/maps/twice", headers=AUTH).status_code == 200
