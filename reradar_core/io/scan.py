@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import io
 import struct
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -48,6 +49,11 @@ __all__ = [
     "ScanHeader",
     "sniff_scan_format",
     "read_png_header",
+    "png_incomplete",
+    "check_png_image_data",
+    "png_image_data_size",
+    "MAX_PNG_TEXT_BYTES",
+    "MAX_PNG_CHUNKS",
     "read_npy_header",
     "scan_header",
     "LOSSY_FORMATS",
@@ -58,6 +64,7 @@ __all__ = [
     "has_navtech_metadata",
     "MIN_SCAN_SIDE",
     "MAX_SCAN_SIDE",
+    "MAX_SCAN_TIMESTAMP_US",
 ]
 
 #: Metadata columns in front of the range bins in a Navtech PNG row.
@@ -477,6 +484,10 @@ _ENCODER_STEP_TOLERANCE = 0.5
 _MIN_NOMINAL_STEP_FRACTION = 0.8
 #: Longest plausible sweep, seconds (Navtech sensors turn at 4 Hz; a 4x margin).
 _MAX_SWEEP_S = 1.0
+#: Largest azimuth timestamp accepted, microseconds since the Unix epoch (2**62, year ~148,000): far beyond any
+#: real time, and small enough that int64 arithmetic on timestamps (mid-sweep offsets, spans) cannot overflow.
+#: Scan archives name their files within the same bound (``service.core.archive``).
+MAX_SCAN_TIMESTAMP_US = 2**62
 
 
 def check_navtech_layout(encoder: np.ndarray, timestamps_us: np.ndarray, valid: np.ndarray, num_range_bins: int,
@@ -488,7 +499,8 @@ def check_navtech_layout(encoder: np.ndarray, timestamps_us: np.ndarray, valid: 
     the scan has no more range bins than the preset (exactly as many with ``strict_bins``; a scan cropped in
     range is accepted by default); the encoder column advances by about ``5600 / A`` ticks per row
     (azimuths evenly spaced around one turn); the azimuth timestamps do not decrease and span at most one
-    second. Rows flagged invalid are ignored.
+    second. Rows flagged invalid are ignored, except that every row's timestamp must lie in
+    0..``MAX_SCAN_TIMESTAMP_US`` (a negative one, e.g. top byte 0x80 or all 0xFF, is no time).
 
     Args:
         encoder: (A,) uint16 encoder ticks (columns 8-9). timestamps_us: (A,) int64 (columns 0-7).
@@ -536,12 +548,28 @@ def _check_navtech_metadata(encoder: np.ndarray, timestamps_us: np.ndarray, vali
             f"{source}: the encoder column (8-9) does not advance by ~{nominal:.0f} ticks per azimuth row as a "
             f"Navtech sweep of {len(encoder)} azimuths does (only {nominal_rows.mean():.0%} of rows do): the image "
             f"has no Navtech metadata columns or is transposed; {hint}")
-    t = np.asarray(timestamps_us, dtype=np.int64)[rows]
-    span_s = (int(t[-1]) - int(t[0])) / 1e6
-    if np.any(np.diff(t) < 0) or not 0 <= span_s <= _MAX_SWEEP_S:
+    stamps = np.asarray(timestamps_us, dtype=np.int64)
+    # every row, flagged valid or not: the scan's timestamp is its first row's (RadarScan.timestamp_us), and
+    # int64 arithmetic on them (mid-sweep times) must not overflow; a negative one is a corrupt or foreign column
+    outside = np.flatnonzero((stamps < 0) | (stamps > MAX_SCAN_TIMESTAMP_US))
+    if len(outside):
+        r = int(outside[0])
         raise ScanFormatError(
-            f"{source}: the azimuth timestamps (columns 0-7) are not a sweep of at most {_MAX_SWEEP_S:.0f} s in "
-            f"increasing time; {hint}")
+            f"{source}: the timestamp of azimuth row {r} (columns 0-7, little-endian int64) is {int(stamps[r])} us; "
+            f"Navtech timestamps are microseconds since the Unix epoch, 0..2^62 ({len(outside)} of "
+            f"{len(stamps)} rows are outside that); {hint}")
+    t = stamps[rows]
+    back = np.flatnonzero(np.diff(t) < 0)
+    if len(back):
+        a, b = int(rows[back[0]]), int(rows[back[0] + 1])
+        raise ScanFormatError(
+            f"{source}: the azimuth timestamps (columns 0-7) decrease from row {a} to row {b} ({int(stamps[a])} -> "
+            f"{int(stamps[b])} us); a sweep's azimuths are measured in increasing time; {hint}")
+    span_s = (int(t[-1]) - int(t[0])) / 1e6
+    if span_s > _MAX_SWEEP_S:
+        raise ScanFormatError(
+            f"{source}: the azimuth timestamps (columns 0-7) span {span_s:.3g} s; one sweep takes at most "
+            f"{_MAX_SWEEP_S:.0f} s (a Navtech sensor turns at 4 Hz); {hint}")
 
 
 def _raw_from_scan(scan: RadarScan) -> np.ndarray:
@@ -570,6 +598,228 @@ def png_incomplete(data: bytes) -> bool:
             return False
         pos = end
     return True
+
+
+#: Channels per pixel of each PNG colour type (greyscale, RGB, palette, greyscale+alpha, RGBA).
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+#: Bit depths the PNG standard allows per colour type; anything else is a corrupt header.
+_PNG_BIT_DEPTHS = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: (8, 16)}
+#: Adam7 passes: (first column, first row, column step, row step).
+_ADAM7_PASSES = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+#: Compressed bytes fed to zlib per call, and most bytes one call may return: a bomb's 1000:1 runs of zeros
+#: come out in pieces of this size, never at once.
+_INFLATE_STEP = 1 << 18
+#: Most bytes the compressed text chunks (zTXt, compressed iTXt) of one PNG may inflate to, together. libpng
+#: inflates each such chunk up to 8 MB (its per-chunk limit) before the image is decoded: 200 zTXt chunks of
+#: 8 KB, each 7 MB of zeros, took 7 s of CPU in ``cv2.imdecode``; radar scans carry no text at all.
+MAX_PNG_TEXT_BYTES = 1 << 20
+
+
+#: Most chunks an uploaded PNG may have. Each costs a step of the Python chunk walks here: a 6.6 MB PNG of 1-byte
+#: IDAT chunks (509,321 of them) took 1.9 s to check; a Navtech sweep written by libpng (8 kB IDAT chunks) has
+#: 60-200, one of 1.6 M pixels in 1 kB chunks ~1,600.
+MAX_PNG_CHUNKS = 10_000
+#: Chunks of a PNG decoded here rather than by libpng: anything else (transparency, gamma, palette, text ...)
+#: might change what libpng returns, so such files go to OpenCV.
+_PLAIN_PNG_CHUNKS = frozenset({b"IHDR", b"IDAT", b"IEND"})
+
+
+def png_image_data_size(width: int, height: int, bit_depth: int, color_type: int, interlaced: bool) -> int:
+    """Bytes a PNG's IDAT stream must inflate to: one filter-type byte per row plus the row's packed pixels, for
+    the whole image or, interlaced (Adam7), for each of the 7 passes' sub-images (empty passes have no rows)."""
+    bits = bit_depth * _PNG_CHANNELS[color_type]
+
+    def rows_bytes(cols: int, rows: int) -> int:
+        return rows * (1 + (cols * bits + 7) // 8) if cols > 0 and rows > 0 else 0
+
+    if not interlaced:
+        return rows_bytes(width, height)
+    return sum(rows_bytes((width - x0 + dx - 1) // dx, (height - y0 + dy - 1) // dy)
+               for x0, y0, dx, dy in _ADAM7_PASSES)
+
+
+@dataclass(frozen=True)
+class _PngImageData:
+    """A PNG's IHDR fields and chunks, and its inflated IDAT stream when it was kept.
+
+    Attributes:
+        width, height, bit_depth, color_type, interlaced: the IHDR's fields.
+        chunks: (type, first data byte, end of data) of every chunk up to IEND.
+        rows: the inflated image data (``png_image_data_size`` bytes: a filter byte, then the row's pixels, per
+            row), or None when it was not kept.
+        stream_ended: the zlib stream ended (adler-32 checked) right after the image data.
+    """
+
+    width: int
+    height: int
+    bit_depth: int
+    color_type: int
+    interlaced: bool
+    chunks: list[tuple[bytes, int, int]]
+    rows: bytearray | None
+    stream_ended: bool
+
+
+def _png_chunks(data: bytes) -> list[tuple[bytes, int, int]]:
+    """(type, first data byte, end of data) of each chunk up to IEND (the last ones may lie beyond the end of a
+    truncated file: ``png_incomplete`` tells).
+
+    Raises:
+        ScanFormatError: more than ``MAX_PNG_CHUNKS`` chunks (the walk stops there).
+    """
+    chunks: list[tuple[bytes, int, int]] = []
+    pos = len(PNG_SIGNATURE)
+    while pos + 8 <= len(data):
+        if len(chunks) == MAX_PNG_CHUNKS:
+            raise ScanFormatError(f"upload is not a readable PNG image: more than {MAX_PNG_CHUNKS:,} chunks (a "
+                                  "Navtech PNG has a few hundred at most; write it with larger image-data chunks)")
+        length = int.from_bytes(data[pos:pos + 4], "big")
+        kind = bytes(data[pos + 4:pos + 8])
+        chunks.append((kind, pos + 8, pos + 8 + length))
+        if kind == b"IEND":
+            break
+        pos += 12 + length
+    return chunks
+
+
+def _text_payload(kind: bytes, body: memoryview) -> memoryview | None:
+    """The zlib stream of a zTXt chunk or of a compressed iTXt chunk, or None (uncompressed, or malformed: libpng
+    skips those with a warning). zTXt: keyword NUL method data; iTXt: keyword NUL flag method language NUL
+    translated keyword NUL text."""
+    raw = bytes(body)  # at most the upload's size; text chunks are rare (Navtech scans have none)
+    key_end = raw.find(b"\0", 0, 80)
+    if key_end < 1:
+        return None
+    if kind == b"zTXt":
+        return body[key_end + 2:]
+    if raw[key_end + 1:key_end + 2] != b"\x01":  # iTXt compression flag 0: plain text, nothing to inflate
+        return None
+    lang_end = raw.find(b"\0", key_end + 3)
+    trans_end = raw.find(b"\0", lang_end + 1) if lang_end >= 0 else -1
+    return body[trans_end + 1:] if trans_end >= 0 else None
+
+
+def _inflate_bounded(pieces: list[memoryview], limit: int, out: bytearray | None = None) -> tuple[int, bool]:
+    """Inflate the zlib stream split over ``pieces`` up to its end, stopping as soon as more than ``limit``
+    bytes came out; returns (bytes produced, at most ``limit`` + 1; whether the stream ended). The output is
+    copied into ``out`` (``limit`` bytes long) when given, else dropped at once: one call returns at most
+    ``_INFLATE_STEP`` bytes.
+
+    Raises:
+        zlib.error: a corrupt stream (or a wrong adler-32 at its end).
+    """
+    inflater = zlib.decompressobj()
+    produced = 0
+    for piece in pieces:
+        for pos in range(0, len(piece), _INFLATE_STEP):
+            buf: bytes | memoryview = piece[pos:pos + _INFLATE_STEP]
+            while buf and not inflater.eof:
+                chunk = inflater.decompress(buf, min(_INFLATE_STEP, limit + 1 - produced))
+                if produced + len(chunk) > limit:
+                    return limit + 1, False
+                if out is not None:
+                    out[produced:produced + len(chunk)] = chunk
+                produced += len(chunk)
+                buf = inflater.unconsumed_tail  # non-empty only when the output bound stopped the call
+            if inflater.eof:  # bytes after the stream's end are never inflated (libpng ignores them too)
+                return produced, True
+    return produced, False
+
+
+def _checked_png_image_data(data: bytes, keep: bool,
+                            chunks: list[tuple[bytes, int, int]] | None = None) -> _PngImageData:
+    """``check_png_image_data``; with ``keep`` the inflated image data of a PNG ``_plain_png_pixels`` may decode
+    (8-bit greyscale, not interlaced, IHDR / IDAT / IEND chunks only) is returned too. ``chunks``: the file's
+    ``_png_chunks``, when the caller walked them already."""
+    chunks = _png_chunks(data) if chunks is None else chunks
+    if not chunks or chunks[0][0] != b"IHDR" or chunks[0][2] - chunks[0][1] != 13:
+        raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated header)")
+    width, height, depth, color, _, _, interlace = struct.unpack(">IIBBBBB", data[chunks[0][1]:chunks[0][2]])
+    if width == 0 or height == 0 or depth not in _PNG_BIT_DEPTHS.get(color, ()) or interlace > 1:
+        raise ScanFormatError("upload is not a readable PNG image (corrupt header)")
+    view = memoryview(data)
+    expected = png_image_data_size(width, height, depth, color, interlace == 1)
+    idat = [view[start:end] for kind, start, end in chunks if kind == b"IDAT"]
+    if not idat:
+        raise ScanFormatError("upload is not a readable PNG image (corrupt: no image data)")
+    plain = depth == 8 and color == 0 and interlace == 0 and all(kind in _PLAIN_PNG_CHUNKS for kind, _, _ in chunks)
+    rows = bytearray(expected) if keep and plain else None  # only what _plain_png_pixels can decode is kept
+    try:
+        produced, ended = _inflate_bounded(idat, expected, rows)
+    except zlib.error:
+        raise ScanFormatError("upload is not a readable PNG image (corrupt compressed image data)") from None
+    if produced > expected:
+        raise ScanFormatError(
+            f"upload is not a readable PNG image: its compressed image data inflates to more than the "
+            f"{expected:,} bytes its {height} x {width} header declares (a decompression bomb, or a corrupt file)")
+    if produced < expected:
+        raise ScanFormatError(f"upload is not a readable PNG image (corrupt or truncated: its image data ends "
+                              f"after {produced:,} of the {expected:,} bytes its {height} x {width} header declares)")
+    text_budget = MAX_PNG_TEXT_BYTES
+    for kind, start, end in chunks:
+        payload = _text_payload(kind, view[start:end]) if kind in (b"zTXt", b"iTXt") else None
+        if payload is None:
+            continue
+        try:
+            text_bytes, _ = _inflate_bounded([payload], text_budget)
+        except zlib.error:  # libpng skips a corrupt text chunk with a warning: nothing to bound
+            continue
+        if text_bytes > text_budget:
+            raise ScanFormatError(
+                f"upload is not a readable PNG image: its compressed text chunks (zTXt / iTXt) inflate to more "
+                f"than {MAX_PNG_TEXT_BYTES // 2**20} MiB (a decompression bomb; a radar scan needs no text)")
+        text_budget -= text_bytes
+    return _PngImageData(width, height, depth, color, interlace == 1, chunks, rows, ended)
+
+
+def check_png_image_data(data: bytes) -> None:
+    """Refuse a complete PNG (``png_incomplete`` is False) whose compressed data would inflate to more than its
+    header allows, before any decoder sees it: libpng (OpenCV's PNG reader) inflates an IDAT stream to its end,
+    image rows or not, so a 7.7 MB PNG with ~7 GB of zeros after its 400 rows took 17-19 s of CPU in
+    ``cv2.imdecode`` and was then decoded.
+
+    The IDAT stream is inflated with its output bounded by the size the IHDR implies (``png_image_data_size``:
+    height x (1 + row bytes), summed over the Adam7 passes when interlaced) plus one byte, so a bomb costs at
+    most one image's worth of inflating (~5 ms for a Navtech sweep); compressed text chunks likewise, within
+    ``MAX_PNG_TEXT_BYTES`` together.
+
+    Raises:
+        ScanFormatError: a corrupt IHDR, no image data, image data that inflates to more or fewer bytes than the
+            header declares or is not a valid zlib stream, text chunks beyond ``MAX_PNG_TEXT_BYTES``.
+    """
+    _checked_png_image_data(data, keep=False)
+
+
+def _plain_png_pixels(data: bytes, png: _PngImageData) -> np.ndarray | None:
+    """(H, W) uint8 pixels of a PNG whose image data ``_checked_png_image_data`` kept, when it is an 8-bit
+    greyscale, non-interlaced image of IHDR / IDAT / IEND chunks only, every chunk's CRC right, its zlib stream
+    complete and every row filtered None, Sub or Up (OpenCV writes Sub rows: every Navtech PNG the simulator and
+    the clients encode); None otherwise, for ``cv2.imdecode`` to decode. The same pixels as libpng (tested),
+    without inflating the data a second time: the bomb check costs nothing on these files."""
+    if png.rows is None or not png.stream_ended:  # not plain (see _checked_png_image_data), or no zlib end
+        return None
+    view = memoryview(data)
+    for _, start, end in png.chunks:  # libpng refuses a critical chunk with a wrong CRC: so does this path
+        if zlib.crc32(view[start - 4:end]) != int.from_bytes(view[end:end + 4], "big"):
+            return None
+    rows = np.frombuffer(png.rows, dtype=np.uint8).reshape(png.height, png.width + 1)
+    filters, filtered = rows[:, 0], rows[:, 1:]
+    out = np.empty((png.height, png.width), dtype=np.uint8)
+    if np.all(filters == 1):  # Sub (bytes per pixel 1): each byte adds the one before it, modulo 256
+        np.cumsum(filtered, axis=1, dtype=np.uint8, out=out)
+        return out
+    if np.any(filters > 2):  # Average / Paeth rows depend on their left neighbour's sum: libpng's job
+        return None
+    previous = np.zeros(png.width, dtype=np.uint8)
+    for r in range(png.height):
+        if filters[r] == 0:
+            out[r] = filtered[r]
+        elif filters[r] == 1:
+            np.cumsum(filtered[r], dtype=np.uint8, out=out[r])
+        else:  # Up: adds the row above (zeros above the first row)
+            np.add(filtered[r], previous, out=out[r])
+        previous = out[r]
+    return out
 
 
 def read_navtech_png(path: str | Path, preset: str | RadarPreset | None = None) -> RadarScan:
@@ -605,9 +855,14 @@ def decode_navtech_png_bytes(data: bytes, preset: str | RadarPreset | None = Non
 
     if data[:8] != PNG_SIGNATURE:
         raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated: no PNG signature)")
+    chunks = _png_chunks(data)  # first: it stops at MAX_PNG_CHUNKS, so png_incomplete's walk is bounded too
     if png_incomplete(data):
         raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated: it ends before the PNG's last chunk)")
-    raw = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    # uploads and archive scans: a decompression bomb is refused before libpng sees it, and the inflated rows of
+    # a plain 8-bit PNG are decoded here (not inflated twice); files read from disk (read_navtech_png) are trusted
+    raw = _plain_png_pixels(data, _checked_png_image_data(data, keep=True, chunks=chunks))
+    if raw is None:
+        raw = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated)")
     return _scan_from_raw(raw, preset, "upload", lambda n: _upload_preset(n, map_preset))

@@ -2,17 +2,18 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, Path, Request, Security
 from fastapi.security import APIKeyHeader
 
+from service.api.scan_input import refuse_repeated_fields, refuse_unknown_fields
 from service.core.config import MAP_ID_PATTERN
 from service.core.errors import ServiceUnavailableError, UnauthorizedError, UnsupportedMediaError
 from service.core.state import ServiceState
 
 __all__ = ["StateDep", "ApiKeyDep", "OperatorDep", "VehicleDep", "FormDep", "MapIdPath", "get_state",
-           "require_operator", "require_vehicle", "require_form"]
+           "require_operator", "require_vehicle", "require_form", "form_fields"]
 
 
 def get_state(request: Request) -> ServiceState:
@@ -61,5 +62,20 @@ def require_form(request: Request) -> None:
 
 
 FormDep = Annotated[None, Depends(require_form)]
+
+
+def form_fields(*allowed: str) -> Any:
+    """A dependency (``Depends``) refusing a form whose fields repeat or fall outside ``allowed`` (400 naming
+    them), as inline scans on ``/localize`` and ``/retrieve`` are: FastAPI's form parameters take a repeated
+    field's last value (two ``map_id``: the second map registered) and drop unknown fields without a word. The
+    body was parsed before dependencies run; ``request.form()`` returns that parse."""
+
+    async def check_form_fields(request: Request) -> None:
+        form = await request.form()
+        refuse_repeated_fields(form)
+        refuse_unknown_fields(form, allowed)
+
+    return Depends(check_form_fields)
+
 
 MapIdPath = Annotated[str, Path(pattern=MAP_ID_PATTERN, description="Map id: [a-z0-9][a-z0-9_-]{0,63}.")]

@@ -2,16 +2,22 @@
 
 from __future__ import annotations
 
+import json
 import math
 import re
+from collections import Counter
+from collections.abc import AsyncGenerator, Iterable
+from contextlib import aclosing
 from dataclasses import dataclass, field
 from typing import Any
 
 from fastapi import Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
+from python_multipart.multipart import parse_options_header
 from starlette.concurrency import run_in_threadpool
-from starlette.datastructures import UploadFile
+from starlette.datastructures import FormData, UploadFile
+from starlette.formparsers import MultiPartParser
 
 from reradar_core.errors import ScanTooLargeError
 from reradar_core.features import ScanFeatures
@@ -28,7 +34,8 @@ from service.core.errors import BadRequestError, NotFoundError, PayloadTooLargeE
 from service.core.state import ServiceState
 
 __all__ = ["ScanInput", "read_scan_input", "scan_request_body", "UnsupportedMediaError", "check_scan_upload",
-           "read_scan_upload", "parse_scan_layout", "SCAN_LAYOUTS", "SCAN_LAYOUT_DESCRIPTION"]
+           "read_scan_upload", "parse_scan_layout", "SCAN_LAYOUTS", "SCAN_LAYOUT_DESCRIPTION", "read_multipart_form",
+           "refuse_repeated_fields", "refuse_unknown_fields", "refuse_duplicate_json_keys"]
 
 _TOP_K_FORM = re.compile(r"^[0-9]{1,6}$")
 _FLOAT_FORM = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d{1,3})?$")
@@ -96,6 +103,88 @@ def check_scan_upload(data: bytes, max_pixels: int, size: int | None = None,
     return f"scan.{header.format}"
 
 
+def refuse_repeated_fields(form: FormData) -> None:
+    """400 when a form field (or file) is given more than once: last-one-wins would silently pick a map, a
+    prior or a scan the client may not have meant."""
+    repeated = sorted(k for k, n in Counter(k for k, _ in form.multi_items()).items() if n > 1)
+    if repeated:
+        raise BadRequestError(f"form fields {repeated} are given more than once; send each field once")
+
+
+def refuse_unknown_fields(form: FormData, allowed: Iterable[str]) -> None:
+    """400 naming the form fields (or files) outside ``allowed``: a misspelt optional field would otherwise be
+    dropped without a word (``prest=mulran`` localizing with the default preset)."""
+    names = list(allowed)
+    unknown = sorted(set(form.keys()) - set(names))
+    if unknown:
+        raise BadRequestError(f"unexpected form fields {unknown}; allowed: {', '.join(names)}")
+
+
+class _DuplicateKeysError(ValueError):
+    """A JSON object names a key twice (raised by ``_pairs_without_duplicates``)."""
+
+    def __init__(self, keys: list[str]) -> None:
+        super().__init__(keys)
+        self.keys = keys
+
+
+def _pairs_without_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    found = dict(pairs)
+    if len(found) != len(pairs):
+        raise _DuplicateKeysError(sorted(k for k, n in Counter(k for k, _ in pairs).items() if n > 1))
+    return found
+
+
+def refuse_duplicate_json_keys(raw: bytes) -> None:
+    """400 when the JSON body ``raw`` names a key twice in one object (``{"map_id": "a", "map_id": "b"}``): JSON
+    parsers keep the last silently, which would localize on a map the client may not have meant. A body that is
+    no valid JSON passes here (the model's strict validation refuses it). Called once the body has validated:
+    then it is one flat object of the model's fields, so this second parse is cheap, where a hostile body of
+    millions of nested objects would cost a Python call each."""
+    try:
+        json.loads(raw, object_pairs_hook=_pairs_without_duplicates)
+    except _DuplicateKeysError as exc:
+        raise BadRequestError(f"JSON fields {exc.keys} are given more than once; send each field once") from None
+    except (ValueError, RecursionError):  # invalid JSON / UTF-8, digits beyond int's limit, deep nesting
+        return
+
+
+async def read_multipart_form(request: Request, max_files: int, max_fields: int) -> FormData:
+    """The request's multipart/form-data body parsed as ``request.form`` does, refusing a body that does not end
+    with the closing delimiter (``--boundary--``): the multipart parser drops the part that was still open
+    without a word, so a scan sent last was reported missing ("needs a file field named 'scan'") although it was
+    there. The delimiter is looked for in the stream as it is parsed (no copy of the body).
+
+    Raises:
+        BadRequestError (400): a malformed body, or one without its closing delimiter.
+    """
+    _, params = parse_options_header(request.headers.get("content-type", ""))  # as the parser reads it
+    boundary = params.get(b"boundary", b"")
+    closing = b"\r\n--" + boundary + b"--"
+    closed = False
+
+    async def stream() -> AsyncGenerator[bytes, None]:
+        nonlocal closed
+        tail = b"\r\n"  # the body's first delimiter has no CRLF before it
+        async for chunk in request.stream():
+            if not closed and chunk:
+                # the delimiter may straddle two chunks; it cannot occur inside a part (it would end the part)
+                closed = closing in tail + chunk[:len(closing)] or closing in chunk
+                tail = (tail + chunk[-len(closing):])[-len(closing):]
+            yield chunk
+
+    try:
+        async with aclosing(stream()) as body:
+            form = await MultiPartParser(request.headers, body, max_files=max_files, max_fields=max_fields).parse()
+    except Exception as exc:  # noqa: BLE001 - the multipart parser raises several types on bad input
+        raise BadRequestError(f"malformed multipart body ({exc})") from exc
+    if not closed and boundary:
+        await form.close()
+        raise BadRequestError("malformed multipart body (no closing boundary: the body must end with "
+                              "--<boundary>--, the boundary of its Content-Type); send the whole body")
+    return form
+
+
 @dataclass
 class ScanInput:
     """The request's scan features plus its other fields (validated by the route's model)."""
@@ -142,6 +231,7 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
             model = json_model.model_validate_json(raw or b"{}", strict=True)
         except ValidationError as exc:
             raise RequestValidationError(exc.errors(include_url=False)) from None
+        refuse_duplicate_json_keys(raw)  # the validator keeps a repeated key's last value
         fields = model.model_dump()
         scan_id = fields.pop("scan_id")
         cached = await run_in_threadpool(state.cache.get, scan_id)  # Redis in fleet mode: never on the event loop
@@ -152,13 +242,8 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
             state.check_cached_preset(scan_id, cached.preset, cached.preset_assumed, target)
         return ScanInput(cached.features, scan_id, fields)
     if ctype == "multipart/form-data":
-        try:
-            form = await request.form(max_files=1, max_fields=16)
-        except Exception as exc:  # noqa: BLE001 - the multipart parser raises several types on bad input
-            raise BadRequestError(f"malformed multipart body ({exc})") from exc
-        repeated = sorted({k for k in form.keys() if len(form.getlist(k)) > 1})
-        if repeated:  # last-one-wins would silently pick a map or a prior the client may not have meant
-            raise BadRequestError(f"form fields {repeated} are given more than once; send each field once")
+        form = await read_multipart_form(request, max_files=1, max_fields=16)
+        refuse_repeated_fields(form)
         upload = form.get("scan")
         if not isinstance(upload, UploadFile):
             raise BadRequestError("multipart request needs a file field named 'scan' (a Navtech PNG or .npy)")
@@ -178,10 +263,7 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
                 raise RequestValidationError([{"loc": ("body", name), "msg": "Input should be a finite decimal number",
                                                "type": "float_parsing"}])
             raw_fields[name] = value
-        unknown = sorted(set(form.keys()) - set(form_keys) - {"scan", "preset", "scan_layout"})
-        if unknown:
-            raise BadRequestError(f"unexpected form fields {unknown}; allowed: scan, preset, scan_layout, "
-                                  f"{', '.join(form_keys)}")
+        refuse_unknown_fields(form, ("scan", "preset", "scan_layout", *form_keys))
         scan_layout = parse_scan_layout(form.get("scan_layout"))
         preset = form.get("preset")
         preset = preset if isinstance(preset, str) and preset else None

@@ -1,80 +1,156 @@
-"""Safe extraction of uploaded scan archives (zip / tar / tar.gz) for map building.
+"""Safe extraction of uploaded scan archives (zip / tar / tar.gz / tar.xz / tar.bz2) for map building.
 
 Only regular files named ``<timestamp_us>.png`` or ``<timestamp_us>.npy`` are extracted, flattened into one
 folder (directory parts are dropped, so ``../`` tricks cannot escape); links, devices and other files are
-ignored; total size and file count are bounded before anything is written.
+ignored. Everything is bounded before it costs anything: the number of members of any name
+(``max_archive_members``: a zip's central directory is counted before ``zipfile`` reads it, a tar's members are
+read one at a time and not kept), the bytes all members expand to (skipping a member of a compressed tar
+decompresses it too), and the number of scans.
 """
 
 from __future__ import annotations
 
 import re
 import shutil
+import struct
 import tarfile
 import zipfile
 from pathlib import Path
 
+from reradar_core.io.scan import MAX_SCAN_TIMESTAMP_US
 from service.core.errors import BadRequestError, PayloadTooLargeError
 
-__all__ = ["extract_scan_archive", "SCAN_NAME_PATTERN", "MAX_SCAN_TIMESTAMP_US"]
+__all__ = ["extract_scan_archive", "max_archive_members", "zip_entries_exceed", "SCAN_NAME_PATTERN",
+           "MAX_SCAN_TIMESTAMP_US", "ARCHIVE_MEMBER_SLACK"]
 
 SCAN_NAME_PATTERN = re.compile(r"^(\d{1,20})\.(png|npy)$")
-#: Largest timestamp a scan file may be named with, microseconds since the Unix epoch (2**62, year ~148,000):
-#: far beyond any real time, and small enough that the int64 arithmetic on timestamps (mid-sweep offsets,
-#: time-span checks) cannot overflow.
-MAX_SCAN_TIMESTAMP_US = 2**62
+
+#: Members of other names an archive may hold beyond two per scan (see ``max_archive_members``).
+ARCHIVE_MEMBER_SLACK = 1024
+
+_ZIP_DIR_ENTRY = b"PK\x01\x02"  # a central directory entry: 46 bytes + name + extra field + comment
+_ZIP64_END = b"PK\x06\x06"  # zip64 end record (56 bytes), followed by its locator (20 bytes)
+_ZIP64_END_AND_LOCATOR = 56 + 20
+# fields of the end record zipfile._EndRecData returns: signature, directory size, the record's own offset
+_ECD_SIGNATURE, _ECD_SIZE, _ECD_LOCATION = 0, 5, 9
 
 
-def _members_zip(zf: zipfile.ZipFile) -> list[tuple[str, int, zipfile.ZipInfo]]:
-    out = []
-    for info in zf.infolist():
-        if info.is_dir():
-            continue
-        out.append((info.filename, info.file_size, info))
-    return out
+def max_archive_members(max_files: int) -> int:
+    """Most members of any name (scans, folders, other files, links) a scan archive may hold: two per scan
+    (a folder or macOS ``._`` resource file beside each) plus ``ARCHIVE_MEMBER_SLACK``; 41,024 with the default
+    ``RERADAR_MAX_ARCHIVE_SCANS`` of 20,000. Without it, 1,000,000 empty tar members (1 MB as tar.xz) took 25 s
+    and kept +490 MB of ``TarInfo`` objects resident, though no member was a scan."""
+    return 2 * max_files + ARCHIVE_MEMBER_SLACK
+
+
+def zip_entries_exceed(archive: Path, bound: int) -> bool:
+    """True when the zip ``archive``'s central directory lists more than ``bound`` entries; False when it lists
+    at most that many or is not a zip ``zipfile`` can read (it then says why itself).
+
+    ``zipfile.ZipFile`` turns the whole central directory into one ``ZipInfo`` per entry when it opens the file,
+    and walks the directory's bytes rather than trusting the entry count of the end record, so the entries are
+    counted here the same way, over at most ``bound`` + 1 entry headers, where ``zipfile`` finds them: its own
+    end-record reader (``zipfile._EndRecData``, the one ``is_zipfile`` uses: zip64 and archive comments as
+    zipfile reads them), then the directory right before that record.
+    """
+    end_record = getattr(zipfile, "_EndRecData", None)
+    if end_record is None:  # a future Python without it: zipfile reads the directory unbounded, as before
+        return False
+    with open(archive, "rb") as f:
+        try:
+            end = end_record(f)
+        except (zipfile.BadZipFile, OSError, struct.error):
+            return False
+        if not end:
+            return False
+        size_cd = int(end[_ECD_SIZE])
+        start = int(end[_ECD_LOCATION]) - size_cd  # where zipfile.ZipFile reads the directory from
+        if end[_ECD_SIGNATURE] == _ZIP64_END:
+            start -= _ZIP64_END_AND_LOCATOR
+        if start < 0:
+            return False
+        f.seek(start)
+        walked = count = 0
+        while walked < size_cd:
+            head = f.read(46)
+            if len(head) < 46 or head[:4] != _ZIP_DIR_ENTRY:
+                return False
+            count += 1
+            if count > bound:
+                return True
+            name_len, extra_len, comment_len = struct.unpack_from("<HHH", head, 28)
+            f.seek(name_len + extra_len + comment_len, 1)
+            walked += 46 + name_len + extra_len + comment_len
+    return False
 
 
 def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_bytes: int) -> list[Path]:
     """Extract the scans of ``archive`` into ``dest``; returns the scan paths sorted by timestamp.
 
     Raises:
-        BadRequestError: not a zip/tar archive, no scans, duplicate timestamps, a timestamp (microseconds)
-            above ``MAX_SCAN_TIMESTAMP_US``.
-        PayloadTooLargeError: more than ``max_files`` scans or more than ``max_total_bytes`` uncompressed.
+        BadRequestError: not a zip/tar archive, no scans, two files of one timestamp (compared as numbers:
+            ``0160.png``, ``160.png`` and ``160.npy`` are one timestamp), a timestamp (microseconds) above
+            ``MAX_SCAN_TIMESTAMP_US``.
+        PayloadTooLargeError: more than ``max_files`` scans, more than ``max_archive_members(max_files)``
+            members of any name, or members (of any name) that expand to more than ``max_total_bytes``.
     """
     dest.mkdir(parents=True, exist_ok=True)
-    written: dict[str, Path] = {}
+    written: dict[int, Path] = {}
+    max_members = max_archive_members(max_files)
+    members = 0
     total = 0
 
-    def accept(name: str, size: int) -> str | None:
-        nonlocal total
+    def count(size: int) -> None:
+        """Every member, scan or not: each costs a header parse, and a compressed tar decompresses the data
+        of those it skips too."""
+        nonlocal members, total
+        members += 1
+        if members > max_members:
+            raise PayloadTooLargeError(
+                f"scan archive holds more than {max_members:,} files and folders (at most two per scan plus "
+                f"{ARCHIVE_MEMBER_SLACK:,}, for at most {max_files:,} scans); pack only the scans")
+        total += max(size, 0)
+        if total > max_total_bytes:
+            raise PayloadTooLargeError(f"scan archive expands to more than {max_total_bytes / 2**20:.0f} MB")
+
+    def accept(name: str) -> str | None:
         base = name.replace("\\", "/").rsplit("/", 1)[-1]
         match = SCAN_NAME_PATTERN.match(base)
         if not match:
             return None
-        if int(match.group(1)) > MAX_SCAN_TIMESTAMP_US:
+        stamp = int(match.group(1))
+        if stamp > MAX_SCAN_TIMESTAMP_US:
             raise BadRequestError(f"scan archive member {base!r}: timestamp out of range (at most "
                                   f"{MAX_SCAN_TIMESTAMP_US} us); name scan files by their timestamp in "
                                   f"microseconds since the Unix epoch")
-        if base in written:
-            raise BadRequestError(f"scan archive holds two files named {base!r}")
-        total += size
-        if total > max_total_bytes:
-            raise PayloadTooLargeError(f"scan archive expands to more than {max_total_bytes / 2**20:.0f} MB")
+        if stamp in written:  # by value: "0160.png" and "160.png" would be two keyframes of one time
+            raise BadRequestError(f"scan archive holds two files with timestamp {stamp} us "
+                                  f"({written[stamp].name!r} and {base!r}); keep one scan per timestamp")
         if len(written) + 1 > max_files:
             raise PayloadTooLargeError(f"scan archive holds more than {max_files} scans")
         return base
 
+    def store(stamp_name: str, target: Path) -> None:
+        written[int(SCAN_NAME_PATTERN.match(stamp_name).group(1))] = target  # type: ignore[union-attr]
+
     if zipfile.is_zipfile(archive):
+        if zip_entries_exceed(archive, max_members):
+            raise PayloadTooLargeError(
+                f"scan archive holds more than {max_members:,} files and folders (at most two per scan plus "
+                f"{ARCHIVE_MEMBER_SLACK:,}, for at most {max_files:,} scans); pack only the scans")
         try:
             with zipfile.ZipFile(archive) as zf:
-                for name, size, info in _members_zip(zf):
-                    base = accept(name, size)
+                for info in zf.infolist():
+                    count(info.file_size)
+                    if info.is_dir():
+                        continue
+                    base = accept(info.filename)
                     if base is None:
                         continue
                     target = dest / base
                     with zf.open(info) as src, open(target, "wb") as dst:
                         shutil.copyfileobj(src, dst, length=1 << 20)
-                    written[base] = target
+                    store(base, target)
         except (zipfile.BadZipFile, OSError, EOFError) as exc:
             raise BadRequestError(f"scan archive is a corrupt zip file ({exc})") from exc
     else:
@@ -84,10 +160,14 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
             raise BadRequestError("scan archive is not a .zip, .tar or .tar.gz archive") from None
         try:
             with tf:
-                for member in tf:
+                while (member := tf.next()) is not None:
+                    # TarFile.next() appends every member to tf.members (getmembers() would read them all):
+                    # drop them, so memory stays flat however many members there are
+                    tf.members.clear()  # type: ignore[attr-defined]  # typeshed does not declare it
+                    count(member.size)
                     if not member.isfile():
                         continue  # links, devices, folders
-                    base = accept(member.name, member.size)
+                    base = accept(member.name)
                     if base is None:
                         continue
                     fobj = tf.extractfile(member)
@@ -96,7 +176,7 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
                     target = dest / base
                     with fobj, open(target, "wb") as dst:
                         shutil.copyfileobj(fobj, dst, length=1 << 20)
-                    written[base] = target
+                    store(base, target)
         except (tarfile.TarError, OSError, EOFError) as exc:
             detail = " ".join(str(exc).split())  # one line
             raise BadRequestError(f"scan archive is a corrupt or truncated tar(.gz) file ({detail})") from exc
@@ -104,4 +184,4 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
         raise BadRequestError(
             "scan archive holds no scans: expected files named <timestamp_us>.png (Navtech) or <timestamp_us>.npy"
         )
-    return sorted(written.values(), key=lambda p: int(SCAN_NAME_PATTERN.match(p.name).group(1)))  # type: ignore[union-attr]
+    return [written[stamp] for stamp in sorted(written)]

@@ -16,7 +16,7 @@ from reradar_core.errors import DatasetError, PoseFileError, TimeUnitError
 from reradar_core.io.datasets import check_pose_span
 from reradar_core.io.poses import read_poses
 from reradar_core.io.presets import PRESETS, get_preset, mid_sweep_times_us
-from service.api.deps import ApiKeyDep, FormDep, MapIdPath, StateDep
+from service.api.deps import ApiKeyDep, FormDep, MapIdPath, StateDep, form_fields
 from service.api.scan_input import read_scan_input, scan_request_body
 from service.api.schemas import (
     ErrorResponse,
@@ -86,6 +86,9 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
     if map_file is not None:
         if poses is not None:
             raise BadRequestError("'poses' goes with 'archive', not with 'map_file'")
+        if preset is not None:  # it would be ignored: a map file records the preset it was built with
+            raise BadRequestError("'preset' applies to a scan 'archive' (the preset of its scans); a prebuilt "
+                                  "'map_file' carries its own preset: leave 'preset' out")
         staged = registry.staging_dir() / f"{uuid.uuid4().hex}.h5"
         if _save_upload(map_file, staged) == 0:
             staged.unlink(missing_ok=True)
@@ -138,6 +141,7 @@ def register_map(
     state: StateDep,
     _auth: ApiKeyDep,
     _form: FormDep,
+    _fields: Annotated[None, form_fields("map_id", "map_file", "archive", "poses", "preset")],
     response: Response,
     map_id: Annotated[str, Form(pattern=MAP_ID_PATTERN, description="New map id.")],
     map_file: Annotated[UploadFile | None, File(description="A prebuilt HDF5 map (docs/MAP_FORMAT.md).")] = None,

@@ -7,7 +7,7 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, File, Form, UploadFile, status
 from starlette.concurrency import run_in_threadpool
 
-from service.api.deps import FormDep, StateDep
+from service.api.deps import FormDep, StateDep, form_fields
 from service.api.scan_input import SCAN_LAYOUT_DESCRIPTION, read_scan_upload
 from service.api.schemas import ErrorResponse, ScanInfo
 from service.core.config import MAP_ID_PATTERN
@@ -23,6 +23,7 @@ _ERRORS: dict[int | str, dict[str, Any]] = {400: {"model": ErrorResponse}, 413: 
 async def upload_scan(
     state: StateDep,
     _form: FormDep,
+    _fields: Annotated[None, form_fields("scan", "preset", "scan_layout", "map_id")],
     scan: Annotated[UploadFile, File(description="Navtech polar PNG or .npy array (see scan_layout).")],
     preset: Annotated[str | None, Form(description=(
         "Radar preset (default: the map's, with `map_id`, when the scan fits it; else inferred from the bin "
