@@ -19,7 +19,11 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import logging
+import mmap
 import os
+import struct
+import subprocess
+import sys
 import threading
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -49,6 +53,14 @@ __all__ = [
     "read_metadata",
     "KEYPOINT_RANGE_MARGIN_M",
     "MAX_KEYPOINT_RANGE_M",
+    "UNKNOWN_RADAR_PRESET",
+    "MAX_DESCRIPTOR_DIM",
+    "MAX_LOCAL_DESCRIPTOR_DIM",
+    "MAX_KEYPOINTS_PER_KEYFRAME",
+    "MAX_STORAGE_EXPANSION",
+    "DESCRIPTOR_NORM_TOLERANCE",
+    "PROBE_TIMEOUT_S",
+    "probe_map",
 ]
 
 logger = logging.getLogger(__name__)
@@ -66,6 +78,25 @@ KEYPOINT_RANGE_MARGIN_M = 50.0
 #: beyond the sensor's range, and a far keypoint would make the landmark grid built at load time grow with the
 #: square of its distance (a keypoint at 2.5 km: ~1 GB).
 MAX_KEYPOINT_RANGE_M = max(p.max_range_m for p in PRESETS.values()) + KEYPOINT_RANGE_MARGIN_M
+#: ``radar_preset`` of a map built from scans whose preset was not known (``MapRegistry.start_build``,
+#: ``BuildQueue``); the only accepted value that is not a name of ``reradar_core.io.presets.PRESETS``.
+UNKNOWN_RADAR_PRESET = "unknown"
+#: Largest accepted ``descriptor_dim`` and ``local_descriptor_dim`` (the shipped model: 256 and 32); they size
+#: arrays read at open, so an absurd value is refused before anything is read.
+MAX_DESCRIPTOR_DIM = 4096
+MAX_LOCAL_DESCRIPTOR_DIM = 1024
+#: Largest accepted keypoint count of one keyframe: more than one per pixel of any Cartesian image a model
+#: describes (the shipped model keeps 512 of a 201 x 201 image).
+MAX_KEYPOINTS_PER_KEYFRAME = 65_536
+#: A dataset may declare at most this many times the bytes the file stores for it (plus
+#: ``_STORAGE_SLACK_BYTES``): an HDF5 dataset whose chunks were never written, or that compresses 1000:1, reads
+#: as gigabytes of fill value from a small upload. Map data (floats) compresses less than 4:1.
+MAX_STORAGE_EXPANSION = 32
+_STORAGE_SLACK_BYTES = 4096
+#: Accepted deviation of a global descriptor's L2 norm from 1 (float32 rounding is ~1e-7); unit rows keep the
+#: descriptor distance ``sqrt(2 - 2 <a, b>)`` within [0, 2].
+DESCRIPTOR_NORM_TOLERANCE = 1e-3
+_INT64_MAX = int(np.iinfo(np.int64).max)
 
 _ATTR_FIELDS = (
     "schema_version",
@@ -138,12 +169,27 @@ def check_model(metadata: MapMetadata, model_id: str, weights_sha256: str, path:
         )
 
 
+#: What h5py raises on a damaged file or object (a corrupt header, a truncated file, a member of the wrong kind);
+#: every read path turns them into ``MapFormatError``, so a bad upload is refused (422), never a server error.
+_H5_ERRORS = (KeyError, OSError, RuntimeError, TypeError, ValueError)
+
+
+def _h5_reason(exc: BaseException, path: Path) -> str:
+    """The HDF5 library's reason for ``exc``, without the server folder of ``path`` (open errors may name it)."""
+    text = str(exc) or type(exc).__name__
+    for full in {str(path.resolve()), str(path)}:
+        text = text.replace(full, path.name)
+    return text
+
+
 def _dataset(group: h5py.Group, name: str, path: Path) -> h5py.Dataset:
-    """``group[name]`` if it is a plain dataset stored in this file.
+    """``group[name]`` if it is a plain dataset stored in this file (its data is not read).
 
     Uploaded maps are untrusted: soft/external links, external raw storage and virtual datasets could make
     the server read other files, so they are refused.
     """
+    if not isinstance(group, h5py.Group):
+        raise MapFormatError(f"{path}: '{group.name}' is not a group")
     link = group.get(name, getlink=True)
     if link is None:
         raise MapFormatError(f"{path}: map has no '{group.name.rstrip('/')}/{name}'")
@@ -155,6 +201,30 @@ def _dataset(group: h5py.Group, name: str, path: Path) -> h5py.Dataset:
     if ds.external or ds.is_virtual:
         raise MapFormatError(f"{path}: '{ds.name}' uses external or virtual storage; maps must be self-contained")
     return ds
+
+
+def _check_layout(ds: h5py.Dataset, shape: tuple[int, ...], kinds: str, dtype_name: str, path: Path,
+                  meaning: str) -> None:
+    """Refuse ``ds`` unless it has ``shape`` and a dtype of a numpy kind in ``kinds`` (``i``/``u`` integers, ``f``
+    floats). Only the dataset's header is consulted: a declared-huge dataset is refused before it is read.
+    ``meaning`` says where ``shape`` comes from, for the message."""
+    if ds.shape != shape:
+        raise MapFormatError(f"{path}: '{ds.name}' has shape {ds.shape}, expected {shape} ({meaning})")
+    if ds.dtype.kind not in kinds:
+        raise MapFormatError(f"{path}: '{ds.name}' has dtype {ds.dtype}, expected {dtype_name}")
+
+
+def _check_stored(ds: h5py.Dataset, path: Path) -> None:
+    """Refuse a dataset that declares more than ``MAX_STORAGE_EXPANSION`` times the bytes the file stores for it
+    (header only): chunks never written read as fill value, so a small file could fill the server's memory."""
+    declared = int(ds.size) * ds.dtype.itemsize
+    if declared <= _STORAGE_SLACK_BYTES:
+        return
+    stored = int(ds.id.get_storage_size())
+    if declared > MAX_STORAGE_EXPANSION * stored + _STORAGE_SLACK_BYTES:
+        raise MapFormatError(
+            f"{path}: '{ds.name}' declares {declared} bytes of data but the file stores {stored} bytes for it; "
+            f"datasets must be written in full (compressed at most {MAX_STORAGE_EXPANSION}:1)")
 
 
 def _check_links(f: h5py.File, path: Path) -> None:
@@ -175,11 +245,35 @@ def _check_links(f: h5py.File, path: Path) -> None:
         raise MapFormatError(f"{path}: {found[0]}; maps must be self-contained (no soft or external links)")
 
 
-def _check_keyframe(kps: np.ndarray, desc: np.ndarray, path: Path, index: int) -> None:
-    """Refuse keypoints that are not finite or lie beyond ``MAX_KEYPOINT_RANGE_M`` of the sensor, and local
-    descriptors that are not finite. ``kps`` (K, 2) float32 metres, ``desc`` (K, C) float16."""
+def _check_keyframe_datasets(kps: h5py.Dataset, desc: h5py.Dataset, local_dim: int, path: Path,
+                             index: int) -> None:
+    """Header checks of keyframe ``index``'s datasets, before they are read: ``keypoints_xy_m`` (K, 2) float with
+    K <= ``MAX_KEYPOINTS_PER_KEYFRAME``, ``local_descriptors`` (K, ``local_dim``) float, both stored in full."""
+    if kps.shape is None or len(kps.shape) != 2 or kps.shape[1] != 2:
+        raise MapFormatError(f"{path}: keyframe {index}: keypoints_xy_m has shape {kps.shape}, expected (K, 2)")
+    k = int(kps.shape[0])
+    if k > MAX_KEYPOINTS_PER_KEYFRAME:
+        raise MapFormatError(f"{path}: keyframe {index} has {k} keypoints; at most {MAX_KEYPOINTS_PER_KEYFRAME} "
+                             f"per keyframe are accepted")
+    if kps.dtype.kind != "f":
+        raise MapFormatError(f"{path}: '{kps.name}' has dtype {kps.dtype}, expected float32")
+    _check_layout(desc, (k, local_dim), "f", "float16", path,
+                  f"one row of local_descriptor_dim = {local_dim} values per keypoint")
+    _check_stored(kps, path)
+    _check_stored(desc, path)
+
+
+def _check_keyframe(kps: np.ndarray, desc: np.ndarray, path: Path, index: int, local_dim: int | None = None) -> None:
+    """Refuse keypoints that are not (K, 2), not finite or lie beyond ``MAX_KEYPOINT_RANGE_M`` of the sensor, and
+    local descriptors that are not (K, ``local_dim``) (when given) or not finite. ``kps`` (K, 2) float32 metres,
+    ``desc`` (K, C) float16."""
     if kps.ndim != 2 or kps.shape[-1] != 2:
         raise MapFormatError(f"{path}: keyframe {index}: keypoints_xy_m has shape {kps.shape}, expected (K, 2)")
+    if local_dim is not None and desc.shape != (kps.shape[0], local_dim):
+        # another width than the map's (and the model's) C breaks every comparison with a query's descriptors
+        raise MapFormatError(
+            f"{path}: keyframe {index}: local_descriptors has shape {desc.shape}, expected ({kps.shape[0]}, "
+            f"{local_dim}) (one row of local_descriptor_dim = {local_dim} values per keypoint)")
     if not np.all(np.isfinite(kps)):
         raise MapFormatError(f"{path}: keyframe {index}: keypoints_xy_m contain NaN/inf; keypoints must be finite")
     if kps.size:
@@ -192,11 +286,84 @@ def _check_keyframe(kps: np.ndarray, desc: np.ndarray, path: Path, index: int) -
         raise MapFormatError(f"{path}: keyframe {index}: local_descriptors contain NaN/inf")
 
 
+def _check_timestamps(ts: np.ndarray, path: Path) -> np.ndarray:
+    """``/timestamps_us`` (N,) of an integer dtype as int64, refused unless non-negative, within int64 and unique
+    (each keyframe is a scan of its own time; the builder writes them in drive order, increasing, but a map may
+    hold its keyframes in another order)."""
+    if ts.size and (int(ts.min()) < 0 or int(ts.max()) > _INT64_MAX):
+        raise MapFormatError(f"{path}: /timestamps_us must be non-negative microseconds within int64, found "
+                             f"{int(ts.min())} .. {int(ts.max())}")
+    ts = ts.astype(np.int64)
+    ordered = np.sort(ts)
+    repeated = ordered[1:][ordered[1:] == ordered[:-1]]
+    if repeated.size:
+        raise MapFormatError(f"{path}: keyframe timestamp {int(repeated[0])} us appears more than once in "
+                             f"/timestamps_us; each keyframe needs its own scan time")
+    return ts
+
+
+def _check_global_descriptors(g: np.ndarray, path: Path) -> None:
+    """Refuse global descriptors (N, D) float32 that are not finite or not L2-normalised
+    (``DESCRIPTOR_NORM_TOLERANCE``): the index compares them by inner product."""
+    if not np.all(np.isfinite(g)):
+        raise MapFormatError(f"{path}: /global_descriptors contain NaN/inf (or values beyond float32)")
+    norms = np.sqrt(np.einsum("ij,ij->i", g, g, dtype=np.float64))
+    bad = np.flatnonzero(np.abs(norms - 1.0) > DESCRIPTOR_NORM_TOLERANCE)
+    if bad.size:
+        i = int(bad[0])
+        raise MapFormatError(
+            f"{path}: the global descriptor of keyframe {i} has L2 norm {norms[i]:.6g}; global descriptors must be "
+            f"L2-normalised (norm 1 +- {DESCRIPTOR_NORM_TOLERANCE:g})")
+
+
+def _show(value: object) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _attr_value(attrs: h5py.AttributeManager, key: str, path: Path) -> object:
+    """Root attribute ``key`` as one value; its shape is checked before it is read (an attribute may hold an
+    array of any size)."""
+    shape = attrs.get_id(key).shape
+    if shape not in ((), (1,)):
+        raise MapFormatError(f"{path}: root attribute {key!r} must be a single value, found shape {shape}")
+    value = attrs[key]
+    return value.reshape(-1)[0] if isinstance(value, np.ndarray) else value
+
+
+def _str_attr(attrs: h5py.AttributeManager, key: str, path: Path) -> str:
+    value = _attr_value(attrs, key, path)
+    return value.decode(errors="replace") if isinstance(value, bytes) else str(value)
+
+
+def _int_attr(attrs: h5py.AttributeManager, key: str, path: Path, low: int, high: int | None = None) -> int:
+    """Root attribute ``key`` as an int in [``low``, ``high``] (an integral float is accepted)."""
+    value = _attr_value(attrs, key, path)
+    integral = isinstance(value, int | np.integer) or (
+        isinstance(value, float | np.floating) and np.isfinite(value) and float(value).is_integer())
+    if isinstance(value, bool | np.bool_) or not integral:
+        raise MapFormatError(f"{path}: root attribute {key!r} must be an integer, found {_show(value)}")
+    number = int(value)  # type: ignore[call-overload]
+    if number < low or (high is not None and number > high):
+        bound = f"between {low} and {high}" if high is not None else f">= {low}"
+        raise MapFormatError(f"{path}: root attribute {key} = {number} must be {bound}")
+    return number
+
+
+def _positive_float_attr(attrs: h5py.AttributeManager, key: str, path: Path) -> float:
+    value = _attr_value(attrs, key, path)
+    if (isinstance(value, bool | np.bool_) or not isinstance(value, int | float | np.integer | np.floating)
+            or not np.isfinite(value) or float(value) <= 0):
+        raise MapFormatError(f"{path}: root attribute {key!r} must be a positive number, found {_show(value)}")
+    return float(value)
+
+
 def _read_metadata(f: h5py.File, path: Path) -> MapMetadata:
+    """The root attributes, each checked for its type and range (``docs/MAP_FORMAT.md``)."""
     attrs = f.attrs
     if "schema_version" not in attrs:
         raise MapFormatError(f"{path}: not a ReRadar map (no schema_version attribute)")
-    version = int(attrs["schema_version"])
+    version = _int_attr(attrs, "schema_version", path, 0)
     if version != SCHEMA_VERSION:
         raise MapFormatError(
             f"{path}: map schema_version {version} is not supported (this build reads {SCHEMA_VERSION}); "
@@ -205,20 +372,24 @@ def _read_metadata(f: h5py.File, path: Path) -> MapMetadata:
     missing = [k for k in _ATTR_FIELDS if k not in attrs]
     if missing:
         raise MapFormatError(f"{path}: map is missing root attributes {missing}")
+    preset = _str_attr(attrs, "radar_preset", path)
+    if preset != UNKNOWN_RADAR_PRESET and preset.lower() not in PRESETS:
+        # scans are decoded with the map's preset: an unknown name fails every localization
+        raise MapFormatError(f"{path}: radar_preset {preset[:40]!r} is not a known radar preset; use one of "
+                             f"{sorted(PRESETS)} (or {UNKNOWN_RADAR_PRESET!r})")
 
     def s(key: str) -> str:
-        v = attrs[key]
-        return v.decode() if isinstance(v, bytes) else str(v)
+        return _str_attr(attrs, key, path)
 
     return MapMetadata(
         model_id=s("model_id"),
         weights_sha256=s("weights_sha256"),
-        radar_preset=s("radar_preset"),
-        cartesian_width_px=int(attrs["cartesian_width_px"]),
-        cartesian_resolution_m=float(attrs["cartesian_resolution_m"]),
-        descriptor_dim=int(attrs["descriptor_dim"]),
-        local_descriptor_dim=int(attrs["local_descriptor_dim"]),
-        num_keyframes=int(attrs["num_keyframes"]),
+        radar_preset=preset,
+        cartesian_width_px=_int_attr(attrs, "cartesian_width_px", path, 1),
+        cartesian_resolution_m=_positive_float_attr(attrs, "cartesian_resolution_m", path),
+        descriptor_dim=_int_attr(attrs, "descriptor_dim", path, 1, MAX_DESCRIPTOR_DIM),
+        local_descriptor_dim=_int_attr(attrs, "local_descriptor_dim", path, 1, MAX_LOCAL_DESCRIPTOR_DIM),
+        num_keyframes=_int_attr(attrs, "num_keyframes", path, 0),
         created_utc=s("created_utc"),
         source=s("source"),
         name=s("name"),
@@ -234,11 +405,47 @@ def _pose_time(attrs: h5py.AttributeManager, path: Path) -> str:
                        "sweep behind the mid-sweep poses answers refer to (docs/CONVENTIONS.md); rebuild it",
                        path.name)
         return POSE_TIME_FIRST_AZIMUTH
-    v = attrs["pose_time"]
-    value = v.decode() if isinstance(v, bytes) else str(v)
+    value = _str_attr(attrs, "pose_time", path)
     if value not in (POSE_TIME_MID_SWEEP, POSE_TIME_FIRST_AZIMUTH):
-        raise MapFormatError(f"{path}: unknown pose_time {value!r} (expected {POSE_TIME_MID_SWEEP!r})")
+        raise MapFormatError(f"{path}: unknown pose_time {value[:40]!r} (expected {POSE_TIME_MID_SWEEP!r})")
     return value
+
+
+#: A global heap collection (``GCOL``; where HDF5 keeps variable-length strings: the map's text attributes):
+#: signature, version 1, 3 reserved zero bytes, then its size (8 bytes); each object inside it has a 16-byte header
+#: (index 2, reference count 2, reserved 4, size 8) followed by its data padded to 8 bytes.
+_GCOL_SIGNATURE = b"GCOL"
+_GCOL_HEADER = struct.Struct("<4sB3sQ")
+_GCOL_OBJECT = struct.Struct("<HHIQ")
+
+
+def _check_global_heaps(path: Path) -> None:
+    """Refuse a file holding a damaged global heap collection, before HDF5 parses it: the library (2.0) loops
+    forever on an object of size 0 or one overrunning its collection, at 100 % CPU with its lock held, which
+    would block every map read of the process. Scans the whole file for collections (~0.7 s per GB), so it runs
+    on uploads only (``probe_map``), not at every open of a map the service wrote or was given on disk."""
+    with open(path, "rb") as fh:
+        size = fh.seek(0, os.SEEK_END)
+        if size < _GCOL_HEADER.size:
+            return  # h5py refuses it as not HDF5
+        with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+            pos = mm.find(_GCOL_SIGNATURE)
+            while 0 <= pos <= size - _GCOL_HEADER.size:
+                _, version, reserved, length = _GCOL_HEADER.unpack_from(mm, pos)
+                if version == 1 and reserved == b"\0\0\0":  # else the 4 bytes are data, not a collection
+                    end = pos + length
+                    if length < _GCOL_HEADER.size or end > size:
+                        raise MapFormatError(f"{path}: corrupt map file (global heap at byte {pos} overruns the "
+                                             f"file)")
+                    p = pos + _GCOL_HEADER.size
+                    while p + _GCOL_OBJECT.size <= end:  # HDF5's own walk; a shorter tail is free space
+                        index, _, _, obj_size = _GCOL_OBJECT.unpack_from(mm, p)
+                        step = _GCOL_OBJECT.size + -(-obj_size // 8) * 8 if index else obj_size
+                        if step == 0 or p + step > end:
+                            raise MapFormatError(f"{path}: corrupt map file (global heap at byte {pos} is "
+                                                 f"damaged)")
+                        p += step
+                pos = mm.find(_GCOL_SIGNATURE, pos + 1)
 
 
 def _open_h5(path: Path) -> h5py.File:
@@ -246,15 +453,26 @@ def _open_h5(path: Path) -> h5py.File:
         raise MapFormatError(f"{path}: no such map file")
     try:
         return h5py.File(path, "r")
-    except OSError as exc:
-        raise MapFormatError(f"{path}: not a readable HDF5 map ({exc})") from exc
+    except MapFormatError:
+        raise
+    except _H5_ERRORS as exc:
+        raise MapFormatError(f"{path}: not a readable HDF5 map ({_h5_reason(exc, path)})") from exc
 
 
 def read_metadata(path: str | Path) -> MapMetadata:
-    """Read only the root attributes of the map at ``path`` (cheap; validates the schema version)."""
+    """Read only the root attributes of the map at ``path`` (cheap; validates them, ``_read_metadata``).
+
+    Raises:
+        MapFormatError: not a map, a damaged file, or invalid attributes.
+    """
     path = Path(path)
     with _open_h5(path) as f:
-        return _read_metadata(f, path)
+        try:
+            return _read_metadata(f, path)
+        except MapFormatError:
+            raise
+        except _H5_ERRORS as exc:
+            raise MapFormatError(f"{path}: corrupt map file ({_h5_reason(exc, path)})") from exc
 
 
 class KeyframeMap:
@@ -285,34 +503,40 @@ class KeyframeMap:
         except MapFormatError:
             self.close()
             raise
-        except (KeyError, OSError, ValueError, TypeError) as exc:
+        except _H5_ERRORS as exc:  # a damaged file: h5py's own errors (e.g. "Link visitation failed")
             self.close()
-            raise MapFormatError(f"{self.path}: corrupt map ({exc})") from exc
+            raise MapFormatError(f"{self.path}: corrupt map file ({_h5_reason(exc, self.path)})") from exc
 
     def _read_arrays(self, f: h5py.File) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        n = self.metadata.num_keyframes
-        d = self.metadata.descriptor_dim
+        """Timestamps (N,) int64, poses (N, 3) float64 and global descriptors (N, D) float32: each dataset's
+        header (shape, dtype, stored size) is checked before it is read, its values after."""
+        path, n, d = self.path, self.metadata.num_keyframes, self.metadata.descriptor_dim
         if not isinstance(f.get("keyframes", getlink=True), h5py.HardLink) or not isinstance(f["keyframes"], h5py.Group):
-            raise MapFormatError(f"{self.path}: map has no '/keyframes' group")
-        ts = np.asarray(_dataset(f, "timestamps_us", self.path)[()], dtype=np.int64)
-        poses_ds = _dataset(f, "poses", self.path)
+            raise MapFormatError(f"{path}: map has no '/keyframes' group")
+        # first, as N sizes everything read below: the groups exist in the file, so N is bounded by its size
+        groups = len(f["keyframes"])
+        if groups != n:
+            raise MapFormatError(f"{path}: {groups} keyframe groups for num_keyframes = {n}")
+        ts_ds = _dataset(f, "timestamps_us", path)
+        _check_layout(ts_ds, (n,), "iu", "int64 (integer microseconds)", path, f"one per keyframe, num_keyframes = {n}")
+        poses_ds = _dataset(f, "poses", path)
         if poses_ds.dtype != np.float64:
-            raise MapFormatError(f"{self.path}: /poses must be float64, found {poses_ds.dtype}")
+            raise MapFormatError(f"{path}: /poses must be float64, found {poses_ds.dtype}")
+        _check_layout(poses_ds, (n, 3), "f", "float64", path, f"(x, y, yaw) per keyframe, num_keyframes = {n}")
+        g_ds = _dataset(f, "global_descriptors", path)
+        _check_layout(g_ds, (n, d), "f", "float32", path, f"num_keyframes = {n} x descriptor_dim = {d}")
+        _check_stored(g_ds, path)
+        ts = _check_timestamps(np.asarray(ts_ds[()]), path)
         poses = np.asarray(poses_ds[()], dtype=np.float64)
-        g = np.asarray(_dataset(f, "global_descriptors", self.path)[()], dtype=np.float32)
-        if ts.shape != (n,) or poses.shape != (n, 3) or g.shape != (n, d):
-            raise MapFormatError(
-                f"{self.path}: inconsistent shapes: timestamps {ts.shape}, poses {poses.shape}, "
-                f"global descriptors {g.shape} for num_keyframes={n}, descriptor_dim={d}"
-            )
-        if not (np.all(np.isfinite(poses)) and np.all(np.isfinite(g))):
-            raise MapFormatError(f"{self.path}: poses or descriptors contain NaN/inf")
+        if not np.all(np.isfinite(poses)):
+            raise MapFormatError(f"{path}: /poses contain NaN/inf")
         if np.any(np.abs(poses[:, :2]) > MAX_ABS_COORDINATE_M):
-            raise MapFormatError(f"{self.path}: keyframe poses must lie within +-{MAX_ABS_COORDINATE_M:.0e} m of "
+            raise MapFormatError(f"{path}: keyframe poses must lie within +-{MAX_ABS_COORDINATE_M:.0e} m of "
                                  f"the map origin")
-        if len(f["keyframes"]) != n:
-            raise MapFormatError(f"{self.path}: {len(f['keyframes'])} keyframe groups for {n} keyframes")
-        return ts, poses, np.ascontiguousarray(g)
+        with np.errstate(over="ignore"):  # float64 beyond float32 becomes inf, refused just below
+            g = np.ascontiguousarray(g_ds[()], dtype=np.float32)
+        _check_global_descriptors(g, path)
+        return ts, poses, g
 
     def __len__(self) -> int:
         return self.metadata.num_keyframes
@@ -326,6 +550,7 @@ class KeyframeMap:
         """
         if not 0 <= index < len(self):
             raise IndexError(f"keyframe {index} out of range [0, {len(self)})")
+        local_dim = self.metadata.local_descriptor_dim
         with self._lock:
             if self._file is None:
                 raise MapFormatError(f"{self.path}: map is closed")
@@ -335,17 +560,24 @@ class KeyframeMap:
                 if not isinstance(kgroup.get(name, getlink=True), h5py.HardLink):
                     raise MapFormatError(f"{self.path}: keyframe {index} is missing or a link")
                 grp = kgroup[name]
-                kps = np.asarray(_dataset(grp, "keypoints_xy_m", self.path)[()], dtype=np.float32)
-                desc = np.asarray(_dataset(grp, "local_descriptors", self.path)[()], dtype=np.float16)
+                if not isinstance(grp, h5py.Group):
+                    raise MapFormatError(f"{self.path}: keyframe {index}: '/keyframes/{name}' is not a group")
+                kps_ds = _dataset(grp, "keypoints_xy_m", self.path)
+                desc_ds = _dataset(grp, "local_descriptors", self.path)
+                _check_keyframe_datasets(kps_ds, desc_ds, local_dim, self.path, index)
+                with np.errstate(over="ignore"):  # values beyond float16/32 become inf, refused by _check_keyframe
+                    kps = np.asarray(kps_ds[()], dtype=np.float32)
+                    desc = np.asarray(desc_ds[()], dtype=np.float16)
                 if self.global_descriptors is not None:
                     g = self.global_descriptors[index]
-                else:  # released after indexing: read the one row from disk
+                else:  # released after indexing: read the one row from disk (checked at open)
                     g = np.asarray(_dataset(self._file, "global_descriptors", self.path)[index], dtype=np.float32)
             except MapFormatError:
                 raise
-            except (KeyError, OSError, ValueError) as exc:
-                raise MapFormatError(f"{self.path}: keyframe {index} is damaged ({exc})") from exc
-        _check_keyframe(kps, desc, self.path, index)
+            except _H5_ERRORS as exc:
+                raise MapFormatError(
+                    f"{self.path}: keyframe {index} is damaged ({_h5_reason(exc, self.path)})") from exc
+        _check_keyframe(kps, desc, self.path, index, local_dim)
         try:
             return ScanFeatures(g, kps, desc, int(self.timestamps_us[index]))
         except ValueError as exc:
@@ -401,6 +633,58 @@ def open_map(path: str | Path, model_id: str | None = None, weights_sha256: str 
             kf_map.close()
             raise
     return kf_map
+
+
+#: Seconds the child process of ``probe_map`` may take to read a map through (a 512 MB map reads in seconds).
+PROBE_TIMEOUT_S = 300.0
+#: exit status of the ``probe_map`` child for a map refused with ``MapFormatError`` (its message on stdout)
+_PROBE_REFUSED = 3
+_PROBE_CODE = "import sys; from maps.store import _probe_main; sys.exit(_probe_main(sys.argv[1]))"
+
+
+def _probe_main(path: str) -> int:
+    """``probe_map``'s child: open the map and read every keyframe; 0 if it passes, ``_PROBE_REFUSED`` (the
+    message on stdout) if it is refused."""
+    logging.disable(logging.WARNING)  # nobody reads the child's log; a refusal is reported through stdout
+    try:
+        with KeyframeMap(path) as kf_map:
+            for i in range(len(kf_map)):
+                kf_map.read_keyframe(i)
+    except MapFormatError as exc:
+        sys.stdout.write(str(exc))
+        return _PROBE_REFUSED
+    return 0
+
+
+def probe_map(path: str | Path, timeout_s: float = PROBE_TIMEOUT_S) -> None:
+    """Open the untrusted map at ``path`` and read every keyframe through the checks in a child process, before
+    this process touches it (uploads). The HDF5 library is not hardened against crafted files: a damaged variable-
+    length string type or heap makes it crash (segfault) or spin forever, which here would take the service
+    down; in the child it costs the child (~0.3 s to start one).
+
+    Raises:
+        MapFormatError: the map is refused (the child's message), crashed the child, or was not read through within
+            ``timeout_s``.
+        RuntimeError: the child failed otherwise (it could not start, or a bug); not the map's fault.
+    """
+    path = Path(path)
+    _check_global_heaps(path)  # a heap that makes HDF5 spin is refused at once, not after the child's time limit
+    # the child imports this module as the parent did, whichever way that was (installed, source tree, tests)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
+    try:
+        done = subprocess.run([sys.executable, "-c", _PROBE_CODE, str(path)], capture_output=True, env=env,
+                              timeout=timeout_s, check=False)
+    except subprocess.TimeoutExpired:
+        raise MapFormatError(f"{path}: corrupt map file (not read through within {timeout_s:.0f} s)") from None
+    if done.returncode == 0:
+        return
+    if done.returncode == _PROBE_REFUSED:
+        raise MapFormatError(done.stdout.decode(errors="replace").strip() or f"{path}: map refused")
+    if done.returncode < 0:  # killed by a signal: the HDF5 library crashed on the file
+        raise MapFormatError(f"{path}: corrupt map file (the HDF5 library crashed reading it, signal "
+                             f"{-done.returncode})")
+    tail = done.stderr.decode(errors="replace").strip().splitlines()[-1:] or ["no output"]
+    raise RuntimeError(f"map check process failed with exit status {done.returncode}: {tail[0]}")
 
 
 def fsync_dir(directory: str | Path) -> None:

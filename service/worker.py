@@ -33,7 +33,7 @@ from service.core.jobs import (
     jobs_dir,
 )
 from service.core.logs import configure_logging
-from service.core.registry import RECORD_TIME_FORMAT, MapRegistry
+from service.core.registry import RECORD_TIME_FORMAT, MapRegistry, build_failure_message
 from service.core.shared_state import Keys, arq_redis_settings, connect, replica_id
 
 __all__ = ["run_worker", "build_map_job", "BuildCancelledError", "register"]
@@ -164,7 +164,7 @@ async def build_map_job(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
         return "failed"
     except (ReRadarError, ValueError, OSError) as exc:
         # bad input (unreadable scan, wrong shape, disk full): retrying cannot help
-        _fail(ctx, map_id, job_dir, f"{type(exc).__name__}: {exc}")
+        _fail(ctx, map_id, job_dir, build_failure_message(exc))
         return "failed"
     except Exception as exc:
         # the record lives in Redis, whose hiccup may be what failed the attempt: its calls are best effort,
@@ -176,11 +176,11 @@ async def build_map_job(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
         if attempts < settings.build_max_tries:
             logger.exception("map %s: build attempt %d failed; retrying", map_id, attempts)
             try:
-                queue.update(map_id, state="queued", error=f"attempt {attempts}: {type(exc).__name__}: {exc}")
+                queue.update(map_id, state="queued", error=f"attempt {attempts}: {build_failure_message(exc)}")
             except redis.RedisError:
                 logger.warning("map %s: the build record could not be updated (Redis); retrying anyway", map_id)
             raise Retry(defer=2) from exc
-        _fail(ctx, map_id, job_dir, f"{type(exc).__name__}: {exc} (after {attempts} attempts)")
+        _fail(ctx, map_id, job_dir, f"{build_failure_message(exc)} (after {attempts} attempts)")
         return "failed"
 
 

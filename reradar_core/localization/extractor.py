@@ -24,6 +24,9 @@ class FeatureExtractor(Protocol):
         weights_sha256: SHA-256 of the weights; maps built with other weights are refused.
         descriptor_dim: global descriptor length D.
         cartesian: Cartesian image geometry the model uses.
+
+    Extractors may also state ``local_dim`` (the local descriptor length C; ``DescriptorExtractor`` does): the
+    service then refuses maps of another C (``MapRegistry.check_compatible``).
     """
 
     model_id: str

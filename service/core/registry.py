@@ -31,7 +31,15 @@ from maps.arrays import prune_arrays
 from maps.build import build_map
 from maps.database import MapDatabase
 from maps.paths import DEMO_MAP_PATH
-from maps.store import fsync_dir, install_file, open_map, read_metadata, remove_stale_temp_files
+from maps.store import (
+    MapMetadata,
+    fsync_dir,
+    install_file,
+    open_map,
+    probe_map,
+    read_metadata,
+    remove_stale_temp_files,
+)
 from reradar_core.errors import (
     MapFormatError,
     ModelMismatchError,
@@ -45,7 +53,7 @@ from reradar_core.retrieval import IndexConfig
 from service.core.config import MAP_ID_PATTERN, Settings
 from service.core.errors import BadRequestError, ConflictError, NotFoundError, scrub_paths
 
-__all__ = ["MapEntry", "MapRegistry", "MapState", "DEMO_MAP_ID"]
+__all__ = ["MapEntry", "MapRegistry", "MapState", "DEMO_MAP_ID", "build_failure_message"]
 
 logger = logging.getLogger(__name__)
 
@@ -68,6 +76,16 @@ def _close_later(db: MapDatabase) -> None:
     closer = threading.Timer(CLOSE_GRACE_S, db.close)
     closer.daemon = True
     closer.start()
+
+
+def build_failure_message(exc: BaseException) -> str:
+    """What a failed build reports (``GET /maps/{id}``): the message alone for an input error (``ReRadarError``,
+    ``ValueError``, ``OSError``: it says what is wrong, e.g. ``1600000018000000.png: ...``); the class name before
+    the message of anything else (a bug, whose message alone may be ``'key'``)."""
+    text = str(exc)
+    if isinstance(exc, ReRadarError | ValueError | OSError) and text:
+        return text
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 #: UTC time format of the registry's and the build records' timestamps (``registered_utc``, ``created_utc``, ...)
@@ -194,12 +212,34 @@ class MapRegistry:
             entry.state = "ready"
             entry.scans_total = entry.scans_done = len(entry.db)
         except (MapFormatError, ModelMismatchError, OSError) as exc:
-            entry.error = str(exc)
+            entry.error = scrub_paths(str(exc), [self.maps_dir])  # public (GET /maps/{id}): no server folders
         return entry
+
+    def check_compatible(self, metadata: MapMetadata, path: Path) -> None:
+        """Refuse a map whose descriptors cannot be compared with the running model's: another global descriptor
+        length D, or another local descriptor length C (where the extractor states it: ``local_dim``). Such a
+        map would load and then fail every localization.
+
+        Raises:
+            MapFormatError: naming the map's and the model's lengths.
+        """
+        ext = self.extractor
+        dim = int(ext.descriptor_dim)
+        if metadata.descriptor_dim != dim:
+            raise MapFormatError(
+                f"{path}: the map's global descriptors have {metadata.descriptor_dim} values (descriptor_dim) but "
+                f"the running model {ext.model_id!r} computes {dim}; rebuild the map with this model")
+        local_dim = getattr(ext, "local_dim", None)  # not part of the FeatureExtractor protocol (test fakes)
+        if local_dim is not None and metadata.local_descriptor_dim != int(local_dim):
+            raise MapFormatError(
+                f"{path}: the map's local descriptors have {metadata.local_descriptor_dim} values "
+                f"(local_descriptor_dim) but the running model {ext.model_id!r} computes {int(local_dim)}; "
+                f"rebuild the map with this model")
 
     def _open(self, path: Path) -> MapDatabase:
         kf_map = open_map(path, self.extractor.model_id, self.extractor.weights_sha256)
         try:
+            self.check_compatible(kf_map.metadata, path)
             return MapDatabase(kf_map, self.index_config, keyframe_cache_size=self.settings.keyframe_cache_size,
                                config=self.settings.localization, preload=self.settings.preload_keyframes,
                                arrays_dir=self.settings.arrays_dir)
@@ -325,7 +365,8 @@ class MapRegistry:
             self._entries.pop(map_id, None)
 
     def register_file(self, map_id: str, staged: Path) -> MapEntry:
-        """Validate the uploaded map at ``staged`` (schema, model hash) and install it as ``map_id``.
+        """Validate the uploaded map at ``staged`` (format, model hash, descriptor lengths) and install it as
+        ``map_id``.
 
         ``staged`` must be inside the staging folder; it is moved (renamed) on success, deleted on failure.
 
@@ -339,10 +380,15 @@ class MapRegistry:
             raise
         try:
             try:
+                # first in a child process: a crafted file that crashes or hangs the HDF5 library costs the child
+                probe_map(staged)
                 probe = open_map(staged, self.extractor.model_id, self.extractor.weights_sha256)
+                try:  # before the file is installed: nothing of a map the model cannot use is stored
+                    self.check_compatible(probe.metadata, staged)
+                finally:
+                    probe.close()
             except ReRadarError as exc:  # the message names the staged file: say "the uploaded map" instead
                 raise type(exc)(str(exc).replace(str(staged), "the uploaded map")) from None
-            probe.close()
             install_file(staged, entry.path)
             try:  # opening reads every keyframe (shared arrays, preload): their checks refuse it here
                 entry.db = self._open(entry.path)
@@ -390,7 +436,7 @@ class MapRegistry:
                 logger.info("map %s built: %d keyframes", map_id, len(db))
             except Exception as exc:  # noqa: BLE001 - a failed job is reported through GET /maps/{id}
                 logger.exception("building map %s failed", map_id)
-                entry.error = scrub_paths(f"{type(exc).__name__}: {exc}", [self.maps_dir])
+                entry.error = scrub_paths(build_failure_message(exc), [self.maps_dir])
                 entry.state = "failed"
                 try:
                     self._write_job(entry, source)

@@ -34,6 +34,7 @@ class FakeExtractor:
     model_id = "fake-extractor"
     weights_sha256 = "f" * 64
     descriptor_dim = 32
+    local_dim = 16  # 8 frequencies x (sin, cos): maps of another width are refused (MapRegistry.check_compatible)
     cartesian = CartesianConfig()
 
     def describe(self, scan: RadarScan) -> ScanFeatures:
