@@ -21,7 +21,7 @@ from reradar_core.io.scan import MAX_SCAN_TIMESTAMP_US
 from service.core.errors import BadRequestError, PayloadTooLargeError
 
 __all__ = ["extract_scan_archive", "max_archive_members", "zip_entries_exceed", "SCAN_NAME_PATTERN",
-           "MAX_SCAN_TIMESTAMP_US", "ARCHIVE_MEMBER_SLACK"]
+           "MAX_SCAN_TIMESTAMP_US", "ARCHIVE_MEMBER_SLACK", "MAX_TAR_HEADER_BYTES", "TarHeaderTooLargeError"]
 
 SCAN_NAME_PATTERN = re.compile(r"^(\d{1,20})\.(png|npy)$")
 
@@ -33,6 +33,29 @@ _ZIP64_END = b"PK\x06\x06"  # zip64 end record (56 bytes), followed by its locat
 _ZIP64_END_AND_LOCATOR = 56 + 20
 # fields of the end record zipfile._EndRecData returns: signature, directory size, the record's own offset
 _ECD_SIGNATURE, _ECD_SIZE, _ECD_LOCATION = 0, 5, 9
+
+
+#: Largest extended tar header (a PAX header or a GNU long name / link) accepted, bytes. ``tarfile`` reads one
+#: whole into memory: a 200 MB PAX header compresses to 30 KB as tar.xz and took +630 MB to refuse (QA, session
+#: 21); real ones hold a path and a few times, well under 1 KiB.
+MAX_TAR_HEADER_BYTES = 1 << 20
+
+
+class TarHeaderTooLargeError(tarfile.TarError):
+    """An extended tar header larger than ``MAX_TAR_HEADER_BYTES`` (refused before ``tarfile`` reads it)."""
+
+
+class _BoundedTarInfo(tarfile.TarInfo):
+    """``TarInfo`` that refuses an extended header (PAX, GNU long name / link) over ``MAX_TAR_HEADER_BYTES``
+    before ``tarfile`` reads it whole (``TarFile(tarinfo=...)`` parses every header through this class)."""
+
+    def _proc_member(self, tarfile_: tarfile.TarFile) -> tarfile.TarInfo:  # type: ignore[override]
+        if (self.type in (tarfile.GNUTYPE_LONGNAME, tarfile.GNUTYPE_LONGLINK, tarfile.XHDTYPE, tarfile.XGLTYPE,
+                          tarfile.SOLARIS_XHDTYPE) and self.size > MAX_TAR_HEADER_BYTES):
+            raise TarHeaderTooLargeError(
+                f"a tar member's extended header (PAX or GNU long name) is {self.size:,} bytes; at most "
+                f"{MAX_TAR_HEADER_BYTES:,} are accepted")
+        return super()._proc_member(tarfile_)  # type: ignore[misc]
 
 
 def max_archive_members(max_files: int) -> int:
@@ -155,7 +178,9 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
             raise BadRequestError(f"scan archive is a corrupt zip file ({exc})") from exc
     else:
         try:
-            tf = tarfile.open(archive, "r:*")  # noqa: SIM115 - closed below
+            tf = tarfile.open(archive, "r:*", tarinfo=_BoundedTarInfo)  # noqa: SIM115 - closed below
+        except TarHeaderTooLargeError as exc:
+            raise PayloadTooLargeError(f"scan archive: {exc}") from None
         except (tarfile.TarError, OSError, EOFError):  # tarfile's message lists every compression it tried
             raise BadRequestError("scan archive is not a .zip, .tar or .tar.gz archive") from None
         try:
@@ -177,6 +202,8 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
                     with fobj, open(target, "wb") as dst:
                         shutil.copyfileobj(fobj, dst, length=1 << 20)
                     store(base, target)
+        except TarHeaderTooLargeError as exc:
+            raise PayloadTooLargeError(f"scan archive: {exc}") from None
         except (tarfile.TarError, OSError, EOFError) as exc:
             detail = " ".join(str(exc).split())  # one line
             raise BadRequestError(f"scan archive is a corrupt or truncated tar(.gz) file ({detail})") from exc

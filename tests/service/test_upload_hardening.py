@@ -209,6 +209,33 @@ def test_zip_entries_are_counted_before_zipfile_reads_the_directory(tmp_path: Pa
         extract_scan_archive(tmp_path / "many.zip", tmp_path / "out", max_files=1, max_total_bytes=1 << 20)
 
 
+@pytest.mark.parametrize("kind", ["pax", "gnu-long-name"])
+def test_huge_extended_tar_headers_are_413_before_they_are_read(tmp_path: Path, kind: str) -> None:
+    """QA re-test (session 21): ``tarfile`` reads a PAX header or a GNU long name whole: a 200 MB PAX header in a
+    30 KB tar.xz took +630 MB to refuse. Such headers are refused from their declared size."""
+    import gzip
+    import tracemalloc
+
+    buf = io.BytesIO()
+    fmt = tarfile.PAX_FORMAT if kind == "pax" else tarfile.GNU_FORMAT
+    with tarfile.open(fileobj=buf, mode="w", format=fmt) as tf:
+        info = tarfile.TarInfo("1600000000000000.png" if kind == "pax" else "a" * (16 << 20) + ".png")
+        if kind == "pax":
+            info.pax_headers = {"comment": "x" * (16 << 20)}
+        info.size = 3
+        tf.addfile(info, io.BytesIO(b"abc"))
+    archive = tmp_path / "a.tar.gz"  # gzip: tarfile's own buffers are ~1 MB (xz: ~9 MB)
+    archive.write_bytes(gzip.compress(buf.getvalue(), compresslevel=1))
+    tracemalloc.start()
+    try:
+        with pytest.raises(PayloadTooLargeError, match=r"extended header .* at most 1,048,576"):
+            extract_scan_archive(archive, tmp_path / "out", 100, 1 << 30)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 4 << 20  # the 16 MB header was never read
+
+
 def test_skipped_members_count_towards_the_expanded_size(tmp_path: Path) -> None:
     """Skipping a member of a compressed tar decompresses it: a 'notes.bin' of 1 MB of zeros counts as 1 MB."""
     buf = io.BytesIO()
