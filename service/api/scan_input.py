@@ -239,7 +239,7 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
             raise NotFoundError(f"unknown or expired scan_id {scan_id!r}; upload the scan again with POST /scans")
         target = map_id or fields.get("map_id")
         if target:
-            state.check_cached_preset(scan_id, cached.preset, cached.preset_assumed, target)
+            state.check_cached_preset(scan_id, cached.preset, cached.preset_open, target)
         return ScanInput(cached.features, scan_id, fields)
     if ctype == "multipart/form-data":
         form = await read_multipart_form(request, max_files=1, max_fields=16)

@@ -120,8 +120,9 @@ class ScanInfo(_Model):
     preset: str | None
     preset_assumed: bool = Field(default=False, description=(
         "No preset was given and none followed from the scan or `map_id`: `preset` is a guess (3,360 range bins "
-        "fit boreas, boreas-2021 and mulran; a polar .npy carries no geometry). Localizing this scan_id on a map "
-        "of another range geometry is refused (422); upload with `preset` or `map_id` to avoid it."))
+        "fit boreas, boreas-2021 and mulran; a polar .npy carries no geometry). A scan uploaded without `preset` "
+        "whose preset such a scan leaves open (a guess, or `map_id`'s) is refused (422) on a map of another range "
+        "geometry; upload it with `preset`, or with the `map_id` it is for."))
     num_keypoints: int
     descriptor_dim: int
     expires_in_s: float

@@ -49,6 +49,28 @@ def _nested_names(config: type, prefix: str) -> set[str]:
     return names
 
 
+def unknown_json_keys(value: object, config: type, prefix: str = "") -> list[tuple[str, str | None]]:
+    """Keys of ``value`` (the JSON form of a dataclass setting, e.g. ``RERADAR_LOCALIZATION='{"top_k": 3}'``) that
+    are no field of ``config`` (nested dataclasses followed), each with the closest field name (None: nothing
+    close). A JSON value that is not an object is left to the validation."""
+    import dataclasses
+    import difflib
+    import typing
+
+    if not isinstance(value, dict):
+        return []
+    hints = typing.get_type_hints(config)
+    names = [f.name for f in dataclasses.fields(config)]
+    out: list[tuple[str, str | None]] = []
+    for key, item in value.items():
+        if key not in names:
+            close = difflib.get_close_matches(str(key), names, n=1, cutoff=0.6)
+            out.append((f"{prefix}{key}", f"{prefix}{close[0]}" if close else None))
+        elif isinstance(hints.get(key), type) and dataclasses.is_dataclass(hints[key]):
+            out += unknown_json_keys(item, hints[key], f"{prefix}{key}.")
+    return out
+
+
 def unknown_variables(environ: dict[str, str] | None = None) -> list[tuple[str, str | None]]:
     """``RERADAR_*`` variables in ``environ`` (default: the process's) that nothing reads, each with the closest
     known name (None: nothing close): a misspelt setting is otherwise ignored without a word."""
@@ -234,6 +256,18 @@ class Settings(BaseSettings):
             resolve_runtime(None)
         except ConfigError as exc:
             raise ValueError(str(exc)) from None
+        # the JSON form of the same settings (RERADAR_LOCALIZATION='{"top_k": 3}') ignores unknown keys too
+        raw = next((v for k, v in os.environ.items() if k.upper() == "RERADAR_LOCALIZATION"), None)
+        if raw:
+            import json
+
+            try:
+                keys = unknown_json_keys(json.loads(raw), LocalizationConfig)
+            except ValueError:  # not JSON: the field's own validation says so
+                keys = []
+            if keys:
+                raise ValueError("; ".join(f"RERADAR_LOCALIZATION: {k!r} is no localization setting" + (
+                    f" (did you mean {near!r}?)" if near else "") for k, near in keys))
         # a misspelt localization field is a setting that silently does nothing: nothing else reads that prefix
         typos = [(v, near) for v, near in unknown_variables() if v.upper().startswith("RERADAR_LOCALIZATION__")]
         if typos:

@@ -31,8 +31,9 @@ class CachedScan:
     scan_id: str
     features: ScanFeatures
     preset: str | None
-    #: no preset was given and none followed from the scan or a map: ``preset`` is a guess (``describe_upload``)
-    preset_assumed: bool = False
+    #: no preset was given and the scan does not fix one: ``preset`` is a guess or the upload's map's
+    #: (``describe_upload``); such a scan is refused on a map of another range geometry (``check_cached_preset``)
+    preset_open: bool = False
 
 
 class ScanCache:
@@ -45,9 +46,9 @@ class ScanCache:
         self._items: TTLCache[str, CachedScan] = TTLCache(maxsize=max_entries, ttl=ttl_s, timer=clock)
         self._lock = threading.Lock()  # cachetools caches are not thread-safe
 
-    def put(self, features: ScanFeatures, preset: str | None, preset_assumed: bool = False) -> CachedScan:
+    def put(self, features: ScanFeatures, preset: str | None, preset_open: bool = False) -> CachedScan:
         """Store ``features`` under a new random id (evicting the least recently used beyond the bound)."""
-        entry = CachedScan(new_scan_id(), features, preset, preset_assumed)
+        entry = CachedScan(new_scan_id(), features, preset, preset_open)
         with self._lock:
             self._items[entry.scan_id] = entry
         return entry

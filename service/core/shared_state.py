@@ -122,24 +122,24 @@ def connect(url: str) -> redis.Redis:
 
 
 # ---- uploaded scans --------------------------------------------------------------------------------------
-def encode_features(features: ScanFeatures, preset: str | None, preset_assumed: bool = False) -> bytes:
-    """``ScanFeatures`` + preset (and whether it was assumed) as an ``.npz`` blob (no pickle): ~90 KB for 1200
-    keypoints x 32 float16."""
+def encode_features(features: ScanFeatures, preset: str | None, preset_open: bool = False) -> bytes:
+    """``ScanFeatures`` + preset (and whether the scan left it open: ``CachedScan.preset_open``) as an ``.npz``
+    blob (no pickle): ~90 KB for 1200 keypoints x 32 float16."""
     buf = io.BytesIO()
     np.savez(buf, global_descriptor=features.global_descriptor, keypoints_xy_m=features.keypoints_xy_m,
              local_descriptors=features.local_descriptors, timestamp_us=np.int64(features.timestamp_us),
-             preset=np.array(preset or ""), preset_assumed=np.bool_(preset_assumed))
+             preset=np.array(preset or ""), preset_open=np.bool_(preset_open))
     return buf.getvalue()
 
 
 def decode_features(blob: bytes) -> tuple[ScanFeatures, str | None, bool]:
-    """Inverse of ``encode_features`` (a blob of an earlier version, without ``preset_assumed``: False)."""
+    """Inverse of ``encode_features`` (a blob of an earlier version, without ``preset_open``: False)."""
     with np.load(io.BytesIO(blob), allow_pickle=False) as z:
         features = ScanFeatures(z["global_descriptor"], z["keypoints_xy_m"], z["local_descriptors"],
                                 int(z["timestamp_us"]))
         preset = str(z["preset"]) or None
-        assumed = bool(z["preset_assumed"]) if "preset_assumed" in z.files else False
-    return features, preset, assumed
+        preset_open = bool(z["preset_open"]) if "preset_open" in z.files else False
+    return features, preset, preset_open
 
 
 def _json_record(raw: bytes) -> dict[str, Any] | None:
@@ -163,10 +163,10 @@ class RedisScanStore(ScanCache):
         self._redis = client
         self._keys = keys
 
-    def put(self, features: ScanFeatures, preset: str | None, preset_assumed: bool = False) -> CachedScan:
-        entry = CachedScan(new_scan_id(), features, preset, preset_assumed)
+    def put(self, features: ScanFeatures, preset: str | None, preset_open: bool = False) -> CachedScan:
+        entry = CachedScan(new_scan_id(), features, preset, preset_open)
         try:
-            self._redis.set(self._keys.scan(entry.scan_id), encode_features(features, preset, preset_assumed),
+            self._redis.set(self._keys.scan(entry.scan_id), encode_features(features, preset, preset_open),
                             px=int(self.ttl_s * 1000))
         except redis.RedisError as exc:
             raise SharedStateUnavailableError(
@@ -184,11 +184,11 @@ class RedisScanStore(ScanCache):
         if blob is None:
             return None
         try:
-            features, preset, assumed = decode_features(blob)
+            features, preset, preset_open = decode_features(blob)
         except (ValueError, KeyError, TypeError, OSError, ReRadarError):  # not a value this version wrote
             logger.warning("scan %s: unreadable value in the shared scan store; treated as unknown", scan_id)
             return None
-        return CachedScan(scan_id, features, preset, assumed)
+        return CachedScan(scan_id, features, preset, preset_open)
 
     def __len__(self) -> int:
         return 0

@@ -60,10 +60,10 @@ class ServiceState:
         the scan fits it (``load_scan_bytes``'s ``map_preset``).
 
         Returns:
-            The features, the scan's preset, and whether that preset is a guess: none was given, none followed
-            from the map, and the scan does not fix one (a polar .npy carries no geometry; 3,360 range bins fit
-            presets of different bin size). ``check_cached_preset`` refuses such a scan on a map of another
-            geometry.
+            The features, the scan's preset, and whether that preset was left open: none was given and the scan
+            does not fix one (a polar .npy carries no geometry; 3,360 range bins fit presets of different bin
+            size), so it is ``map_id``'s or a guess. ``check_cached_preset`` refuses such a scan on a map of
+            another range geometry.
 
         Raises:
             ScanFormatError: empty, corrupt or wrongly shaped scans, non-finite features.
@@ -75,8 +75,7 @@ class ServiceState:
         map_preset = self.map_preset(map_id)
         scan = load_scan_bytes(data, filename or "scan.png", preset, scan_layout, map_preset)
         polar_npy = (filename or "").lower().endswith(".npy") and scan_layout == "polar"
-        assumed = (preset is None and scan.preset != map_preset
-                   and (polar_npy or range_bins_ambiguous(scan.num_range_bins)))
+        preset_open = preset is None and (polar_npy or range_bins_ambiguous(scan.num_range_bins))
         t1 = time.perf_counter()
         try:
             features = self.extractor.describe(scan)
@@ -88,17 +87,18 @@ class ServiceState:
             raise ScanFormatError("the scan produced a non-finite descriptor (empty or saturated scan?)")
         timings_ms["decode_ms"] = (t1 - t0) * 1e3
         timings_ms["extract_ms"] = (t2 - t1) * 1e3
-        return features, scan.preset, assumed
+        return features, scan.preset, preset_open
 
-    def check_cached_preset(self, scan_id: str, preset: str | None, assumed: bool, map_id: str) -> None:
-        """Refuse a cached scan whose preset was a guess (``describe_upload``) on a map of another range geometry:
-        its features were computed with bins of the wrong length, which no later step can undo.
+    def check_cached_preset(self, scan_id: str, preset: str | None, preset_open: bool, map_id: str) -> None:
+        """Refuse a cached scan whose preset the client left open (``describe_upload``: a guess, or the map's its
+        upload named) on a map of another range geometry: its features were computed with bins of another length,
+        which no later step can undo.
 
         Raises:
             ScanFormatError (422): what was assumed, what the map holds, and how to upload the scan again.
         """
         map_preset = self.map_preset(map_id)
-        if not assumed or preset is None or map_preset is None or map_preset == preset:
+        if not preset_open or preset is None or map_preset is None or map_preset == preset:
             return
         try:
             if same_range_geometry(preset, map_preset):
@@ -107,7 +107,7 @@ class ServiceState:
         except ReRadarError:  # a map of a preset this version does not know: nothing to compare with
             return
         raise ScanFormatError(
-            f"scan_id {scan_id!r} was uploaded without a preset and read as a {ours.name} scan "
+            f"scan_id {scan_id!r} was uploaded without a preset and read with the {ours.name} preset "
             f"({ours.range_resolution_m} m per range bin), but map {map_id!r} holds {theirs.name} scans "
             f"({theirs.range_resolution_m} m per range bin): upload it again with preset={theirs.name} (or "
             f"map_id={map_id}) in POST /scans, or send it inline")

@@ -108,7 +108,7 @@ def test_features_encoding_round_trip_is_exact_and_pickle_free() -> None:
     assert decode_features(encode_features(f, None))[1] is None
     with np.load(io.BytesIO(blob), allow_pickle=False) as z:  # loads without pickle
         assert set(z.files) == {"global_descriptor", "keypoints_xy_m", "local_descriptors", "timestamp_us", "preset",
-                                "preset_assumed"}
+                                "preset_open"}
 
 
 def test_trajectory_subsample_keeps_ends_and_bound() -> None:

@@ -79,6 +79,16 @@ def test_misspelt_settings_are_refused_or_reported(monkeypatch: pytest.MonkeyPat
         with pytest.raises(ValidationError, match=message):
             Settings(maps_dir=tmp_path)
         monkeypatch.delenv(name)
+    # the JSON form of the same settings: a misspelt key is refused too (QA re-test, session 21)
+    monkeypatch.setenv("RERADAR_LOCALIZATION", '{"topk": 3}')
+    with pytest.raises(ValidationError, match="'topk' is no localization setting .did you mean 'top_k'"):
+        Settings(maps_dir=tmp_path)
+    monkeypatch.setenv("RERADAR_LOCALIZATION", '{"top_k": 3, "alignment": {"screen_hypothese": 9}}')
+    with pytest.raises(ValidationError, match="'alignment.screen_hypothese' .*'alignment.screen_hypotheses'"):
+        Settings(maps_dir=tmp_path)
+    monkeypatch.setenv("RERADAR_LOCALIZATION", '{"top_k": 3}')
+    assert Settings(maps_dir=tmp_path).localization.top_k == 3
+    monkeypatch.delenv("RERADAR_LOCALIZATION")
     monkeypatch.setenv("RERADAR_LOCALIZATION__ALIGNMENT__SCREEN_HYPOTHESES", "8")  # nested names are known
     assert Settings(maps_dir=tmp_path).localization.alignment.screen_hypotheses == 8
     env = {"RERADAR_TORCH_THREAD": "2", "RERADAR_CACHE_DIR": "/c", "RERADAR_CLIENT_API_KEY": "k", "RERADAR_FOO": "1",

@@ -397,10 +397,16 @@ def test_scan_id_with_a_guessed_preset_is_refused_on_a_map_of_another_geometry(
         r = client.post("/scans", data=data, files={"scan": png})
         assert r.status_code == 201 and r.json()["preset"] == preset and r.json()["preset_assumed"] is False
         assert client.post("/localize", json={"scan_id": r.json()["scan_id"], "map_id": "qa21"}).status_code == 200
+    # QA re-test: a scan uploaded for one map (its preset taken from that map, not from the client) is refused on
+    # a map of another geometry like a guessed one
+    for_qa = client.post("/scans", data={"map_id": "qa"}, files={"scan": png}).json()
+    assert for_qa["preset"] == "boreas" and for_qa["preset_assumed"] is False
+    detail = _problem(client.post("/localize", json={"scan_id": for_qa["scan_id"], "map_id": "qa21"}), 422)["detail"]
+    assert "read with the boreas preset" in detail and "preset=boreas-2021" in detail
     _problem(client.post("/scans", data={"map_id": "nosuch"}, files={"scan": png}), 404)
     assert client.delete("/maps/qa21", headers=AUTH).status_code == 200
 
-    # the fleet's Redis blob carries the flag; one written before it reads as not assumed
+    # the fleet's Redis blob carries the flag; one written before it reads as not open
     feats = fake_extractor.describe(make_scan(1, keyframe_time(1)))
     assert decode_features(encode_features(feats, "boreas", True))[1:] == ("boreas", True)
     buf = io.BytesIO()

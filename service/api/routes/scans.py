@@ -42,10 +42,12 @@ async def upload_scan(
         state.registry.ready(map_id)  # 404 / 409 before the upload is read
     data, filename = await read_scan_upload(scan, state.settings.max_scan_pixels, scan_layout)
     timings: dict[str, float] = {}
-    features, scan_preset, assumed = await run_in_threadpool(state.describe_upload, data, filename, preset, timings,
-                                                             scan_layout, map_id or None)
+    features, scan_preset, preset_open = await run_in_threadpool(state.describe_upload, data, filename, preset,
+                                                                 timings, scan_layout, map_id or None)
     state.metrics.observe_stages(timings)
-    entry = await run_in_threadpool(state.cache.put, features, scan_preset, assumed)  # Redis in fleet mode
+    entry = await run_in_threadpool(state.cache.put, features, scan_preset, preset_open)  # Redis in fleet mode
+    # a guess: left open and not the map's (with map_id the open preset is that map's, checked on use all the same)
+    assumed = preset_open and scan_preset != state.map_preset(map_id or None)
     return ScanInfo(scan_id=entry.scan_id, timestamp_us=int(features.timestamp_us), preset=scan_preset,
                     preset_assumed=assumed,
                     num_keypoints=int(features.keypoints_xy_m.shape[0]),
