@@ -317,6 +317,8 @@ def _check_global_descriptors(g: np.ndarray, path: Path) -> None:
 
 
 def _show(value: object) -> str:
+    if isinstance(value, np.generic):  # np.float64(0.0) -> 0.0
+        value = value.item()
     text = repr(value)
     return text if len(text) <= 40 else text[:37] + "..."
 

@@ -206,7 +206,9 @@ def localize_command(
             res = client.localize(map_id, scan_path=scan, top_k=top_k, session_id=session, preset=preset,
                                   scan_layout=scan_layout)
     except ReRadarAPIError as exc:
-        typer.echo(f"error: {exc}", err=True)
+        # the server's 401 names its own setting; say what this command takes
+        hint = "; give the vehicle key with --api-key or RERADAR_CLIENT_API_KEY" if exc.status_code == 401 else ""
+        typer.echo(f"error: {exc}{hint}", err=True)
         raise typer.Exit(2) from exc
     except httpx.TransportError as exc:
         typer.echo(f"error: cannot reach {server}: {exc}", err=True)

@@ -76,7 +76,7 @@ def test_localize_command_sends_the_api_key(tmp_path: Path, fake_map: Path) -> N
         assert r.status_code == 201, r.text
         base = ["localize", str(scan), "--server", url, "--map", "keyed"]
         res = CliRunner().invoke(app, base, env={"RERADAR_CLIENT_API_KEY": ""})
-        assert res.exit_code == 2 and "401" in res.output and "X-API-Key" in res.output
+        assert res.exit_code == 2 and "401" in res.output and "--api-key or RERADAR_CLIENT_API_KEY" in res.output
         res = CliRunner().invoke(app, [*base, "--api-key", vehicle])
         assert res.exit_code == 0 and res.output.startswith("localized: "), res.output
         res = CliRunner().invoke(app, base, env={"RERADAR_CLIENT_API_KEY": vehicle})
