@@ -55,6 +55,7 @@ __all__ = [
     "ConfidenceCues",
     "ConfidenceModel",
     "landmark_spread_m",
+    "candidate_score",
     "confidence_cues",
     "cues_from_result",
     "fit_confidence_model",
@@ -112,7 +113,8 @@ def landmark_spread_m(points_xy_m: np.ndarray) -> float:
     return float(math.sqrt(max(float(np.linalg.eigvalsh(cov)[0]), 0.0)))
 
 
-def _score(c: CandidateVerification) -> float:
+def candidate_score(c: CandidateVerification) -> float:
+    """How well ``c`` aligned: its screen score, or its verified inlier ratio when it was not screened."""
     return float(c.screen_score) if c.screen_score is not None else float(c.inlier_ratio)
 
 
@@ -137,7 +139,7 @@ def confidence_cues(best: CandidateVerification | None, candidates: Sequence[Can
     if others:
         xy = np.array([np.asarray(c.T_map_keyframe, np.float64)[:2] for c in others])
         dist = np.hypot(xy[:, 0] - T_map_query[0], xy[:, 1] - T_map_query[1])
-        scores = np.array([_score(c) for c in others])
+        scores = np.array([candidate_score(c) for c in others])
         far = dist > place_radius_m
         rival = float(scores[far].max()) if far.any() else 0.0
         top = np.argsort(-scores, kind="stable")[:top_n]
@@ -151,7 +153,7 @@ def confidence_cues(best: CandidateVerification | None, candidates: Sequence[Can
     return ConfidenceCues(
         aligned_ratio=float(best.inlier_ratio),
         log_aligned=float(math.log1p(max(best.num_inliers, 0))),
-        margin=_score(best) - rival,
+        margin=candidate_score(best) - rival,
         descriptor_distance=float(best.descriptor_distance),
         spread_m=min(spread, _MAX_SPREAD_M),
         agreement=agreement,

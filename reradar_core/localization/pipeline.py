@@ -28,6 +28,7 @@ from reradar_core.geometry.se2 import compose
 from reradar_core.localization.confidence import (
     ConfidenceCues,
     ConfidenceModel,
+    candidate_score,
     confidence_cues,
     default_confidence_model,
     landmark_spread_m,
@@ -549,13 +550,9 @@ def _place_margin(best: CandidateVerification, candidates: list[CandidateVerific
     if best.T_keyframe_query is None:
         return 1.0
     T_map_query = np.asarray(compose(best.T_map_keyframe, best.T_keyframe_query), np.float64)
-    rivals = [_screen_score(c) for c in candidates if c.rank != best.rank and float(np.hypot(
+    rivals = [candidate_score(c) for c in candidates if c.rank != best.rank and float(np.hypot(
         *(np.asarray(c.T_map_keyframe, np.float64)[:2] - T_map_query[:2]))) > config.place_margin_radius_m]
-    return _screen_score(best) - max(rivals) if rivals else 1.0
-
-
-def _screen_score(c: CandidateVerification) -> float:
-    return float(c.screen_score) if c.screen_score is not None else float(c.inlier_ratio)
+    return candidate_score(best) - max(rivals) if rivals else 1.0
 
 
 def answer_confidence(best: CandidateVerification, candidates: list[CandidateVerification],
