@@ -242,7 +242,8 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
             state.check_cached_preset(scan_id, cached.preset, cached.preset_open, target)
         return ScanInput(cached.features, scan_id, fields)
     if ctype == "multipart/form-data":
-        form = await read_multipart_form(request, max_files=1, max_fields=16)
+        # two files, so that a repeated `scan` gets the "given more than once" answer below (the body is bounded)
+        form = await read_multipart_form(request, max_files=2, max_fields=16)
         refuse_repeated_fields(form)
         upload = form.get("scan")
         if not isinstance(upload, UploadFile):

@@ -466,3 +466,10 @@ def test_a_place_that_fits_twice_is_ambiguous_not_a_guess(client: httpx.Client, 
         one = client.post("/localize", data={"map_id": "qa"}, files=scan).json()
         assert one["status"] == "localized" and one["keyframe"]["keyframe_id"] == i
     assert client.delete("/maps/twice", headers=AUTH).status_code == 200
+
+
+def test_two_scan_files_on_localize_are_named_as_repeated(client: httpx.Client) -> None:
+    """QA re-test (session 21): two `scan` files on /localize were refused as "Too many files" by the parser."""
+    files = [("scan", ("a.png", _png(1))), ("scan", ("b.png", _png(2)))]
+    detail = _problem(client.post("/localize", data={"map_id": "qa"}, files=files), 400)["detail"]
+    assert "['scan'] are given more than once" in detail
