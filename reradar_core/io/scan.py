@@ -583,21 +583,15 @@ def _raw_from_scan(scan: RadarScan) -> np.ndarray:
     return raw
 
 
-def png_incomplete(data: bytes) -> bool:
+def png_incomplete(data: bytes, chunks: list[tuple[bytes, int, int]] | None = None) -> bool:
     """True when ``data`` (a PNG file's bytes) ends before its ``IEND`` chunk: truncated or cut mid-chunk.
 
     Checked before decoding so that libpng never sees a truncated file: it prints its own error line on stderr
-    (outside our logging) before OpenCV returns nothing. Walks the chunk lengths only, O(number of chunks)."""
-    pos, n = len(PNG_SIGNATURE), len(data)
-    while pos + 8 <= n:
-        length = int.from_bytes(data[pos:pos + 4], "big")
-        end = pos + 12 + length  # length, type, data, CRC
-        if end > n:
-            return True
-        if data[pos + 4:pos + 8] == b"IEND":
-            return False
-        pos = end
-    return True
+    (outside our logging) before OpenCV returns nothing. ``chunks``: the file's ``_png_chunks`` when the caller
+    walked them already (a walk of the chunk lengths, O(number of chunks); a chunk that overruns the file is
+    the last one listed)."""
+    chunks = _png_chunks(data) if chunks is None else chunks
+    return not chunks or chunks[-1][0] != b"IEND" or chunks[-1][2] + 4 > len(data)  # + 4: IEND's CRC
 
 
 #: Channels per pixel of each PNG colour type (greyscale, RGB, palette, greyscale+alpha, RGBA).
@@ -855,8 +849,8 @@ def decode_navtech_png_bytes(data: bytes, preset: str | RadarPreset | None = Non
 
     if data[:8] != PNG_SIGNATURE:
         raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated: no PNG signature)")
-    chunks = _png_chunks(data)  # first: it stops at MAX_PNG_CHUNKS, so png_incomplete's walk is bounded too
-    if png_incomplete(data):
+    chunks = _png_chunks(data)  # one walk, bounded by MAX_PNG_CHUNKS, for both checks below
+    if png_incomplete(data, chunks):
         raise ScanFormatError("upload is not a readable PNG image (corrupt or truncated: it ends before the PNG's last chunk)")
     # uploads and archive scans: a decompression bomb is refused before libpng sees it, and the inflated rows of
     # a plain 8-bit PNG are decoded here (not inflated twice); files read from disk (read_navtech_png) are trusted
