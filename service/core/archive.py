@@ -123,20 +123,24 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
     members = 0
     total = 0
 
+    def too_many_members() -> PayloadTooLargeError:
+        return PayloadTooLargeError(
+            f"scan archive holds more than {max_members:,} files and folders (at most two per scan plus "
+            f"{ARCHIVE_MEMBER_SLACK:,}, for at most {max_files:,} scans); pack only the scans")
+
     def count(size: int) -> None:
         """Every member, scan or not: each costs a header parse, and a compressed tar decompresses the data
         of those it skips too."""
         nonlocal members, total
         members += 1
         if members > max_members:
-            raise PayloadTooLargeError(
-                f"scan archive holds more than {max_members:,} files and folders (at most two per scan plus "
-                f"{ARCHIVE_MEMBER_SLACK:,}, for at most {max_files:,} scans); pack only the scans")
+            raise too_many_members()
         total += max(size, 0)
         if total > max_total_bytes:
             raise PayloadTooLargeError(f"scan archive expands to more than {max_total_bytes / 2**20:.0f} MB")
 
-    def accept(name: str) -> str | None:
+    def accept(name: str) -> tuple[str, int] | None:
+        """(file name, timestamp in us) of a scan member, None for any other name."""
         base = name.replace("\\", "/").rsplit("/", 1)[-1]
         match = SCAN_NAME_PATTERN.match(base)
         if not match:
@@ -151,29 +155,25 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
                                   f"({written[stamp].name!r} and {base!r}); keep one scan per timestamp")
         if len(written) + 1 > max_files:
             raise PayloadTooLargeError(f"scan archive holds more than {max_files} scans")
-        return base
-
-    def store(stamp_name: str, target: Path) -> None:
-        written[int(SCAN_NAME_PATTERN.match(stamp_name).group(1))] = target  # type: ignore[union-attr]
+        return base, stamp
 
     if zipfile.is_zipfile(archive):
         if zip_entries_exceed(archive, max_members):
-            raise PayloadTooLargeError(
-                f"scan archive holds more than {max_members:,} files and folders (at most two per scan plus "
-                f"{ARCHIVE_MEMBER_SLACK:,}, for at most {max_files:,} scans); pack only the scans")
+            raise too_many_members()
         try:
             with zipfile.ZipFile(archive) as zf:
                 for info in zf.infolist():
                     count(info.file_size)
                     if info.is_dir():
                         continue
-                    base = accept(info.filename)
-                    if base is None:
+                    scan = accept(info.filename)
+                    if scan is None:
                         continue
+                    base, stamp = scan
                     target = dest / base
                     with zf.open(info) as src, open(target, "wb") as dst:
                         shutil.copyfileobj(src, dst, length=1 << 20)
-                    store(base, target)
+                    written[stamp] = target
         except (zipfile.BadZipFile, OSError, EOFError) as exc:
             raise BadRequestError(f"scan archive is a corrupt zip file ({exc})") from exc
     else:
@@ -192,16 +192,17 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
                     count(member.size)
                     if not member.isfile():
                         continue  # links, devices, folders
-                    base = accept(member.name)
-                    if base is None:
+                    scan = accept(member.name)
+                    if scan is None:
                         continue
                     fobj = tf.extractfile(member)
                     if fobj is None:
                         continue
+                    base, stamp = scan
                     target = dest / base
                     with fobj, open(target, "wb") as dst:
                         shutil.copyfileobj(fobj, dst, length=1 << 20)
-                    store(base, target)
+                    written[stamp] = target
         except TarHeaderTooLargeError as exc:
             raise PayloadTooLargeError(f"scan archive: {exc}") from None
         except (tarfile.TarError, OSError, EOFError) as exc:
