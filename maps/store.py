@@ -263,17 +263,10 @@ def _check_keyframe_datasets(kps: h5py.Dataset, desc: h5py.Dataset, local_dim: i
     _check_stored(desc, path)
 
 
-def _check_keyframe(kps: np.ndarray, desc: np.ndarray, path: Path, index: int, local_dim: int | None = None) -> None:
-    """Refuse keypoints that are not (K, 2), not finite or lie beyond ``MAX_KEYPOINT_RANGE_M`` of the sensor, and
-    local descriptors that are not (K, ``local_dim``) (when given) or not finite. ``kps`` (K, 2) float32 metres,
-    ``desc`` (K, C) float16."""
-    if kps.ndim != 2 or kps.shape[-1] != 2:
-        raise MapFormatError(f"{path}: keyframe {index}: keypoints_xy_m has shape {kps.shape}, expected (K, 2)")
-    if local_dim is not None and desc.shape != (kps.shape[0], local_dim):
-        # another width than the map's (and the model's) C breaks every comparison with a query's descriptors
-        raise MapFormatError(
-            f"{path}: keyframe {index}: local_descriptors has shape {desc.shape}, expected ({kps.shape[0]}, "
-            f"{local_dim}) (one row of local_descriptor_dim = {local_dim} values per keypoint)")
+def _check_keyframe(kps: np.ndarray, desc: np.ndarray, path: Path, index: int) -> None:
+    """Refuse keypoints that are not finite or lie beyond ``MAX_KEYPOINT_RANGE_M`` of the sensor, and local
+    descriptors that are not finite. ``kps`` (K, 2) float32 metres, ``desc`` (K, C) float16; their shapes were
+    checked on the datasets' headers before they were read (``_check_keyframe_datasets``)."""
     if not np.all(np.isfinite(kps)):
         raise MapFormatError(f"{path}: keyframe {index}: keypoints_xy_m contain NaN/inf; keypoints must be finite")
     if kps.size:
@@ -579,7 +572,7 @@ class KeyframeMap:
             except _H5_ERRORS as exc:
                 raise MapFormatError(
                     f"{self.path}: keyframe {index} is damaged ({_h5_reason(exc, self.path)})") from exc
-        _check_keyframe(kps, desc, self.path, index, local_dim)
+        _check_keyframe(kps, desc, self.path, index)
         try:
             return ScanFeatures(g, kps, desc, int(self.timestamps_us[index]))
         except ValueError as exc:
