@@ -11,8 +11,9 @@ from contextlib import aclosing
 from dataclasses import dataclass, field
 from typing import Any
 
-from fastapi import Request
+from fastapi import Request, params
 from fastapi.exceptions import RequestValidationError
+from fastapi.routing import APIRoute
 from pydantic import BaseModel, ValidationError
 from python_multipart.multipart import parse_options_header
 from starlette.concurrency import run_in_threadpool
@@ -35,7 +36,7 @@ from service.core.state import ServiceState
 
 __all__ = ["ScanInput", "read_scan_input", "scan_request_body", "UnsupportedMediaError", "check_scan_upload",
            "read_scan_upload", "parse_scan_layout", "SCAN_LAYOUTS", "SCAN_LAYOUT_DESCRIPTION", "read_multipart_form",
-           "refuse_repeated_fields", "refuse_unknown_fields", "refuse_duplicate_json_keys"]
+           "refuse_repeated_fields", "refuse_unknown_fields", "refuse_duplicate_json_keys", "ClosedFormRoute"]
 
 _TOP_K_FORM = re.compile(r"^[0-9]{1,6}$")
 _FLOAT_FORM = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d{1,3})?$")
@@ -183,6 +184,32 @@ async def read_multipart_form(request: Request, max_files: int, max_fields: int)
         raise BadRequestError("malformed multipart body (no closing boundary: the body must end with "
                               "--<boundary>--, the boundary of its Content-Type); send the whole body")
     return form
+
+
+class ClosedFormRoute(APIRoute):
+    """An ``APIRoute`` whose form parameters (``Form`` / ``File``) are read by ``read_multipart_form``, so that a
+    multipart body without its closing delimiter is a 400 saying so on ``POST /maps`` and ``POST /scans`` too,
+    as it is on ``/localize``: FastAPI's own parse drops the part still open and then reports a file it dropped
+    as missing. The form is parsed here, before FastAPI reads the body, and left where ``request.form()``
+    returns it (Starlette keeps one parse per request). Routes without form parameters are unchanged."""
+
+    #: enough for every form route here (at most four fields and three files); a body with more parts is
+    #: refused as malformed before its parts are spooled, with the count in the message
+    MAX_PARTS = 16
+
+    def get_route_handler(self) -> Any:
+        handler = super().get_route_handler()
+        if self.body_field is None or not isinstance(self.body_field.field_info, params.Form):
+            return handler
+
+        async def parse_closed_form_first(request: Request) -> Any:
+            ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+            if ctype == "multipart/form-data":
+                request._form = await read_multipart_form(request, max_files=self.MAX_PARTS,
+                                                          max_fields=self.MAX_PARTS)
+            return await handler(request)
+
+        return parse_closed_form_first
 
 
 @dataclass

@@ -349,6 +349,28 @@ def test_multipart_body_without_closing_boundary_is_400_saying_so(client: httpx.
     assert r.status_code == 200, r.text
 
 
+def test_post_maps_and_scans_refuse_a_body_without_closing_boundary(client: httpx.Client, fake_map: Path) -> None:
+    headers = {"content-type": "multipart/form-data; boundary=XyZ"}
+    body = _multipart(_png(), close=False).replace(b'name="map_id"\r\n\r\nqa', b'name="preset"\r\n\r\nboreas')
+    _problem(client.post("/scans", content=body, headers=headers), 400, "no closing boundary", "--<boundary>--")
+    r = client.post("/scans", content=_multipart(_png(), close=True).replace(
+        b'name="map_id"\r\n\r\nqa', b'name="preset"\r\n\r\nboreas'), headers=headers)
+    assert r.status_code == 201, r.text
+    # the map file sent last, cut short of its delimiter: FastAPI's own parse dropped it and answered
+    # "give exactly one of map_file or archive"
+    part = (b'--XyZ\r\nContent-Disposition: form-data; name="map_id"\r\n\r\nqa-open\r\n'
+            b'--XyZ\r\nContent-Disposition: form-data; name="map_file"; filename="m.h5"\r\n\r\n'
+            + fake_map.read_bytes() + b"\r\n")
+    _problem(client.post("/maps", content=part, headers={**headers, **AUTH}), 400, "no closing boundary")
+    assert client.get("/maps/qa-open").status_code == 404  # nothing registered
+    r = client.post("/maps", content=part + b"--XyZ--\r\n", headers={**headers, **AUTH})
+    assert r.status_code == 201, r.text
+    assert client.delete("/maps/qa-open", headers=AUTH).status_code == 200
+    # more parts than any form here has: refused before they are spooled
+    many = b"".join(b'--XyZ\r\nContent-Disposition: form-data; name="f%d"\r\n\r\nx\r\n' % i for i in range(40))
+    _problem(client.post("/scans", content=many + b"--XyZ--\r\n", headers=headers), 400, "malformed multipart")
+
+
 def _request(body: bytes, cut: int, content_type: bytes) -> Request:
     chunks = [body[:cut], body[cut:]]
 

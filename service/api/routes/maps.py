@@ -17,7 +17,7 @@ from reradar_core.io.datasets import check_pose_span
 from reradar_core.io.poses import read_poses
 from reradar_core.io.presets import PRESETS, get_preset, mid_sweep_times_us
 from service.api.deps import ApiKeyDep, FormDep, MapIdPath, StateDep, form_fields
-from service.api.scan_input import read_scan_input, scan_request_body
+from service.api.scan_input import ClosedFormRoute, read_scan_input, scan_request_body
 from service.api.schemas import (
     ErrorResponse,
     MapInfo,
@@ -33,7 +33,7 @@ from service.core.errors import BadRequestError
 from service.core.registry import MapEntry
 from service.core.state import ServiceState
 
-router = APIRouter(prefix="/maps", tags=["maps"])
+router = APIRouter(prefix="/maps", tags=["maps"], route_class=ClosedFormRoute)
 
 _E = {"model": ErrorResponse}
 

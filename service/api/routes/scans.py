@@ -8,12 +8,12 @@ from fastapi import APIRouter, File, Form, UploadFile, status
 from starlette.concurrency import run_in_threadpool
 
 from service.api.deps import FormDep, StateDep, form_fields
-from service.api.scan_input import SCAN_LAYOUT_DESCRIPTION, read_scan_upload
+from service.api.scan_input import SCAN_LAYOUT_DESCRIPTION, ClosedFormRoute, read_scan_upload
 from service.api.schemas import ErrorResponse, ScanInfo
 from service.core.config import MAP_ID_PATTERN
 from service.core.errors import BadRequestError
 
-router = APIRouter(prefix="/scans", tags=["scans"])
+router = APIRouter(prefix="/scans", tags=["scans"], route_class=ClosedFormRoute)
 
 _ERRORS: dict[int | str, dict[str, Any]] = {400: {"model": ErrorResponse}, 413: {"model": ErrorResponse}, 422: {"model": ErrorResponse}}
 
