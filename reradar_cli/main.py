@@ -90,6 +90,18 @@ def load_command(name: str) -> Any:
     return cmd
 
 
+_option_type_label = typer.core.TyperOption.display_type_rich
+
+
+def _flag_without_type_label(self: typer.core.TyperOption, ctx: Any) -> str | None:
+    """typer 0.29 labels an on/off flag ``<bool>`` in ``--help``, which reads as an option taking a value
+    (``--json true`` is then refused); a flag shows no type, as click's own help does."""
+    return None if self.is_flag else _option_type_label(self, ctx)
+
+
+typer.core.TyperOption.display_type_rich = _flag_without_type_label  # type: ignore[method-assign]
+
+
 class LazyGroup(typer.core.TyperGroup):
     """Lists ``COMMANDS`` from their static help; imports a command's module only to run it (or show its
     own ``--help``)."""
