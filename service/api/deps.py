@@ -7,7 +7,11 @@ from typing import Annotated, Any
 from fastapi import Depends, Path, Request, Security
 from fastapi.security import APIKeyHeader
 
-from service.api.scan_input import refuse_repeated_fields, refuse_unknown_fields
+from service.api.scan_input import (
+    refuse_repeated_fields,
+    refuse_text_fields_sent_as_files,
+    refuse_unknown_fields,
+)
 from service.core.config import MAP_ID_PATTERN
 from service.core.errors import ServiceUnavailableError, UnauthorizedError, UnsupportedMediaError
 from service.core.state import ServiceState
@@ -64,16 +68,18 @@ def require_form(request: Request) -> None:
 FormDep = Annotated[None, Depends(require_form)]
 
 
-def form_fields(*allowed: str) -> Any:
-    """A dependency (``Depends``) refusing a form whose fields repeat or fall outside ``allowed`` (400 naming
-    them), as inline scans on ``/localize`` and ``/retrieve`` are: FastAPI's form parameters take a repeated
-    field's last value (two ``map_id``: the second map registered) and drop unknown fields without a word. The
+def form_fields(*allowed: str, files: tuple[str, ...] = ()) -> Any:
+    """A dependency (``Depends``) refusing a form whose fields repeat, fall outside ``allowed`` or, being text
+    (not in ``files``), arrive as file parts (400 naming them), as inline scans on ``/localize`` and
+    ``/retrieve`` are: FastAPI's form parameters take a repeated field's last value (two ``map_id``: the second
+    map registered), drop unknown fields without a word and read a text field sent as a file as missing. The
     body was parsed before dependencies run; ``request.form()`` returns that parse."""
 
     async def check_form_fields(request: Request) -> None:
         form = await request.form()
         refuse_repeated_fields(form)
         refuse_unknown_fields(form, allowed)
+        refuse_text_fields_sent_as_files(form, files)
 
     return Depends(check_form_fields)
 

@@ -36,7 +36,7 @@ from service.core.state import ServiceState
 
 __all__ = ["ScanInput", "read_scan_input", "scan_request_body", "UnsupportedMediaError", "check_scan_upload",
            "read_scan_upload", "parse_scan_layout", "SCAN_LAYOUTS", "SCAN_LAYOUT_DESCRIPTION", "read_multipart_form",
-           "refuse_repeated_fields", "refuse_unknown_fields", "refuse_duplicate_json_keys", "ClosedFormRoute"]
+           "refuse_repeated_fields", "refuse_unknown_fields", "refuse_text_fields_sent_as_files", "refuse_duplicate_json_keys", "ClosedFormRoute"]
 
 _TOP_K_FORM = re.compile(r"^[0-9]{1,6}$")
 _FLOAT_FORM = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d{1,3})?$")
@@ -119,6 +119,17 @@ def refuse_unknown_fields(form: FormData, allowed: Iterable[str]) -> None:
     unknown = sorted(set(form.keys()) - set(names))
     if unknown:
         raise BadRequestError(f"unexpected form fields {unknown}; allowed: {', '.join(names)}")
+
+
+def refuse_text_fields_sent_as_files(form: FormData, files: Iterable[str]) -> None:
+    """400 naming the text fields that arrived as file parts (``-F session_id=@sid.txt``; some HTTP libraries
+    send every field so): read as text they would be missing, and the request would run without them - a
+    tracking session silently dropped, a preset ignored. ``files`` are the form's file fields."""
+    file_fields = set(files)
+    as_files = sorted({k for k, v in form.multi_items() if k not in file_fields and not isinstance(v, str)})
+    if as_files:
+        raise BadRequestError(f"form fields {as_files} were sent as files; send them as text fields (curl: "
+                              f"-F name=value, not -F name=@file); only {sorted(file_fields)} are files")
 
 
 class _DuplicateKeysError(ValueError):
@@ -272,6 +283,7 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         # two files, so that a repeated `scan` gets the "given more than once" answer below (the body is bounded)
         form = await read_multipart_form(request, max_files=2, max_fields=16)
         refuse_repeated_fields(form)
+        refuse_text_fields_sent_as_files(form, ("scan",))
         upload = form.get("scan")
         if not isinstance(upload, UploadFile):
             raise BadRequestError("multipart request needs a file field named 'scan' (a Navtech PNG or .npy)")

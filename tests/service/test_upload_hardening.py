@@ -302,6 +302,23 @@ def test_post_scans_refuses_repeated_and_unknown_fields(client: httpx.Client) ->
     assert r.status_code == 201, r.text
 
 
+def test_text_fields_sent_as_files_are_400_on_every_form_route(client: httpx.Client, fake_map: Path) -> None:
+    scan = ("scan", ("s.png", _png()))
+    for name in ("session_id", "map_id", "scan_layout", "preset"):  # were dropped, or misreported as missing
+        r = client.post("/localize", files=[scan, (name, ("v.txt", b"qa"))], data={} if name == "map_id"
+                        else {"map_id": "qa"})
+        body = _problem(r, 400, f"form fields ['{name}'] were sent as files", "-F name=value")
+        assert "UploadFile" not in body["detail"]
+    _problem(client.post("/maps/qa/retrieve", files=[scan, ("top_k", ("k.txt", b"3"))]), 400, "['top_k']")
+    _problem(client.post("/scans", files=[scan, ("preset", ("p.txt", b"boreas"))]), 400, "['preset'] were sent")
+    r = client.post("/maps", headers=AUTH, files=[("map_file", ("m.h5", fake_map.read_bytes())),
+                                                  ("map_id", ("id.txt", b"qa-file"))])
+    _problem(r, 400, "['map_id'] were sent as files", "['archive', 'map_file', 'poses'] are files")
+    # the same fields as text are fine
+    assert client.post("/scans", files=[scan], data={"preset": "boreas"}).status_code == 201
+    assert client.post("/localize", files=[scan], data={"map_id": "qa", "session_id": "s1"}).status_code == 200
+
+
 def test_json_bodies_with_a_key_twice_are_400(client: httpx.Client) -> None:
     sid = client.post("/scans", files={"scan": ("s.png", _png())}).json()["scan_id"]
     headers = {"content-type": "application/json"}

@@ -23,7 +23,7 @@ _ERRORS: dict[int | str, dict[str, Any]] = {400: {"model": ErrorResponse}, 413: 
 async def upload_scan(
     state: StateDep,
     _form: FormDep,
-    _fields: Annotated[None, form_fields("scan", "preset", "scan_layout", "map_id")],
+    _fields: Annotated[None, form_fields("scan", "preset", "scan_layout", "map_id", files=("scan",))],
     scan: Annotated[UploadFile, File(description="Navtech polar PNG or .npy array (see scan_layout).")],
     preset: Annotated[str | None, Form(description=(
         "Radar preset (default: the map's, with `map_id`, when the scan fits it; else inferred from the bin "
