@@ -188,9 +188,10 @@ class LocalizeRequest(ScanRef):
     prior_yaw_deg: float | None = Field(default=None, allow_inf_nan=False, ge=-360, le=360,
                                         description="Explicit prior: heading, degrees.")
     prior_sigma_m: float | None = Field(default=None, allow_inf_nan=False, gt=0, le=1000, description=(
-        "Explicit prior: position standard deviation, metres (default 2)."))
+        "Explicit prior: position standard deviation, metres (default 2); over 3 the scan is localized globally."))
     prior_sigma_yaw_deg: float | None = Field(default=None, allow_inf_nan=False, gt=0, le=180, description=(
-        "Explicit prior: heading standard deviation, degrees (default 5)."))
+        "Explicit prior: heading standard deviation, degrees (default 5); over 5 (a heading not known to "
+        "within 10 degrees) the scan is localized globally."))
 
 
 class CandidateResult(_Model):

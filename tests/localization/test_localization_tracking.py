@@ -91,6 +91,28 @@ def test_inconsistent_prior_falls_back_to_global_and_unknown_places_stay_unlocal
     assert res.status == "not_localized" and res.tracking_lost
 
 
+def test_a_prior_whose_heading_is_not_known_to_10_degrees_is_localized_globally() -> None:
+    """The registration starts at the prior's heading and does not turn far: a prior whose heading is left
+    open (QA: sigma 180 degrees, turned by 180) is localized globally, not tracked to a reversed heading."""
+    rng = np.random.default_rng(0)
+    kfs, poses = _map(rng)
+    loc = _localizer(kfs, poses)
+    T_kf_q = np.array([6.0, -2.0, math.radians(8.0)])
+    query = _query(kfs[5], T_kf_q, rng)
+    truth = compose(poses[5], T_kf_q)
+    cfg = TrackingConfig()
+    assert cfg.covers(PosePrior(truth, 1.0, math.radians(5.0)))  # the explicit prior's default: tracked from
+    assert not cfg.covers(PosePrior(truth, 1.0, math.radians(5.5)))
+    assert not cfg.covers(PosePrior(truth, 3.5, math.radians(1.0)))  # the position rule, as before
+    for sigma_yaw_deg, mode in ((5.0, "tracking"), (20.0, "global"), (180.0, "global")):
+        res = loc.track(query, PosePrior(truth + np.array([0.0, 0.0, math.radians(4.0)]), 1.0,
+                                         math.radians(sigma_yaw_deg)))
+        assert res.mode == mode and res.localized and not res.tracking_lost, sigma_yaw_deg
+        assert abs(res.T_map_query[2] - truth[2]) < math.radians(0.5)
+    with pytest.raises(ConfigError):
+        TrackingConfig(max_start_yaw_rad=0.0)
+
+
 def test_a_tracked_answer_below_the_confidence_bar_is_localized_globally(monkeypatch: pytest.MonkeyPatch) -> None:
     """The confidence bar of global answers holds for tracked ones: a registration the model doubts is not
     answered from the prior (here every answer is scored 0.2 against the bar 0.5)."""

@@ -65,5 +65,5 @@ def test_registration_converges_along_the_road_from_its_first_radius() -> None:
 @pytest.mark.parametrize(("sigma", "covered"), [(0.5, True), (2.0, True), (3.0, True), (3.01, False), (6.0, False)])
 def test_a_prior_is_tracked_from_only_while_the_first_radius_covers_it(sigma: float, covered: bool) -> None:
     cfg = TrackingConfig()  # first radius 2 sigma, capped at 6 m
-    assert cfg.covers(PosePrior(np.zeros(3), sigma, 0.1)) is covered
-    assert TrackingConfig(max_start_radius_m=12.0).covers(PosePrior(np.zeros(3), 6.0, 0.1))
+    assert cfg.covers(PosePrior(np.zeros(3), sigma, 0.05)) is covered
+    assert TrackingConfig(max_start_radius_m=12.0).covers(PosePrior(np.zeros(3), 6.0, 0.05))
