@@ -25,7 +25,13 @@ from starlette.routing import Match
 from reradar_core.errors import ModelMismatchError, ReRadarError
 from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
 from reradar_core.threads import limit_malloc_arenas
-from service.api.middleware import MetricsMiddleware, RequestGuardMiddleware, leaf_routes
+from service.api.middleware import (
+    STATIC_METHODS,
+    MetricsMiddleware,
+    RequestGuardMiddleware,
+    leaf_routes,
+    static_mount,
+)
 from service.api.ops_middleware import OpsMiddleware
 from service.api.routes import health, localize, maps, scans
 from service.api.routes.ui import install_ui
@@ -240,6 +246,8 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
             # are two routes): list them all
             allowed = sorted({m for route in leaf_routes(app.routes)
                               if route.matches(request.scope)[0] != Match.NONE for m in (route.methods or ())})
+            if not allowed and static_mount(request.scope) is not None:  # StaticFiles' 405 names no method
+                allowed = list(STATIC_METHODS)
             headers = {k: v for k, v in headers.items() if k.lower() != "allow"}
             headers["Allow"] = ", ".join(allowed)
             detail = f"{request.method} is not allowed on {request.url.path}; allowed: {headers['Allow']}"

@@ -9,7 +9,8 @@ import time
 from collections.abc import Callable, Iterable
 from typing import IO, Any
 
-from starlette.routing import Match, Route
+from starlette.routing import Match, Mount, Route
+from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.security import Guard, RequestLimits, route_class
@@ -54,10 +55,25 @@ def leaf_routes(routes: Iterable[Any]) -> list[Route]:
     return out
 
 
+#: The methods a static file mount (``StaticFiles``) answers; any other is its 405.
+STATIC_METHODS = ("GET", "HEAD")
+
+
+def static_mount(scope: Scope) -> Mount | None:
+    """The static file mount (``/ui/static``, ``/ui/vendor``) whose prefix ``scope``'s path falls under, if any."""
+    router = getattr(scope.get("app"), "router", None)
+    path = scope.get("path", "")  # the full path (inside a mount, ``matches`` would read it relative to it)
+    for route in getattr(router, "routes", ()):
+        if isinstance(route, Mount) and isinstance(route.app, StaticFiles) and path.startswith(route.path + "/"):
+            return route
+    return None
+
+
 def _route_match(scope: Scope) -> tuple[str | None, bool]:
     """(template of the route that will answer ``scope``, whether it answers only with 405): the app's route
-    matching path and method, else one matching the path only (405), else (None, False) (404, or a static
-    file mount). Used before the router has run (a guard refusal records no ``route`` in the scope)."""
+    matching path and method, else one matching the path only (405), else a static file mount (405 for a
+    method other than GET / HEAD), else (None, False) (404). Used before the router has run (a guard refusal
+    records no ``route`` in the scope)."""
     router = getattr(scope.get("app"), "router", None)
     partial: str | None = None
     for route in leaf_routes(getattr(router, "routes", ())):
@@ -66,6 +82,8 @@ def _route_match(scope: Scope) -> tuple[str | None, bool]:
             return route.path, False
         if match == Match.PARTIAL and partial is None:
             partial = route.path
+    if partial is None and (mount := static_mount(scope)) is not None:
+        return mount.path, scope.get("method") not in STATIC_METHODS
     return partial, partial is not None
 
 

@@ -268,6 +268,13 @@ def test_guard_refusals_count_under_their_route_and_405_before_401(client: httpx
         r = client.patch("/maps/qa", headers=headers)
         _problem(r, 405)
         assert set(r.headers["allow"].split(", ")) == {"DELETE", "GET"}
+        # a static file of the operator page: 405 too (was 401 without a key, and an empty Allow with one)
+        for method in ("POST", "PUT", "DELETE"):
+            r = client.request(method, "/ui/static/app.js", headers=headers)
+            assert "allowed: GET, HEAD" in _problem(r, 405)["detail"]
+            assert r.headers["allow"] == "GET, HEAD"
+    assert client.get("/ui/static/app.js").status_code == 200
+    assert client.options("/ui/static/app.js").headers["allow"] == "GET, HEAD"
     metrics = client.get("/metrics").text
     assert 'reradar_http_requests_total{method="PUT",route="/maps",status="405"}' in metrics
     # an unknown path still needs a key for a write method (safe by default)
