@@ -170,11 +170,15 @@ def localize_command(
     every: int = typer.Option(1, min=1, help="--follow: use every n-th scan."),
     limit: int | None = typer.Option(None, min=1, help="--follow: at most this many scans."),
     no_tracking: bool = typer.Option(False, "--no-tracking", help="--follow: global localization for every scan."),
-    out: Path | None = typer.Option(None, "--out", help="--follow: trajectory PNG (default: <folder>-follow.png)."),
+    out: Path | None = typer.Option(None, "--out", help=(
+        "--follow: trajectory PNG, a .png file in an existing folder (default: <folder>-follow.png beside the "
+        "folder); an existing folder gets <folder>-follow.png inside it. Checked before the replay starts.")),
     seed: int = typer.Option(0, help="--follow: seed of the odometry noise."),
 ) -> None:
     """Localize one scan with a running service (or replay a drive with --follow); prints the map-frame pose
-    (metres, degrees)."""
+    (metres, degrees). Exit status: 0 localized, 1 not localized (--follow: a localized answer off the ground
+    truth), 2 an error (bad argument or URL, an error answer, or an answer that is not the ReRadar API's), 3 the
+    server cannot be reached."""
     import logging
 
     import httpx
@@ -189,7 +193,12 @@ def localize_command(
         typer.echo("error: --odometry must be `ground-truth` or `none`", err=True)
         raise typer.Exit(2)
     try:
-        with ReRadarClient(server, api_key=api_key or None) as client:
+        client = ReRadarClient(server, api_key=api_key or None)
+    except ValueError as exc:  # not an http(s) URL with a host: nothing was sent
+        typer.echo(f"error: --server: {exc}", err=True)
+        raise typer.Exit(2) from None
+    try:
+        with client:
             if follow is not None:
                 from service.follow import follow_sequence
 
@@ -205,11 +214,19 @@ def localize_command(
                 preset = _polar_npy_preset(scan)
             res = client.localize(map_id, scan_path=scan, top_k=top_k, session_id=session, preset=preset,
                                   scan_layout=scan_layout)
-    except ReRadarAPIError as exc:
+    except ReRadarAPIError as exc:  # an error status, or (ReRadarResponseError) an answer that is no ReRadar one
         # the server's 401 names its own setting; say what this command takes
         hint = "; give the vehicle key with --api-key or RERADAR_CLIENT_API_KEY" if exc.status_code == 401 else ""
         typer.echo(f"error: {exc}{hint}", err=True)
-        raise typer.Exit(2) from exc
+        raise typer.Exit(2) from None
+    except httpx.DecodingError as exc:  # a body its own Content-Encoding does not decode: a bad answer, not an outage
+        typer.echo(f"error: the server at {server} answered with a body that cannot be decoded ({exc}): is --server "
+                   "the ReRadar API?", err=True)
+        raise typer.Exit(2) from None
+    except (httpx.InvalidURL, httpx.UnsupportedProtocol) as exc:  # a URL the check above let through: not an outage
+        typer.echo(f"error: --server {server!r} is not a usable URL ({exc}); give e.g. http://127.0.0.1:8080",
+                   err=True)
+        raise typer.Exit(2) from None
     except httpx.TransportError as exc:
         typer.echo(f"error: cannot reach {server}: {exc}", err=True)
         raise typer.Exit(3) from exc

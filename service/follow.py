@@ -14,6 +14,7 @@ answer 5 m behind the vehicle is the right place but the wrong pose.
 from __future__ import annotations
 
 import math
+import os
 import time
 import uuid
 from collections.abc import Callable
@@ -22,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["answer_errors", "follow_sequence", "noisy_odometry"]
+__all__ = ["answer_errors", "follow_sequence", "noisy_odometry", "trajectory_path"]
 
 #: pose accuracy a vehicle needs (metres, degrees); success is the paper's rule (``evaluation.localization_success``:
 #: e_t < R of the radar's dataset, 20 m Boreas / MulRan, 25 m OORD / Oxford, and e_r < 10 degrees)
@@ -50,6 +51,31 @@ def answer_errors(pose: Any, T_map_gt: Any) -> tuple[float, float]:
     return float(e_t[0]), float(e_r[0])
 
 
+def trajectory_path(out: Path | None, folder: Path) -> Path:
+    """Where the replay of ``folder`` writes its trajectory PNG: ``out`` itself (a ``.png`` file), or
+    ``<folder>-follow.png`` inside ``out`` when it is an existing folder, or beside ``folder`` when ``out`` is None.
+
+    ValueError when that name does not end in ``.png`` (the plot is a PNG) or its folder does not exist (it is
+    not created: a mistyped path should not make folders) or cannot be written. Checked before the replay: it
+    would otherwise fail, or write under another name, after the whole drive.
+    """
+    # "." and ".." have no usable name of their own: name the PNG after the folder they stand for
+    src = folder.resolve() if folder.name in ("", ".", "..") else folder
+    name = f"{src.name}-follow.png"
+    png = src.with_name(name) if out is None else out / name if out.is_dir() else out
+    if png.suffix.lower() != ".png":
+        raise ValueError(f"--out {out}: the trajectory is written as a PNG; give a file name ending in .png "
+                         "(or an existing folder)")
+    parent = png.parent
+    if not parent.is_dir():
+        raise ValueError(f"cannot write the trajectory PNG {png}: folder {parent} does not exist (it is not "
+                         "created; make it, or give another --out)")
+    if not os.access(parent, os.W_OK):
+        raise ValueError(f"cannot write the trajectory PNG {png}: folder {parent} is not writable (give another "
+                         "--out)")
+    return png
+
+
 def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str], None] = print,
                     top_k: int | None = None, odometry: str = "ground-truth", odometry_noise: float = 0.05,
                     every: int = 1, limit: int | None = None, tracking: bool = True, out: Path | None = None,
@@ -57,7 +83,8 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     """Replay ``folder`` on map ``map_id`` with ``client`` (``service.client.ReRadarClient``).
 
     Returns 0 when every ``localized`` answer is within ``POSE_TRANSLATION_M`` and ``POSE_ROTATION_DEG`` of the
-    ground truth, else 1 (2: unreadable folder).
+    ground truth, else 1 (2: unreadable folder, or ``out`` refused by ``trajectory_path``, before any scan is
+    sent). The trajectory goes to ``trajectory_path(out, folder)``, printed as ``trajectory: PATH``.
     """
     from reradar_core.errors import ReRadarError
     from reradar_core.evaluation import localization_success, radius_for
@@ -67,6 +94,11 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     try:
         seq = load_sequence(folder)
     except ReRadarError as exc:
+        echo(f"error: {exc}")
+        return 2
+    try:
+        png = trajectory_path(out, folder)
+    except ValueError as exc:
         echo(f"error: {exc}")
         return 2
     idx = np.arange(0, len(seq), every)
@@ -113,7 +145,6 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
                  f"{'-':>6} {'-':>7} {res.alignment_score:5.2f} {ms:5.0f}  ({res.reason})")
         rows.append(row)
     _summary(rows, echo, radius_m)
-    png = out or folder.with_name(f"{folder.name}-follow.png")
     try:
         _plot(rows, gt[idx], png, f"{folder.name} on map {map_id}")
         echo(f"trajectory: {png}")
@@ -188,6 +219,5 @@ def _plot(rows: list[dict[str, Any]], gt: np.ndarray, path: Path, title: str) ->
     ax.set_title(title)
     ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, format="png")  # trajectory_path checked the name and its folder
     plt.close(fig)
