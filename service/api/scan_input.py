@@ -147,6 +147,12 @@ def _pairs_without_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return found
 
 
+def _body_errors(exc: ValidationError) -> list[Any]:
+    """``exc``'s errors located as FastAPI locates a request body's (``["body", "top_k"]``), so a field's error
+    reads the same whether the scan came inline (multipart) or by ``scan_id`` (JSON), and on every route."""
+    return [{**e, "loc": ("body", *e["loc"])} for e in exc.errors(include_url=False)]
+
+
 def refuse_duplicate_json_keys(raw: bytes) -> None:
     """400 when the JSON body ``raw`` names a key twice in one object (``{"map_id": "a", "map_id": "b"}``): JSON
     parsers keep the last silently, which would localize on a map the client may not have meant. A body that is
@@ -268,7 +274,7 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         try:
             model = json_model.model_validate_json(raw or b"{}", strict=True)
         except ValidationError as exc:
-            raise RequestValidationError(exc.errors(include_url=False)) from None
+            raise RequestValidationError(_body_errors(exc)) from None
         refuse_duplicate_json_keys(raw)  # the validator keeps a repeated key's last value
         fields = model.model_dump()
         scan_id = fields.pop("scan_id")
@@ -312,7 +318,7 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         try:
             model = json_model.model_validate({"scan_id": "inline", **raw_fields}, strict=True)
         except ValidationError as exc:
-            raise RequestValidationError(exc.errors(include_url=False)) from None
+            raise RequestValidationError(_body_errors(exc)) from None
         fields = model.model_dump()
         fields.pop("scan_id")
         data, filename = await read_scan_upload(upload, state.settings.max_scan_pixels, scan_layout)

@@ -69,7 +69,7 @@ def test_error_model_covers_validation_404_405_and_paths(live: tuple[str, Path])
     url, maps_dir = live
     with httpx.Client(base_url=url, timeout=30) as c:
         body = assert_problem(c.post("/localize", json={"map_id": "hard", "scan_id": "s", "top_k": 5.5}), 422)
-        assert body["errors"][0]["loc"] == ["top_k"] and "top_k" in body["detail"]
+        assert body["errors"][0]["loc"] == ["body", "top_k"] and "top_k" in body["detail"]
         assert_problem(c.post("/localize", json={"scan_id": "s"}), 422)
         r = assert_problem(c.get("/nowhere"), 404)
         assert "/nowhere" in r["detail"]

@@ -413,3 +413,16 @@ def test_closing_boundary_is_found_wherever_the_body_is_split() -> None:
         with pytest.raises(BadRequestError, match="no closing boundary"):
             asyncio.run(read_multipart_form(_request(open_body, cut, b"multipart/form-data; boundary=XyZ"),
                                             max_files=1, max_fields=16))
+
+
+def test_a_field_error_is_located_alike_in_json_and_multipart(client: httpx.Client) -> None:
+    """``loc`` is ["body", field] for a scan sent inline or by scan_id, as FastAPI locates form fields."""
+    sid = client.post("/scans", files={"scan": ("s.png", _png())}).json()["scan_id"]
+    odometry = {"odom_dx_m": 1001, "odom_dy_m": 0, "odom_dyaw_deg": 0}
+    by_ref = _problem(client.post("/localize", json={"map_id": "qa", "scan_id": sid, **odometry}), 422)
+    inline = _problem(client.post("/localize", files={"scan": ("s.png", _png())},
+                                  data={"map_id": "qa", **{k: str(v) for k, v in odometry.items()}}), 422)
+    nan = _problem(client.post("/localize", files={"scan": ("s.png", _png())},
+                               data={"map_id": "qa", "odom_dx_m": "nan", "odom_dy_m": "0", "odom_dyaw_deg": "0"}), 422)
+    assert by_ref["errors"][0]["loc"] == inline["errors"][0]["loc"] == nan["errors"][0]["loc"] == ["body", "odom_dx_m"]
+    assert "odom_dx_m" in by_ref["detail"] and "body" not in by_ref["detail"]
