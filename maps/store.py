@@ -17,6 +17,7 @@ only when complete, so a crash mid-write never leaves a half map visible under t
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import hashlib
 import logging
 import mmap
@@ -696,13 +697,44 @@ def fsync_dir(directory: str | Path) -> None:
         os.close(dir_fd)
 
 
-def install_file(src: str | Path, dst: str | Path) -> Path:
+#: ``os.link`` errors that mean the file system has no hard links (``install_file(exclusive=True)`` then
+#: checks and renames instead)
+_NO_LINK_ERRNOS = frozenset({errno.EPERM, errno.EXDEV, errno.ENOTSUP, errno.EOPNOTSUPP, errno.ENOSYS})
+
+
+def install_file(src: str | Path, dst: str | Path, exclusive: bool = False) -> Path:
     """Durably move a complete file into place: fsync ``src``, rename it over ``dst`` (atomic within one
-    filesystem), fsync both folders. After a crash ``dst`` is either the old file or the whole new one."""
+    filesystem), fsync both folders. After a crash ``dst`` is either the old file or the whole new one.
+
+    ``exclusive``: never replace an existing ``dst`` (map files shared by several processes: two writers of
+    one map id must not silently overwrite each other): ``src`` is hard-linked as ``dst``, which fails
+    atomically when ``dst`` exists, then unlinked. On a file system without hard links the check and the
+    rename are two steps (a writer in between can still be overwritten). The installed file keeps ``src``'s
+    inode, size and modification time.
+
+    Raises:
+        FileExistsError: ``exclusive`` and ``dst`` exists (``src`` is left in place).
+    """
     src, dst = Path(src), Path(dst)
     with open(src, "rb+") as fh:
         os.fsync(fh.fileno())
-    os.replace(src, dst)
+    if exclusive:
+        try:
+            os.link(src, dst)
+        except FileExistsError:
+            raise
+        except OSError as exc:
+            if exc.errno not in _NO_LINK_ERRNOS:
+                raise
+            logger.warning("%s: no hard links on this file system (%s); installing %s with a check and a rename",
+                           dst.parent, exc.strerror, dst.name)
+            if dst.exists():
+                raise FileExistsError(errno.EEXIST, "file exists", str(dst)) from None
+            os.replace(src, dst)
+        else:
+            os.unlink(src)
+    else:
+        os.replace(src, dst)
     fsync_dir(dst.parent)
     if src.parent != dst.parent:
         fsync_dir(src.parent)

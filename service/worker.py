@@ -2,7 +2,12 @@
 
 One worker builds one map at a time (the network uses the CPU cores); run more workers for more parallel
 builds. Each worker also watches the job records: a build whose worker stopped sending heartbeats (killed,
-machine lost) is released so that a live worker runs it again.
+machine lost) is released so that a live worker runs it again, and job folders left without a record (Redis
+lost its data) are removed (``sweep_orphan_jobs``).
+
+A finished build is installed exclusively (never over a map file registered meanwhile: the build fails) and
+then marked ``ready`` only if no DELETE cancelled it (``BuildQueue.mark_ready``); a DELETE that won that race
+was answered 200, so the worker removes the map it installed.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ from typing import Any, cast
 import numpy as np
 import redis
 
-from maps.store import install_file
+from maps.store import fsync_dir, install_file
 from reradar_core.errors import ReRadarError
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
@@ -30,10 +35,14 @@ from service.core.jobs import (
     ARQ_JOB_PREFIX,
     JOB_FUNCTION,
     BuildQueue,
+    identity_text,
+    installed_by,
     jobs_dir,
+    orphan_job_age_s,
+    sweep_orphan_jobs,
 )
 from service.core.logs import configure_logging
-from service.core.registry import RECORD_TIME_FORMAT, MapRegistry, build_failure_message
+from service.core.registry import RECORD_TIME_FORMAT, MapRegistry, build_failure_message, file_identity
 from service.core.shared_state import Keys, arq_redis_settings, connect, replica_id
 
 __all__ = ["run_worker", "build_map_job", "BuildCancelledError", "register"]
@@ -67,11 +76,42 @@ class BuildGaveUpError(Exception):
     """The build was attempted ``build_max_tries`` times (crashed workers count)."""
 
 
+class MapIdTakenError(Exception):
+    """A map file was installed under the build's id while it was being built: the build is discarded."""
+
+
 def _publish(ctx: dict[str, Any], op: str, map_id: str) -> None:
     try:
         ctx["sync_redis"].publish(ctx["keys"].map_events, json.dumps({"op": op, "map_id": map_id, "origin": ctx["origin"]}))
     except redis.RedisError as exc:
         logger.warning("map event %s %s not published: %s", op, map_id, exc)
+
+
+def _discard_installed(ctx: dict[str, Any], map_id: str, job_id: str) -> None:
+    """Remove the map file an attempt of ``job_id`` installed, if any: its build was cancelled, by a DELETE that
+    was answered 200, after the install (``BuildQueue.mark_ready`` lost to ``BuildQueue.cancel``)."""
+    rec = ctx["queue"].record(map_id)
+    target = ctx["registry"].path_for(map_id)
+    if rec.get("job_id") == job_id and installed_by(rec, target):
+        target.unlink(missing_ok=True)
+        fsync_dir(target.parent)
+        _publish(ctx, "deleted", map_id)  # replicas that loaded it meanwhile drop it
+        logger.info("map %s: build cancelled after its install; map removed", map_id, extra={"map_id": map_id})
+
+
+def _finish(ctx: dict[str, Any], map_id: str, job_id: str, scans_done: int) -> str:
+    """Mark the build whose map is installed ``ready``, unless a DELETE cancelled it meanwhile (atomic:
+    ``BuildQueue.mark_ready``; the cancel handler then removes the map). Returns ``ready``."""
+    outcome = ctx["queue"].mark_ready(map_id, job_id, scans_done)
+    if outcome == 0:
+        raise BuildCancelledError
+    if outcome < 0:
+        logger.warning("map %s: its build record is gone or belongs to another job (Redis lost its data?); the "
+                       "built map is kept", map_id, extra={"map_id": map_id, "job_id": job_id})
+    shutil.rmtree(jobs_dir(ctx["registry"].maps_dir) / job_id, ignore_errors=True)
+    _publish(ctx, "built", map_id)
+    logger.info("map %s built", map_id, extra={"map_id": map_id, "job_id": job_id})
+    return "ready"
 
 
 def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
@@ -92,6 +132,10 @@ def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
     if rec.get("state") == "ready":  # finished by a worker that was stopped (SIGTERM) after arq re-queued the job
         logger.info("job %s: map %s is built already; nothing to do", job_id, map_id)
         return "ready"
+    target = registry.path_for(map_id)
+    if installed_by(rec, target):  # an earlier attempt installed it and stopped (killed, Redis hiccup) before
+        logger.info("job %s: map %s was installed by an earlier attempt", job_id, map_id)
+        return _finish(ctx, map_id, job_id, int(rec.get("scans_total") or 0))
     spec = json.loads((job_dir / "spec.json").read_text())
     poses = np.load(job_dir / "poses.npy")
     scans = [job_dir / "work" / rel for rel in spec["scans"]]
@@ -132,16 +176,20 @@ def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
                   lambda i: registry._load_scan(scans[i], spec["preset"]), poses,
                   radar_preset=spec["preset_name"], name=map_id, source=spec["source"],
                   batch_size=settings.build_batch_size, progress=progress, overwrite=True)
-        install_file(built, registry.path_for(map_id))
+        if queue.record(map_id).get("cancel") == "1":  # a DELETE during the last batch: nothing to install
+            raise BuildCancelledError
+        # recorded first, so a retry after a stop between the install and ``ready`` knows the file as its own
+        queue.update(map_id, installed=identity_text(file_identity(built)))
+        try:
+            install_file(built, target, exclusive=True)
+        except FileExistsError:
+            raise MapIdTakenError(
+                f"another map was registered as {map_id!r} while this one was being built, so the built map was "
+                f"discarded; DELETE /maps/{map_id} and register it again to replace that map") from None
     finally:
         stop.set()
         beater.join(timeout=5)
-    queue.update(map_id, state="ready", scans_done=len(scans), finished_utc=time.strftime(RECORD_TIME_FORMAT,
-                                                                                          time.gmtime()))
-    shutil.rmtree(job_dir, ignore_errors=True)
-    _publish(ctx, "built", map_id)
-    logger.info("map %s built", map_id, extra={"map_id": map_id, "job_id": job_id})
-    return "ready"
+    return _finish(ctx, map_id, job_id, len(scans))
 
 
 async def build_map_job(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
@@ -154,12 +202,13 @@ async def build_map_job(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
     try:
         return await asyncio.to_thread(_build, ctx, map_id, job_id)
     except BuildCancelledError:
+        _discard_installed(ctx, map_id, job_id)  # the DELETE was answered 200: the map must not stay
         shutil.rmtree(job_dir, ignore_errors=True)
         queue.remove(map_id)
         _publish(ctx, "cancelled", map_id)
         logger.info("map %s: build cancelled", map_id, extra={"map_id": map_id, "job_id": job_id})
         return "cancelled"
-    except BuildGaveUpError as exc:
+    except (BuildGaveUpError, MapIdTakenError) as exc:
         _fail(ctx, map_id, job_dir, str(exc))
         return "failed"
     except (ReRadarError, ValueError, OSError) as exc:
@@ -255,12 +304,17 @@ def run_worker(settings: Settings, extractor: FeatureExtractor | None = None, bu
                            "registry": MapRegistry(settings, extractor), "extractor": extractor,
                            "origin": replica_id()}
     stop = threading.Event()
+    orphan_age_s = orphan_job_age_s(settings)
 
     def reaper() -> None:
+        last_sweep = 0.0
         while True:
             try:
                 _beat(client, keys)
                 release_stale_builds(queue, settings.build_heartbeat_stale_s)
+                if time.monotonic() - last_sweep >= 60.0:  # folders are only removed minutes after their record
+                    sweep_orphan_jobs(queue, ctx["registry"].maps_dir, orphan_age_s)
+                    last_sweep = time.monotonic()
             except redis.RedisError as exc:
                 logger.warning("stale-build check failed: %s", exc)
             if stop.wait(min(HEALTH_S / 2, settings.build_heartbeat_stale_s / 3)):

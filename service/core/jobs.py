@@ -4,19 +4,30 @@ With ``RERADAR_REDIS_URL`` set, ``POST /maps`` with a scan archive no longer bui
 
 1. the API unpacks and checks the archive as before, moves it to ``<maps_dir>/.build-queue/<job_id>/`` (the maps
    folder is shared by every replica and worker), writes the job record ``build:<map_id>`` (a Redis hash:
-   ``job_id, state, scans_done, scans_total, attempts, error, worker, heartbeat, cancel, ...``) and enqueues
-   an arq job; it answers 202;
+   ``job_id, state, scans_done, scans_total, attempts, error, worker, heartbeat, cancel, installed, ...``) and
+   enqueues an arq job; it answers 202;
 2. a worker (``service.worker``) runs the build, updates ``scans_done`` after every batch and a heartbeat
-   every 2 s, and on success leaves ``<maps_dir>/<map_id>.h5`` (written atomically) and publishes a
-   ``built`` event: every replica loads the map;
+   every 2 s, and on success leaves ``<maps_dir>/<map_id>.h5`` (written atomically, installed exclusively;
+   ``installed`` records the file's identity first, ``installed_by``) and publishes a ``built`` event: every
+   replica loads the map;
 3. a worker killed mid-build leaves a record ``running`` whose heartbeat stops: after
    ``build_heartbeat_stale_s`` any live worker releases arq's in-progress lock on it and the build runs
    again (``attempts`` + 1, at most ``build_max_tries``); the record is durable as long as Redis persists
    (compose: append-only file);
 4. ``DELETE /maps/<id>`` of a map still building cancels it: the record is flagged, the worker stops at
-   its next batch, removes the job's files and the record.
+   its next batch, removes the job's files and the record. Flagging (``BuildQueue.cancel``) and the worker's
+   ``ready`` transition (``BuildQueue.mark_ready``) are atomic on the record and exclude each other: a DELETE
+   answered 200 as a cancel never leaves the map installed, and one that comes after ``ready`` deletes the map.
 
-States of a record: ``queued``, ``running``, ``ready``, ``failed`` (with ``error``), ``cancelled``.
+The record's key is also the fleet-wide claim of the id: ``HSETNX build:<id> job_id`` succeeds for one
+request only. A prebuilt map file upload takes the same claim (``BuildQueue.claim_upload``: state
+``uploading``, with a TTL in case its replica dies) until its file is installed and loaded (or the upload
+failed), so an upload and a build, or two uploads, of one id on different replicas cannot both be accepted;
+map files are installed exclusively (``install_file(exclusive=True)``) in case the claim could not be taken
+(Redis down).
+
+States of a record: ``queued``, ``running``, ``ready``, ``failed`` (with ``error``), ``cancelled``;
+``uploading`` for an upload's claim (not in the ``builds`` set).
 """
 
 from __future__ import annotations
@@ -29,20 +40,24 @@ import shutil
 import socket
 import time
 import uuid
-from collections.abc import Callable
+from collections import Counter
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
 import redis
 
+from maps.store import fsync_dir
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
-from service.core.errors import ConflictError
-from service.core.registry import MapEntry, MapRegistry, utc_now
+from service.core.errors import ConflictError, NotFoundError
+from service.core.registry import FileIdentity, MapEntry, MapRegistry, file_identity, utc_now
 from service.core.shared_state import SharedStateUnavailableError, arq_redis_settings
 
-__all__ = ["BuildQueue", "QueuedMapRegistry", "JOB_FUNCTION", "ARQ_IN_PROGRESS_PREFIX", "ARQ_JOB_PREFIX", "jobs_dir"]
+__all__ = ["BuildQueue", "QueuedMapRegistry", "JOB_FUNCTION", "ARQ_IN_PROGRESS_PREFIX", "ARQ_JOB_PREFIX", "jobs_dir",
+           "orphan_job_age_s", "sweep_orphan_jobs", "identity_text", "installed_by"]
 
 logger = logging.getLogger(__name__)
 
@@ -54,6 +69,41 @@ ARQ_IN_PROGRESS_PREFIX = "arq:in-progress:"
 ARQ_JOB_PREFIX = "arq:job:"
 
 _ACTIVE = ("queued", "running")
+#: record state of a prebuilt map file upload's claim on its id (``BuildQueue.claim_upload``)
+UPLOADING = "uploading"
+#: lifetime of an upload's claim, seconds: it is released once the file is installed (seconds, a minute for a
+#: very large map); the TTL only frees the id of a replica that died meanwhile
+UPLOAD_CLAIM_TTL_S = 300.0
+
+# The record transitions below are Lua scripts: Redis runs each atomically (no other command in between).
+#: KEYS[1] record; ARGV token, map id, created_utc, TTL ms -> 1 claimed, 0 taken
+_CLAIM_UPLOAD = """
+if redis.call('HSETNX', KEYS[1], 'job_id', ARGV[1]) == 0 then return 0 end
+redis.call('HSET', KEYS[1], 'map_id', ARGV[2], 'state', 'uploading', 'created_utc', ARGV[3])
+redis.call('PEXPIRE', KEYS[1], ARGV[4])
+return 1
+"""
+#: KEYS[1] record; ARGV token -> 1 released, 0 not (or no longer) this upload's claim
+_RELEASE_UPLOAD = """
+if redis.call('HGET', KEYS[1], 'job_id') == ARGV[1] then return redis.call('DEL', KEYS[1]) end
+return 0
+"""
+#: KEYS[1] record -> 1 flagged, 0 not active (finished, failed, gone): the worker's ``ready`` came first
+_CANCEL_IF_ACTIVE = """
+local state = redis.call('HGET', KEYS[1], 'state')
+if state == 'queued' or state == 'running' then
+  redis.call('HSET', KEYS[1], 'cancel', '1')
+  return 1
+end
+return 0
+"""
+#: KEYS[1] record; ARGV job id, scans done, finished_utc -> 1 ready, 0 cancelled, -1 not this job's record
+_MARK_READY = """
+if redis.call('HGET', KEYS[1], 'job_id') ~= ARGV[1] then return -1 end
+if redis.call('HGET', KEYS[1], 'cancel') == '1' then return 0 end
+redis.call('HSET', KEYS[1], 'state', 'ready', 'scans_done', ARGV[2], 'finished_utc', ARGV[3])
+return 1
+"""
 
 
 def build_note(rec: dict[str, str], newest_worker_beat: float | None, now: float, stale_after_s: float) -> str | None:
@@ -74,6 +124,57 @@ def jobs_dir(maps_dir: Path) -> Path:
     folder (same file system: the install is a rename), apart from the single-process build records in
     ``.jobs`` and from the temporary files replicas clean up at start-up."""
     return maps_dir / ".build-queue"
+
+
+def identity_text(identity: FileIdentity | None) -> str:
+    """A ``FileIdentity`` as a record field (``installed``)."""
+    return ",".join(map(str, identity)) if identity is not None else ""
+
+
+def installed_by(rec: dict[str, str], target: Path) -> bool:
+    """Whether ``target`` is the map file an attempt of the build of ``rec`` installed: its ``installed`` field,
+    written by the worker before the install (a hard link keeps the file's identity). Such a file is the
+    build's own on a retry, and goes when the build is cancelled."""
+    return bool(rec.get("installed")) and rec.get("installed") == identity_text(file_identity(target))
+
+
+def orphan_job_age_s(settings: Settings) -> float:
+    """How long a job folder without a build record is left alone (``sweep_orphan_jobs``): far longer than an
+    API replica takes between creating it and writing the record, and than a running build goes without
+    writing into it."""
+    return max(300.0, 4 * settings.build_heartbeat_stale_s)
+
+
+def sweep_orphan_jobs(queue: BuildQueue, maps_dir: Path, min_age_s: float, now: float | None = None) -> list[str]:
+    """Remove ``<maps_dir>/.build-queue/<job_id>/`` folders whose job has no build record (Redis restarted
+    without its data, or a replica died between staging a job and writing its record) and in which nothing
+    changed for ``min_age_s``. A folder being staged by an API replica (written before its record) or written
+    by a build is younger than that. Returns the job ids removed.
+
+    Raises:
+        redis.RedisError: the records cannot be read (nothing is removed then).
+    """
+    root = jobs_dir(maps_dir)
+    if not root.is_dir():
+        return []
+    now = time.time() if now is None else now
+    owned = {rec.get("job_id") for rec in queue.records().values()}
+    removed = []
+    for job in root.iterdir():
+        if job.name in owned or not job.is_dir():
+            continue
+        try:  # the folder and what is directly in it (spec, poses, the map a build writes)
+            newest = max([job.stat().st_mtime, *(p.stat().st_mtime for p in job.iterdir())])
+        except OSError:  # removed meanwhile
+            continue
+        if now - newest < min_age_s:
+            continue
+        shutil.rmtree(job, ignore_errors=True)
+        removed.append(job.name)
+    if removed:
+        logger.warning("removed %d build job folder(s) without a build record (Redis lost its data?): %s",
+                       len(removed), ", ".join(sorted(removed)))
+    return removed
 
 
 class BuildQueue:
@@ -124,21 +225,73 @@ class BuildQueue:
         pipe.srem(self.keys.builds, map_id)
         pipe.execute()
 
-    # ---- enqueue / cancel ---------------------------------------------------------------------------------
-    def enqueue(self, map_id: str, job_id: str, scans_total: int, source: str) -> None:
-        """Claim ``map_id`` across every replica, write its record and put the build on the queue.
+    # ---- the fleet-wide claim of an id --------------------------------------------------------------------
+    def taken_error(self, map_id: str) -> ConflictError:
+        """The 409 for a request that found ``map_id`` claimed by the record of another build or upload."""
+        rec = self.record(map_id)
+        state = rec.get("state")
+        if rec.get("cancel") == "1":
+            return ConflictError(f"map {map_id!r}: its cancelled build is stopping (at its next batch); retry in a "
+                                 "few seconds")
+        if state == UPLOADING:
+            return ConflictError(f"map {map_id!r} is being registered right now by another request (a map file "
+                                 f"upload); once it is done the id is taken: GET /maps/{map_id} shows it, "
+                                 f"DELETE /maps/{map_id} frees it; or pick another id")
+        if state in _ACTIVE:
+            return ConflictError(f"map {map_id!r} is already being built; wait until the build finishes "
+                                 f"(GET /maps/{map_id} shows its state), DELETE /maps/{map_id} to cancel it, or "
+                                 "pick another id")
+        if state == "failed":
+            return ConflictError(f"map {map_id!r}: its build failed; DELETE /maps/{map_id} first or pick another "
+                                 "id")
+        if state == "ready":
+            return ConflictError(f"map {map_id!r} already exists; DELETE /maps/{map_id} first or pick another id")
+        # the claim went away between the two calls
+        return ConflictError(f"map {map_id!r} was claimed by another request moments ago; retry in a second or "
+                             "pick another id")
+
+    def claim_upload(self, map_id: str, token: str, ttl_s: float = UPLOAD_CLAIM_TTL_S) -> None:
+        """Claim ``map_id`` for a prebuilt map file upload: the build record's claim (``enqueue``), as a record
+        in state ``uploading`` that expires after ``ttl_s``. Release it with ``release_upload``.
 
         Raises:
-            ConflictError: another build of ``map_id`` exists. redis.RedisError: Redis is down.
+            ConflictError: a build or another upload holds the id. redis.RedisError: Redis is down.
+        """
+        claimed = self.redis.eval(_CLAIM_UPLOAD, 1, self.keys.build(map_id), token, map_id, utc_now(),
+                                  str(int(ttl_s * 1000)))
+        if not claimed:
+            raise self.taken_error(map_id)
+
+    def release_upload(self, map_id: str, token: str) -> None:
+        """Free ``map_id`` claimed by ``claim_upload(map_id, token)``; a claim of another request (this one
+        expired meanwhile) is left alone."""
+        self.redis.eval(_RELEASE_UPLOAD, 1, self.keys.build(map_id), token)
+
+    def mark_ready(self, map_id: str, job_id: str, scans_done: int) -> int:
+        """The worker's final transition of a build whose map it installed: ``ready``, unless a DELETE flagged
+        the record (``cancel``), atomically (``cancel`` flags only an active record). Returns 1 (``ready``), 0
+        (cancelled: the map must go) or -1 (the record is not ``job_id``'s: Redis lost it)."""
+        return int(cast(int, self.redis.eval(_MARK_READY, 1, self.keys.build(map_id), job_id, str(scans_done),
+                                              utc_now())))
+
+    # ---- enqueue / cancel ---------------------------------------------------------------------------------
+    def enqueue(self, map_id: str, job_id: str, scans_total: int, source: str,
+                taken: Callable[[], bool] | None = None) -> None:
+        """Claim ``map_id`` across every replica, write its record and put the build on the queue.
+
+        ``taken``: checked once the claim is held (a map file installed under the id since the caller's
+        check, whose upload claimed and released the id before this claim, frees the claim again: 409).
+
+        Raises:
+            ConflictError: another build or upload of ``map_id`` exists. redis.RedisError: Redis is down.
         """
         key = self.keys.build(map_id)
         if not self.redis.hsetnx(key, "job_id", job_id):
-            if self.record(map_id).get("cancel") == "1":
-                raise ConflictError(f"map {map_id!r}: its cancelled build is stopping (at its next batch); "
-                                    "retry in a few seconds")
-            raise ConflictError(f"map {map_id!r} is already being built (or its build failed: DELETE "
-                                f"/maps/{map_id} first)")
+            raise self.taken_error(map_id)
         try:  # from the claim on, a failure frees the id again ("nothing was stored")
+            if taken is not None and taken():
+                raise ConflictError(f"map {map_id!r} already exists (registered by another request moments "
+                                    f"ago); DELETE /maps/{map_id} first or pick another id")
             self.update(map_id, map_id=map_id, state="queued", scans_done=0, scans_total=scans_total, attempts=0,
                         error="", worker="", heartbeat=0, cancel=0, source=source, created_utc=utc_now())
             self.redis.sadd(self.keys.builds, map_id)
@@ -157,13 +310,20 @@ class BuildQueue:
         finally:
             await pool.aclose()
 
-    def cancel(self, map_id: str) -> tuple[bool, str | None]:
+    def cancel(self, map_id: str, remove_files: Callable[[dict[str, str]], None] | None = None
+               ) -> tuple[bool, str | None]:
         """Stop building ``map_id``. A build no worker has started is taken off the queue at once (its id is free
         again); a running one is flagged and stops at its next batch.
 
+        The flag is set only while the record is still active, atomically (``_CANCEL_IF_ACTIVE``): a build
+        that its worker marked ``ready`` first is not cancelled (False: delete the map instead).
+
+        ``remove_files(record)`` removes the files of a build taken off the queue (no worker will; among them a
+        map an earlier attempt installed, ``installed_by``), before its record goes: a replica that finds the
+        record gone and the files still there takes it for lost data.
+
         Returns:
-            (whether a queued or running build was cancelled, the job id when it was taken off the queue: its
-            files are the caller's to remove, no worker will).
+            (whether a queued or running build was cancelled, the job id when it was taken off the queue).
         """
         rec = self.record(map_id)
         if rec.get("state") not in _ACTIVE:
@@ -175,10 +335,12 @@ class BuildQueue:
             pipe.delete(ARQ_JOB_PREFIX + job_id)  # a worker that dequeues it meanwhile finds no job and skips it
             removed = pipe.execute()
             if removed[0]:
+                if remove_files is not None:
+                    remove_files(rec)
                 self.remove(map_id)
                 return True, job_id
-        self.update(map_id, cancel=1)
-        return True, None
+        flagged = self.redis.eval(_CANCEL_IF_ACTIVE, 1, self.keys.build(map_id))
+        return bool(flagged), None
 
 
 class QueuedMapRegistry(MapRegistry):
@@ -190,6 +352,23 @@ class QueuedMapRegistry(MapRegistry):
         super().__init__(settings, extractor)
         self.queue = queue
         self._publish = publish
+        #: job id of each build this replica shows ``building`` (to tell a lost record from a cancelled build)
+        self._job_ids: dict[str, str] = {}
+        #: ids this replica is registering right now (reserved here, record or file not yet written): the map
+        #: sync must not take their ``building`` entry for a vanished build
+        self._registering: Counter[str] = Counter()
+
+    @contextmanager
+    def _in_flight(self, map_id: str) -> Iterator[None]:
+        with self._lock:
+            self._registering[map_id] += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._registering[map_id] -= 1
+                if self._registering[map_id] <= 0:
+                    del self._registering[map_id]
 
     def staging_dir(self) -> Path:
         """A staging folder of this process only: the base ``load_all`` empties ``.staging`` at start-up,
@@ -212,6 +391,49 @@ class QueuedMapRegistry(MapRegistry):
             except OSError:
                 continue
 
+    def check_free(self, map_id: str) -> None:
+        """As ``MapRegistry.check_free``, deciding from the shared maps folder rather than this replica's view: a
+        map whose file is gone (deleted through another replica moments ago, before this one's map sync
+        dropped it) no longer holds the id."""
+        with self._lock:
+            entry = self._entries.get(map_id)
+            if (entry is not None and entry.file_id is not None and entry.state != "building"
+                    and not entry.path.exists()):
+                self.forget(map_id)
+                logger.info("map %s dropped: deleted by another replica", map_id, extra={"map_id": map_id})
+            super().check_free(map_id)
+
+    def register_file(self, map_id: str, staged: Path) -> MapEntry:
+        """As ``MapRegistry.register_file``, holding the fleet-wide claim of ``map_id``
+        (``BuildQueue.claim_upload``) from before the id check until the upload is installed or failed: a build
+        or another upload of the id through any replica meanwhile gets 409. Redis down: the upload goes ahead
+        unclaimed (a map file upload needs no queue); its install still never replaces a file.
+
+        Raises:
+            ConflictError: the id is taken or claimed. MapFormatError / ModelMismatchError: invalid map.
+        """
+        token = f"upload-{uuid.uuid4().hex}"
+        claimed = False
+        try:
+            self.path_for(map_id)
+            self.queue.claim_upload(map_id, token)
+            claimed = True
+        except redis.RedisError as exc:
+            logger.warning("map %s: upload not claimed in Redis (%s); installed only if the id is free", map_id, exc)
+        except BaseException:
+            staged.unlink(missing_ok=True)
+            raise
+        try:
+            with self._in_flight(map_id):
+                return super().register_file(map_id, staged)
+        finally:
+            if claimed:
+                try:
+                    self.queue.release_upload(map_id, token)
+                except redis.RedisError as exc:
+                    logger.warning("map %s: upload claim not released (Redis: %s); it expires within %.0f s", map_id,
+                                   exc, UPLOAD_CLAIM_TTL_S)
+
     def build_note(self, entry: MapEntry) -> str | None:
         """``build_note`` of a ``building`` entry from its job record and the workers' heartbeats (None when
         Redis cannot say: the note is a hint, the state stays what the records last said)."""
@@ -229,6 +451,11 @@ class QueuedMapRegistry(MapRegistry):
     def start_build(self, map_id: str, scan_paths: list[Path], poses: np.ndarray, preset: str | None,
                     workdir: Path, source: str) -> MapEntry:
         """Reserve ``map_id``, move ``workdir`` to the shared jobs folder and enqueue its build."""
+        with self._in_flight(map_id):
+            return self._queue_build(map_id, scan_paths, poses, preset, workdir, source)
+
+    def _queue_build(self, map_id: str, scan_paths: list[Path], poses: np.ndarray, preset: str | None,
+                     workdir: Path, source: str) -> MapEntry:
         first = self._load_scan(scan_paths[0], preset)  # fail fast, synchronously, on unreadable scans
         preset_name = preset or first.preset or "unknown"
         entry = self._reserve(map_id, scans_total=len(scan_paths))
@@ -242,7 +469,7 @@ class QueuedMapRegistry(MapRegistry):
                     "source": source, "scans": [str(p.relative_to(workdir)) for p in scan_paths]}
             (job_dir / "spec.json").write_text(json.dumps(spec))
             try:
-                self.queue.enqueue(map_id, job_id, len(scan_paths), source)
+                self.queue.enqueue(map_id, job_id, len(scan_paths), source, taken=self.path_for(map_id).exists)
             except redis.RedisError as exc:
                 full = isinstance(exc, redis.exceptions.OutOfMemoryError) or "OOM" in str(exc)
                 logger.warning("map %s: build not queued (Redis %s)", map_id, "full" if full else "unavailable")
@@ -256,35 +483,80 @@ class QueuedMapRegistry(MapRegistry):
             shutil.rmtree(job_dir, ignore_errors=True)
             self._release(map_id)
             raise
+        with self._lock:
+            self._job_ids[map_id] = job_id
         logger.info("map %s: build queued as job %s (%d scans)", map_id, job_id, len(scan_paths),
                     extra={"map_id": map_id, "job_id": job_id})
         self._publish("queued", map_id)
         return entry
 
+    def _remove_job_files(self, rec: dict[str, str]) -> None:
+        """The files of a build taken off the queue: its job folder, and the map an earlier attempt installed
+        before it stopped short of ``ready`` (the DELETE that took it off was answered 200)."""
+        map_id = rec.get("map_id", "")
+        if map_id and installed_by(rec, self.path_for(map_id)):
+            self.path_for(map_id).unlink(missing_ok=True)
+            fsync_dir(self.maps_dir)
+        if rec.get("job_id"):
+            shutil.rmtree(jobs_dir(self.maps_dir) / rec["job_id"], ignore_errors=True)
+
     def delete(self, map_id: str) -> MapEntry:
-        """Delete a map; a map still building is cancelled (its job stops at the next batch)."""
+        """Delete a map; a map still building is cancelled (its job stops at the next batch and never leaves
+        the map installed: ``BuildQueue.cancel``). A build that finished or failed since this replica last
+        looked is deleted like any map (``_settle_finished_build``); a build of the id still active after the
+        map was deleted is cancelled too, so it cannot bring the map back."""
         entry = self.get(map_id)
-        try:
-            cancelled, dropped_job = self.queue.cancel(map_id) if entry.state == "building" else (False, None)
-        except redis.RedisError as exc:
-            raise SharedStateUnavailableError(
-                f"map {map_id!r} is being built and build jobs live in Redis, which is unavailable; retry "
-                f"later") from exc
-        if cancelled:
-            with self._lock:
-                self._entries.pop(map_id, None)
-            if dropped_job:  # taken off the queue before any worker ran it: its uploaded scans go now
-                shutil.rmtree(jobs_dir(self.maps_dir) / dropped_job, ignore_errors=True)
-            logger.info("map %s: build cancelled", map_id, extra={"map_id": map_id})
-            self._publish("cancelled", map_id)
-            return entry
+        if entry.state == "building":
+            try:
+                cancelled, _dropped = self.queue.cancel(map_id, self._remove_job_files)
+                rec = {} if cancelled else self.queue.record(map_id)
+            except redis.RedisError as exc:
+                raise SharedStateUnavailableError(
+                    f"map {map_id!r} is being built and build jobs live in Redis, which is unavailable; retry "
+                    f"later") from exc
+            if cancelled:
+                with self._lock:
+                    self._entries.pop(map_id, None)
+                    self._job_ids.pop(map_id, None)
+                logger.info("map %s: build cancelled", map_id, extra={"map_id": map_id})
+                self._publish("cancelled", map_id)
+                return entry
+            self._settle_finished_build(map_id, entry, rec)
         entry = super().delete(map_id)  # the "deleted" event is published by OpsMiddleware
         try:
-            if self.queue.record(map_id).get("state") not in _ACTIVE:
-                self.queue.remove(map_id)  # a failed build's record goes with the map
+            rec = self.queue.record(map_id)
+            if rec.get("state") in _ACTIVE:  # its worker installed the map, not yet ``ready``: it removes it again
+                self.queue.cancel(map_id, self._remove_job_files)
+            elif rec.get("state") != UPLOADING:  # another request's upload claim is its own to release
+                self.queue.remove(map_id)  # a finished or failed build's record goes with the map
         except redis.RedisError:
             logger.warning("map %s deleted, but its build record could not be removed (Redis down)", map_id)
         return entry
+
+    def _settle_finished_build(self, map_id: str, entry: MapEntry, rec: dict[str, str]) -> None:
+        """Replace ``entry`` (``building`` here, but its build record ``rec`` is no longer active: the build
+        finished or failed since this replica last looked) by what the shared state holds, without loading
+        the map, so that ``MapRegistry.delete`` deletes it: the installed map file, or the failed build.
+
+        Raises:
+            NotFoundError: neither a map file nor a record is left (the build was cancelled elsewhere).
+        """
+        path = self.path_for(map_id)
+        on_disk = path.is_file()
+        if not on_disk and rec.get("state") in (None, UPLOADING):  # an upload's claim is not this build's
+            with self._lock:
+                if self._entries.get(map_id) is entry:
+                    del self._entries[map_id]
+            raise NotFoundError(f"unknown map {map_id!r}: its build was cancelled or removed meanwhile; GET /maps "
+                                "lists the registered maps")
+        settled = MapEntry(map_id, path, "ready" if on_disk else "failed", error=None if on_disk else (
+                           rec.get("error") or "failed"), scans_done=int(rec.get("scans_done") or 0),
+                           scans_total=int(rec.get("scans_total") or 0), registered_utc=entry.registered_utc,
+                           file_id=file_identity(path))
+        with self._lock:
+            if self._entries.get(map_id) is entry:
+                self._entries[map_id] = settled
+                self._job_ids.pop(map_id, None)
 
     def _swap_in_built(self, map_id: str) -> None:
         """Replace the ``building`` entry of a finished build by the loaded map, in one step (a request
@@ -292,15 +564,21 @@ class QueuedMapRegistry(MapRegistry):
         entry = self._load_entry(map_id, self.path_for(map_id))
         with self._lock:
             current = self._entries.get(map_id)
-            if current is None or current.state == "building":
+            # a failed build never had a file: one under its id now is a map registered since
+            if current is None or current.state == "building" or (current.state == "failed"
+                                                                   and current.file_id is None):
                 self._entries[map_id] = entry
+                self._job_ids.pop(map_id, None)
                 return
         if entry.db is not None:  # someone else loaded it meanwhile
             entry.db.close()
 
     def reconcile_builds(self) -> None:
         """Mirror the job records into this registry: active builds as ``building`` with their progress,
-        failed ones as ``failed`` with the reason; finished ones are loaded by ``MapSync``'s file pass."""
+        failed ones as ``failed`` with the reason (unless a map file holds the id: a map registered while the
+        build ran, which made it fail, is served); finished ones are loaded by ``MapSync``'s file pass. A
+        building map whose record vanished while its job's files are still there (Redis restarted without its
+        data) is dropped with a warning."""
         records = self.queue.records()
         for map_id, rec in records.items():
             state = rec.get("state")
@@ -315,19 +593,34 @@ class QueuedMapRegistry(MapRegistry):
                 if entry.state == "building":
                     entry.scans_done = int(rec.get("scans_done", 0))
                     entry.scans_total = int(rec.get("scans_total", 0))
-            elif state == "failed" and (entry is None or entry.state == "building"):
-                failed = MapEntry(map_id, self.path_for(map_id), "failed", error=rec.get("error") or "failed",
-                                  scans_done=int(rec.get("scans_done", 0)),
-                                  scans_total=int(rec.get("scans_total", 0)))
-                with self._lock:
-                    self._entries[map_id] = failed
+                    if rec.get("job_id"):
+                        with self._lock:
+                            self._job_ids[map_id] = rec["job_id"]
+            elif state == "failed" and (entry is None or entry.state == "building" or (
+                    entry.state == "failed" and entry.file_id is None)):
+                if self.path_for(map_id).is_file():
+                    self._swap_in_built(map_id)
+                elif entry is None or entry.state == "building":
+                    failed = MapEntry(map_id, self.path_for(map_id), "failed", error=rec.get("error") or "failed",
+                                      scans_done=int(rec.get("scans_done", 0)),
+                                      scans_total=int(rec.get("scans_total", 0)))
+                    with self._lock:
+                        self._entries[map_id] = failed
+                        self._job_ids.pop(map_id, None)
             elif state == "ready" and entry is not None and entry.state == "building":
                 self._swap_in_built(map_id)
         # builds that vanished (cancelled and cleaned up) leave no building entry behind
         with self._lock:
-            stale = [m for m, e in self._entries.items() if e.db is None and (
+            stale = [m for m, e in self._entries.items() if e.db is None and m not in self._registering and (
                 (e.state == "building" and (m not in records or records[m].get("cancel") == "1"))
                 # a failed build deleted through another replica: its record is gone and it never had a file
                 or (e.state == "failed" and m not in records and not e.path.exists()))]
             for m in stale:
-                self._entries.pop(m, None)
+                gone = self._entries.pop(m)
+                job_id = self._job_ids.pop(m, None)
+                # a cancelled build's files go before its record; a lost record leaves them behind
+                if (gone.state == "building" and m not in records and job_id
+                        and (jobs_dir(self.maps_dir) / job_id).is_dir()):
+                    logger.warning("map %s: its build record vanished from Redis while it was being built (Redis "
+                                   "restarted without its data?); the build is lost: register the map again", m,
+                                   extra={"map_id": m, "job_id": job_id})

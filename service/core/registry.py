@@ -53,7 +53,8 @@ from reradar_core.retrieval import IndexConfig
 from service.core.config import MAP_ID_PATTERN, Settings
 from service.core.errors import BadRequestError, ConflictError, NotFoundError, scrub_paths
 
-__all__ = ["MapEntry", "MapRegistry", "MapState", "DEMO_MAP_ID", "build_failure_message"]
+__all__ = ["MapEntry", "MapRegistry", "MapState", "DEMO_MAP_ID", "FileIdentity", "build_failure_message",
+           "file_identity"]
 
 logger = logging.getLogger(__name__)
 
@@ -88,6 +89,21 @@ def build_failure_message(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
+#: what tells one map file from another under the same name: (st_dev, st_ino, st_size, st_mtime_ns)
+FileIdentity = tuple[int, int, int, int]
+
+
+def file_identity(path: Path) -> FileIdentity | None:
+    """``path``'s ``FileIdentity``, None when it does not exist. A map file is only ever replaced by another
+    inode (``install_file`` renames or links a new file in), and the old inode cannot be reused while a
+    registry holds it open, so a changed identity means another file."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
+
+
 #: UTC time format of the registry's and the build records' timestamps (``registered_utc``, ``created_utc``, ...)
 RECORD_TIME_FORMAT = "%Y-%m-%dT%H:%M:%SZ"
 
@@ -99,7 +115,10 @@ def utc_now() -> str:
 
 @dataclass
 class MapEntry:
-    """One registered map and its state (``ready``, ``building`` or ``failed`` with ``error``)."""
+    """One registered map and its state (``ready``, ``building`` or ``failed`` with ``error``).
+
+    ``file_id``: the ``file_identity`` of the map file this entry opened (None for a build in progress or a
+    failed build, which have none): ``MapSync`` reopens the map when the file under its name changes."""
 
     map_id: str
     path: Path
@@ -109,6 +128,7 @@ class MapEntry:
     scans_done: int = 0
     scans_total: int = 0
     registered_utc: str = field(default_factory=utc_now)
+    file_id: FileIdentity | None = None
 
     @property
     def progress(self) -> float:
@@ -205,8 +225,10 @@ class MapRegistry:
 
     # ---- loading -------------------------------------------------------------------------------------------
     def _load_entry(self, map_id: str, path: Path) -> MapEntry:
-        """Open the map file ``path`` as an entry: ``ready`` with its keyframes, or ``failed`` with the reason."""
-        entry = MapEntry(map_id, path, "failed")
+        """Open the map file ``path`` as an entry: ``ready`` with its keyframes, or ``failed`` with the reason;
+        either with the file's identity (``MapEntry.file_id``)."""
+        # before opening: a file replaced in between then differs from the identity and is reopened later
+        entry = MapEntry(map_id, path, "failed", file_id=file_identity(path))
         try:
             entry.db = self._open(path)
             entry.state = "ready"
@@ -370,6 +392,9 @@ class MapRegistry:
 
         ``staged`` must be inside the staging folder; it is moved (renamed) on success, deleted on failure.
 
+        The install never replaces a file (``install_file(exclusive=True)``): on a shared maps folder another
+        process may have installed a map under this id since the id check.
+
         Raises:
             ConflictError: the id is taken. MapFormatError / ModelMismatchError: invalid map (nothing stored).
         """
@@ -378,6 +403,7 @@ class MapRegistry:
         except BaseException:
             staged.unlink(missing_ok=True)
             raise
+        installed = False
         try:
             try:
                 # first in a child process: a crafted file that crashes or hangs the HDF5 library costs the child
@@ -389,7 +415,13 @@ class MapRegistry:
                     probe.close()
             except ReRadarError as exc:  # the message names the staged file: say "the uploaded map" instead
                 raise type(exc)(str(exc).replace(str(staged), "the uploaded map")) from None
-            install_file(staged, entry.path)
+            identity = file_identity(staged)  # a hard link or a rename keeps it
+            try:
+                install_file(staged, entry.path, exclusive=True)
+            except FileExistsError:
+                raise ConflictError(self.taken_message(map_id, None)) from None
+            installed = True
+            entry.file_id = identity
             try:  # opening reads every keyframe (shared arrays, preload): their checks refuse it here
                 entry.db = self._open(entry.path)
             except ReRadarError as exc:
@@ -399,7 +431,7 @@ class MapRegistry:
             return entry
         except BaseException:
             staged.unlink(missing_ok=True)
-            if entry.db is None and entry.path.exists():
+            if installed and entry.db is None:  # only the file this call installed, never another writer's
                 entry.path.unlink(missing_ok=True)
             self._release(map_id)
             raise
@@ -428,8 +460,10 @@ class MapRegistry:
                 build_map(entry.path, self.extractor, lambda i: self._load_scan(scan_paths[i], preset), poses,
                           radar_preset=preset_name, name=map_id, source=source,
                           batch_size=self.settings.build_batch_size, progress=progress)
+                identity = file_identity(entry.path)
                 db = self._open(entry.path)
                 with self._lock:
+                    entry.file_id = identity
                     entry.db = db
                     entry.state = "ready"
                 self._drop_job(map_id)
@@ -504,6 +538,32 @@ class MapRegistry:
                     entry.db.close()
                 return None
             self._entries[map_id] = entry
+        return entry
+
+    def reopen_if_replaced(self, map_id: str) -> MapEntry | None:
+        """Reopen ``map_id`` when the file under its name is not the one its entry opened (deleted and
+        registered again by another process while this one missed it): the new map replaces the entry in one
+        step and the old database is closed after ``CLOSE_GRACE_S``. A new file that fails to open makes the
+        entry ``failed`` with the reason (as ``adopt``). Only entries opened from a file (``file_id``) qualify.
+
+        Returns the new entry, or None when nothing changed (same file, file gone, or no such entry).
+        """
+        with self._lock:
+            current = self._entries.get(map_id)
+        if current is None or current.file_id is None or current.state == "building":
+            return None
+        identity = file_identity(current.path)
+        if identity is None or identity == current.file_id:  # a file that is gone is ``forget``'s business
+            return None
+        entry = self._load_entry(map_id, current.path)
+        with self._lock:
+            if self._entries.get(map_id) is not current:  # deleted or registered again here meanwhile
+                if entry.db is not None:
+                    entry.db.close()
+                return None
+            self._entries[map_id] = entry
+        if current.db is not None:  # requests already using the old map finish on it
+            _close_later(current.db)
         return entry
 
     def forget(self, map_id: str) -> MapEntry | None:

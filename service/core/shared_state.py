@@ -11,8 +11,9 @@ What lives in Redis (keys ``<namespace>:v1:...``; ``v1`` changes when a value's 
 | ``build:<map_id>``, ``builds``, ``queue`` | hash, set, arq queue | map build jobs (``service.core.jobs``) |
 
 Every replica listens on ``maps:events`` and reconciles its registry with the shared maps folder: a map file
-that appeared is loaded, a map whose file is gone is dropped (within a second of the event; a full re-check
-every ``map_sync_interval_s`` catches missed events). Redis down: uploading or using a ``scan_id`` answers
+that appeared is loaded, a map whose file is gone is dropped, a map whose file was replaced (deleted and
+registered again) is reopened (within a second of the event; a full re-check every ``map_sync_interval_s``
+catches missed events). Redis down: uploading or using a ``scan_id`` answers
 503, everything else - localizing inline scans on the maps already loaded - keeps working.
 """
 
@@ -310,9 +311,11 @@ class MapSync:
     """Keeps this replica's registry in step with the shared maps folder, driven by Redis events.
 
     A background thread listens on ``maps:events``; on any event, and every ``interval_s`` regardless, it
-    reconciles: a map file without a registry entry is loaded (``MapRegistry.adopt``), a ready or failed
-    entry whose file is gone is dropped (``MapRegistry.forget``). ``extra_reconcile`` (the build jobs' view)
-    runs after each pass.
+    reconciles: a map file without a registry entry is loaded (``MapRegistry.adopt``), a ready entry (or one
+    that failed to open its file) whose file is gone is dropped (``MapRegistry.forget``), and one whose file
+    is another file than the one it opened is reopened (``MapRegistry.reopen_if_replaced``: a DELETE and a
+    new POST of the id elsewhere while this replica missed both events, e.g. it was paused).
+    ``extra_reconcile`` (the build jobs' view) runs after each pass.
     """
 
     def __init__(self, client: redis.Redis, keys: Keys, registry: MapRegistry, interval_s: float,
@@ -348,9 +351,13 @@ class MapSync:
         for map_id, entry in known.items():
             # a loaded map whose file is gone was deleted elsewhere; a failed build never had a file (its entry
             # follows its build record: ``reconcile_builds``)
-            if entry.state == "ready" and map_id not in on_disk and not entry.path.exists():
+            from_file = entry.state == "ready" or (entry.state == "failed" and entry.file_id is not None)
+            if from_file and map_id not in on_disk and not entry.path.exists():
                 registry.forget(map_id)
                 logger.info("map %s dropped: deleted by another replica", map_id, extra={"map_id": map_id})
+            elif from_file and (new := registry.reopen_if_replaced(map_id)) is not None:
+                logger.info("map %s reopened: its file was replaced by another replica (%s)", map_id, new.state,
+                            extra={"map_id": map_id})
         if self._extra is not None:
             self._extra()
         self.passes += 1
