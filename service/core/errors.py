@@ -115,16 +115,21 @@ def scrub_paths(message: str, roots: Iterable[str | Path] = ()) -> str:
     return message
 
 
+#: Validation errors returned as ``errors`` items (the ``detail`` counts them all): an answer stays small
+#: whatever the request.
+MAX_REPORTED_ERRORS = 20
+
+
 def validation_detail(errors: Sequence[dict[str, Any]]) -> tuple[str, list[dict[str, Any]]]:
-    """A one-line ``detail`` and JSON-safe ``errors`` items (``loc``, ``msg``, ``type``) from pydantic /
-    FastAPI validation errors. The offending ``input`` and ``ctx`` are dropped: they may be bytes that are
+    """A one-line ``detail`` and JSON-safe ``errors`` items (``loc``, ``msg``, ``type``; the first
+    ``MAX_REPORTED_ERRORS``) from pydantic / FastAPI validation errors. The offending ``input`` and ``ctx`` are dropped: they may be bytes that are
     not UTF-8 or floats that JSON cannot hold (NaN, inf), and echoing them back helps nobody."""
     items = []
-    for e in errors:
+    for e in errors[:MAX_REPORTED_ERRORS]:
         loc = [x if isinstance(x, int) else str(x) for x in e.get("loc", ())]
         items.append({"loc": loc, "msg": str(e.get("msg", "invalid value")), "type": str(e.get("type", "value_error"))})
     parts = [f"{'.'.join(str(x) for x in i['loc'][1:] or i['loc']) or 'body'}: {i['msg']}" for i in items[:5]]
-    more = f" (+{len(items) - 5} more)" if len(items) > 5 else ""
+    more = f" (+{len(errors) - 5} more)" if len(errors) > 5 else ""
     return "invalid request: " + "; ".join(parts) + more, items
 
 
