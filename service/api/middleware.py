@@ -4,6 +4,7 @@ reads a body) and request metrics."""
 from __future__ import annotations
 
 import asyncio
+import math
 import tempfile
 import time
 from collections.abc import Callable, Iterable
@@ -166,27 +167,46 @@ class _Body:
             self.spool.close()
 
 
+#: The body's average rate is checked from this many seconds after its start (``min_rate``)
+RATE_GRACE_S = 5.0
+
+
 async def _receive_body(receive: Receive, limit: int, idle_s: float, total_s: float,
-                        spool: IO[bytes] | None) -> _Body | None:
+                        spool: IO[bytes] | None, min_rate: float = 0.0) -> _Body | None:
     """The whole body, or None when the client disconnected.
 
+    ``min_rate`` (bytes/s, 0: none): from ``RATE_GRACE_S`` after the start, the body must have arrived at this
+    average rate at least. A client trickling a body holds one of the few request slots
+    (``RequestLimits.max_concurrent``): four sending a byte every 5 s locked every scan request out for the
+    whole ``total_s`` (QA, session 22); the rate cuts them off after the grace.
+
     Raises:
-        _Refused: 413 above ``limit`` bytes, 408 when no data arrives for ``idle_s`` or the body is not complete
-        within ``total_s`` seconds.
+        _Refused: 413 above ``limit`` bytes, 408 when no data arrives for ``idle_s``, the body arrives slower
+        than ``min_rate`` or is not complete within ``total_s`` seconds.
     """
     body = _Body(spool)
-    deadline = time.monotonic() + total_s
+    start = time.monotonic()
+    deadline = start + total_s
     while True:
-        left = deadline - time.monotonic()
-        wait = min(idle_s, left)
+        now = time.monotonic()
+        left = deadline - now
+        # the moment by which the bytes received so far fall below the minimum average rate
+        behind = start + RATE_GRACE_S + body.size / min_rate - now if min_rate > 0 else math.inf
+        wait = min(idle_s, left, behind)
         try:
             if wait <= 0:
                 raise TimeoutError
             message = await asyncio.wait_for(receive(), timeout=wait)
         except TimeoutError:
             body.close()
-            why = (f"the request body was not complete within {total_s:.0f} s" if left <= idle_s
-                   else f"the client sent no request body data for {idle_s:.0f} s")
+            if wait == behind:
+                elapsed = time.monotonic() - start
+                why = (f"the request body arrived at {body.size / max(elapsed, 1e-9) / 1024:.1f} KiB/s, below the "
+                       f"minimum of {min_rate / 1024:.0f} KiB/s")
+            elif left <= idle_s:
+                why = f"the request body was not complete within {total_s:.0f} s"
+            else:
+                why = f"the client sent no request body data for {idle_s:.0f} s"
             raise _Refused(RequestTimeoutError(why + "; send the whole body at once")) from None
         if message["type"] == "http.disconnect":
             body.close()
@@ -285,7 +305,8 @@ class RequestGuardMiddleware:
                     max_size=_SPOOL_MEMORY_BYTES, dir=str(limits.spool_dir) if limits.spool_dir else None)
             total_s = limits.map_upload_timeout_s if is_map_upload else limits.body_timeout_s
             try:
-                body = await _receive_body(receive, limit, limits.body_idle_timeout_s, total_s, spool)
+                body = await _receive_body(receive, limit, limits.body_idle_timeout_s, total_s, spool,
+                                           limits.body_min_rate_bytes_s)
             except _Refused as exc:
                 if exc.error.status_code == 413:
                     await _drain(receive, False)

@@ -104,11 +104,13 @@ class RequestLimits:
     max_concurrent: int
     retry_after_s: int
     spool_dir: Path | None = None
+    body_min_rate_bytes_s: float = 0.0
 
     @classmethod
     def from_settings(cls, s: Settings) -> RequestLimits:
         return cls(s.max_upload_bytes, s.max_map_upload_bytes, s.body_idle_timeout_s, s.body_timeout_s,
-                   s.map_upload_timeout_s, s.max_concurrent_requests, s.retry_after_s)
+                   s.map_upload_timeout_s, s.max_concurrent_requests, s.retry_after_s,
+                   body_min_rate_bytes_s=s.body_min_rate_kib_s * 1024)
 
 
 @dataclass(frozen=True)

@@ -167,6 +167,37 @@ def test_saturation_answers_503_with_retry_after() -> None:
     assert busy.headers["retry-after"] == "3" and busy.json()["error"] == "overloaded"
 
 
+def test_a_body_trickled_below_the_minimum_rate_is_408_after_the_grace(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Four clients sending a byte every 5 s held every request slot for the whole body timeout (QA, session 22):
+    from ``RATE_GRACE_S`` on, a body below the minimum average rate is refused; a body sent at once is not."""
+    import time
+
+    import service.api.middleware as middleware
+    from service.api.middleware import _receive_body, _Refused
+
+    monkeypatch.setattr(middleware, "RATE_GRACE_S", 0.3)
+
+    def trickle(chunks: int, gap_s: float):  # type: ignore[no-untyped-def]
+        sent = {"n": 0}
+
+        async def receive() -> dict:
+            await asyncio.sleep(gap_s)
+            sent["n"] += 1
+            return {"type": "http.request", "body": b"x", "more_body": sent["n"] < chunks}
+
+        return receive
+
+    t0 = time.monotonic()
+    with pytest.raises(_Refused) as refused:
+        asyncio.run(_receive_body(trickle(1000, 0.05), 10_000, 5.0, 30.0, None, min_rate=1024.0))
+    assert refused.value.error.status_code == 408 and time.monotonic() - t0 < 2.0
+    assert "below the minimum of 1 KiB/s" in refused.value.error.message
+    body = asyncio.run(_receive_body(trickle(3, 0.0), 10_000, 5.0, 30.0, None, min_rate=1024.0))
+    assert body is not None and body.size == 3
+    body = asyncio.run(_receive_body(trickle(30, 0.02), 10_000, 5.0, 30.0, None, min_rate=0.0))  # no minimum
+    assert body is not None and body.size == 30
+
+
 def test_install_paths_fsync(tmp_path: Path, fake_map: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import maps.store
 
