@@ -117,10 +117,14 @@ def serve_command(
     settings = settings_or_exit(**({"maps_dir": maps_dir} if maps_dir is not None else {}))
     check_model_or_exit(settings)  # before the server starts: a bad setting is one line, not a start-up traceback
     check_redis_credentials_or_exit(settings)
+    from service.core.http_protocol import HEADER_TIMEOUT_ENV, HeadTimeoutH11Protocol
+
+    HeadTimeoutH11Protocol.header_timeout_s = settings.header_timeout_s
+    os.environ[HEADER_TIMEOUT_ENV] = str(settings.header_timeout_s)  # spawned workers read it at import
     if workers == 1:
         from service.main import create_app
 
-        uvicorn.run(create_app(settings), host=host, port=port, log_level=log_level)
+        uvicorn.run(create_app(settings), host=host, port=port, log_level=log_level, http=HeadTimeoutH11Protocol)
         return
     if not settings.redis_url:
         typer.echo(f"error: --workers {workers} needs RERADAR_REDIS_URL: each worker is a separate process, so "
@@ -135,7 +139,7 @@ def serve_command(
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     uvicorn.run("service.main:create_app", factory=True, host=host, port=port, log_level=log_level,
-                workers=workers)
+                workers=workers, http=HeadTimeoutH11Protocol)
 
 
 def localize_command(

@@ -73,6 +73,7 @@ def serve_in_thread(settings: Settings, extractor: FeatureExtractor | None = Non
                     ready_timeout_s: float = 300.0, log_level: str = "warning") -> Iterator[str]:
     """Run the service with uvicorn in a background thread on a free loopback port; yields its base URL and
     stops the server on exit."""
+    from service.core.http_protocol import HeadTimeoutH11Protocol
     from service.main import create_app
 
     if host not in ("127.0.0.1", "localhost", "::1"):
@@ -82,7 +83,9 @@ def serve_in_thread(settings: Settings, extractor: FeatureExtractor | None = Non
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.bind((host, 0))
     port = sock.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(app, log_level=log_level, lifespan="on", access_log=False))
+    HeadTimeoutH11Protocol.header_timeout_s = settings.header_timeout_s
+    server = uvicorn.Server(uvicorn.Config(app, log_level=log_level, lifespan="on", access_log=False,
+                                           http=HeadTimeoutH11Protocol))
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True, name="uvicorn")
     thread.start()
     url = f"http://{host}:{port}"

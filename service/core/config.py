@@ -218,6 +218,9 @@ class Settings(BaseSettings):
         "A request body that sends nothing for this long is refused with 408 (slow-client protection)."))
     body_timeout_s: float = Field(default=30.0, gt=0, description=(
         "Longest time to receive a whole scan request body, seconds (408 after)."))
+    header_timeout_s: float = Field(default=10.0, gt=0, description=(
+        "A connection whose request line and headers are not complete this long after it opened (or after its "
+        "previous response) is closed (`reradar serve`; slow-client protection before a request exists)."))
     body_min_rate_kib_s: float = Field(default=32.0, ge=0, description=(
         "Slowest average rate of a request body, KiB/s, checked from 5 s after its start (408 below): a client "
         "trickling a body holds one of the max_concurrent_requests slots (a 1.3 MB scan PNG at 32 KiB/s takes "
