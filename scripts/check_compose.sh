@@ -75,6 +75,8 @@ if not re.search(r"server\s+api:8080\s+resolve", conf):
     errors.append("nginx.conf: upstream must be `server api:8080 resolve` (every replica, re-resolved)")
 if "proxy_pass http://reradar_api" not in conf:
     errors.append("nginx.conf: location / must proxy to the reradar_api upstream")
+if not re.search(r"limit_conn\s+reradar_per_client\s+\d+", conf) or "client_header_timeout" not in conf:
+    errors.append("nginx.conf: limit connections per client (limit_conn) and set client_header_timeout")
 
 docker = Path("docker/Dockerfile").read_text()
 stages = re.split(r"^FROM\s+", docker, flags=re.M)[1:]
