@@ -37,6 +37,15 @@ def _localizer(kfs: list[ScanFeatures], poses: np.ndarray) -> Localizer:
     return Localizer(GlobalIndex(np.stack([f.global_descriptor for f in kfs])), InMemoryKeyframes(kfs, poses))
 
 
+def _scene() -> tuple[Localizer, list[ScanFeatures], np.ndarray, ScanFeatures, np.ndarray]:
+    """The map of ``_map`` (seed 0), its localizer, and a query 6 m / -2 m / 8 degrees from keyframe 5."""
+    rng = np.random.default_rng(0)
+    kfs, poses = _map(rng)
+    loc = _localizer(kfs, poses)
+    T_kf_q = np.array([6.0, -2.0, math.radians(8.0)])
+    return loc, kfs, poses, _query(kfs[5], T_kf_q, rng), T_kf_q
+
+
 def test_prior_validation_and_motion() -> None:
     with pytest.raises(ConfigError):
         PosePrior(np.array([0.0, np.nan, 0.0]), 1.0, 0.1)
@@ -60,11 +69,7 @@ def test_candidates_are_the_nearest_keyframes_within_the_gate() -> None:
 
 
 def test_tracking_recovers_the_pose_from_an_offset_prior() -> None:
-    rng = np.random.default_rng(0)
-    kfs, poses = _map(rng)
-    loc = _localizer(kfs, poses)
-    T_kf_q = np.array([6.0, -2.0, math.radians(8.0)])
-    query = _query(kfs[5], T_kf_q, rng)
+    loc, kfs, poses, query, T_kf_q = _scene()
     truth = compose(poses[5], T_kf_q)
     prior = PosePrior(truth + np.array([1.5, -1.0, math.radians(3.0)]), 1.5, math.radians(2.0))
     res = loc.track(query, prior)
@@ -94,11 +99,7 @@ def test_inconsistent_prior_falls_back_to_global_and_unknown_places_stay_unlocal
 def test_a_prior_whose_heading_is_not_known_to_10_degrees_is_localized_globally() -> None:
     """The registration starts at the prior's heading and does not turn far: a prior whose heading is left
     open (QA: sigma 180 degrees, turned by 180) is localized globally, not tracked to a reversed heading."""
-    rng = np.random.default_rng(0)
-    kfs, poses = _map(rng)
-    loc = _localizer(kfs, poses)
-    T_kf_q = np.array([6.0, -2.0, math.radians(8.0)])
-    query = _query(kfs[5], T_kf_q, rng)
+    loc, kfs, poses, query, T_kf_q = _scene()
     truth = compose(poses[5], T_kf_q)
     cfg = TrackingConfig()
     assert cfg.covers(PosePrior(truth, 1.0, math.radians(5.0)))  # the explicit prior's default: tracked from
@@ -119,11 +120,7 @@ def test_a_tracked_answer_below_the_confidence_bar_is_localized_globally(monkeyp
     import reradar_core.localization.localizer as localizer_module
     from reradar_core.localization import LocalizationConfig
 
-    rng = np.random.default_rng(0)
-    kfs, poses = _map(rng)
-    loc = _localizer(kfs, poses)
-    T_kf_q = np.array([6.0, -2.0, math.radians(8.0)])
-    query = _query(kfs[5], T_kf_q, rng)
+    loc, kfs, poses, query, T_kf_q = _scene()
     prior = PosePrior(compose(poses[5], T_kf_q), 1.0, math.radians(2.0))
     config = LocalizationConfig(min_confidence=0.5)
     confident = loc.track(query, prior, config)
