@@ -1,8 +1,9 @@
 """Tracking from an explicit prior whose heading is off: how many tracked answers are right, off or wrong?
 
 For every revisit query of a two-traversal suite (a map keyframe within 20 m), the prior is the true mid-sweep
-position with the heading turned by +-delta (sign seeded), position sigma 1 m, and a heading sigma of either
-delta / 1.5 (the truth within 1.5 sigma) or 180 degrees ("heading unknown"). ``Localizer.track`` then either
+position with the heading turned by +-delta (sign seeded), position sigma 1 m, and a heading sigma of
+delta / 1.5 (the truth within 1.5 sigma), 180 degrees ("heading unknown") or 2 degrees (a confident prior,
+wrong by delta). ``Localizer.track`` then either
 tracks (``mode`` tracking: judged against the truth, ok <= 2 m / 2 deg, off <= 20 m / 10 deg, else wrong) or
 localizes globally (``TrackingConfig.covers``, or a refused registration).
 
@@ -59,8 +60,8 @@ def main() -> None:
     revisit = nearest <= 20.0
     rng = np.random.default_rng(args.seed)
     for delta in (float(d) for d in args.deltas.split(",")):
-        for sigma_kind in ("delta/1.5", "180"):
-            sigma = math.radians(180.0 if sigma_kind == "180" else max(1.0, delta / 1.5))
+        for sigma_kind in ("delta/1.5", "180", "2"):
+            sigma = math.radians(float(sigma_kind) if sigma_kind in ("180", "2") else max(1.0, delta / 1.5))
             counts = {"tracked": 0, "tracked_ok": 0, "tracked_off": 0, "tracked_wrong": 0, "global_localized": 0}
             for f, gt, is_revisit in zip(q_feats, q_poses, revisit, strict=True):
                 if not is_revisit:

@@ -9,8 +9,9 @@ A prior (the previous pose composed with odometry, or any pose with an uncertain
    uncertainty (2 sigma, capped at ``max_start_radius_m``) to the global estimator's final radius, and
    least-squares rigid fits repeated at each radius until the pose stops moving - no descriptors, no
    hypotheses, a few KD-tree queries;
-3. the answer must pass the global localizer's own bar (``min_inliers`` and the aligned-landmark ratio) and a
-   sequence-consistency check: it lies within the gate of the prior in position and heading;
+3. the answer must pass the global localizer's own bar (``min_inliers`` and the aligned-landmark ratio), a
+   sequence-consistency check (it lies within the gate of the prior in position and heading) and a reversal
+   check (``Localizer._reversal_fits_as_well``: turned by 180 degrees it must align fewer landmarks);
 4. otherwise tracking is lost and the caller falls back to global localization (``Localizer.localize``).
 
 The registration only finds the pose when it starts within its first association radius of it: a prior is

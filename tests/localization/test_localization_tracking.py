@@ -114,6 +114,29 @@ def test_a_prior_whose_heading_is_not_known_to_10_degrees_is_localized_globally(
         TrackingConfig(max_start_yaw_rad=0.0)
 
 
+def test_a_prior_turned_by_180_degrees_on_a_street_alike_both_ways_is_not_tracked() -> None:
+    """Landmarks symmetric under a half turn (a straight street seen from its middle) fit a prior turned by 180
+    degrees as well as the true one; the prior's tight gate accepted the reversed heading (QA: confidence
+    0.99999). The answer must out-align its own reversal, else the scan is localized globally; a scene that is
+    not symmetric is still tracked from a right prior."""
+    rng = np.random.default_rng(3)
+    half = rng.uniform(-60, 60, (75, 2))
+    pts = np.vstack([half, -half])  # symmetric under a turn of 180 degrees about the sensor
+    desc = _unit(rng.normal(size=(150, 16)))
+    kf = ScanFeatures(_unit(rng.normal(size=16)), pts, desc, 0)
+    poses = np.array([[0.0, 0.0, 0.0], [300.0, 0.0, 0.0]])
+    other = ScanFeatures(_unit(rng.normal(size=16)), rng.uniform(-60, 60, (150, 2)), desc, 1)
+    loc = _localizer([kf, other], poses)
+    query = ScanFeatures(kf.global_descriptor, pts + rng.normal(scale=0.02, size=pts.shape), desc, 9)
+    reversed_prior = PosePrior(np.array([0.0, 0.0, math.pi]), 1.0, math.radians(2.0))
+    res = loc.track(query, reversed_prior)
+    assert res.mode == "global" and res.tracking_lost  # before: tracking, yaw 180 degrees
+    assert not (res.localized and abs(math.cos(res.T_map_query[2]) + 1.0) < 1e-3)  # never the reversed guess
+    loc2, kfs, poses2, q2, T_kf_q = _scene()
+    right = loc2.track(q2, PosePrior(compose(poses2[5], T_kf_q), 1.0, math.radians(2.0)))
+    assert right.mode == "tracking" and right.localized
+
+
 def test_a_tracked_answer_below_the_confidence_bar_is_localized_globally(monkeypatch: pytest.MonkeyPatch) -> None:
     """The confidence bar of global answers holds for tracked ones: a registration the model doubts is not
     answered from the prior (here every answer is scored 0.2 against the bar 0.5)."""
