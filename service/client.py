@@ -130,6 +130,13 @@ class ReRadarClient:
         if url.scheme not in ("http", "https") or not url.host:
             raise ValueError(f"invalid server URL {base_url!r}: it needs http:// or https:// and a host, "
                              "e.g. http://127.0.0.1:8080")
+        # what httpx accepts but no server can be: a port beyond 65535 (reported as "cannot reach" before), a
+        # host with a space, a query (every request would go to the base path's own query)
+        problem = ("a port from 1 to 65535" if url.port is not None and not 1 <= url.port <= 65535 else
+                   "a host without spaces" if "%20" in url.host or " " in url.host else
+                   "no query string" if url.query else None)
+        if problem is not None:
+            raise ValueError(f"invalid server URL {base_url!r}: it needs {problem}, e.g. http://127.0.0.1:8080")
         headers = {"X-API-Key": api_key} if api_key else {}
         # plain-HTTP servers need no TLS context, and loading the CA bundle costs ~0.2 s of a vehicle-side
         # call's start-up; redirects are not followed, so requests never leave this http:// base URL

@@ -124,7 +124,8 @@ def test_client_sends_a_valid_map_id_as_the_path_segment() -> None:
 # ---- base URL --------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("url", ["http://[::1", "ftp://x", "127.0.0.1:8080", "localhost:8080", "http://", "", "x"])
+@pytest.mark.parametrize("url", ["http://[::1", "ftp://x", "127.0.0.1:8080", "localhost:8080", "http://", "", "x",
+                                 "http://127.0.0.1:70000", "http://a b", "http://127.0.0.1:8774/?x=1"])
 def test_client_refuses_a_base_url_that_is_not_http(url: str) -> None:
     with pytest.raises(ValueError, match="invalid server URL"):
         ReRadarClient(url)
