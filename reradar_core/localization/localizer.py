@@ -139,10 +139,11 @@ class Localizer:
     def track(self, features: ScanFeatures, prior: PosePrior,
               config: LocalizationConfig | None = None) -> LocalizationResult:
         """Tracking mode (``localization.tracking``): register the scan to the keyframes nearest to ``prior``;
-        when no answer passes the aligned-landmark bar, the prior's gate and the confidence bar
-        (``config.effective_min_confidence``), fall back to ``localize``. A prior
-        looser than the registration reaches (``TrackingConfig.covers``) is not tracked from: the scan is
-        localized globally (``mode="global"``, ``tracking_lost`` False).
+        when no answer passes the aligned-landmark bar, the prior's gate, the reversal check
+        (``_reversal_fits_as_well``) and the confidence bar (``config.effective_min_confidence``), fall back to
+        ``localize``. A prior looser than the registration reaches, in position or heading
+        (``TrackingConfig.covers``), is not tracked from: the scan is localized globally (``mode="global"``,
+        ``tracking_lost`` False).
 
         Returns:
             ``mode="tracking"`` when tracking succeeded, else the global answer with ``tracking_lost=True``;
