@@ -67,6 +67,9 @@ def trajectory_path(out: Path | None, folder: Path) -> Path:
         raise ValueError(f"--out {out}: the trajectory is written as a PNG; give a file name ending in .png "
                          "(or an existing folder)")
     parent = png.parent
+    if parent.exists() and not parent.is_dir():
+        raise ValueError(f"cannot write the trajectory PNG {png}: {parent} is a file, not a folder (give another "
+                         "--out)")
     if not parent.is_dir():
         raise ValueError(f"cannot write the trajectory PNG {png}: folder {parent} does not exist (it is not "
                          "created; make it, or give another --out)")

@@ -357,6 +357,9 @@ def test_trajectory_path_rules(tmp_path: Path) -> None:
             trajectory_path(bad, seq)
         assert why in str(exc.value)
     assert not (tmp_path / "missing").exists()
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(ValueError, match="afile is a file, not a folder"):
+        trajectory_path(tmp_path / "afile" / "x.png", seq)
 
 
 @pytest.mark.parametrize(("out", "expect"), [
