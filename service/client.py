@@ -88,6 +88,17 @@ def _drop_unknown_fields(body: Any, exc: ValidationError) -> bool:
     return bool(errors)
 
 
+def _read_model(body: Any, model: type[_Model]) -> _Model:
+    """``body`` (parsed JSON) as ``model``, reading past the fields ``model`` does not know (``body`` loses them:
+    ``_drop_unknown_fields``). Raises ValidationError for anything else, a known field's error included."""
+    try:
+        return model.model_validate(body)
+    except ValidationError as exc:
+        if not _drop_unknown_fields(body, exc):
+            raise
+    return model.model_validate(body)
+
+
 def _content_type(resp: httpx.Response) -> str:
     return resp.headers.get("content-type", "").split(";")[0].strip() or "no content type"
 
@@ -180,19 +191,15 @@ class ReRadarClient:
         except ValueError:  # JSONDecodeError, or bytes that are not UTF-8
             raise self._unexpected(resp, f"something that is not a ReRadar response ({_content_type(resp)}, "
                                          "not JSON)") from None
-        for attempt in range(2):
-            try:
-                return model.model_validate(body)
-            except ValidationError as exc:
-                if attempt == 0 and _drop_unknown_fields(body, exc):
-                    continue  # a newer server's additional fields, dropped: read the rest
-                # the first problem only, without the input (it may be a whole page of JSON)
-                errs = exc.errors(include_url=False, include_input=False, include_context=False)
-                what = f"{'.'.join(str(part) for part in errs[0]['loc']) or 'body'}: {errs[0]['msg']}"
-                more = f" and {len(errs) - 1} more" if len(errs) > 1 else ""
-                raise self._unexpected(resp, f"JSON that is not a ReRadar {model.__name__} ({what}{more})",
-                                       ", of this client's version") from None
-        raise AssertionError("unreachable")  # pragma: no cover - the second attempt returns or raises
+        try:
+            return _read_model(body, model)
+        except ValidationError as exc:
+            # the first problem only, without the input (it may be a whole page of JSON)
+            errs = exc.errors(include_url=False, include_input=False, include_context=False)
+            what = f"{'.'.join(str(part) for part in errs[0]['loc']) or 'body'}: {errs[0]['msg']}"
+            more = f" and {len(errs) - 1} more" if len(errs) > 1 else ""
+            raise self._unexpected(resp, f"JSON that is not a ReRadar {model.__name__} ({what}{more})",
+                                   ", of this client's version") from None
 
     def _unexpected(self, resp: httpx.Response, what: str, also: str = "") -> ReRadarResponseError:
         base = self._http.base_url
@@ -213,7 +220,7 @@ class ReRadarClient:
     def _ready_answer(self, resp: httpx.Response) -> ReadyResponse:
         if resp.status_code == 503:
             try:
-                return ReadyResponse.model_validate(resp.json())
+                return _read_model(resp.json(), ReadyResponse)
             except ValueError:  # not the service's own not-ready answer (a proxy's page): the 503 is the error
                 pass
         return self._parse(resp, ReadyResponse)  # ReRadarAPIError for any error status

@@ -419,3 +419,10 @@ def test_client_reads_past_fields_a_newer_server_adds() -> None:
     body["count"] = "many"
     with pytest.raises(ReRadarResponseError, match="count"):
         client.list_maps()
+
+
+def test_a_newer_servers_not_ready_answer_is_read_as_not_ready() -> None:
+    """The service's own 503 ``not_ready`` with a field this client does not know is still ``not_ready`` (read as
+    every other answer is), not an error status."""
+    with _client(_answer(503, {**NOT_READY, "warming_up": True})) as rc:
+        assert rc.ready().status == "not_ready"
