@@ -37,7 +37,8 @@ from service.core.state import ServiceState
 
 __all__ = ["ScanInput", "read_scan_input", "scan_request_body", "UnsupportedMediaError", "check_scan_upload",
            "read_scan_upload", "parse_scan_layout", "SCAN_LAYOUTS", "SCAN_LAYOUT_DESCRIPTION", "read_multipart_form",
-           "refuse_repeated_fields", "refuse_unknown_fields", "refuse_text_fields_sent_as_files", "validate_json_body", "refuse_duplicate_json_keys", "ClosedFormRoute"]
+           "refuse_repeated_fields", "refuse_unknown_fields", "refuse_text_fields_sent_as_files",
+           "validate_json_body", "refuse_duplicate_json_keys", "ClosedFormRoute"]
 
 _TOP_K_FORM = re.compile(r"^[0-9]{1,6}$")
 _FLOAT_FORM = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d{1,3})?$")
@@ -183,7 +184,7 @@ def validate_json_body(raw: bytes, json_model: type[BaseModel]) -> BaseModel:
             raise RequestValidationError([{
                 "loc": ("body",), "type": "extra_forbidden",
                 "msg": f"{len(unknown):,} unknown fields (e.g. {', '.join(repr(k[:40]) for k in unknown[:3])}); "
-                       f"the body takes {', '.join(json_model.model_fields)}"}])
+                       f"the body takes {', '.join(names)}"}])
     try:
         model = json_model.model_validate_json(raw or b"{}", strict=True)
     except ValidationError as exc:
