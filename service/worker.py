@@ -25,7 +25,7 @@ from typing import Any, cast
 import numpy as np
 import redis
 
-from maps.store import fsync_dir, install_file
+from maps.store import install_file
 from reradar_core.errors import ReRadarError
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
@@ -39,6 +39,7 @@ from service.core.jobs import (
     installed_by,
     jobs_dir,
     orphan_job_age_s,
+    remove_installed_map,
     sweep_orphan_jobs,
 )
 from service.core.logs import configure_logging
@@ -92,9 +93,7 @@ def _discard_installed(ctx: dict[str, Any], map_id: str, job_id: str) -> None:
     was answered 200, after the install (``BuildQueue.mark_ready`` lost to ``BuildQueue.cancel``)."""
     rec = ctx["queue"].record(map_id)
     target = ctx["registry"].path_for(map_id)
-    if rec.get("job_id") == job_id and installed_by(rec, target):
-        target.unlink(missing_ok=True)
-        fsync_dir(target.parent)
+    if rec.get("job_id") == job_id and remove_installed_map(rec, target):
         _publish(ctx, "deleted", map_id)  # replicas that loaded it meanwhile drop it
         logger.info("map %s: build cancelled after its install; map removed", map_id, extra={"map_id": map_id})
 

@@ -57,7 +57,7 @@ from service.core.registry import FileIdentity, MapEntry, MapRegistry, file_iden
 from service.core.shared_state import SharedStateUnavailableError, arq_redis_settings
 
 __all__ = ["BuildQueue", "QueuedMapRegistry", "JOB_FUNCTION", "ARQ_IN_PROGRESS_PREFIX", "ARQ_JOB_PREFIX", "jobs_dir",
-           "orphan_job_age_s", "sweep_orphan_jobs", "identity_text", "installed_by"]
+           "orphan_job_age_s", "sweep_orphan_jobs", "identity_text", "installed_by", "remove_installed_map"]
 
 logger = logging.getLogger(__name__)
 
@@ -136,6 +136,16 @@ def installed_by(rec: dict[str, str], target: Path) -> bool:
     written by the worker before the install (a hard link keeps the file's identity). Such a file is the
     build's own on a retry, and goes when the build is cancelled."""
     return bool(rec.get("installed")) and rec.get("installed") == identity_text(file_identity(target))
+
+
+def remove_installed_map(rec: dict[str, str], target: Path) -> bool:
+    """Remove ``target`` when it is the map file an attempt of the build of ``rec`` installed (``installed_by``:
+    never a map registered otherwise), durably; whether it did."""
+    if not installed_by(rec, target):
+        return False
+    target.unlink(missing_ok=True)
+    fsync_dir(target.parent)
+    return True
 
 
 def orphan_job_age_s(settings: Settings) -> float:
@@ -494,9 +504,8 @@ class QueuedMapRegistry(MapRegistry):
         """The files of a build taken off the queue: its job folder, and the map an earlier attempt installed
         before it stopped short of ``ready`` (the DELETE that took it off was answered 200)."""
         map_id = rec.get("map_id", "")
-        if map_id and installed_by(rec, self.path_for(map_id)):
-            self.path_for(map_id).unlink(missing_ok=True)
-            fsync_dir(self.maps_dir)
+        if map_id:
+            remove_installed_map(rec, self.path_for(map_id))
         if rec.get("job_id"):
             shutil.rmtree(jobs_dir(self.maps_dir) / rec["job_id"], ignore_errors=True)
 
