@@ -21,8 +21,9 @@ registration turns through (2 sigma <= ``max_start_yaw_rad``, 10 degrees, i.e. s
 moves landmarks 50 m out by 0.9 m per degree). Measured on ``loop-sim`` (157 revisit queries, prior at the true
 position, sigma 1 m, heading off by delta; docs/BENCHMARKS.md "Session 22"): from 15 degrees off 153 of 157
 tracked answers lie within 2 m / 2 degrees, from 20 degrees 69-80, from 30 degrees 4-6 with 6-9 wrong, and a
-prior turned by 180 degrees with its heading left open was tracked to the reversed heading 10 times. A looser prior - a last pose with no odometry since, or a long
-stretch of odometry without a fix - is a place to check, not a prediction: the caller localizes globally.
+prior turned by 180 degrees with its heading left open was tracked to the reversed heading 10 times. A looser
+prior - a last pose with no odometry since, or a long stretch of odometry without a fix - is a place to check,
+not a prediction: the caller localizes globally.
 Measured on the QA drives (14 scans, prior placed behind the true pose along the road; docs/SERVICE.md,
 "Tracking mode"): with the converging registration every prior up to 2 sigma behind gives the pose within
 0.25 m; beyond its radius the registration stays near the prior (1.9-7.5 m off), which no gate of the prior
