@@ -38,6 +38,7 @@ import logging
 import os
 import shutil
 import socket
+import threading
 import time
 import uuid
 from collections import Counter
@@ -71,9 +72,10 @@ ARQ_JOB_PREFIX = "arq:job:"
 _ACTIVE = ("queued", "running")
 #: record state of a prebuilt map file upload's claim on its id (``BuildQueue.claim_upload``)
 UPLOADING = "uploading"
-#: lifetime of an upload's claim, seconds: it is released once the file is installed (seconds, a minute for a
-#: very large map); the TTL only frees the id of a replica that died meanwhile
-UPLOAD_CLAIM_TTL_S = 300.0
+#: lifetime of an upload's claim, seconds, unless renewed: the registering request renews it every third of this
+#: (``QueuedMapRegistry.register_file``) until the file is installed or refused, however long that takes; so the
+#: TTL only frees the id of a replica that died meanwhile, within this time
+UPLOAD_CLAIM_TTL_S = 30.0
 
 # The record transitions below are Lua scripts: Redis runs each atomically (no other command in between).
 #: KEYS[1] record; ARGV token, map id, created_utc, TTL ms -> 1 claimed, 0 taken
@@ -86,6 +88,11 @@ return 1
 #: KEYS[1] record; ARGV token -> 1 released, 0 not (or no longer) this upload's claim
 _RELEASE_UPLOAD = """
 if redis.call('HGET', KEYS[1], 'job_id') == ARGV[1] then return redis.call('DEL', KEYS[1]) end
+return 0
+"""
+#: KEYS[1] record; ARGV token, TTL ms -> 1 renewed, 0 not (or no longer) this upload's claim
+_RENEW_UPLOAD = """
+if redis.call('HGET', KEYS[1], 'job_id') == ARGV[1] then return redis.call('PEXPIRE', KEYS[1], ARGV[2]) end
 return 0
 """
 #: KEYS[1] record -> 1 flagged, 0 not active (finished, failed, gone): the worker's ``ready`` came first
@@ -260,17 +267,24 @@ class BuildQueue:
         return ConflictError(f"map {map_id!r} was claimed by another request moments ago; retry in a second or "
                              "pick another id")
 
-    def claim_upload(self, map_id: str, token: str, ttl_s: float = UPLOAD_CLAIM_TTL_S) -> None:
+    def claim_upload(self, map_id: str, token: str, ttl_s: float | None = None) -> None:
         """Claim ``map_id`` for a prebuilt map file upload: the build record's claim (``enqueue``), as a record
-        in state ``uploading`` that expires after ``ttl_s``. Release it with ``release_upload``.
+        in state ``uploading`` that expires after ``ttl_s`` (default ``UPLOAD_CLAIM_TTL_S``) unless renewed
+        (``renew_upload``). Release it with ``release_upload``.
 
         Raises:
             ConflictError: a build or another upload holds the id. redis.RedisError: Redis is down.
         """
-        claimed = self.redis.eval(_CLAIM_UPLOAD, 1, self.keys.build(map_id), token, map_id, utc_now(),
-                                  str(int(ttl_s * 1000)))
+        ttl_ms = int((UPLOAD_CLAIM_TTL_S if ttl_s is None else ttl_s) * 1000)
+        claimed = self.redis.eval(_CLAIM_UPLOAD, 1, self.keys.build(map_id), token, map_id, utc_now(), str(ttl_ms))
         if not claimed:
             raise self.taken_error(map_id)
+
+    def renew_upload(self, map_id: str, token: str, ttl_s: float | None = None) -> bool:
+        """Extend the claim of ``claim_upload(map_id, token)`` to ``ttl_s`` (default ``UPLOAD_CLAIM_TTL_S``) from
+        now; False when it is no longer this upload's (it expired, Redis lost it)."""
+        ttl_ms = int((UPLOAD_CLAIM_TTL_S if ttl_s is None else ttl_s) * 1000)
+        return bool(self.redis.eval(_RENEW_UPLOAD, 1, self.keys.build(map_id), token, str(ttl_ms)))
 
     def release_upload(self, map_id: str, token: str) -> None:
         """Free ``map_id`` claimed by ``claim_upload(map_id, token)``; a claim of another request (this one
@@ -434,7 +448,7 @@ class QueuedMapRegistry(MapRegistry):
             staged.unlink(missing_ok=True)
             raise
         try:
-            with self._in_flight(map_id):
+            with self._in_flight(map_id), self._claim_kept(map_id, token, claimed):
                 return super().register_file(map_id, staged)
         finally:
             if claimed:
@@ -443,6 +457,34 @@ class QueuedMapRegistry(MapRegistry):
                 except redis.RedisError as exc:
                     logger.warning("map %s: upload claim not released (Redis: %s); it expires within %.0f s", map_id,
                                    exc, UPLOAD_CLAIM_TTL_S)
+
+    @contextmanager
+    def _claim_kept(self, map_id: str, token: str, claimed: bool) -> Iterator[None]:
+        """Renew the upload's claim (``renew_upload``) every third of ``UPLOAD_CLAIM_TTL_S`` while the body runs:
+        checking and installing a large map may take longer than the TTL, which is kept short so that the claim
+        of a replica that died mid-upload frees the id soon."""
+        if not claimed:
+            yield
+            return
+        stop = threading.Event()
+
+        def renew() -> None:
+            while not stop.wait(UPLOAD_CLAIM_TTL_S / 3):
+                try:
+                    if not self.queue.renew_upload(map_id, token):
+                        logger.warning("map %s: upload claim lost (expired or Redis lost it); the install still "
+                                       "never replaces a file", map_id)
+                        return
+                except redis.RedisError as exc:  # a short outage: the claim lives on until its TTL
+                    logger.warning("map %s: upload claim not renewed (Redis: %s)", map_id, exc)
+
+        thread = threading.Thread(target=renew, name=f"upload-claim-{map_id}", daemon=True)
+        thread.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            thread.join()
 
     def build_note(self, entry: MapEntry) -> str | None:
         """``build_note`` of a ``building`` entry from its job record and the workers' heartbeats (None when

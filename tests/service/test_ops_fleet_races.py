@@ -32,6 +32,7 @@ import numpy as np
 import pytest
 import redis
 
+import service.core.jobs as jobs_module
 import service.core.registry as registry_module
 from maps.build import build_map
 from maps.store import install_file
@@ -257,13 +258,44 @@ def test_map_file_upload_and_build_of_one_id_exclude_each_other(fleet: Fleet, ma
         (d / "spec.json").read_text())["map_id"] == "up")
     with pytest.raises(ConflictError, match="being registered right now"):
         fleet.a.register_file("up", fleet.stage(fleet.a, map_files["v2"]))
-    assert 0 < cast(int, fleet.client.pttl(fleet.keys.build("up"))) <= 300_000  # a dead replica's claim expires
+    assert 0 < cast(int, fleet.client.pttl(fleet.keys.build("up"))) <= 30_000  # a dead replica's claim expires
     fleet.queue.release_upload("up", token)
     # a finished upload frees the claim; the file then holds the id
     fleet.b.register_file("up", fleet.stage(fleet.b, map_files["v1"]))
     assert not fleet.client.exists(fleet.keys.build("up"))
     with pytest.raises(ConflictError, match="already exists"):
         fleet.queue_build(fleet.a, "up")
+
+
+def test_upload_claim_outlives_its_ttl_while_the_upload_runs_and_expires_once_abandoned(
+        fleet: Fleet, map_files: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    """QA (session 22, low): a replica that died mid-upload held the id for 300 s. The claim's TTL is now short
+    and the uploading request renews it, so a check slower than the TTL keeps the id claimed to the end, and a
+    claim nobody renews (its replica died) frees the id within the TTL."""
+    monkeypatch.setattr(jobs_module, "UPLOAD_CLAIM_TTL_S", 0.6)  # renewed every 0.2 s
+    real_probe = registry_module.probe_map
+    seen: list[str] = []
+
+    def slow_probe(path: Path) -> None:
+        time.sleep(1.5)  # 2.5 TTLs: without renewal the claim would be gone
+        with pytest.raises(ConflictError, match="being registered right now") as err:
+            fleet.b.register_file("slow", fleet.stage(fleet.b, map_files["v2"]))
+        seen.append(str(err.value))
+        real_probe(path)
+
+    monkeypatch.setattr(registry_module, "probe_map", slow_probe)
+    entry = fleet.a.register_file("slow", fleet.stage(fleet.a, map_files["v1"]))
+    assert entry.state == "ready" and len(seen) == 1 and len(fleet.a.ready("slow")) == 6
+    assert not fleet.client.exists(fleet.keys.build("slow"))  # released at the end
+    # a claim whose replica died (never renewed, never released) frees the id after the TTL
+    fleet.queue.claim_upload("orphan", "upload-dead-replica")
+    with pytest.raises(ConflictError, match="being registered right now"):
+        fleet.queue_build(fleet.a, "orphan")
+    time.sleep(0.8)
+    assert not fleet.client.exists(fleet.keys.build("orphan"))
+    fleet.queue_build(fleet.a, "orphan")
+    assert fleet.record("orphan")["state"] == "queued"
+    assert not fleet.queue.renew_upload("orphan", "upload-dead-replica")  # a build's claim is not the upload's
 
 
 def test_install_never_replaces_a_map_file(fleet: Fleet, map_files: dict[str, Path]) -> None:
