@@ -95,6 +95,16 @@ _RENEW_UPLOAD = """
 if redis.call('HGET', KEYS[1], 'job_id') == ARGV[1] then return redis.call('PEXPIRE', KEYS[1], ARGV[2]) end
 return 0
 """
+#: KEYS[1] record, KEYS[2] builds set; ARGV job id, map id, scans done, scans total, error, finished_utc ->
+#: 1 written, 0 a record exists
+_RECORD_LOST = """
+if redis.call('EXISTS', KEYS[1]) == 1 then return 0 end
+redis.call('HSET', KEYS[1], 'job_id', ARGV[1], 'map_id', ARGV[2], 'state', 'failed', 'scans_done', ARGV[3],
+           'scans_total', ARGV[4], 'attempts', 0, 'error', ARGV[5], 'worker', '', 'heartbeat', 0, 'cancel', 0,
+           'source', '', 'created_utc', ARGV[6], 'finished_utc', ARGV[6])
+redis.call('SADD', KEYS[2], ARGV[2])
+return 1
+"""
 #: KEYS[1] record -> 1 flagged, 0 not active (finished, failed, gone): the worker's ``ready`` came first
 _CANCEL_IF_ACTIVE = """
 local state = redis.call('HGET', KEYS[1], 'state')
@@ -241,6 +251,15 @@ class BuildQueue:
         pipe.delete(self.keys.build(map_id))
         pipe.srem(self.keys.builds, map_id)
         pipe.execute()
+
+    def record_lost(self, map_id: str, job_id: str, scans_done: int, scans_total: int, error: str) -> bool:
+        """Write a ``failed`` record for the build ``job_id`` of ``map_id`` whose record Redis lost, unless a
+        record of the id exists (another replica wrote it first, or the id was claimed again). Its job id is
+        ``lost-<job_id>``, so a worker still running the job cannot mark it ``ready`` (``mark_ready``: not this
+        job's record) and the job's folder counts as an orphan (``sweep_orphan_jobs``). Returns whether it
+        was written."""
+        return bool(self.redis.eval(_RECORD_LOST, 2, self.keys.build(map_id), self.keys.builds, f"lost-{job_id}",
+                                    map_id, str(scans_done), str(scans_total), error, utc_now()))
 
     # ---- the fleet-wide claim of an id --------------------------------------------------------------------
     def taken_error(self, map_id: str) -> ConflictError:
@@ -666,12 +685,36 @@ class QueuedMapRegistry(MapRegistry):
                 (e.state == "building" and (m not in records or records[m].get("cancel") == "1"))
                 # a failed build deleted through another replica: its record is gone and it never had a file
                 or (e.state == "failed" and m not in records and not e.path.exists()))]
+            lost = []
             for m in stale:
                 gone = self._entries.pop(m)
                 job_id = self._job_ids.pop(m, None)
                 # a cancelled build's files go before its record; a lost record leaves them behind
                 if (gone.state == "building" and m not in records and job_id
                         and (jobs_dir(self.maps_dir) / job_id).is_dir()):
-                    logger.warning("map %s: its build record vanished from Redis while it was being built (Redis "
-                                   "restarted without its data?); the build is lost: register the map again", m,
-                                   extra={"map_id": m, "job_id": job_id})
+                    lost.append((gone, job_id))
+        for gone, job_id in lost:
+            self._record_lost_build(gone, job_id)
+
+    def _record_lost_build(self, gone: MapEntry, job_id: str) -> None:
+        """A build this replica showed ``building`` whose record vanished while its job's files are still there
+        (Redis restarted without its data): say ``failed`` with the reason, on every replica (a failed record
+        written once, ``BuildQueue.record_lost``), rather than let the map vanish (404). The job's files are
+        left to ``sweep_orphan_jobs``; a worker still running the job keeps the map it installs (a map file wins
+        over a failed record)."""
+        map_id = gone.map_id
+        error = (f"the build was lost: the shared state (Redis) lost its record while it was "
+                 f"{'queued' if gone.scans_done == 0 else 'running'} (restarted without its data?); "
+                 f"DELETE /maps/{map_id} and register the map again")
+        logger.warning("map %s: its build record vanished from Redis while it was being built (Redis restarted "
+                       "without its data?); the build is lost and shown as failed: register the map again", map_id,
+                       extra={"map_id": map_id, "job_id": job_id})
+        try:
+            if not self.queue.record_lost(map_id, job_id, gone.scans_done, gone.scans_total, error):
+                return  # another replica said so first, or the id was registered again meanwhile: the next pass
+        except redis.RedisError as exc:
+            logger.warning("map %s: the lost build could not be recorded (Redis: %s)", map_id, exc)
+            return
+        with self._lock:
+            self._entries.setdefault(map_id, MapEntry(map_id, self.path_for(map_id), "failed", error=error,
+                                                      scans_done=gone.scans_done, scans_total=gone.scans_total))

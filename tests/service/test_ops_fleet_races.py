@@ -472,7 +472,7 @@ def test_delete_of_a_build_finished_meanwhile_deletes_the_map(fleet: Fleet) -> N
 def test_job_folders_without_a_record_are_swept_and_the_replica_warns(
         fleet: Fleet, caplog: pytest.LogCaptureFixture) -> None:
     """QA (session 21, MEDIUM/LOW): Redis restarted without persistence mid-build: the build vanished (404,
-    never ``failed``) and ``.build-queue/<job_id>/`` with its scans stayed forever."""
+    never ``failed``) and ``.build-queue/<job_id>/`` with its scans stayed forever. Now it is ``failed``."""
     kept = fleet.queue_build(fleet.a, "kept")
     lost = fleet.queue_build(fleet.a, "lost")
     fleet.queue.remove("lost")  # what a Redis restart without its data does to the record
@@ -483,14 +483,29 @@ def test_job_folders_without_a_record_are_swept_and_the_replica_warns(
     assert sorted(sweep_orphan_jobs(fleet.queue, fleet.maps_dir, 300.0, now=time.time() + 301)) == \
         sorted([lost, "being-staged"])
     assert (jobs_dir(fleet.maps_dir) / kept).is_dir() and not (jobs_dir(fleet.maps_dir) / lost).exists()
-    # the replica that showed "lost" building finds its record gone: dropped (404), with a warning
-    fleet.queue_build(fleet.b, "gone")
+    # the replica that showed "gone" building finds its record gone: failed with the reason (QA session 22: it
+    # answered 404), on every replica, and a DELETE frees the id
+    gone_job = fleet.queue_build(fleet.b, "gone")
+    fleet.sync(fleet.a).reconcile()
     fleet.queue.remove("gone")
     with caplog.at_level(logging.WARNING, logger="service.core.jobs"):
         fleet.b.reconcile_builds()
-    assert "gone" not in {e.map_id for e in fleet.b.entries()}
-    assert any("gone" in r.getMessage() and "vanished" in r.getMessage() for r in caplog.records)
+        fleet.b.reconcile_builds()  # a second pass keeps it (the record it wrote)
+        fleet.a.reconcile_builds()  # the other replica, which showed it building too, takes the failed record
+    for replica in (fleet.a, fleet.b):
+        entry = replica.get("gone")
+        assert entry.state == "failed" and entry.error and "lost" in entry.error and "DELETE /maps/gone" in entry.error
+    assert fleet.record("gone")["job_id"] == f"lost-{gone_job}"
+    assert sum("gone" in r.getMessage() and "vanished" in r.getMessage() for r in caplog.records) == 1
+    assert not fleet.queue.record_lost("gone", gone_job, 0, 3, "again")  # written once, whoever comes second
     caplog.clear()
+    # its job folder is an orphan for the sweep; a DELETE frees the id
+    assert gone_job in sweep_orphan_jobs(fleet.queue, fleet.maps_dir, 300.0, now=time.time() + 301)
+    fleet.a.delete("gone")
+    assert not fleet.client.exists(fleet.keys.build("gone"))
+    fleet.b.reconcile_builds()
+    assert "gone" not in {e.map_id for e in fleet.b.entries()}
+    fleet.queue_build(fleet.b, "gone")
     assert fleet.b.get("kept").state == "building"
     fleet.a.delete("kept")  # cancelled while queued: its files go before its record
     with caplog.at_level(logging.WARNING, logger="service.core.jobs"):
