@@ -160,8 +160,14 @@ def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
     last_event = [0.0]
 
     def progress(done: int, total: int) -> None:
-        queue.update(map_id, scans_done=done, heartbeat=time.time())
-        if queue.record(map_id).get("cancel") == "1":
+        try:  # best effort: a Redis stall mid-build must not cost the attempt (the install checks again)
+            queue.update(map_id, scans_done=done, heartbeat=time.time())
+            cancelled = queue.record(map_id).get("cancel") == "1"
+        except redis.RedisError as exc:
+            logger.warning("map %s: progress not recorded (Redis: %s); building on", map_id, exc,
+                           extra={"map_id": map_id, "job_id": job_id})
+            return
+        if cancelled:
             raise BuildCancelledError
         if time.monotonic() - last_event[0] >= 1.0:  # replicas refresh their progress view on events
             last_event[0] = time.monotonic()

@@ -445,6 +445,30 @@ def test_build_stopped_between_install_and_ready_is_finished_by_its_retry(
         assert fleet.record(map_id).get("state") == (None if cancel else "ready")
 
 
+def test_redis_stall_during_a_build_does_not_cost_the_attempt(fleet: Fleet, monkeypatch: pytest.MonkeyPatch,
+                                                               caplog: pytest.LogCaptureFixture) -> None:
+    """QA (session 22, low): a Redis stall while a build recorded its progress failed the attempt (one of
+    ``build_max_tries``). Progress is best effort now; the build goes on and is ``ready`` after one attempt."""
+    job_id = fleet.queue_build(fleet.a, "stall", n=5)  # batches of 2: progress is recorded three times
+    real_update = BuildQueue.update
+    stalls = []
+
+    def update(self: BuildQueue, map_id: str, /, **fields: object) -> None:
+        if "scans_done" in fields and fields["scans_done"] == 2:
+            stalls.append(map_id)
+            raise redis.TimeoutError("Timeout reading from socket")
+        real_update(self, map_id, **fields)
+
+    monkeypatch.setattr(BuildQueue, "update", update)
+    with caplog.at_level(logging.WARNING, logger="service.worker"):
+        assert fleet.run_job("stall", job_id) == "ready"
+    assert stalls == ["stall"] and any("progress not recorded" in r.getMessage() for r in caplog.records)
+    rec = fleet.record("stall")
+    assert rec["state"] == "ready" and rec["attempts"] == "1" and rec["scans_done"] == "5"
+    fleet.sync(fleet.b).reconcile()
+    assert _keyframes(fleet.b, "stall") == 5
+
+
 def test_cancel_never_flags_a_build_already_ready(fleet: Fleet) -> None:
     job_id = fleet.queue_build(fleet.a, "done")
     fleet.queue.update("done", state="running")
