@@ -21,7 +21,7 @@ import numpy as np
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose
-from reradar_core.localization.confidence import default_confidence_model
+from reradar_core.localization.confidence import default_confidence_model, tracked_cues
 from reradar_core.localization.keyframes import KeyframeCache, KeyframeSource
 from reradar_core.localization.pipeline import (
     REASON_INCONSISTENT,
@@ -185,10 +185,14 @@ class Localizer:
             answer = None  # the prior's heading is contradicted, or undecidable: localize globally
         if answer is not None:
             best, T_map_query = answer
-            # the global answers' cues and model (fitted on global answers: the registration from a prior has no
-            # rival pose, so its ambiguity cue is 0, and its candidates are all near the prior), and their bar:
-            # a tracked answer the model doubts is localized globally instead, like a failed registration
-            cues, confidence = answer_confidence(best, verified, default_confidence_model())
+            # the global answers' model and bar, on the cues a registration from a prior measures (the competition
+            # cues it never looks at at the model's means: ``tracked_cues``): a tracked answer the model doubts is
+            # localized globally instead, like a failed registration
+            model = default_confidence_model()
+            cues, _ = answer_confidence(best, verified, model)
+            if cues is not None:
+                cues = tracked_cues(cues, model)
+            confidence = float(model.predict(cues)) if cues is not None else 0.0
             if config.pose_method != "guided" or confidence >= config.effective_min_confidence:  # as ``localize``
                 track_ms = (time.perf_counter() - t0) * 1e3
                 return LocalizationResult("localized", None, best, T_map_query, verified,

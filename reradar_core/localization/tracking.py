@@ -73,12 +73,14 @@ class PosePrior:
     def moved(self, T_prev_curr: np.ndarray, sigma_growth: float = 0.1, min_sigma_xy_m: float = 0.5,
               min_sigma_yaw_rad: float = math.radians(1.0)) -> PosePrior:
         """The prior after relative motion ``T_prev_curr`` (odometry, in this pose's frame): composed pose,
-        sigmas grown by ``sigma_growth`` x distance travelled (and the heading sigma by that x turn)."""
+        sigmas grown by ``sigma_growth`` x distance travelled (and the heading sigma by that x turn, wrapped: a
+        turn given as 350 degrees is one of -10, QA session 23)."""
         motion = np.asarray(T_prev_curr, np.float64).reshape(3)
         dist = float(np.hypot(motion[0], motion[1]))
+        turn = abs(float(wrap_angle(motion[2])))
         return PosePrior(compose(self.T_map_query, motion),
                          max(min_sigma_xy_m, self.sigma_xy_m + sigma_growth * dist),
-                         max(min_sigma_yaw_rad, self.sigma_yaw_rad + sigma_growth * abs(float(motion[2]))))
+                         max(min_sigma_yaw_rad, self.sigma_yaw_rad + sigma_growth * turn))
 
 
 @dataclass(frozen=True)

@@ -61,16 +61,19 @@ Problem = ErrorResponse
 
 
 class Pose2D(_Model):
-    """A 3-DoF pose: position in metres, heading in degrees (counter-clockwise from the frame's +x)."""
+    """A 3-DoF pose: position in metres, heading in degrees counter-clockwise from the frame's +x, in (-180, 180]."""
 
     x_m: float
     y_m: float
-    yaw_deg: float
+    yaw_deg: float = Field(description="Heading, degrees counter-clockwise from the frame's +x, in (-180, 180].")
 
     @classmethod
     def from_array(cls, pose: np.ndarray) -> Pose2D:
-        """From (x m, y m, yaw rad)."""
-        return cls(x_m=float(pose[0]), y_m=float(pose[1]), yaw_deg=math.degrees(float(pose[2])))
+        """From (x m, y m, yaw rad); the heading wrapped to (-180, 180] degrees."""
+        # as ``geometry.se2.wrap_angle``, which this module (imported by the light vehicle-side client) cannot import
+        yaw = math.fmod(float(pose[2]) + math.pi, 2.0 * math.pi)
+        yaw = (yaw + 2.0 * math.pi if yaw < 0.0 else yaw) - math.pi
+        return cls(x_m=float(pose[0]), y_m=float(pose[1]), yaw_deg=math.degrees(math.pi if yaw == -math.pi else yaw))
 
 
 class HealthResponse(_Model):

@@ -12,6 +12,14 @@ from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose, inverse, transform_points
 from reradar_core.localization import InMemoryKeyframes, Localizer, PosePrior, TrackingConfig
+from reradar_core.localization.confidence import (
+    COMPETITION_CUES,
+    CUE_NAMES,
+    ConfidenceCues,
+    confidence_cues,
+    default_confidence_model,
+    tracked_cues,
+)
 from reradar_core.localization.tracking import tracking_candidates
 from reradar_core.retrieval import GlobalIndex
 
@@ -149,7 +157,54 @@ def test_a_tracked_answer_below_the_confidence_bar_is_localized_globally(monkeyp
     confident = loc.track(query, prior, config)
     assert confident.mode == "tracking" and confident.confidence >= 0.5 and confident.best.inlier_spread_m > 10.0
 
-    real = localizer_module.answer_confidence
-    monkeypatch.setattr(localizer_module, "answer_confidence", lambda *a: (real(*a)[0], 0.2))
+    weak = ConfidenceCues(aligned_ratio=0.0, log_aligned=0.0, margin=-1.0, descriptor_distance=2.0, spread_m=0.0,
+                          agreement=0.0, ambiguity=2.0)
+    assert default_confidence_model().predict(weak) < 0.5
+    monkeypatch.setattr(localizer_module, "tracked_cues", lambda cues, model: weak)
     doubted = loc.track(query, prior, config)
     assert doubted.mode == "global" and doubted.tracking_lost and "track_ms" in doubted.timings_ms
+
+
+def test_a_tracked_answer_is_judged_without_best_case_competition_cues() -> None:
+    """QA (session 23): a registration from a prior never looks at other places or rival poses, so the margin,
+    agreement and ambiguity cues read best-case for it (the whole score as margin, the prior's neighbour agrees,
+    ambiguity 0) and a scan drawn metres off by a changed scene was tracked on at confidence 0.96-0.9998. A
+    tracked answer's confidence now takes those cues at the model's training means (standardised 0)."""
+    loc, kfs, poses, query, T_kf_q = _scene()
+    model = default_confidence_model()
+    res = loc.track(query, PosePrior(compose(poses[5], T_kf_q), 1.0, math.radians(2.0)))
+    assert res.mode == "tracking" and res.cues is not None
+    for name in COMPETITION_CUES:
+        assert getattr(res.cues, name) == pytest.approx(model.mean[CUE_NAMES.index(name)])
+    assert res.confidence == pytest.approx(model.predict(res.cues))
+    # the cues the registration measures are the global answer's definitions, untouched
+    best_case = confidence_cues(res.best, res.candidates, model.place_radius_m, model.top_n)
+    assert best_case is not None and res.cues.aligned_ratio == best_case.aligned_ratio
+    assert res.cues.spread_m == best_case.spread_m and best_case.ambiguity == 0.0
+    assert model.predict(best_case) > res.confidence  # the best-case cues scored it higher
+
+
+def test_tracked_cues_sets_the_competition_cues_to_the_model_means() -> None:
+    model = default_confidence_model()
+    # the QA's first changed-scene answer (1.8 m / 4.2 degrees off, scored 0.988), its cues as the tracker computed them
+    cues = ConfidenceCues(aligned_ratio=0.383, log_aligned=5.283, margin=0.383, descriptor_distance=1.146,
+                          spread_m=7.813, agreement=1.0, ambiguity=0.0)
+    out = tracked_cues(cues, model)
+    z = (out.as_array() - model.mean) / model.scale
+    for i, name in enumerate(CUE_NAMES):
+        if name in COMPETITION_CUES:
+            assert z[i] == pytest.approx(0.0)
+        else:
+            assert getattr(out, name) == getattr(cues, name)
+    assert model.predict(cues) > model.min_confidence > model.predict(out)  # below the shipped bar once judged so
+
+
+def test_a_turn_grows_the_heading_sigma_by_its_wrapped_size() -> None:
+    """QA (session 23): odometry reporting headings in 0-360 gave a right turn of 17 degrees as 343, which grew
+    the heading sigma by 34 degrees and silently switched tracking off."""
+    prior = PosePrior(np.array([5.0, -2.0, 0.3]), 0.5, math.radians(1.0))
+    for turn_deg in (-17.2, 342.8, -377.2):
+        moved = prior.moved(np.array([2.0, 0.0, math.radians(turn_deg)]))
+        assert moved.sigma_yaw_rad == pytest.approx(math.radians(1.0) + 0.1 * math.radians(17.2))
+        assert moved.T_map_query[2] == pytest.approx(0.3 - math.radians(17.2))
+        assert TrackingConfig().covers(moved)

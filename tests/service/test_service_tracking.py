@@ -70,3 +70,36 @@ def test_explicit_prior_and_refused_partial_fields(client: httpx.Client) -> None
         r = _localize(client, 1, **bad)
         assert r.status_code in (400, 422), (bad, r.status_code)
         assert "detail" in r.json()
+
+
+def test_odometry_needs_a_session_and_a_turn_is_read_modulo_360(client: httpx.Client) -> None:
+    """QA (session 23): odometry without a ``session_id`` was dropped without a word (200, global); and a turn sent
+    as 342.8 degrees instead of -17.2 grew the heading sigma by 10 % of 342.8 degrees, so the scan silently went
+    global. Now the first is a 400 that says what to send, and every equal turn gives the same prior."""
+    r = _localize(client, 3, odom_dx_m=0.2, odom_dy_m=0.0, odom_dyaw_deg=0.0)
+    assert r.status_code == 400 and "session_id" in r.json()["detail"]
+    poses = keyframe_poses()
+    for session, turn in (("veh-w0", 0.0), ("veh-w1", 360.0), ("veh-w2", -360.0)):
+        first = _localize(client, 3, session_id=session).json()
+        assert first["status"] == "localized" and first["keyframe"]["keyframe_id"] == 3
+        odo = relative_pose(poses[3], poses[3] + [0.2 * np.cos(poses[3, 2]), 0.2 * np.sin(poses[3, 2]), 0.0])
+        second = _localize(client, 3, session_id=session, odom_dx_m=odo[0], odom_dy_m=odo[1],
+                           odom_dyaw_deg=turn).json()
+        assert second["mode"] == "tracking" and second["status"] == "localized", (turn, second)
+        assert second["pose"]["x_m"] == pytest.approx(poses[3, 0], abs=0.3)
+
+
+def test_pose_headings_are_reported_in_minus_180_to_180() -> None:
+    """QA (session 23): the range of ``yaw_deg`` was not stated, and a keyframe pose stored unwrapped would have
+    been reported as it was stored. Every pose is now reported in (-180, 180] degrees, the value ``wrap_angle``
+    gives (no numpy or OpenCV in the schema module: the vehicle-side client imports it)."""
+    import math
+
+    from reradar_core.geometry.se2 import wrap_angle
+    from service.api.schemas import Pose2D
+
+    for yaw in (0.0, math.pi, -math.pi, 3 * math.pi, -3 * math.pi, 2 * math.pi, -3.141593, 3.141593, 7.5, -12.0):
+        deg = Pose2D.from_array(np.array([1.0, 2.0, yaw])).yaw_deg
+        assert -180.0 < deg <= 180.0
+        assert deg == pytest.approx(math.degrees(float(wrap_angle(yaw))), abs=1e-9)
+    assert Pose2D.from_array(np.array([0.0, 0.0, -math.pi])).yaw_deg == 180.0

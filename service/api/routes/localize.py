@@ -10,6 +10,7 @@ import numpy as np
 from fastapi import APIRouter, Request
 from starlette.concurrency import run_in_threadpool
 
+from reradar_core.geometry.se2 import wrap_angle
 from reradar_core.localization import PosePrior
 from service.api.deps import StateDep
 from service.api.scan_input import read_scan_input, scan_request_body
@@ -44,10 +45,19 @@ def _all_or_none(fields: dict[str, Any], names: tuple[str, ...]) -> bool:
 
 
 def _odometry(fields: dict[str, Any]) -> np.ndarray | None:
-    """``T_prev_curr`` (x m, y m, yaw rad) from the request's odometry, or None."""
+    """``T_prev_curr`` (x m, y m, yaw rad, wrapped to (-pi, pi]: a turn of 350 degrees is one of -10) from the
+    request's odometry, or None.
+
+    Raises:
+        BadRequestError: odometry without a ``session_id`` (it moves the session's last pose; alone it would be
+            dropped without a word).
+    """
     if not _all_or_none(fields, _ODOM):
         return None
-    return np.array([fields["odom_dx_m"], fields["odom_dy_m"], math.radians(fields["odom_dyaw_deg"])])
+    if fields.get("session_id") is None:
+        raise BadRequestError("odom_dx_m, odom_dy_m, odom_dyaw_deg move a tracking session's last pose: send them "
+                              "with a session_id (or send an explicit prior_x_m, prior_y_m, prior_yaw_deg instead)")
+    return np.array([fields["odom_dx_m"], fields["odom_dy_m"], wrap_angle(math.radians(fields["odom_dyaw_deg"]))])
 
 
 def _prior(fields: dict[str, Any]) -> PosePrior | None:
