@@ -110,11 +110,14 @@ def build_map(
 
 def build_map_from_sequence(sequence_dir: str | Path, out: str | Path, extractor: FeatureExtractor, *,
                             layout: str | None = None, preset: str | None = None, min_spacing_m: float = 0.0,
-                            **kwargs: object) -> Path:
-    """Build a map from a sequence folder in any supported layout (``reradar_core.io.datasets``)."""
+                            time_unit: str | None = None, **kwargs: object) -> Path:
+    """Build a map from a sequence folder in any supported layout (``reradar_core.io.datasets``).
+
+    ``time_unit`` is the unit of the pose file's timestamps (``s``, ``ms``, ``us``, ``ns``) where they are not
+    absolute UTC times (``load_sequence``'s ``pose_time_unit``); None: never guessed."""
     from reradar_core.io.datasets import load_sequence
 
-    seq = load_sequence(sequence_dir, layout=layout, preset=preset)
+    seq = load_sequence(sequence_dir, layout=layout, preset=preset, pose_time_unit=time_unit)
     keep = select_keyframes(seq.poses.poses, min_spacing_m)
     seq = seq.subset(keep)
     kwargs.setdefault("source", f"{seq.layout}:{Path(sequence_dir).resolve()}")

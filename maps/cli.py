@@ -17,6 +17,8 @@ def build_map_command(
     out: Path = typer.Option(..., "--out", help="Map file to write (.h5)."),
     layout: str | None = typer.Option(None, help="Dataset layout; detected when omitted."),
     preset: str | None = typer.Option(None, help="Radar preset; from the dataset when omitted."),
+    time_unit: str | None = typer.Option(None, "--time-unit", help="Unit of the pose file's timestamps (s, ms, "
+                                         "us, ns) when they are not absolute UTC times; never guessed."),
     batch_size: int = typer.Option(8, min=1, help="Scans per network batch."),
     min_spacing_m: float = typer.Option(0.0, min=0.0, help="Keep a scan as keyframe only this far (m) from the last. "
                                         "The answer confidence is fitted on maps with keyframes 3.8-6.7 m apart; "
@@ -33,6 +35,7 @@ def build_map_command(
 
     from maps.build import build_map_from_sequence
     from maps.store import read_metadata
+    from reradar_core.io.poses import TIME_UNITS
     from reradar_core.localization.extractor import load_default_extractor
     from reradar_core.paths import output_file
 
@@ -44,6 +47,8 @@ def build_map_command(
         typer.echo(f"error: {out} exists; pass --overwrite to replace it", err=True)
         raise typer.Exit(2)
     try:
+        if time_unit is not None and time_unit.strip().lower() not in TIME_UNITS:
+            raise typer.BadParameter(f"--time-unit must be one of {sorted(TIME_UNITS)}, got {time_unit!r}")
         output_file(out, "--out", (".h5", ".hdf5"))  # before the network runs over the whole sequence
         extractor = load_default_extractor(model)
         kwargs: dict[str, object] = dict(batch_size=batch_size, max_keypoints=max_keypoints,
@@ -51,7 +56,7 @@ def build_map_command(
         if name:
             kwargs["name"] = name
         build_map_from_sequence(dataset, out, extractor, layout=layout, preset=preset,
-                                min_spacing_m=min_spacing_m, **kwargs)
+                                min_spacing_m=min_spacing_m, time_unit=time_unit, **kwargs)
     except ReRadarError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc

@@ -49,14 +49,17 @@ def bench(
     suite: str | None = typer.Option(None, "--suite", help="Simulated suite: smoke, boreas-sim, loop-sim, "
                                      "loop-sim-hard, offroad-sim, offroad-sim-hard (rendered on first use, cached)."),
     database: Path | None = typer.Option(None, "--database", help="Reference (map) sequence folder."),
-    query: list[Path] | None = typer.Option(None, "--query", help="Query sequence folder (repeatable)."),
-    preset: str | None = typer.Option(None, "--preset", help="Radar preset: boreas, boreas-2021, oxford, "
-                                      "oord, mulran (real data)."),
+    query: list[Path] | None = typer.Option(None, "--query", help="Query sequence folder (repeatable; each "
+                                         "folder once; folders of one name are reported as PARENT-NAME)."),
+    preset: str | None = typer.Option(None, "--preset", help="Radar preset of the folders: boreas, "
+                                      "boreas-2021, oxford, oord, mulran (not with --suite: a suite has its own)."),
     layout: str | None = typer.Option(None, "--layout", help="Dataset layout (boreas/oxford/mulran); "
                                       "detected when omitted."),
     methods: list[str] | None = typer.Option(None, "--methods", "-m", help="Comma-separated methods "
-                                             "(default: all baselines and every shipped ReRadar model)."),
-    out: Path | None = typer.Option(None, "--out", help="Output folder (default: cache/bench/<suite>)."),
+                                             "(default: all baselines and every shipped ReRadar model; a method "
+                                             "named twice runs once)."),
+    out: Path | None = typer.Option(None, "--out", help="Output folder (default: cache/bench/<suite>). "
+                               "An earlier run's per_query/*/*.npz there are removed; other files stay."),
     radius: float | None = typer.Option(None, "--radius", callback=_positive, help="Correct-retrieval radius, metres (default: "
                                         "the suite's, or 25 OORD/Oxford, 20 MulRan/Boreas)."),
     every: int | None = typer.Option(None, "--every", min=1, help="Use every N-th scan (default 1: every scan of a "
@@ -111,13 +114,17 @@ def bench(
         if suite is not None:
             if query or time_unit:
                 raise typer.BadParameter("--query and --time-unit are for folders; a suite names its own sequences")
+            if preset is not None:
+                raise typer.BadParameter("--preset is for folders; a suite is rendered with its own radar preset "
+                                         "(drop --preset, or render with `reradar sim --preset` and bench the "
+                                         "folders)")
             pairs, default_radius = pairs_from_suite(suite, every=every, limit=limit, query_limit=query_limit,
                                                      split_at=split_at, split_sequence=split_sequence)
             label = suite if split_at is None else f"{suite}-{split_sequence or 'database'}-split-{_safe(split_at)}"
             spacing = suite_spacing(suite)
             rendered = ", ".join(f"{k} every {v}" for k, v in spacing.items())
             every_note = (f"suite protocol spacing (rendered: {rendered})" if every is None else
-                          f"every {every}-th scan of the suite's renders ({rendered})")
+                          f"{_every_text(every)} of the suite's renders ({rendered})")
         else:
             assert database is not None
             if split_sequence is not None:
@@ -128,8 +135,15 @@ def bench(
             label = f"{database.name}" + ("" if split_at is None else f"-split-{_safe(split_at)}")
             every_note = (f"every {every or 1} scan(s) of the folders"
                           + (" (default 1: pass --every N to subsample)" if every is None else ""))
-        names = _split(methods) or default_method_names()
+        names, dropped = unique_methods(_split(methods) or default_method_names())
+        if dropped:
+            typer.echo(f"note: --methods names {', '.join(dropped)} more than once; each runs once")
         method_objs = [make_method(n) for n in names]
+        objs_names, dropped = unique_methods([m.name for m in method_objs])  # e.g. 'ours' and the default model
+        if dropped:
+            typer.echo(f"note: --methods names the method {', '.join(dropped)} twice (as an alias); it runs once")
+            method_objs = [next(m for m in method_objs if m.name == n) for n in objs_names]
+            names = objs_names
         # every BLAS loaded by now (numpy's, scipy's, opencv's) gets --threads: two pools fighting over 2 cores
         # make the screen's descriptor product 20x slower (docs/BENCHMARKS.md, issue 12)
         limit_blas_threads(max(1, threads))
@@ -142,7 +156,8 @@ def bench(
         for p in pairs:
             cut = (f" (split of {p.split['sequence']} at scan {p.split['index']} of {p.split['n_scans']})"
                    if p.split else "")
-            typer.echo(f"  {p.name}: database {p.database.name} {len(p.database)} scans, queries {len(p.query)}{cut}")
+            typer.echo(f"  {p.name}: database sequence {p.database.name!r} ({len(p.database)} scans), query "
+                       f"sequence {p.query.name!r} ({len(p.query)} scans){cut}")
         results = run_benchmark(pairs, method_objs, out_dir, cfg, suite=label)
         results["settings"].update(threads=threads, every=every if every is not None else (1 if suite is None
                                                                                             else "suite"),
@@ -166,6 +181,29 @@ def bench(
         raise typer.Exit(2) from exc
     typer.echo(results_markdown(results))
     typer.echo(f"wrote {jpath}, {mpath}" + (f" and {len(figs)} figures" if figs else ""))
+
+
+def _every_text(every: int) -> str:
+    """``every 2nd scan``, ``every 3rd scan``, ``every 11th scan``, ``every scan``: English ordinals."""
+    if every == 1:
+        return "every scan"
+    suffix = "th" if 10 <= every % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(every % 10, "th")
+    return f"every {every}{suffix} scan"
+
+
+def unique_methods(names: list[str]) -> tuple[list[str], list[str]]:
+    """``names`` without repeats (case and spaces ignored), first occurrence kept in order, and the names dropped."""
+    kept: list[str] = []
+    dropped: list[str] = []
+    seen: set[str] = set()
+    for n in names:
+        key = n.strip().lower()
+        if key in seen:
+            dropped.append(n)
+        else:
+            seen.add(key)
+            kept.append(n)
+    return kept, dropped
 
 
 def _primary(ours: list) -> object:

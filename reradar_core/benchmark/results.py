@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-__all__ = ["write_results", "results_markdown", "METRIC_COLUMNS", "QUERY_KIND_COLUMNS", "REJECTION_NOTE"]
+__all__ = ["write_results", "results_markdown", "signed_points", "METRIC_COLUMNS", "QUERY_KIND_COLUMNS", "REJECTION_NOTE"]
 
 #: (key in results.json, column header, format) of the paper's per-sequence columns (Recall@1 and SR over
 #: revisit queries, the headline).
@@ -59,6 +59,12 @@ def _table(seqs: dict[str, dict[str, Any]], methods: list[str],
                 cells.append(f"**{c}**" if m in best[(seq, k)] and c != "–" else c)
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
     return lines
+
+
+def signed_points(value: float) -> str:
+    """A change in percentage points with its sign, two decimals; one that rounds to zero is ``0.00`` (never
+    ``-0.00`` or ``+0.00``)."""
+    return "0.00" if abs(value) < 0.005 else f"{value:+.2f}"
 
 
 def results_markdown(results: dict[str, Any]) -> str:
@@ -155,7 +161,7 @@ def results_markdown(results: dict[str, Any]) -> str:
             for s in seqs:
                 r = stress[s].get(m)
                 cells.append("–" if r is None or r.get("drop") is None else
-                             f"{r['recall@1']:.2f} → {r['recall@1_rotated']:.2f} (Δ {-r['drop']:+.2f})")
+                             f"{r['recall@1']:.2f} → {r['recall@1_rotated']:.2f} (Δ {signed_points(-r['drop'])})")
             lines.append(f"| {m} | " + " | ".join(cells) + " |")
         lines.append("")
     timing = results.get("timing")

@@ -24,11 +24,12 @@ from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared
 from reradar_core.benchmark.cache import FeatureCache, sequence_key
 from reradar_core.benchmark.metrics import QueryOutcome, make_outcome, retrieval_correct, summarise
 from reradar_core.benchmark.rotation import heading_offsets, rotate_pose, rotate_scan
+from reradar_core.errors import ConfigError
 from reradar_core.geometry.se2 import compose
 from reradar_core.io.datasets import Sequence
 
 __all__ = ["BenchPair", "BenchConfig", "PreparedSet", "prepare_sequence", "evaluate_method", "run_benchmark",
-           "sr_rule", "total_steps"]
+           "sr_rule", "total_steps", "clear_per_query"]
 
 logger = logging.getLogger(__name__)
 
@@ -218,6 +219,22 @@ def descriptor_recall_at_1(by_descriptor: np.ndarray, positive: np.ndarray, quer
     return float(100.0 * np.mean(hit[positive]))
 
 
+def clear_per_query(folder: Path) -> list[Path]:
+    """Remove the per-query arrays (``<folder>/<pair>/<method>.npz``) of an earlier run and the sub-folders
+    left empty; any other file stays. Returns the removed ``.npz`` paths."""
+    removed: list[Path] = []
+    if not folder.is_dir():
+        return removed
+    for sub in sorted(p for p in folder.iterdir() if p.is_dir() and not p.is_symlink()):
+        for f in sorted(sub.glob("*.npz")):
+            if f.is_file() and not f.is_symlink():
+                f.unlink()
+                removed.append(f)
+        if not any(sub.iterdir()):
+            sub.rmdir()
+    return removed
+
+
 def _save_outcome(path: Path, run: MethodRun, query_xy: np.ndarray, db_xy: np.ndarray) -> None:
     o = run.outcome
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -288,14 +305,26 @@ def run_benchmark(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod], o
     results dict (``{"suite", "settings", "sequences": {SEQ: {METHOD: metrics}}, "rotation_stress"}``).
 
     With ``config.progress`` one overall tqdm bar (steps of ``total_steps``, with ETA) covers every method
-    and sequence; its postfix names the current stage."""
+    and sequence; its postfix names the current stage.
+
+    The ``.npz`` files an earlier run left under ``out_dir/per_query`` are removed first, so the folder holds
+    this run's arrays only (nothing else in ``out_dir`` is touched).
+
+    Raises:
+        ConfigError: two pairs or two methods of one name (their results would overwrite each other)."""
     out_dir = Path(out_dir)
+    for what, names in (("pair", [p.name for p in pairs]), ("method", [m.name for m in methods])):
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise ConfigError(f"two {what}s are named {twice[0]!r}: each needs its own name in the results")
+    clear_per_query(out_dir / "per_query")
     results: dict[str, Any] = {
         "suite": suite,
         "settings": {"radius_m": config.radius_m, "rotation_seed": config.rotation_seed,
                      "methods": [m.name for m in methods],
                      "method_params": {m.name: m.params() for m in methods},
                      "pairs": {p.name: {"database": p.database.name, "query": p.query.name,
+                                        "query_folder": str(p.query.root),
                                         "n_database": len(p.database), "n_query": len(p.query),
                                         "split": p.split}
                                for p in pairs},

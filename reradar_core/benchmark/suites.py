@@ -22,9 +22,16 @@ import numpy as np
 
 from reradar_core.benchmark.runner import BenchPair
 from reradar_core.errors import ConfigError
-from reradar_core.io.datasets import Sequence, load_sequence
+from reradar_core.io.datasets import (
+    SIM_META_FILE,
+    Sequence,
+    load_sequence,
+    range_grid_difference,
+    read_sequence_meta,
+)
+from reradar_core.io.presets import RadarPreset, get_preset
 
-__all__ = ["subsample", "pairs_from_folders", "pairs_from_suite", "default_radius", "SplitSpec", "parse_split",
+__all__ = ["subsample", "pairs_from_folders", "query_pair_names", "pairs_from_suite", "default_radius", "SplitSpec", "parse_split",
            "split_index", "split_pair"]
 
 
@@ -142,12 +149,62 @@ def pairs_from_folders(database: Path, queries: list[Path], preset: str | None =
     if not queries:
         raise ConfigError("--database needs at least one --query DIR (or --split-at for a single-session split)")
     db = subsample(full, every, limit)
+    names = query_pair_names(database, queries)
     pairs = []
-    for q in queries:
+    for q, name in zip(queries, names, strict=True):
+        if preset is None:
+            _check_recorded_presets_agree(database, db.preset, q)
         qs = subsample(load_sequence(q, layout, preset or db.preset.name, time_unit), every, query_limit or limit)
-        name = qs.name if qs.name != db.name else f"{qs.name}-query"
         pairs.append(BenchPair(name, db, qs))
     return pairs, default_radius(db.preset.name)
+
+
+def _check_recorded_presets_agree(database: Path, db_preset: RadarPreset, query: Path) -> None:
+    """Without ``--preset``, the queries are read with the database's preset; a query folder whose simulator
+    metadata records another radar's range grid is refused, naming both recorded presets.
+
+    Raises:
+        ConfigError: the two folders were recorded with radars of different range grids.
+    """
+    recorded = read_sequence_meta(query).get("preset") if Path(query).is_dir() else None
+    if recorded is None:
+        return
+    q_preset = get_preset(recorded)
+    if (q_preset.range_resolution_m, q_preset.range_offset_m) == (db_preset.range_resolution_m,
+                                                                  db_preset.range_offset_m):
+        return
+    raise ConfigError(f"the database {database} was recorded with radar preset {db_preset.name!r} and the query "
+                      f"{query} with {q_preset.name!r} ({SIM_META_FILE}): read with the database's preset, "
+                      f"{range_grid_difference(q_preset, db_preset)}; bench a database and queries of one radar "
+                      "(render the query again with `reradar sim --preset " f"{db_preset.name}`)")
+
+
+def query_pair_names(database: Path, queries: list[Path]) -> list[str]:
+    """One distinct result name per ``--query`` folder (the key of results.json and of ``per_query/<name>``).
+
+    A folder's name, or, where several query folders share a name (``alt/q`` and ``alt2/q``), its parent
+    folders' names joined with ``-`` as far up as it takes to tell them apart (``alt-q``, ``alt2-q``); a query
+    named like the database gets ``-query`` appended.
+
+    Raises:
+        ConfigError: the same folder given twice as ``--query`` (its results would overwrite each other).
+    """
+    resolved = [Path(q).resolve() for q in queries]
+    seen: dict[Path, Path] = {}
+    for given, real in zip(queries, resolved, strict=True):
+        if real in seen:
+            raise ConfigError(f"--query {given} names the same folder as --query {seen[real]}: give each query "
+                              "folder once")
+        seen[real] = given
+    parts = [r.parts[1:] or (r.name,) for r in resolved]  # without the root "/"
+    names = [p[-1] for p in parts]
+    for depth in range(2, max((len(p) for p in parts), default=1) + 1):
+        clash = {n for n in names if names.count(n) > 1}
+        if not clash:
+            break
+        names = ["-".join(p[-depth:]) if n in clash else n for n, p in zip(names, parts, strict=True)]
+    db_name = Path(database).resolve().name
+    return [f"{n}-query" if n == db_name else n for n in names]
 
 
 def suite_spacing(name: str) -> dict[str, int]:

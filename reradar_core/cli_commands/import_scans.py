@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,45 @@ def _stamp_us(src: Path, k: int) -> int:
                               "(16 digits = microseconds, 19 = nanoseconds); rename the scans to one of those forms, "
                               "or to non-numeric names to number them 1 s apart")
     return int(stem) // _TIMESTAMP_DIGITS[len(stem)]
+
+
+def natural_key(path: Path) -> tuple:
+    """Sort key of ``path`` in natural (numeric-aware) name order: ``scan_9`` before ``scan_10``; the folder
+    first, then the name's digit runs by value and the rest as text."""
+    parts = re.split(r"(\d+)", path.name)
+    return (str(path.parent), tuple((0, int(p), "") if p.isdigit() else (1, 0, p) for p in parts if p))
+
+
+def describe_geometry(shape: tuple[int, int], transposed: bool, resolution_m: float, offset_m: float) -> str:
+    """What ``import-scans`` takes a source of array ``shape`` (rows, columns) to be: azimuths, range bins, bin
+    size and maximum range in metres."""
+    n_az, n_bins = (shape[1], shape[0]) if transposed else shape
+    axes = "columns = azimuths, rows = range bins (--transposed)" if transposed else \
+        "rows = azimuths, columns = range bins"
+    return (f"{n_az} azimuths x {n_bins} range bins ({axes}), {resolution_m:g} m/bin from {offset_m:g} m: "
+            f"maximum range {offset_m + (n_bins - 1) * resolution_m:.1f} m")
+
+
+def orientation_hint(shape: tuple[int, int], transposed: bool) -> str | None:
+    """A warning when the assumed orientation looks swapped: polar radar scans have more range bins than
+    azimuths (Navtech 400 x 3,360; Oxford 400 x 3,768), so more azimuths than range bins suggests the other
+    axis order. None when nothing looks wrong."""
+    n_az, n_bins = (shape[1], shape[0]) if transposed else shape
+    if n_az <= n_bins:
+        return None
+    fix = "drop --transposed" if transposed else "pass --transposed"
+    return (f"warning: read as {n_az} azimuths x {n_bins} range bins, but radar scans have more range bins than "
+            f"azimuths (e.g. 400 x 3360): if the source's {'columns' if transposed else 'rows'} are range bins, "
+            f"{fix}")
+
+
+def _mapping_lines(sources: list[Path], stamps: list[int], show_all: int = 10) -> list[str]:
+    """``source -> output name`` lines: all of them when there are at most ``show_all``, else the first three and
+    the last two."""
+    pairs = [f"  {src} -> {stamp}.png" for src, stamp in zip(sources, stamps, strict=True)]
+    if len(pairs) <= show_all:
+        return pairs
+    return pairs[:3] + [f"  ... ({len(pairs) - 5} more)"] + pairs[-2:]
 
 
 def _read_source(src: Path) -> np.ndarray:
@@ -82,8 +122,15 @@ def register(app: typer.Typer) -> None:
         (microseconds, Boreas / Oxford) or 19 digits (nanoseconds, MulRan; converted to microseconds); other
         numeric names are refused as ambiguous; non-numeric names are numbered 1, 2, 3, ... seconds from 0 in name
         order (give sequences timestamped names to keep their timing); a mix of the three kinds of names is
-        refused. Sources that would get the same output name, or the name of a scan already in --out (unless
-        --overwrite), are refused. Read the output with `reradar info`, `build-map --dataset`, `localize`.
+        refused. Name order is natural (numeric-aware): scan_9 comes before scan_10. The command prints the
+        geometry it assumes for the sources (azimuths, range bins, bin size, maximum range) and which source
+        became which output name. Sources that would get the same output name, or the name of a scan already in
+        --out (unless --overwrite), are refused.
+
+        Read the output with `reradar info` or `localize`. It holds scans only: for `build-map --dataset` or
+        `bench`, put them in a sequence folder as SEQ/radar/<t_us>.png and add a pose file with one pose per
+        scan time (SEQ/applanix/radar_poses.csv in the Boreas layout: GPSTime,easting,northing,...,heading;
+        relative times need --time-unit).
         """
         from reradar_core.io.importer import ForeignScanLayout, import_polar_scan
         from reradar_core.io.scan import write_navtech_png
@@ -92,7 +139,7 @@ def register(app: typer.Typer) -> None:
         try:
             layout = ForeignScanLayout(range_resolution, range_offset, 1 if transposed else 0,
                                        math.radians(start_azimuth_deg))
-            ordered = sorted(sources)
+            ordered = sorted(sources, key=natural_key)
             kinds = {len(src.stem) if src.stem.isascii() and src.stem.isdigit() else "name" for src in ordered}
             if len(kinds) > 1:  # e.g. scanA.png (numbered 1 s, 1970) among 2019 timestamps
                 raise ScanFormatError("the sources mix kinds of names (16-digit µs timestamps, 19-digit ns "
@@ -114,9 +161,17 @@ def register(app: typer.Typer) -> None:
                                       f"({', '.join(existing[:3])}{' ...' if len(existing) > 3 else ''}); pass "
                                       "--overwrite to replace them, or choose another --out")
             written = 0
+            shapes: set[tuple[int, int]] = set()
             for src, stamp in zip(ordered, stamps, strict=True):
                 try:
-                    scan = import_polar_scan(_read_source(src), layout, preset, start_time_us=stamp)
+                    array = _read_source(src)
+                    if array.ndim == 2 and array.shape not in shapes:  # say what each new size is taken to be
+                        shapes.add(array.shape)
+                        typer.echo(f"{src.name}: read as {describe_geometry(array.shape, transposed, range_resolution, range_offset)}")
+                        hint = orientation_hint(array.shape, transposed)
+                        if hint:
+                            typer.echo(hint, err=True)
+                    scan = import_polar_scan(array, layout, preset, start_time_us=stamp)
                 except ScanFormatError as exc:
                     msg = str(exc)
                     msg = msg if msg.startswith((src.name, str(src))) else f"{src}: {msg}"
@@ -130,4 +185,7 @@ def register(app: typer.Typer) -> None:
         except (ReRadarError, OSError, ValueError) as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from exc
-        typer.echo(f"wrote {len(sources)} Navtech PNG(s) for preset {preset!r} to {out}")
+        typer.echo(f"wrote {len(sources)} Navtech PNG(s) for preset {preset!r} to {out} (source -> output name, in "
+                   "natural name order):")
+        for line in _mapping_lines(ordered, stamps):
+            typer.echo(line)

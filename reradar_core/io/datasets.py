@@ -55,6 +55,8 @@ __all__ = [
     "detect_layout",
     "load_sequence",
     "check_pose_span",
+    "check_pose_time_unit",
+    "range_grid_difference",
     "POSE_SPAN_SLACK_US",
     "scan_path",
     "write_sequence_poses",
@@ -312,8 +314,8 @@ def load_sequence(path: str | Path, layout: str | None = None,
                                                                            recorded.range_offset_m):
         if "preset" in meta:  # the simulator recorded the sensor: another preset would misread every range
             raise DatasetError(f"{root}: rendered with radar preset {recorded.name!r} ({SIM_META_FILE}), not "
-                               f"{p.name!r}: its ranges would be off by {p.range_resolution_m / recorded.range_resolution_m - 1:+.0%}; "
-                               "drop the preset or pass the recorded one")
+                               f"{p.name!r}: {range_grid_difference(recorded, p)}; drop the preset or pass the "
+                               "recorded one")
         logger.warning("%s: a %s-layout folder read with radar preset %r (%s m/bin; the layout's own %r has %s m/bin): "
                        "check the preset", root, layout, p.name, p.range_resolution_m, recorded.name,
                        recorded.range_resolution_m)
@@ -347,10 +349,95 @@ def load_sequence(path: str | Path, layout: str | None = None,
         lookup = np.searchsorted(track.timestamps_us, stamps)
         poses = track.subset(lookup)
     else:
+        unit_used = pose_time_unit or ("us" if layout == "boreas" and meta else "ns" if layout == "mulran" else None)
+        check_pose_time_unit(track, stamps, unit_used, str(pose_file))
         check_pose_span(track, stamps, [str(p) for p in paths], str(pose_file))
         interp = track.interpolate(stamps)
         poses = PoseSequence(stamps, interp[:, :2], interp[:, 2])
     return Sequence(root.name, p, layout, paths, stamps, poses, root, track.sorted())
+
+
+def range_grid_difference(recorded: RadarPreset, read_as: RadarPreset, at_m: float = 100.0) -> str:
+    """How far off ranges are when scans recorded with ``recorded`` are read with ``read_as``'s range grid, in
+    words: the bin-size difference in percent (one decimal) and where a return at ``at_m`` metres would land."""
+    bins = (at_m - recorded.range_offset_m) / recorded.range_resolution_m
+    read_m = read_as.range_offset_m + bins * read_as.range_resolution_m
+    pct = 100.0 * (read_as.range_resolution_m / recorded.range_resolution_m - 1.0)
+    return (f"its range bins would be {pct:+.1f} % off ({recorded.range_resolution_m:g} vs "
+            f"{read_as.range_resolution_m:g} m/bin, offsets {recorded.range_offset_m:g} vs "
+            f"{read_as.range_offset_m:g} m): a return at {at_m:g} m would be read at {read_m:.2f} m")
+
+
+#: a pose file whose time span is this many times the scans' (or more), with the scans crowded onto a sliver of its
+#: path, was read in a unit 1000x too coarse (a 1e3 unit error gives 1e3 or more; a folder of a real drive's scans
+#: covers the pose file's span up to the drive's start and end)
+POSE_UNIT_SPAN_RATIO = 500.0
+#: ... and the pose file's path is longer than this, metres (a drive, not a vehicle standing still)
+POSE_UNIT_MIN_PATH_M = 50.0
+#: ... and the scans' interpolated path is shorter than this fraction of it
+POSE_UNIT_PATH_FRACTION = 0.01
+
+
+def _likely_unit(raw_span: float, scans_span_us: float) -> str:
+    """The unit (of ``TIME_UNITS``) in which ``raw_span`` pose-file units last closest to ``scans_span_us``."""
+    from reradar_core.io.poses import TIME_UNITS
+
+    return min(TIME_UNITS, key=lambda u: abs(np.log(max(raw_span * TIME_UNITS[u], 1e-9) / scans_span_us)))
+
+
+def check_pose_time_unit(track: PoseSequence, stamps_us: np.ndarray, unit: str | None,
+                         pose_file: str = "the pose file") -> None:
+    """Refuse a pose file whose times were converted with a unit 1000x (or more) off, before any pose is
+    interpolated: the scans' times (µs, from their file names) are the reference.
+
+    Two signs, each of which a 1e3 unit error always shows and a folder of a real drive does not:
+
+    - the unit is too fine: the pose file's time span is ``POSE_UNIT_SPAN_RATIO`` x shorter than the scans'
+      (the scans would lie outside it);
+    - the unit is too coarse: the pose file's span is ``POSE_UNIT_SPAN_RATIO`` x the scans' or more, its path is
+      longer than ``POSE_UNIT_MIN_PATH_M`` while the scans would interpolate onto less than
+      ``POSE_UNIT_PATH_FRACTION`` of it, and fewer poses than half the scans fall within the scans' time
+      window (every scan would be placed on the drive's first metres; a crop of a real drive keeps the poses
+      of its scans).
+
+    Args:
+        track: the pose file's poses, sorted, times in µs after the conversion. stamps_us: (N,) int64 scan
+            times, µs. unit: the unit the pose times were read in (None: from the file). pose_file: for the
+            message.
+
+    Raises:
+        DatasetError: naming the likely unit and the option that sets it.
+    """
+    from reradar_core.io.poses import TIME_UNITS
+
+    t = np.sort(np.asarray(stamps_us, np.int64))
+    if len(t) < 2 or len(track) < 2:
+        return
+    scans_span = float(t[-1] - t[0])
+    pose_span = float(track.timestamps_us[-1] - track.timestamps_us[0])
+    if scans_span <= 0 or pose_span <= 0:
+        return
+    read_as = unit or "the unit the file implies"
+    raw_span = pose_span / TIME_UNITS.get(str(unit), 1.0) if unit else pose_span
+    likely = _likely_unit(raw_span, scans_span) if unit else None
+    advice = (f"the pose times are probably {likely}: pass --time-unit {likely}" if likely and likely != unit
+              else "check the pose file's time unit (--time-unit s|ms|us|ns)")
+    if pose_span * POSE_UNIT_SPAN_RATIO <= scans_span:
+        raise DatasetError(f"{pose_file}: its times read as {read_as} span {pose_span / 1e6:.6g} s, but the scans' "
+                           f"times (from their file names, µs) span {scans_span / 1e6:.6g} s; {advice}")
+    if pose_span < POSE_UNIT_SPAN_RATIO * scans_span:
+        return
+    pose_path = track.path_length_m()
+    if pose_path <= POSE_UNIT_MIN_PATH_M:
+        return
+    at = track.interpolate(t)
+    scans_path = float(np.sum(np.linalg.norm(np.diff(at[:, :2], axis=0), axis=1)))
+    inside = int(np.count_nonzero((track.timestamps_us >= t[0]) & (track.timestamps_us <= t[-1])))
+    if scans_path < POSE_UNIT_PATH_FRACTION * pose_path and inside < len(t) / 2:
+        raise DatasetError(
+            f"{pose_file}: its times read as {read_as} span {pose_span / 1e6:.6g} s and {pose_path:.0f} m of path, "
+            f"but the {len(t)} scans' times (from their file names, µs) span {scans_span / 1e6:.6g} s: every scan "
+            f"would be placed on {scans_path:.1f} m of the drive; {advice}")
 
 
 #: how far beyond the first / last pose a scan may lie (pose files sample the trajectory at their own rate), µs

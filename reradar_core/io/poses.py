@@ -48,6 +48,7 @@ __all__ = [
     "to_microseconds",
     "MAX_ABS_COORDINATE_M",
     "TXYYAW_YAW_HEADERS",
+    "travel_yaw_mismatch_deg",
 ]
 
 #: Timestamp units a pose file may use: name -> microseconds per unit.
@@ -216,7 +217,7 @@ def _read_rows(path: Path, min_cols: int, header_first: str | None,
         raise PoseFileError(f"{path}: no such pose file")
     rows: list[tuple[int, list[str]]] = []
     header = None
-    with path.open(newline="") as fh:
+    with path.open(newline="", encoding="utf-8-sig") as fh:  # a UTF-8 BOM (spreadsheet exports) is no data
         for lineno, row in enumerate(csv.reader(fh), start=1):
             if not row or all(not c.strip() for c in row):
                 continue
@@ -362,13 +363,20 @@ def read_txyyaw_csv(path: str | Path, time_unit: str | None = None) -> PoseSeque
     path = Path(path)
     if not path.is_file():
         raise PoseFileError(f"{path}: no such pose file")
-    with path.open(newline="") as fh:
+    with path.open(newline="", encoding="utf-8-sig") as fh:
         first = next(csv.reader(fh), [""])
     head = first[0].strip().lower() if first else ""
     header_unit = TXYYAW_TIME_HEADERS.get(head)
+    if head not in TXYYAW_TIME_HEADERS and not _is_number(head):
+        raise PoseFileError(f"{path}:1: the first column is named {first[0].strip()!r}, which is not a time column "
+                            f"name this reader knows; name it {', '.join(TXYYAW_TIME_HEADERS)} (t: unit from "
+                            "--time-unit or absolute UTC times; t_s etc.: the unit), then x, y (metres) and yaw, "
+                            "yaw_rad or yaw_deg, e.g. the header line t_s,x,y,yaw")
     header, rows = _read_rows(path, 4, first[0].strip() if head in TXYYAW_TIME_HEADERS else None, "t,x,y,yaw")
     if time_unit is not None and header_unit is not None and _check_unit(time_unit) != header_unit:
-        raise PoseFileError(f"{path}:1: header says {first[0].strip()!r} but the time unit given is {time_unit!r}")
+        raise PoseFileError(f"{path}:1: the header names the time column {first[0].strip()!r} ({header_unit}), but "
+                            f"the time unit given is {time_unit!r}: drop --time-unit, or rename the column "
+                            f"t_{_check_unit(time_unit)} (or t) if the values are in {time_unit}")
     yaw_header = header[3] if header is not None and len(header) > 3 else None
     yaw_name = yaw_header.lower() if yaw_header is not None else None
     if yaw_name is not None and yaw_name not in TXYYAW_YAW_HEADERS:
@@ -388,9 +396,72 @@ def read_txyyaw_csv(path: str | Path, time_unit: str | None = None) -> PoseSeque
                 f"{path}:{rows[i][0]}: yaw {yaw[i]:g} is beyond 2 pi, but a plain yaw column (or one without a "
                 f"header) is read as radians; these look like degrees: name the column yaw_deg in a header line "
                 f"(e.g. t_us,x,y,yaw_deg), or yaw_rad if they really are radians")
-    t_us = gps_time_to_us(t_raw, time_unit or header_unit, f"{path}: column t")
+    t_name = first[0].strip() if header is not None else "t"
+    if header_unit is not None:  # (an explicit unit other than the header's was refused above)
+        absolute = absolute_time_unit(t_raw)
+        if absolute is not None and absolute != header_unit:
+            raise PoseFileError(f"{path}: column {t_name!r} declares {header_unit}, but its values are absolute UTC "
+                                f"times in {absolute}: rename the column t_{absolute} (or t, whose unit then follows "
+                                "from the values)")
+    t_us = gps_time_to_us(t_raw, time_unit or header_unit, f"{path}: column {t_name}")
     _refuse_repeated_times(t_us, path)
+    if yaw_name in (None, "yaw"):
+        _refuse_degrees_in_plain_yaw(path, t_us, vals[:, 0:2], yaw, yaw_header or "yaw (no header)")
     return PoseSequence(t_us, vals[:, 0:2], yaw)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+#: poses at least this far apart (metres) count as moving when the yaw is compared with the direction of travel
+_MOVING_STEP_M = 0.5
+#: the yaw matches the direction of travel when the median |yaw - travel direction| is below this, degrees ...
+_YAW_MATCH_DEG = 10.0
+#: ... and does not when it is above this
+_YAW_MISMATCH_DEG = 45.0
+#: moving steps it takes to compare (fewer: no verdict)
+_MIN_MOVING_STEPS = 3
+
+
+def travel_yaw_mismatch_deg(xy: np.ndarray, yaw_rad: np.ndarray) -> float | None:
+    """Median |yaw - direction of travel| in degrees over the moving steps of a trajectory.
+
+    Args:
+        xy: (N, 2) positions, metres, in time order. yaw_rad: (N,) headings, radians.
+
+    Returns:
+        The median (0..180 degrees; a median, so rare reversing stretches do not sway it), or None when fewer
+        than ``_MIN_MOVING_STEPS`` steps move ``_MOVING_STEP_M`` or more.
+    """
+    step = np.diff(np.asarray(xy, np.float64), axis=0)
+    moving = np.linalg.norm(step, axis=1) >= _MOVING_STEP_M
+    if int(moving.sum()) < _MIN_MOVING_STEPS:
+        return None
+    travel = np.arctan2(step[moving, 1], step[moving, 0])
+    yaw = np.asarray(yaw_rad, np.float64)
+    # the heading over a step: the circular mean of its end points' yaws
+    mid = np.arctan2(np.sin(yaw[:-1]) + np.sin(yaw[1:]), np.cos(yaw[:-1]) + np.cos(yaw[1:]))[moving]
+    return float(np.degrees(np.median(np.abs(wrap_angle(mid - travel)))))
+
+
+def _refuse_degrees_in_plain_yaw(path: Path, t_us: np.ndarray, xy: np.ndarray, yaw: np.ndarray, column: str) -> None:
+    """Refuse a plain yaw column (read as radians) whose values, read as degrees, follow the direction of
+    travel while, read as radians, they do not: degrees within +-2 pi (e.g. a road at 4 degrees)."""
+    order = np.argsort(t_us, kind="stable")
+    as_rad = travel_yaw_mismatch_deg(xy[order], yaw[order])
+    as_deg = travel_yaw_mismatch_deg(xy[order], np.radians(yaw[order]))
+    if as_rad is None or as_deg is None:
+        return
+    if as_deg < _YAW_MATCH_DEG and as_rad > _YAW_MISMATCH_DEG:
+        raise PoseFileError(
+            f"{path}: the {column} column is read as radians, but its values follow the direction of travel only "
+            f"as degrees (median difference {as_deg:.1f} deg as degrees, {as_rad:.1f} deg as radians): name the "
+            "column yaw_deg in a header line (e.g. t_s,x,y,yaw_deg), or yaw_rad if they really are radians")
 
 
 def write_txyyaw_csv(poses: PoseSequence, path: str | Path) -> Path:
@@ -416,7 +487,7 @@ def read_poses(path: str | Path, time_unit: str | None = None) -> PoseSequence:
     if not path.is_file():
         raise PoseFileError(f"{path}: no such pose file")
     try:
-        with path.open() as fh:
+        with path.open(encoding="utf-8-sig") as fh:
             first = fh.readline().strip()
         head = first.split(",")[0].strip().lower()
         if head == "gpstime":

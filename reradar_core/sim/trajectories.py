@@ -13,6 +13,7 @@ from reradar_core.sim.world import stable_seed
 __all__ = [
     "load_trajectory",
     "load_road_xy",
+    "check_render_trajectory",
     "offset_trajectory",
     "synthetic_loop_route",
     "drive_route",
@@ -37,6 +38,36 @@ def load_trajectory(path: str | Path, time_unit: str | None = None) -> PoseSeque
         raise PoseFileError(f"{path}: timestamps repeat after conversion to microseconds; is the time unit "
                             "right? (--time-unit s|ms|us|ns)")
     return traj
+
+
+#: the road network resamples a trajectory every 2 m (``RoadNetwork``'s ``spacing_m``): a road needs more path
+MIN_RENDER_PATH_M = 2.0
+#: one radar sweep (``scan_times``' default): the first scan needs a whole sweep before the last pose, seconds
+SWEEP_PERIOD_S = 0.25
+
+
+def check_render_trajectory(traj: PoseSequence, path: str | Path) -> None:
+    """Refuse a trajectory ``reradar sim`` cannot render, before the world is built.
+
+    Args:
+        traj: the trajectory (times in µs, positions in metres), sorted. path: its file, for the message.
+
+    Raises:
+        ConfigError: negative times (scan files are named by their time in µs, which ``reradar info`` / ``bench``
+            read as non-negative timestamps), fewer than 2 poses, a time span of one sweep
+            (``SWEEP_PERIOD_S``) or less, or a path of ``MIN_RENDER_PATH_M`` or less.
+    """
+    n = len(traj)
+    if n and int(traj.timestamps_us[0]) < 0:
+        raise ConfigError(f"{path}: the trajectory's times start at {traj.timestamps_us[0] / 1e6:g} s; scan files "
+                          "are named by their time in µs, which must not be negative: shift the times to start at "
+                          "0 or later (or give absolute UTC times)")
+    span_s = (int(traj.timestamps_us[-1]) - int(traj.timestamps_us[0])) / 1e6 if n else 0.0
+    length = traj.path_length_m() if n > 1 else 0.0
+    if n < 2 or span_s <= SWEEP_PERIOD_S or length <= MIN_RENDER_PATH_M:
+        raise ConfigError(f"{path}: the trajectory has {n} pose(s) over {span_s:g} s and {length:g} m; a render "
+                          f"needs at least 2 poses spanning more than one radar sweep ({SWEEP_PERIOD_S:g} s) and "
+                          f"more than {MIN_RENDER_PATH_M:g} m of path (the world's road is built along it)")
 
 
 def load_road_xy(path: str | Path, time_unit: str | None = None) -> np.ndarray:

@@ -175,3 +175,44 @@ def test_cli_never_overwrites_earlier_scans_nor_mixes_name_kinds(tmp_path):
     assert res.exit_code == 2 and "no such file" in res.output and "WARN" not in res.output
     res = _import(tmp_path, tmp_path, out="o3")
     assert res.exit_code == 2 and "is a folder" in res.output
+
+
+def test_cli_orders_names_naturally_and_prints_the_mapping(tmp_path):
+    """QA 8: scan_10 once came before scan_9 (text order) and nothing said which input got which timestamp."""
+    for k in (1, 2, 9, 10, 11):
+        cv2.imwrite(str(tmp_path / f"scan_{k}.png"), _foreign(peak_bin=40 + k))
+    res = _import(tmp_path, *(tmp_path / f"scan_{k}.png" for k in (10, 9, 11, 2, 1)))
+    assert res.exit_code == 0, res.output
+    for k, seconds in ((1, 1), (2, 2), (9, 3), (10, 4), (11, 5)):
+        assert f"scan_{k}.png -> {seconds}000000.png" in res.output
+        # the scan itself went there: its peak bin (0.175 m/bin) is at (40 + k) * 0.175 m
+        scan = load_scan(tmp_path / "o" / f"{seconds}000000.png", "boreas")
+        peak_m = get_preset("boreas").range_offset_m + int(np.argmax(scan.power[0])) * 0.0596
+        assert peak_m == pytest.approx((40 + k) * 0.175, abs=0.1)
+
+
+def test_cli_prints_the_assumed_geometry_and_warns_on_a_likely_transposed_source(tmp_path):
+    """QA 7: a 576 (range bins) x 400 (azimuths) image without --transposed was imported silently."""
+    from reradar_core.cli_commands.import_scans import orientation_hint
+
+    cv2.imwrite(str(tmp_path / "1600000000000000.png"), _foreign().T.copy())
+    res = _import(tmp_path, tmp_path / "1600000000000000.png")
+    assert res.exit_code == 0, res.output
+    assert "576 azimuths x 400 range bins" in res.output and "maximum range 69.8 m" in res.output
+    assert "pass --transposed" in res.output
+    # the usual layout: geometry printed, no warning
+    cv2.imwrite(str(tmp_path / "1600000000250000.png"), _foreign())
+    res = _import(tmp_path, tmp_path / "1600000000250000.png", out="o2")
+    assert res.exit_code == 0 and "400 azimuths x 576 range bins" in res.output and "warning" not in res.output
+    assert orientation_hint((400, 576), transposed=False) is None
+    assert "drop --transposed" in orientation_hint((400, 576), transposed=True)
+
+
+def test_help_says_what_build_map_needs_besides_the_scans():
+    """QA 15: the help promised `build-map --dataset` on the output, which lacks the radar/ folder and poses."""
+    from reradar_cli import app
+
+    res = CliRunner().invoke(app, ["import-scans", "--help"], env={"COLUMNS": "200"})
+    assert res.exit_code == 0
+    text = " ".join(res.output.split())
+    assert "SEQ/radar/<t_us>.png" in text and "radar_poses.csv" in text and "natural" in text

@@ -170,7 +170,8 @@ def test_relative_txyyaw_times_are_refused_without_a_unit(tmp_path):
     # the header may declare the unit; a conflicting explicit unit is an error, not a silent choice
     declared = _write(tmp_path, "declared.csv", RELATIVE.replace("t,x", "t_s,x"))
     np.testing.assert_array_equal(read_txyyaw_csv(declared).timestamps_us, [0, 250_000, 500_000])
-    with pytest.raises(PoseFileError, match="header says 't_s' but the time unit given is 'ms'"):
+    with pytest.raises(PoseFileError, match="names the time column 't_s' .s., but the time unit given is 'ms'.*"
+                                            "rename the column t_ms"):
         read_txyyaw_csv(declared, "ms")
     # absolute UTC seconds need no unit
     absolute = _write(tmp_path, "abs.csv", "t,x,y,yaw\n1630597331.06016,0,0,0\n1630597331.31078,1,0,0\n")
@@ -257,3 +258,67 @@ def test_a_time_given_twice_is_refused(tmp_path):
     path = _write(tmp_path, "dup.csv", "t_s,x,y,yaw\n1,0,0,0\n1,10,0,0\n2,20,0,0\n")
     with pytest.raises(PoseFileError, match="appear twice"):
         read_txyyaw_csv(path)
+
+
+def _straight(heading_deg: float, yaw_text: str, n: int = 8, header: str = "t_s,x,y,yaw") -> str:
+    """A straight drive at ``heading_deg``, 2 m per 0.25 s; each row's yaw column is ``yaw_text``."""
+    c, s = np.cos(np.radians(heading_deg)), np.sin(np.radians(heading_deg))
+    rows = [f"{0.25 * i},{2 * i * c:.4f},{2 * i * s:.4f},{yaw_text}" for i in range(n)]
+    return header + "\n" + "\n".join(rows) + "\n"
+
+
+def test_plain_yaw_in_degrees_within_two_pi_is_refused(tmp_path):
+    """QA 5: a road at 4 degrees with yaw 4.0 in a plain yaw column was read as 4 rad (heading -131 deg)."""
+    with pytest.raises(PoseFileError, match=r"deg\.csv: the yaw column is read as radians.*name the column yaw_deg"):
+        read_poses(_write(tmp_path, "deg.csv", _straight(4.0, "4.0")))
+    # the same numbers declared as degrees, or as radians on purpose, are read as declared
+    assert read_poses(_write(tmp_path, "d.csv", _straight(4.0, "4.0", header="t_s,x,y,yaw_deg"))).yaw[0] == \
+        pytest.approx(np.radians(4.0))
+    assert read_poses(_write(tmp_path, "r.csv", _straight(4.0, "4.0", header="t_s,x,y,yaw_rad"))).yaw[0] == \
+        pytest.approx(4.0 - 2 * np.pi)
+    # real radians along the road pass, also with a reversing stretch (3 of 11 steps backwards) ...
+    c, sn = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))
+    along = [0, 2, 4, 6, 8, 6, 4, 2, 4, 6, 8, 10]
+
+    def drive(yaw: str) -> str:
+        return "t_s,x,y,yaw\n" + "".join(f"{0.25 * i},{a * c:.4f},{a * sn:.4f},{yaw}\n" for i, a in enumerate(along))
+
+    assert len(read_poses(_write(tmp_path, "rev.csv", drive(f"{np.radians(30.0):.6f}")))) == 12
+    # ... while degrees are refused despite it (the median ignores the reversing steps)
+    with pytest.raises(PoseFileError, match="yaw_deg"):
+        read_poses(_write(tmp_path, "revdeg.csv", drive("30.0")))
+    # a vehicle standing still: no verdict, read as given
+    assert len(read_poses(_write(tmp_path, "still.csv", "t_s,x,y,yaw\n0,0,0,4\n0.25,0,0,4\n0.5,0,0,4\n"))) == 3
+
+
+def test_a_time_header_that_contradicts_absolute_values_names_the_column(tmp_path):
+    """QA 11: a t_s column holding µs got 'column t: ... give --time-unit us', and that was then refused."""
+    text = "t_s,x,y,yaw\n1600000000000000,0,0,0\n1600000000250000,2,0,0\n"
+    path = _write(tmp_path, "us.csv", text)
+    with pytest.raises(PoseFileError, match=r"column 't_s' declares s, but its values are absolute UTC times in us: "
+                                            r"rename the column t_us"):
+        read_poses(path)
+    with pytest.raises(PoseFileError, match="rename the column t_us"):
+        read_poses(path, "us")
+    with pytest.raises(PoseFileError, match="rename the column t_us"):
+        read_poses(path, "s")
+    assert read_poses(_write(tmp_path, "ok.csv", text.replace("t_s", "t_us"))).timestamps_us[1] == 1600000000250000
+
+
+@pytest.mark.parametrize("head", ["time", "timestamp", "Zeit"])
+def test_an_unknown_time_header_lists_the_accepted_names(tmp_path, head):
+    """QA 14: 'time,x,y,yaw' gave "timestamp 'time' is not a number"."""
+    path = _write(tmp_path, "h.csv", f"{head},x,y,yaw\n0,0,0,0\n0.25,2,0,0\n")
+    with pytest.raises(PoseFileError, match=rf"h\.csv:1: the first column is named '{head}'.*t, t_s, t_ms, t_us, "
+                                            r"t_ns.*t_s,x,y,yaw"):
+        read_poses(path)
+
+
+def test_a_utf8_byte_order_mark_is_no_data(tmp_path):
+    """QA 14: a spreadsheet's BOM before t_s gave "timestamp '\\ufefft_s' is not a number"."""
+    path = tmp_path / "bom.csv"
+    path.write_bytes("\ufefft_s,x,y,yaw\n0,0,0,0\n0.25,2,0,0\n".encode())
+    np.testing.assert_array_equal(read_poses(path).timestamps_us, [0, 250_000])
+    boreas = tmp_path / "radar_poses.csv"
+    boreas.write_bytes(("\ufeff" + ",".join(BOREAS_COLUMNS) + "\n1600000000000000" + ",0" * 12 + "\n").encode())
+    assert len(read_poses(boreas)) == 1

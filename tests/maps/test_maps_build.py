@@ -93,3 +93,28 @@ def test_failed_build_leaves_nothing(tmp_path: Path) -> None:
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(ConfigError):
         build_map(tmp_path / "m.h5", CountingExtractor(), load, np.zeros((0, 3)), radar_preset="boreas")
+
+
+def test_build_map_takes_the_pose_time_unit_it_asks_for(tmp_path: Path) -> None:
+    """QA 10: relative pose times were refused with 'give --time-unit', which build-map did not have."""
+    from typer.testing import CliRunner
+
+    from reradar_cli import app
+    from reradar_core.errors import TimeUnitError
+
+    ts = np.arange(7, dtype=np.int64) * 250_000  # relative µs times: scans and poses
+    for i, t in enumerate(ts):
+        power = np.zeros((400, 3360), np.float32)
+        power[:, 200 + 300 * i] = 0.8
+        write_sequence_scan(tmp_path / "seq", "boreas", RadarScan.from_power(power, "boreas", start_time_us=int(t)))
+    relative = PoseSequence(ts, np.column_stack([np.arange(7) * 4.0, np.full(7, 2.0)]), np.zeros(7))
+    write_sequence_poses(tmp_path / "seq", "boreas", relative)
+    with pytest.raises(TimeUnitError, match="--time-unit"):
+        build_map_from_sequence(tmp_path / "seq", tmp_path / "m.h5", CountingExtractor())
+    out = build_map_from_sequence(tmp_path / "seq", tmp_path / "m.h5", CountingExtractor(), time_unit="us")
+    with open_map(out) as m:
+        np.testing.assert_array_equal(m.timestamps_us, relative.timestamps_us)
+    res = CliRunner().invoke(app, ["build-map", "--dataset", str(tmp_path / "seq"), "--out", str(tmp_path / "n.h5"),
+                                   "--time-unit", "minutes"])
+    assert res.exit_code == 2 and "--time-unit must be one of" in res.output
+    assert "--time-unit" in CliRunner().invoke(app, ["build-map", "--help"], env={"COLUMNS": "200"}).output

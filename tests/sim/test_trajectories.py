@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from reradar_core.sim.trajectories import _corner_speed_limit, drive_route
@@ -102,3 +104,40 @@ def test_loop_grid_holds_every_street_the_loop_route_drives():
         assert xs.shape == (4,) and ys.shape == (3,) and np.all(np.diff(xs) >= 120.0) and np.all(np.diff(ys) >= 120.0)
         assert np.all(np.min(np.abs(wp[:, :1] - xs[None, :]), axis=1) < 1e-9)
         assert np.all(np.min(np.abs(wp[:, 1:] - ys[None, :]), axis=1) < 1e-9)
+
+
+def _csv(tmp_path, name: str, rows: list[tuple[float, float]]) -> Path:
+    path = tmp_path / name
+    path.write_text("t_s,x,y,yaw\n" + "".join(f"{t},{x},0,0\n" for t, x in rows))
+    return path
+
+
+def _sim(tmp_path, traj) -> object:
+    from typer.testing import CliRunner
+
+    from reradar_cli import app
+
+    return CliRunner().invoke(app, ["sim", "--trajectory", str(traj), "--out", str(tmp_path / "out")])
+
+
+def test_sim_refuses_negative_times_before_rendering(tmp_path):
+    """QA 6: times from -5 s rendered radar/-5000000.png, which `reradar info` / `bench` then refused."""
+    traj = _csv(tmp_path, "neg.csv", [(-5.0 + 0.25 * i, 2.0 * i) for i in range(40)])
+    res = _sim(tmp_path, traj)
+    assert res.exit_code == 2 and "neg.csv: the trajectory's times start at -5 s" in res.output
+    assert "must not be negative: shift the times" in res.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_sim_says_how_long_a_trajectory_must_be(tmp_path):
+    """QA 13: one or two rows gave 'road network needs at least one polyline with two distinct points'."""
+    for name, rows in (("one.csv", [(0.0, 0.0)]), ("two.csv", [(0.0, 0.0), (0.25, 1.25)]),
+                       ("short.csv", [(0.0, 0.0), (10.0, 1.5)])):
+        res = _sim(tmp_path, _csv(tmp_path, name, rows))
+        assert res.exit_code == 2, res.output
+        assert f"{name}: the trajectory has {len(rows)} pose(s)" in res.output
+        assert "at least 2 poses spanning more than one radar sweep (0.25 s) and more than 2 m of path" in res.output
+    from reradar_core.io.poses import read_poses
+    from reradar_core.sim.trajectories import check_render_trajectory
+
+    check_render_trajectory(read_poses(_csv(tmp_path, "ok.csv", [(0.0, 0.0), (0.5, 2.5)])), "ok.csv")
