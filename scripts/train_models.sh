@@ -7,14 +7,16 @@
 #   bash scripts/train_models.sh            # all ten models, in dependency order (width 0.5 first)
 #   bash scripts/train_models.sh our-1 our-3-boreas     # just these (stage 2 needs its stage-1 model)
 #
-# Step counts, not wall-clock budgets, end every run, so the same command gives the same weights on any
-# machine (1 torch thread, seed 0). On the 2-core CPU: stage 1 ~22 min, each stage 2 ~7 min when run alone.
+# Step counts, not wall-clock budgets, end every run, so the same command gives the same weights on one machine
+# (1 torch thread, seed 0; bit-identical on the same CPU instruction set and torch build - another machine drifts
+# in the last digits, docs/MODEL.md). On the 2-core CPU: stage 1 ~22 min, each stage 2 ~7 min when run alone.
 # Stage 2 ends with learned whitening of the projection (--learned-whitening: matching pairs of the split's own
 # training scans; docs/MODEL.md, "Learned whitening"); a run that resumes a finished checkpoint only re-fits it.
 # Defaults of `reradar train` used here (docs/MODEL.md): NetVLAD over the sensor disc only (ModelConfig.disc_mask,
 # on; --no-disc-mask turns it off) and random in-batch negatives (hard negatives from a memory bank,
-# --hard-negatives N, did not win on validation and stay opt-in). Checkpoints written before the disc mask existed
-# resume as if they had it: run with FRESH=1 to retrain from scratch.
+# --hard-negatives N, did not win on validation and stay opt-in). A checkpoint resumes only when it records the
+# same training settings, --init weights and data (checkpoints written before session 23 record none and are
+# refused): run with FRESH=1 to retrain from scratch.
 # Weights go to reradar_core/model/weights/ unless OUT_DIR is set; runs resume from their checkpoints
 # unless FRESH=1.
 set -euo pipefail

@@ -60,12 +60,16 @@ def settings_or_exit(**overrides: object) -> Settings:
 
 
 def check_model_or_exit(settings: Settings) -> None:
-    """Exit 2 with one line when ``settings.model`` (RERADAR_MODEL) names no loadable weights."""
+    """Exit 2 with one line when ``settings.model`` (RERADAR_MODEL) names no loadable weights: an unknown name, a
+    missing file, or a file that does not load (truncated, empty, corrupt, another architecture than its JSON).
+    The weights are loaded once here (in torch, about a second) and again by the service at start-up."""
     from reradar_core.errors import ReRadarError
+    from reradar_core.model.extractor import DescriptorExtractor
     from reradar_core.model.registry import resolve_weights
 
     try:
-        resolve_weights(settings.model)
+        pt, meta = resolve_weights(settings.model)
+        DescriptorExtractor.from_file(pt, meta=meta, runtime="torch", fuse=False)
     except ReRadarError as exc:
         typer.echo(f"error: RERADAR_MODEL: {exc}", err=True)
         raise typer.Exit(2) from None

@@ -110,6 +110,9 @@ TOP_N = 5
 # refusal costs the vehicle one more scan (0.25 s at 4 Hz) before it asks again; a confident wrong pose can pull
 # its state estimate hundreds of metres off until something else notices. A product choice, stated, not fitted.
 DEFAULT_WRONG_COST = 10.0
+#: fewer wrong answers above the floor than this among the fit runs: the bar is not fitted (a warning, no refusal)
+MIN_WRONG_FOR_BAR = 10
+
 #: the aligned-landmark floors the fit chooses from (``fit_from_data``); the runs are collected at the lowest
 PROBE_FLOOR = 0.25
 FLOOR_GRID = (0.25, 0.30, 0.35, 0.40, 0.45, 0.50)
@@ -383,6 +386,14 @@ def fit_from_data(d: FitData, l2: float = 1.0, max_wrong_fraction: float = 0.005
                               for s in np.unique(d.split) for k, m in kinds.items()
                               if (d.heldout & (d.split == s) & m).any()},
     }
+    wrong_above = int((el & ~d.correct & fit_all).sum())
+    if wrong_above < MIN_WRONG_FOR_BAR:  # the bar is then not fitted but whatever the rules return on no evidence
+        warning = (f"only {wrong_above} wrong answer(s) above the aligned-landmark floor among the {int(fit_all.sum())} "
+                   f"fit runs (fewer than {MIN_WRONG_FOR_BAR}): too few wrong answers to fit a confidence bar, so "
+                   f"min_confidence = {bar:.3g} is not supported by data; fit on more runs (whole training splits) "
+                   "before using this model")
+        logger.warning("%s", warning)
+        report["warnings"] = [warning]
     full_meta = {**(meta or {}), "report": report}
     model = replace(model, min_confidence=bar, min_aligned_ratio=floor, meta=full_meta)
     return model, report

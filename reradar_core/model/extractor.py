@@ -31,7 +31,8 @@ from reradar_core.model.config import ModelConfig
 from reradar_core.model.network import DescriptorNet, fuse_batchnorm
 from reradar_core.model.runtime import OnnxNetwork, onnx_path_for, resolve_runtime
 
-__all__ = ["DescriptorExtractor", "sample_feature_map", "DEFAULT_MAX_KEYPOINTS", "file_sha256"]
+__all__ = ["DescriptorExtractor", "sample_feature_map", "DEFAULT_MAX_KEYPOINTS", "check_weights_sha256",
+           "file_sha256"]
 
 logger = logging.getLogger(__name__)
 
@@ -44,6 +45,30 @@ def file_sha256(path: str | Path) -> str:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+def check_weights_sha256(path: str | Path, meta: dict[str, Any], sha256: str | None = None) -> str:
+    """The weights file's sha256 (``sha256``: already computed), checked against the ``sha256`` its JSON records
+    (``save_weights`` writes it); a ``ConfigError`` (one line) when they differ: the file was corrupted or
+    replaced after it was written. Metadata without ``sha256`` is not checked."""
+    path = Path(path)
+    sha = sha256 or file_sha256(path)
+    want = meta.get("sha256")
+    if isinstance(want, str) and want and want.lower() != sha:
+        raise ConfigError(f"model weights file {path.name} does not match its metadata (sha256 {sha[:12]}... where "
+                          f"{path.with_suffix('.json').name} records {want[:12]}...): the file is corrupt or was "
+                          "replaced; restore it or re-train the model")
+    return sha
+
+
+def _mismatch_summary(exc: RuntimeError) -> str:
+    """torch's ``load_state_dict`` error (one line per tensor, often over a hundred) as its first mismatch and a
+    count."""
+    lines = [ln.strip() for ln in str(exc).splitlines()[1:] if ln.strip()]
+    if not lines:
+        return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    more = f" (and {len(lines) - 1} more)" if len(lines) > 1 else ""
+    return f"{lines[0].rstrip('.')}{more}"
 
 
 _logged_fallbacks: set[str] = set()
@@ -166,6 +191,7 @@ class DescriptorExtractor:
         except (KeyError, TypeError) as exc:
             raise ConfigError(f"model metadata for {path} has no valid 'config': {exc}") from exc
         net = DescriptorNet(config)
+        sha = check_weights_sha256(path, meta)  # once per load: a few ms per 10 MB
         try:
             blob = torch.load(path, map_location="cpu", weights_only=True)
             state = {k: v.float() if v.is_floating_point() else v for k, v in blob["state_dict"].items()}
@@ -176,8 +202,8 @@ class DescriptorExtractor:
         try:
             net.load_state_dict(state)
         except RuntimeError as exc:
-            raise ModelMismatchError(f"weights {path} do not fit model {config.model_id}: {exc}") from exc
-        sha = file_sha256(path)
+            raise ModelMismatchError(f"weights {path} do not fit model {config.model_id} (another architecture "
+                                     f"than its JSON describes?): {_mismatch_summary(exc)}") from None
         return cls(net, weights_sha256=sha, name=meta.get("name", path.stem), metadata=meta,
                    onnx_network=_onnx_network(path, sha, resolve_runtime(runtime)), **kwargs)
 

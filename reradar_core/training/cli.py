@@ -17,7 +17,7 @@ import typer
 from reradar_core.errors import ConfigError, ReRadarError
 from reradar_core.training.suites import SeqSpec
 
-__all__ = ["register", "train_main"]
+__all__ = ["TrainingInterrupted", "register", "train_main"]
 
 logger = logging.getLogger(__name__)
 
@@ -64,6 +64,10 @@ def _command_line() -> str:
     return " ".join(shlex.quote(a) for a in argv)
 
 
+class TrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C during ``train_main``; ``str()`` says where the run stands and how to resume it."""
+
+
 def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpec, SeqSpec]], *,
                backbone: str = "reresnet",
                width: float = 0.25, clusters: int = 32, dim: int | None = 256, init: str | None = None,
@@ -71,11 +75,16 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
                threads: int = 1, device: str = "auto", out_dir: Path | None = None, run_dir: Path | None = None,
                resume: bool = True,
                data_note: str = "", progress: bool = True, command: str | None = None, disc_mask: bool = True,
-               **train_kwargs) -> Path:
-    """Train (or adapt, with ``init``) a model and write ``<out_dir>/<name>.pt`` + ``.json``; returns the path."""
+               summary_out: dict | None = None, **train_kwargs) -> Path | None:
+    """Train (or adapt, with ``init``) a model and write ``<out_dir>/<name>.pt`` + ``.json``; returns the path.
+
+    ``steps=0`` only validates (the ``init`` model, or a fresh one after its head initialisation): it neither
+    resumes nor writes anything (no weights, no checkpoint), puts the summary in ``summary_out`` and returns None.
+    """
     import torch
 
     from reradar_core.model.config import ModelConfig
+    from reradar_core.model.extractor import check_weights_sha256
     from reradar_core.model.registry import WEIGHTS_DIR, resolve_weights, save_weights
     from reradar_core.paths import cache_dir
     from reradar_core.training.trainer import TrainConfig, Trainer, trainable_state
@@ -83,7 +92,12 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
     init_state = None
     if init is not None:
         pt, meta = resolve_weights(init)
-        blob = torch.load(pt, map_location="cpu", weights_only=True)
+        check_weights_sha256(pt, meta)
+        try:
+            blob = torch.load(pt, map_location="cpu", weights_only=True)
+        except Exception:  # noqa: BLE001 - torch raises pickle, zip, EOF and runtime errors on a bad file
+            raise ConfigError(f"--init {init}: {pt.name} is not a readable ReRadar weights file (corrupt or "
+                              "truncated .pt); restore or re-train it") from None
         # the disc mask has no parameters: it follows the flag whatever the init model was trained with
         model = dataclasses.replace(ModelConfig.from_dict(meta["config"]), disc_mask=disc_mask)
         # the plain ResNet trains as it runs; the ReResNet needs its e2cnn (basis-coefficient) state
@@ -105,9 +119,26 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
     train = [_cached(s, w, res, progress) for s in sequences]
     vals = [(_cached(a, w, res, progress), _cached(b, w, res, progress)) for a, b in val_pairs]
     cache_s = time.monotonic() - t0
+    if steps == 0:  # validation only: no checkpoint to resume or write, no weights
+        trainer = Trainer(cfg, train, vals, run_dir=None, init_state=init_state, progress=progress)
+        _, summary = trainer.run(resume=False)
+        logger.info("validation only (--steps 0): val Recall@1 %s, raw NetVLAD %s, %s queries; nothing written",
+                    summary.get("val_recall_at_1"), summary.get("val_recall_at_1_raw_netvlad"),
+                    summary.get("val_queries"))
+        if summary_out is not None:
+            summary_out.update(summary)
+        return None
     run_dir = run_dir or cache_dir("training", "runs", name)
     trainer = Trainer(cfg, train, vals, run_dir=run_dir, init_state=init_state, progress=progress)
-    plain, summary = trainer.run(resume=resume)
+    try:
+        plain, summary = trainer.run(resume=resume)
+    except KeyboardInterrupt:
+        last = trainer.checkpoint_step
+        where = (f"the last checkpoint ({trainer.checkpoint_path}) is at step {last}: the same command resumes "
+                 "from it" if last is not None else
+                 f"no checkpoint was written yet (one every {cfg.checkpoint_every} steps): the same command starts "
+                 "over")
+        raise TrainingInterrupted(f"interrupted at step {trainer.step}; {where}") from None
     out = (out_dir or WEIGHTS_DIR) / f"{name}.pt"
 
     def _desc(s: SeqSpec) -> str:
@@ -150,7 +181,8 @@ def register(app: typer.Typer) -> None:
         init: str | None = typer.Option(None, help="Adapt from this shipped model (name or .pt path)."),
         lr: float | None = typer.Option(None, callback=_positive_finite,
                                         help="AdamW learning rate (default 1e-4, 1e-5 with --init)."),
-        steps: int = typer.Option(1500, min=0, help="Maximum optimisation steps."),
+        steps: int = typer.Option(1500, min=0, help="Maximum optimisation steps (0: only validate the model, "
+                           "write nothing)."),
         minutes: float = typer.Option(60.0, callback=_positive_finite, help="Wall-clock budget in minutes."),
         seed: int = typer.Option(0, help="Random seed (sampling, augmentation, initialisation)."),
         threads: int = typer.Option(1, min=1, help="torch CPU threads (1 is fastest on a busy shared CPU)."),
@@ -173,13 +205,16 @@ def register(app: typer.Typer) -> None:
         seqs = [SeqSpec(p, f"seq:{p.resolve()}") for p in sequence]
         vals: list[tuple[SeqSpec, SeqSpec]] = []
         note = ""
+        summary: dict = {}  # --steps 0: the validation
         extra: dict = {"hard_negatives": hard_negatives, "hard_refresh_every": hard_refresh,
                        "learned_whitening": learned_whitening}
         try:
             from reradar_core.model.registry import WEIGHTS_DIR
             from reradar_core.paths import output_dir
 
-            target = output_dir(out_dir or WEIGHTS_DIR, "--out-dir") / f"{name}.pt"
+            # checked, not created: the folder is made when the weights are written (a refused or
+            # validation-only run leaves no empty folder behind)
+            target = output_dir(out_dir or WEIGHTS_DIR, "--out-dir", create=False) / f"{name}.pt"
             if target.exists() and not overwrite:  # before any work: a finished run must not end in a refusal
                 raise typer.BadParameter(f"{target} exists; pass --overwrite to replace it, or choose another "
                                          "--name / --out-dir", param_hint="--name")
@@ -206,10 +241,20 @@ def register(app: typer.Typer) -> None:
             path = train_main(name, seqs, vals, backbone=backbone, width=width, clusters=clusters,
                               dim=dim or None, init=init, lr=lr, steps=steps, minutes=minutes, seed=seed,
                               threads=threads, device=device, out_dir=out_dir, run_dir=None, resume=not no_resume,
-                              data_note=note, disc_mask=not no_disc_mask, **extra)
+                              data_note=note, disc_mask=not no_disc_mask, summary_out=summary, **extra)
         except ReRadarError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from exc
+        except KeyboardInterrupt as exc:
+            msg = str(exc) if isinstance(exc, TrainingInterrupted) else ("interrupted before training started; "
+                                                                         "nothing written")
+            typer.echo(f"\n{msg}", err=True)
+            raise typer.Exit(130) from None
+        if path is None:
+            s = summary
+            typer.echo(f"validation only (--steps 0): val Recall@1 {s.get('val_recall_at_1')}, raw NetVLAD "
+                       f"{s.get('val_recall_at_1_raw_netvlad')} ({s.get('val_queries')} queries); nothing written")
+            return
         meta = json.loads(path.with_suffix(".json").read_text())
         typer.echo(f"wrote {path} ({meta['model_id']}, {meta['steps']} steps, {meta['train_time_s']} s, "
                    f"val Recall@1 {meta.get('val_recall_at_1')})")

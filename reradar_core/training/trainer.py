@@ -10,6 +10,7 @@ the batch of step s is drawn from ``default_rng([seed, s])``.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 import time
@@ -27,7 +28,8 @@ from reradar_core.model.network import DescriptorNet
 from reradar_core.training.data import CachedSequence, TrainingSet, TupleSampler
 from reradar_core.training.loss import info_nce_in_batch
 
-__all__ = ["TrainConfig", "Trainer", "recall_at_1_from_descriptors", "trainable_state", "load_trainable_state"]
+__all__ = ["TrainConfig", "Trainer", "recall_at_1_from_descriptors", "trainable_state", "load_trainable_state",
+           "RESUME_FREE_SETTINGS"]
 
 logger = logging.getLogger(__name__)
 
@@ -114,6 +116,44 @@ class TrainConfig:
 
 _BASIS_KEYS = ("sampled_basis", ".filter", "expanded_bias")
 
+#: ``TrainConfig`` fields that may differ between a checkpoint and the run that resumes it, because they provably
+#: do not change the weights: the stopping rule (``max_steps`` may only grow past the checkpoint's step: the batch
+#: of step s depends on (seed, s) alone and the learning rate has no schedule), validation and checkpointing
+#: (no-grad, eval mode) and the learned whitening (fitted after the last step; checkpoints keep the trained
+#: projection). Every other field, the resolved device, the --init weights and the training data must match.
+RESUME_FREE_SETTINGS = frozenset({"max_steps", "max_minutes", "val_every", "checkpoint_every", "recall_radius_m",
+                                  "val_max_database", "val_max_queries", "learned_whitening",
+                                  "whitening_shrinkage", "whitening_rotation_pairs", "device", "model"})
+
+#: how the resume check names a setting (the ``reradar train`` option where there is one)
+_SETTING_NAMES = {"lr": "--lr", "seed": "--seed", "num_threads": "--threads", "device_type": "--device",
+                  "hard_negatives": "--hard-negatives", "hard_refresh_every": "--hard-refresh",
+                  "init": "--init weights", "data": "training data (--split / --sequence)"}
+
+
+def _tensors_sha256(state: dict[str, torch.Tensor]) -> str:
+    h = hashlib.sha256()
+    for k in sorted(state):
+        t = state[k].detach().cpu().contiguous()
+        h.update(k.encode())
+        h.update(str(t.dtype).encode())
+        h.update(str(tuple(t.shape)).encode())
+        h.update(t.numpy().tobytes() if t.dtype != torch.bfloat16 else t.float().numpy().tobytes())
+    return h.hexdigest()
+
+
+def _data_fingerprint(seqs: list[CachedSequence]) -> str:
+    """Cheap identity of the training data: each sequence's name, group, length, poses and image shape, plus
+    eight evenly spaced images (hashing every image would read hundreds of MB)."""
+    h = hashlib.sha256()
+    for seq in seqs:
+        h.update(f"{seq.name}|{seq.group}|{len(seq)}|{tuple(seq.images.shape)}|{seq.images.dtype}|"
+                 f"{seq.resolution_m}".encode())
+        h.update(np.ascontiguousarray(np.asarray(seq.poses, np.float64)).tobytes())
+        for i in np.unique(np.linspace(0, len(seq.images) - 1, 8).round().astype(int)) if len(seq.images) else []:
+            h.update(np.ascontiguousarray(np.asarray(seq.images[int(i)])).tobytes())
+    return h.hexdigest()
+
 
 def trainable_state(net: torch.nn.Module) -> dict[str, torch.Tensor]:
     """State dict without e2cnn's derived buffers (sampled bases, expanded filters): small and sufficient."""
@@ -195,6 +235,13 @@ class Trainer:
         self.initialised = self.adapted
         self.bank: np.ndarray | None = None  # memory bank of global descriptors (hard negatives)
         self.bank_step = -1
+        self.last_loss: float | None = None  # mean loss of the last steps, kept across resumes
+        self.checkpoint_step: int | None = None  # step of the last checkpoint written or resumed
+        # what determines the weights besides the step count: checked when a checkpoint is resumed
+        cfg = config.to_dict()
+        self.settings: dict[str, Any] = {k: v for k, v in cfg.items() if k not in RESUME_FREE_SETTINGS}
+        self.settings.update(device_type=self.device.type, data=_data_fingerprint(self.data.sequences),
+                             init=None if init_state is None else _tensors_sha256(init_state))
 
     # ------------------------------------------------------------------ batches
     def _views(self, items: np.ndarray, rng: np.random.Generator, augment: bool = True) -> torch.Tensor:
@@ -350,10 +397,11 @@ class Trainer:
         tmp = path.with_suffix(".tmp")
         torch.save({"net": trainable_state(self.net), "opt": self.opt.state_dict(), "step": self.step,
                     "elapsed_s": self.elapsed_s, "history": self.history, "initialised": self.initialised,
-                    "config": self.config.to_dict(),
+                    "config": self.config.to_dict(), "settings": self.settings, "last_loss": self.last_loss,
                     "bank": None if self.bank is None else torch.from_numpy(self.bank), "bank_step": self.bank_step},
                    tmp)
         tmp.replace(path)
+        self.checkpoint_step = self.step
 
     def load_checkpoint(self) -> bool:
         path = self.checkpoint_path
@@ -364,6 +412,7 @@ class Trainer:
         # options added later (e.g. disc_mask) take their defaults in checkpoints written before them
         if saved is None or ModelConfig.from_dict(saved).to_dict() != self.config.model.to_dict():
             raise ConfigError(f"checkpoint {path} was written for another model config; pass --no-resume to start over, or use another --name")
+        self._check_resumable(path, ck)
         load_trainable_state(self.net, ck["net"])
         self.opt.load_state_dict(ck["opt"])
         self.step, self.elapsed_s = int(ck["step"]), float(ck["elapsed_s"])
@@ -371,8 +420,33 @@ class Trainer:
         bank = ck.get("bank")
         self.bank = None if bank is None else bank.numpy()
         self.bank_step = int(ck.get("bank_step", -1))
+        self.last_loss = ck.get("last_loss")
+        self.checkpoint_step = self.step
         logger.info("resumed %s at step %d", path, self.step)
         return True
+
+    def _check_resumable(self, path: Path, ck: dict[str, Any]) -> None:
+        """Refuse a checkpoint that would not give this run's weights: other settings (``self.settings``), none
+        recorded (written before they were), or a step past ``max_steps``."""
+        advice = "pass --no-resume to start over, or use another --name"
+        saved = ck.get("settings")
+        if not isinstance(saved, dict):
+            raise ConfigError(f"checkpoint {path} records no training settings (written by an older version), so "
+                              f"resuming it cannot be checked to give this command's weights; {advice}")
+        diff = []
+        for key in sorted(set(saved) | set(self.settings)):
+            old, new = saved.get(key, "<not recorded>"), self.settings.get(key, "<not recorded>")
+            if old != new:
+                if key in ("init", "data"):
+                    old, new = (v[:12] if isinstance(v, str) else v for v in (old, new))
+                diff.append(f"{_SETTING_NAMES.get(key, key)} {old} -> {new}")
+        if diff:
+            raise ConfigError(f"checkpoint {path} was written with other training settings ({'; '.join(diff)}): "
+                              f"resuming it would not give this command's weights; {advice}")
+        step = int(ck["step"])
+        if step > self.config.max_steps:
+            raise ConfigError(f"checkpoint {path} is at step {step}, past --steps {self.config.max_steps}: "
+                              f"resuming it would not give this command's weights; {advice}")
 
     # ------------------------------------------------------------------ training
     def train_step(self) -> float:
@@ -424,6 +498,8 @@ class Trainer:
             bar.update(1)
             bar.set_postfix(loss=f"{np.mean(losses[-20:]):.3f}", r1=f"{last_val.get('r1', float('nan')):.3f}")
         bar.close()
+        if losses:
+            self.last_loss = float(np.mean(losses[-50:]))
         whitening = None
         if c.learned_whitening:
             # the checkpoint keeps the trained projection: a resumed run fits the whitening again, never on top
@@ -431,8 +507,10 @@ class Trainer:
             before = self.validate() if self.val_pairs else {}
             whitening = {**self.fit_learned_whitening(), "val_recall_at_1_before": before.get("r1")}
         final = self.validate() if self.val_pairs else {}
-        self.history.append({"step": self.step, "final": True,
-                             "loss": float(np.mean(losses[-50:])) if losses else None, **final})
+        # a resumed finished run re-validates (and re-fits the whitening): it replaces its final entry
+        while self.history and self.history[-1].get("final") and self.history[-1].get("step") == self.step:
+            self.history.pop()
+        self.history.append({"step": self.step, "final": True, "loss": self.last_loss, **final})
         if whitening is None:
             self.save_checkpoint()
         summary = {"steps": self.step, "train_time_s": round(self.elapsed_s, 1),

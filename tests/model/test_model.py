@@ -348,3 +348,56 @@ def test_the_stage_timings_describe_a_scan_as_describe_does():
     np.testing.assert_array_equal(staged.keypoints_xy_m, whole.keypoints_xy_m)
     np.testing.assert_array_equal(staged.local_descriptors, whole.local_descriptors)
     np.testing.assert_allclose(staged.global_descriptor, whole.global_descriptor, atol=1e-6)
+
+
+def _tiny_saved(tmp_path, width: float = 0.25):
+    from reradar_core.model import DescriptorNet
+
+    torch.manual_seed(0)
+    net = DescriptorNet(ModelConfig(backbone="resnet", width=width, num_clusters=4, output_dim=16)).eval()
+    return save_weights(net, tmp_path / f"w{width}.pt", {"note": "test"}, onnx=False)
+
+
+def test_weights_that_differ_from_their_recorded_sha256_are_refused(tmp_path):
+    """QA: a bit-flipped .pt loaded without a word (descriptors moved by up to 0.27) although its JSON records the
+    file's sha256."""
+    import json
+
+    from reradar_core.errors import ConfigError
+
+    path = _tiny_saved(tmp_path)
+    DescriptorExtractor.from_file(path, runtime="torch")
+    raw = bytearray(path.read_bytes())
+    raw[len(raw) // 2] ^= 0x10
+    path.write_bytes(bytes(raw))
+    with pytest.raises(ConfigError, match=r"does not match its metadata .*corrupt or was replaced") as err:
+        DescriptorExtractor.from_file(path, runtime="torch")
+    assert "\n" not in str(err.value)
+    meta = json.loads(path.with_suffix(".json").read_text())
+    del meta["sha256"]  # nothing recorded, nothing to compare (the bit flip then goes unseen)
+    path.with_suffix(".json").write_text(json.dumps(meta))
+    DescriptorExtractor.from_file(path, runtime="torch")
+
+
+def test_weights_of_another_architecture_are_one_short_error(tmp_path):
+    """QA: a width-0.5 .pt beside a width-0.25 JSON printed 123 lines of torch's ``size mismatch for ...``."""
+    import json
+
+    from reradar_core.errors import ModelMismatchError
+
+    path = _tiny_saved(tmp_path, width=0.5)
+    meta = json.loads(path.with_suffix(".json").read_text())
+    meta["config"]["width"] = 0.25
+    del meta["sha256"]
+    path.with_suffix(".json").write_text(json.dumps(meta))
+    with pytest.raises(ModelMismatchError, match=r"do not fit model .*size mismatch for .*\(and \d+ more\)") as err:
+        DescriptorExtractor.from_file(path, runtime="torch")
+    assert "\n" not in str(err.value) and len(str(err.value)) < 600
+
+
+def test_every_shipped_model_still_loads_with_its_sha256_checked():
+    from reradar_core.model import available_models
+
+    for name in available_models():
+        ex = DescriptorExtractor.from_pretrained(name, runtime="torch")
+        assert ex.weights_sha256 == ex.metadata["sha256"], name

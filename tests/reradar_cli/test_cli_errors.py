@@ -134,9 +134,13 @@ def test_corrupt_weights_are_a_config_error_naming_the_file(tmp_path):
     bad.parent.mkdir()
     bad.write_bytes(b"\x80\x04not a torch zip file" * 10)
     bad.with_suffix(".json").write_text(json.dumps(meta))
+    res = _run(["export-onnx", str(bad)])  # the JSON records the real file's sha256: checked first
+    assert res.exit_code == 2 and "bad2.pt does not match its metadata" in res.output
+    assert str(tmp_path) not in res.output  # the file by its name, no internal path
+    bad.with_suffix(".json").write_text(json.dumps({k: v for k, v in meta.items() if k != "sha256"}))
     res = _run(["export-onnx", str(bad)])
     assert res.exit_code == 2 and "bad2.pt is not a readable ReRadar weights file" in res.output
-    assert str(tmp_path) not in res.output  # the file by its name, no internal path
+    assert str(tmp_path) not in res.output
 
 
 @pytest.mark.parametrize("args, what", [(["--radius", "-5"], "--radius"), (["--limit", "0"], "--limit"),
@@ -250,3 +254,63 @@ def test_export_onnx_names_a_missing_weights_file_as_missing(tmp_path):
     (tmp_path / "x.pt").mkdir()
     res = _run(["export-onnx", str(tmp_path / "x.pt")])
     assert res.exit_code == 2 and "is a folder" in res.output
+
+
+@pytest.mark.parametrize("damage", ["truncated", "empty", "architecture", "bit-flip"])
+def test_serve_refuses_an_unreadable_model_file_in_one_line(tmp_path, damage):
+    """QA: ``RERADAR_MODEL=<truncated|empty|wrong-architecture>.pt reradar serve`` logged a start-up traceback and
+    exited 3; now the same one-line ``error: RERADAR_MODEL: ...`` and exit 2 as an unknown name, before the server
+    starts."""
+    import torch
+
+    from reradar_core.model import DescriptorNet, ModelConfig, save_weights
+
+    torch.manual_seed(0)
+    width = 0.5 if damage == "architecture" else 0.25
+    net = DescriptorNet(ModelConfig(backbone="resnet", width=width, num_clusters=4, output_dim=16)).eval()
+    pt = save_weights(net, tmp_path / "m.pt", {}, onnx=False)
+    meta = json.loads(pt.with_suffix(".json").read_text())
+    raw = pt.read_bytes()
+    if damage == "bit-flip":
+        pt.write_bytes(raw[:1000] + bytes([raw[1000] ^ 1]) + raw[1001:])
+    else:  # without a recorded sha256, so that loading itself must fail
+        del meta["sha256"]
+        if damage == "architecture":
+            meta["config"]["width"] = 0.25
+        else:
+            pt.write_bytes(raw[: len(raw) // 2] if damage == "truncated" else b"")
+    pt.with_suffix(".json").write_text(json.dumps(meta))
+    res = _run(["serve", "--maps-dir", str(tmp_path / "maps")], env={"RERADAR_MODEL": str(pt)})
+    assert res.exit_code == 2, res.output
+    lines = res.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: RERADAR_MODEL: ") and "m.pt" in lines[0], res.output
+
+
+def test_fit_confidence_warns_when_too_few_wrong_answers_to_fit_a_bar(caplog):
+    """QA: a tiny fit set (86 runs, no wrong answer above the floor) wrote ``min_confidence: 0.0`` without a word.
+    (Library-level: ``reradar fit-confidence`` logs this warning; its own tests live in tests/localization.)"""
+    import logging
+
+    from reradar_core.localization.confidence import CUE_NAMES
+    from reradar_core.localization.confidence_fit import MIN_WRONG_FOR_BAR, FitData, fit_from_data
+
+    rng = np.random.default_rng(5)
+
+    def data(n: int, wrong_rate: float) -> FitData:
+        x = rng.normal(size=(n, len(CUE_NAMES)))
+        x[:, 0] = rng.uniform(0.5, 1.0, n)
+        correct = rng.uniform(size=n) >= wrong_rate
+        if wrong_rate == 0.0:  # wrong answers only below the aligned-landmark floor (the QA's fit set)
+            correct[:10] = False
+            x[:10, 0] = 0.1
+        return FitData(x, np.ones(n, bool), correct, x[:, 0] >= 0.3, np.ones(n, bool), np.zeros(n, bool),
+                       np.array(["train-target-loop"] * n), np.zeros(n, bool))
+
+    with caplog.at_level(logging.WARNING, logger="reradar_core.localization.confidence_fit"):
+        model, report = fit_from_data(data(86, 0.0), floors=(0.3,))
+    assert "too few wrong answers to fit a confidence bar" in caplog.text
+    assert report["warnings"] and "only 0 wrong answer(s)" in report["warnings"][0]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="reradar_core.localization.confidence_fit"):
+        _, report = fit_from_data(data(2000, 0.2), floors=(0.3,))  # hundreds of wrong answers: no warning
+    assert "warnings" not in report and "too few" not in caplog.text and MIN_WRONG_FOR_BAR <= 400

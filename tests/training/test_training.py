@@ -360,3 +360,116 @@ def test_train_never_replaces_weights_without_overwrite_and_checks_the_folder_fi
     res = CliRunner().invoke(app, ["train", "--name", "x", "--sequence", str(tmp_path), "--steps", "0",
                                    "--out-dir", str(tmp_path / "file" / "w")])
     assert res.exit_code == 2 and "a file is in the way" in res.output and "Traceback" not in res.output
+
+
+# ------------------------------------------------------------------ resume only what gives the same weights
+def test_resume_refuses_a_checkpoint_of_other_settings(tmp_path):
+    """QA: a leftover checkpoint (looked up by --name) was resumed under another --seed / --lr / --steps and its
+    weights written as if trained with the new settings; now refused, naming old -> new."""
+    from reradar_core.errors import ConfigError
+
+    seqs = _fake_sequences(side=61, n=60)
+    run = tmp_path / "run"
+    Trainer(_tiny_config(max_steps=2), seqs, run_dir=run, progress=False).run()
+    for kw, named in [({"seed": 1}, "--seed 0 -> 1"), ({"lr": 5e-3}, "--lr 0.0001 -> 0.005"),
+                      ({"max_steps": 1}, "past --steps 1"), ({"num_threads": 2}, "--threads 1 -> 2")]:
+        with pytest.raises(ConfigError, match="--no-resume") as err:
+            Trainer(_tiny_config(**{"max_steps": 2, **kw}), seqs, run_dir=run, progress=False).run()
+        assert named in str(err.value)
+    with pytest.raises(ConfigError, match="training data"):  # other data under the same name
+        Trainer(_tiny_config(max_steps=2), _fake_sequences(side=61, n=60, seed=3), run_dir=run, progress=False).run()
+    # what provably leaves the weights alone may differ: a longer budget, more steps, validation settings
+    tr = Trainer(_tiny_config(max_steps=3, max_minutes=5.0, val_every=1), seqs, run_dir=run, progress=False)
+    assert tr.load_checkpoint() and tr.step == 2
+    # a checkpoint without recorded settings (older versions) cannot be checked: refused the same way
+    ck = torch.load(run / "checkpoint.pt", weights_only=False)
+    del ck["settings"]
+    torch.save(ck, run / "checkpoint.pt")
+    with pytest.raises(ConfigError, match="records no training settings.*--no-resume"):
+        Trainer(_tiny_config(max_steps=2), seqs, run_dir=run, progress=False).run()
+    Trainer(_tiny_config(max_steps=2, seed=1), seqs, run_dir=run, progress=False).run(resume=False)  # --no-resume
+
+
+@pytest.mark.parametrize("whitening", [False, True])
+def test_resuming_a_finished_run_keeps_one_final_history_entry(tmp_path, whitening):
+    """QA: each resume of a finished run appended another ``{"final": true, "loss": null}`` entry."""
+    seqs = _fake_sequences(side=61, n=60)
+    cfg = _tiny_config(max_steps=2, learned_whitening=whitening)
+    _, first = Trainer(cfg, seqs, run_dir=tmp_path, progress=False).run()
+    _, again = Trainer(cfg, seqs, run_dir=tmp_path, progress=False).run()
+    finals = [h for h in again["history"] if h.get("final")]
+    assert len(finals) == 1 and finals[0]["loss"] is not None
+    assert finals[0]["loss"] == [h for h in first["history"] if h.get("final")][0]["loss"]
+
+
+def _tiny_cache_specs(tmp_path):
+    from reradar_core.training.suites import SeqSpec
+
+    rng = np.random.default_rng(0)
+    specs = []
+    for k in range(2):
+        d = tmp_path / f"cache{k}"
+        d.mkdir()
+        np.save(d / "images.npy", rng.random((24, 361, 361)).astype(np.float16))
+        np.save(d / "poses.npy", np.stack([np.arange(24) * 4.0, np.full(24, k * 1.0), np.zeros(24)], axis=1))
+        specs.append(SeqSpec(d, "route"))
+    kw = dict(width=0.125, clusters=4, dim=8, threads=1, out_dir=tmp_path / "w", progress=False,
+              num_negatives=2, kmeans_images=4, whiten_images=8, val_max_database=8, val_max_queries=4)
+    return specs, kw
+
+
+def test_steps_0_only_validates_and_writes_nothing(tmp_path):
+    """docs/MODEL.md: ``--steps 0`` only validates; it wrote .pt/.json/.onnx of an untrained model."""
+    from reradar_core.training.cli import train_main
+
+    specs, kw = _tiny_cache_specs(tmp_path)
+    summary: dict = {}
+    assert train_main("v", specs, [(specs[0], specs[1])], steps=0, run_dir=tmp_path / "run", summary_out=summary,
+                      **kw) is None
+    assert not (tmp_path / "w").exists() and not (tmp_path / "run").exists()
+    assert summary["steps"] == 0 and 0.0 <= summary["val_recall_at_1"] <= 1.0
+
+
+def test_ctrl_c_names_the_last_checkpoint_and_exits_130(tmp_path, monkeypatch):
+    """QA: Ctrl-C exited 130 without a word."""
+    from typer.testing import CliRunner
+
+    import reradar_core.training.cli as tcli
+    from reradar_cli import app
+    from reradar_core.training.cli import TrainingInterrupted, train_main
+
+    specs, kw = _tiny_cache_specs(tmp_path)
+    real_step = Trainer.train_step
+
+    def step(self):
+        if self.step == 3:
+            raise KeyboardInterrupt
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", step)
+    with pytest.raises(TrainingInterrupted, match=r"interrupted at step 3; the last checkpoint .* is at step 2: "
+                                                  "the same command resumes"):
+        train_main("c", specs, [], steps=5, run_dir=tmp_path / "run", checkpoint_every=2, **kw)
+
+    def interrupted(*a, **k):
+        raise TrainingInterrupted("interrupted at step 3; the last checkpoint (x) is at step 2: the same command "
+                                  "resumes from it")
+
+    monkeypatch.setattr(tcli, "train_main", interrupted)
+    res = CliRunner().invoke(app, ["train", "--name", "c", "--sequence", str(specs[0].path),
+                                   "--out-dir", str(tmp_path / "o")])
+    assert res.exit_code == 130 and "last checkpoint (x) is at step 2" in res.output
+
+
+@pytest.mark.parametrize("args", [["--split", "nosuch"], ["--sequence", "{tmp}/cache0", "--init", "nope.pt"]])
+def test_failed_train_leaves_no_empty_out_dir(tmp_path, args):
+    """QA: ``--split nosuch`` / ``--init nope.pt`` failed but left the empty --out-dir behind."""
+    from typer.testing import CliRunner
+
+    from reradar_cli import app
+
+    _tiny_cache_specs(tmp_path)
+    res = CliRunner().invoke(app, ["train", "--name", "x", *[a.format(tmp=tmp_path) for a in args],
+                                   "--out-dir", str(tmp_path / "out" / "w")])
+    assert res.exit_code == 2 and "Traceback" not in res.output
+    assert not (tmp_path / "out").exists()
