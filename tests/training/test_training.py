@@ -143,18 +143,9 @@ def test_train_main_writes_loadable_weights_and_adapts_from_them(tmp_path):
     """End to end: train from Cartesian cache folders, save, load for inference, and adapt with --init."""
     from reradar_core.model import DescriptorExtractor
     from reradar_core.training.cli import train_main
-    from reradar_core.training.suites import SeqSpec
 
-    rng = np.random.default_rng(0)
-    specs = []
-    for k in range(2):
-        d = tmp_path / f"cache{k}"
-        d.mkdir()
-        np.save(d / "images.npy", rng.random((24, 361, 361)).astype(np.float16))
-        np.save(d / "poses.npy", np.stack([np.arange(24) * 4.0, np.full(24, k * 1.0), np.zeros(24)], axis=1))
-        specs.append(SeqSpec(d, "route"))
-    kw = dict(width=0.125, clusters=4, dim=8, steps=1, threads=1, out_dir=tmp_path / "w", progress=False,
-              num_negatives=2, kmeans_images=4, whiten_images=8, val_max_database=8, val_max_queries=4)
+    specs, kw = _tiny_cache_specs(tmp_path)
+    kw["steps"] = 1
     path = train_main("tiny", specs, [(specs[0], specs[1])], run_dir=tmp_path / "run1", **kw)
     ex = DescriptorExtractor.from_file(path)
     assert ex.model_id == "reresnet-c8-w0.125-k4-d8-in201" and ex.metadata["steps"] == 1
