@@ -21,7 +21,7 @@ import numpy as np
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose
-from reradar_core.localization.confidence import default_confidence_model, tracked_cues
+from reradar_core.localization.confidence import confidence_cues, default_confidence_model, tracked_cues
 from reradar_core.localization.keyframes import KeyframeCache, KeyframeSource
 from reradar_core.localization.pipeline import (
     REASON_INCONSISTENT,
@@ -30,7 +30,6 @@ from reradar_core.localization.pipeline import (
     CandidateVerification,
     LocalizationConfig,
     LocalizationResult,
-    answer_confidence,
     localize,
 )
 from reradar_core.localization.tracking import (
@@ -189,7 +188,7 @@ class Localizer:
             # cues it never looks at at the model's means: ``tracked_cues``): a tracked answer the model doubts is
             # localized globally instead, like a failed registration
             model = default_confidence_model()
-            cues, _ = answer_confidence(best, verified, model)
+            cues = confidence_cues(best, verified, model.place_radius_m, model.top_n)
             if cues is not None:
                 cues = tracked_cues(cues, model)
             confidence = float(model.predict(cues)) if cues is not None else 0.0
