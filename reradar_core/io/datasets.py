@@ -386,7 +386,7 @@ def _likely_unit(raw_span: float, scans_span_us: float) -> str:
 
 
 def check_pose_time_unit(track: PoseSequence, stamps_us: np.ndarray, unit: str | None,
-                         pose_file: str = "the pose file") -> None:
+                         pose_file: str = "the pose file", how: str = "pass --time-unit {unit}") -> None:
     """Refuse a pose file whose times were converted with a unit 1000x (or more) off, before any pose is
     interpolated: the scans' times (µs, from their file names) are the reference.
 
@@ -403,7 +403,8 @@ def check_pose_time_unit(track: PoseSequence, stamps_us: np.ndarray, unit: str |
     Args:
         track: the pose file's poses, sorted, times in µs after the conversion. stamps_us: (N,) int64 scan
             times, µs. unit: the unit the pose times were read in (None: from the file). pose_file: for the
-            message.
+            message. how: how to set the likely unit, ``{unit}`` standing for it (the command line's option by
+            default; the service says how to name the column).
 
     Raises:
         DatasetError: naming the likely unit and the option that sets it.
@@ -420,8 +421,8 @@ def check_pose_time_unit(track: PoseSequence, stamps_us: np.ndarray, unit: str |
     read_as = unit or "the unit the file implies"
     raw_span = pose_span / TIME_UNITS.get(str(unit), 1.0) if unit else pose_span
     likely = _likely_unit(raw_span, scans_span) if unit else None
-    advice = (f"the pose times are probably {likely}: pass --time-unit {likely}" if likely and likely != unit
-              else "check the pose file's time unit (--time-unit s|ms|us|ns)")
+    advice = (f"the pose times are probably {likely}: {how.format(unit=likely)}" if likely and likely != unit
+              else f"check the pose file's time unit ({how.format(unit='s|ms|us|ns')})")
     if pose_span * POSE_UNIT_SPAN_RATIO <= scans_span:
         raise DatasetError(f"{pose_file}: its times read as {read_as} span {pose_span / 1e6:.6g} s, but the scans' "
                            f"times (from their file names, µs) span {scans_span / 1e6:.6g} s; {advice}")

@@ -480,3 +480,34 @@ def test_two_scan_files_on_localize_are_named_as_repeated(client: httpx.Client) 
     files = [("scan", ("a.png", _png(1))), ("scan", ("b.png", _png(2)))]
     detail = _problem(client.post("/localize", data={"map_id": "qa"}, files=files), 400)["detail"]
     assert "['scan'] are given more than once" in detail
+
+
+def test_pose_times_whose_header_names_another_unit_than_their_values_are_refused(client: httpx.Client) -> None:
+    """QA (session 23, high): scans named by relative microseconds and a pose CSV whose header says t_s (or t_ms)
+    over microsecond values built a `ready` map whose keyframes all lay within 0.06 mm of the drive's start,
+    then answered `localized` 56 m off at confidence 1.0. Such an upload is now a 422 naming the unit to declare,
+    and the same file with the right header builds."""
+    n = 4
+    poses = keyframe_poses()[:n]  # 40 m apart: a 120 m drive
+    stamps = [1_000_000 + 250_000 * i for i in range(n)]  # relative microseconds, as the QA's scan names
+    archive = _archive([f"{t}.png" for t in stamps])
+
+    def csv(header: str) -> bytes:
+        rows = [f"{t},{float(p[0])!r},{float(p[1])!r},{float(p[2])!r}" for t, p in zip(stamps, poses, strict=True)]
+        return ("\n".join([header, *rows]) + "\n").encode()
+
+    for header, map_id in (("t_s,x,y,yaw", "unit-s"), ("t_ms,x,y,yaw", "unit-ms")):
+        files = {"archive": ("a.zip", archive), "poses": ("p.csv", csv(header))}
+        body = _problem(client.post("/maps", data={"map_id": map_id}, files=files, headers=AUTH), 422)
+        assert body["error"] == "pose_file" and "t_us" in body["detail"], body
+        assert "--time-unit" not in body["detail"]
+        assert client.get(f"/maps/{map_id}").status_code == 404
+    files = {"archive": ("a.zip", archive), "poses": ("p.csv", csv("t_us,x,y,yaw"))}
+    r = client.post("/maps", data={"map_id": "unit-us"}, files=files, headers=AUTH)
+    assert r.status_code == 202, r.text
+    deadline = time.monotonic() + 60
+    while client.get("/maps/unit-us").json()["state"] == "building" and time.monotonic() < deadline:
+        time.sleep(0.1)
+    traj = client.get("/ui/api/maps/unit-us/trajectory").json()
+    assert traj["x_m"][-1] > 100.0  # keyframes spread along the drive
+    assert client.delete("/maps/unit-us", headers=AUTH).status_code == 200

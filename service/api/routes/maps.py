@@ -13,8 +13,8 @@ from fastapi import APIRouter, File, Form, Request, Response, UploadFile, status
 from starlette.concurrency import run_in_threadpool
 
 from reradar_core.errors import DatasetError, PoseFileError, TimeUnitError
-from reradar_core.io.datasets import check_pose_span
-from reradar_core.io.poses import read_poses
+from reradar_core.io.datasets import check_pose_span, check_pose_time_unit
+from reradar_core.io.poses import TXYYAW_TIME_HEADERS, read_poses
 from reradar_core.io.presets import PRESETS, get_preset, mid_sweep_times_us
 from service.api.deps import ApiKeyDep, FormDep, MapIdPath, StateDep, form_fields
 from service.api.scan_input import ClosedFormRoute, read_scan_input, scan_request_body
@@ -76,6 +76,14 @@ def _save_upload(upload: UploadFile, target: Path) -> int:
     return size
 
 
+def _declared_time_unit(pose_path: Path) -> str | None:
+    """The time unit a t,x,y,yaw CSV's header names (``t_s`` -> ``s``), else None (``t``, no header, or
+    another format, whose unit is its own or follows from absolute values)."""
+    with pose_path.open(encoding="utf-8-sig", errors="replace") as fh:
+        head = fh.readline().split(",")[0].strip().lower()
+    return TXYYAW_TIME_HEADERS.get(head)
+
+
 def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, archive: UploadFile | None,
               poses: UploadFile | None, preset: str | None) -> tuple[MapEntry, bool]:
     registry = state.registry
@@ -120,7 +128,14 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         # names are checked against MAX_SCAN_TIMESTAMP_US by extract_scan_archive, so they fit int64
         stamps = np.array([int(SCAN_NAME_PATTERN.match(p.name).group(1)) for p in scan_paths],  # type: ignore[union-attr]
                           dtype=np.int64)
-        try:  # the same rule as a sequence folder's (load_sequence)
+        # the same rules as a sequence folder's (load_sequence): times read in a unit 1000x off (a header naming
+        # another unit than its values': every keyframe collapsed onto the drive's first metres, QA session 23)
+        try:
+            check_pose_time_unit(track, stamps, _declared_time_unit(pose_path), "the uploaded poses file",
+                                 how="name the time column t_{unit} in the header line")
+        except DatasetError as exc:
+            raise PoseFileError(str(exc)) from None
+        try:
             check_pose_span(track, stamps, [f"scan {p.name}" for p in scan_paths], "the uploaded poses file")
         except DatasetError as exc:
             raise BadRequestError(f"{exc}; scan files must be named by their timestamp in microseconds") from None
