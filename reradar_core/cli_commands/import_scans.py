@@ -140,6 +140,11 @@ def register(app: typer.Typer) -> None:
             layout = ForeignScanLayout(range_resolution, range_offset, 1 if transposed else 0,
                                        math.radians(start_azimuth_deg))
             ordered = sorted(sources, key=natural_key)
+            seen: dict[Path, Path] = {}
+            for src in ordered:  # one scan given twice would become two scans of one sweep, a second apart
+                other = seen.setdefault(src.resolve(), src)
+                if other is not src:
+                    raise ScanFormatError(f"{src} is given twice (also as {other}); give each scan once")
             kinds = {len(src.stem) if src.stem.isascii() and src.stem.isdigit() else "name" for src in ordered}
             if len(kinds) > 1:  # e.g. scanA.png (numbered 1 s, 1970) among 2019 timestamps
                 raise ScanFormatError("the sources mix kinds of names (16-digit µs timestamps, 19-digit ns "

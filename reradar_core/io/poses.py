@@ -369,9 +369,9 @@ def read_txyyaw_csv(path: str | Path, time_unit: str | None = None) -> PoseSeque
     header_unit = TXYYAW_TIME_HEADERS.get(head)
     if head not in TXYYAW_TIME_HEADERS and not _is_number(head):
         raise PoseFileError(f"{path}:1: the first column is named {first[0].strip()!r}, which is not a time column "
-                            f"name this reader knows; name it {', '.join(TXYYAW_TIME_HEADERS)} (t: unit from "
-                            "--time-unit or absolute UTC times; t_s etc.: the unit), then x, y (metres) and yaw, "
-                            "yaw_rad or yaw_deg, e.g. the header line t_s,x,y,yaw")
+                            f"name this reader knows; name it t_s, t_ms, t_us or t_ns by the unit of its values (or t "
+                            "for absolute UTC times), then x, y (metres) and yaw, yaw_rad or yaw_deg, e.g. the "
+                            "header line t_s,x,y,yaw")
     header, rows = _read_rows(path, 4, first[0].strip() if head in TXYYAW_TIME_HEADERS else None, "t,x,y,yaw")
     if time_unit is not None and header_unit is not None and _check_unit(time_unit) != header_unit:
         raise PoseFileError(f"{path}:1: the header names the time column {first[0].strip()!r} ({header_unit}), but "

@@ -191,6 +191,14 @@ def test_cli_orders_names_naturally_and_prints_the_mapping(tmp_path):
         assert peak_m == pytest.approx((40 + k) * 0.175, abs=0.1)
 
 
+def test_cli_refuses_a_scan_given_twice(tmp_path):
+    """QA re-test (session 23): the same file given twice became two identical scans a second apart."""
+    cv2.imwrite(str(tmp_path / "scan_1.png"), _foreign())
+    res = _import(tmp_path, tmp_path / "scan_1.png", tmp_path / "." / "scan_1.png")
+    assert res.exit_code != 0 and "given twice" in res.output
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
 def test_cli_prints_the_assumed_geometry_and_warns_on_a_likely_transposed_source(tmp_path):
     """QA 7: a 576 (range bins) x 400 (azimuths) image without --transposed was imported silently."""
     from reradar_core.cli_commands.import_scans import orientation_hint
