@@ -457,7 +457,8 @@ def _refuse_degrees_in_plain_yaw(path: Path, t_us: np.ndarray, xy: np.ndarray, y
     as_deg = travel_yaw_mismatch_deg(xy[order], np.radians(yaw[order]))
     if as_rad is None or as_deg is None:
         return
-    if as_deg < _YAW_MATCH_DEG and as_rad > _YAW_MISMATCH_DEG:
+    # read as radians about 180 degrees off the travel: a drive wholly in reverse, not degrees (QA re-test, session 23)
+    if as_deg < _YAW_MATCH_DEG and _YAW_MISMATCH_DEG < as_rad < 180.0 - _YAW_MATCH_DEG:
         raise PoseFileError(
             f"{path}: the {column} column is read as radians, but its values follow the direction of travel only "
             f"as degrees (median difference {as_deg:.1f} deg as degrees, {as_rad:.1f} deg as radians): name the "

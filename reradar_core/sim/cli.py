@@ -98,7 +98,7 @@ def register(app: typer.Typer) -> None:
             if time_unit is not None and time_unit.strip().lower() not in TIME_UNITS:
                 raise typer.BadParameter(f"--time-unit must be one of {sorted(TIME_UNITS)}, got {time_unit!r}")
             traj = load_trajectory(trajectory, time_unit)
-            check_render_trajectory(traj, trajectory)
+            check_render_trajectory(traj, trajectory, time_unit.strip().lower() if time_unit else None)
             roads = [traj.xy] + [load_road_xy(r, time_unit) for r in (road or [])]
             # one world for every traversal that names the same roads, whichever it drives and in which direction
             world = World(RoadNetwork(canonical_roads(roads)), seed=seed, profile=profile)

@@ -46,16 +46,39 @@ MIN_RENDER_PATH_M = 2.0
 SWEEP_PERIOD_S = 0.25
 
 
-def check_render_trajectory(traj: PoseSequence, path: str | Path) -> None:
+#: a drive of at least this much path (metres) ...
+PLAUSIBLE_SPEED_MIN_PATH_M = 20.0
+#: ... whose mean speed lies outside this range (m/s) was read with a wrong time unit: a unit 1000x too coarse
+#: turns 8 m/s into 8 mm/s (and a render of hours of 4 Hz scans), one 1000x too fine into 8 km/s
+PLAUSIBLE_SPEED_M_S = (0.02, 150.0)
+
+
+def _speed_unit_advice(span_us: float, length_m: float, time_unit: str | None) -> str:
+    """Which time unit gives the drive a road vehicle's speed (closest to 10 m/s), as advice."""
+    from reradar_core.io.poses import TIME_UNITS
+
+    if time_unit is None or time_unit not in TIME_UNITS:
+        return "check the time unit (--time-unit s|ms|us|ns, or a t_s / t_ms / t_us / t_ns header)"
+    raw = span_us / TIME_UNITS[time_unit]
+    likely = min(TIME_UNITS, key=lambda u: abs(np.log(length_m / max(raw * TIME_UNITS[u] / 1e6, 1e-12) / 10.0)))
+    if likely == time_unit:
+        return "check the time unit (--time-unit s|ms|us|ns, or a t_s / t_ms / t_us / t_ns header)"
+    return f"the times are probably in {likely}: pass --time-unit {likely} (or name the column t_{likely})"
+
+
+def check_render_trajectory(traj: PoseSequence, path: str | Path, time_unit: str | None = None) -> None:
     """Refuse a trajectory ``reradar sim`` cannot render, before the world is built.
 
     Args:
         traj: the trajectory (times in µs, positions in metres), sorted. path: its file, for the message.
+        time_unit: the unit its times were read in (``--time-unit`` or its header; None: from the file), for the
+            advice when the speed is implausible.
 
     Raises:
         ConfigError: negative times (scan files are named by their time in µs, which ``reradar info`` / ``bench``
             read as non-negative timestamps), fewer than 2 poses, a time span of one sweep
-            (``SWEEP_PERIOD_S``) or less, or a path of ``MIN_RENDER_PATH_M`` or less.
+            (``SWEEP_PERIOD_S``) or less, a path of ``MIN_RENDER_PATH_M`` or less, or a drive of at least
+            ``PLAUSIBLE_SPEED_MIN_PATH_M`` at a mean speed outside ``PLAUSIBLE_SPEED_M_S`` (a time unit 1000x off).
     """
     n = len(traj)
     if n and int(traj.timestamps_us[0]) < 0:
@@ -64,6 +87,11 @@ def check_render_trajectory(traj: PoseSequence, path: str | Path) -> None:
                           "0 or later (or give absolute UTC times)")
     span_s = (int(traj.timestamps_us[-1]) - int(traj.timestamps_us[0])) / 1e6 if n else 0.0
     length = traj.path_length_m() if n > 1 else 0.0
+    lo, hi = PLAUSIBLE_SPEED_M_S  # first: a unit 1000x too fine also makes the drive too short
+    if span_s > 0 and length >= PLAUSIBLE_SPEED_MIN_PATH_M and not lo <= length / span_s <= hi:
+        raise ConfigError(f"{path}: the trajectory drives {length:.1f} m in {span_s:.6g} s, a mean speed of "
+                          f"{length / span_s:.3g} m/s (a road vehicle drives {lo:g}-{hi:g} m/s): "
+                          f"{_speed_unit_advice(span_s * 1e6, length, time_unit)}")
     if n < 2 or span_s <= SWEEP_PERIOD_S or length <= MIN_RENDER_PATH_M:
         raise ConfigError(f"{path}: the trajectory has {n} pose(s) over {span_s:g} s and {length:g} m; a render "
                           f"needs at least 2 poses spanning more than one radar sweep ({SWEEP_PERIOD_S:g} s) and "

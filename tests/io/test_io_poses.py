@@ -289,6 +289,10 @@ def test_plain_yaw_in_degrees_within_two_pi_is_refused(tmp_path):
         read_poses(_write(tmp_path, "revdeg.csv", drive("30.0")))
     # a vehicle standing still: no verdict, read as given
     assert len(read_poses(_write(tmp_path, "still.csv", "t_s,x,y,yaw\n0,0,0,4\n0.25,0,0,4\n0.5,0,0,4\n"))) == 3
+    # a drive wholly in reverse (heading pi - 0.05 rad, moving along +x): 180 degrees off as radians, which is a
+    # reversing vehicle, not degrees (read as degrees 2.9 degrees would follow the travel: QA re-test, session 23)
+    back = "t_s,x,y,yaw\n" + "".join(f"{0.25 * i},{2.0 * i},0,{np.pi - 0.05:.6f}\n" for i in range(12))
+    assert read_poses(_write(tmp_path, "allrev.csv", back)).yaw[0] == pytest.approx(np.pi - 0.05, abs=1e-6)
 
 
 def test_a_time_header_that_contradicts_absolute_values_names_the_column(tmp_path):

@@ -141,3 +141,30 @@ def test_sim_says_how_long_a_trajectory_must_be(tmp_path):
     from reradar_core.sim.trajectories import check_render_trajectory
 
     check_render_trajectory(read_poses(_csv(tmp_path, "ok.csv", [(0.0, 0.0), (0.5, 2.5)])), "ok.csv")
+
+
+def test_sim_refuses_a_drive_whose_time_unit_makes_it_crawl_or_fly(tmp_path):
+    """QA re-test (session 23): millisecond times read as seconds (--time-unit s) rendered a drive at 8 mm/s, and
+    without --limit started 38,999 scans (an hour). A drive's mean speed must be a road vehicle's; the message names
+    the unit that gives it one."""
+    import pytest
+    from typer.testing import CliRunner
+
+    from reradar_cli import app
+    from reradar_core.errors import ConfigError
+    from reradar_core.io.poses import read_poses
+    from reradar_core.sim.trajectories import check_render_trajectory
+
+    ms = tmp_path / "ms.csv"  # 8 m/s for 10 s, times in milliseconds under a plain t header
+    ms.write_text("t,x,y,yaw\n" + "".join(f"{250 * i},{2.0 * i},0,0\n" for i in range(41)))
+    res = CliRunner().invoke(app, ["sim", "--trajectory", str(ms), "--time-unit", "s", "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2, res.output
+    assert "80.0 m in 10000 s" in res.output and "pass --time-unit ms" in res.output
+    assert not (tmp_path / "o").exists()
+    with pytest.raises(ConfigError, match="probably in ms"):  # read as microseconds: 80 m in 10 ms
+        check_render_trajectory(read_poses(ms, "us"), ms, "us")
+    check_render_trajectory(read_poses(ms, "ms"), ms, "ms")  # 8 m/s
+    # a vehicle that stands for minutes at the start of a short drive is no unit error
+    stand = tmp_path / "stand.csv"
+    stand.write_text("t_s,x,y,yaw\n0,0,0,0\n600,0,0,0\n" + "".join(f"{600 + i},{8.0 * i},0,0\n" for i in range(1, 6)))
+    check_render_trajectory(read_poses(stand), stand)
