@@ -182,14 +182,19 @@ def test_pose_upload_with_a_yaw_deg_header_builds_the_right_headings(client: htt
     yaw = np.array([90.0, 90.0, 90.0, 90.0])
     files = {"archive": ("a.zip", _archive([f"{keyframe_time(i)}.png" for i in range(n)])),
              "poses": ("p.csv", _poses_csv(n, "t_s,x,y,yaw_deg", yaw))}
-    r = client.post("/maps", data={"map_id": "degmap"}, files=files, headers=AUTH)
-    assert r.status_code == 202, r.text
-    deadline = time.monotonic() + 60
-    while client.get("/maps/degmap").json()["state"] == "building" and time.monotonic() < deadline:
-        time.sleep(0.1)
-    traj = client.get("/ui/api/maps/degmap/trajectory").json()
+    traj = _built_trajectory(client, "degmap", files)
     np.testing.assert_allclose(traj["yaw_deg"], [90.0] * n, atol=0.01)
     assert client.delete("/maps/degmap", headers=AUTH).status_code == 200
+
+
+def _built_trajectory(client: httpx.Client, map_id: str, files: dict) -> dict:
+    """``POST /maps`` (202), wait up to 60 s for the build, and return the map's keyframe trajectory."""
+    r = client.post("/maps", data={"map_id": map_id}, files=files, headers=AUTH)
+    assert r.status_code == 202, r.text
+    deadline = time.monotonic() + 60
+    while client.get(f"/maps/{map_id}").json()["state"] == "building" and time.monotonic() < deadline:
+        time.sleep(0.1)
+    return client.get(f"/ui/api/maps/{map_id}/trajectory").json()
 
 
 # ---- F7: messages -------------------------------------------------------------------------------------------
@@ -503,11 +508,6 @@ def test_pose_times_whose_header_names_another_unit_than_their_values_are_refuse
         assert "--time-unit" not in body["detail"]
         assert client.get(f"/maps/{map_id}").status_code == 404
     files = {"archive": ("a.zip", archive), "poses": ("p.csv", csv("t_us,x,y,yaw"))}
-    r = client.post("/maps", data={"map_id": "unit-us"}, files=files, headers=AUTH)
-    assert r.status_code == 202, r.text
-    deadline = time.monotonic() + 60
-    while client.get("/maps/unit-us").json()["state"] == "building" and time.monotonic() < deadline:
-        time.sleep(0.1)
-    traj = client.get("/ui/api/maps/unit-us/trajectory").json()
+    traj = _built_trajectory(client, "unit-us", files)
     assert traj["x_m"][-1] > 100.0  # keyframes spread along the drive
     assert client.delete("/maps/unit-us", headers=AUTH).status_code == 200
