@@ -7,7 +7,8 @@ from pathlib import Path
 
 from reradar_core.errors import ConfigError
 
-__all__ = ["cache_dir", "output_dir", "output_file", "PACKAGE_DIR", "CACHE_SOURCE_FILE", "CACHE_SOURCE_ATTR"]
+__all__ = ["cache_dir", "output_dir", "output_file", "distinct_folder_labels", "PACKAGE_DIR", "CACHE_SOURCE_FILE",
+           "CACHE_SOURCE_ATTR"]
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 #: A cache folder derived from one input folder names it in this JSON file (``{"root": ...}``), and an HDF5 cache
@@ -83,3 +84,17 @@ def output_file(path: str | Path, what: str = "--out", suffixes: tuple[str, ...]
     output_dir(path.parent, what)
     return path
 
+
+
+def distinct_folder_labels(folders: list[Path], sep: str = "/") -> list[str]:
+    """A label per folder: its name, or, where several folders share a name (``a/seq`` and ``b/seq``), its parent
+    folders' names joined with ``sep`` as far up as it takes to tell them apart (``a/seq``, ``b/seq``); the same
+    folder twice gets one label twice. Folders are compared resolved (links and ``..`` followed)."""
+    parts = [Path(f).resolve().parts[1:] or (Path(f).resolve().name,) for f in folders]  # without the root "/"
+    labels = [p[-1] for p in parts]
+    for depth in range(2, max((len(p) for p in parts), default=1) + 1):
+        clash = {lab for lab in labels if labels.count(lab) > 1}
+        if not clash:
+            break
+        labels = [sep.join(p[-depth:]) if lab in clash else lab for lab, p in zip(labels, parts, strict=True)]
+    return labels

@@ -30,6 +30,7 @@ from reradar_core.io.datasets import (
     read_sequence_meta,
 )
 from reradar_core.io.presets import RadarPreset, get_preset
+from reradar_core.paths import distinct_folder_labels
 
 __all__ = ["subsample", "pairs_from_folders", "query_pair_names", "pairs_from_suite", "default_radius", "SplitSpec", "parse_split",
            "split_index", "split_pair"]
@@ -196,13 +197,7 @@ def query_pair_names(database: Path, queries: list[Path]) -> list[str]:
             raise ConfigError(f"--query {given} names the same folder as --query {seen[real]}: give each query "
                               "folder once")
         seen[real] = given
-    parts = [r.parts[1:] or (r.name,) for r in resolved]  # without the root "/"
-    names = [p[-1] for p in parts]
-    for depth in range(2, max((len(p) for p in parts), default=1) + 1):
-        clash = {n for n in names if names.count(n) > 1}
-        if not clash:
-            break
-        names = ["-".join(p[-depth:]) if n in clash else n for n, p in zip(names, parts, strict=True)]
+    names = distinct_folder_labels(resolved, sep="-")
     db_name = Path(database).resolve().name
     return [f"{n}-query" if n == db_name else n for n in names]
 

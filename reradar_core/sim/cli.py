@@ -24,19 +24,6 @@ def _finite(value: float) -> float:
     return value
 
 
-def _unique_labels(folders: list[Path]) -> list[str]:
-    """Column labels for ``folders``: each folder's name, with as many parent folders as it takes to tell apart
-    folders that share a name (``a/seq`` and ``b/seq``); the same folder twice gets one label twice."""
-    parts = [f.resolve().parts for f in folders]
-    labels = [p[-1] for p in parts]
-    for depth in range(2, max((len(p) for p in parts), default=1) + 1):
-        clash = {lab for lab in labels if labels.count(lab) > 1}
-        if not clash:
-            break
-        labels = ["/".join(p[-depth:]) if lab in clash else lab for lab, p in zip(labels, parts, strict=True)]
-    return labels
-
-
 def register(app: typer.Typer) -> None:
     from reradar_core.io.presets import PRESETS
     from reradar_core.sim.traversal import CONDITIONS
@@ -158,11 +145,11 @@ def register(app: typer.Typer) -> None:
                                     "exists, else with this file-name prefix."),
     ) -> None:
         """Print real vs simulated scan statistics side by side (Markdown table)."""
-        from reradar_core.paths import output_dir
+        from reradar_core.paths import distinct_folder_labels, output_dir
         from reradar_core.sim.report import collect_scans, compare_table, folder_statistics, save_preview
 
         # one column per folder: the folder's name, or its last parts when two folders share a name
-        labels = _unique_labels(sim)
+        labels = distinct_folder_labels(sim)
         if len(set(labels)) < len(labels):
             raise _fail(ReRadarError("--sim names the same folder twice"))
         try:

@@ -169,3 +169,17 @@ def test_prune_never_removes_folders_that_only_share_a_name(tmp_path, monkeypatc
     assert str(project / ".cache" / "reradar") in res.output
     parts = _by_what(cache_parts(project))
     assert not any(p.stale for p in parts.values()) and "kept (holds files" in parts["calib"].why
+
+
+def test_distinct_folder_labels_add_parents_only_where_names_clash(tmp_path):
+    """One labelling for sim-report's columns and bench's query names (`reradar_core.paths`)."""
+    from reradar_core.paths import distinct_folder_labels
+
+    a, b, c = tmp_path / "a" / "seq", tmp_path / "b" / "seq", tmp_path / "c" / "other"
+    for d in (a, b, c):
+        d.mkdir(parents=True)
+    assert distinct_folder_labels([a, b, c]) == ["a/seq", "b/seq", "other"]
+    assert distinct_folder_labels([a, b, c], sep="-") == ["a-seq", "b-seq", "other"]
+    assert distinct_folder_labels([a, a / ".." / "seq"]) == ["seq", "seq"]  # the same folder: one label twice
+    deep_a, deep_b = tmp_path / "x" / "run" / "q", tmp_path / "y" / "run" / "q"
+    assert distinct_folder_labels([deep_a, deep_b]) == ["x/run/q", "y/run/q"]
