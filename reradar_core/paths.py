@@ -89,7 +89,7 @@ def output_file(path: str | Path, what: str = "--out", suffixes: tuple[str, ...]
 def distinct_folder_labels(folders: list[Path], sep: str = "/") -> list[str]:
     """A label per folder: its name, or, where several folders share a name (``a/seq`` and ``b/seq``), its parent
     folders' names joined with ``sep`` as far up as it takes to tell them apart (``a/seq``, ``b/seq``); the same
-    folder twice gets one label twice. Folders are compared resolved (links and ``..`` followed)."""
+    folder twice gets one label twice (its whole path without the root). Folders are compared resolved (links and ``..`` followed)."""
     parts = [Path(f).resolve().parts[1:] or (Path(f).resolve().name,) for f in folders]  # without the root "/"
     labels = [p[-1] for p in parts]
     for depth in range(2, max((len(p) for p in parts), default=1) + 1):

@@ -180,6 +180,7 @@ def test_distinct_folder_labels_add_parents_only_where_names_clash(tmp_path):
         d.mkdir(parents=True)
     assert distinct_folder_labels([a, b, c]) == ["a/seq", "b/seq", "other"]
     assert distinct_folder_labels([a, b, c], sep="-") == ["a-seq", "b-seq", "other"]
-    assert distinct_folder_labels([a, a / ".." / "seq"]) == ["seq", "seq"]  # the same folder: one label twice
+    twice = distinct_folder_labels([a, a / ".." / "seq"])  # the same folder: one label twice (its whole path)
+    assert twice[0] == twice[1] and twice[0].endswith("a/seq")
     deep_a, deep_b = tmp_path / "x" / "run" / "q", tmp_path / "y" / "run" / "q"
     assert distinct_folder_labels([deep_a, deep_b]) == ["x/run/q", "y/run/q"]
