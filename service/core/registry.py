@@ -65,6 +65,9 @@ DEMO_DELETED_MARKER = ".demo-deleted"
 _ID_RE = re.compile(MAP_ID_PATTERN)
 _STAGING = ".staging"
 _JOBS = ".jobs"
+#: ``<maps_dir>/.verified/<map_id>.json``: the ``FileIdentity`` of a map file read through in a child process
+#: (``probe_map``) or installed by an upload that was: opened in-process without another probe
+_VERIFIED = ".verified"
 
 
 #: how long a map that was deleted or dropped stays open for the requests already using it, seconds
@@ -230,12 +233,58 @@ class MapRegistry:
         # before opening: a file replaced in between then differs from the identity and is reopened later
         entry = MapEntry(map_id, path, "failed", file_id=file_identity(path))
         try:
+            self._probe_unverified(map_id, path, entry.file_id)
             entry.db = self._open(path)
             entry.state = "ready"
             entry.scans_total = entry.scans_done = len(entry.db)
         except (MapFormatError, ModelMismatchError, OSError) as exc:
             entry.error = scrub_paths(str(exc), [self.maps_dir])  # public (GET /maps/{id}): no server folders
         return entry
+
+    # ---- map files not yet read through: a crafted file must not take the service down ----------------------
+    def _verified_marker(self, map_id: str) -> Path:
+        return self.maps_dir / _VERIFIED / f"{map_id}.json"
+
+    def _is_verified(self, map_id: str, identity: FileIdentity) -> bool:
+        try:
+            return tuple(json.loads(self._verified_marker(map_id).read_text())["identity"]) == identity
+        except (OSError, ValueError, KeyError, TypeError):
+            return False
+
+    def _mark_verified(self, map_id: str, identity: FileIdentity | None) -> None:
+        """Record that the file of ``identity`` was read through (atomically; best effort: without the record
+        the file is probed again next time)."""
+        if identity is None:
+            return
+        marker = self._verified_marker(map_id)
+        tmp = marker.parent / f".{map_id}.{uuid.uuid4().hex}.tmp"
+        try:
+            marker.parent.mkdir(exist_ok=True)
+            tmp.write_text(json.dumps({"identity": list(identity)}))
+            os.replace(tmp, marker)
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            logger.warning("map %s: could not record that its file was checked (%s); it is checked again next time",
+                           map_id, exc)
+
+    def _probe_unverified(self, map_id: str, path: Path, identity: FileIdentity | None) -> None:
+        """Read a map file this service has not read through before (one placed straight into the maps folder,
+        or built or replaced by another process) in a child process first (``probe_map``), as uploads are: a
+        crafted file that crashes or hangs the HDF5 library then fails this map, not the service. Files already
+        read through (same ``FileIdentity``) are not probed again.
+
+        Raises:
+            MapFormatError: the child refused the file, crashed on it or timed out.
+        """
+        if identity is None or self._is_verified(map_id, identity):
+            return
+        try:
+            probe_map(path)
+        except RuntimeError as exc:  # the check itself could not run (no child process): open as before
+            logger.warning("map %s: its file could not be checked in a child process (%s); opening it directly",
+                           map_id, exc)
+            return
+        self._mark_verified(map_id, identity)
 
     def check_compatible(self, metadata: MapMetadata, path: Path) -> None:
         """Refuse a map whose descriptors cannot be compared with the running model's: another global descriptor
@@ -428,6 +477,7 @@ class MapRegistry:
                 raise type(exc)(str(exc).replace(str(entry.path), "the uploaded map")) from None
             entry.scans_total = entry.scans_done = len(entry.db)
             entry.state = "ready"
+            self._mark_verified(map_id, identity)  # probed before the install: not again at the next start
             return entry
         except BaseException:
             staged.unlink(missing_ok=True)
@@ -507,6 +557,7 @@ class MapRegistry:
         if map_id == DEMO_MAP_ID:  # before the file goes: a crash in between leaves neither to reinstall
             (self.maps_dir / DEMO_DELETED_MARKER).touch()
         entry.path.unlink(missing_ok=True)
+        self._verified_marker(map_id).unlink(missing_ok=True)
         self._drop_job(map_id)
         fsync_dir(self.maps_dir)
         self.prune_map_arrays()

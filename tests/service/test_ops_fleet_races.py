@@ -224,6 +224,69 @@ def test_single_process_registry_has_no_reload_path(map_files: dict[str, Path], 
         reg.close()
 
 
+def test_a_map_file_placed_in_the_folder_is_read_through_in_a_child_process_once(
+        map_files: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Session 22 (low, open until session 23): a map file placed straight into the maps folder was opened in the
+    service's own process at start-up, so a crafted file that crashes the HDF5 library took the service down
+    (uploads were already read in a child first). Now every file the service has not read through is probed in a
+    child first (``probe_map``), once per file identity; uploads it probed are recorded too."""
+    probed: list[str] = []
+    real_probe = registry_module.probe_map
+
+    def probe(path: Path) -> None:
+        probed.append(Path(path).name)
+        real_probe(path)
+
+    monkeypatch.setattr(registry_module, "probe_map", probe)
+    shutil.copyfile(map_files["v1"], tmp_path / "placed.h5")
+    settings = Settings(maps_dir=tmp_path, load_demo_map=False)
+
+    def start() -> MapRegistry:
+        reg = MapRegistry(settings, FakeExtractor())
+        reg.load_all()
+        return reg
+
+    reg = start()
+    assert probed == ["placed.h5"] and len(reg.ready("placed")) == 6
+    reg.register_file("uploaded", _staged(reg, map_files["v2"]))  # probed before its install
+    assert probed == ["placed.h5", _STAGED_NAME]
+    reg.close()
+    reg = start()  # both read through before: opened without another child
+    assert probed == ["placed.h5", _STAGED_NAME] and len(reg.ready("uploaded")) == 4
+    reg.close()
+    shutil.copyfile(map_files["v2"], tmp_path / ".swap.tmp-x")  # another file under the same name: probed again
+    os.replace(tmp_path / ".swap.tmp-x", tmp_path / "placed.h5")
+    reg = start()
+    assert probed[-1] == "placed.h5" and len(probed) == 3 and len(reg.ready("placed")) == 4
+    reg.close()
+
+    def crash(path: Path) -> None:  # what probe_map says when the HDF5 library crashes the child on a file
+        raise registry_module.MapFormatError(f"{path}: corrupt map file (the HDF5 library crashed reading it, "
+                                             "signal 11)")
+
+    monkeypatch.setattr(registry_module, "probe_map", crash)
+    opened: list[Path] = []
+    monkeypatch.setattr(MapRegistry, "_open", lambda self, path: opened.append(path))
+    other = tmp_path / "other"
+    other.mkdir()
+    shutil.copyfile(map_files["v1"], other / "crafted.h5")
+    reg = MapRegistry(Settings(maps_dir=other, load_demo_map=False), FakeExtractor())
+    reg.load_all()
+    entry = reg.get("crafted")
+    assert entry.state == "failed" and entry.error and "crashed" in entry.error and str(other) not in entry.error
+    assert opened == []  # never opened in this process
+    reg.close()
+
+
+_STAGED_NAME = "staged-upload.h5"
+
+
+def _staged(registry: MapRegistry, source: Path) -> Path:
+    staged = registry.staging_dir() / _STAGED_NAME
+    shutil.copyfile(source, staged)
+    return staged
+
+
 def test_upload_in_flight_keeps_its_entry_through_a_map_sync_pass(
         fleet: Fleet, map_files: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
     """A map sync pass during an upload (an event from another replica) took the upload's ``building`` entry,
