@@ -32,7 +32,7 @@ from reradar_core.model.network import DescriptorNet, fuse_batchnorm
 from reradar_core.model.runtime import OnnxNetwork, onnx_path_for, resolve_runtime
 
 __all__ = ["DescriptorExtractor", "sample_feature_map", "DEFAULT_MAX_KEYPOINTS", "check_weights_sha256",
-           "file_sha256"]
+           "file_sha256", "read_weights_blob"]
 
 logger = logging.getLogger(__name__)
 
@@ -59,6 +59,26 @@ def check_weights_sha256(path: str | Path, meta: dict[str, Any], sha256: str | N
                           f"{path.with_suffix('.json').name} records {want[:12]}...): the file is corrupt or was "
                           "replaced; restore it or re-train the model")
     return sha
+
+
+def read_weights_blob(path: str | Path, meta: dict[str, Any]) -> tuple[dict[str, Any], str]:
+    """The ``.pt`` at ``path`` as torch saved it (``state_dict``, and ``train_state_dict`` where training wrote
+    one) and its sha256, checked against ``meta``'s (``check_weights_sha256``).
+
+    Raises:
+        ConfigError: one line: the file differs from its metadata's hash, or is not a readable weights file.
+    """
+    path = Path(path)
+    sha = check_weights_sha256(path, meta)  # once per load: a few ms per 10 MB
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(blob, dict) or not isinstance(blob.get("state_dict"), dict):
+            raise ValueError("no state_dict")
+    except Exception as exc:  # noqa: BLE001 - torch raises pickle, zip, EOF and runtime errors on a bad file
+        raise ConfigError(f"model weights file {path.name} is not a readable ReRadar weights file (corrupt or "
+                          f"truncated .pt: {str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__}); "
+                          "re-export or re-train it") from None
+    return blob, sha
 
 
 def _mismatch_summary(exc: RuntimeError) -> str:
@@ -191,14 +211,8 @@ class DescriptorExtractor:
         except (KeyError, TypeError) as exc:
             raise ConfigError(f"model metadata for {path} has no valid 'config': {exc}") from exc
         net = DescriptorNet(config)
-        sha = check_weights_sha256(path, meta)  # once per load: a few ms per 10 MB
-        try:
-            blob = torch.load(path, map_location="cpu", weights_only=True)
-            state = {k: v.float() if v.is_floating_point() else v for k, v in blob["state_dict"].items()}
-        except Exception as exc:  # noqa: BLE001 - torch raises pickle, zip, EOF and runtime errors on a bad file
-            raise ConfigError(f"model weights file {path.name} is not a readable ReRadar weights file (corrupt or "
-                              f"truncated .pt: {str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__}); re-export or "
-                              "re-train it") from None
+        blob, sha = read_weights_blob(path, meta)
+        state = {k: v.float() if v.is_floating_point() else v for k, v in blob["state_dict"].items()}
         try:
             net.load_state_dict(state)
         except RuntimeError as exc:

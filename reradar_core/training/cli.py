@@ -81,10 +81,9 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
     ``steps=0`` only validates (the ``init`` model, or a fresh one after its head initialisation): it neither
     resumes nor writes anything (no weights, no checkpoint), puts the summary in ``summary_out`` and returns None.
     """
-    import torch
 
     from reradar_core.model.config import ModelConfig
-    from reradar_core.model.extractor import check_weights_sha256
+    from reradar_core.model.extractor import read_weights_blob
     from reradar_core.model.registry import WEIGHTS_DIR, resolve_weights, save_weights
     from reradar_core.paths import cache_dir
     from reradar_core.training.trainer import TrainConfig, Trainer, trainable_state
@@ -92,12 +91,10 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
     init_state = None
     if init is not None:
         pt, meta = resolve_weights(init)
-        check_weights_sha256(pt, meta)
         try:
-            blob = torch.load(pt, map_location="cpu", weights_only=True)
-        except Exception:  # noqa: BLE001 - torch raises pickle, zip, EOF and runtime errors on a bad file
-            raise ConfigError(f"--init {init}: {pt.name} is not a readable ReRadar weights file (corrupt or "
-                              "truncated .pt); restore or re-train it") from None
+            blob, _ = read_weights_blob(pt, meta)
+        except ConfigError as exc:
+            raise ConfigError(f"--init {init}: {exc}") from None
         # the disc mask has no parameters: it follows the flag whatever the init model was trained with
         model = dataclasses.replace(ModelConfig.from_dict(meta["config"]), disc_mask=disc_mask)
         # the plain ResNet trains as it runs; the ReResNet needs its e2cnn (basis-coefficient) state
