@@ -56,6 +56,7 @@ __all__ = [
     "load_sequence",
     "check_pose_span",
     "check_pose_time_unit",
+    "likely_time_unit",
     "range_grid_difference",
     "POSE_SPAN_SLACK_US",
     "scan_path",
@@ -378,11 +379,12 @@ POSE_UNIT_MIN_PATH_M = 50.0
 POSE_UNIT_PATH_FRACTION = 0.01
 
 
-def _likely_unit(raw_span: float, scans_span_us: float) -> str:
-    """The unit (of ``TIME_UNITS``) in which ``raw_span`` pose-file units last closest to ``scans_span_us``."""
+def likely_time_unit(raw_span: float, expected_span_us: float) -> str:
+    """The unit (of ``TIME_UNITS``) in which ``raw_span`` file units last closest to ``expected_span_us``
+    (log scale): what a pose file's times most likely are."""
     from reradar_core.io.poses import TIME_UNITS
 
-    return min(TIME_UNITS, key=lambda u: abs(np.log(max(raw_span * TIME_UNITS[u], 1e-9) / scans_span_us)))
+    return min(TIME_UNITS, key=lambda u: abs(np.log(max(raw_span * TIME_UNITS[u], 1e-9) / expected_span_us)))
 
 
 def check_pose_time_unit(track: PoseSequence, stamps_us: np.ndarray, unit: str | None,
@@ -420,7 +422,7 @@ def check_pose_time_unit(track: PoseSequence, stamps_us: np.ndarray, unit: str |
         return
     read_as = unit or "the unit the file implies"
     raw_span = pose_span / TIME_UNITS.get(str(unit), 1.0) if unit else pose_span
-    likely = _likely_unit(raw_span, scans_span) if unit else None
+    likely = likely_time_unit(raw_span, scans_span) if unit else None
     advice = (f"the pose times are probably {likely}: {how.format(unit=likely)}" if likely and likely != unit
               else f"check the pose file's time unit ({how.format(unit='s|ms|us|ns')})")
     if pose_span * POSE_UNIT_SPAN_RATIO <= scans_span:

@@ -54,14 +54,14 @@ PLAUSIBLE_SPEED_M_S = (0.02, 150.0)
 
 
 def _speed_unit_advice(span_us: float, length_m: float, time_unit: str | None) -> str:
-    """Which time unit gives the drive a road vehicle's speed (closest to 10 m/s), as advice."""
+    """Which time unit gives the drive a road vehicle's speed (10 m/s: ``length_m`` in ``length_m`` / 10 s), as
+    advice."""
+    from reradar_core.io.datasets import likely_time_unit
     from reradar_core.io.poses import TIME_UNITS
 
-    if time_unit is None or time_unit not in TIME_UNITS:
-        return "check the time unit (--time-unit s|ms|us|ns, or a t_s / t_ms / t_us / t_ns header)"
-    raw = span_us / TIME_UNITS[time_unit]
-    likely = min(TIME_UNITS, key=lambda u: abs(np.log(length_m / max(raw * TIME_UNITS[u] / 1e6, 1e-12) / 10.0)))
-    if likely == time_unit:
+    likely = (likely_time_unit(span_us / TIME_UNITS[time_unit], length_m / 10.0 * 1e6)
+              if time_unit in TIME_UNITS else None)
+    if likely is None or likely == time_unit:
         return "check the time unit (--time-unit s|ms|us|ns, or a t_s / t_ms / t_us / t_ns header)"
     return f"the times are probably in {likely}: pass --time-unit {likely} (or name the column t_{likely})"
 
