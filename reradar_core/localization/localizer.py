@@ -20,7 +20,7 @@ import numpy as np
 
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
-from reradar_core.geometry.se2 import compose
+from reradar_core.geometry.se2 import compose, wrap_angle
 from reradar_core.localization.confidence import confidence_cues, default_confidence_model, tracked_cues
 from reradar_core.localization.keyframes import KeyframeCache, KeyframeSource
 from reradar_core.localization.pipeline import (
@@ -39,6 +39,7 @@ from reradar_core.localization.tracking import (
     tracking_candidates,
     within_gate,
 )
+from reradar_core.matching import count_aligned
 from reradar_core.matching.kernels import warm_up
 from reradar_core.retrieval import GlobalIndex, similarity_to_distance
 
@@ -138,8 +139,8 @@ class Localizer:
     def track(self, features: ScanFeatures, prior: PosePrior,
               config: LocalizationConfig | None = None) -> LocalizationResult:
         """Tracking mode (``localization.tracking``): register the scan to the keyframes nearest to ``prior``;
-        when no answer passes the aligned-landmark bar, the prior's gate, the reversal check
-        (``_reversal_fits_as_well``) and the confidence bar (``config.effective_min_confidence``), fall back to
+        when no answer passes the aligned-landmark bar, the prior's gate, the reversal and turn checks
+        (``_reversal_fits_as_well``, ``_turn_fits_as_well``) and the confidence bar (``config.effective_min_confidence``), fall back to
         ``localize``. A prior looser than the registration reaches, in position or heading
         (``TrackingConfig.covers``), is not tracked from: the scan is localized globally (``mode="global"``,
         ``tracking_lost`` False).
@@ -180,7 +181,8 @@ class Localizer:
             if v.T_keyframe_query is not None:
                 accepted.append((v, T_map_query))
         answer = max(accepted, key=lambda a: (a[0].num_inliers, -a[0].rank)) if accepted else None
-        if answer is not None and self._reversal_fits_as_well(features, answer[0], radii, config):
+        if answer is not None and (self._reversal_fits_as_well(features, answer[0], radii, config)
+                                   or self._turn_fits_as_well(features, answer[0], answer[1], prior, config)):
             answer = None  # the prior's heading is contradicted, or undecidable: localize globally
         if answer is not None:
             best, T_map_query = answer
@@ -216,6 +218,35 @@ class Localizer:
                                      compose(best.T_keyframe_query, np.array([0.0, 0.0, np.pi])), radii)
         margin = (config.min_place_margin or 0.0) * int(features.keypoints_xy_m.shape[0])
         return turned.num_inliers >= best.num_inliers - margin
+
+    def _turn_fits_as_well(self, features: ScanFeatures, best: CandidateVerification, T_map_query: np.ndarray,
+                           prior: PosePrior, config: LocalizationConfig) -> bool:
+        """Whether the tracked answer, turned about the sensor to a heading outside the prior's heading gate and
+        more than ``AlignmentConfig.ambiguity_separation_rad`` (10 degrees) from its own (within
+        ``TrackingConfig.turn_check_rad``, every ``turn_check_step_rad``), aligns as many of the query's
+        landmarks (scored like the pose hypotheses, within ``min_place_margin`` of them). The registration starts
+        at the prior's heading and settles in the nearest basin, and the gate then accepts it: a prior 15-25
+        degrees off with a heading sigma of 2 degrees was tracked 11-19 degrees off at confidence 0.85-0.99 (1 of
+        157 ``loop-sim`` revisits each). Those answers turned by 11-21 degrees aligned 1.3-1.6 times their own
+        count, while no right answer's best turn outside the gate reached 0.82 of its own (157 + 156 revisits,
+        prior 0 and 5 degrees off; docs/BENCHMARKS.md, "Session 24")."""
+        assert best.T_keyframe_query is not None
+        tcfg = config.tracking
+        n_steps = int(tcfg.turn_check_rad // tcfg.turn_check_step_rad)
+        turns = np.arange(-n_steps, n_steps + 1) * tcfg.turn_check_step_rad
+        # a rival is a heading the prior excludes and another basin than the answer's (the pose estimator's
+        # separation of rival poses): turns of a degree or two score about as the answer itself
+        outside = ((np.abs(wrap_angle(float(T_map_query[2]) + turns - float(prior.T_map_query[2])))
+                    > tcfg.yaw_gate_rad(prior)) & (np.abs(turns) > config.alignment.ambiguity_separation_rad))
+        if not outside.any():
+            return False
+        x, y, yaw = (float(v) for v in best.T_keyframe_query)
+        poses = np.column_stack([np.full(len(turns), x), np.full(len(turns), y), yaw + turns])  # turned about the sensor
+        counts = count_aligned(poses, features.keypoints_xy_m, self.cache.landmark_grid(best.keyframe_id),
+                               config.alignment.score_threshold_m)
+        own = int(counts[n_steps])
+        margin = (config.min_place_margin or 0.0) * int(features.keypoints_xy_m.shape[0])
+        return int(counts[outside].max()) >= own - margin
 
     def clear(self) -> None:
         """Drop the cached keyframes."""

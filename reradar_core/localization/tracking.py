@@ -10,8 +10,10 @@ A prior (the previous pose composed with odometry, or any pose with an uncertain
    least-squares rigid fits repeated at each radius until the pose stops moving - no descriptors, no
    hypotheses, a few KD-tree queries;
 3. the answer must pass the global localizer's own bar (``min_inliers`` and the aligned-landmark ratio), a
-   sequence-consistency check (it lies within the gate of the prior in position and heading) and a reversal
-   check (``Localizer._reversal_fits_as_well``: turned by 180 degrees it must align fewer landmarks);
+   sequence-consistency check (it lies within the gate of the prior in position and heading), a reversal
+   check (``Localizer._reversal_fits_as_well``: turned by 180 degrees it must align fewer landmarks) and a
+   turn check (``Localizer._turn_fits_as_well``: no heading outside the prior's gate, within 45 degrees, may
+   align as many landmarks);
 4. otherwise tracking is lost and the caller falls back to global localization (``Localizer.localize``).
 
 The registration only finds the pose when it starts within its first association radius of it: a prior is
@@ -100,6 +102,11 @@ class TrackingConfig:
         max_start_yaw_rad: a prior whose heading's 2 sigma exceeds this is not tracked from (``covers``): the
             registration starts at the prior's heading and does not turn further (10 degrees: the explicit
             prior's default sigma of 5 degrees is tracked from; an unknown heading is localized globally).
+        turn_check_rad / turn_check_step_rad: the turn check (``Localizer._turn_fits_as_well``): the tracked answer
+            turned about the sensor by every multiple of the step up to this angle either way is scored like the
+            pose hypotheses; when a heading outside the prior's heading gate aligns as many landmarks as the answer
+            does, the prior's heading is contradicted and the scan is localized globally (45 and 1 degrees: a
+            landmark 50 m out moves 0.9 m per degree, within the 1.5 m score radius).
     """
 
     max_candidates: int = 2
@@ -110,6 +117,8 @@ class TrackingConfig:
     final_radius_m: float = 0.75
     max_start_radius_m: float = 6.0
     max_start_yaw_rad: float = math.radians(10.0)
+    turn_check_rad: float = math.radians(45.0)
+    turn_check_step_rad: float = math.radians(1.0)
 
     def __post_init__(self) -> None:
         if self.max_candidates < 1 or self.gate_sigmas <= 0 or self.search_radius_m < 0:
@@ -118,6 +127,9 @@ class TrackingConfig:
             raise ConfigError("tracking radii must satisfy 0 < final_radius_m <= max_start_radius_m")
         if not 0 < self.max_start_yaw_rad <= math.pi:
             raise ConfigError(f"max_start_yaw_rad must lie in (0, pi], got {self.max_start_yaw_rad}")
+        if not (0 <= self.turn_check_rad <= math.pi and self.turn_check_step_rad > 0):
+            raise ConfigError("turn_check_rad must lie in [0, pi] and turn_check_step_rad be > 0, got "
+                              f"{self.turn_check_rad} and {self.turn_check_step_rad}")
 
     def covers(self, prior: PosePrior) -> bool:
         """Whether the registration reaches the whole of ``prior``'s likely error (2 sigma <= the capped first

@@ -381,6 +381,14 @@ def _score(poses: np.ndarray, src: np.ndarray, grid: LandmarkGrid, threshold_m: 
     return out
 
 
+def count_aligned(poses: np.ndarray, points_src: np.ndarray, grid: LandmarkGrid, threshold_m: float) -> np.ndarray:
+    """How many of the (N, 2) source landmarks (metres, source frame) land within ``threshold_m`` of one of
+    ``grid``'s landmarks under each of the (P, 3) poses (x m, y m, yaw rad; source -> grid frame): (P,) int64,
+    the hypotheses' score (``grid`` must count at ``threshold_m``: ``LandmarkGrid.within_mask``)."""
+    poses = np.asarray(poses, np.float64).reshape(-1, 3)
+    return _score(poses, np.asarray(points_src, np.float64).reshape(-1, 2), grid, threshold_m)
+
+
 def _apply(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(N, 2) ``points`` moved by ``pose`` (x, y, yaw): x c - y s + x0, x s + y c + y0, element-wise (the
     compiled refinement does the same operations, ``nn_kernels.refine_poses``)."""

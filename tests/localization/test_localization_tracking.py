@@ -145,6 +145,31 @@ def test_a_prior_turned_by_180_degrees_on_a_street_alike_both_ways_is_not_tracke
     assert right.mode == "tracking" and right.localized
 
 
+def test_a_confident_prior_15_degrees_off_is_not_tracked_to_a_decoy_heading() -> None:
+    """A prior 15 degrees off that claims a 2-degree sigma: the registration settles in the basin nearest the
+    prior's heading, and the gate accepts it (loop-sim: tracked 11-19 degrees off at confidence 0.85-0.99). Here
+    the keyframe holds the query's landmarks as they are and 60 % of them turned by 13 degrees (a decoy that fits
+    the prior); turned back to the true heading, outside the prior's gate, the answer aligns every landmark, so the
+    prior's heading is contradicted and the scan is localized globally, at the true heading."""
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-60, 60, (150, 2))
+    c, s = math.cos(math.radians(13.0)), math.sin(math.radians(13.0))
+    decoy = pts[:90] @ np.array([[c, s], [-s, c]])  # the first 90 landmarks turned by +13 degrees
+    desc = _unit(rng.normal(size=(150, 16)))
+    kf = ScanFeatures(_unit(rng.normal(size=16)), np.vstack([pts, decoy]),
+                      np.vstack([desc, _unit(rng.normal(size=(90, 16)))]), 0)
+    other = ScanFeatures(_unit(rng.normal(size=16)), rng.uniform(-60, 60, (240, 2)), _unit(rng.normal(size=(240, 16))), 1)
+    loc = _localizer([kf, other], np.array([[0.0, 0.0, 0.0], [300.0, 0.0, 0.0]]))
+    query = ScanFeatures(kf.global_descriptor, pts + rng.normal(scale=0.02, size=pts.shape), desc, 9)
+    res = loc.track(query, PosePrior(np.array([0.0, 0.0, math.radians(15.0)]), 1.0, math.radians(2.0)))
+    assert res.mode == "global" and res.tracking_lost  # before: tracking, 13 degrees off
+    assert res.localized and abs(res.T_map_query[2]) < math.radians(0.5)
+    right = loc.track(query, PosePrior(np.array([0.5, 0.0, math.radians(1.0)]), 1.0, math.radians(2.0)))
+    assert right.mode == "tracking" and right.localized and abs(right.T_map_query[2]) < math.radians(0.5)
+    with pytest.raises(ConfigError):
+        TrackingConfig(turn_check_step_rad=0.0)
+
+
 def test_a_tracked_answer_below_the_confidence_bar_is_localized_globally(monkeypatch: pytest.MonkeyPatch) -> None:
     """The confidence bar of global answers holds for tracked ones: a registration the model doubts is not
     answered from the prior (here every answer is scored 0.2 against the bar 0.5)."""

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from reradar_core.geometry.se2 import angle_diff, inverse, transform_points
-from reradar_core.matching import AlignmentConfig, build_landmark_grid, estimate_pose_guided
+from reradar_core.matching import AlignmentConfig, build_landmark_grid, count_aligned, estimate_pose_guided
 
 CELL_M = 5.0  # descriptors shared by every landmark in a 5 m cell, like the model's F' cells
 
@@ -116,6 +116,19 @@ def test_periodic_scene_is_refused_as_ambiguous():
     assert not est.success and est.reason == "ambiguous" and est.ambiguity >= 1.0
     relaxed = estimate_pose_guided(src, desc, dst, desc, AlignmentConfig(top_k_matches=8, max_ambiguity=np.inf))
     assert relaxed.success  # the same answer is accepted only when ambiguity checking is switched off
+
+
+def test_count_aligned_counts_the_landmarks_a_pose_brings_within_the_radius():
+    """Known answers: every landmark under the true pose, none under a pose 5 m off in a sparse scene, and the
+    true pose turned by 20 degrees loses the far landmarks (a landmark 50 m out moves 17 m)."""
+    rng = np.random.default_rng(0)
+    dst = rng.uniform(-60, 60, (40, 2))
+    dst = dst[np.min(np.hypot(*(dst[:, None] - dst[None]).transpose(2, 0, 1)) + np.eye(40) * 1e3, axis=1) > 6.0]
+    T = np.array([3.0, -2.0, math.radians(30.0)])
+    src = transform_points(inverse(T), dst)
+    grid = build_landmark_grid(dst)
+    counts = count_aligned(np.array([T, T + [5.0, 0.0, 0.0], T + [0.0, 0.0, math.radians(20.0)]]), src, grid, 1.5)
+    assert counts.dtype == np.int64 and counts[0] == len(dst) and counts[1] == 0 and counts[2] < len(dst) // 4
 
 
 def test_count_within_equals_the_distance_lookup():
