@@ -295,6 +295,23 @@ def test_plain_yaw_in_degrees_within_two_pi_is_refused(tmp_path):
     assert read_poses(_write(tmp_path, "allrev.csv", back)).yaw[0] == pytest.approx(np.pi - 0.05, abs=1e-6)
 
 
+def test_plain_yaw_in_degrees_is_refused_at_any_pose_rate(tmp_path):
+    """QA (session 24): a 20 Hz pose file at 8 m/s moves 0.4 m a row, and the guard compared single rows of at least
+    0.5 m: degrees in a plain yaw column passed as radians (a map 225 degrees off). Stretches of 0.5 m of path are
+    compared now, whatever the rate; GNSS jitter while standing (path without displacement) still gives no verdict."""
+    c, s_ = np.cos(np.radians(4.0)), np.sin(np.radians(4.0))
+    for hz, speed in ((20, 8.0), (100, 10.0), (200, 2.0)):
+        rows = "".join(f"{i / hz:.4f},{speed * i / hz * c:.4f},{speed * i / hz * s_:.4f},4.0\n" for i in range(400))
+        with pytest.raises(PoseFileError, match="name the column yaw_deg"):
+            read_poses(_write(tmp_path, f"deg{hz}.csv", "t_s,x,y,yaw\n" + rows))
+        ok = rows.replace(",4.0\n", f",{np.radians(4.0):.6f}\n")
+        assert len(read_poses(_write(tmp_path, f"rad{hz}.csv", "t_s,x,y,yaw\n" + ok))) == 400
+    rng = np.random.default_rng(0)
+    jitter = rng.normal(scale=0.03, size=(400, 2))  # standing: 400 rows of 3 cm jitter, about 12 m of path
+    still = "t_s,x,y,yaw\n" + "".join(f"{i / 100:.2f},{x:.4f},{y:.4f},4.0\n" for i, (x, y) in enumerate(jitter))
+    assert len(read_poses(_write(tmp_path, "jitter.csv", still))) == 400
+
+
 def test_a_time_header_that_contradicts_absolute_values_names_the_column(tmp_path):
     """QA 11: a t_s column holding µs got 'column t: ... give --time-unit us', and that was then refused."""
     text = "t_s,x,y,yaw\n1600000000000000,0,0,0\n1600000000250000,2,0,0\n"
