@@ -158,3 +158,13 @@ def test_json_lines_leave_out_uvicorns_coloured_copy() -> None:
     record.color_message = "Uvicorn running on \x1b[1m%s\x1b[0m"
     doc = json.loads(JsonFormatter().format(record))
     assert doc["msg"] == "Uvicorn running on http://x" and "color_message" not in doc
+
+
+def test_trajectory_headings_stay_in_the_api_range_after_rounding() -> None:
+    """QA (session 24): a stored yaw of -179.99988 degrees was served as -180.0, outside (-180, 180]."""
+    import numpy as np
+
+    from service.api.routes.ui import _wrapped_deg
+
+    got = _wrapped_deg(np.round(np.array([-179.99988, 179.99988, -179.99, 45.25, 0.0]), 2))
+    assert got.tolist() == [180.0, 180.0, -179.99, 45.25, 0.0]

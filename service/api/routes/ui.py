@@ -81,7 +81,13 @@ def map_trajectory(state: StateDep, _auth: VehicleDep, map_id: MapIdPath) -> dic
     p = poses[keep]
     return {"map_id": map_id, "num_keyframes": int(poses.shape[0]), "keyframe_ids": keep.tolist(),
             "x_m": np.round(p[:, 0], 3).tolist(), "y_m": np.round(p[:, 1], 3).tolist(),
-            "yaw_deg": np.round(np.degrees(p[:, 2]), 2).tolist()}
+            "yaw_deg": _wrapped_deg(np.round(np.degrees(p[:, 2]), 2)).tolist()}
+
+
+def _wrapped_deg(deg: np.ndarray) -> np.ndarray:
+    """Headings in degrees wrapped to (-180, 180] (the API's range), e.g. after rounding -179.9999 to -180.0."""
+    out = np.asarray(deg, np.float64)  # stored headings lie in [-180, 180]: only the ends move, values stay exact
+    return np.where(out <= -180.0, out + 360.0, np.where(out > 180.0, out - 360.0, out))
 
 
 @router.get("/ui/api/maps/{map_id}/localizations")
