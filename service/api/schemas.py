@@ -108,6 +108,11 @@ class MapInfo(_Model):
     created_utc: str | None = None
     registered_utc: str
     source: str | None = None
+    pose_time: Literal["mid_sweep", "first_azimuth"] | None = Field(default=None, description=(
+        "Which instant of each keyframe scan the map's poses - and so the poses answered on this map - refer to: "
+        "`mid_sweep` (every map written since 2026-11-30; docs/CONVENTIONS.md), or `first_azimuth` for an older map "
+        "without the attribute: its answers are the first-azimuth pose, up to ~1 m behind the mid-sweep pose at "
+        "driving speed (rebuild it with `reradar build-map` or `POST /maps`)."))
 
 
 class MapList(_Model):

@@ -49,6 +49,18 @@ def _png(seed: int, t_us: int, roll: int = 0) -> bytes:
     return encode_navtech_png_bytes(scan)
 
 
+def test_a_map_with_first_azimuth_poses_says_so(client: httpx.Client, fake_map: Path, tmp_path: Path) -> None:
+    """QA (session 24): a map written before pose_time existed is served with first-azimuth poses, and only the
+    server log said so; its map info now names the instant its poses (and answers) refer to."""
+    old = tmp_path / "old.h5"
+    old.write_bytes(fake_map.read_bytes())
+    with h5py.File(old, "r+") as f:
+        del f.attrs["pose_time"]
+    register_map_file(client, old, "route-old")
+    assert client.get("/maps/route-old").json()["pose_time"] == "first_azimuth"
+    assert client.delete("/maps/route-old", headers=AUTH).status_code in (200, 204)
+
+
 def test_health_ready_metrics(client: httpx.Client) -> None:
     assert client.get("/healthz").json() == {"status": "ok"}
     ready = client.get("/readyz").json()
@@ -66,6 +78,7 @@ def test_map_listing_and_registration_rules(client: httpx.Client, fake_map: Path
     info = next(m for m in body["data"] if m["id"] == "route-a")
     assert info["state"] == "ready" and info["num_keyframes"] == N_KEYFRAMES and info["index_kind"] == "flat"
     assert client.get("/maps/route-a").json()["model_id"] == "fake-extractor"
+    assert info["pose_time"] == "mid_sweep"
     with fake_map.open("rb") as fh:
         files = {"map_file": ("fake.h5", fh.read())}
     assert client.post("/maps", data={"map_id": "route-a"}, files=files, headers=AUTH).status_code == 409

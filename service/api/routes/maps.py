@@ -49,6 +49,7 @@ def map_info(entry: MapEntry, note: str | None = None) -> MapInfo:
         info.radar_preset, info.descriptor_dim = m.radar_preset, m.descriptor_dim
         info.created_utc, info.source = m.created_utc, m.source
         info.index_kind = entry.db.index.kind
+        info.pose_time = m.pose_time  # type: ignore[assignment]  # the store checks it is one of the two
     return info
 
 
