@@ -235,12 +235,18 @@ def clear_per_query(folder: Path) -> list[Path]:
     return removed
 
 
-def _save_outcome(path: Path, run: MethodRun, query_xy: np.ndarray, db_xy: np.ndarray) -> None:
+def _save_outcome(path: Path, run: MethodRun, query_xy: np.ndarray, db_xy: np.ndarray,
+                  query_pose_mid_sweep: np.ndarray) -> None:
+    """``per_query/<sequence>/<method>.npz`` (docs/BENCHMARKS.md, "Per-query files"): two instants, each named -
+    ``query_xy`` / ``db_xy`` are the scans' positions at their timestamps (first azimuth, what the datasets' pose
+    files give and what retrieval is judged on), ``est_pose`` and ``query_pose_mid_sweep`` are mid-sweep poses (x m,
+    y m, yaw rad; what the errors are measured against)."""
     o = run.outcome
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(path, retrieved=o.retrieved, distance=o.distance, est_pose=o.est_pose,
                         correct=o.correct, positive=o.positive, heading_err_deg=o.heading_err_deg,
-                        trans_err_m=o.trans_err_m, query_xy=query_xy, db_xy=db_xy)
+                        trans_err_m=o.trans_err_m, query_xy=query_xy, db_xy=db_xy,
+                        query_pose_mid_sweep=query_pose_mid_sweep)
 
 
 def _rotation_indices(n: int, limit: int | None) -> np.ndarray:
@@ -357,7 +363,7 @@ def run_benchmark(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod], o
                 fitted_on[m.name] = dkey
                 seq_res[m.name] = run.summary
                 _save_outcome(out_dir / "per_query" / pair.name / f"{m.name}.npz", run, q_poses[:, :2],
-                              db_poses[:, :2])
+                              db_poses[:, :2], mid[1])
                 logger.info("%s %s: Recall@1 %s%% (revisit queries)", pair.name, m.name, run.summary["recall@1"])
             results["sequences"][pair.name] = seq_res
             if config.rotation_stress:

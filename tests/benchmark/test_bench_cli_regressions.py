@@ -62,6 +62,13 @@ def test_bench_keeps_every_query_folder_runs_each_method_once_and_clears_old_arr
     assert res["settings"]["pairs"]["alt2-q"]["query_folder"].endswith("alt2/q")
     assert sorted(p.relative_to(out / "per_query").as_posix() for p in (out / "per_query").rglob("*")
                   if p.is_file()) == ["alt-q/ringkey.npz", "alt2-q/ringkey.npz", "notes.txt"]
+    # both instants, each named (QA session 24: query_xy is the first-azimuth position, est_pose mid-sweep)
+    with np.load(out / "per_query" / "alt-q" / "ringkey.npz") as z:
+        qseq = load_sequence(tmp_path / "alt" / "q")
+        d = np.linalg.norm(z["query_xy"][:, None] - qseq.poses.poses[None, :, :2], axis=2)
+        rows = d.argmin(axis=1)  # the scans --limit kept
+        assert len(rows) == 4 and np.all(d.min(axis=1) < 1e-9)
+        np.testing.assert_allclose(z["query_pose_mid_sweep"], qseq.mid_sweep_poses()[rows])
     # the same folder twice is refused before anything runs
     r = _bench(["--database", str(db.root), "--query", str(q.root), "--query", str(q.root), *FAST,
                 "--out", str(tmp_path / "out2")])
