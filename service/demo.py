@@ -46,7 +46,8 @@ class QueryTruth:
 
 
 def read_queries_csv(path: str | Path) -> list[QueryTruth]:
-    """Read ``queries.csv``: columns ``file,timestamp_us,x_m,y_m,yaw_deg``."""
+    """Read ``queries.csv``: columns ``file,timestamp_us,x_m,y_m,yaw_deg`` (the scan's timestamp, its first
+    azimuth; the ground-truth map pose at mid-sweep, the instant answers refer to)."""
     with Path(path).open(newline="") as fh:
         return [QueryTruth(r["file"], int(r["timestamp_us"]), float(r["x_m"]), float(r["y_m"]), float(r["yaw_deg"]))
                 for r in csv.DictReader(fh)]
