@@ -24,7 +24,7 @@ import numpy as np
 
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
-from reradar_core.geometry.se2 import compose
+from reradar_core.geometry.se2 import compose, inverse
 from reradar_core.localization.confidence import (
     ConfidenceCues,
     ConfidenceModel,
@@ -39,6 +39,8 @@ from reradar_core.matching import (
     AlignmentConfig,
     LandmarkGrid,
     RansacConfig,
+    build_landmark_grid,
+    count_aligned,
     estimate_pose_guided,
     estimate_rigid_2d,
     match_descriptors,
@@ -163,6 +165,11 @@ class LocalizationConfig:
             refused 6 and 42 correct answers. A radius of 15 m / 10 m refused 7 / 72 correct answers more; at 20 m a
             copy of the place 21-25 m away is not a rival for every keyframe, so 2-5 of the 8 demo queries on a map
             holding the demo drive twice 21-25 m apart were still answered on the wrong copy (QA re-test).
+        verify_ties: ``guided`` only: screened candidates whose score lies within ``min_place_margin`` of the best
+            one's are verified too, at most this many beyond ``verify_k`` (0: off). Keyframes a few metres apart
+            screen alike, and the order among them is chance: a reversed drive's scan screened 0.664 on a keyframe
+            11 m away and on one 1 m away, the first was verified alone and answered 10 m off along the road at
+            confidence 0.9998 (QA, session 24); verified, the near one aligns more landmarks and wins.
     """
 
     top_k: int = 10
@@ -186,6 +193,7 @@ class LocalizationConfig:
     prescreen_hypotheses: int = 1000
     min_place_margin: float | None = 0.02
     place_margin_radius_m: float = 20.0
+    verify_ties: int = 3
 
     @property
     def prescreen_alignment(self) -> AlignmentConfig:
@@ -227,6 +235,8 @@ class LocalizationConfig:
             raise ConfigError(f"pose_method must be 'guided' or 'mutual_nn', got {self.pose_method!r}")
         if self.min_confidence is not None and not 0.0 <= self.min_confidence <= 1.0:
             raise ConfigError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
+        if self.verify_ties < 0:
+            raise ConfigError(f"verify_ties must be >= 0, got {self.verify_ties}")
         if self.prescreen_keep is not None and self.prescreen_keep < 1:
             raise ConfigError(f"prescreen_keep must be >= 1 or None, got {self.prescreen_keep}")
         if self.min_place_margin is not None and not 0.0 <= self.min_place_margin <= 1.0:
@@ -501,9 +511,14 @@ def _verify_and_decide(query: ScanFeatures, ordered: list[Candidate], scores: di
                        done: dict[int, CandidateVerification], config: LocalizationConfig,
                        timings: dict[str, float], t0: float) -> LocalizationResult:
     """Verify the best-screened candidates not verified yet (into ``done``) and decide over all of ``done``."""
+    ties: list[Candidate] = []  # screened as well as the best, checked after it (``verify_ties``)
     if scores:
         fresh = [c for c in sorted(ordered, key=lambda c: (-scores[c.rank], c.rank)) if c.rank not in done]
         keep = [c.rank for c in fresh[: config.verify_k]]
+        if config.verify_ties > 0 and config.min_place_margin is not None:
+            top = max(scores.values())
+            ties = [c for c in fresh[config.verify_k:]
+                    if scores[c.rank] >= top - config.min_place_margin][: config.verify_ties]
     else:
         keep = [c.rank for c in ordered]
     by_rank = {c.rank: c for c in ordered}
@@ -511,7 +526,10 @@ def _verify_and_decide(query: ScanFeatures, ordered: list[Candidate], scores: di
         done[r] = v = verify_candidate(query, by_rank[r], config, timings)
         if (config.stop_verify_ratio is not None and v.T_keyframe_query is not None
                 and v.num_inliers >= config.min_inliers and v.inlier_ratio >= config.stop_verify_ratio):
+            ties = []
             break
+    if ties:
+        _verify_inconsistent_ties(query, ties, scores, done, config, timings)
     verified = [done[c.rank] if c.rank in done else _screened_out(c) for c in ordered]
     for v in verified:
         v.screen_score = scores.get(v.rank)
@@ -541,6 +559,32 @@ def _verify_and_decide(query: ScanFeatures, ordered: list[Candidate], scores: di
     T_map_query = compose(best.T_map_keyframe, best.T_keyframe_query)
     return LocalizationResult("localized", None, best, np.asarray(T_map_query, np.float64), verified, timings,
                               confidence, cues)
+
+
+def _verify_inconsistent_ties(query: ScanFeatures, ties: list[Candidate], scores: dict[int, float],
+                              done: dict[int, CandidateVerification], config: LocalizationConfig,
+                              timings: dict[str, float]) -> None:
+    """``verify_ties``: verify each candidate that screened as well as the best one (within ``min_place_margin``)
+    when the answer verified so far, seen from that candidate's keyframe, aligns clearly fewer of the query's
+    landmarks than the candidate's own screen did: its screen found another pose, as good, and which of the two
+    the screen order put first is chance. An answer that agrees with the tie (the usual case: keyframes a few
+    metres apart seeing one place) costs one alignment count per tie, not a verification."""
+    verified = [v for v in done.values() if v.T_keyframe_query is not None]
+    if not verified:
+        return
+    best = max(verified, key=lambda v: (v.num_inliers, -v.rank))
+    assert best.T_keyframe_query is not None
+    T_map_query = compose(best.T_map_keyframe, best.T_keyframe_query)
+    n = int(query.keypoints_xy_m.shape[0])
+    margin = (config.min_place_margin or 0.0) * n
+    for c in ties:
+        grid = c.grid()
+        if grid is None:
+            grid = build_landmark_grid(c.resolve().keypoints_xy_m.astype(np.float64), config.alignment.grid_cell_m)
+        T_kf_query = compose(inverse(np.asarray(c.T_map_keyframe, np.float64)), T_map_query)
+        seen = int(count_aligned(T_kf_query, query.keypoints_xy_m, grid, config.alignment.score_threshold_m)[0])
+        if seen < scores[c.rank] * n - margin:
+            done[c.rank] = verify_candidate(query, c, config, timings)
 
 
 def _place_margin(best: CandidateVerification, candidates: list[CandidateVerification],

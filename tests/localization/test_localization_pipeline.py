@@ -299,3 +299,32 @@ def test_periodic_place_is_not_localized_as_ambiguous() -> None:
     cfg = LocalizationConfig(alignment=AlignmentConfig(top_k_matches=8))
     res = localize(query, _candidates([kf], np.zeros((1, 3)), [0]), cfg)
     assert res.status == "not_localized" and res.reason == REASON_AMBIGUOUS
+
+
+def test_a_tie_in_the_screen_whose_pose_disagrees_is_verified_too() -> None:
+    """QA (session 24): two keyframes 10 m apart screened alike, the first in order was verified alone and its
+    answer, 10 m off along the road, passed (confidence 0.9998). Here keyframe 0 (retrieval rank 0) holds 100 of the
+    query's landmarks as seen from its own origin plus 23 more 1 m off (they count in the 1.5 m screen, not as 0.75 m
+    inliers): it screens best and answers 10 m off with 100 inliers. Keyframe 1, 10 m away, holds 120 of them as seen
+    from the truth: it screens within the 2 % margin, and the first answer seen from it aligns few landmarks, so it is
+    verified too and wins with 120 inliers. A tie that agrees with the answer costs no verification."""
+    rng = np.random.default_rng(11)
+    q_pts = rng.uniform(-60, 60, size=(150, 2))
+    desc = _unit(rng.normal(size=(150, 32)))
+    ang = rng.uniform(0, 2 * np.pi, 23)
+    off = q_pts[100:123] + np.column_stack([np.cos(ang), np.sin(ang)])
+    decoy = ScanFeatures(_unit(rng.normal(size=16)), np.vstack([q_pts[:100], off]), desc[:123].astype(np.float32), 0)
+    truth = ScanFeatures(_unit(rng.normal(size=16)), q_pts[30:], desc[30:].astype(np.float32), 1)
+    poses = np.array([[10.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    query = ScanFeatures(decoy.global_descriptor, q_pts + rng.normal(scale=0.02, size=q_pts.shape), desc, 99)
+    cfg = LocalizationConfig(min_confidence=0.0, stop_verify_ratio=0.9)
+    res = localize(query, _candidates([decoy, truth], poses, [0, 1]), cfg)
+    screen = {c.keyframe_id: c.screen_score for c in res.candidates}
+    assert screen[0] >= screen[1] >= screen[0] - 0.02  # a tie, the decoy first
+    assert res.localized and res.best.keyframe_id == 1 and res.best.num_inliers >= 115
+    np.testing.assert_allclose(res.T_map_query[:2], [0.0, 0.0], atol=0.2)
+    alone = localize(query, _candidates([decoy, truth], poses, [0, 1]),
+                     LocalizationConfig(min_confidence=0.0, stop_verify_ratio=0.9, verify_ties=0))
+    assert alone.best.keyframe_id == 0 and abs(alone.T_map_query[0] - 10.0) < 0.5  # before: 10 m off
+    with pytest.raises(ConfigError):
+        LocalizationConfig(verify_ties=-1)
