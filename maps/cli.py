@@ -16,7 +16,8 @@ def build_map_command(
     dataset: Path = typer.Option(..., "--dataset", help="Sequence folder (boreas, oxford or mulran layout)."),
     out: Path = typer.Option(..., "--out", help="Map file to write (.h5)."),
     layout: str | None = typer.Option(None, help="Dataset layout; detected when omitted."),
-    preset: str | None = typer.Option(None, help="Radar preset; from the dataset when omitted."),
+    preset: str | None = typer.Option(None, help="Radar preset; when omitted, a render's own or the layout's "
+                                      "(Oxford, MulRan); a Boreas folder must name it (boreas or boreas-2021)."),
     time_unit: str | None = typer.Option(None, "--time-unit", help="Unit of the pose file's timestamps (s, ms, "
                                          "us, ns) when they are not absolute UTC times; never guessed."),
     batch_size: int = typer.Option(8, min=1, help="Scans per network batch."),

@@ -130,7 +130,7 @@ def register(app: typer.Typer) -> None:
         Read the output with `reradar info` or `localize`. It holds scans only: for `build-map --dataset` or
         `bench`, put them in a sequence folder as SEQ/radar/<t_us>.png and add a pose file with one pose per
         scan time (SEQ/applanix/radar_poses.csv in the Boreas layout: GPSTime,easting,northing,...,heading;
-        relative times need --time-unit).
+        relative times need --time-unit), and pass the --preset used here (a Boreas folder must name its preset).
         """
         from reradar_core.io.importer import ForeignScanLayout, import_polar_scan
         from reradar_core.io.scan import write_navtech_png

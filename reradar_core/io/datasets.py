@@ -46,7 +46,7 @@ from reradar_core.io.poses import (
     write_boreas_radar_poses,
     write_mulran_global_pose,
 )
-from reradar_core.io.presets import RadarPreset, get_preset, mid_sweep_times_us
+from reradar_core.io.presets import PRESETS, RadarPreset, get_preset, mid_sweep_times_us
 from reradar_core.io.scan import RadarScan, read_navtech_png, write_navtech_png
 
 __all__ = [
@@ -284,6 +284,14 @@ def write_sequence_meta(root: str | Path, meta: dict) -> Path:
     return p
 
 
+def _layout_presets_ambiguous(layout: str) -> bool:
+    """True when the radar presets of ``layout`` differ in range geometry (Boreas: boreas / boreas-2021), so a
+    folder of that layout must name its preset."""
+    fits = [q for q in PRESETS.values() if q.dataset_layout == layout]
+    return any((q.range_resolution_m, q.range_offset_m) != (fits[0].range_resolution_m, fits[0].range_offset_m)
+               for q in fits[1:])
+
+
 def load_sequence(path: str | Path, layout: str | None = None,
                   preset: str | RadarPreset | None = None, pose_time_unit: str | None = None) -> Sequence:
     """Open a radar sequence folder in one of the real layouts (see the module docstring).
@@ -291,7 +299,8 @@ def load_sequence(path: str | Path, layout: str | None = None,
     Args:
         path: the sequence folder.
         layout: ``boreas``, ``oxford`` or ``mulran``; detected from the folder structure when None.
-        preset: radar preset; when None, the simulator metadata's preset or the layout's default.
+        preset: radar preset; when None, the simulator metadata's preset or the layout's own (Oxford, MulRan);
+            a Boreas folder without simulator metadata must name it (boreas or boreas-2021: other bin sizes).
         pose_time_unit: unit of the Boreas / MulRan pose file's timestamps (``s``, ``ms``, ``us``, ``ns``);
             None: absolute UTC times or the format's unit, never a guess (``reradar_core.io.poses``).
 
@@ -309,6 +318,14 @@ def load_sequence(path: str | Path, layout: str | None = None,
     if layout not in LAYOUTS:
         raise DatasetError(f"unknown dataset layout {layout!r}; choose one of {LAYOUTS}")
     meta = read_sequence_meta(root)
+    if preset is None and "preset" not in meta and _layout_presets_ambiguous(layout):
+        # a real Boreas folder: the 3,360-bin scans fit boreas and boreas-2021, whose bins differ by 36 %; the layout's
+        # default read every range of a 2021 recording 1.36x too long and answered 1.5 m off at confidence 1 (QA)
+        fits = [q for q in PRESETS.values() if q.dataset_layout == layout]
+        raise DatasetError(
+            f"{root}: a {layout}-layout folder does not say which radar recorded it, and its presets differ in "
+            f"range geometry ({', '.join(f'{q.name} {q.range_resolution_m} m/bin' for q in fits)}): pass the "
+            "one it was recorded with (--preset; Boreas: boreas before the sensor upgrade, boreas-2021 after)")
     recorded = get_preset(meta.get("preset", _DEFAULT_PRESET[layout]))
     p = get_preset(preset) if preset is not None else recorded
     if preset is not None and (p.range_resolution_m, p.range_offset_m) != (recorded.range_resolution_m,

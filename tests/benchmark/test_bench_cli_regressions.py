@@ -64,14 +64,14 @@ def test_bench_keeps_every_query_folder_runs_each_method_once_and_clears_old_arr
                   if p.is_file()) == ["alt-q/ringkey.npz", "alt2-q/ringkey.npz", "notes.txt"]
     # both instants, each named (QA session 24: query_xy is the first-azimuth position, est_pose mid-sweep)
     with np.load(out / "per_query" / "alt-q" / "ringkey.npz") as z:
-        qseq = load_sequence(tmp_path / "alt" / "q")
+        qseq = load_sequence(tmp_path / "alt" / "q", preset="boreas")
         d = np.linalg.norm(z["query_xy"][:, None] - qseq.poses.poses[None, :, :2], axis=2)
         rows = d.argmin(axis=1)  # the scans --limit kept
         assert len(rows) == 4 and np.all(d.min(axis=1) < 1e-9)
         np.testing.assert_allclose(z["query_pose_mid_sweep"], qseq.mid_sweep_poses()[rows])
     # the same folder twice is refused before anything runs
-    r = _bench(["--database", str(db.root), "--query", str(q.root), "--query", str(q.root), *FAST,
-                "--out", str(tmp_path / "out2")])
+    r = _bench(["--database", str(db.root), "--query", str(q.root), "--query", str(q.root), "--preset", "boreas",
+                *FAST, "--out", str(tmp_path / "out2")])
     assert r.exit_code == 2 and "names the same folder as --query" in r.output
 
 
@@ -96,9 +96,11 @@ def test_a_query_recorded_with_another_radar_names_both_recordings(loop_sequence
     _, db, q = loop_sequences
     shutil.copytree(q.root, tmp_path / "q_mulran")
     write_sequence_meta(tmp_path / "q_mulran", {"preset": "mulran"})
+    shutil.copytree(db.root, tmp_path / "db-run")  # a Boreas folder names its preset (session 24: never the default)
+    write_sequence_meta(tmp_path / "db-run", {"preset": "boreas"})
     with pytest.raises(ConfigError, match=r"database .*db-run was recorded with radar preset 'boreas' and the query "
                                           r".*q_mulran with 'mulran'.*\+0\.2 %.*read at 99\.86 m"):
-        pairs_from_folders(db.root, [tmp_path / "q_mulran"])
+        pairs_from_folders(tmp_path / "db-run", [tmp_path / "q_mulran"])
 
 
 @pytest.fixture(scope="module")
@@ -116,8 +118,8 @@ def test_pose_times_read_in_a_unit_1000x_too_coarse_are_refused(relative_us, uni
     """QA 2: --time-unit s on relative µs placed every scan on the drive's first metres (Recall@1 100 %)."""
     with pytest.raises(DatasetError, match=rf"read as {unit} span .* every scan would be placed on .*pass "
                                            r"--time-unit us"):
-        load_sequence(relative_us, pose_time_unit=unit)
-    seq = load_sequence(relative_us, pose_time_unit="us")
+        load_sequence(relative_us, preset="boreas", pose_time_unit=unit)
+    seq = load_sequence(relative_us, preset="boreas", pose_time_unit="us")
     assert seq.poses.path_length_m() > 250.0
 
 

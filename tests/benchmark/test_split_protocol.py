@@ -122,9 +122,9 @@ def test_cli_split_at_on_a_folder_uses_every_scan_by_default(one_session, tmp_pa
     assert "correct rejection (%)" in md and "`not_localized`" in md
     # a split takes both halves from one sequence; a query folder with it is refused with a clear message
     bad = CliRunner().invoke(app, ["bench", "--database", str(one_session.root), "--query", str(one_session.root),
-                                   "--split-at", "12", "--out", str(tmp_path / "x")])
+                                   "--split-at", "12", "--preset", "boreas", "--out", str(tmp_path / "x")])
     assert bad.exit_code == 2 and "without --query" in bad.output
-    bad = CliRunner().invoke(app, ["bench", "--database", str(one_session.root), "--split-at", "40",
+    bad = CliRunner().invoke(app, ["bench", "--database", str(one_session.root), "--split-at", "40", "--preset", "boreas",
                                    "--out", str(tmp_path / "x")])
     assert bad.exit_code == 2 and "must both be non-empty" in bad.output
 

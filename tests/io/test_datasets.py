@@ -153,7 +153,7 @@ def test_boreas_folder_with_relative_gpstime_is_refused_unless_simulated(tmp_pat
     _write_scans(real, "boreas", times)
     write_boreas_radar_poses(_track(np.asarray(times)), real / "applanix" / "radar_poses.csv")
     with pytest.raises(PoseFileError, match="ambiguous"):
-        load_sequence(real)
+        load_sequence(real, preset="boreas")
     sim = tmp_path / "sim"
     _write_scans(sim, "boreas", times)
     write_boreas_radar_poses(_track(np.asarray(times)), sim / "applanix" / "radar_poses.csv")
@@ -205,3 +205,19 @@ def test_binary_pose_file_is_a_pose_file_error(tmp_path):
     path.write_bytes(bytes(range(256)) * 4)
     with pytest.raises(PoseFileError, match="not a text pose file"):
         read_poses(path, "s")
+
+
+def test_a_boreas_folder_must_name_its_radar_preset(tmp_path):
+    """QA (session 24): a real Boreas folder read without a preset got the layout's default, boreas (0.0596 m/bin);
+    a 2021 recording (boreas-2021, 0.04381 m/bin, the same 3,360 bins) had every range 1.36x too long and was answered
+    1.5 m off at confidence 1. Without simulator metadata a Boreas folder must name its preset; Oxford and MulRan,
+    one range geometry each, need none."""
+    times = [1_600_000_000_000_000, 1_600_000_000_250_000, 1_600_000_000_500_000]
+    real = tmp_path / "real"
+    _write_scans(real, "boreas", times)
+    write_boreas_radar_poses(_track(np.asarray(times)), real / "applanix" / "radar_poses.csv")
+    with pytest.raises(DatasetError, match=r"boreas 0.0596 m/bin, boreas-2021 0.04381 m/bin.*--preset"):
+        load_sequence(real)
+    assert load_sequence(real, preset="boreas-2021").preset.range_resolution_m == pytest.approx(0.04381)
+    write_sequence_meta(real, {"preset": "boreas-2021"})  # a render names its own
+    assert load_sequence(real).preset.name == "boreas-2021"

@@ -52,7 +52,7 @@ def _sequence(root: Path, n: int = 7) -> PoseSequence:
 def test_build_from_boreas_sequence(tmp_path: Path) -> None:
     truth = _sequence(tmp_path / "seq")
     ext = CountingExtractor()
-    out = build_map_from_sequence(tmp_path / "seq", tmp_path / "m.h5", ext, batch_size=3)
+    out = build_map_from_sequence(tmp_path / "seq", tmp_path / "m.h5", ext, batch_size=3, preset="boreas")
     assert ext.batches == [3, 3, 1]
     with open_map(out, "counting", "c" * 64) as m:
         assert len(m) == 7 and m.metadata.radar_preset == "boreas" and m.metadata.name == "seq"
@@ -68,7 +68,8 @@ def test_build_from_boreas_sequence(tmp_path: Path) -> None:
 
 def test_keyframe_spacing_and_keypoint_cap(tmp_path: Path) -> None:
     _sequence(tmp_path / "seq")
-    out = build_map_from_sequence(tmp_path / "seq", tmp_path / "m.h5", CountingExtractor(), min_spacing_m=7.0,
+    out = build_map_from_sequence(tmp_path / "seq", tmp_path / "m.h5", CountingExtractor(), preset="boreas",
+                                  min_spacing_m=7.0,
                                   max_keypoints=3)
     with open_map(out) as m:
         # scans 0, 2, 4, 6 at mid-sweep (+1.995 m; the last clamped at the pose file's end)
@@ -110,8 +111,9 @@ def test_build_map_takes_the_pose_time_unit_it_asks_for(tmp_path: Path) -> None:
     relative = PoseSequence(ts, np.column_stack([np.arange(7) * 4.0, np.full(7, 2.0)]), np.zeros(7))
     write_sequence_poses(tmp_path / "seq", "boreas", relative)
     with pytest.raises(TimeUnitError, match="--time-unit"):
-        build_map_from_sequence(tmp_path / "seq", tmp_path / "m.h5", CountingExtractor())
-    out = build_map_from_sequence(tmp_path / "seq", tmp_path / "m.h5", CountingExtractor(), time_unit="us")
+        build_map_from_sequence(tmp_path / "seq", tmp_path / "m.h5", CountingExtractor(), preset="boreas")
+    out = build_map_from_sequence(tmp_path / "seq", tmp_path / "m.h5", CountingExtractor(), preset="boreas",
+                                  time_unit="us")
     with open_map(out) as m:
         np.testing.assert_array_equal(m.timestamps_us, relative.timestamps_us)
     res = CliRunner().invoke(app, ["build-map", "--dataset", str(tmp_path / "seq"), "--out", str(tmp_path / "n.h5"),
