@@ -114,10 +114,13 @@ class Sequence:
         A scanning radar turns once while the vehicle moves (4 Hz: 2.5 m at 10 m/s), so a registration of two
         whole sweeps aligns their mid-sweep poses, not their first-azimuth poses: keyframe poses and pose
         ground truth are taken at mid-sweep (docs/CONVENTIONS.md). Interpolated in the pose file's trajectory
-        (linear, clamped at its ends).
+        (linear; up to ``POSE_SPAN_SLACK_US`` beyond its ends, where scans are accepted, its end steps continued:
+        a pose file ending at the last scan's timestamp held that scan's mid-sweep pose ~1 m back, QA session 24).
         """
         track = self.track if self.track is not None and len(self.track) else self.poses
-        return track.interpolate(mid_sweep_times_us(self.timestamps_us, self.preset))
+        # the slack scans may lie beyond the pose file, plus the half sweep to their mid-sweep time
+        reach_us = POSE_SPAN_SLACK_US + int(round(self.preset.sweep_period_s * 1e6))
+        return track.interpolate(mid_sweep_times_us(self.timestamps_us, self.preset), extrapolate_us=reach_us)
 
     def load_scan(self, i: int) -> RadarScan:
         """Read scan ``i`` (Navtech PNG) with this sequence's preset."""
@@ -349,7 +352,9 @@ def load_sequence(path: str | Path, layout: str | None = None,
         pose_file = root / "global_pose.csv"
         if not pose_file.is_file():
             raise DatasetError(f"{root}: missing global_pose.csv")
-        track = read_mulran_global_pose(pose_file, pose_time_unit).sorted()
+        # ns by the format; our simulator's folders hold relative ns (e.g. from 1,000 s = 1e12 ns, which reads as an
+        # absolute time in ms: QA session 24), so a render is read in ns, as the Boreas branch reads it in µs
+        track = read_mulran_global_pose(pose_file, pose_time_unit or ("ns" if meta else None)).sorted()
     else:
         pose_file = _oxford_odometry_path(root)
         track = read_oxford_odometry(pose_file)
@@ -370,7 +375,7 @@ def load_sequence(path: str | Path, layout: str | None = None,
         unit_used = pose_time_unit or ("us" if layout == "boreas" and meta else "ns" if layout == "mulran" else None)
         check_pose_time_unit(track, stamps, unit_used, str(pose_file))
         check_pose_span(track, stamps, [str(p) for p in paths], str(pose_file))
-        interp = track.interpolate(stamps)
+        interp = track.interpolate(stamps, extrapolate_us=POSE_SPAN_SLACK_US)  # scans within the span's slack
         poses = PoseSequence(stamps, interp[:, :2], interp[:, 2])
     return Sequence(root.name, p, layout, paths, stamps, poses, root, track.sorted())
 
@@ -390,8 +395,9 @@ def range_grid_difference(recorded: RadarPreset, read_as: RadarPreset, at_m: flo
 #: path, was read in a unit 1000x too coarse (a 1e3 unit error gives 1e3 or more; a folder of a real drive's scans
 #: covers the pose file's span up to the drive's start and end)
 POSE_UNIT_SPAN_RATIO = 500.0
-#: ... and the pose file's path is longer than this, metres (a drive, not a vehicle standing still)
-POSE_UNIT_MIN_PATH_M = 50.0
+#: ... and the pose file's path is longer than this, metres (a drive, not a vehicle standing still; 50 m until
+#: session 24, which let a 47.5 m clip read in ms instead of µs place every scan on its first pose: QA)
+POSE_UNIT_MIN_PATH_M = 5.0
 #: ... and the scans' interpolated path is shorter than this fraction of it
 POSE_UNIT_PATH_FRACTION = 0.01
 

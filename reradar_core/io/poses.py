@@ -107,8 +107,14 @@ class PoseSequence:
     def subset(self, index: np.ndarray | slice) -> PoseSequence:
         return PoseSequence(self.timestamps_us[index], self.xy[index], self.yaw[index])
 
-    def interpolate(self, t_us: np.ndarray | int) -> np.ndarray:
+    def interpolate(self, t_us: np.ndarray | int, extrapolate_us: int = 0) -> np.ndarray:
         """Poses at times ``t_us`` by linear interpolation (yaw on the circle), clamped at the ends.
+
+        Args:
+            extrapolate_us: times up to this far beyond the first / last pose continue the first / last step's
+                motion (linear, yaw too) instead of holding the end pose; farther ones are clamped. 0 (default):
+                clamped. A scan's mid-sweep time lies half a sweep after its timestamp, so a pose file ending at the
+                last scan held its pose ~1 m back at driving speed (QA, session 24).
 
         Returns:
             (..., 3) float64 (x, y, yaw) with the shape of ``t_us`` plus a trailing 3.
@@ -118,8 +124,18 @@ class PoseSequence:
         x = np.interp(t, ts, self.xy[:, 0])
         y = np.interp(t, ts, self.xy[:, 1])
         yaw_unwrapped = np.unwrap(self.yaw)
-        yaw = wrap_angle(np.interp(t, ts, yaw_unwrapped))
-        return np.stack([x, y, yaw], axis=-1)
+        yaw_u = np.interp(t, ts, yaw_unwrapped)
+        if extrapolate_us > 0 and len(ts) >= 2:
+            for end, nxt, beyond in ((-1, -2, (t > ts[-1]) & (t <= ts[-1] + extrapolate_us)),
+                                     (0, 1, (t < ts[0]) & (t >= ts[0] - extrapolate_us))):
+                if not beyond.any():
+                    continue
+                dt = ts[end] - ts[nxt]
+                frac = (t[beyond] - ts[end]) / dt  # in steps of the end segment (dt of either sign)
+                x[beyond] = self.xy[end, 0] + frac * (self.xy[end, 0] - self.xy[nxt, 0])
+                y[beyond] = self.xy[end, 1] + frac * (self.xy[end, 1] - self.xy[nxt, 1])
+                yaw_u[beyond] = yaw_unwrapped[end] + frac * (yaw_unwrapped[end] - yaw_unwrapped[nxt])
+        return np.stack([x, y, wrap_angle(yaw_u)], axis=-1)
 
     def path_length_m(self) -> float:
         return float(np.sum(np.linalg.norm(np.diff(self.xy, axis=0), axis=1)))

@@ -221,3 +221,52 @@ def test_a_boreas_folder_must_name_its_radar_preset(tmp_path):
     assert load_sequence(real, preset="boreas-2021").preset.range_resolution_m == pytest.approx(0.04381)
     write_sequence_meta(real, {"preset": "boreas-2021"})  # a render names its own
     assert load_sequence(real).preset.name == "boreas-2021"
+
+
+def test_a_short_clip_read_in_a_unit_1000x_too_coarse_is_refused(tmp_path):
+    """QA (session 24): the unit check skipped pose files of 50 m of path or less, so a 19-scan, 47.5 m clip of relative
+    µs read with --time-unit ms placed every scan on its first pose (RingKey Recall@1 100 %, ReRadar 10 m off)."""
+    times = [k * 250_000 for k in range(19)]
+    root = tmp_path / "clip"
+    _write_scans(root, "boreas", times)
+    write_boreas_radar_poses(_track(np.asarray(times)), root / "applanix" / "radar_poses.csv")  # 10.2 m/s, 46 m
+    for unit in ("ms", "s"):
+        with pytest.raises(DatasetError, match=r"every scan would be placed on 0\.0 m .*pass --time-unit us"):
+            load_sequence(root, preset="boreas", pose_time_unit=unit)
+    assert load_sequence(root, preset="boreas", pose_time_unit="us").poses.path_length_m() > 40.0
+
+
+def test_a_rendered_mulran_folder_is_read_in_ns_whatever_its_start(tmp_path):
+    """QA (session 24): a MulRan render whose times start at 1,000 s (1e12 ns) was refused as 'absolute times in ms'
+    and advised --time-unit ms (wrong); a render's MulRan times are ns by the format, as real ones."""
+    times = [1_000_000_000 + k * 250_000 for k in range(8)]  # µs: 1,000 s on
+    root = tmp_path / "m"
+    _write_scans(root, "mulran", times)
+    write_mulran_global_pose(_track(np.asarray(times)), root / "global_pose.csv")
+    with pytest.raises(PoseFileError, match="absolute times in ms"):  # without the render's marker: not guessed
+        load_sequence(root)
+    write_sequence_meta(root, {"preset": "mulran", "sim_version": "10"})
+    seq = load_sequence(root)
+    np.testing.assert_allclose(seq.poses.xy[:, 0], 10.0 * np.arange(8) * 0.25, atol=1e-6)
+
+
+def test_scans_just_past_the_pose_file_continue_its_motion(tmp_path):
+    """QA (session 24): scans up to 0.5 s past the last pose row are accepted, and were given the last pose held: a
+    pose file ending at the last scan's timestamp held that scan's mid-sweep pose (125 ms on) 1.3 m back at 10 m/s,
+    and two rows short put the last scan 2.5 m back. Within the slack the end step's motion now continues."""
+    times = [T0 + k * 250_000 for k in range(8)]
+    track = _track(np.asarray(times))  # 10 m/s along x, 2 m/s along y, yaw 0.1 rad/s
+    root = tmp_path / "seq"
+    _write_scans(root, "boreas", times)
+    write_boreas_radar_poses(track.subset(np.arange(6)), root / "applanix" / "radar_poses.csv")  # 2 rows short
+    seq = load_sequence(root, preset="boreas")
+    t = np.asarray(times, np.float64)
+    np.testing.assert_allclose(seq.poses.xy[:, 0], 10.0 * (t - T0) / 1e6, atol=1e-6)
+    mid = seq.mid_sweep_poses()
+    from reradar_core.io.presets import mid_sweep_times_us
+
+    tm = (mid_sweep_times_us(np.asarray(times), seq.preset) - T0) / 1e6
+    np.testing.assert_allclose(mid[:, 0], 10.0 * tm, atol=1e-6)
+    np.testing.assert_allclose(mid[:, 2], 0.1 * tm, atol=1e-9)
+    held = track.subset(np.arange(6)).interpolate(np.asarray(times[-1:]))  # the default still clamps
+    assert held[0, 0] == pytest.approx(track.xy[5, 0])

@@ -59,9 +59,9 @@ def test_build_from_boreas_sequence(tmp_path: Path) -> None:
         assert m.metadata.source.startswith("boreas:")
         np.testing.assert_array_equal(m.timestamps_us, truth.timestamps_us)
         # keyframe poses at mid-sweep (docs/CONVENTIONS.md): 124688 us after each scan time, 4 m per 0.25 s
-        # along x (the last one clamped at the pose file's end)
-        mid = truth.interpolate(truth.timestamps_us + 124_688)
-        np.testing.assert_allclose(mid[:6, 0] - truth.poses[:6, 0], 4.0 * 0.124688 / 0.25, atol=1e-6)
+        # along x (the last one, past the pose file's end, continues its last step)
+        mid = truth.interpolate(truth.timestamps_us + 124_688, extrapolate_us=750_000)
+        np.testing.assert_allclose(mid[:, 0] - truth.poses[:, 0], 4.0 * 0.124688 / 0.25, atol=1e-6)
         np.testing.assert_allclose(m.poses, mid, atol=1e-6)
         assert m.read_keyframe(6).keypoints_xy_m.shape == (5, 2)
 
@@ -72,8 +72,8 @@ def test_keyframe_spacing_and_keypoint_cap(tmp_path: Path) -> None:
                                   min_spacing_m=7.0,
                                   max_keypoints=3)
     with open_map(out) as m:
-        # scans 0, 2, 4, 6 at mid-sweep (+1.995 m; the last clamped at the pose file's end)
-        np.testing.assert_allclose(m.poses[:, 0], [1.995008, 9.995008, 17.995008, 24.0], atol=1e-6)
+        # scans 0, 2, 4, 6 at mid-sweep (+1.995 m; the last one past the pose file's end continues its last step)
+        np.testing.assert_allclose(m.poses[:, 0], [1.995008, 9.995008, 17.995008, 25.995008], atol=1e-6)
         assert m.read_keyframe(0).keypoints_xy_m.shape == (3, 2)
     poses = np.array([[0, 0, 0], [1, 0, 0], [5, 0, 0], [5.5, 0, 0], [10, 0, 0]], float)
     np.testing.assert_array_equal(select_keyframes(poses, 4.0), [0, 2, 4])
