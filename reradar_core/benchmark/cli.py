@@ -59,7 +59,8 @@ def bench(
                                              "(default: all baselines and every shipped ReRadar model; a method "
                                              "named twice runs once)."),
     out: Path | None = typer.Option(None, "--out", help="Output folder (default: cache/bench/<suite>). "
-                               "An earlier run's per_query/*/*.npz there are removed; other files stay."),
+                               "When the run completes, its per_query/*/*.npz replace an earlier run's there; "
+                               "a run that fails or is interrupted leaves them; other files stay."),
     radius: float | None = typer.Option(None, "--radius", callback=_positive, help="Correct-retrieval radius, metres (default: "
                                         "the suite's, or 25 OORD/Oxford, 20 MulRan/Boreas)."),
     every: int | None = typer.Option(None, "--every", min=1, help="Use every N-th scan (default 1: every scan of a "
@@ -74,7 +75,8 @@ def bench(
     split_sequence: str | None = typer.Option(None, "--split-sequence", help="Suite sequence to split with "
                                               "--split-at (default: the suite's database sequence)."),
     limit: int | None = typer.Option(None, "--limit", min=1, help="At most this many scans per sequence after "
-                                     "subsampling."),
+                                     "subsampling (evenly spread over the sequence, not the first N; "
+                                     "--query-limit, when given, replaces it for the query sequences)."),
     query_limit: int | None = typer.Option(None, "--query-limit", min=1, help="At most this many queries per query "
                                            "sequence (evenly spread; the database keeps its frames)."),
     rotation: bool = typer.Option(True, "--rotation/--no-rotation", help="Run the rotation stress test."),
@@ -95,7 +97,12 @@ def bench(
     from reradar_core.benchmark.extras import add_timing, add_yaw_consistency
     from reradar_core.benchmark.plots import make_all_plots
     from reradar_core.benchmark.results import results_markdown, write_results
-    from reradar_core.benchmark.runner import BenchConfig, run_benchmark
+    from reradar_core.benchmark.runner import (
+        BenchConfig,
+        commit_per_query,
+        discard_per_query_staging,
+        run_benchmark,
+    )
     from reradar_core.benchmark.suites import pairs_from_folders, pairs_from_suite, suite_spacing
     from reradar_core.paths import cache_dir, output_dir
     from reradar_core.threads import limit_blas_threads
@@ -103,6 +110,7 @@ def bench(
     torch.set_num_threads(max(1, threads))
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):  # BLAS libraries loaded later (scipy's) read these
         os.environ.setdefault(var, str(max(1, threads)))
+    staged: Path | None = None  # --out while this run's per-query arrays wait in its staging folder
     try:
         if (suite is None) == (database is None):
             raise typer.BadParameter("give either --suite NAME or --database DIR with --query DIR")
@@ -138,12 +146,11 @@ def bench(
         names, dropped = unique_methods(_split(methods) or default_method_names())
         if dropped:
             typer.echo(f"note: --methods names {', '.join(dropped)} more than once; each runs once")
-        method_objs = [make_method(n) for n in names]
-        objs_names, dropped = unique_methods([m.name for m in method_objs])  # e.g. 'ours' and the default model
-        if dropped:
-            typer.echo(f"note: --methods names the method {', '.join(dropped)} twice (as an alias); it runs once")
-            method_objs = [next(m for m in method_objs if m.name == n) for n in objs_names]
-            names = objs_names
+        method_objs, aliases = unique_method_objects([make_method(n) for n in names])
+        if aliases:  # e.g. 'ours' and the default model, 'netvlad' and 'resnet18-netvlad'
+            typer.echo("note: --methods names the method " + ", ".join(f"{a} (= {k})" for a, k in aliases)
+                       + " twice (as an alias); it runs once")
+            names = [m.name for m in method_objs]
         # every BLAS loaded by now (numpy's, scipy's, opencv's) gets --threads: two pools fighting over 2 cores
         # make the screen's descriptor product 20x slower (docs/BENCHMARKS.md, issue 12)
         limit_blas_threads(max(1, threads))
@@ -158,19 +165,28 @@ def bench(
                    if p.split else "")
             typer.echo(f"  {p.name}: database sequence {p.database.name!r} ({len(p.database)} scans), query "
                        f"sequence {p.query.name!r} ({len(p.query)} scans){cut}")
-        results = run_benchmark(pairs, method_objs, out_dir, cfg, suite=label)
+        staged = out_dir
+        results = run_benchmark(pairs, method_objs, out_dir, cfg, suite=label, commit=False)
         results["settings"].update(threads=threads, every=every if every is not None else (1 if suite is None
                                                                                             else "suite"),
                                    every_note=every_note, limit=limit, query_limit=query_limit, split_at=split_at,
                                    # where each learned method's network ran (ONNX Runtime or torch): its timings
                                    # depend on it (reradar_core.model.runtime)
                                    network_runtime={m.name: str(getattr(getattr(m, "extractor", None), "runtime", "torch"))
-                                                    for m in method_objs if getattr(m, "extractor", None) is not None})
+                                                    for m in method_objs if getattr(m, "extractor", None) is not None},
+                                   # the registry model each ReRadar method ran ('ours' = the default model)
+                                   method_models={m.name: str(getattr(m.extractor, "name", "") or "")  # type: ignore[attr-defined]
+                                                  for m in method_objs if getattr(m, "extractor", None) is not None},
+                                   # a run on recorded folders names the database folder, not a suite
+                                   database_folder=None if database is None else str(database))
         ours = [m for m in method_objs if m.provides_pose]
         if timing and ours:
             add_timing(results, _primary(ours), pairs[0], cfg, timing_scans, threads)
         if yaw_curve and ours and plots:
             add_yaw_consistency(results, ours, pairs[0], out_dir)
+        # the run is complete: its per-query arrays replace the earlier run's, then its results are written
+        commit_per_query(out_dir)
+        staged = None
         jpath, mpath = write_results(results, out_dir)
         figs = make_all_plots(results, out_dir) if plots else []
         # rewrite with the figure list (results.json is the single source for the docs)
@@ -179,8 +195,12 @@ def bench(
     except ReRadarError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
+    finally:
+        if staged is not None:  # failed or interrupted after the benchmark ran: the earlier arrays stay
+            discard_per_query_staging(staged)
     typer.echo(results_markdown(results))
-    typer.echo(f"wrote {jpath}, {mpath}" + (f" and {len(figs)} figures" if figs else ""))
+    n_figs = len(results.get("figures", []))  # the yaw-consistency curve included
+    typer.echo(f"wrote {jpath}, {mpath}" + (f" and {n_figs} figure{'' if n_figs == 1 else 's'}" if n_figs else ""))
 
 
 def _every_text(every: int) -> str:
@@ -203,6 +223,30 @@ def unique_methods(names: list[str]) -> tuple[list[str], list[str]]:
         else:
             seen.add(key)
             kept.append(n)
+    return kept, dropped
+
+
+def method_identity(method: object) -> tuple[str, str]:
+    """What makes two method objects the same method: their class and parameters (``params()``: for ReRadar the
+    weights' sha256), not their names (``ours`` is the default model under another name)."""
+    params: dict = getattr(method, "params", dict)()
+    cls = type(method)
+    return f"{cls.__module__}.{cls.__qualname__}", json.dumps(params, sort_keys=True, default=str)
+
+
+def unique_method_objects(methods: list) -> tuple[list, list[tuple[str, str]]]:
+    """``methods`` without a second object of the same method (``method_identity``), the first kept in order,
+    and for each dropped one (its name, the kept method's name)."""
+    kept: list = []
+    first: dict[tuple[str, str], str] = {}
+    dropped: list[tuple[str, str]] = []
+    for m in methods:
+        key = method_identity(m)
+        if key in first:
+            dropped.append((m.name, first[key]))
+        else:
+            first[key] = m.name
+            kept.append(m)
     return kept, dropped
 
 

@@ -90,7 +90,8 @@ def summarise(out: QueryOutcome, query_poses: np.ndarray, db_poses: np.ndarray, 
 
     Keys: ``recall@1`` / ``sr`` (over revisit queries, the headline) with their 95 % Wilson intervals
     ``recall@1_ci95`` / ``sr_ci95`` ([low, high] percent, over the same revisit queries: how far the figure may lie
-    from what many more such queries would give), ``recall@1_all`` / ``sr_all`` (over all queries), ``f1max``,
+    from what many more such queries would give), ``recall@1_all`` / ``sr_all`` (over all queries), ``f1max``
+    (None without a revisit query: F1 is undefined when no answer can be a true positive),
     ``e_r_deg``, ``e_t_m``, counts ``n_queries`` / ``n_revisit`` / ``n_no_match``,
     ``rejection`` (what rejected means, None = never rejects), on no-match queries ``correct_rejection_pct``,
     ``wrong_pose_no_match_pct`` and their counts, on revisit queries ``n_rejected_revisit`` and
@@ -126,7 +127,9 @@ def summarise(out: QueryOutcome, query_poses: np.ndarray, db_poses: np.ndarray, 
 
     return {"recall@1": pct(b.recall_at_1_revisit), "recall@1_ci95": ci95(out.correct),
             "sr": pct(b.sr_revisit), "sr_ci95": ci95(success),
-            "recall@1_all": pct(m.recall_at_1), "sr_all": pct(m.sr), "f1max": pct(m.f1_max),
+            "recall@1_all": pct(m.recall_at_1), "sr_all": pct(m.sr),
+            # no revisit query: no answer can be a true positive, recall and F1 are 0/0 (not 0)
+            "f1max": pct(m.f1_max) if b.n_revisit else None,
             "e_r_deg": val(m.e_r_deg), "e_t_m": val(m.e_t_m), "n_queries": int(m.n_queries),
             "n_revisit": b.n_revisit, "n_no_match": b.n_no_match, "rejection": REJECTION_RULES[sr_rule],
             "correct_rejection_pct": pct(b.correct_rejection_rate),

@@ -17,7 +17,7 @@ from reradar_core.baselines import BASELINES  # noqa: E402
 from reradar_core.benchmark.metrics import pr_curve  # noqa: E402
 
 __all__ = ["plot_pr_curves", "plot_trajectory_links", "plot_rotation_stress", "plot_yaw_consistency",
-           "is_ours", "make_all_plots"]
+           "is_ours", "make_all_plots", "rejected_queries"]
 
 _DPI = 90
 
@@ -42,8 +42,8 @@ def plot_pr_curves(results: dict[str, Any], per_query: Path, seq: str, path: Pat
         if d is None:
             continue
         p, rc = pr_curve(d["distance"], d["correct"], d["positive"])
-        ax.plot(rc, p, lw=2.2 if is_ours(m) else 1.3, ls="-" if is_ours(m) else "--",
-                label=f"{m} (F1max {r['f1max']:.1f})")
+        f1 = "–" if r.get("f1max") is None else f"{r['f1max']:.1f}"  # None: no revisit query
+        ax.plot(rc, p, lw=2.2 if is_ours(m) else 1.3, ls="-" if is_ours(m) else "--", label=f"{m} (F1max {f1})")
     ax.set_xlabel("recall")
     ax.set_ylabel("precision")
     ax.set_xlim(0, 1.01)
@@ -65,10 +65,23 @@ def strongest(results: dict[str, Any], seq: str, ours: bool) -> str | None:
     return max(rows, key=lambda m: (rows[m]["recall@1"] or 0.0, rows[m]["f1max"] or 0.0))
 
 
+def rejected_queries(row: dict[str, Any], est_pose: np.ndarray) -> np.ndarray:
+    """(Q,) bool: the queries ``row``'s method rejected (answered ``not_localized``: no pose).
+
+    Only a method with a rejection rule (results ``rejection`` not None: ReRadar) rejects; a retrieval-only
+    baseline has no pose either but answers every query, so none of its queries is rejected.
+    """
+    est = np.asarray(est_pose, dtype=np.float64).reshape(-1, 3)
+    if row.get("rejection") is None:
+        return np.zeros(len(est), dtype=bool)
+    return ~np.isfinite(est[:, 0])
+
+
 def plot_trajectory_links(results: dict[str, Any], per_query: Path, seq: str, path: Path,
                           methods: list[str] | None = None) -> Path:
-    """Database (solid) and query (dashed) paths with each query's retrieval link, green = correct, red =
-    wrong; one panel per method (default: the best of ours and the strongest baseline)."""
+    """Database (solid) and query (dashed) paths with each answered query's retrieval link, green = correct,
+    red = wrong; a query the method rejected (ReRadar's ``not_localized``) gets no link but a grey cross (one
+    panel per method, default: the best of ours and the strongest baseline)."""
     if methods is None:
         methods = [m for m in (strongest(results, seq, True), strongest(results, seq, False)) if m]
     fig, axes = plt.subplots(1, len(methods), figsize=(5.4 * len(methods), 5.0), squeeze=False)
@@ -76,15 +89,20 @@ def plot_trajectory_links(results: dict[str, Any], per_query: Path, seq: str, pa
         d = _load(per_query, seq, m)
         if d is None:
             continue
+        row = results["sequences"][seq][m]
         origin = d["db_xy"].min(axis=0)  # UTM-sized coordinates are unreadable on the axes
         q, db = d["query_xy"] - origin, d["db_xy"] - origin
         ax.plot(db[:, 0], db[:, 1], "k-", lw=1.2, label="database")
         ax.plot(q[:, 0], q[:, 1], "k--", lw=1.0, label="query")
-        segs = np.stack([q, db[d["retrieved"]]], axis=1)
-        colors = np.where(d["correct"][:, None], [[0.1, 0.65, 0.2, 0.8]], [[0.85, 0.1, 0.1, 0.8]])
+        rejected = rejected_queries(row, d["est_pose"])
+        shown = ~rejected
+        segs = np.stack([q[shown], db[d["retrieved"][shown]]], axis=1)
+        colors = np.where(d["correct"][shown, None], [[0.1, 0.65, 0.2, 0.8]], [[0.85, 0.1, 0.1, 0.8]])
         ax.add_collection(LineCollection(segs, colors=colors, linewidths=0.8))
-        ax.scatter(q[:, 0], q[:, 1], s=6, c=colors, zorder=3)  # short correct links are hard to see
-        row = results["sequences"][seq][m]
+        ax.scatter(q[shown, 0], q[shown, 1], s=6, c=colors, zorder=3)  # short correct links are hard to see
+        if rejected.any():
+            ax.scatter(q[rejected, 0], q[rejected, 1], s=14, marker="x", c=[[0.45, 0.45, 0.45, 0.9]], zorder=3,
+                       linewidths=0.8, label=f"rejected (no answer): {int(rejected.sum())}")
         r1 = row["recall@1"]
         n_rev = int(row.get("n_revisit", len(q)))
         r1_txt = "–" if r1 is None else f"{r1:.1f}%"
@@ -93,7 +111,7 @@ def plot_trajectory_links(results: dict[str, Any], per_query: Path, seq: str, pa
         ax.set_xlabel(f"x − {origin[0]:.0f} [m]")
         ax.set_ylabel(f"y − {origin[1]:.0f} [m]")
         ax.legend(fontsize=7, loc="best")
-    fig.suptitle(f"Retrieval links — {seq} (green: correct, red: wrong)", fontsize=9)
+    fig.suptitle(f"Retrieval links — {seq} (green: correct, red: wrong, grey cross: rejected)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=_DPI)
     plt.close(fig)

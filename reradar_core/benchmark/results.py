@@ -6,7 +6,8 @@ import json
 from pathlib import Path
 from typing import Any
 
-__all__ = ["write_results", "results_markdown", "signed_points", "METRIC_COLUMNS", "QUERY_KIND_COLUMNS", "REJECTION_NOTE"]
+__all__ = ["write_results", "results_markdown", "signed_points", "method_labels", "METRIC_COLUMNS", "QUERY_KIND_COLUMNS",
+           "REJECTION_NOTE"]
 
 #: (key in results.json, column header, format) of the paper's per-sequence columns (Recall@1 and SR over
 #: revisit queries, the headline).
@@ -44,9 +45,21 @@ def _best(rows: dict[str, dict[str, Any]], key: str) -> set[str]:
     return {m for m, v in vals.items() if abs(v - target) < 1e-9}
 
 
+def method_labels(settings: dict[str, Any]) -> dict[str, str]:
+    """Row label of each method in results.md: its name, and for a ReRadar method named otherwise than the model
+    it runs (``settings["method_models"]``: ``ours`` runs the default model) the model too:
+    ``ours (our-3-boreas-w05)``."""
+    labels = {}
+    for m, model in (settings.get("method_models") or {}).items():
+        labels[m] = f"{m} ({model})" if model and str(model) != m else m
+    return labels
+
+
 def _table(seqs: dict[str, dict[str, Any]], methods: list[str],
-           columns: tuple[tuple[str, str, str], ...]) -> list[str]:
-    """Methods as rows, per-sequence column groups, best value per column in bold."""
+           columns: tuple[tuple[str, str, str], ...], labels: dict[str, str] | None = None) -> list[str]:
+    """Methods as rows (``labels``: row label by method, default the name), per-sequence column groups, best
+    value per column in bold."""
+    labels = labels or {}
     head = "| Method | " + " | ".join(f"{seq}: {h}" for seq in seqs for _, h, _ in columns) + " |"
     lines = [head, "|" + "---|" * (1 + len(seqs) * len(columns))]
     best = {(seq, k): _best(rows, k) for seq, rows in seqs.items() for k, _, _ in columns}
@@ -57,7 +70,7 @@ def _table(seqs: dict[str, dict[str, Any]], methods: list[str],
             for k, _, fmt in columns:
                 c = _fmt(r.get(k), fmt)
                 cells.append(f"**{c}**" if m in best[(seq, k)] and c != "–" else c)
-        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        lines.append(f"| {labels.get(m, m)} | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -70,8 +83,11 @@ def signed_points(value: float) -> str:
 def results_markdown(results: dict[str, Any]) -> str:
     """Markdown like the paper's tables: methods as rows, per-sequence Recall@1 / F1max / SR / ê_r / ê_t
     column groups, best values in bold; then time per query, rotation stress and stage timings."""
-    lines = [f"# `reradar bench` results — suite `{results.get('suite')}`", ""]
     settings = results.get("settings", {})
+    folder = settings.get("database_folder")  # a run on recorded folders names no suite
+    source = f"database folder `{Path(folder).name}`" if folder else f"suite `{results.get('suite')}`"
+    lines = [f"# `reradar bench` results — {source}", ""]
+    labels = method_labels(settings)
     radius = settings.get("radius_m")
     lines.append(f"Correct retrieval within {radius} m. **Recall@1 and SR are over the revisit queries** (those "
                  f"with a database keyframe within {radius} m); the same over all queries (the paper's GT) and "
@@ -110,11 +126,11 @@ def results_markdown(results: dict[str, Any]) -> str:
     methods: list[str] = []
     for rows in seqs.values():
         methods += [m for m in rows if m not in methods]
-    lines += _table(seqs, methods, METRIC_COLUMNS)
+    lines += _table(seqs, methods, METRIC_COLUMNS, labels)
     lines.append("")
     lines += ["All queries, and queries without a match (correct rejection = rejected / no-match queries; wrong "
               "pose = answered with a pose that misses the SR rule / no-match queries):", ""]
-    lines += _table(seqs, methods, QUERY_KIND_COLUMNS)
+    lines += _table(seqs, methods, QUERY_KIND_COLUMNS, labels)
     lines += ["", REJECTION_NOTE, ""]
     counted = [m for m in methods if any(rows.get(m, {}).get("n_rejected_no_match") is not None
                                          for rows in seqs.values())]
@@ -132,12 +148,12 @@ def results_markdown(results: dict[str, Any]) -> str:
                 cells.append(f"{r['n_rejected_revisit']} / {r['n_wrong_pose_revisit']} of {r['n_revisit']}; "
                              f"{r['n_rejected_no_match']} / {r['n_wrong_pose_no_match']} / "
                              f"{r['n_correct_pose_no_match']} of {r['n_no_match']}")
-            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+            lines.append(f"| {labels.get(m, m)} | " + " | ".join(cells) + " |")
         lines.append("")
     lines += ["Time per query (features + retrieval + verification, ms, this machine):", "",
               "| Method | " + " | ".join(seqs) + " |", "|" + "---|" * (1 + len(seqs))]
     for m in methods:
-        lines.append(f"| {m} | " + " | ".join(_fmt(rows.get(m, {}).get("ms_per_query"), "{:.1f}")
+        lines.append(f"| {labels.get(m, m)} | " + " | ".join(_fmt(rows.get(m, {}).get("ms_per_query"), "{:.1f}")
                                              for rows in seqs.values()) + " |")
     lines.append("")
     posed = [m for m in methods if any(rows.get(m, {}).get("wrong_pose_pct") is not None for rows in seqs.values())]
@@ -145,7 +161,7 @@ def results_markdown(results: dict[str, Any]) -> str:
         lines += ["Wrong poses (% of queries answered `localized` with a pose that misses the SR rule; methods "
                   "that report a full pose):", "", "| Method | " + " | ".join(seqs) + " |", "|" + "---|" * (1 + len(seqs))]
         for m in posed:
-            lines.append(f"| {m} | " + " | ".join(_fmt(rows.get(m, {}).get("wrong_pose_pct"), "{:.2f}")
+            lines.append(f"| {labels.get(m, m)} | " + " | ".join(_fmt(rows.get(m, {}).get("wrong_pose_pct"), "{:.2f}")
                                                  for rows in seqs.values()) + " |")
         lines.append("")
     stress = results.get("rotation_stress")
@@ -162,7 +178,7 @@ def results_markdown(results: dict[str, Any]) -> str:
                 r = stress[s].get(m)
                 cells.append("–" if r is None or r.get("drop") is None else
                              f"{r['recall@1']:.2f} → {r['recall@1_rotated']:.2f} (Δ {signed_points(-r['drop'])})")
-            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+            lines.append(f"| {labels.get(m, m)} | " + " | ".join(cells) + " |")
         lines.append("")
     timing = results.get("timing")
     if timing:

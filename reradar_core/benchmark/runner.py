@@ -5,12 +5,18 @@ Stages (each a plain function): ``prepare_sequence`` (prepared records, cached o
 for all methods) -> ``evaluate_method`` (fit on the database, describe, retrieve / localize every query) ->
 ``metrics.summarise``. ``run_benchmark`` wires them for a list of (database, query) pairs and also runs the
 rotation stress test (the same queries turned by a random heading each).
+
+Per-query arrays are written to a staging folder inside the output folder (``per_query.staging``) and replace
+the earlier run's ``per_query/*/*.npz`` only when the run completes (``commit_per_query``): a run that fails or
+is interrupted leaves the earlier results.json, results.md and their per-query files as they were.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import os
+import shutil
 import time
 from collections.abc import Sequence as Seq
 from dataclasses import dataclass, field
@@ -29,9 +35,15 @@ from reradar_core.geometry.se2 import compose
 from reradar_core.io.datasets import Sequence
 
 __all__ = ["BenchPair", "BenchConfig", "PreparedSet", "prepare_sequence", "evaluate_method", "run_benchmark",
-           "sr_rule", "total_steps", "clear_per_query"]
+           "sr_rule", "total_steps", "clear_per_query", "commit_per_query", "discard_per_query_staging",
+           "min_database_scans", "check_database_sizes", "PER_QUERY_DIR", "PER_QUERY_STAGING_DIR"]
 
 logger = logging.getLogger(__name__)
+
+#: Folder of the per-query arrays inside the output folder (``<pair>/<method>.npz``).
+PER_QUERY_DIR = "per_query"
+#: Where a running benchmark writes them until it completes (same file system: each file moves by a rename).
+PER_QUERY_STAGING_DIR = "per_query.staging"
 
 
 @dataclass
@@ -235,6 +247,82 @@ def clear_per_query(folder: Path) -> list[Path]:
     return removed
 
 
+def _fresh_staging(out_dir: Path) -> Path:
+    """An empty ``out_dir/per_query.staging`` (one a killed run left behind is removed first)."""
+    staging = out_dir / PER_QUERY_STAGING_DIR
+    discard_per_query_staging(out_dir)
+    staging.mkdir(parents=True)
+    return staging
+
+
+def discard_per_query_staging(out_dir: Path) -> None:
+    """Remove the per-query arrays of a run that did not complete (``out_dir/per_query.staging``); the earlier
+    run's ``per_query`` stays as it was."""
+    staging = Path(out_dir) / PER_QUERY_STAGING_DIR
+    if staging.is_symlink() or staging.is_file():
+        staging.unlink()
+    elif staging.is_dir():
+        shutil.rmtree(staging)
+
+
+def commit_per_query(out_dir: Path) -> list[Path]:
+    """Replace the earlier run's ``out_dir/per_query/*/*.npz`` with the completed run's staged arrays.
+
+    The earlier arrays are removed (``clear_per_query``: other files there stay), each staged file is moved in
+    by a rename within ``out_dir``, and the staging folder is removed. Returns the paths now in ``per_query``.
+
+    Call it once the run has completed, right before its results.json is written: until then an interrupted or
+    failed run leaves the earlier results and their per-query files together.
+    """
+    out_dir = Path(out_dir)
+    staging, final = out_dir / PER_QUERY_STAGING_DIR, out_dir / PER_QUERY_DIR
+    clear_per_query(final)
+    moved: list[Path] = []
+    if staging.is_dir():
+        for f in sorted(staging.rglob("*.npz")):
+            dest = final / f.relative_to(staging)
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(f, dest)
+            moved.append(dest)
+    discard_per_query_staging(out_dir)
+    return moved
+
+
+def min_database_scans(method: PlaceRecognitionMethod) -> int:
+    """Fewest database scans ``method`` can be fitted on (1 for a method without a database fit).
+
+    ResNet18-NetVLAD calibrates ``num_clusters`` (64) NetVLAD centres by k-means on the database's local
+    descriptors, one per cell of the ResNet-18 conv5 map ((input_px / 32)^2 = 16 per scan at 128 px). With no
+    more descriptors than centres, every centre is a descriptor itself and the reference's alpha (from the
+    *indices* of each centre's two nearest descriptors) is 0/0 whenever the nearest neighbours pair up: 38 of
+    38 two-scan and 1 of 37 three-scan windows of a simulated Boreas drive, none from 4 scans on
+    (``baselines.resnet_netvlad.reference_alpha``). So it needs more descriptors than centres: 5 scans.
+    """
+    from reradar_core.baselines.resnet_netvlad import ResNetNetVLAD
+
+    if isinstance(method, ResNetNetVLAD):
+        per_scan = math.ceil(method.config.input_px / 32) ** 2
+        return method.config.num_clusters // per_scan + 1
+    return 1
+
+
+def check_database_sizes(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod]) -> None:
+    """Refuse, before any scan is read, a database too small for one of ``methods`` (``min_database_scans``).
+
+    Raises:
+        ConfigError: naming the method, the scans it needs and has, and how to go on without it.
+    """
+    for pair in pairs:
+        n = len(pair.database)
+        for m in methods:
+            need = min_database_scans(m)
+            if n < need:
+                raise ConfigError(
+                    f"{m.name} needs a database of at least {need} scans (it fits its vocabulary on the database), "
+                    f"but database {pair.database.name!r} of {pair.name!r} has {n}; give a longer database (a "
+                    f"smaller --every, a larger --limit or a later --split-at) or drop {m.name} from --methods")
+
+
 def _save_outcome(path: Path, run: MethodRun, query_xy: np.ndarray, db_xy: np.ndarray,
                   query_pose_mid_sweep: np.ndarray) -> None:
     """``per_query/<sequence>/<method>.npz`` (docs/BENCHMARKS.md, "Per-query files"): two instants, each named -
@@ -306,24 +394,43 @@ def total_steps(pairs: Seq[BenchPair], n_methods: int, config: BenchConfig) -> i
 
 
 def run_benchmark(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod], out_dir: Path,
-                  config: BenchConfig = BenchConfig(), suite: str | None = None) -> dict[str, Any]:
+                  config: BenchConfig = BenchConfig(), suite: str | None = None,
+                  commit: bool = True) -> dict[str, Any]:
     """Run every method on every pair; write per-query arrays under ``out_dir/per_query`` and return the
     results dict (``{"suite", "settings", "sequences": {SEQ: {METHOD: metrics}}, "rotation_stress"}``).
 
     With ``config.progress`` one overall tqdm bar (steps of ``total_steps``, with ETA) covers every method
     and sequence; its postfix names the current stage.
 
-    The ``.npz`` files an earlier run left under ``out_dir/per_query`` are removed first, so the folder holds
-    this run's arrays only (nothing else in ``out_dir`` is touched).
+    The arrays are written to ``out_dir/per_query.staging`` first and replace the ``.npz`` files an earlier run
+    left under ``out_dir/per_query`` only when every pair has run (``commit_per_query``), so the folder then
+    holds this run's arrays only (nothing else in ``out_dir`` is touched). A failed or interrupted run removes
+    its staging folder and leaves the earlier arrays. ``commit=False``: the caller commits (after the work it
+    still has to do, right before it writes results.json) or discards (``discard_per_query_staging``).
 
     Raises:
-        ConfigError: two pairs or two methods of one name (their results would overwrite each other)."""
+        ConfigError: two pairs or two methods of one name (their results would overwrite each other); a
+            database too small for a method (``check_database_sizes``). Both before anything is computed."""
     out_dir = Path(out_dir)
     for what, names in (("pair", [p.name for p in pairs]), ("method", [m.name for m in methods])):
         twice = sorted({n for n in names if names.count(n) > 1})
         if twice:
             raise ConfigError(f"two {what}s are named {twice[0]!r}: each needs its own name in the results")
-    clear_per_query(out_dir / "per_query")
+    check_database_sizes(pairs, methods)
+    staging = _fresh_staging(out_dir)
+    try:
+        results = _run_pairs(pairs, methods, staging, config, suite)
+        if commit:
+            commit_per_query(out_dir)
+    except BaseException:  # failed or interrupted (Ctrl-C): the earlier run's arrays stay
+        discard_per_query_staging(out_dir)
+        raise
+    return results
+
+
+def _run_pairs(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod], per_query: Path,
+               config: BenchConfig, suite: str | None) -> dict[str, Any]:
+    """``run_benchmark``'s work: every method on every pair, per-query arrays written under ``per_query``."""
     results: dict[str, Any] = {
         "suite": suite,
         "settings": {"radius_m": config.radius_m, "rotation_seed": config.rotation_seed,
@@ -362,9 +469,11 @@ def run_benchmark(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod], o
                                       fit=need_fit, label=f"{pair.name} ", bar=bar, pose_refs=mid)
                 fitted_on[m.name] = dkey
                 seq_res[m.name] = run.summary
-                _save_outcome(out_dir / "per_query" / pair.name / f"{m.name}.npz", run, q_poses[:, :2],
-                              db_poses[:, :2], mid[1])
-                logger.info("%s %s: Recall@1 %s%% (revisit queries)", pair.name, m.name, run.summary["recall@1"])
+                _save_outcome(per_query / pair.name / f"{m.name}.npz", run, q_poses[:, :2], db_poses[:, :2],
+                              mid[1])
+                r1 = run.summary["recall@1"]
+                logger.info("%s %s: %s", pair.name, m.name, "no revisit queries (Recall@1 not applicable)"
+                            if r1 is None else f"Recall@1 {r1:.2f}% (revisit queries)")
             results["sequences"][pair.name] = seq_res
             if config.rotation_stress:
                 results["rotation_stress"][pair.name] = _rotation_stress(pair, methods, dbp, qp, config, mid, bar)

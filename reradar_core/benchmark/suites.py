@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from reradar_core.benchmark.runner import BenchPair
-from reradar_core.errors import ConfigError
+from reradar_core.errors import ConfigError, DatasetError
 from reradar_core.io.datasets import (
     SIM_META_FILE,
     Sequence,
@@ -33,7 +33,7 @@ from reradar_core.io.presets import RadarPreset, get_preset
 from reradar_core.paths import distinct_folder_labels
 
 __all__ = ["subsample", "pairs_from_folders", "query_pair_names", "pairs_from_suite", "default_radius", "SplitSpec", "parse_split",
-           "split_index", "split_pair"]
+           "split_index", "split_pair", "per_run_odometry", "check_shared_map_frame", "check_scan_files"]
 
 
 @dataclass(frozen=True)
@@ -142,6 +142,7 @@ def pairs_from_folders(database: Path, queries: list[Path], preset: str | None =
     the pose files' timestamp unit where it cannot be told (``load_sequence``). Returns the pairs and the
     preset's radius."""
     full = load_sequence(database, layout, preset, time_unit)
+    check_scan_files(full)
     if split_at is not None:
         if queries:
             raise ConfigError("--split-at takes database and queries from one sequence: give --database DIR "
@@ -155,9 +156,62 @@ def pairs_from_folders(database: Path, queries: list[Path], preset: str | None =
     for q, name in zip(queries, names, strict=True):
         if preset is None:
             _check_recorded_presets_agree(database, db.preset, q)
-        qs = subsample(load_sequence(q, layout, preset or db.preset.name, time_unit), every, query_limit or limit)
-        pairs.append(BenchPair(name, db, qs))
+        q_full = load_sequence(q, layout, preset or db.preset.name, time_unit)
+        check_scan_files(q_full)
+        check_shared_map_frame(full, q_full)
+        pairs.append(BenchPair(name, db, subsample(q_full, every, query_limit or limit)))
     return pairs, default_radius(db.preset.name)
+
+
+def per_run_odometry(seq: Sequence) -> Path | None:
+    """The per-run odometry file ``seq``'s poses were integrated from, or None when they are in a map frame.
+
+    An Oxford-layout folder (Oxford RobotCar radar, OORD) takes its poses from ``gt/radar_odometry.csv`` (or
+    ``radar_odometry.csv``), integrated from the identity at the run's first scan (``io.datasets``): two runs
+    share no frame. Only a render of ``reradar sim`` records where that origin lies in its world
+    (``oxford_T_world_origin`` in ``reradar_sim.json``). Boreas ``applanix/radar_poses.csv`` and MulRan
+    ``global_pose.csv`` hold map-frame poses.
+    """
+    if seq.layout != "oxford" or "oxford_T_world_origin" in read_sequence_meta(seq.root):
+        return None
+    for cand in (seq.root / "gt" / "radar_odometry.csv", seq.root / "radar_odometry.csv"):
+        if cand.is_file():
+            return cand
+    return seq.root / "gt" / "radar_odometry.csv"
+
+
+def check_shared_map_frame(database: Sequence, query: Sequence) -> None:
+    """Refuse a database and a query run of which either has per-run odometry poses (``per_run_odometry``).
+
+    Each such run starts at the identity, so both would be placed at one origin whatever their true places:
+    revisits, Recall@1, SR and the rejection figures would all be wrong. A single run split with ``--split-at``
+    is one frame and is not checked here.
+
+    Raises:
+        ConfigError: naming the run and what to do (``--split-at``, or map-frame poses in
+            ``applanix/radar_poses.csv``).
+    """
+    for seq in (database, query):
+        odo = per_run_odometry(seq)
+        if odo is not None:
+            raise ConfigError(
+                f"{seq.root}: its poses come from {odo.relative_to(seq.root).as_posix()}, odometry that starts at "
+                "the identity in every run, so the database and query runs would be placed at the same origin and "
+                "every metric would be wrong; bench one run with --split-at, or give each run its poses in one map "
+                "frame as applanix/radar_poses.csv beside radar/ (Boreas columns: GPSTime, easting, northing, "
+                f"heading; the folder is then read in the Boreas layout: pass --preset {seq.preset.name})")
+
+
+def check_scan_files(seq: Sequence) -> None:
+    """Refuse a sequence whose scan list holds a folder (a directory named like ``2500000.png``) before any scan
+    is read.
+
+    Raises:
+        DatasetError: naming the folder.
+    """
+    for path in seq.scan_paths:
+        if Path(path).is_dir():
+            raise DatasetError(f"{path}: is a folder, not a scan file; move it out of {Path(path).parent}")
 
 
 def _check_recorded_presets_agree(database: Path, db_preset: RadarPreset, query: Path) -> None:

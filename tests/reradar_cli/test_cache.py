@@ -141,7 +141,7 @@ def test_training_and_bench_caches_record_their_source(tmp_path, monkeypatch):
         write_sequence_scan(seq_root, "boreas", RadarScan.from_power(np.zeros((400, 3360), np.float32), "boreas",
                                                                      start_time_us=int(t)))
     write_sequence_poses(seq_root, "boreas", PoseSequence(ts, np.zeros((2, 2)), np.zeros(2)))
-    cache_sequence(load_sequence(seq_root), width_px=21, margin_px=2, progress=False)
+    cache_sequence(load_sequence(seq_root, preset="boreas"), width_px=21, margin_px=2, progress=False)
     (folder,) = (tmp_path / "cache" / "training" / "cartesian").iterdir()
     assert json.loads((folder / CACHE_SOURCE_FILE).read_text()) == {"root": str(seq_root.resolve())}
     assert source_of(folder) == str(seq_root.resolve())
