@@ -159,7 +159,8 @@ def localize_command(
     preset: str | None = typer.Option(None, "--preset", help=(
         "Radar preset of the scan (boreas, boreas-2021, oxford, oord, mulran): its range geometry. Default: the "
         "server infers it from the range-bin count; a polar .npy's preset is inferred here, and refused when the "
-        "bin count fits several presets (3360: boreas, boreas-2021, mulran).")),
+        "bin count fits several presets (3360: boreas, boreas-2021, mulran). With --follow: the folder's "
+        "radar, sent with every scan (default: the folder's own, from its layout or simulator record).")),
     scan_layout: str | None = typer.Option(None, "--scan-layout", callback=_one_of("polar", "navtech"),
                                            help="What an .npy scan holds: polar (A x R power, the default) or "
                                                 "navtech (the Navtech PNG's pixels, metadata columns included)."),
@@ -182,6 +183,9 @@ def localize_command(
         "--follow: trajectory PNG, a .png file in an existing folder (default: <folder>-follow.png beside the "
         "folder); an existing folder gets <folder>-follow.png inside it. Checked before the replay starts.")),
     seed: int = typer.Option(0, help="--follow: seed of the odometry noise."),
+    time_unit: str | None = typer.Option(None, "--time-unit", callback=_one_of("s", "ms", "us", "ns"), help=(
+        "--follow: unit of the folder's pose-file timestamps (s, ms, us, ns) when they are not absolute UTC "
+        "times; never guessed (as build-map --time-unit).")),
 ) -> None:
     """Localize one scan with a running service (or replay a drive with --follow); prints the map-frame pose
     (metres, degrees). Exit status: 0 localized, 1 not localized (--follow: a localized answer off the ground
@@ -196,6 +200,10 @@ def localize_command(
     logging.getLogger("httpx").setLevel(logging.WARNING)
     if (scan is None) == (follow is None):
         typer.echo("error: give one SCAN file or --follow SEQUENCE_DIR", err=True)
+        raise typer.Exit(2)
+    if time_unit is not None and follow is None:
+        typer.echo("error: --time-unit is the unit of a --follow folder's pose times; a single scan carries its "
+                   "own time (drop --time-unit, or replay a folder with --follow DIR)", err=True)
         raise typer.Exit(2)
     if odometry not in ("ground-truth", "none"):
         typer.echo("error: --odometry must be `ground-truth` or `none`", err=True)
@@ -213,7 +221,7 @@ def localize_command(
                 raise typer.Exit(follow_sequence(client, follow, map_id, echo=typer.echo, top_k=top_k,
                                                  odometry=odometry, odometry_noise=odometry_noise, every=every,
                                                  limit=limit, tracking=not no_tracking, out=out, seed=seed,
-                                                 session=session))
+                                                 session=session, preset=preset, time_unit=time_unit))
             assert scan is not None
             if not scan.is_file():
                 typer.echo(f"error: scan file {scan} does not exist", err=True)

@@ -99,6 +99,11 @@ def _read_model(body: Any, model: type[_Model]) -> _Model:
     return model.model_validate(body)
 
 
+def _ready_line(status_code: int, answer: ReadyResponse) -> str:
+    """A ``/readyz`` answer in a line: ``HTTP 503 not_ready (no map can be served: ...)``."""
+    return f"HTTP {status_code} {answer.status}" + (f" ({answer.reason})" if answer.reason else "")
+
+
 def _content_type(resp: httpx.Response) -> str:
     return resp.headers.get("content-type", "").split(";")[0].strip() or "no content type"
 
@@ -242,14 +247,14 @@ class ReRadarClient:
             else:
                 if resp.status_code in _NOT_YET:
                     try:
-                        last = f"HTTP {resp.status_code} {self._ready_answer(resp).status}"
+                        last = _ready_line(resp.status_code, self._ready_answer(resp))
                     except ReRadarAPIError as exc:
                         last = str(exc)
                 else:
                     r = self._ready_answer(resp)
                     if r.status == "ready":
                         return r
-                    last = f"HTTP {resp.status_code} {r.status}"
+                    last = _ready_line(resp.status_code, r)
             if time.monotonic() > deadline:
                 raise TimeoutError(f"service not ready after {timeout_s:g} s (last answer: {last})")
             time.sleep(poll_s)

@@ -82,8 +82,14 @@ def trajectory_path(out: Path | None, folder: Path) -> Path:
 def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str], None] = print,
                     top_k: int | None = None, odometry: str = "ground-truth", odometry_noise: float = 0.05,
                     every: int = 1, limit: int | None = None, tracking: bool = True, out: Path | None = None,
-                    seed: int = 0, session: str | None = None) -> int:
+                    seed: int = 0, session: str | None = None, preset: str | None = None,
+                    time_unit: str | None = None) -> int:
     """Replay ``folder`` on map ``map_id`` with ``client`` (``service.client.ReRadarClient``).
+
+    ``preset`` (None: the folder's own) is the radar the folder was recorded with, given to the sequence loader
+    and sent with every scan; ``time_unit`` (``s``, ``ms``, ``us``, ``ns``; None: absolute UTC times or the
+    format's unit, never a guess) is the unit of the folder's pose-file timestamps (``load_sequence``'s
+    ``pose_time_unit``, as ``reradar build-map --time-unit``).
 
     Returns 0 when every ``localized`` answer is within ``POSE_TRANSLATION_M`` and ``POSE_ROTATION_DEG`` of the
     ground truth, else 1 (2: unreadable folder, or ``out`` refused by ``trajectory_path``, before any scan is
@@ -95,7 +101,7 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     from reradar_core.io.datasets import load_sequence
 
     try:
-        seq = load_sequence(folder)
+        seq = load_sequence(folder, preset=preset, pose_time_unit=time_unit)
     except ReRadarError as exc:
         echo(f"error: {exc}")
         return 2
@@ -124,7 +130,7 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
             odo = (float(T[0]), float(T[1]), math.degrees(float(T[2])))
         t0 = time.perf_counter()
         res = client.localize(map_id, scan_path=seq.scan_paths[i], top_k=top_k, session_id=session_id,
-                              odometry=odo)
+                              odometry=odo, preset=preset)
         ms = (time.perf_counter() - t0) * 1e3
         prev = i
         g = gt[i]

@@ -178,7 +178,7 @@ def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
     built = job_dir / f"{map_id}.h5"
     try:
         build_map(built, ctx["extractor"],
-                  lambda i: registry._load_scan(scans[i], spec["preset"]), poses,
+                  registry.build_scan_loader(scans, spec["preset"]), poses,
                   radar_preset=spec["preset_name"], name=map_id, source=spec["source"],
                   batch_size=settings.build_batch_size, progress=progress, overwrite=True)
         if queue.record(map_id).get("cancel") == "1":  # a DELETE during the last batch: nothing to install

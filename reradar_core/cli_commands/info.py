@@ -18,13 +18,20 @@ def register(app: typer.Typer) -> None:
         preset: str = typer.Option(None, help="Radar preset (boreas, boreas-2021, oxford, oord, mulran). Inferred "
                                    "from the range-bin count when that names one range geometry (3768: oxford); "
                                    "needed for 3360 bins (boreas, boreas-2021 and mulran differ)."),
+        scan_layout: str = typer.Option("polar", "--scan-layout", help="What an .npy scan holds: polar (A x R "
+                                        "power, the default) or navtech (the Navtech PNG's pixels, metadata "
+                                        "columns included; as `reradar localize --scan-layout`)."),
     ) -> None:
         """Print a scan's shape, timing and power statistics."""
         if scan.is_dir():
             typer.echo(f"error: {scan}: is a folder; pass one scan file (.png or .npy)", err=True)
             raise typer.Exit(2)
+        layout = scan_layout.lower()
+        if layout not in ("polar", "navtech"):
+            typer.echo(f"error: --scan-layout must be polar or navtech; got {scan_layout!r}", err=True)
+            raise typer.Exit(2)
         try:
-            s = load_scan(scan, preset)
+            s = load_scan(scan, preset, npy_layout=layout)  # type: ignore[arg-type]  # checked above
         except ReRadarError as exc:
             msg = str(exc)  # every message names the file (some checks of the decoded power do not)
             typer.echo(f"error: {msg if str(scan) in msg or scan.name in msg else f'{scan}: {msg}'}", err=True)

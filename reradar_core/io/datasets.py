@@ -337,9 +337,10 @@ def load_sequence(path: str | Path, layout: str | None = None,
             raise DatasetError(f"{root}: rendered with radar preset {recorded.name!r} ({SIM_META_FILE}), not "
                                f"{p.name!r}: {range_grid_difference(recorded, p)}; drop the preset or pass the "
                                "recorded one")
-        logger.warning("%s: a %s-layout folder read with radar preset %r (%s m/bin; the layout's own %r has %s m/bin): "
-                       "check the preset", root, layout, p.name, p.range_resolution_m, recorded.name,
-                       recorded.range_resolution_m)
+        if p.dataset_layout != layout:  # a Boreas folder naming boreas-2021 is no surprise (it must name one)
+            logger.warning("%s: a %s-layout folder read with radar preset %r (%s m/bin, a %s-layout radar): right "
+                           "for such scans given map-frame poses in this layout, else check the preset", root,
+                           layout, p.name, p.range_resolution_m, p.dataset_layout)
     paths, stamps = _list_scans(root, layout)
     if layout == "boreas":
         pose_file = root / "applanix" / "radar_poses.csv"

@@ -911,15 +911,39 @@ def read_polar_npy(path: str | Path | None = None, preset: str | RadarPreset | N
     return RadarScan.from_power(array, p)
 
 
-def load_scan(path: str | Path, preset: str | RadarPreset | None = None) -> RadarScan:
-    """Read a scan by suffix: ``.png`` Navtech PNG, ``.npy`` polar array; the preset is inferred from the range-bin
-    count when None and refused when that count is ambiguous (``infer_preset``)."""
+def read_navtech_npy(path: str | Path, preset: str | RadarPreset | None = None) -> RadarScan:
+    """Read an .npy holding a Navtech PNG's pixels (``np.save`` of the image: uint8 (A, 11 + R), the metadata
+    columns, then the range bins): the same scan as the PNG, checked as the PNG is (``check_navtech_layout``).
+    The preset is inferred from the range-bin count when None (``infer_preset``: refused when ambiguous).
+
+    Raises:
+        ScanFormatError: unreadable file, another dtype or shape, metadata that is no Navtech sweep's (message
+            names the file).
+    """
+    path = Path(path)
+    try:
+        array = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise ScanFormatError(f"{path}: not a readable .npy array ({exc})") from exc
+    if array.dtype != np.uint8 or array.ndim != 2:
+        raise ScanFormatError(f"{path}: a Navtech .npy must be a 2-D uint8 array of the PNG's pixels, got dtype "
+                              f"{array.dtype} shape {array.shape}")
+    return _scan_from_raw(array, preset, str(path))
+
+
+def load_scan(path: str | Path, preset: str | RadarPreset | None = None,
+              npy_layout: NpyLayout = "polar") -> RadarScan:
+    """Read a scan by suffix: ``.png`` Navtech PNG, ``.npy`` polar array (``npy_layout`` ``polar``) or the Navtech
+    PNG's pixels (``navtech``: ``read_navtech_npy``); the preset is inferred from the range-bin count when None and
+    refused when that count is ambiguous (``infer_preset``)."""
     path = Path(path)
     suffix = path.suffix.lower()
+    if npy_layout not in ("polar", "navtech"):
+        raise ScanFormatError(f"unknown .npy layout {npy_layout!r}; choose polar or navtech")
     if suffix == ".png":
         return read_navtech_png(path, preset)
     if suffix == ".npy":
-        return read_polar_npy(path, preset)
+        return read_navtech_npy(path, preset) if npy_layout == "navtech" else read_polar_npy(path, preset)
     raise ScanFormatError(f"{path}: unsupported scan format {suffix!r} (use .png or .npy)")
 
 

@@ -81,11 +81,17 @@ class HealthResponse(_Model):
 
 
 class ReadyResponse(_Model):
+    """`GET /readyz`: 200 `ready` once the model and the maps folder are loaded and a map can be served (or none
+    is registered yet, so a fresh fleet can take its first upload); 503 `not_ready` with a `reason` while
+    loading, or when maps are registered but none is ready and none is being built."""
+
     status: Literal["ready", "not_ready"]
     model_id: str | None = None
     weights_sha256: str | None = None
     maps_ready: int = 0
+    maps_building: int = Field(default=0, description="Maps being built (queued or running).")
     maps_total: int = 0
+    reason: str | None = Field(default=None, description="Why the service is not ready (503 only).")
 
 
 class MapInfo(_Model):

@@ -119,8 +119,9 @@ def _default_maps_dir() -> Path:
 
 def redis_url_parts(url: str) -> dict[str, Any]:
     """The connection settings of ``url`` (``redis://[[user]:password@]host[:port][/db]``, ``rediss://`` for TLS,
-    ``unix://path[?db=N]``) as redis-py reads them (a percent-encoded password decoded), after checking what
-    redis-py would silently ignore: a path other than a database number (``/0/``, ``/abc``).
+    ``unix://[[user]:password@]/absolute/socket/path[?db=N]``) as redis-py reads them (a percent-encoded password
+    decoded), after checking what redis-py would silently ignore: a path other than a database number (``/0/``,
+    ``/abc``), a host in a unix:// URL (``unix://tmp/redis.sock`` is the socket ``/redis.sock``), or no socket path.
 
     Raises:
         ValueError: a malformed URL, naming the part (never the password).
@@ -134,7 +135,14 @@ def redis_url_parts(url: str) -> dict[str, Any]:
         path = urlsplit(url).path
     except ValueError as exc:
         raise ValueError(f"not a Redis URL ({exc}); e.g. redis://redis:6379/0") from None
-    if not url.startswith("unix://") and path not in ("", "/") and not re.fullmatch(r"/\d+", path):
+    if url.startswith("unix://"):
+        host = urlsplit(url).netloc.rpartition("@")[2]
+        if host:
+            raise ValueError(f"a unix:// URL names the socket by its absolute path after three slashes, e.g. "
+                             f"unix:///run/redis/redis.sock; {host!r} before the path would be ignored")
+        if path in ("", "/"):
+            raise ValueError("the unix:// URL names no socket file; e.g. unix:///run/redis/redis.sock")
+    elif path not in ("", "/") and not re.fullmatch(r"/\d+", path):
         raise ValueError(f"the path {path!r} is not a database number (e.g. "
                           "redis://redis:6379/0)")
     return parts
@@ -232,7 +240,8 @@ class Settings(BaseSettings):
         "Log line format of the service and worker: `json` (one JSON object per line) or `text`."))
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(default="INFO", description="Log level.")
     redis_url: str | None = Field(default=None, description=(
-        "Redis shared by every replica (e.g. `redis://redis:6379/0`): uploaded scans, map registry events, "
+        "Redis shared by every replica (e.g. `redis://redis:6379/0`; `rediss://` for TLS, "
+        "`unix:///run/redis/redis.sock?db=0` for a socket on the host): uploaded scans, map registry events, "
         "recent localizations and the map build queue. Unset = one process keeps all of it in memory."))
     redis_namespace: str = Field(default="reradar", pattern=r"^[a-z0-9_-]{1,32}$", description=(
         "Prefix of every Redis key (`<namespace>:v1:...`), so several deployments can share one Redis."))

@@ -123,7 +123,9 @@ class ServerProcess:
                 err = self.proc.stderr.read().decode(errors="replace") if self.proc.stderr else ""
                 raise RuntimeError(f"server exited with {self.proc.returncode}: {err[-2000:]}")
             try:
-                if httpx.get(f"{self.url}/readyz", timeout=1).status_code == 200:
+                ready = httpx.get(f"{self.url}/readyz", timeout=1)
+                # up: ready, or loaded (a model id) with only failed maps, which a restart after a crash may leave
+                if ready.status_code == 200 or (ready.status_code == 503 and ready.json().get("model_id")):
                     return self
             except httpx.TransportError:
                 pass

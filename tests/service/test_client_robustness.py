@@ -331,9 +331,12 @@ def test_localize_command_against_a_web_server_that_is_not_reradar(html_server: 
 # ---- `reradar localize --follow --out` ---------------------------------------------------------------------
 
 
-def _drive(root: Path, n: int = 3) -> Path:
+def _drive(root: Path, n: int = 3, t0_us: int = keyframe_time(0) + 10_000_000) -> Path:
+    """A Boreas-layout folder of ``n`` scans 0.25 s apart from ``t0_us`` (absolute UTC by default; a small
+    ``t0_us`` makes the pose file's times relative), with poses at their mid-sweep times. It does not name its
+    radar (no simulator record): a replay passes ``--preset boreas``."""
     seq = root / "drive"
-    times = [keyframe_time(i) + 10_000_000 for i in range(n)]
+    times = [t0_us + i * 250_000 for i in range(n)]
     for i, t in enumerate(times):
         write_sequence_scan(seq, "boreas", make_scan(i, t))
     poses = keyframe_poses()[:n]
@@ -372,7 +375,7 @@ def test_follow_checks_out_before_the_replay(monkeypatch: pytest.MonkeyPatch, tm
     seen = _fake_cli_server(monkeypatch, _answer(200, NOT_LOCALIZED))
     seq = _drive(tmp_path)
     res = CliRunner().invoke(_app(), ["localize", "--follow", str(seq), "--server", "http://x", "--map", "m",
-                                      "--out", str(tmp_path / out)])
+                                      "--preset", "boreas", "--out", str(tmp_path / out)])
     assert res.exit_code == 2, res.output
     assert expect in _one_error_line(res.output)
     assert seen == []  # nothing was replayed
@@ -387,7 +390,7 @@ def test_follow_out_existing_folder_writes_inside_and_prints_the_path(monkeypatc
     plots = tmp_path / "plots"
     plots.mkdir()
     res = CliRunner().invoke(_app(), ["localize", "--follow", str(seq), "--server", "http://x", "--map", "m",
-                                      "--out", str(plots)])
+                                      "--preset", "boreas", "--out", str(plots)])
     assert res.exit_code == 0, res.output  # not localized is no error answer of the replay
     assert len(seen) == 3
     png = plots / "drive-follow.png"
@@ -399,10 +402,46 @@ def test_follow_reports_an_unexpected_answer_in_one_line(monkeypatch: pytest.Mon
     _fake_cli_server(monkeypatch, _answer(200, content=b"<html/>", content_type="text/html"))
     seq = _drive(tmp_path)
     res = CliRunner().invoke(_app(), ["localize", "--follow", str(seq), "--server", "http://x", "--map", "m",
-                                      "--out", str(tmp_path / "t.png")])
+                                      "--preset", "boreas", "--out", str(tmp_path / "t.png")])
     assert res.exit_code == 2, res.output
     assert "not a ReRadar response (text/html, not JSON)" in _one_error_line(res.output)
     assert not (tmp_path / "t.png").exists()
+
+
+def test_follow_reads_relative_pose_times_in_the_given_time_unit(monkeypatch: pytest.MonkeyPatch,
+                                                                 tmp_path: Path) -> None:
+    """QA (session 24, finding 2): a folder whose pose times are relative could not be replayed; the error said to
+    pass --time-unit, which `localize` did not have. Now it does, as `build-map --time-unit`: the folder is read
+    with it (the ground truth printed is the poses'), and a wrong unit is refused before any scan is sent."""
+    pytest.importorskip("matplotlib")
+    seen = _fake_cli_server(monkeypatch, _answer(200, NOT_LOCALIZED))
+    seq = _drive(tmp_path, t0_us=1_000_000)  # pose times 1.12 .. 1.62 s: no absolute UTC time, unit unknown
+    args = ["localize", "--follow", str(seq), "--server", "http://x", "--map", "m", "--preset", "boreas",
+            "--out", str(tmp_path / "t.png")]
+    res = CliRunner().invoke(_app(), args)
+    assert res.exit_code == 2, res.output
+    assert "--time-unit s|ms|us|ns" in _one_error_line(res.output) and seen == []
+    res = CliRunner().invoke(_app(), [*args, "--time-unit", "ms"])  # 1000x off: refused, naming the likely unit
+    assert res.exit_code == 2 and "pass --time-unit us" in _one_error_line(res.output) and seen == []
+    res = CliRunner().invoke(_app(), [*args, "--time-unit", "us"])
+    assert res.exit_code == 0, res.output
+    assert len(seen) == 3 and all(b'name="preset"\r\n\r\nboreas' in r.content for r in seen)
+    rows = [ln.split() for ln in res.output.splitlines() if ln[:4].strip().isdigit()]
+    gt = keyframe_poses()[:3]
+    assert [(float(r[8]), float(r[9])) for r in rows] == [(round(x, 2), round(y, 2)) for x, y in gt[:, :2]]
+
+
+def test_time_unit_is_refused_without_follow(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    seen = _fake_cli_server(monkeypatch, _answer(200, NOT_LOCALIZED))
+    scan = tmp_path / "q.png"
+    scan.write_bytes(encode_navtech_png_bytes(make_scan(2, 0)))
+    res = CliRunner().invoke(_app(), ["localize", str(scan), "--server", "http://x", "--time-unit", "us"])
+    assert res.exit_code == 2 and "--time-unit is the unit of a --follow folder's pose times" in \
+        _one_error_line(res.output)
+    res = CliRunner().invoke(_app(), ["localize", "--follow", str(tmp_path), "--server", "http://x",
+                                      "--time-unit", "hours"])
+    assert res.exit_code == 2 and "must be one of s, ms, us, ns" in res.output
+    assert seen == []
 
 
 def test_client_reads_past_fields_a_newer_server_adds() -> None:

@@ -236,7 +236,7 @@ def test_failed_build_reports_the_message_without_the_class(live: tuple[httpx.Cl
     """QA L2: GET /maps/{id} of a failed build showed ``ScanFormatError: 1600000018000000.png: ...``."""
     client, _ = live
     files = {"archive": ("a.zip", _archive(corrupt=2)), "poses": ("p.csv", _poses_csv())}
-    r = client.post("/maps", data={"map_id": "broken"}, files=files, headers=AUTH)
+    r = client.post("/maps", data={"map_id": "broken", "preset": "boreas"}, files=files, headers=AUTH)
     assert r.status_code == 202, r.text
     for _ in range(600):
         info = client.get("/maps/broken").json()

@@ -233,7 +233,7 @@ def test_queued_build_survives_worker_kill(fleet: Fleet) -> None:
     n = 12
     slow = {"OPS_FAKE_SCAN_DELAY_S": "0.4"}
     w1 = fleet.start("worker-1", "worker", extra_env=slow)
-    r = fleet.a.post("/maps", data={"map_id": "built"}, files=_archive(n), headers=AUTH)
+    r = fleet.a.post("/maps", data={"map_id": "built", "preset": "boreas"}, files=_archive(n), headers=AUTH)
     assert r.status_code == 202, r.text
     assert r.json()["state"] == "building" and r.json()["scans_total"] == n
     # every replica shows the build and its progress (from the job record)
@@ -277,7 +277,7 @@ def test_queued_build_survives_worker_kill(fleet: Fleet) -> None:
 def test_cancel_a_running_build(fleet: Fleet) -> None:
     slow = fleet.start("worker-3", "worker", extra_env={"OPS_FAKE_SCAN_DELAY_S": "0.5"})
     _stop(next(p for p in fleet.procs if p.pid == fleet.pids["worker-2"]))  # only the slow worker takes it
-    r = fleet.a.post("/maps", data={"map_id": "doomed"}, files=_archive(16, seed0=200), headers=AUTH)
+    r = fleet.a.post("/maps", data={"map_id": "doomed", "preset": "boreas"}, files=_archive(16, seed0=200), headers=AUTH)
     assert r.status_code == 202, r.text
     _wait(lambda: fleet.a.get("/maps/doomed").json().get("scans_done", 0) >= 2, 60, "doomed build running")
     assert fleet.b.delete("/maps/doomed", headers=AUTH).status_code == 200  # cancel through the other replica
@@ -306,16 +306,16 @@ def test_worker_health_survives_eviction_of_expiring_keys(fleet: Fleet) -> None:
 def test_cancel_a_queued_build_frees_its_id_at_once(fleet: Fleet) -> None:
     """QA (session 20): a build cancelled while still queued held its id until a worker dequeued it (hours behind
     a long build, forever without a worker): POST said 409 'DELETE first' and DELETE said 404."""
-    busy = fleet.a.post("/maps", data={"map_id": "busy"}, files=_archive(16, seed0=400), headers=AUTH)
+    busy = fleet.a.post("/maps", data={"map_id": "busy", "preset": "boreas"}, files=_archive(16, seed0=400), headers=AUTH)
     assert busy.status_code == 202, busy.text
     _wait(lambda: fleet.a.get("/maps/busy").json().get("scans_done", 0) >= 1, 60, "busy build running")
-    r = fleet.a.post("/maps", data={"map_id": "waiting"}, files=_archive(4, seed0=500), headers=AUTH)
+    r = fleet.a.post("/maps", data={"map_id": "waiting", "preset": "boreas"}, files=_archive(4, seed0=500), headers=AUTH)
     assert r.status_code == 202, r.text  # queued behind "busy" (one build per worker)
     job_id = fleet.redis().hget(f"{NAMESPACE}:v1:build:waiting", "job_id").decode()
     assert fleet.b.delete("/maps/waiting", headers=AUTH).status_code == 200
     assert not fleet.redis().exists(f"{NAMESPACE}:v1:build:waiting")
     assert not (fleet.maps_dir / ".build-queue" / job_id).exists()
-    again = fleet.a.post("/maps", data={"map_id": "waiting"}, files=_archive(4, seed0=500), headers=AUTH)
+    again = fleet.a.post("/maps", data={"map_id": "waiting", "preset": "boreas"}, files=_archive(4, seed0=500), headers=AUTH)
     assert again.status_code == 202, again.text
     for map_id in ("waiting", "busy"):
         assert fleet.a.delete(f"/maps/{map_id}", headers=AUTH).status_code == 200
@@ -323,12 +323,12 @@ def test_cancel_a_queued_build_frees_its_id_at_once(fleet: Fleet) -> None:
 
 
 def test_failed_build_reports_its_reason_everywhere(fleet: Fleet) -> None:
-    r = fleet.a.post("/maps", data={"map_id": "broken"}, files=_archive(4, seed0=300, corrupt=2), headers=AUTH)
+    r = fleet.a.post("/maps", data={"map_id": "broken", "preset": "boreas"}, files=_archive(4, seed0=300, corrupt=2), headers=AUTH)
     assert r.status_code == 202, r.text  # the first scan is checked at once; the third only by the worker
     _wait(lambda: _state(fleet.b, "broken") == "failed", 60, "failed build on B", step_s=0.2)
     info = fleet.b.get("/maps/broken").json()
     assert f"{keyframe_time(2)}.png" in info["error"]
-    assert fleet.a.post("/maps", data={"map_id": "broken"}, files=_archive(4), headers=AUTH).status_code == 409
+    assert fleet.a.post("/maps", data={"map_id": "broken", "preset": "boreas"}, files=_archive(4), headers=AUTH).status_code == 409
     assert fleet.a.delete("/maps/broken", headers=AUTH).status_code == 200
     _wait(lambda: fleet.b.get("/maps/broken").status_code == 404, 5, "failed map deleted on B")
 
@@ -345,6 +345,6 @@ def test_redis_down_503_on_shared_scans_localization_keeps_working(fleet: Fleet)
     assert res.status_code == 200 and res.json()["status"] == "localized"
     assert fleet.a.get("/maps").status_code == 200 and fleet.a.get("/readyz").status_code == 200
     assert fleet.a.get("/ui/api/maps/city/localizations").status_code == 503
-    queued = fleet.a.post("/maps", data={"map_id": "later"}, files=_archive(3), headers=AUTH)
+    queued = fleet.a.post("/maps", data={"map_id": "later", "preset": "boreas"}, files=_archive(3), headers=AUTH)
     assert queued.status_code == 503 and "retry later" in queued.text, queued.text
     assert fleet.b.get("/maps/later").status_code == 404 and not any((fleet.maps_dir / ".build-queue").iterdir())

@@ -253,7 +253,7 @@ def test_build_map_from_scan_archive_then_delete(client: httpx.Client, server: t
     pose_file = write_txyyaw_csv(PoseSequence([keyframe_time(i) for i in range(n)], poses[:, :2], poses[:, 2]),
                                  tmp_path / "poses.csv")
     files = {"archive": ("scans.zip", buf.getvalue()), "poses": ("poses.csv", pose_file.read_bytes())}
-    r = client.post("/maps", data={"map_id": "built"}, files=files, headers=AUTH)
+    r = client.post("/maps", data={"map_id": "built", "preset": "boreas"}, files=files, headers=AUTH)
     assert r.status_code == 202, r.text
     assert r.json()["state"] in ("building", "ready") and r.json()["scans_total"] == n
     deadline = time.monotonic() + 60

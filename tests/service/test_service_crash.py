@@ -55,7 +55,7 @@ def test_build_killed_midway_is_failed_after_restart(tmp_path: Path) -> None:
     files = _archive(tmp_path)
     server = ServerProcess(maps_dir, describe_delay_s=0.3).start()
     try:
-        r = httpx.post(f"{server.url}/maps", data={"map_id": "built"}, files=files, headers=AUTH, timeout=60)
+        r = httpx.post(f"{server.url}/maps", data={"map_id": "built", "preset": "boreas"}, files=files, headers=AUTH, timeout=60)
         assert r.status_code == 202, r.text
         record = json.loads((maps_dir / ".jobs" / "built.json").read_text())
         assert record["state"] == "building" and record["scans_total"] == N_KEYFRAMES
@@ -70,10 +70,12 @@ def test_build_killed_midway_is_failed_after_restart(tmp_path: Path) -> None:
         assert info["state"] == "failed" and "stopped" in info["error"] and info["scans_total"] == N_KEYFRAMES
         assert c.post("/localize", data={"map_id": "built"}, files={"scan": ("q.png", normal_png())}).status_code == 409
         _assert_clean(maps_dir)
-        assert c.post("/maps", data={"map_id": "built"}, files=files, headers=AUTH).status_code == 409
+        assert c.post("/maps", data={"map_id": "built", "preset": "boreas"}, files=files,
+                      headers=AUTH).status_code == 409
         assert c.delete("/maps/built", headers=AUTH).status_code == 200
         assert not (maps_dir / ".jobs" / "built.json").exists()
-        assert c.post("/maps", data={"map_id": "built"}, files=files, headers=AUTH).status_code == 202
+        assert c.post("/maps", data={"map_id": "built", "preset": "boreas"}, files=files,
+                      headers=AUTH).status_code == 202
         deadline = time.monotonic() + 60
         while (info := c.get("/maps/built").json())["state"] == "building" and time.monotonic() < deadline:
             time.sleep(0.1)

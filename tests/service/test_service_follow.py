@@ -35,8 +35,9 @@ def test_follow_replays_a_drive_in_tracking_mode(server: tuple[str, Path], fake_
     app = typer.Typer()
     register(app)
     png = tmp_path / "follow.png"
+    # the folder does not name its radar (no simulator record): a Boreas folder's replay names it
     res = CliRunner().invoke(app, ["localize", "--follow", str(seq), "--server", url, "--map", "follow-map",
-                                   "--out", str(png), "--odometry-noise", "0.01"])
+                                   "--preset", "boreas", "--out", str(png), "--odometry-noise", "0.01"])
     assert res.exit_code == 0, res.output
     rows = [ln for ln in res.output.splitlines() if ln[:4].strip().isdigit()]
     assert len(rows) == N_KEYFRAMES

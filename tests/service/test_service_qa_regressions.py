@@ -189,7 +189,7 @@ def test_pose_upload_with_a_yaw_deg_header_builds_the_right_headings(client: htt
 
 def _built_trajectory(client: httpx.Client, map_id: str, files: dict) -> dict:
     """``POST /maps`` (202), wait up to 60 s for the build, and return the map's keyframe trajectory."""
-    r = client.post("/maps", data={"map_id": map_id}, files=files, headers=AUTH)
+    r = client.post("/maps", data={"map_id": map_id, "preset": "boreas"}, files=files, headers=AUTH)
     assert r.status_code == 202, r.text
     deadline = time.monotonic() + 60
     while client.get(f"/maps/{map_id}").json()["state"] == "building" and time.monotonic() < deadline:
@@ -503,7 +503,8 @@ def test_pose_times_whose_header_names_another_unit_than_their_values_are_refuse
 
     for header, map_id in (("t_s,x,y,yaw", "unit-s"), ("t_ms,x,y,yaw", "unit-ms")):
         files = {"archive": ("a.zip", archive), "poses": ("p.csv", csv(header))}
-        body = _problem(client.post("/maps", data={"map_id": map_id}, files=files, headers=AUTH), 422)
+        body = _problem(client.post("/maps", data={"map_id": map_id, "preset": "boreas"}, files=files, headers=AUTH),
+                        422)
         assert body["error"] == "pose_file" and "t_us" in body["detail"], body
         assert "--time-unit" not in body["detail"]
         assert client.get(f"/maps/{map_id}").status_code == 404

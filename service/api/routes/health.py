@@ -18,16 +18,32 @@ def healthz() -> HealthResponse:
 
 
 @router.get("/readyz", response_model=ReadyResponse, operation_id="readyz",
-            responses={503: {"model": ReadyResponse, "description": "Model or maps still loading."}})
+            responses={503: {"model": ReadyResponse, "description": (
+                "Model or maps still loading, or maps registered but none ready and none being built "
+                "(`reason` says which).")}})
 @router.head("/readyz", include_in_schema=False, response_model=ReadyResponse)
 def readyz(request: Request) -> Response | ReadyResponse:
-    """200 once the model and the maps in the maps directory are loaded, 503 before."""
+    """200 once the model and the maps in the maps directory are loaded and a map can be served; 503 before,
+    and while every registered map has failed (none ready, none being built: the replica could answer no
+    localization). A service with no map registered is ready: a fresh fleet must take its first upload."""
     state = getattr(request.app.state, "reradar", None)
     if state is None:
-        return JSONResponse(ReadyResponse(status="not_ready").model_dump(), status_code=503)
-    return ReadyResponse(status="ready", model_id=state.extractor.model_id,
-                         weights_sha256=state.extractor.weights_sha256,
-                         maps_ready=state.registry.num_ready, maps_total=len(state.registry.entries()))
+        return JSONResponse(ReadyResponse(status="not_ready", reason="the model and the maps are still loading")
+                            .model_dump(), status_code=503)
+    entries = state.registry.entries()
+    ready = sum(e.state == "ready" for e in entries)
+    building = sum(e.state == "building" for e in entries)
+    reason = None
+    if entries and not ready and not building:
+        which = "the registered map has" if len(entries) == 1 else f"all {len(entries)} registered maps have"
+        reason = (f"no map can be served: {which} failed and none is being built (GET /maps gives each one's "
+                  "error); register a map built with the running model, or DELETE /maps/{id} the failed ones")
+    answer = ReadyResponse(status="ready" if reason is None else "not_ready", model_id=state.extractor.model_id,
+                           weights_sha256=state.extractor.weights_sha256, maps_ready=ready,
+                           maps_building=building, maps_total=len(entries), reason=reason)
+    if reason is not None:
+        return JSONResponse(answer.model_dump(), status_code=503)
+    return answer
 
 
 @router.get("/metrics", response_class=PlainTextResponse, operation_id="metrics",

@@ -13,7 +13,7 @@ from fastapi import APIRouter, File, Form, Request, Response, UploadFile, status
 from starlette.concurrency import run_in_threadpool
 
 from reradar_core.errors import DatasetError, PoseFileError, TimeUnitError
-from reradar_core.io.datasets import check_pose_span, check_pose_time_unit
+from reradar_core.io.datasets import POSE_SPAN_SLACK_US, check_pose_span, check_pose_time_unit
 from reradar_core.io.poses import TXYYAW_TIME_HEADERS, read_poses
 from reradar_core.io.presets import PRESETS, get_preset, mid_sweep_times_us
 from service.api.deps import ApiKeyDep, FormDep, MapIdPath, StateDep, form_fields
@@ -27,7 +27,7 @@ from service.api.schemas import (
     RetrieveRequest,
     RetrieveResponse,
 )
-from service.core.archive import SCAN_NAME_PATTERN, extract_scan_archive
+from service.core.archive import SCAN_NAME_PATTERN, check_scan_times, extract_scan_archive
 from service.core.config import MAP_ID_PATTERN
 from service.core.errors import BadRequestError
 from service.core.registry import MapEntry
@@ -117,6 +117,9 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         scan_paths = extract_scan_archive(arch, work / "scans", state.settings.max_archive_scans,
                                           state.settings.max_map_upload_bytes * 4)
         arch.unlink()
+        # a copy of a PNG under another name carries the original's time, by which the map keys its keyframes:
+        # refused here (400) rather than after the whole build (each PNG's first row only: ~0.03 ms a scan)
+        check_scan_times(scan_paths)
         pose_path = work / "poses.csv"
         _save_upload(poses, pose_path)
         try:
@@ -141,7 +144,10 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         except DatasetError as exc:
             raise BadRequestError(f"{exc}; scan files must be named by their timestamp in microseconds") from None
         # keyframe poses at mid-sweep (docs/CONVENTIONS.md); every preset sweeps 400 azimuths at 4 Hz
-        pose_arr = track.interpolate(mid_sweep_times_us(stamps, get_preset(preset or "boreas")))
+        # (scans within the pose span's slack continue its end step, as ``Sequence.mid_sweep_poses``)
+        sweep = get_preset(preset or "boreas")
+        pose_arr = track.interpolate(mid_sweep_times_us(stamps, sweep),
+                                     extrapolate_us=POSE_SPAN_SLACK_US + int(round(sweep.sweep_period_s * 1e6)))
         entry = state.registry.start_build(map_id, scan_paths, pose_arr, preset, work,
                                            source=f"upload:{archive.filename or 'archive'}")  # type: ignore[union-attr]
         return entry, True
