@@ -59,6 +59,7 @@ __all__ = [
     "likely_time_unit",
     "range_grid_difference",
     "POSE_SPAN_SLACK_US",
+    "mid_sweep_poses_in",
     "scan_path",
     "write_sequence_poses",
     "write_sequence_scan",
@@ -118,9 +119,7 @@ class Sequence:
         a pose file ending at the last scan's timestamp held that scan's mid-sweep pose ~1 m back, QA session 24).
         """
         track = self.track if self.track is not None and len(self.track) else self.poses
-        # the slack scans may lie beyond the pose file, plus the half sweep to their mid-sweep time
-        reach_us = POSE_SPAN_SLACK_US + int(round(self.preset.sweep_period_s * 1e6))
-        return track.interpolate(mid_sweep_times_us(self.timestamps_us, self.preset), extrapolate_us=reach_us)
+        return mid_sweep_poses_in(track, self.timestamps_us, self.preset)
 
     def load_scan(self, i: int) -> RadarScan:
         """Read scan ``i`` (Navtech PNG) with this sequence's preset."""
@@ -287,12 +286,21 @@ def write_sequence_meta(root: str | Path, meta: dict) -> Path:
     return p
 
 
+def mid_sweep_poses_in(track: PoseSequence, stamps_us: np.ndarray, preset: RadarPreset) -> np.ndarray:
+    """(N, 3) float64 poses (x m, y m, yaw rad) of scans with timestamps ``stamps_us`` (µs, first azimuth) at their
+    mid-sweep times (``mid_sweep_times_us``), interpolated in ``track``; beyond its ends by up to the slack a scan
+    may lie there (``POSE_SPAN_SLACK_US``) plus a sweep, its end steps continue (``PoseSequence.interpolate``)."""
+    reach_us = POSE_SPAN_SLACK_US + int(round(preset.sweep_period_s * 1e6))
+    return track.interpolate(mid_sweep_times_us(np.asarray(stamps_us, np.int64), preset), extrapolate_us=reach_us)
+
+
 def _layout_presets_ambiguous(layout: str) -> bool:
     """True when the radar presets of ``layout`` differ in range geometry (Boreas: boreas / boreas-2021), so a
     folder of that layout must name its preset."""
+    from reradar_core.io.scan import same_range_geometry
+
     fits = [q for q in PRESETS.values() if q.dataset_layout == layout]
-    return any((q.range_resolution_m, q.range_offset_m) != (fits[0].range_resolution_m, fits[0].range_offset_m)
-               for q in fits[1:])
+    return any(not same_range_geometry(q, fits[0]) for q in fits[1:])
 
 
 def load_sequence(path: str | Path, layout: str | None = None,

@@ -216,7 +216,7 @@ class Localizer:
         assert best.T_keyframe_query is not None
         turned = register_from_prior(features, self.cache.landmark_grid(best.keyframe_id),
                                      compose(best.T_keyframe_query, np.array([0.0, 0.0, np.pi])), radii)
-        margin = (config.min_place_margin or 0.0) * int(features.keypoints_xy_m.shape[0])
+        margin = config.margin_landmarks(int(features.keypoints_xy_m.shape[0]))
         return turned.num_inliers >= best.num_inliers - margin
 
     def _turn_fits_as_well(self, features: ScanFeatures, best: CandidateVerification, T_map_query: np.ndarray,
@@ -245,7 +245,7 @@ class Localizer:
         counts = count_aligned(poses, features.keypoints_xy_m, self.cache.landmark_grid(best.keyframe_id),
                                config.alignment.score_threshold_m)
         own = int(counts[n_steps])
-        margin = (config.min_place_margin or 0.0) * int(features.keypoints_xy_m.shape[0])
+        margin = config.margin_landmarks(int(features.keypoints_xy_m.shape[0]))
         return int(counts[outside].max()) >= own - margin
 
     def clear(self) -> None:

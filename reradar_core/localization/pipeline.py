@@ -202,6 +202,11 @@ class LocalizationConfig:
         return replace(self.alignment, screen_source_points=self.prescreen_source_points,
                        screen_hypotheses=self.prescreen_hypotheses)
 
+    def margin_landmarks(self, num_landmarks: int) -> float:
+        """``min_place_margin`` of a query with ``num_landmarks`` landmarks, in landmarks (0 without the rule): how
+        many more an answer must align than a rival place, pose, reversal or turn before it is not a tie."""
+        return (self.min_place_margin or 0.0) * num_landmarks
+
     @property
     def num_to_retrieve(self) -> int:
         """How many keyframes a caller should retrieve: ``max_candidates`` for ``guided`` (the expansion may
@@ -576,7 +581,7 @@ def _verify_inconsistent_ties(query: ScanFeatures, ties: list[Candidate], scores
     assert best.T_keyframe_query is not None
     T_map_query = compose(best.T_map_keyframe, best.T_keyframe_query)
     n = int(query.keypoints_xy_m.shape[0])
-    margin = (config.min_place_margin or 0.0) * n
+    margin = config.margin_landmarks(n)
     for c in ties:
         grid = c.grid()
         if grid is None:

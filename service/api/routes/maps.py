@@ -13,9 +13,9 @@ from fastapi import APIRouter, File, Form, Request, Response, UploadFile, status
 from starlette.concurrency import run_in_threadpool
 
 from reradar_core.errors import DatasetError, PoseFileError, TimeUnitError
-from reradar_core.io.datasets import POSE_SPAN_SLACK_US, check_pose_span, check_pose_time_unit
+from reradar_core.io.datasets import check_pose_span, check_pose_time_unit, mid_sweep_poses_in
 from reradar_core.io.poses import TXYYAW_TIME_HEADERS, read_poses
-from reradar_core.io.presets import PRESETS, get_preset, mid_sweep_times_us
+from reradar_core.io.presets import PRESETS, get_preset
 from service.api.deps import ApiKeyDep, FormDep, MapIdPath, StateDep, form_fields
 from service.api.scan_input import ClosedFormRoute, read_scan_input, scan_request_body
 from service.api.schemas import (
@@ -144,10 +144,7 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         except DatasetError as exc:
             raise BadRequestError(f"{exc}; scan files must be named by their timestamp in microseconds") from None
         # keyframe poses at mid-sweep (docs/CONVENTIONS.md); every preset sweeps 400 azimuths at 4 Hz
-        # (scans within the pose span's slack continue its end step, as ``Sequence.mid_sweep_poses``)
-        sweep = get_preset(preset or "boreas")
-        pose_arr = track.interpolate(mid_sweep_times_us(stamps, sweep),
-                                     extrapolate_us=POSE_SPAN_SLACK_US + int(round(sweep.sweep_period_s * 1e6)))
+        pose_arr = mid_sweep_poses_in(track, stamps, get_preset(preset or "boreas"))
         entry = state.registry.start_build(map_id, scan_paths, pose_arr, preset, work,
                                            source=f"upload:{archive.filename or 'archive'}")  # type: ignore[union-attr]
         return entry, True
