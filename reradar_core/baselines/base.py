@@ -75,6 +75,10 @@ class PlaceRecognitionMethod(ABC):
     algorithm_version: int = 1
 
     # ------------------------------------------------------------------ identity
+    def min_database_scans(self) -> int:
+        """Fewest database scans ``fit`` can work with (1: any database; a method whose fit needs more says so)."""
+        return 1
+
     def params(self) -> dict[str, Any]:
         """The parameters that change the prepared records (part of the cache key)."""
         return {}

@@ -34,6 +34,7 @@ checkpoint with ImageNet weights in this module's parameter names can be given a
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -118,6 +119,16 @@ class ResNetNetVLAD(PlaceRecognitionMethod):
     name = "resnet18-netvlad"
     needs_fit = True
     algorithm_version = 2
+
+    def min_database_scans(self) -> int:
+        """More database descriptors than NetVLAD centres: ``num_clusters`` (64) centres are fitted by k-means on
+        one descriptor per cell of the ResNet-18 conv5 map ((input_px / 32)^2 = 16 per scan at 128 px); with no
+        more descriptors than centres every centre is a descriptor itself and the reference's alpha (from the
+        indices of each centre's two nearest descriptors, ``reference_alpha``) is 0/0 whenever the nearest
+        neighbours pair up: 38 of 38 two-scan and 1 of 37 three-scan windows of a simulated Boreas drive, none
+        from 4 scans on. So 5 scans at the OORD settings."""
+        per_scan = math.ceil(self.config.input_px / 32) ** 2
+        return self.config.num_clusters // per_scan + 1
 
     def __init__(self, config: ResNetNetVLADConfig = ResNetNetVLADConfig()) -> None:
         self.config = config

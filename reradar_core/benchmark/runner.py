@@ -14,7 +14,6 @@ is interrupted leaves the earlier results.json, results.md and their per-query f
 from __future__ import annotations
 
 import logging
-import math
 import os
 import shutil
 import time
@@ -289,21 +288,9 @@ def commit_per_query(out_dir: Path) -> list[Path]:
 
 
 def min_database_scans(method: PlaceRecognitionMethod) -> int:
-    """Fewest database scans ``method`` can be fitted on (1 for a method without a database fit).
-
-    ResNet18-NetVLAD calibrates ``num_clusters`` (64) NetVLAD centres by k-means on the database's local
-    descriptors, one per cell of the ResNet-18 conv5 map ((input_px / 32)^2 = 16 per scan at 128 px). With no
-    more descriptors than centres, every centre is a descriptor itself and the reference's alpha (from the
-    *indices* of each centre's two nearest descriptors) is 0/0 whenever the nearest neighbours pair up: 38 of
-    38 two-scan and 1 of 37 three-scan windows of a simulated Boreas drive, none from 4 scans on
-    (``baselines.resnet_netvlad.reference_alpha``). So it needs more descriptors than centres: 5 scans.
-    """
-    from reradar_core.baselines.resnet_netvlad import ResNetNetVLAD
-
-    if isinstance(method, ResNetNetVLAD):
-        per_scan = math.ceil(method.config.input_px / 32) ** 2
-        return method.config.num_clusters // per_scan + 1
-    return 1
+    """Fewest database scans ``method`` can be fitted on (``PlaceRecognitionMethod.min_database_scans``: 1 for
+    most; ResNet18-NetVLAD 5, more descriptors than NetVLAD centres)."""
+    return method.min_database_scans()
 
 
 def check_database_sizes(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod]) -> None:
