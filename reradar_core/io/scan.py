@@ -829,6 +829,8 @@ def read_navtech_png(path: str | Path, preset: str | RadarPreset | None = None) 
     import cv2
 
     path = Path(path)
+    if path.is_dir():  # e.g. a folder named like a scan inside radar/ (QA)
+        raise ScanFormatError(f"{path}: is a folder, not a scan file")
     if not path.is_file():
         raise ScanFormatError(f"{path}: no such scan file")
     data = path.read_bytes()

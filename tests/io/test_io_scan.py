@@ -185,6 +185,9 @@ def test_nan_power_rejected(tmp_path):
 def test_missing_and_unsupported_files(tmp_path):
     with pytest.raises(ScanFormatError, match="no such scan file"):
         read_navtech_png(tmp_path / "missing.png")
+    (tmp_path / "2500000.png").mkdir()  # a folder named like a scan (QA, session 24): said so
+    with pytest.raises(ScanFormatError, match="2500000.png: is a folder, not a scan file"):
+        read_navtech_png(tmp_path / "2500000.png")
     (tmp_path / "x.jpg").write_bytes(b"123")
     with pytest.raises(ScanFormatError, match="unsupported scan format"):
         load_scan(tmp_path / "x.jpg")
