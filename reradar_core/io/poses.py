@@ -56,6 +56,8 @@ TIME_UNITS: dict[str, float] = {"s": 1e6, "ms": 1e3, "us": 1.0, "ns": 1e-3}
 #: Absolute UTC times accepted without an explicit unit: 2000-01-01 .. 2100-01-01, in seconds.
 _EPOCH_WINDOW_S = (946_684_800.0, 4_102_444_800.0)
 _UNIT_SCALE_FROM_S = {"s": 1.0, "ms": 1e3, "us": 1e6, "ns": 1e9}
+#: read in a declared unit, times up to this (seconds) can be a recording's relative clock (a year)
+_MAX_RELATIVE_TIME_S = 366 * 86_400.0
 #: Header names of the time column of a t,x,y,yaw CSV and the unit each declares (None: not declared).
 TXYYAW_TIME_HEADERS: dict[str, str | None] = {"t": None, "t_s": "s", "t_ms": "ms", "t_us": "us", "t_ns": "ns"}
 #: Header names of the yaw column of a t,x,y,yaw CSV and the unit each declares (``yaw``: radians, checked to
@@ -211,7 +213,12 @@ def gps_time_to_us(values: np.ndarray, unit: str | None = None, source: str = "t
                 "(time_unit= in Python), or a t_s / t_ms / t_us / t_ns column header in a t,x,y,yaw CSV", problem)
     else:
         absolute = absolute_time_unit(values)
-        if absolute is not None and absolute != _check_unit(unit):  # e.g. Boreas ns read as us: a 13-day drive
+        v = np.abs(np.asarray(values, dtype=np.float64))
+        in_unit_s = float(v.max()) / _UNIT_SCALE_FROM_S[_check_unit(unit)] if v.size else 0.0
+        # e.g. Boreas ns read as us (a time 50,000 years on) is refused; values that fit an absolute time in another
+        # unit but read in the declared one are a drive's relative clock (a render starting at 1,000 s = 1e9 us,
+        # which also reads as absolute s in 2001) are what the user said (QA, session 24: the advice went in a circle)
+        if absolute is not None and absolute != _check_unit(unit) and in_unit_s > _MAX_RELATIVE_TIME_S:
             raise PoseFileError(f"{source}: the timestamps are absolute UTC times in {absolute}, not {unit}; "
                                 f"give --time-unit {absolute} (or none: absolute times need none)")
     return to_microseconds(values, unit)
@@ -309,6 +316,9 @@ def read_boreas_radar_poses(path: str | Path, time_unit: str | None = None) -> P
     vals = _parse_floats(path, rows, [idx["easting"], idx["northing"], idx["heading"]])
     _check_coordinates(path, rows, vals[:, :2])
     _refuse_repeated_times(t_us, path)
+    # the format's heading is radians; degrees within +-2 pi built a map 135 degrees off (QA, session 24)
+    _refuse_degrees_in_plain_yaw(path, t_us, vals[:, :2], vals[:, 2], "heading",
+                                 fix="a Boreas radar_poses.csv holds its heading in radians: convert the column")
     return PoseSequence(t_us, vals[:, :2], vals[:, 2])
 
 
@@ -338,8 +348,10 @@ def read_mulran_global_pose(path: str | Path, time_unit: str | None = None) -> P
     if time_unit is None:
         found = absolute_time_unit(t_raw)
         if found is not None and found != "ns":
-            raise PoseFileError(f"{path}: MulRan timestamps are nanoseconds, but these are absolute times in "
-                                f"{found}; give the unit explicitly (--time-unit {found})")
+            # 1e12 is absolute ms (2001) or a relative ns clock from 1,000 s: say both (QA, session 24)
+            raise PoseFileError(f"{path}: MulRan timestamps are nanoseconds, but these read as absolute times in "
+                                f"{found}; give the unit explicitly: --time-unit {found} if they are, --time-unit ns "
+                                "if they are a relative clock in the format's nanoseconds")
         time_unit = "ns"
     m = _parse_floats(path, rows, list(range(1, 13)))
     _check_coordinates(path, rows, m[:, [3, 7]])
@@ -481,9 +493,12 @@ def travel_yaw_mismatch_deg(xy: np.ndarray, yaw_rad: np.ndarray) -> float | None
     return float(np.degrees(np.median(np.abs(wrap_angle(mid - travel)))))
 
 
-def _refuse_degrees_in_plain_yaw(path: Path, t_us: np.ndarray, xy: np.ndarray, yaw: np.ndarray, column: str) -> None:
-    """Refuse a plain yaw column (read as radians) whose values, read as degrees, follow the direction of
-    travel while, read as radians, they do not: degrees within +-2 pi (e.g. a road at 4 degrees)."""
+def _refuse_degrees_in_plain_yaw(path: Path, t_us: np.ndarray, xy: np.ndarray, yaw: np.ndarray, column: str,
+                                 fix: str = "name the column yaw_deg in a header line (e.g. t_s,x,y,yaw_deg), or "
+                                            "yaw_rad if they really are radians") -> None:
+    """Refuse a yaw column read as radians (a plain ``yaw``, a Boreas ``heading``) whose values, read as degrees,
+    follow the direction of travel while, read as radians, they do not: degrees within +-2 pi (e.g. a road at 4
+    degrees). ``fix``: what the message tells the user to do."""
     order = np.argsort(t_us, kind="stable")
     as_rad = travel_yaw_mismatch_deg(xy[order], yaw[order])
     as_deg = travel_yaw_mismatch_deg(xy[order], np.radians(yaw[order]))
@@ -493,8 +508,7 @@ def _refuse_degrees_in_plain_yaw(path: Path, t_us: np.ndarray, xy: np.ndarray, y
     if as_deg < _YAW_MATCH_DEG and _YAW_MISMATCH_DEG < as_rad < 180.0 - _YAW_MATCH_DEG:
         raise PoseFileError(
             f"{path}: the {column} column is read as radians, but its values follow the direction of travel only "
-            f"as degrees (median difference {as_deg:.1f} deg as degrees, {as_rad:.1f} deg as radians): name the "
-            "column yaw_deg in a header line (e.g. t_s,x,y,yaw_deg), or yaw_rad if they really are radians")
+            f"as degrees (median difference {as_deg:.1f} deg as degrees, {as_rad:.1f} deg as radians): {fix}")
 
 
 def write_txyyaw_csv(poses: PoseSequence, path: str | Path) -> Path:

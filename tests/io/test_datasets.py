@@ -270,3 +270,50 @@ def test_scans_just_past_the_pose_file_continue_its_motion(tmp_path):
     np.testing.assert_allclose(mid[:, 2], 0.1 * tm, atol=1e-9)
     held = track.subset(np.arange(6)).interpolate(np.asarray(times[-1:]))  # the default still clamps
     assert held[0, 0] == pytest.approx(track.xy[5, 0])
+
+
+def test_a_boreas_heading_column_in_degrees_is_refused(tmp_path):
+    """QA re-test (session 24): a Boreas radar_poses.csv whose heading held degrees (4.0 on a road at 4 degrees) was
+    read as 4 rad and built a map 135 degrees off; the format's heading is radians, and the plain-yaw guard now
+    covers it."""
+    times = [T0 + k * 250_000 for k in range(20)]
+    t = (np.asarray(times, np.float64) - T0) / 1e6
+    c, s = np.cos(np.radians(4.0)), np.sin(np.radians(4.0))
+    xy = np.column_stack([10.0 * t * c, 10.0 * t * s])
+    root = tmp_path / "deg"
+    _write_scans(root, "boreas", times)
+    write_boreas_radar_poses(PoseSequence(np.asarray(times), xy, np.full(20, 4.0)), root / "applanix" / "radar_poses.csv")
+    with pytest.raises(PoseFileError, match="heading column is read as radians.*holds its heading in radians"):
+        load_sequence(root, preset="boreas")
+    write_boreas_radar_poses(PoseSequence(np.asarray(times), xy, np.full(20, np.radians(4.0))),
+                             root / "applanix" / "radar_poses.csv")
+    assert load_sequence(root, preset="boreas").poses.yaw[0] == pytest.approx(np.radians(4.0))
+
+
+def test_a_relative_clock_that_also_reads_as_an_absolute_time_is_read_in_the_unit_given(tmp_path):
+    """QA re-test (session 24): a Boreas render starting at 1,000 s (GPSTime 1e9 µs, which also reads as absolute s in
+    2001) could be loaded in no unit: none -> 'absolute s', s -> 'probably us', us -> 'absolute s' again. A declared
+    unit is now refused only when its reading is no plausible relative clock (more than a year)."""
+    times = [1_000_000_000 + k * 250_000 for k in range(12)]
+    root = tmp_path / "r"
+    _write_scans(root, "boreas", times)
+    write_boreas_radar_poses(_track(np.asarray(times)), root / "applanix" / "radar_poses.csv")
+    assert len(load_sequence(root, preset="boreas", pose_time_unit="us")) == 12
+    write_sequence_meta(root, {"preset": "boreas", "sim_version": "10"})
+    assert load_sequence(root).poses.xy[-1, 0] == pytest.approx(27.5)
+    from reradar_core.io.poses import gps_time_to_us
+
+    with pytest.raises(PoseFileError, match="absolute UTC times in ns, not us"):  # 1.6e18 read as us: 50,000 years
+        gps_time_to_us(np.array([1_600_000_000_000_000_000, 1_600_000_000_250_000_000]), "us")
+
+
+def test_mulran_times_that_read_as_absolute_ms_name_both_readings(tmp_path):
+    """QA re-test (session 24): 1e12 in a plain MulRan file was called absolute ms, and --time-unit ms advised; it may
+    as well be a relative ns clock from 1,000 s, the format's unit."""
+    times = [1_000_000_000 + k * 250_000 for k in range(8)]
+    root = tmp_path / "m"
+    _write_scans(root, "mulran", times)
+    write_mulran_global_pose(_track(np.asarray(times)), root / "global_pose.csv")
+    with pytest.raises(PoseFileError, match=r"--time-unit ms if they are, --time-unit ns if they are a relative clock"):
+        load_sequence(root)
+    assert len(load_sequence(root, pose_time_unit="ns")) == 8
