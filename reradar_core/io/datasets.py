@@ -47,7 +47,7 @@ from reradar_core.io.poses import (
     write_mulran_global_pose,
 )
 from reradar_core.io.presets import PRESETS, RadarPreset, get_preset, mid_sweep_times_us
-from reradar_core.io.scan import RadarScan, read_navtech_png, write_navtech_png
+from reradar_core.io.scan import RadarScan, preset_bin_sizes, read_navtech_png, write_navtech_png
 
 __all__ = [
     "LAYOUTS",
@@ -335,7 +335,7 @@ def load_sequence(path: str | Path, layout: str | None = None,
         fits = [q for q in PRESETS.values() if q.dataset_layout == layout]
         raise DatasetError(
             f"{root}: a {layout}-layout folder does not say which radar recorded it, and its presets differ in "
-            f"range geometry ({', '.join(f'{q.name} {q.range_resolution_m} m/bin' for q in fits)}): pass the "
+            f"range geometry ({preset_bin_sizes(fits)}): pass the "
             "one it was recorded with (--preset; Boreas: boreas before the sensor upgrade, boreas-2021 after)")
     recorded = get_preset(meta.get("preset", _DEFAULT_PRESET[layout]))
     p = get_preset(preset) if preset is not None else recorded

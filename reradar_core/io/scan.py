@@ -160,6 +160,16 @@ class RadarScan:
         return cls(power, azimuths, timestamps, p.range_resolution_m, p.range_offset_m, preset=p.name)
 
 
+def presets_with_bins(num_range_bins: int) -> list[RadarPreset]:
+    """The radar presets whose scans have ``num_range_bins`` range bins (3,360: boreas, boreas-2021, mulran)."""
+    return [p for p in PRESETS.values() if p.num_range_bins == num_range_bins]
+
+
+def preset_bin_sizes(presets: list[RadarPreset]) -> str:
+    """``boreas 0.0596 m/bin, boreas-2021 0.04381 m/bin``: what messages on an ambiguous preset name."""
+    return ", ".join(f"{p.name} {p.range_resolution_m} m/bin" for p in presets)
+
+
 def infer_preset(num_range_bins: int, source: str = "scan") -> RadarPreset:
     """The preset of a scan with ``num_range_bins`` range bins, when the count names one range geometry: 3,768 ->
     oxford (OORD has the same geometry). 3,360 bins fit boreas, boreas-2021 and mulran, whose bins differ in size
@@ -169,13 +179,13 @@ def infer_preset(num_range_bins: int, source: str = "scan") -> RadarPreset:
         ScanFormatError: no preset, or presets of different geometry, have that bin count; the message asks
             for the preset (``--preset``).
     """
-    fits = [p for p in PRESETS.values() if p.num_range_bins == num_range_bins]
+    fits = presets_with_bins(num_range_bins)
     if fits and all(_same_geometry(p, fits[0]) for p in fits):
         return fits[0]
     if fits:
         raise ScanFormatError(
             f"{source}: {num_range_bins} range bins fit several radar presets with different range geometry "
-            f"({', '.join(f'{p.name} {p.range_resolution_m} m/bin' for p in fits)}); pass the preset the scan "
+            f"({preset_bin_sizes(fits)}); pass the preset the scan "
             "was recorded with (--preset)")
     raise ScanFormatError(
         f"{source}: cannot infer the radar preset from {num_range_bins} range bins{_navtech_hint(num_range_bins)}; "
@@ -188,7 +198,7 @@ def infer_preset(num_range_bins: int, source: str = "scan") -> RadarPreset:
 def range_bins_ambiguous(num_range_bins: int) -> bool:
     """True when radar presets of different range geometry have ``num_range_bins`` bins (3,360: boreas,
     boreas-2021 and mulran), so the count alone does not say how long a bin is."""
-    fits = [p for p in PRESETS.values() if p.num_range_bins == num_range_bins]
+    fits = presets_with_bins(num_range_bins)
     return any(not _same_geometry(p, fits[0]) for p in fits[1:])
 
 

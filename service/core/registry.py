@@ -48,11 +48,12 @@ from reradar_core.errors import (
     ScanFormatError,
     ScanTooLargeError,
 )
-from reradar_core.io.presets import PRESETS
 from reradar_core.io.scan import (
     RadarScan,
     check_header_size,
     load_scan_bytes,
+    preset_bin_sizes,
+    presets_with_bins,
     range_bins_ambiguous,
     scan_header,
 )
@@ -506,11 +507,10 @@ class MapRegistry:
         if preset is None and range_bins_ambiguous(first.num_range_bins):
             # a PNG does not say its bin size: read as the first fitting preset, a boreas-2021 archive was built
             # 1.36x too long and answered 1.5 m off at confidence 1 (QA, session 24)
-            fits = [p for p in PRESETS.values() if p.num_range_bins == first.num_range_bins]
             raise ScanFormatError(
                 f"the archive's scans have {first.num_range_bins} range bins, which fit radar presets of different "
-                f"bin size ({', '.join(f'{p.name} {p.range_resolution_m} m' for p in fits)}): give 'preset', the "
-                "one they were recorded with")
+                f"bin size ({preset_bin_sizes(presets_with_bins(first.num_range_bins))}): give 'preset', the one "
+                "they were recorded with")
         preset_name = preset or first.preset or "unknown"
         entry = self._reserve(map_id, scans_total=len(scan_paths))
         try:
