@@ -14,7 +14,12 @@ layout      scans                                       poses
                                                         3x4 [R|t]; interpolated at each scan)
 ==========  ==========================================  =================================================
 
-File names are the scan timestamp = the first azimuth's time (microseconds; nanoseconds for MulRan).
+File names are the scan timestamp = the first azimuth's time (microseconds; nanoseconds for MulRan), as in
+Oxford (real Radar RobotCar scans: name = row 0's time, to the microsecond) and our simulator.
+Poses are looked up by that name, while a scan's own time (by which a map keys its keyframe) is its first
+azimuth's timestamp in the PNG (columns 0-7 of row 0), so ``load_sequence`` refuses a scan whose name and embedded
+time lie more than one sweep period apart (``check_scan_name_times``): a scan copied or renamed to another time
+would otherwise get the pose of one instant and the time of another.
 
 Oxford odometry: each row ``source_timestamp,destination_timestamp,x,y,z,roll,pitch,yaw,
 source_radar_timestamp,destination_radar_timestamp`` is the pose of the source scan in the destination
@@ -37,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reradar_core.errors import DatasetError, PoseFileError
+from reradar_core.errors import DatasetError, PoseFileError, ScanFormatError
 from reradar_core.geometry.se2 import compose, inverse
 from reradar_core.io.poses import (
     PoseSequence,
@@ -47,7 +52,13 @@ from reradar_core.io.poses import (
     write_mulran_global_pose,
 )
 from reradar_core.io.presets import PRESETS, RadarPreset, get_preset, mid_sweep_times_us
-from reradar_core.io.scan import RadarScan, preset_bin_sizes, read_navtech_png, write_navtech_png
+from reradar_core.io.scan import (
+    RadarScan,
+    navtech_png_first_time_us,
+    preset_bin_sizes,
+    read_navtech_png,
+    write_navtech_png,
+)
 
 __all__ = [
     "LAYOUTS",
@@ -56,6 +67,8 @@ __all__ = [
     "load_sequence",
     "check_pose_span",
     "check_pose_time_unit",
+    "check_scan_name_times",
+    "scan_name_time_mismatch",
     "likely_time_unit",
     "range_grid_difference",
     "POSE_SPAN_SLACK_US",
@@ -122,8 +135,20 @@ class Sequence:
         return mid_sweep_poses_in(track, self.timestamps_us, self.preset)
 
     def load_scan(self, i: int) -> RadarScan:
-        """Read scan ``i`` (Navtech PNG) with this sequence's preset."""
-        return read_navtech_png(self.scan_paths[i], self.preset)
+        """Read scan ``i`` (Navtech PNG) with this sequence's preset.
+
+        Raises:
+            ScanFormatError: an unreadable scan. DatasetError: its first azimuth's time lies more than one sweep
+                from the time its file name gives (``scan_name_time_mismatch``; ``load_sequence`` checks every
+                scan up front, this catches a file changed since or one whose time it could not read cheaply).
+        """
+        path = Path(self.scan_paths[i])
+        scan = read_navtech_png(path, self.preset)
+        problem = scan_name_time_mismatch(path.name, int(self.timestamps_us[i]), scan.timestamp_us, self.preset,
+                                          self.layout)
+        if problem:
+            raise DatasetError(problem)
+        return scan
 
     def subset(self, index: np.ndarray | slice | list[int]) -> Sequence:
         """A sequence holding only the scans at ``index`` (e.g. ``slice(None, None, 5)`` for every 5th)."""
@@ -189,6 +214,98 @@ def _list_scans(root: Path, layout: str) -> tuple[list[Path], np.ndarray]:
         raise DatasetError(f"{folder}: no scan PNGs named <timestamp>.png")
     order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
     return [paths[i] for i in order], np.asarray(stamps, dtype=np.int64)[order]
+
+
+def scan_name_time_mismatch(name: str, name_time_us: int, embedded_us: int, preset: RadarPreset,
+                            layout: str = "oxford") -> str | None:
+    """Why scan file ``name`` (basename) cannot be used, when the time its name gives (``name_time_us``, µs) and
+    the time it carries (``embedded_us``: its first azimuth's, columns 0-7 of row 0) lie more than one sweep
+    period of ``preset`` apart; None when they agree within it.
+
+    The name keys the scan's pose (pose files are looked up or interpolated at it), the embedded time is the
+    scan's own (``RadarScan.timestamp_us``: a map's keyframe time, a service answer's ``timestamp_us``). A name
+    is normally the first azimuth's time (Oxford, our simulator) and any azimuth of the sweep is within one
+    period of it, so a dataset naming its scans by another azimuth's time still loads; a larger difference is
+    another instant (a scan copied or renamed to another time, or a wrong clock), never a naming convention.
+    """
+    period_us = int(round(preset.sweep_period_s * 1e6))
+    diff = int(name_time_us) - int(embedded_us)
+    if abs(diff) <= period_us:
+        return None
+    unit = " (MulRan names are nanoseconds)" if layout == "mulran" else ""
+    rename = scan_path(Path(), layout, int(embedded_us)).name if layout in LAYOUTS else f"{int(embedded_us)}.png"
+    return (f"scan {name}: its file name gives the time {int(name_time_us)} us{unit}, but the timestamps in the "
+            f"scan (columns 0-7, first azimuth) say {int(embedded_us)} us, {abs(diff) / 1e6:.6g} s "
+            f"{'earlier' if diff > 0 else 'later'}: more than one sweep ({preset.sweep_period_s:g} s), so its pose "
+            f"(taken at the file name's time) and its time (the embedded one, which a map keys its keyframe by) "
+            f"would be two different instants. If the scan's timestamps are right, rename it to {rename} (its "
+            f"pose is then taken at that time); if it is a copy of another scan, or you cannot tell which time is "
+            f"right, remove it from the folder")
+
+
+def check_scan_name_times(paths: list[Path], name_times_us: np.ndarray, preset: RadarPreset,
+                          layout: str = "oxford") -> None:
+    """Refuse scans whose file-name time and embedded first-azimuth time lie more than one sweep period apart
+    (``scan_name_time_mismatch``), before any scan is used.
+
+    Each PNG's embedded time is read from its first row (``navtech_png_first_time_us``: a few small reads, no
+    decode). A scan is decoded (``read_navtech_png``) only when that read fails (an interlaced PNG, say) or to
+    confirm the first disagreement: a file the reader refuses (another layout, whose first pixels are no time;
+    a corrupt one) is left to it, which says what is wrong when the scan is read. Names more than one azimuth
+    interval off (within a sweep) load, with one warning: the poses assume the name is the first azimuth's time
+    (docs/CONVENTIONS.md).
+
+    Args:
+        paths: the scan files. name_times_us: (N,) int64, the times their names give, µs. preset: the radar the
+            folder is read with (its sweep period is the tolerance). layout: for the message (MulRan: ns names).
+
+    Raises:
+        DatasetError: naming the first such scan (basename), both times, how many scans disagree, and what to do.
+    """
+    first: str | None = None
+    disagree = 0
+    off_us: list[int] = []
+    for path, t_name in zip(paths, np.asarray(name_times_us, np.int64).tolist(), strict=True):
+        path = Path(path)
+        t0 = navtech_png_first_time_us(path)
+        confirmed = False
+        if t0 is None:
+            t0 = _decoded_first_time_us(path, preset)
+            confirmed = True
+        if t0 is None:
+            continue
+        problem = scan_name_time_mismatch(path.name, t_name, t0, preset, layout)
+        if problem is None:
+            if t_name != t0:
+                off_us.append(t_name - t0)
+            continue
+        if first is None:
+            if not confirmed:  # the first pixels of a scan of another layout are no time: let the reader say so
+                t0 = _decoded_first_time_us(path, preset)
+                problem = None if t0 is None else scan_name_time_mismatch(path.name, t_name, t0, preset, layout)
+                if problem is None:
+                    continue
+            first = problem
+        disagree += 1
+    if first is not None:
+        more = f" ({disagree} of {len(paths)} scans disagree so; the first is named)" if disagree > 1 else ""
+        raise DatasetError(first + more)
+    step_us = preset.sweep_period_s * 1e6 / preset.num_azimuths
+    beyond = [d for d in off_us if abs(d) > step_us]
+    if beyond:
+        worst = max(beyond, key=abs)
+        logger.warning("%d of %d scans are named by a time up to %+.1f ms from their first azimuth's time: poses are "
+                       "taken at the names' times and mid-sweep poses half a sweep after them, which assumes the names "
+                       "are the first azimuth's time (docs/CONVENTIONS.md)", len(beyond), len(paths), worst / 1e3)
+
+
+def _decoded_first_time_us(path: Path, preset: RadarPreset) -> int | None:
+    """The first azimuth's time of scan ``path`` read as the sequence reads it (``read_navtech_png``); None when
+    the reader refuses it (it does so again, saying why, when the scan is read)."""
+    try:
+        return read_navtech_png(path, preset).timestamp_us
+    except ScanFormatError:
+        return None
 
 
 def read_oxford_odometry(path: str | Path) -> PoseSequence:
@@ -319,7 +436,8 @@ def load_sequence(path: str | Path, layout: str | None = None,
         A ``Sequence`` whose ``poses`` hold one T_world_sensor per scan at its timestamp.
 
     Raises:
-        DatasetError: missing folder, no scans, unknown layout, scans outside the pose time span.
+        DatasetError: missing folder, no scans, unknown layout, scans outside the pose time span, a scan whose
+            file name and embedded first-azimuth time lie more than one sweep apart (``check_scan_name_times``).
         PoseFileError: malformed pose file.
     """
     root = Path(path)
@@ -350,6 +468,7 @@ def load_sequence(path: str | Path, layout: str | None = None,
                            "for such scans given map-frame poses in this layout, else check the preset", root,
                            layout, p.name, p.range_resolution_m, p.dataset_layout)
     paths, stamps = _list_scans(root, layout)
+    check_scan_name_times(paths, stamps, p, layout)
     if layout == "boreas":
         pose_file = root / "applanix" / "radar_poses.csv"
         if not pose_file.is_file():

@@ -65,6 +65,7 @@ __all__ = [
     "MIN_SCAN_SIDE",
     "MAX_SCAN_SIDE",
     "MAX_SCAN_TIMESTAMP_US",
+    "navtech_png_first_time_us",
 ]
 
 #: Metadata columns in front of the range bins in a Navtech PNG row.
@@ -580,6 +581,73 @@ def _check_navtech_metadata(encoder: np.ndarray, timestamps_us: np.ndarray, vali
         raise ScanFormatError(
             f"{source}: the azimuth timestamps (columns 0-7) span {span_s:.3g} s; one sweep takes at most "
             f"{_MAX_SWEEP_S:.0f} s (a Navtech sensor turns at 4 Hz); {hint}")
+
+
+#: Compressed image data read at most to find a PNG's first row (``navtech_png_first_time_us``): the 9 bytes it
+#: needs come from the first few hundred bytes of a deflate stream; this bounds a malformed file.
+_MAX_FIRST_ROW_IDAT_BYTES = 1 << 20
+#: Chunks walked at most before the image data (a Navtech PNG has IHDR, maybe a few ancillary chunks, then IDAT).
+_MAX_CHUNKS_BEFORE_IDAT = 256
+
+
+def navtech_png_first_time_us(path: str | Path) -> int | None:
+    """The first azimuth row's timestamp of a Navtech PNG file (columns 0-7, little-endian int64 microseconds:
+    ``RadarScan.timestamp_us``), read without decoding the image.
+
+    Only the chunks up to the image data are walked and only the first 9 bytes of its zlib stream (row 0's filter
+    byte and its first 8 pixels) are inflated: a few small reads per file, where decoding a 400 x 3779 scan takes
+    ~10 ms. Row 0 has no row above it, so PNG's filters reduce to "as is" (None, Up), "add the left byte" (Sub,
+    Paeth) and "add half of it" (Average).
+
+    Returns:
+        The time in microseconds; None when the file is not an 8-bit greyscale, non-interlaced PNG whose first
+        row can be read so, or that row holds no time (outside 0..``MAX_SCAN_TIMESTAMP_US``): a full decode
+        (``read_navtech_png``) then says what is wrong with it.
+    """
+    try:
+        with Path(path).open("rb") as fh:
+            if fh.read(8) != PNG_SIGNATURE:
+                return None
+            head = fh.read(8 + 13 + 4)  # IHDR: length, type, 13 bytes, CRC
+            if len(head) < 25 or head[4:8] != b"IHDR" or int.from_bytes(head[:4], "big") != 13:
+                return None
+            width, _height, depth, colour, _method, _filter, interlace = struct.unpack(">IIBBBBB", head[8:21])
+            if depth != 8 or colour != 0 or interlace != 0 or width < 8:
+                return None
+            inflate = zlib.decompressobj()
+            row = b""
+            read = 0
+            for _ in range(_MAX_CHUNKS_BEFORE_IDAT):
+                chunk = fh.read(8)
+                if len(chunk) < 8 or chunk[4:8] == b"IEND":
+                    return None
+                length = int.from_bytes(chunk[:4], "big")
+                if chunk[4:8] != b"IDAT":
+                    fh.seek(length + 4, 1)  # the chunk's body and CRC
+                    continue
+                left = length
+                while left and len(row) < 9:
+                    body = fh.read(min(left, 1 << 14))
+                    if not body or read >= _MAX_FIRST_ROW_IDAT_BYTES:
+                        return None  # a truncated file, or image data that yields nothing
+                    read += len(body)
+                    left -= len(body)
+                    row += inflate.decompress(inflate.unconsumed_tail + body, 9 - len(row))
+                if len(row) == 9:
+                    break
+                fh.seek(left + 4, 1)
+            else:
+                return None
+    except (OSError, zlib.error):
+        return None
+    kind, raw = row[0], bytearray(row[1:9])
+    if kind > 4:
+        return None
+    if kind in (1, 3, 4):  # Sub and Paeth add the left byte, Average half of it (the row above is zeros)
+        for i in range(1, 8):
+            raw[i] = (raw[i] + (raw[i - 1] if kind != 3 else raw[i - 1] // 2)) & 0xFF
+    t = int.from_bytes(raw, "little", signed=True)
+    return t if 0 <= t <= MAX_SCAN_TIMESTAMP_US else None
 
 
 def _raw_from_scan(scan: RadarScan) -> np.ndarray:
