@@ -9,6 +9,9 @@ from typing import TYPE_CHECKING
 import typer
 
 if TYPE_CHECKING:  # the server's settings load lazily: the vehicle client needs none of it
+    from collections.abc import Callable
+
+    from reradar_core.localization.extractor import FeatureExtractor
     from service.core.config import Settings
 
 __all__ = ["register", "describe_settings_error"]
@@ -62,7 +65,9 @@ def settings_or_exit(**overrides: object) -> Settings:
 def check_model_or_exit(settings: Settings) -> None:
     """Exit 2 with one line when ``settings.model`` (RERADAR_MODEL) names no loadable weights: an unknown name, a
     missing file, or a file that does not load (truncated, empty, corrupt, another architecture than its JSON).
-    The weights are loaded once here (in torch, about a second) and again by the service at start-up."""
+    For a process that does not serve the model itself (the supervisor of ``serve --workers N``, whose spawned
+    workers load their own): the weights are loaded here in torch (about a second) and dropped. A process that
+    serves it loads it once with ``served_model_or_exit`` instead."""
     from reradar_core.errors import ReRadarError
     from reradar_core.model.extractor import DescriptorExtractor
     from reradar_core.model.registry import resolve_weights
@@ -70,6 +75,26 @@ def check_model_or_exit(settings: Settings) -> None:
     try:
         pt, meta = resolve_weights(settings.model)
         DescriptorExtractor.from_file(pt, meta=meta, runtime="torch", fuse=False)
+    except ReRadarError as exc:
+        typer.echo(f"error: RERADAR_MODEL: {exc}", err=True)
+        raise typer.Exit(2) from None
+
+
+def served_model_or_exit(settings: Settings,
+                         load: Callable[[Settings], FeatureExtractor] | None = None) -> FeatureExtractor:
+    """The model this process will serve, loaded by ``load`` (default ``service.main.load_served_extractor``;
+    ``reradar worker`` passes ``service.worker.load_build_extractor``), or exit 2 with one line as
+    ``check_model_or_exit``: checking the weights and serving them is then one load (about a second) instead
+    of two."""
+    from reradar_core.errors import ReRadarError
+
+    if load is None:
+        from service.main import load_served_extractor
+
+        load = load_served_extractor
+
+    try:
+        return load(settings)
     except ReRadarError as exc:
         typer.echo(f"error: RERADAR_MODEL: {exc}", err=True)
         raise typer.Exit(2) from None
@@ -119,7 +144,10 @@ def serve_command(
     import uvicorn
 
     settings = settings_or_exit(**({"maps_dir": maps_dir} if maps_dir is not None else {}))
-    check_model_or_exit(settings)  # before the server starts: a bad setting is one line, not a start-up traceback
+    # before the server starts: a bad setting is one line, not a start-up traceback
+    extractor = served_model_or_exit(settings) if workers == 1 else None  # served as loaded: one load
+    if extractor is None:  # the spawned workers load their own: this process only checks the weights
+        check_model_or_exit(settings)
     check_redis_credentials_or_exit(settings)
     from service.core.http_protocol import HEADER_TIMEOUT_ENV, HeadTimeoutH11Protocol
 
@@ -128,7 +156,8 @@ def serve_command(
     if workers == 1:
         from service.main import create_app
 
-        uvicorn.run(create_app(settings), host=host, port=port, log_level=log_level, http=HeadTimeoutH11Protocol)
+        uvicorn.run(create_app(settings, extractor), host=host, port=port, log_level=log_level,
+                    http=HeadTimeoutH11Protocol)
         return
     if not settings.redis_url:
         typer.echo(f"error: --workers {workers} needs RERADAR_REDIS_URL: each worker is a separate process, so "

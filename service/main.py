@@ -50,7 +50,7 @@ from service.core.metrics import Metrics
 from service.core.shared_state import OpsRuntime
 from service.core.state import ServiceState
 
-__all__ = ["create_app", "app"]
+__all__ = ["create_app", "app", "load_served_extractor", "limit_threads", "prepare_process"]
 
 logger = logging.getLogger("service")
 
@@ -126,13 +126,49 @@ def _problem_openapi(doc: dict[str, Any]) -> dict[str, Any]:
     return doc
 
 
+def prepare_process(cfg: Settings) -> None:
+    """Process-wide set-up that comes before the model loads: the malloc arena cap (before threads start: the
+    request thread pool, and ONNX Runtime's, which starts with the model) and the one log format (the loader logs
+    which network runtime it chose). Idempotent: ``reradar serve`` runs it before it loads the model it hands to
+    ``create_app`` (``load_served_extractor``), and the lifespan runs it again."""
+    if cfg.malloc_arenas:  # docs/OPERATIONS.md, memory
+        limit_malloc_arenas(cfg.malloc_arenas)
+    configure_logging(cfg.log_level, cfg.log_format)  # ops: one log format
+
+
+def limit_threads(cfg: Settings) -> None:
+    """Set torch's and BLAS' thread counts (RERADAR_TORCH_THREADS, RERADAR_BLAS_THREADS) before the model loads:
+    its ONNX Runtime session is created at torch's thread count (``OnnxNetwork``); loaded at another count, the
+    first request would create a second session."""
+    import torch
+
+    torch.set_num_threads(cfg.torch_threads)
+    limit_blas_threads(cfg.blas_threads)
+
+
+def load_served_extractor(cfg: Settings) -> FeatureExtractor:
+    """The descriptor model the service serves (``cfg.model``), loaded exactly as the lifespan would load it
+    (``prepare_process`` and ``limit_threads`` first), for a caller that hands it to ``create_app``: ``reradar
+    serve`` loads it before the server starts, so that a bad RERADAR_MODEL is one line, and the model is then
+    loaded once per process instead of once for that check and again at start-up.
+
+    Raises:
+        ReRadarError: unknown model name, missing, unreadable or mismatched weights (or ONNX graph, when
+            RERADAR_NETWORK_RUNTIME=onnx asks for it).
+    """
+    prepare_process(cfg)
+    limit_threads(cfg)
+    return load_default_extractor(cfg.model)
+
+
 def create_app(settings: Settings | None = None, extractor: FeatureExtractor | None = None) -> FastAPI:
     """The ReRadar service.
 
     Args:
         settings: configuration (default: ``Settings()`` from ``RERADAR_*`` environment variables, read when
             the app starts).
-        extractor: feature extractor to use (default: the shipped ``DescriptorExtractor``, loaded at startup).
+        extractor: feature extractor to use (default: ``settings.model``, loaded at startup; ``reradar serve``
+            passes the one it loaded with ``load_served_extractor``, so that it is not loaded twice).
     """
     metrics = Metrics()
 
@@ -140,18 +176,13 @@ def create_app(settings: Settings | None = None, extractor: FeatureExtractor | N
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         cfg = settings or Settings()
         app.state.settings = cfg
-        if cfg.malloc_arenas:  # before the request thread pool starts (docs/OPERATIONS.md, memory)
-            limit_malloc_arenas(cfg.malloc_arenas)
-        configure_logging(cfg.log_level, cfg.log_format)  # ops: one log format
+        prepare_process(cfg)
         ops = OpsRuntime(cfg)  # ops: shared state (Redis) or in-process
         app.state.ops = ops
 
         def load() -> ServiceState:
-            import torch
-
-            torch.set_num_threads(cfg.torch_threads)
-            limit_blas_threads(cfg.blas_threads)
-            ext = extractor or load_default_extractor(cfg.model)
+            limit_threads(cfg)
+            ext = extractor or load_default_extractor(cfg.model)  # `reradar serve` hands in the one it loaded
             registry = ops.make_registry(ext)  # ops: queued builds with Redis
             with startup_lock(cfg.maps_dir):  # workers of `reradar serve --workers N` start at the same time
                 if cfg.load_demo_map:

@@ -285,22 +285,36 @@ def release_stale_builds(queue: BuildQueue, stale_after_s: float, now: float | N
     return released
 
 
+def load_build_extractor(settings: Settings) -> FeatureExtractor:
+    """The descriptor model a build worker builds with (``settings.model``), loaded after the log format is set
+    (the loader logs which network runtime it chose) at the worker's thread counts (RERADAR_TORCH_THREADS,
+    RERADAR_BLAS_THREADS: an ONNX Runtime session is created at torch's count). ``reradar worker`` loads it so
+    before the worker starts, which is its check of RERADAR_MODEL too, and hands it to ``run_worker``.
+
+    Raises:
+        ReRadarError: unknown model name, missing, unreadable or mismatched weights.
+    """
+    import torch
+
+    from reradar_core.localization.extractor import load_default_extractor
+    from service.core.blas import limit_blas_threads
+
+    configure_logging(settings.log_level, settings.log_format)
+    torch.set_num_threads(settings.torch_threads)
+    limit_blas_threads(settings.blas_threads)
+    return load_default_extractor(settings.model)
+
+
 def run_worker(settings: Settings, extractor: FeatureExtractor | None = None, burst: bool = False) -> None:
-    """Run a build worker until SIGINT/SIGTERM (``burst``: until the queue is empty)."""
+    """Run a build worker until SIGINT/SIGTERM (``burst``: until the queue is empty). ``extractor``: the model to
+    build with (default: ``load_build_extractor``; ``reradar worker`` passes the one it loaded)."""
     from arq.worker import Worker, func
 
     configure_logging(settings.log_level, settings.log_format)
     if not settings.redis_url:
         raise ValueError("the worker needs RERADAR_REDIS_URL (the queue lives in Redis)")
     if extractor is None:
-        import torch
-
-        from reradar_core.localization.extractor import load_default_extractor
-        from service.core.blas import limit_blas_threads
-
-        torch.set_num_threads(settings.torch_threads)
-        limit_blas_threads(settings.blas_threads)
-        extractor = load_default_extractor(settings.model)
+        extractor = load_build_extractor(settings)
     client = connect(settings.redis_url)
     keys = Keys(settings.redis_namespace)
     queue = BuildQueue(client, keys, settings)
@@ -375,7 +389,7 @@ def worker_command(check: bool = False) -> None:
     (with a message when Redis cannot be reached)."""
     import typer
 
-    from service.cli import check_model_or_exit, check_redis_credentials_or_exit, settings_or_exit
+    from service.cli import check_redis_credentials_or_exit, served_model_or_exit, settings_or_exit
 
     settings = settings_or_exit()
     if not settings.redis_url:
@@ -391,8 +405,8 @@ def worker_command(check: bool = False) -> None:
         typer.echo(f"no live worker on this host: its health record in Redis is older than {HEALTH_S + 1:.0f} s "
                    "or missing (start `reradar worker`)", err=True)
         raise typer.Exit(1)
-    check_model_or_exit(settings)
-    run_worker(settings)
+    # one load: the check of RERADAR_MODEL (one line, exit 2) is the load the worker builds with
+    run_worker(settings, served_model_or_exit(settings, load_build_extractor))
 
 
 def register(app: Any) -> None:

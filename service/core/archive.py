@@ -7,9 +7,10 @@ ignored. Everything is bounded before it costs anything: the number of members o
 read one at a time and not kept), the bytes all members expand to (skipping a member of a compressed tar
 decompresses it too), and the number of scans.
 
-``check_scan_times`` then refuses two scans of one scan time before the build starts: a map keys its keyframes
-by the time each scan carries (a Navtech PNG's first azimuth timestamp, a polar .npy's file name), which need not
-be the time its file name says.
+``check_scan_times`` then refuses, before the build starts, two scans of one scan time and a PNG whose file name
+and embedded time lie more than one sweep apart: a map keys its keyframes by the time each scan carries (a Navtech
+PNG's first azimuth timestamp, a polar .npy's file name), while its pose is taken from the poses file at the time
+its file name says, so the two must be one instant (the rule of a sequence folder, ``load_sequence``).
 """
 
 from __future__ import annotations
@@ -19,14 +20,16 @@ import shutil
 import struct
 import tarfile
 import zipfile
-import zlib
+from collections.abc import Callable
 from pathlib import Path
 
-from reradar_core.io.scan import MAX_SCAN_TIMESTAMP_US
+from reradar_core.io.datasets import scan_name_time_mismatch
+from reradar_core.io.presets import RadarPreset, get_preset
+from reradar_core.io.scan import MAX_SCAN_TIMESTAMP_US, navtech_png_first_time_us
 from service.core.errors import BadRequestError, PayloadTooLargeError
 
 __all__ = ["extract_scan_archive", "check_scan_times", "scan_time_us", "navtech_png_scan_time_us",
-           "duplicate_scan_time_message",
+           "duplicate_scan_time_message", "scan_name_time_message", "SWEEP_PRESET",
            "max_archive_members", "zip_entries_exceed", "SCAN_NAME_PATTERN",
            "MAX_SCAN_TIMESTAMP_US", "ARCHIVE_MEMBER_SLACK", "MAX_TAR_HEADER_BYTES", "TarHeaderTooLargeError"]
 
@@ -222,73 +225,13 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
     return [written[stamp] for stamp in sorted(written)]
 
 
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-#: Image data read at most to find a PNG's first row (``navtech_png_scan_time_us``); 9 bytes of a deflate stream
-#: come from its first few hundred bytes, this bounds a malformed file
-_MAX_IDAT_READ = 1 << 20
-#: Chunks walked at most before that row (a Navtech PNG has IHDR, maybe a few ancillary ones, then IDAT)
-_MAX_CHUNKS_BEFORE_ROW = 256
+#: The time a Navtech PNG carries, read from its first row without decoding: the library's reader (this module
+#: had its own copy; the name stays for its importers).
+navtech_png_scan_time_us = navtech_png_first_time_us
 
-
-def navtech_png_scan_time_us(path: Path) -> int | None:
-    """The scan time a Navtech PNG carries: its first azimuth row's timestamp (columns 0-7, little-endian int64
-    microseconds; ``RadarScan.timestamp_us``), read without decoding the image.
-
-    The chunks are walked to the image data and only the first 9 bytes of its zlib stream (row 0's filter type
-    and first 8 bytes) are inflated: about 0.03 ms and a few small reads per file, where a full decode of a
-    400 x 3371 scan takes about 12 ms. Row 0 has no row above it, so PNG's five filters reduce to "none" (None,
-    Up), "add the left byte" (Sub, Paeth) and "add half of it" (Average).
-
-    Returns:
-        The time in microseconds, or None when ``path`` is not an 8-bit greyscale, non-interlaced PNG whose first
-        row can be read so, or that row holds no time (0..``MAX_SCAN_TIMESTAMP_US``): the build's full decode
-        then says what is wrong with it.
-    """
-    try:
-        with path.open("rb") as fh:
-            if fh.read(8) != _PNG_SIGNATURE:
-                return None
-            head = fh.read(8 + 13)
-            if len(head) < 21 or head[4:8] != b"IHDR" or int.from_bytes(head[:4], "big") != 13:
-                return None
-            width, _height, depth, colour, _method, _filter, interlace = struct.unpack(">IIBBBBB", head[8:21])
-            if depth != 8 or colour != 0 or interlace != 0 or width < 8:
-                return None
-            fh.seek(4, 1)  # IHDR's CRC
-            inflate = zlib.decompressobj()
-            row = b""
-            read = 0
-            for _ in range(_MAX_CHUNKS_BEFORE_ROW):
-                chunk = fh.read(8)
-                if len(chunk) < 8 or chunk[4:8] == b"IEND":
-                    return None
-                length = int.from_bytes(chunk[:4], "big")
-                if chunk[4:8] != b"IDAT":
-                    fh.seek(length + 4, 1)  # + its CRC
-                    continue
-                left = length
-                while left and len(row) < 9:
-                    body = fh.read(min(left, 1 << 14))
-                    if not body or read >= _MAX_IDAT_READ:
-                        return None  # a truncated file, or image data that yields nothing
-                    read += len(body)
-                    left -= len(body)
-                    row += inflate.decompress(inflate.unconsumed_tail + body, 9 - len(row))
-                if len(row) == 9:
-                    break
-                fh.seek(left + 4, 1)
-            else:
-                return None
-    except (OSError, zlib.error):
-        return None
-    kind, raw = row[0], bytearray(row[1:9])
-    if kind > 4:
-        return None
-    if kind in (1, 3, 4):  # Sub and Paeth add the left byte, Average half of it (the row above is zero)
-        for i in range(1, 8):
-            raw[i] = (raw[i] + (raw[i - 1] if kind != 3 else raw[i - 1] // 2)) & 0xFF
-    t = int.from_bytes(raw, "little", signed=True)
-    return t if 0 <= t <= MAX_SCAN_TIMESTAMP_US else None  # no time: the build's decode refuses the scan
+#: Radar preset whose sweep period bounds how far a PNG's file name and embedded time may lie apart when the upload
+#: names none (the route takes mid-sweep poses with it too; every preset sweeps at 4 Hz).
+SWEEP_PRESET = "boreas"
 
 
 def scan_time_us(path: Path) -> int | None:
@@ -302,22 +245,68 @@ def scan_time_us(path: Path) -> int | None:
     return navtech_png_scan_time_us(path)
 
 
-def check_scan_times(scan_paths: list[Path]) -> None:
-    """Refuse two scans of one scan time (``scan_time_us``): the map keys its keyframes by it, so two would make
-    the built map unreadable. File names alone cannot tell: a copy of a PNG under another name carries the
-    original's time. Files whose time cannot be read cheaply are left to the build, which checks every scan.
+def check_scan_times(scan_paths: list[Path], preset: str | RadarPreset | None = None,
+                     decoded_time_us: Callable[[Path], int | None] | None = None) -> None:
+    """Refuse, before the build, two scans of one scan time (``scan_time_us``) and a PNG whose file name and
+    embedded time lie more than one sweep of ``preset`` apart (``scan_name_time_message``).
+
+    The map keys its keyframes by the scan time, so two scans of one time would make the built map unreadable;
+    file names alone cannot tell (a copy of a PNG under another name carries the original's time). Each
+    keyframe's pose is taken from the poses file at its file name's time, so a PNG whose name and embedded time
+    are two instants would get the pose of one and the time of the other. Files whose time cannot be read cheaply
+    are left to the build, which checks every scan (``MapRegistry.build_scan_loader``).
+
+    Args:
+        scan_paths: the extracted scans (``extract_scan_archive``). preset: the radar preset of the upload (None:
+            ``SWEEP_PRESET``); its sweep period is the tolerance. decoded_time_us: the time a scan carries as the
+            build decodes it, None when the build refuses it: confirms the first disagreement, since the first
+            pixels of an image that is no Navtech scan are no time (the build then says what the file is).
 
     Raises:
-        BadRequestError: naming both archive members and the time.
+        BadRequestError: naming both archive members and the time; or the first member whose name and time
+            disagree (by its name in the archive), both times, how many disagree and what to do.
     """
+    sweep = preset if isinstance(preset, RadarPreset) else get_preset(preset or SWEEP_PRESET)
     seen: dict[int, str] = {}
+    first: str | None = None
+    disagree = 0
     for path in scan_paths:
         t = scan_time_us(path)
         if t is None:
             continue
-        if t in seen:
+        if t in seen:  # a copy is said to be one (before a name that disagrees with its time, which a copy's does)
             raise BadRequestError(duplicate_scan_time_message(seen[t], path.name, t))
         seen[t] = path.name
+        problem = scan_name_time_message(path.name, t, sweep)
+        if problem is None:
+            continue
+        if first is None:
+            if decoded_time_us is not None:
+                decoded = decoded_time_us(path)
+                problem = None if decoded is None else scan_name_time_message(path.name, decoded, sweep)
+                if problem is None:
+                    continue
+            first = problem
+        disagree += 1
+    if first is not None:
+        more = f" ({disagree} of {len(scan_paths)} scans disagree so; the first is named)" if disagree > 1 else ""
+        raise BadRequestError(first + more)
+
+
+def scan_name_time_message(name: str, embedded_us: int, preset: str | RadarPreset | None = None) -> str | None:
+    """Why archive member ``name`` (``<timestamp_us>.png``, its name in the archive) cannot be built from when
+    the time its name gives and the time it carries (``embedded_us``, its first azimuth's) lie more than one
+    sweep of ``preset`` apart: the library's rule and words for a sequence folder (``scan_name_time_mismatch``),
+    said of an archive member. None when they agree within a sweep, and for a polar .npy (timed by its name).
+    """
+    match = SCAN_NAME_PATTERN.match(name)
+    if match is None or match.group(2) != "png":
+        return None
+    sweep = preset if isinstance(preset, RadarPreset) else get_preset(preset or SWEEP_PRESET)
+    problem = scan_name_time_mismatch(name, int(match.group(1)), int(embedded_us), sweep)
+    if problem is None:
+        return None
+    return "scan archive member " + problem.removeprefix("scan ").replace("from the folder", "from the archive")
 
 
 def duplicate_scan_time_message(first: str, second: str, t_us: int) -> str:

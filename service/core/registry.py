@@ -33,6 +33,7 @@ from maps.build import build_map
 from maps.database import MapDatabase
 from maps.paths import DEMO_MAP_PATH
 from maps.store import (
+    KeyframeMap,
     MapMetadata,
     fsync_dir,
     install_file,
@@ -59,7 +60,7 @@ from reradar_core.io.scan import (
 )
 from reradar_core.localization.extractor import FeatureExtractor
 from reradar_core.retrieval import IndexConfig
-from service.core.archive import SCAN_NAME_PATTERN, duplicate_scan_time_message
+from service.core.archive import SCAN_NAME_PATTERN, duplicate_scan_time_message, scan_name_time_message
 from service.core.config import MAP_ID_PATTERN, Settings
 from service.core.errors import BadRequestError, ConflictError, NotFoundError, scrub_paths
 
@@ -318,9 +319,23 @@ class MapRegistry:
                 f"rebuild the map with this model")
 
     def _open(self, path: Path) -> MapDatabase:
+        return self._database(self._open_checked(path))
+
+    def _open_checked(self, path: Path) -> KeyframeMap:
+        """Open the map file ``path`` (format, model hash) and refuse one whose descriptor lengths the running
+        model does not compute (``check_compatible``); closed again when refused."""
         kf_map = open_map(path, self.extractor.model_id, self.extractor.weights_sha256)
         try:
             self.check_compatible(kf_map.metadata, path)
+        except BaseException:
+            kf_map.close()
+            raise
+        return kf_map
+
+    def _database(self, kf_map: KeyframeMap) -> MapDatabase:
+        """The served database over the open, checked ``kf_map`` (index, keyframe cache, shared arrays); the map
+        is closed when that fails."""
+        try:
             return MapDatabase(kf_map, self.index_config, keyframe_cache_size=self.settings.keyframe_cache_size,
                                config=self.settings.localization, preload=self.settings.preload_keyframes,
                                arrays_dir=self.settings.arrays_dir)
@@ -449,7 +464,9 @@ class MapRegistry:
         """Validate the uploaded map at ``staged`` (format, model hash, descriptor lengths) and install it as
         ``map_id``.
 
-        ``staged`` must be inside the staging folder; it is moved (renamed) on success, deleted on failure.
+        ``staged`` must be inside the staging folder; it is moved (renamed) on success, deleted on failure. It is
+        read through in a child process first (``probe_map``), then opened once in this process: the checks
+        before the install and the served database share that open file.
 
         The install never replaces a file (``install_file(exclusive=True)``): on a shared maps folder another
         process may have installed a map under this id since the id check.
@@ -463,15 +480,14 @@ class MapRegistry:
             staged.unlink(missing_ok=True)
             raise
         installed = False
+        kf_map: KeyframeMap | None = None
         try:
             try:
                 # first in a child process: a crafted file that crashes or hangs the HDF5 library costs the child
                 probe_map(staged)
-                probe = open_map(staged, self.extractor.model_id, self.extractor.weights_sha256)
-                try:  # before the file is installed: nothing of a map the model cannot use is stored
-                    self.check_compatible(probe.metadata, staged)
-                finally:
-                    probe.close()
+                # then the one read in this process: checked before the file is installed (nothing of a map the
+                # model cannot use is stored), and served from this same open file once installed
+                kf_map = self._open_checked(staged)
             except ReRadarError as exc:  # the message names the staged file: say "the uploaded map" instead
                 raise type(exc)(str(exc).replace(str(staged), "the uploaded map")) from None
             identity = file_identity(staged)  # a hard link or a rename keeps it
@@ -481,8 +497,11 @@ class MapRegistry:
                 raise ConflictError(self.taken_message(map_id, None)) from None
             installed = True
             entry.file_id = identity
+            # the open file is now the installed one (same inode, which a hard link or a rename keeps; HDF5 reads
+            # through its descriptor, never by name again): its messages name it by its new path
+            kf_map.path = entry.path
             try:  # opening reads every keyframe (shared arrays, preload): their checks refuse it here
-                entry.db = self._open(entry.path)
+                entry.db = self._database(kf_map)
             except ReRadarError as exc:
                 raise type(exc)(str(exc).replace(str(entry.path), "the uploaded map")) from None
             entry.scans_total = entry.scans_done = len(entry.db)
@@ -490,6 +509,8 @@ class MapRegistry:
             self._mark_verified(map_id, identity)  # probed before the install: not again at the next start
             return entry
         except BaseException:
+            if kf_map is not None and entry.db is None:  # closing twice is harmless (``_database`` may have)
+                kf_map.close()
             staged.unlink(missing_ok=True)
             if installed and entry.db is None:  # only the file this call installed, never another writer's
                 entry.path.unlink(missing_ok=True)
@@ -567,12 +588,22 @@ class MapRegistry:
             scan = replace(scan, timestamps_us=scan.timestamps_us + int(match.group(1)))
         return scan
 
+    def decoded_scan_time_us(self, path: Path, preset: str | None) -> int | None:
+        """The time archive scan ``path`` carries as the build reads it (``_load_scan``: size-checked, then
+        decoded); None when the build refuses the file (it then says why)."""
+        try:
+            return self._load_scan(path, preset).timestamp_us
+        except ReRadarError:
+            return None
+
     def build_scan_loader(self, scan_paths: list[Path], preset: str | None) -> Callable[[int], RadarScan]:
         """``build_map``'s ``load_scan`` over an archive's scans (``_load_scan``), refusing at the first scan whose
-        time (``RadarScan.timestamp_us``, by which the map keys its keyframes) an earlier scan had: the upload's
-        check (``archive.check_scan_times``) skips PNGs whose first row it cannot read cheaply.
+        time (``RadarScan.timestamp_us``, by which the map keys its keyframes) an earlier scan had, or a PNG whose
+        time lies more than one sweep from its file name's (at which its pose was taken): the upload's check
+        (``archive.check_scan_times``) skips PNGs whose first row it cannot read cheaply.
 
-        Raises (from the loader): ScanFormatError naming both archive members and the time."""
+        Raises (from the loader): ScanFormatError naming both archive members and the time, or the member whose
+        name and time disagree (``archive.scan_name_time_message``)."""
         seen: dict[int, str] = {}
 
         def load(i: int) -> RadarScan:
@@ -581,6 +612,9 @@ class MapRegistry:
             t = scan.timestamp_us
             if seen.setdefault(t, path.name) != path.name:
                 raise ScanFormatError(duplicate_scan_time_message(seen[t], path.name, t))
+            problem = scan_name_time_message(path.name, t, preset)
+            if problem is not None:
+                raise ScanFormatError(problem)
             return scan
 
         return load

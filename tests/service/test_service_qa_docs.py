@@ -262,25 +262,27 @@ def test_a_scan_time_that_cannot_be_read_cheaply_is_left_to_the_build(tmp_path: 
     for name, data in cases.items():
         (tmp_path / f"{name}.png").write_bytes(data)
         assert navtech_png_scan_time_us(tmp_path / f"{name}.png") is None, name
-    (tmp_path / "1.png").write_bytes(good)
+    png = tmp_path / f"{keyframe_time(1)}.png"  # named by the time it carries (else refused: the name is another instant)
+    png.write_bytes(good)
     (tmp_path / "2.png").write_bytes(cases["cut"])  # no time read: left to the build
     (tmp_path / "3.npy").write_bytes(b"")  # an .npy is timed by its name
-    check_scan_times([tmp_path / "1.png", tmp_path / "2.png", tmp_path / "3.npy"])
+    check_scan_times([png, tmp_path / "2.png", tmp_path / "3.npy"])
     (tmp_path / f"{keyframe_time(1)}.npy").write_bytes(b"")
     with pytest.raises(BadRequestError, match=r"a polar \.npy's from its file name"):
-        check_scan_times([tmp_path / "1.png", tmp_path / f"{keyframe_time(1)}.npy"])
+        check_scan_times([png, tmp_path / f"{keyframe_time(1)}.npy"])
 
 
 def test_the_build_loader_refuses_the_second_of_two_scan_times(tmp_path: Path) -> None:
     registry = MapRegistry(Settings(maps_dir=tmp_path / "maps", load_demo_map=False, api_key=API_KEY),
                            FakeExtractor())
     try:
-        a, b = tmp_path / "100.png", tmp_path / "200.png"
+        # names within a sweep of the time both carry (further apart, each would be refused for that instead)
+        a, b = tmp_path / f"{keyframe_time(0)}.png", tmp_path / f"{keyframe_time(0) + 100_000}.png"
         a.write_bytes(_png(1, keyframe_time(0)))
         b.write_bytes(_png(2, keyframe_time(0)))
         load = registry.build_scan_loader([a, b], "boreas")
         assert load(0).timestamp_us == keyframe_time(0)
-        with pytest.raises(ScanFormatError, match=r"^scan archive members '100.png' and '200.png' carry the same"):
+        with pytest.raises(ScanFormatError, match=rf"^scan archive members '{a.name}' and '{b.name}' carry the same"):
             load(1)
     finally:
         registry.close()

@@ -495,7 +495,11 @@ def test_pose_times_whose_header_names_another_unit_than_their_values_are_refuse
     n = 4
     poses = keyframe_poses()[:n]  # 40 m apart: a 120 m drive
     stamps = [1_000_000 + 250_000 * i for i in range(n)]  # relative microseconds, as the QA's scan names
-    archive = _archive([f"{t}.png" for t in stamps])
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:  # each scan carries its name's time (else refused: another instant)
+        for i, t in enumerate(stamps):
+            zf.writestr(f"{t}.png", encode_navtech_png_bytes(make_scan(i, t)))
+    archive = buf.getvalue()
 
     def csv(header: str) -> bytes:
         rows = [f"{t},{float(p[0])!r},{float(p[1])!r},{float(p[2])!r}" for t, p in zip(stamps, poses, strict=True)]

@@ -27,7 +27,7 @@ from service.api.schemas import (
     RetrieveRequest,
     RetrieveResponse,
 )
-from service.core.archive import SCAN_NAME_PATTERN, check_scan_times, extract_scan_archive
+from service.core.archive import SCAN_NAME_PATTERN, SWEEP_PRESET, check_scan_times, extract_scan_archive
 from service.core.config import MAP_ID_PATTERN
 from service.core.errors import BadRequestError
 from service.core.registry import MapEntry
@@ -117,9 +117,12 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         scan_paths = extract_scan_archive(arch, work / "scans", state.settings.max_archive_scans,
                                           state.settings.max_map_upload_bytes * 4)
         arch.unlink()
-        # a copy of a PNG under another name carries the original's time, by which the map keys its keyframes:
-        # refused here (400) rather than after the whole build (each PNG's first row only: ~0.03 ms a scan)
-        check_scan_times(scan_paths)
+        # a copy of a PNG under another name carries the original's time, by which the map keys its keyframes, and
+        # a PNG whose name (at which its pose is taken below) and embedded time are two instants would get the pose
+        # of one and the time of the other: refused here (400) rather than after the whole build (each PNG's first
+        # row only: ~0.03 ms a scan; a disagreement is confirmed by decoding that one scan as the build would)
+        check_scan_times(scan_paths, get_preset(preset or SWEEP_PRESET),
+                         lambda path: registry.decoded_scan_time_us(path, preset))
         pose_path = work / "poses.csv"
         _save_upload(poses, pose_path)
         try:
@@ -144,7 +147,7 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         except DatasetError as exc:
             raise BadRequestError(f"{exc}; scan files must be named by their timestamp in microseconds") from None
         # keyframe poses at mid-sweep (docs/CONVENTIONS.md); every preset sweeps 400 azimuths at 4 Hz
-        pose_arr = mid_sweep_poses_in(track, stamps, get_preset(preset or "boreas"))
+        pose_arr = mid_sweep_poses_in(track, stamps, get_preset(preset or SWEEP_PRESET))
         entry = state.registry.start_build(map_id, scan_paths, pose_arr, preset, work,
                                            source=f"upload:{archive.filename or 'archive'}")  # type: ignore[union-attr]
         return entry, True
