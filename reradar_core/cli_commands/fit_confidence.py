@@ -58,6 +58,10 @@ def register(app: typer.Typer) -> None:
                                                      "queries are localized on; 0 = every scan of the "
                                                      "domain's map drive (3.8-6.7 m apart). Each spacing's "
                                                      "runs are a group of their own for the bar."),
+        lookalike: bool = typer.Option(True, help="Also localize each split's confidence sessions driven in a "
+                                                  "look-alike world (the map's roads, other surroundings: every "
+                                                  "localized answer is wrong; `reradar sim-suite "
+                                                  "train-target-X-lookalike`), a group of their own for the bar."),
         reuse: bool = typer.Option(False, help="Re-fit from the runs saved by the last collection with the same "
                                                "splits, step, models and spacings (cache) instead of localizing "
                                                "again; an error when there are none."),
@@ -95,8 +99,9 @@ def register(app: typer.Typer) -> None:
             # the runs are cached per set of judged models (a model change never re-uses another model's runs)
             tag = "-models-" + hashlib.sha256(json.dumps(split_model, sort_keys=True).encode()).hexdigest()[:12]
             maps_tag = "" if spacings == (0.0,) else "-maps-" + "+".join(f"{m:g}m" for m in spacings)
+            look_tag = "-lookalike" if lookalike else ""
             runs_path = cache_dir("confidence") / (f"runs-v{SIM_VERSION}-{'+'.join(names)}-step{query_step}"
-                                                 f"-floor{PROBE_FLOOR:.2f}-with-unseen{tag}{maps_tag}.npz")
+                                                 f"-floor{PROBE_FLOOR:.2f}-with-unseen{tag}{maps_tag}{look_tag}.npz")
             if reuse and not runs_path.is_file():
                 raise ConfigError("--reuse: no saved runs for these splits, step, models and map spacings "
                                   f"({runs_path.name} is not in the cache); run without --reuse to collect them")
@@ -104,11 +109,12 @@ def register(app: typer.Typer) -> None:
                 data = FitData.load(runs_path)
             else:
                 data = FitData.concat([collect_split(s, query_step, holdout, progress, model=split_model[s],
-                                                     map_spacing_m=m) for s in names for m in spacings])
+                                                     map_spacing_m=m, lookalike=lookalike)
+                                       for s in names for m in spacings])
                 data.save(runs_path)
             meta = {"command": "reradar " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
                     "splits": names, "sim_version": SIM_VERSION, "query_step": query_step, "holdout": holdout,
-                    "map_spacings_m": list(spacings), "runs_from_cache": reuse,
+                    "map_spacings_m": list(spacings), "lookalike": lookalike, "runs_from_cache": reuse,
                     "l2": l2, "label": "pose within the suite's success thresholds (e_t < R, e_r < 10 deg)"}
             meta["models"] = split_model
             model, report = fit_from_data(data, l2, max_wrong_pct / 100.0, meta, wrong_cost or None)

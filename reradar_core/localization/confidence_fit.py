@@ -129,7 +129,7 @@ class FitData:
         eligible: (Q,) bool the answer passes the aligned-ratio floor (``localized`` without the confidence).
         revisit: (Q,) bool the map has a keyframe within R of the query.
         heldout: (Q,) bool the query lies in its sequence's held-out tail.
-        split: (Q,) str training split of the row.
+        split: (Q,) str training split of the row (``SPLIT-lookalike`` for its look-alike sessions' runs).
         unseen: (Q,) bool the query's session trained no weights (a ``confidence`` session of the split).
     """
 
@@ -178,6 +178,8 @@ class SplitRun:
         localizer: the ``Localizer`` of that map.
         index: the query's position in its (subsampled) session; session_size: the session's length.
         unseen: the session is a ``confidence`` session (no weight trained on it).
+        lookalike: the session was driven in the split's look-alike world (``sim.suites.lookalike_suite``): the
+            map's roads, other surroundings, so no map keyframe shows its place (``revisit`` False).
     """
 
     features: Any
@@ -188,12 +190,16 @@ class SplitRun:
     index: int
     session_size: int
     unseen: bool
+    lookalike: bool = False
 
 
 def split_runs(split: str, method: Any, config: Any, query_step: int = 1,
-               progress: bool = True, map_spacing_m: float = 0.0) -> tuple[float, Iterator[SplitRun]]:
+               progress: bool = True, map_spacing_m: float = 0.0,
+               lookalike: bool = False) -> tuple[float, Iterator[SplitRun]]:
     """The pairing's localizations of one split, in a fixed order: for each session (training traversals, then
-    ``confidence`` sessions), every query on the full map, then the no-match queries on the half map.
+    ``confidence`` sessions), every query on the full map, then the no-match queries on the half map; with
+    ``lookalike``, then every query of the split's look-alike sessions (``sim.suites.lookalike_suite``: its
+    ``confidence`` sessions driven on the same roads in a world of another seed) on the full map, none a revisit.
 
     Args:
         split: a key of ``SPLIT_MODELS`` (``TRAINING_SPLITS`` names its benchmark domain).
@@ -203,6 +209,7 @@ def split_runs(split: str, method: Any, config: Any, query_step: int = 1,
         progress: progress bars.
         map_spacing_m: keep a database scan as a keyframe of both maps only this far (metres) from the last
             kept one (``select_keyframes``, as ``reradar build-map --min-spacing-m``); 0 = every scan.
+        lookalike: add the look-alike sessions' runs (rendered on first use).
 
     Returns:
         The suite's radius (metres) and the runs (a generator: features are computed session by session).
@@ -212,6 +219,7 @@ def split_runs(split: str, method: Any, config: Any, query_step: int = 1,
     from reradar_core.training.suites import TRAINING_SPLITS
 
     data = build_suite(split, progress=progress)
+    look = build_suite(f"{split}-lookalike", progress=progress) if lookalike else None
     bench_name = TRAINING_SPLITS[split]
     assert bench_name is not None
     bench = build_suite(bench_name, progress=progress)
@@ -245,13 +253,23 @@ def split_runs(split: str, method: Any, config: Any, query_step: int = 1,
                               leave=False):
                     yield SplitRun(prepared_to_features(q.records[int(i)]), gt[int(i)], bool(revisit[i]), map_name,
                                    loc, int(i), n, unseen)
+        for qpath in look.confidence if look is not None else []:
+            # the map's roads in another world: near a keyframe by position, but not at its place
+            qseq = look.load(qpath).subset(slice(None, None, query_step))
+            q = prepare_sequence([method], qseq, bc)[method.name]
+            gt = qseq.mid_sweep_poses()
+            n = len(q.records)
+            loc = maps["full"][0]
+            for i in tqdm(range(n), desc=f"{split}/{qseq.name} (look-alike world) on the full map",
+                          disable=not progress, leave=False):
+                yield SplitRun(prepared_to_features(q.records[i]), gt[i], False, "full", loc, i, n, True, True)
 
     return radius, runs()
 
 
 def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progress: bool = True,
                   min_inlier_ratio: float = PROBE_FLOOR, model: str | None = None,
-                  map_spacing_m: float = 0.0) -> FitData:
+                  map_spacing_m: float = 0.0, lookalike: bool = False) -> FitData:
     """Localize the split's sessions on its domain's map and label the answers (module docstring).
 
     Both kinds of session run: the split's training traversals (the model trained on all but their tails) and
@@ -267,6 +285,8 @@ def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progre
         model: the model whose answers are judged (default: the split's ``SPLIT_MODELS`` entry).
         map_spacing_m: the map's keyframe spacing (``split_runs``); the rows of a sparser map than the drive's
             are labelled ``SPLIT@Nm`` (``map_group``), so the bar holds on them on their own.
+        lookalike: add the split's look-alike sessions (``split_runs``), labelled ``SPLIT-lookalike`` (a group
+            of their own for the bar: every answer there is wrong).
     """
     from reradar_core.baselines.ours import Ours
     from reradar_core.localization.pipeline import LocalizationConfig
@@ -274,12 +294,15 @@ def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progre
     # the floor alone, at its lowest candidate value: every answer is labelled
     config = replace(LocalizationConfig(), min_confidence=0.0, min_inlier_ratio=min_inlier_ratio)
     method = Ours(model or SPLIT_MODELS[split], localization=config)
-    radius, runs = split_runs(split, method, config, query_step, progress, map_spacing_m)
-    rows = [label_run(run, run.localizer.localize(run.features, config), radius, holdout) for run in runs]
+    radius, runs = split_runs(split, method, config, query_step, progress, map_spacing_m, lookalike)
+    rows, groups = [], []
+    for run in runs:
+        rows.append(label_run(run, run.localizer.localize(run.features, config), radius, holdout))
+        groups.append(map_group(f"{split}-lookalike" if run.lookalike else split, map_spacing_m))
     m = len(rows)
     cols = list(zip(*rows, strict=True)) if rows else [()] * 7
     return FitData(np.array(cols[0], np.float64).reshape(m, len(CUE_NAMES)),
-                   *(np.array(c, bool) for c in cols[1:6]), np.array([map_group(split, map_spacing_m)] * m),
+                   *(np.array(c, bool) for c in cols[1:6]), np.array(groups, dtype=str).reshape(m),
                    np.array(cols[6], bool))
 
 

@@ -109,7 +109,10 @@ def register(app: typer.Typer) -> None:
     def sim_suite(
         name: str = typer.Argument(..., help="Suite: smoke, boreas-sim, loop-sim, loop-sim-hard, offroad-sim, "
                                              "offroad-sim-hard, calib-oxford, train-source, train-target-boreas, "
-                                             "train-target-loop, train-target-loop-open, train-target-offroad."),
+                                             "train-target-loop, train-target-loop-open, train-target-offroad; "
+                                             "each train-target-X's look-alike sessions: train-target-X-lookalike "
+                                             "(train-target-boreas-lookalike, train-target-loop-lookalike, "
+                                             "train-target-loop-open-lookalike, train-target-offroad-lookalike)."),
         root: Path = typer.Option(None, help="Output folder (default: sim/v<simulator version>/<name> in the "
                                   "cache, RERADAR_CACHE_DIR; with --every/--limit a sub-folder naming them)."),
         every: int = typer.Option(None, min=1, help="Override the suite's frame step."),

@@ -151,7 +151,8 @@ class SuiteDef:
     sequences: tuple[SequenceDef, ...]
     radius_m: float = 20.0
     single_session: bool = False
-    purpose: str = "benchmark"  # "benchmark", "training", "calibration" or "test"
+    # "benchmark", "training", "confidence" (sessions that only fit the answer confidence), "calibration" or "test"
+    purpose: str = "benchmark"
     traffic_per_km: float = 12.0  # moving vehicles per km of road (both directions)
     # fraction of the beam passing over a car (Traversal.CAR_TRANSMISSION; 0 = opaque, v3 everywhere)
     car_transmission: float = 0.0
@@ -186,7 +187,8 @@ class SuiteData:
         confidence: sessions of a training split that train no weights; they fit the answer confidence and
             the aligned-landmark floor (``reradar fit-confidence``), like unseen queries would.
         single_session: database and queries come from one drive (MulRan-style split).
-        purpose: ``benchmark`` (paper protocols), ``training``, ``calibration`` or ``test`` (smoke).
+        purpose: ``benchmark`` (paper protocols), ``training``, ``confidence`` (look-alike sessions that only fit
+            the answer confidence), ``calibration`` or ``test`` (smoke).
     """
 
     name: str
@@ -430,6 +432,28 @@ def _train_source() -> SuiteDef:
 
 
 SUITES["train-source"] = _train_source()
+
+#: world seed offset of a training split's look-alike world (``lookalike_suite``)
+LOOKALIKE_WORLD_SEED_OFFSET = 1000
+
+
+def lookalike_suite(split: SuiteDef) -> SuiteDef:
+    """A training split's ``confidence`` sessions driven again in a *look-alike* world: the same roads (the
+    world's road network is the suite's routes), profile and conditions, but every building, tree, wall and
+    parked car drawn from another world seed. A map of the split's domain does not hold these places, though
+    their road geometry is the map's: every ``localized`` answer there is wrong. ``reradar fit-confidence
+    --lookalike`` fits the answer confidence on them as well (an unmapped street shaped like a mapped one,
+    docs/MODEL.md "Look-alike places")."""
+    sessions = tuple(s for s in split.sequences if s.role == "confidence")
+    return replace(split, name=f"{split.name}-lookalike",
+                   description=f"{split.name}'s confidence sessions in a look-alike world (same roads, world seed "
+                               f"{split.world_seed + LOOKALIKE_WORLD_SEED_OFFSET}): places no map of the domain holds",
+                   world_seed=split.world_seed + LOOKALIKE_WORLD_SEED_OFFSET, sequences=sessions,
+                   purpose="confidence")
+
+
+for _split in ("train-target-boreas", "train-target-loop", "train-target-loop-open", "train-target-offroad"):
+    SUITES[f"{_split}-lookalike"] = lookalike_suite(SUITES[_split])
 
 
 def suite_names(purpose: str | None = None) -> list[str]:

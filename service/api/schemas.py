@@ -233,7 +233,7 @@ class LocalizeResponse(_Model):
     status: Literal["localized", "not_localized"]
     reason: str | None = Field(default=None, description=(
         "Why not localized: no_candidate, too_few_matches, too_few_inliers (under 12 aligned landmarks or under "
-        "the aligned-ratio floor fitted with the confidence model: min_aligned_ratio in its JSON, 35 % of the "
+        "the aligned-ratio floor fitted with the confidence model: min_aligned_ratio in its JSON, 45 % of the "
         "query's landmarks), ambiguous (a "
         "rival pose aligns as many landmarks, or a keyframe at another place, over 20 m from the answer, screens "
         "within 2 % of the query's landmarks of the winner: localization.min_place_margin), low_confidence (below min_confidence). A "
@@ -265,5 +265,5 @@ class LocalizeResponse(_Model):
     session_id: str | None = None
     alignment_score: float = Field(default=0.0, description=(
         "Fraction of the query's landmarks aligned with the keyframe's (0-1); `localized` needs at least the "
-        "fitted floor (35 %), `min_inliers` and `confidence` at the bar. Not a calibrated probability."))
+        "fitted floor (45 %), `min_inliers` and `confidence` at the bar. Not a calibrated probability."))
     timings_ms: dict[str, float]

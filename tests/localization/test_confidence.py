@@ -399,3 +399,40 @@ def test_split_models_applies_overrides_and_refuses_bad_ones() -> None:
         split_models("train-target-loop=our-1", ["train-target-boreas"])
     with pytest.raises(ConfigError, match="more than once"):  # would be localized twice and weigh double
         split_models("", ["train-target-boreas", "train-target-boreas"])
+
+
+def test_collect_split_labels_lookalike_runs_wrong_and_groups_them(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A look-alike session's query (the map's road, other surroundings) is never a revisit: an answer at its
+    ground-truth position is still wrong there, and its rows form a group of their own (``SPLIT-lookalike``) for
+    the bar's per-group rule; the split's own sessions keep their labels."""
+    import reradar_core.baselines.ours as ours
+    from reradar_core.localization import confidence_fit as cf
+    from reradar_core.localization.pipeline import LocalizationResult
+
+    gt = np.array([3.0, 4.0, 0.2])
+    best = _cand(0, (0.0, 0.0), 0.7, rel=gt.copy(), inliers=99, ratio=0.6, ambiguity=0.4, spread=7.5)
+
+    class Loc:  # every query answered at its ground truth from a keyframe at the origin
+        def localize(self, features: object, config: object) -> LocalizationResult:
+            return LocalizationResult("localized", None, best, gt.copy(), [best])
+
+    runs = [cf.SplitRun(None, gt, True, "full", Loc(), 0, 10, False),
+            cf.SplitRun(None, gt, True, "full", Loc(), 9, 10, True),
+            cf.SplitRun(None, gt, False, "full", Loc(), 9, 10, True, True)]
+    seen: dict[str, object] = {}
+
+    def fake_split_runs(split: str, method: object, config: object, query_step: int, progress: bool,
+                        map_spacing_m: float, lookalike: bool) -> tuple[float, Iterator[cf.SplitRun]]:
+        seen["lookalike"] = lookalike
+        return 20.0, iter(runs if lookalike else runs[:2])
+
+    monkeypatch.setattr(cf, "split_runs", fake_split_runs)
+    monkeypatch.setattr(ours, "Ours", lambda *a, **k: None)
+    d = cf.collect_split("train-target-loop", progress=False, lookalike=True)
+    assert seen["lookalike"] is True
+    assert d.split.tolist() == ["train-target-loop", "train-target-loop", "train-target-loop-lookalike"]
+    assert d.correct.tolist() == [True, True, False] and d.eligible.all() and d.has_pose.all()
+    assert d.revisit.tolist() == [True, True, False] and d.unseen.tolist() == [False, True, True]
+    assert d.heldout.tolist() == [False, True, True]
+    plain = cf.collect_split("train-target-loop", progress=False)
+    assert seen["lookalike"] is False and plain.split.tolist() == ["train-target-loop"] * 2

@@ -61,7 +61,9 @@ def test_suite_definitions():
     # training splits never contain query sequences, evaluation suites always do
     for name, suite in SUITES.items():
         roles = {s.role for s in suite.sequences}
-        if name.startswith("train-"):
+        if suite.purpose == "confidence":  # a training split's look-alike sessions: no weights, no queries
+            assert name.startswith("train-") and roles == {"confidence"}
+        elif name.startswith("train-"):
             assert roles <= {"train", "confidence"} and "train" in roles
         else:
             assert {"database", "query"} <= roles
@@ -87,6 +89,29 @@ def test_suite_definitions():
                 assert not q & {s.traversal_seed for s in train.sequences}, (train.name, bench.name)
     with pytest.raises(ConfigError, match="unknown suite"):
         build_suite("nope")
+
+
+def test_lookalike_splits_drive_the_confidence_sessions_on_the_same_roads_in_another_world():
+    """A training split's look-alike suite: its confidence sessions (same routes, seeds, conditions) in a world of
+    another seed on the same road network, so the map's roads are lined by other surroundings."""
+    from reradar_core.sim.suites import LOOKALIKE_WORLD_SEED_OFFSET, _shared_world
+
+    for name in ("train-target-boreas", "train-target-loop", "train-target-loop-open", "train-target-offroad"):
+        split, look = SUITES[name], SUITES[f"{name}-lookalike"]
+        assert look.purpose == "confidence"
+        assert look.sequences == tuple(s for s in split.sequences if s.role == "confidence")
+        assert look.world_seed == split.world_seed + LOOKALIKE_WORLD_SEED_OFFSET
+        assert (look.road_routes, look.profile, look.profile_overrides, look.preset, look.layout, look.radius_m) == \
+            (split.road_routes, split.profile, split.profile_overrides, split.preset, split.layout, split.radius_m)
+        # no benchmark or training suite lives in a look-alike world
+        assert all(s.world_seed != look.world_seed for s in SUITES.values() if s.purpose != "confidence")
+    # one tile on the loop's road: the same road network, other surroundings
+    a, b = _shared_world("train-target-loop", None), _shared_world("train-target-loop-lookalike", None)
+    assert np.array_equal(a.road.points, b.road.points) and a.seed != b.seed
+    x, y = a.road.points[0]
+    ta, tb = a.tile(int(x // a.tile_m), int(y // a.tile_m)), b.tile(int(x // b.tile_m), int(y // b.tile_m))
+    assert len(ta.pts) > 0 and len(tb.pts) > 0
+    assert not (ta.pts.shape == tb.pts.shape and np.allclose(ta.pts, tb.pts))
 
 
 def test_reversed_routes_revisit_the_same_road_heading_the_other_way():
