@@ -37,6 +37,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -68,6 +69,7 @@ __all__ = [
     "check_pose_span",
     "check_pose_time_unit",
     "check_scan_name_times",
+    "first_confirmed_problem",
     "scan_name_time_mismatch",
     "likely_time_unit",
     "range_grid_difference",
@@ -262,31 +264,34 @@ def check_scan_name_times(paths: list[Path], name_times_us: np.ndarray, preset: 
     Raises:
         DatasetError: naming the first such scan (basename), both times, how many scans disagree, and what to do.
     """
-    first: str | None = None
-    disagree = 0
     off_us: list[int] = []
-    for path, t_name in zip(paths, np.asarray(name_times_us, np.int64).tolist(), strict=True):
-        path = Path(path)
-        t0 = navtech_png_first_time_us(path)
-        confirmed = False
-        if t0 is None:
-            t0 = _decoded_first_time_us(path, preset)
-            confirmed = True
-        if t0 is None:
-            continue
-        problem = scan_name_time_mismatch(path.name, t_name, t0, preset, layout)
-        if problem is None:
-            if t_name != t0:
-                off_us.append(t_name - t0)
-            continue
-        if first is None:
-            if not confirmed:  # the first pixels of a scan of another layout are no time: let the reader say so
+
+    def flagged() -> Iterator[Callable[[], str | None]]:
+        for path, t_name in zip(paths, np.asarray(name_times_us, np.int64).tolist(), strict=True):
+            path = Path(path)
+            t0 = navtech_png_first_time_us(path)
+            confirmed = t0 is None
+            if t0 is None:
                 t0 = _decoded_first_time_us(path, preset)
-                problem = None if t0 is None else scan_name_time_mismatch(path.name, t_name, t0, preset, layout)
-                if problem is None:
-                    continue
-            first = problem
-        disagree += 1
+            if t0 is None:
+                continue
+            problem = scan_name_time_mismatch(path.name, t_name, t0, preset, layout)
+            if problem is None:
+                if t_name != t0:
+                    off_us.append(t_name - t0)
+                continue
+
+            def decoded(path: Path = path, t_name: int = t_name, problem: str = problem,
+                        confirmed: bool = confirmed) -> str | None:
+                if confirmed:  # the quick read failed: this is already the decoded time's verdict
+                    return problem
+                # the first pixels of a scan of another layout are no time: the reader's decode has the last word
+                t = _decoded_first_time_us(path, preset)
+                return None if t is None else scan_name_time_mismatch(path.name, t_name, t, preset, layout)
+
+            yield decoded
+
+    first, disagree = first_confirmed_problem(flagged())
     if first is not None:
         more = f" ({disagree} of {len(paths)} scans disagree so; the first is named)" if disagree > 1 else ""
         raise DatasetError(first + more)
@@ -297,6 +302,31 @@ def check_scan_name_times(paths: list[Path], name_times_us: np.ndarray, preset: 
         logger.warning("%d of %d scans are named by a time up to %+.1f ms from their first azimuth's time: poses are "
                        "taken at the names' times and mid-sweep poses half a sweep after them, which assumes the names "
                        "are the first azimuth's time (docs/CONVENTIONS.md)", len(beyond), len(paths), worst / 1e3)
+
+
+def first_confirmed_problem(flagged: Iterable[Callable[[], str | None]]) -> tuple[str | None, int]:
+    """The first problem a cheap check found that its full check upholds, and how many were found from it on.
+
+    Args:
+        flagged: one callable per item the cheap check flagged, in order: the full check's verdict on that item,
+            the problem to report (None: it does not uphold the cheap check's, e.g. the decoder refuses the file,
+            which then says why when it is read); called only until one upholds it, so that at most one flagged
+            item is decoded.
+
+    Returns:
+        The first upheld problem (None when none is) and the number of items flagged from that one on (later items
+        are counted on the cheap check's word).
+    """
+    first: str | None = None
+    count = 0
+    for confirm in flagged:
+        if first is None:
+            upheld = confirm()
+            if upheld is None:
+                continue
+            first = upheld
+        count += 1
+    return first, count
 
 
 def _decoded_first_time_us(path: Path, preset: RadarPreset) -> int | None:

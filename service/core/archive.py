@@ -20,10 +20,10 @@ import shutil
 import struct
 import tarfile
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from reradar_core.io.datasets import scan_name_time_mismatch
+from reradar_core.io.datasets import first_confirmed_problem, scan_name_time_mismatch
 from reradar_core.io.presets import RadarPreset, get_preset
 from reradar_core.io.scan import MAX_SCAN_TIMESTAMP_US, navtech_png_first_time_us
 from service.core.errors import BadRequestError, PayloadTooLargeError
@@ -268,26 +268,28 @@ def check_scan_times(scan_paths: list[Path], preset: str | RadarPreset | None = 
     """
     sweep = preset if isinstance(preset, RadarPreset) else get_preset(preset or SWEEP_PRESET)
     seen: dict[int, str] = {}
-    first: str | None = None
-    disagree = 0
-    for path in scan_paths:
-        t = scan_time_us(path)
-        if t is None:
-            continue
-        if t in seen:  # a copy is said to be one (before a name that disagrees with its time, which a copy's does)
-            raise BadRequestError(duplicate_scan_time_message(seen[t], path.name, t))
-        seen[t] = path.name
-        problem = scan_name_time_message(path.name, t, sweep)
-        if problem is None:
-            continue
-        if first is None:
-            if decoded_time_us is not None:
-                decoded = decoded_time_us(path)
-                problem = None if decoded is None else scan_name_time_message(path.name, decoded, sweep)
-                if problem is None:
-                    continue
-            first = problem
-        disagree += 1
+
+    def flagged() -> Iterator[Callable[[], str | None]]:
+        for path in scan_paths:
+            t = scan_time_us(path)
+            if t is None:
+                continue
+            if t in seen:  # a copy is said to be one (before a name that disagrees with its time, which a copy's does)
+                raise BadRequestError(duplicate_scan_time_message(seen[t], path.name, t))
+            seen[t] = path.name
+            problem = scan_name_time_message(path.name, t, sweep)
+            if problem is None:
+                continue
+
+            def decoded(path: Path = path, problem: str = problem) -> str | None:
+                if decoded_time_us is None:
+                    return problem
+                t_decoded = decoded_time_us(path)
+                return None if t_decoded is None else scan_name_time_message(path.name, t_decoded, sweep)
+
+            yield decoded
+
+    first, disagree = first_confirmed_problem(flagged())
     if first is not None:
         more = f" ({disagree} of {len(scan_paths)} scans disagree so; the first is named)" if disagree > 1 else ""
         raise BadRequestError(first + more)

@@ -68,3 +68,22 @@ def keyframe_poses() -> np.ndarray:
 
 def keyframe_time(i: int) -> int:
     return 1_600_000_000_000_000 + i * 250_000
+
+
+def count_model_loads(monkeypatch: Any) -> list[dict[str, Any]]:
+    """Count ``DescriptorExtractor.from_file`` calls from now on (``monkeypatch``: the test's): returns the list
+    that each load appends to, ``{"runtime", "threads": torch's thread count at the load, "extractor"}``."""
+    import torch
+
+    from reradar_core.model import DescriptorExtractor
+
+    loads: list[dict[str, Any]] = []
+    real_from_file = DescriptorExtractor.from_file.__func__  # type: ignore[attr-defined]
+
+    def counting_from_file(cls: type[DescriptorExtractor], *args: Any, **kwargs: Any) -> DescriptorExtractor:
+        ext = real_from_file(cls, *args, **kwargs)
+        loads.append({"runtime": kwargs.get("runtime"), "threads": torch.get_num_threads(), "extractor": ext})
+        return ext
+
+    monkeypatch.setattr(DescriptorExtractor, "from_file", classmethod(counting_from_file))
+    return loads

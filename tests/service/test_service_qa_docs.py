@@ -14,7 +14,6 @@ import subprocess
 import sys
 import time
 import zipfile
-import zlib
 from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
@@ -211,47 +210,8 @@ def test_a_build_stops_at_the_first_scan_whose_time_an_earlier_scan_had(tmp_path
         registry.close()
 
 
-def _filtered_png(raw: np.ndarray, kind: int, idat_bytes: int = 7) -> bytes:
-    """``raw`` (uint8 (H, W)) as a greyscale PNG whose every row uses PNG filter ``kind`` (0 None, 1 Sub, 2 Up,
-    3 Average, 4 Paeth), its image data split into ``idat_bytes``-byte IDAT chunks after a tEXt chunk."""
-    h, w = raw.shape
-    prev = np.zeros(w, np.int64)
-    rows = []
-    for row in raw.astype(np.int64):
-        out = []
-        for x in range(w):
-            a = int(row[x - 1]) if x else 0
-            b = int(prev[x])
-            c = int(prev[x - 1]) if x else 0
-            if kind == 4:
-                p = a + b - c
-                pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
-                pred = a if pa <= pb and pa <= pc else b if pb <= pc else c
-            else:
-                pred = [0, a, b, (a + b) // 2][kind]
-            out.append((int(row[x]) - pred) & 0xFF)
-        rows.append(bytes([kind, *out]))
-        prev = row
-    data = zlib.compress(b"".join(rows))
-
-    def chunk(kind_: bytes, body: bytes) -> bytes:
-        return len(body).to_bytes(4, "big") + kind_ + body + zlib.crc32(kind_ + body).to_bytes(4, "big")
-
-    head = w.to_bytes(4, "big") + h.to_bytes(4, "big") + bytes([8, 0, 0, 0, 0])
-    idat = b"".join(chunk(b"IDAT", data[i:i + idat_bytes]) for i in range(0, len(data), idat_bytes))
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", head) + chunk(b"tEXt", b"Software\x00test") + idat
-            + chunk(b"IEND", b""))
-
-
-@pytest.mark.parametrize("kind", [0, 1, 2, 3, 4])
-def test_a_pngs_scan_time_is_read_from_its_first_row_under_every_filter(tmp_path: Path, kind: int) -> None:
-    t_us = 1_600_123_456_789_012  # bytes with carries under Sub / Average
-    raw = cv2.imdecode(np.frombuffer(_png(5, t_us), np.uint8), cv2.IMREAD_UNCHANGED)[:4, :24].copy()
-    assert int(raw[0, :8].view("<i8")[0]) == t_us
-    path = tmp_path / "s.png"
-    path.write_bytes(_filtered_png(raw, kind))
-    assert np.array_equal(cv2.imdecode(np.frombuffer(path.read_bytes(), np.uint8), cv2.IMREAD_UNCHANGED), raw)
-    assert navtech_png_scan_time_us(path) == t_us
+# The first-row time reader is the library's (``navtech_png_first_time_us``): tested under every PNG filter in
+# tests/io/test_scan_name_times.py.
 
 
 def test_a_scan_time_that_cannot_be_read_cheaply_is_left_to_the_build(tmp_path: Path) -> None:

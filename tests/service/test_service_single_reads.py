@@ -30,7 +30,14 @@ from service.core.config import Settings
 from service.main import create_app
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from service_test_fakes import API_KEY, N_KEYFRAMES, FakeExtractor, keyframe_time, make_scan  # noqa: E402
+from service_test_fakes import (  # noqa: E402
+    API_KEY,
+    N_KEYFRAMES,
+    FakeExtractor,
+    count_model_loads,
+    keyframe_time,
+    make_scan,
+)
 
 AUTH = {"X-API-Key": API_KEY}
 
@@ -62,15 +69,8 @@ def test_serve_loads_the_model_once_and_serves_that_load(serve_env: Path,
     import uvicorn
 
     from reradar_cli import app
-    from reradar_core.model import DescriptorExtractor
 
-    loads: list[dict[str, Any]] = []
-    real_from_file = DescriptorExtractor.from_file.__func__  # type: ignore[attr-defined]
-
-    def counting_from_file(cls: type[DescriptorExtractor], *args: Any, **kwargs: Any) -> DescriptorExtractor:
-        ext = real_from_file(cls, *args, **kwargs)
-        loads.append({"runtime": kwargs.get("runtime"), "threads": torch.get_num_threads(), "extractor": ext})
-        return ext
+    loads = count_model_loads(monkeypatch)
 
     served: list[object] = []
 
@@ -79,7 +79,6 @@ def test_serve_loads_the_model_once_and_serves_that_load(serve_env: Path,
             assert client.get("/readyz").status_code == 200
             served.append(app_.state.reradar.extractor)
 
-    monkeypatch.setattr(DescriptorExtractor, "from_file", classmethod(counting_from_file))
     monkeypatch.setattr(uvicorn, "run", run_lifespan)
     monkeypatch.setenv("RERADAR_TORCH_THREADS", "2")
     threads_before = torch.get_num_threads()

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from service_test_fakes import count_model_loads
 from typer.testing import CliRunner
 
 import service.cli as cli_module
@@ -43,20 +44,11 @@ def worker_env(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[list
 
 def test_worker_loads_the_model_once_and_builds_with_that_load(worker_env: list[dict[str, Any]],
                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
-    import torch
 
     from reradar_cli import app
-    from reradar_core.model import DescriptorExtractor
 
-    loads: list[dict[str, Any]] = []
-    real_from_file = DescriptorExtractor.from_file.__func__  # type: ignore[attr-defined]
+    loads = count_model_loads(monkeypatch)
 
-    def counting_from_file(cls: type[DescriptorExtractor], *args: Any, **kwargs: Any) -> DescriptorExtractor:
-        ext = real_from_file(cls, *args, **kwargs)
-        loads.append({"runtime": kwargs.get("runtime"), "threads": torch.get_num_threads(), "extractor": ext})
-        return ext
-
-    monkeypatch.setattr(DescriptorExtractor, "from_file", classmethod(counting_from_file))
     res = CliRunner().invoke(app, ["worker"])
     assert res.exit_code == 0, res.output
     assert len(loads) == 1, loads
