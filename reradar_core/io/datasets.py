@@ -149,7 +149,7 @@ class Sequence:
         problem = scan_name_time_mismatch(path.name, int(self.timestamps_us[i]), scan.timestamp_us, self.preset,
                                           self.layout)
         if problem:
-            raise DatasetError(problem)
+            raise DatasetError(f"{path.parent}: {problem}")
         return scan
 
     def subset(self, index: np.ndarray | slice | list[int]) -> Sequence:
@@ -215,7 +215,14 @@ def _list_scans(root: Path, layout: str) -> tuple[list[Path], np.ndarray]:
     if not paths:
         raise DatasetError(f"{folder}: no scan PNGs named <timestamp>.png")
     order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
-    return [paths[i] for i in order], np.asarray(stamps, dtype=np.int64)[order]
+    paths, times = [paths[i] for i in order], np.asarray(stamps, dtype=np.int64)[order]
+    same = np.flatnonzero(np.diff(times) == 0)
+    if len(same):  # e.g. 001000000.png beside 1000000.png: one pose, and a map keys keyframes by time
+        a, b = paths[int(same[0])].name, paths[int(same[0]) + 1].name
+        unit = " (MulRan names are nanoseconds, read to the microsecond)" if layout == "mulran" else ""
+        raise DatasetError(f"{folder}: scans {a} and {b} are named by one time, {int(times[same[0]])} us{unit}; "
+                           "keep one of them")
+    return paths, times
 
 
 def scan_name_time_mismatch(name: str, name_time_us: int, embedded_us: int, preset: RadarPreset,
@@ -236,6 +243,18 @@ def scan_name_time_mismatch(name: str, name_time_us: int, embedded_us: int, pres
         return None
     unit = " (MulRan names are nanoseconds)" if layout == "mulran" else ""
     rename = scan_path(Path(), layout, int(embedded_us)).name if layout in LAYOUTS else f"{int(embedded_us)}.png"
+    ratio = int(name_time_us) / int(embedded_us) if int(embedded_us) > 0 else 0.0
+    if 0.999e3 < ratio < 1.001e3:  # a whole folder named in another unit: say so, not "rename each scan"
+        return (f"scan {name}: its file name gives the time {int(name_time_us)} us, 1000 times the time the scan "
+                f"carries ({int(embedded_us)} us, columns 0-7, first azimuth): the names look like nanoseconds. "
+                + ("Name the scans by their time in microseconds, or read the folder in the MulRan layout, whose "
+                   "names are nanoseconds" if layout != "mulran" else "Check the scans' own timestamps"))
+    if 0.999e-3 < ratio < 1.001e-3:
+        return (f"scan {name}: its file name gives the time {int(name_time_us)} us{unit}, 1/1000 of the time the "
+                f"scan carries ({int(embedded_us)} us, columns 0-7, first azimuth): the names look like "
+                + ("microseconds where this layout names scans in nanoseconds; rename them to nanoseconds "
+                   f"({rename}) or read the folder in a layout named in microseconds (oxford, boreas)"
+                   if layout == "mulran" else "milliseconds; name the scans by their time in microseconds"))
     return (f"scan {name}: its file name gives the time {int(name_time_us)} us{unit}, but the timestamps in the "
             f"scan (columns 0-7, first azimuth) say {int(embedded_us)} us, {abs(diff) / 1e6:.6g} s "
             f"{'earlier' if diff > 0 else 'later'}: more than one sweep ({preset.sweep_period_s:g} s), so its pose "
@@ -262,9 +281,12 @@ def check_scan_name_times(paths: list[Path], name_times_us: np.ndarray, preset: 
             folder is read with (its sweep period is the tolerance). layout: for the message (MulRan: ns names).
 
     Raises:
-        DatasetError: naming the first such scan (basename), both times, how many scans disagree, and what to do.
+        DatasetError: naming the folder and the first such scan, both times, how many scans disagree, and what to
+            do; or two scans that carry one time (a copy: ``_refuse_a_copy``).
     """
     off_us: list[int] = []
+    carried: dict[int, Path] = {}
+    folder = Path(paths[0]).parent if paths else Path()
 
     def flagged() -> Iterator[Callable[[], str | None]]:
         for path, t_name in zip(paths, np.asarray(name_times_us, np.int64).tolist(), strict=True):
@@ -275,6 +297,7 @@ def check_scan_name_times(paths: list[Path], name_times_us: np.ndarray, preset: 
                 t0 = _decoded_first_time_us(path, preset)
             if t0 is None:
                 continue
+            _refuse_a_copy(carried, path, t0, preset, folder)
             problem = scan_name_time_mismatch(path.name, t_name, t0, preset, layout)
             if problem is None:
                 if t_name != t0:
@@ -294,7 +317,7 @@ def check_scan_name_times(paths: list[Path], name_times_us: np.ndarray, preset: 
     first, disagree = first_confirmed_problem(flagged())
     if first is not None:
         more = f" ({disagree} of {len(paths)} scans disagree so; the first is named)" if disagree > 1 else ""
-        raise DatasetError(first + more)
+        raise DatasetError(f"{folder}: {first}{more}")
     step_us = preset.sweep_period_s * 1e6 / preset.num_azimuths
     beyond = [d for d in off_us if abs(d) > step_us]
     if beyond:
@@ -302,6 +325,21 @@ def check_scan_name_times(paths: list[Path], name_times_us: np.ndarray, preset: 
         logger.warning("%d of %d scans are named by a time up to %+.1f ms from their first azimuth's time: poses are "
                        "taken at the names' times and mid-sweep poses half a sweep after them, which assumes the names "
                        "are the first azimuth's time (docs/CONVENTIONS.md)", len(beyond), len(paths), worst / 1e3)
+
+
+def _refuse_a_copy(carried: dict[int, Path], path: Path, t_us: int, preset: RadarPreset, folder: Path) -> None:
+    """Refuse scan ``path`` when an earlier scan of the folder carries the same time ``t_us`` (µs, its first
+    azimuth's; ``carried``: time -> scan, filled here): a map keys its keyframes by it, so the built map would be
+    unreadable (a copy named within a sweep of its time passes the name check). Both scans are decoded first: the
+    first pixels of a file the reader refuses are no time, and the reader then says what is wrong with it."""
+    other = carried.setdefault(int(t_us), path)
+    if other == path:
+        return
+    if _decoded_first_time_us(path, preset) != t_us or _decoded_first_time_us(other, preset) != t_us:
+        return
+    raise DatasetError(f"{folder}: scans {other.name} and {path.name} carry the same scan time, {int(t_us)} us "
+                       "(columns 0-7 of their first row): one is a copy of the other, and a map keys its keyframes by "
+                       "this time; remove the copy")
 
 
 def first_confirmed_problem(flagged: Iterable[Callable[[], str | None]]) -> tuple[str | None, int]:

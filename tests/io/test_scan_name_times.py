@@ -5,6 +5,7 @@ sweep apart, naming the file (basename) and both times. Tiny scans made by the t
 from __future__ import annotations
 
 import logging
+import shutil
 import zlib
 
 import cv2
@@ -63,18 +64,40 @@ def test_a_folder_whose_names_are_the_first_azimuths_times_loads(tmp_path):
         assert seq.load_scan(i).timestamp_us == t
 
 
-def test_a_copy_of_a_scan_under_another_time_is_refused_naming_the_file_and_both_times(tmp_path):
+def test_a_scan_renamed_to_another_time_is_refused_naming_the_folder_the_file_and_both_times(tmp_path):
     root, times = _folder(tmp_path)
-    # scan 0 copied over scan 2's name: 0.5 s (two sweeps) from the time it carries
-    copy = scan_path(root, "oxford", times[2])
-    copy.write_bytes(scan_path(root, "oxford", times[0]).read_bytes())
+    # scan 2 carries a time 0.6 s (more than two sweeps) before its name's, which no other scan carries
+    renamed = scan_path(root, "oxford", times[2])
+    renamed.write_bytes(encode_navtech_png_bytes(_scan(times[2] - 600_000)))
     with pytest.raises(DatasetError) as err:
         load_sequence(root, preset="oxford")
     msg = str(err.value)
-    assert msg.startswith(f"scan {times[2]}.png: its file name gives the time {times[2]} us")
-    assert f"say {times[0]} us, 0.5 s earlier" in msg and "more than one sweep (0.25 s)" in msg
-    assert f"rename it to {times[0]}.png" in msg and "remove it from the folder" in msg
-    assert str(tmp_path) not in msg and "/" not in msg  # the file's name only, no internal path
+    assert msg.startswith(f"{renamed.parent}: scan {times[2]}.png: its file name gives the time {times[2]} us")
+    assert f"say {times[2] - 600_000} us, 0.6 s earlier" in msg and "more than one sweep (0.25 s)" in msg
+    assert f"rename it to {times[2] - 600_000}.png" in msg and "remove it from the folder" in msg
+
+
+@pytest.mark.parametrize("offset_us", [500_000, 200_000])
+def test_a_copy_of_a_scan_is_refused_as_a_copy(tmp_path, offset_us):
+    """A copy carries its original's time: the map keys keyframes by it, so the map would be unreadable - refused
+    also when its name lies within a sweep of that time (the name check alone passes it: QA, session 25)."""
+    root, times = _folder(tmp_path)
+    copy = scan_path(root, "oxford", times[0] + offset_us)
+    if copy.exists():
+        copy.unlink()
+    shutil.copy(scan_path(root, "oxford", times[0]), copy)
+    with pytest.raises(DatasetError, match=rf"^{root}.*: scans {times[0]}\.png and {copy.stem}\.png carry the same "
+                                           rf"scan time, {times[0]} us .*remove the copy"):
+        load_sequence(root, preset="oxford")
+
+
+def test_two_names_of_one_time_are_refused(tmp_path):
+    root, times = _folder(tmp_path)
+    twin = scan_path(root, "oxford", times[1]).with_name(f"00{times[1]}.png")
+    twin.write_bytes(scan_path(root, "oxford", times[1]).read_bytes())
+    with pytest.raises(DatasetError, match=rf"scans (00)?{times[1]}\.png and (00)?{times[1]}\.png are named by one "
+                                           rf"time, {times[1]} us; keep one of them"):
+        load_sequence(root, preset="oxford")
 
 
 def test_the_tolerance_is_one_sweep_period_either_way(tmp_path):
@@ -117,7 +140,7 @@ def test_every_disagreeing_scan_is_counted(tmp_path):
     root, times = _folder(tmp_path, n=4)
     for k in (1, 3):
         scan_path(root, "oxford", times[k]).write_bytes(encode_navtech_png_bytes(_scan(times[k] + 60_000_000)))
-    with pytest.raises(DatasetError, match=rf"^scan {times[1]}\.png: .* 60 s later.*\(2 of 4 scans disagree so"):
+    with pytest.raises(DatasetError, match=rf"^{root}.*: scan {times[1]}\.png: .* 60 s later.*\(2 of 4 scans disagree so"):
         load_sequence(root, preset="oxford")
 
 
@@ -129,8 +152,8 @@ def test_mulran_nanosecond_names_are_compared_in_microseconds(tmp_path):
     with pytest.raises(DatasetError) as err:
         load_sequence(root, preset="mulran")
     msg = str(err.value)
-    assert msg.startswith(f"scan {times[1] * 1000}.png: its file name gives the time {times[1]} us (MulRan names "
-                          "are nanoseconds)")
+    assert msg.startswith(f"{scan_path(root, 'mulran', times[1]).parent}: scan {times[1] * 1000}.png: its file name "
+                          f"gives the time {times[1]} us (MulRan names are nanoseconds)")
     assert f"rename it to {(times[1] + 2_000_000) * 1000}.png" in msg
 
 
@@ -146,7 +169,7 @@ def test_a_scan_changed_after_loading_is_refused_when_read(tmp_path):
     seq = load_sequence(root, preset="oxford")
     scan_path(root, "oxford", times[1]).write_bytes(encode_navtech_png_bytes(_scan(times[1] - 5_000_000)))
     assert seq.load_scan(0).timestamp_us == times[0]
-    with pytest.raises(DatasetError, match=rf"^scan {times[1]}\.png: .* 5 s earlier"):
+    with pytest.raises(DatasetError, match=rf"^{root}.*: scan {times[1]}\.png: .* 5 s earlier"):
         seq.load_scan(1)
 
 
@@ -218,7 +241,7 @@ def test_a_scan_the_cheap_read_cannot_time_is_decoded_and_checked(tmp_path):
     assert navtech_png_first_time_us(path) is None and read_navtech_png(path, "oxford").timestamp_us == times[1]
     load_sequence(root, preset="oxford")
     path.write_bytes(_png(_raw(times[1] + 3_000_000), 1, idat_bytes=1 << 16, extra_chunks=300))
-    with pytest.raises(DatasetError, match=rf"^scan {times[1]}\.png: .* 3 s later"):
+    with pytest.raises(DatasetError, match=rf"^{root}.*: scan {times[1]}\.png: .* 3 s later"):
         load_sequence(root, preset="oxford")
 
 
@@ -243,3 +266,19 @@ def test_an_unreadable_file_is_left_to_the_reader(tmp_path):
     seq = load_sequence(root, preset="oxford")
     with pytest.raises(ScanFormatError, match="not a readable PNG"):
         seq.load_scan(1)
+
+
+def test_names_in_another_unit_are_said_to_be(tmp_path):
+    """A folder named in nanoseconds (or a MulRan folder named in microseconds) is told so, not asked to rename
+    every scan to a time 1.5e12 s away (QA, session 25)."""
+    p = get_preset("oxford")
+    path = tmp_path / f"{T0 * 1000}.png"
+    path.write_bytes(encode_navtech_png_bytes(_scan(T0)))
+    with pytest.raises(DatasetError, match="1000 times the time the scan carries .* the names look like nanoseconds"):
+        check_scan_name_times([path], np.asarray([T0 * 1000]), p, "oxford")
+    mul = tmp_path / "m" / f"{T0}.png"  # a MulRan name read as ns: T0 / 1000 us
+    mul.parent.mkdir()
+    mul.write_bytes(encode_navtech_png_bytes(_scan(T0)))
+    with pytest.raises(DatasetError, match="1/1000 of the time the scan carries .* microseconds where this layout "
+                                           "names scans in nanoseconds"):
+        check_scan_name_times([mul], np.asarray([T0 // 1000]), get_preset("mulran"), "mulran")
