@@ -912,7 +912,11 @@ def read_navtech_png(path: str | Path, preset: str | RadarPreset | None = None) 
     if not path.is_file():
         raise ScanFormatError(f"{path}: no such scan file")
     data = path.read_bytes()
-    if data[:8] != PNG_SIGNATURE or png_incomplete(data):
+    try:
+        unreadable = data[:8] != PNG_SIGNATURE or png_incomplete(data)
+    except ScanFormatError as exc:  # the chunk walk's bound (MAX_PNG_CHUNKS) speaks of an upload: name the file
+        raise ScanFormatError(f"{path}: {str(exc).removeprefix('upload is ')}") from None
+    if unreadable:
         raise ScanFormatError(f"{path}: not a readable PNG image (corrupt or truncated)")
     raw = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if raw is None:

@@ -75,9 +75,12 @@ def read_weights_blob(path: str | Path, meta: dict[str, Any]) -> tuple[dict[str,
         if not isinstance(blob, dict) or not isinstance(blob.get("state_dict"), dict):
             raise ValueError("no state_dict")
     except Exception as exc:  # noqa: BLE001 - torch raises pickle, zip, EOF and runtime errors on a bad file
+        detail = str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__
+        if "weights only load failed" in detail.lower():
+            # torch's text goes on to offer weights_only=False, i.e. running the file's pickled code: never advised
+            detail = "it holds objects other than tensors and plain containers, which the safe loader refuses"
         raise ConfigError(f"model weights file {path.name} is not a readable ReRadar weights file (corrupt or "
-                          f"truncated .pt: {str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__}); "
-                          "re-export or re-train it") from None
+                          f"truncated .pt: {detail}); re-export or re-train it") from None
     return blob, sha
 
 

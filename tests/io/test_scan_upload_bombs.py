@@ -28,6 +28,7 @@ from reradar_core.io.scan import (
     decode_navtech_png_bytes,
     encode_navtech_png_bytes,
     png_image_data_size,
+    read_navtech_png,
 )
 
 N_AZ, N_BINS = 64, 3360  # boreas bins: 3,371 columns with the metadata
@@ -326,3 +327,16 @@ def test_real_simulated_and_zero_based_timestamps_are_accepted() -> None:
         assert decode_navtech_png_bytes(encode_navtech_png_bytes(scan)).timestamp_us == start
     equal = _with_stamps(np.full(N_AZ, T0_US, np.int64))  # a sensor that stamps a whole sweep at once
     assert decode_navtech_npy_bytes(_npy(equal)).timestamp_us == T0_US
+
+
+def test_a_scan_file_of_more_chunks_than_the_bound_is_refused_naming_the_file(tmp_path: Path) -> None:
+    """``read_navtech_png`` (folders, ``reradar info``): the chunk bound's refusal names the file, not "upload"
+    (QA, session 25)."""
+    pixels = _navtech_pixels()
+    stream_len = len(zlib.compress(_filtered(pixels, [0] * N_AZ), 9))
+    path = tmp_path / "1000000.png"
+    path.write_bytes(_png(pixels, idat_split=max(1, stream_len // MAX_PNG_CHUNKS)))
+    with pytest.raises(ScanFormatError) as err:
+        read_navtech_png(path)
+    assert str(err.value).startswith(f"{path}: not a readable PNG image: more than 10,000 chunks")
+    assert "upload" not in str(err.value)

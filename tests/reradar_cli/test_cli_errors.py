@@ -143,6 +143,28 @@ def test_corrupt_weights_are_a_config_error_naming_the_file(tmp_path):
     assert str(tmp_path) not in res.output
 
 
+class _PickledObject:  # torch's safe loader refuses any class it does not allow
+    pass
+
+
+def test_weights_holding_other_objects_are_refused_without_unsafe_advice(tmp_path):
+    """torch's refusal text offers ``weights_only=False`` (running the file's pickled code): never passed on
+    (QA, session 25)."""
+    import torch
+
+    from reradar_core.model.registry import available_models, resolve_weights
+
+    _, meta = resolve_weights(available_models()[0])
+    bad = tmp_path / "models" / "pickled.pt"
+    bad.parent.mkdir()
+    torch.save({"state_dict": {}, "extra": _PickledObject()}, bad)
+    bad.with_suffix(".json").write_text(json.dumps({k: v for k, v in meta.items() if k != "sha256"}))
+    res = _run(["export-onnx", str(bad)])
+    assert res.exit_code == 2 and "pickled.pt is not a readable ReRadar weights file" in res.output
+    assert "holds objects other than tensors" in res.output
+    assert "weights_only" not in res.output and "code execution" not in res.output
+
+
 @pytest.mark.parametrize("args, what", [(["--radius", "-5"], "--radius"), (["--limit", "0"], "--limit"),
                                         (["--every", "0"], "--every")])
 def test_bench_numbers_are_checked(tmp_path, args, what):
