@@ -306,6 +306,12 @@ class Settings(BaseSettings):
             raise ValueError(f"the maps folder {value} is a file; give a folder (--maps-dir or RERADAR_MAPS_DIR)")
         return value
 
+    @field_validator("log_level", mode="before")
+    @classmethod
+    def _log_level_in_any_case(cls, value: object) -> object:
+        # `reradar serve --log-level` takes lower case: the variable takes the same words
+        return value.strip().upper() if isinstance(value, str) else value
+
     @field_validator("api_key", "vehicle_keys", mode="before")
     @classmethod
     def _empty_is_unset(cls, value: object) -> object:
