@@ -2,10 +2,13 @@
 
 Only regular files named ``<timestamp_us>.png`` or ``<timestamp_us>.npy`` are extracted, flattened into one
 folder (directory parts are dropped, so ``../`` tricks cannot escape); links, devices and other files are
-ignored. Everything is bounded before it costs anything: the number of members of any name
-(``max_archive_members``: a zip's central directory is counted before ``zipfile`` reads it, a tar's members are
-read one at a time and not kept), the bytes all members expand to (skipping a member of a compressed tar
-decompresses it too), and the number of scans.
+ignored (an archive may carry a readme, a poses file or macOS ``._`` files beside its scans), except a file named
+like a scan whose timestamp has a sign (``-1000000.png``) or is beyond ``MAX_SCAN_TIMESTAMP_US``: it is meant as
+a scan that cannot be one, and is refused by name (400) rather than silently left out of the map. Everything is
+bounded before it costs anything: the number of members of any name (``max_archive_members``: a zip's central
+directory is counted before ``zipfile`` reads it, a tar's members are read one at a time and not kept), the
+bytes all members expand to (skipping a member of a compressed tar decompresses it too), and the number of
+scans.
 
 ``check_scan_times`` then refuses, before the build starts, two scans of one scan time and a PNG whose file name
 and embedded time lie more than one sweep apart: a map keys its keyframes by the time each scan carries (a Navtech
@@ -34,6 +37,9 @@ __all__ = ["extract_scan_archive", "check_scan_times", "scan_time_us", "navtech_
            "MAX_SCAN_TIMESTAMP_US", "ARCHIVE_MEMBER_SLACK", "MAX_TAR_HEADER_BYTES", "TarHeaderTooLargeError"]
 
 SCAN_NAME_PATTERN = re.compile(r"^(\d{1,20})\.(png|npy)$")
+#: A scan's name with a sign (``-1000000.png``): meant as a scan (a sequence folder reads it as time -1 s and
+#: refuses it), so refused by name rather than ignored like the other members (see ``extract_scan_archive``).
+_SIGNED_SCAN_NAME = re.compile(r"^[+-]\d{1,20}\.(png|npy)$")
 
 #: Members of other names an archive may hold beyond two per scan (see ``max_archive_members``).
 ARCHIVE_MEMBER_SLACK = 1024
@@ -123,7 +129,7 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
     Raises:
         BadRequestError: not a zip/tar archive, no scans, two files of one timestamp (compared as numbers:
             ``0160.png``, ``160.png`` and ``160.npy`` are one timestamp), a timestamp (microseconds) above
-            ``MAX_SCAN_TIMESTAMP_US``.
+            ``MAX_SCAN_TIMESTAMP_US`` or with a sign (``-1000000.png``).
         PayloadTooLargeError: more than ``max_files`` scans, more than ``max_archive_members(max_files)``
             members of any name, or members (of any name) that expand to more than ``max_total_bytes``.
     """
@@ -154,6 +160,11 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
         base = name.replace("\\", "/").rsplit("/", 1)[-1]
         match = SCAN_NAME_PATTERN.match(base)
         if not match:
+            if _SIGNED_SCAN_NAME.match(base):
+                raise BadRequestError(f"scan archive member {base!r}: a scan's name must be its timestamp, digits "
+                                      f"only (0 to {MAX_SCAN_TIMESTAMP_US} us, no sign); name scan files by their "
+                                      f"timestamp in microseconds since the Unix epoch, or remove it from the "
+                                      f"archive")
             return None
         stamp = int(match.group(1))
         if stamp > MAX_SCAN_TIMESTAMP_US:
@@ -253,14 +264,17 @@ def check_scan_times(scan_paths: list[Path], preset: str | RadarPreset | None = 
     The map keys its keyframes by the scan time, so two scans of one time would make the built map unreadable;
     file names alone cannot tell (a copy of a PNG under another name carries the original's time). Each
     keyframe's pose is taken from the poses file at its file name's time, so a PNG whose name and embedded time
-    are two instants would get the pose of one and the time of the other. Files whose time cannot be read cheaply
-    are left to the build, which checks every scan (``MapRegistry.build_scan_loader``).
+    are two instants would get the pose of one and the time of the other. A PNG whose first row cannot be read
+    cheaply (``scan_time_us`` None) is decoded as the build decodes it (``decoded_time_us``) and checked alike;
+    one the decoder refuses, or any when ``decoded_time_us`` is None, is left to the build, which checks every
+    scan (``MapRegistry.build_scan_loader``).
 
     Args:
         scan_paths: the extracted scans (``extract_scan_archive``). preset: the radar preset of the upload (None:
             ``SWEEP_PRESET``); its sweep period is the tolerance. decoded_time_us: the time a scan carries as the
             build decodes it, None when the build refuses it: confirms the first disagreement, since the first
-            pixels of an image that is no Navtech scan are no time (the build then says what the file is).
+            pixels of an image that is no Navtech scan are no time (the build then says what the file is), and
+            times the PNGs the first-row read cannot.
 
     Raises:
         BadRequestError: naming both archive members and the time; or the first member whose name and time
@@ -272,6 +286,13 @@ def check_scan_times(scan_paths: list[Path], preset: str | RadarPreset | None = 
     def flagged() -> Iterator[Callable[[], str | None]]:
         for path in scan_paths:
             t = scan_time_us(path)
+            confirmed = False
+            if t is None and decoded_time_us is not None and path.suffix == ".png":
+                # a PNG the first-row read cannot time (e.g. Adam7-interlaced, or many chunks before its image
+                # data) but the build's decoder may read: its time as the build will take it (these only are
+                # decoded here; one the decoder refuses is left to the build, which says why)
+                t = decoded_time_us(path)
+                confirmed = True
             if t is None:
                 continue
             if t in seen:  # a copy is said to be one (before a name that disagrees with its time, which a copy's does)
@@ -281,8 +302,8 @@ def check_scan_times(scan_paths: list[Path], preset: str | RadarPreset | None = 
             if problem is None:
                 continue
 
-            def decoded(path: Path = path, problem: str = problem) -> str | None:
-                if decoded_time_us is None:
+            def decoded(path: Path = path, problem: str = problem, confirmed: bool = confirmed) -> str | None:
+                if decoded_time_us is None or confirmed:
                     return problem
                 t_decoded = decoded_time_us(path)
                 return None if t_decoded is None else scan_name_time_message(path.name, t_decoded, sweep)

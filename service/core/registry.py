@@ -20,8 +20,9 @@ import re
 import shutil
 import threading
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
@@ -79,18 +80,6 @@ _JOBS = ".jobs"
 #: ``<maps_dir>/.verified/<map_id>.json``: the ``FileIdentity`` of a map file read through in a child process
 #: (``probe_map``) or installed by an upload that was: opened in-process without another probe
 _VERIFIED = ".verified"
-
-
-#: how long a map that was deleted or dropped stays open for the requests already using it, seconds
-CLOSE_GRACE_S = 30.0
-
-
-def _close_later(db: MapDatabase) -> None:
-    """Close ``db`` after ``CLOSE_GRACE_S`` (a daemon timer): a request that took it before the registry let go
-    of it finishes its localization instead of meeting a closed map."""
-    closer = threading.Timer(CLOSE_GRACE_S, db.close)
-    closer.daemon = True
-    closer.start()
 
 
 def build_failure_message(exc: BaseException) -> str:
@@ -162,6 +151,10 @@ class MapRegistry:
         self.index_config = IndexConfig(kind=settings.index_kind, exact_max_size=settings.index_exact_max_size)
         self._entries: dict[str, MapEntry] = {}
         self._lock = threading.RLock()
+        #: requests localizing on each map right now (``using``), and the maps let go of (deleted, dropped or
+        #: replaced) while some were: closed when the last of them finishes (``_let_go``)
+        self._holders: dict[MapDatabase, int] = {}
+        self._retired: set[MapDatabase] = set()
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-build")
 
     # ---- paths and ids -------------------------------------------------------------------------------------
@@ -424,6 +417,42 @@ class MapRegistry:
             raise ConflictError(f"map {map_id!r} is not ready for queries, state {entry.state}{detail}")
         return entry.db
 
+    @contextmanager
+    def using(self, map_id: str) -> Iterator[MapDatabase]:
+        """``ready(map_id)`` held for a request: a map deleted, dropped or replaced meanwhile stays open until
+        the last request using it leaves this block, and is closed then (``_retire``). Access to the files of a
+        map (keyframes read from the HDF5 file or the shared arrays) must happen inside it; its in-memory
+        metadata and poses stay readable after it is closed."""
+        with self._lock:  # one step with the lookup: a delete either comes first (404) or sees the holder
+            db = self.ready(map_id)
+            self._holders[db] = self._holders.get(db, 0) + 1
+        try:
+            yield db
+        finally:
+            self._let_go(db)
+
+    def _let_go(self, db: MapDatabase) -> None:
+        with self._lock:
+            left = self._holders[db] - 1
+            if left:
+                self._holders[db] = left
+                return
+            del self._holders[db]
+            if db not in self._retired:
+                return
+            self._retired.discard(db)
+        db.close()
+
+    def _retire(self, db: MapDatabase) -> None:
+        """Close ``db``, which the registry no longer serves: at once when no request is using it (``using``),
+        else when the last one finishes. Its files (HDF5 map, shared arrays mapping) are released then: a deleted
+        map's disk space is freed and no file descriptor is left behind."""
+        with self._lock:
+            if self._holders.get(db):
+                self._retired.add(db)
+                return
+        db.close()
+
     @property
     def num_ready(self) -> int:
         with self._lock:
@@ -627,7 +656,7 @@ class MapRegistry:
                 raise ConflictError(f"map {map_id!r} is being built; wait for the job to finish")
             del self._entries[map_id]
         if entry.db is not None:  # requests already using it finish on the open file (unlinked below)
-            _close_later(entry.db)
+            self._retire(entry.db)
         if map_id == DEMO_MAP_ID:  # before the file goes: a crash in between leaves neither to reinstall
             (self.maps_dir / DEMO_DELETED_MARKER).touch()
         entry.path.unlink(missing_ok=True)
@@ -645,6 +674,9 @@ class MapRegistry:
                 if entry.db is not None:
                     entry.db.close()
             self._entries.clear()
+            for db in self._retired:
+                db.close()
+            self._retired.clear()
 
     # ---- shared maps folder (several replicas; service.core.shared_state) ----------------------------------
     def adopt(self, map_id: str) -> MapEntry | None:
@@ -668,7 +700,7 @@ class MapRegistry:
     def reopen_if_replaced(self, map_id: str) -> MapEntry | None:
         """Reopen ``map_id`` when the file under its name is not the one its entry opened (deleted and
         registered again by another process while this one missed it): the new map replaces the entry in one
-        step and the old database is closed after ``CLOSE_GRACE_S``. A new file that fails to open makes the
+        step and the old database is closed once no request is using it (``_retire``). A new file that fails to open makes the
         entry ``failed`` with the reason (as ``adopt``). Only entries opened from a file (``file_id``) qualify.
 
         Returns the new entry, or None when nothing changed (same file, file gone, or no such entry).
@@ -688,15 +720,15 @@ class MapRegistry:
                 return None
             self._entries[map_id] = entry
         if current.db is not None:  # requests already using the old map finish on it
-            _close_later(current.db)
+            self._retire(current.db)
         return entry
 
     def forget(self, map_id: str) -> MapEntry | None:
         """Drop ``map_id`` from this registry without touching its file (another process deleted it).
 
-        Its database is closed after a grace period so requests using it can finish."""
+        Its database is closed once no request is using it (``_retire``)."""
         with self._lock:
             entry = self._entries.pop(map_id, None)
         if entry is not None and entry.db is not None:
-            _close_later(entry.db)
+            self._retire(entry.db)
         return entry

@@ -91,12 +91,6 @@ def map_files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     return out
 
 
-@pytest.fixture(autouse=True)
-def _close_at_once(monkeypatch: pytest.MonkeyPatch) -> None:
-    # maps let go of are closed after a grace period; none is needed here (no request uses them)
-    monkeypatch.setattr(registry_module, "CLOSE_GRACE_S", 0.0)
-
-
 @dataclass
 class Fleet:
     """Two replicas' registries and a worker's context on one Redis namespace and one maps folder."""

@@ -5,7 +5,6 @@ from __future__ import annotations
 import io
 import stat
 import tarfile
-import time
 import zipfile
 from pathlib import Path
 
@@ -16,7 +15,7 @@ from pydantic import ValidationError
 from reradar_core.features import ScanFeatures
 from service.core.archive import extract_scan_archive
 from service.core.config import DEV_API_KEY, OPERATOR_KEY_FILE, Settings, resolve_operator_key
-from service.core.errors import BadRequestError, PayloadTooLargeError
+from service.core.errors import BadRequestError, NotFoundError, PayloadTooLargeError
 from service.core.metrics import Metrics
 from service.core.scan_cache import ScanCache
 
@@ -278,32 +277,38 @@ def test_workers_share_map_arrays_across_a_map_update(tmp_path: Path, fake_map: 
     b.close()
 
 
-def test_close_closes_every_map_and_delete_lets_requests_in_flight_finish(tmp_path, fake_map, monkeypatch):
+def test_close_closes_every_map_and_delete_lets_requests_in_flight_finish(tmp_path, fake_map):
     """Code audit (session 20): ``MapRegistry.close`` had lost its body (the maps stayed open at shutdown: files,
     memory maps, caches), and ``delete`` closed a map that requests taken before it may still be localizing on
-    (they met "map is closed", naming the file); now the map closes after ``CLOSE_GRACE_S``."""
+    (they met "map is closed", naming the file). Then the map closed 30 s after the delete, used or not (QA: two
+    file descriptors and the deleted file's space held per upload-and-delete cycle); now it closes when the last
+    request using it (``MapRegistry.using``) is done, at once when none is."""
     import shutil
 
     from service_test_fakes import FakeExtractor, make_scan
 
     import service.core.registry as reg
 
-    monkeypatch.setattr(reg, "CLOSE_GRACE_S", 0.2)
     ext = FakeExtractor()
     maps_dir = tmp_path / "maps"
     maps_dir.mkdir()
-    for name in ("kept", "doomed"):
+    for name in ("kept", "doomed", "idle"):
         shutil.copyfile(fake_map, maps_dir / f"{name}.h5")
-    registry = reg.MapRegistry(Settings(maps_dir=maps_dir, load_demo_map=False), ext)
+    registry = reg.MapRegistry(Settings(maps_dir=maps_dir, load_demo_map=False, share_map_arrays=False,
+                                        preload_keyframes=False, keyframe_cache_size=1), ext)
     registry.load_all()
-    kept, doomed = registry.ready("kept"), registry.ready("doomed")
+    kept, idle = registry.ready("kept"), registry.ready("idle")
+    registry.delete("idle")
+    assert idle.map._file is None  # no request used it: closed at once
     query = ext.describe(make_scan(3, 7))
-    registry.delete("doomed")
-    assert not (maps_dir / "doomed.h5").exists()
-    assert doomed.localize(query).status == "localized"  # a request that held the map before the delete
-    deadline = time.monotonic() + 5.0
-    while doomed.map._file is not None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert doomed.map._file is None  # closed after the grace period
+    with registry.using("doomed") as doomed, registry.using("doomed") as again:  # two requests in flight
+        registry.delete("doomed")
+        assert not (maps_dir / "doomed.h5").exists()
+        with pytest.raises(NotFoundError):
+            with registry.using("doomed"):
+                pass
+        assert doomed.localize(query).status == "localized"  # reads keyframes from the (unlinked) file
+        assert doomed.map._file is not None
+    assert again is doomed and doomed.map._file is None  # closed when the last request was done with it
     registry.close()
     assert kept.map._file is None and registry.entries() == []

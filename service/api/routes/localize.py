@@ -92,21 +92,22 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
     t0 = time.perf_counter()
     inp = await read_scan_input(request, state, LocalizeRequest, _FORM_KEYS)
     map_id = inp.fields["map_id"]
-    db = state.registry.ready(map_id)
-    config = state.localization_config(inp.fields.get("top_k"))
-    session_id = inp.fields.get("session_id")
-    odometry, explicit = _odometry(inp.fields), _prior(inp.fields)  # both validated on every request
-    # a session scan without odometry has no prior (the vehicle moved an unknown distance): global; a prior too
-    # loose for the registration to reach its error is localized globally by ``Localizer.track`` itself
-    # (``TrackingConfig.covers``; docs/SERVICE.md)
-    # the session store is Redis in fleet mode: its calls block, so they run in the threadpool, never on the event
-    # loop (a hung Redis would stall every request of the replica, health checks included)
-    prior = explicit or (await run_in_threadpool(state.sessions.prior_for, session_id, map_id, odometry)
-                         if session_id else None)
-    if prior is not None:
-        result = await run_in_threadpool(db.track, inp.features, prior, config)
-    else:
-        result = await run_in_threadpool(db.localize, inp.features, config)
+    # held while it localizes: a DELETE meanwhile closes the map when this request is done with it
+    with state.registry.using(map_id) as db:
+        config = state.localization_config(inp.fields.get("top_k"))
+        session_id = inp.fields.get("session_id")
+        odometry, explicit = _odometry(inp.fields), _prior(inp.fields)  # both validated on every request
+        # a session scan without odometry has no prior (the vehicle moved an unknown distance): global; a prior
+        # too loose for the registration to reach its error is localized globally by ``Localizer.track`` itself
+        # (``TrackingConfig.covers``; docs/SERVICE.md)
+        # the session store is Redis in fleet mode: its calls block, so they run in the threadpool, never on the
+        # event loop (a hung Redis would stall every request of the replica, health checks included)
+        prior = explicit or (await run_in_threadpool(state.sessions.prior_for, session_id, map_id, odometry)
+                             if session_id else None)
+        if prior is not None:
+            result = await run_in_threadpool(db.track, inp.features, prior, config)
+        else:
+            result = await run_in_threadpool(db.localize, inp.features, config)
     if session_id:
         await run_in_threadpool(state.sessions.update, session_id, map_id, result.T_map_query, prior)
     timings = {**inp.timings_ms, **result.timings_ms}

@@ -195,11 +195,12 @@ async def retrieve(request: Request, state: StateDep, map_id: MapIdPath) -> Retr
     """Top-k keyframes of the map by global descriptor, for a cached ``scan_id`` (JSON) or an inline scan
     (multipart)."""
     t0 = time.perf_counter()
-    db = state.registry.ready(map_id)
+    state.registry.ready(map_id)  # 404 / 409 before the upload is read
     inp = await read_scan_input(request, state, RetrieveRequest, ("top_k",), map_id)
     k = inp.fields.get("top_k") or state.settings.localization.top_k
     t1 = time.perf_counter()
-    hits = await run_in_threadpool(db.retrieve, inp.features.global_descriptor, k)
+    with state.registry.using(map_id) as db:  # a DELETE meanwhile closes the map once this is done with it
+        hits = await run_in_threadpool(db.retrieve, inp.features.global_descriptor, k)
     timings = dict(inp.timings_ms)
     timings["retrieve_ms"] = (time.perf_counter() - t1) * 1e3
     state.metrics.observe_stages(timings)
