@@ -329,6 +329,9 @@ def scan_name_time_message(name: str, embedded_us: int, preset: str | RadarPrese
     problem = scan_name_time_mismatch(name, int(match.group(1)), int(embedded_us), sweep)
     if problem is None:
         return None
+    # an archive has no layout to read it in: its scans are named in microseconds
+    problem = problem.replace(", or read the folder in the MulRan layout, whose names are nanoseconds",
+                              " (an archive's scans are named <timestamp_us>.png)")
     return "scan archive member " + problem.removeprefix("scan ").replace("from the folder", "from the archive")
 
 

@@ -172,3 +172,14 @@ def test_other_members_are_still_ignored(tmp_path: Path) -> None:
     archive.write_bytes(_zip(members))
     paths = extract_scan_archive(archive, tmp_path / "out", 100, 1 << 30)
     assert [p.name for p in paths] == [f"{t}.png" for t in TIMES]
+
+
+def test_an_archive_named_in_nanoseconds_is_told_so_without_folder_advice() -> None:
+    """Names 1000x the scans' own times read as nanoseconds; an archive has no layout to read it in (QA, session 25)."""
+    from service.core.archive import scan_name_time_message
+
+    t_us = 1_600_000_000_000_000
+    msg = scan_name_time_message(f"{t_us * 1000}.png", t_us)
+    assert msg is not None and msg.startswith(f"scan archive member {t_us * 1000}.png: ")
+    assert "the names look like nanoseconds" in msg and "an archive's scans are named <timestamp_us>.png" in msg
+    assert "folder" not in msg and "MulRan layout" not in msg
