@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -87,3 +89,25 @@ def count_model_loads(monkeypatch: Any) -> list[dict[str, Any]]:
 
     monkeypatch.setattr(DescriptorExtractor, "from_file", classmethod(counting_from_file))
     return loads
+
+
+@contextmanager
+def started_app(maps_dir: Path, **settings: Any) -> Iterator[Any]:
+    """A ``TestClient`` of the app started (lifespan run) over ``maps_dir`` with ``FakeExtractor`` and the test
+    operator key (``API_KEY``), no demo map; ``settings`` override ``Settings`` fields. Stopped on exit."""
+    from fastapi.testclient import TestClient
+    from pydantic import SecretStr
+
+    from service.core.config import Settings
+    from service.main import create_app
+
+    cfg = Settings(maps_dir=maps_dir, load_demo_map=False, api_key=SecretStr(API_KEY), torch_threads=1, **settings)
+    with TestClient(create_app(cfg, FakeExtractor())) as client:
+        yield client
+
+
+def upload_map_file(client: Any, map_file: Path, map_id: str) -> Any:
+    """POST ``map_file`` to ``/maps`` as ``map_id`` with the operator key; the response."""
+    with map_file.open("rb") as fh:
+        return client.post("/maps", data={"map_id": map_id}, files={"map_file": ("fake.h5", fh)},
+                           headers={"X-API-Key": API_KEY})

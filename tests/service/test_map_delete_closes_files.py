@@ -10,22 +10,22 @@ from __future__ import annotations
 import os
 import sys
 import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import pytest
-from fastapi.testclient import TestClient
-from pydantic import SecretStr
 
 from maps.database import MapDatabase
 from reradar_core.io.scan import encode_navtech_png_bytes
-from service.core.config import Settings
-from service.main import create_app
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from service_test_fakes import API_KEY, FakeExtractor, keyframe_time, make_scan  # noqa: E402
+from service_test_fakes import (  # noqa: E402
+    API_KEY,
+    keyframe_time,
+    make_scan,
+    started_app,
+    upload_map_file,
+)
 
 AUTH = {"X-API-Key": API_KEY}
 
@@ -44,28 +44,16 @@ def _open_files_under(folder: Path) -> list[str]:
     return held
 
 
-@contextmanager
-def _client(maps_dir: Path, **settings: Any) -> Iterator[TestClient]:
-    cfg = Settings(maps_dir=maps_dir, load_demo_map=False, api_key=SecretStr(API_KEY), torch_threads=1, **settings)
-    with TestClient(create_app(cfg, FakeExtractor())) as client:
-        yield client
-
-
-def _upload(client: TestClient, map_file: Path, map_id: str) -> None:
-    with map_file.open("rb") as fh:
-        r = client.post("/maps", data={"map_id": map_id}, files={"map_file": ("fake.h5", fh)}, headers=AUTH)
-    assert r.status_code == 201, r.text
-
-
 pytestmark = pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="needs /proc/self/fd")
 
 
 def test_upload_and_delete_cycles_leave_no_file_open(fake_map: Path, tmp_path: Path) -> None:
     maps_dir = tmp_path / "maps"
-    with _client(maps_dir) as client:
+    with started_app(maps_dir) as client:
         before = len(os.listdir("/proc/self/fd"))
         for cycle in range(5):
-            _upload(client, fake_map, f"cycle-{cycle}")
+            r = upload_map_file(client, fake_map, f"cycle-{cycle}")
+            assert r.status_code == 201, r.text
             held = _open_files_under(maps_dir)
             assert any(f.endswith(".h5") or ".h5 " in f for f in held), held  # the map is served from its files
             assert any(".rrarr" in f for f in held), held
@@ -91,8 +79,9 @@ def test_a_localization_in_flight_finishes_on_a_deleted_map_which_closes_after_i
 
     monkeypatch.setattr(MapDatabase, "localize", paused_localize)
     answers: list[Any] = []
-    with _client(maps_dir, share_map_arrays=False, preload_keyframes=False, keyframe_cache_size=1) as client:
-        _upload(client, fake_map, "doomed")
+    with started_app(maps_dir, share_map_arrays=False, preload_keyframes=False, keyframe_cache_size=1) as client:
+        r = upload_map_file(client, fake_map, "doomed")
+        assert r.status_code == 201, r.text
         db = client.app.state.reradar.registry.ready("doomed")  # type: ignore[attr-defined]
         png = encode_navtech_png_bytes(make_scan(3, keyframe_time(3)))
         request = threading.Thread(target=lambda: answers.append(client.post(

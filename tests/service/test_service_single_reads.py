@@ -12,31 +12,28 @@ import os
 import shutil
 import sys
 from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import h5py
 import pytest
 from fastapi.testclient import TestClient
-from pydantic import SecretStr
 from typer.testing import CliRunner
 
 import maps.store as store_module
 import service.core.registry as registry_module
 from reradar_core.errors import MapFormatError
 from reradar_core.io.scan import encode_navtech_png_bytes
-from service.core.config import Settings
-from service.main import create_app
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from service_test_fakes import (  # noqa: E402
     API_KEY,
     N_KEYFRAMES,
-    FakeExtractor,
     count_model_loads,
     keyframe_time,
     make_scan,
+    started_app,
+    upload_map_file,
 )
 
 AUTH = {"X-API-Key": API_KEY}
@@ -118,20 +115,6 @@ def h5_opens(monkeypatch: pytest.MonkeyPatch) -> list[Path]:
     return opened
 
 
-@contextmanager
-def _client(maps_dir: Path, **settings: Any) -> Iterator[TestClient]:
-    """A started app (lifespan run) over ``maps_dir`` with the fake extractor; stopped on exit."""
-    cfg = Settings(maps_dir=maps_dir, load_demo_map=False, api_key=SecretStr(API_KEY), torch_threads=1, **settings)
-    with TestClient(create_app(cfg, FakeExtractor())) as client:
-        yield client
-
-
-def _upload(client: TestClient, map_file: Path, map_id: str) -> Any:
-    """POST ``map_file`` to ``/maps`` as ``map_id`` with the operator key; the response."""
-    with map_file.open("rb") as fh:
-        return client.post("/maps", data={"map_id": map_id}, files={"map_file": ("fake.h5", fh)}, headers=AUTH)
-
-
 @pytest.mark.parametrize("share_map_arrays", [True, False], ids=["shared-arrays", "private-keyframes"])
 def test_map_file_upload_is_opened_once_in_process_and_served_from_that_open(
         fake_map: Path, tmp_path: Path, h5_opens: list[Path], share_map_arrays: bool) -> None:
@@ -139,8 +122,8 @@ def test_map_file_upload_is_opened_once_in_process_and_served_from_that_open(
     database reads every keyframe through it after the install (shared arrays or preload) and serves it under
     the installed name."""
     maps_dir = tmp_path / "maps"
-    with _client(maps_dir, share_map_arrays=share_map_arrays) as client:
-        r = _upload(client, fake_map, "once")
+    with started_app(maps_dir, share_map_arrays=share_map_arrays) as client:
+        r = upload_map_file(client, fake_map, "once")
         assert r.status_code == 201, r.text
         assert len(h5_opens) == 1 and h5_opens[0].parent.name == ".staging", h5_opens
         assert not h5_opens[0].exists()  # the staged name is gone; the open file is the installed one
@@ -166,8 +149,8 @@ def test_map_file_refused_after_the_install_is_closed_and_removed(
 
     monkeypatch.setattr(registry_module, "MapDatabase", refusing_database)
     maps_dir = tmp_path / "maps"
-    with _client(maps_dir) as client:
-        r = _upload(client, fake_map, "refused")
+    with started_app(maps_dir) as client:
+        r = upload_map_file(client, fake_map, "refused")
         assert r.status_code == 422, r.text
         assert r.json()["detail"] == "the uploaded map: keyframe 2 is damaged (test)"
         assert not (maps_dir / "refused.h5").exists() and not any((maps_dir / ".staging").iterdir())
@@ -183,8 +166,8 @@ def test_map_file_the_model_cannot_use_is_refused_before_the_install(
     with h5py.File(other, "r+") as f:
         f.attrs["weights_sha256"] = "0" * 64
     maps_dir = tmp_path / "maps"
-    with _client(maps_dir) as client:
-        r = _upload(client, other, "mismatch")
+    with started_app(maps_dir) as client:
+        r = upload_map_file(client, other, "mismatch")
         assert r.status_code == 409 and "the uploaded map" in r.json()["detail"], r.text
         assert not (maps_dir / "mismatch.h5").exists() and not any((maps_dir / ".staging").iterdir())
     assert len(h5_opens) == 1
