@@ -183,3 +183,28 @@ def test_an_archive_named_in_nanoseconds_is_told_so_without_folder_advice() -> N
     assert msg is not None and msg.startswith(f"scan archive member {t_us * 1000}.png: ")
     assert "the names look like nanoseconds" in msg and "an archive's scans are named <timestamp_us>.png" in msg
     assert "folder" not in msg and "MulRan layout" not in msg
+
+
+def test_names_within_a_sweep_but_off_are_logged(tmp_path, caplog) -> None:
+    """A member named 0.1 s after its first azimuth loads (a naming convention, not another instant) with a warning
+    in the server log, as a sequence folder does (QA, session 25)."""
+    import logging
+
+    from reradar_core.io.scan import RadarScan, encode_navtech_png_bytes
+    from service.core.archive import check_scan_times
+
+    paths = []
+    for k, t in enumerate((1_600_000_000_000_000, 1_600_000_000_250_000)):
+        azimuths = np.linspace(0.0, 2 * np.pi, 400, endpoint=False)
+        scan = RadarScan(np.full((400, 64), 0.1, np.float32), azimuths, t + np.arange(400, dtype=np.int64) * 625,
+                         0.0438, 0.0)
+        p = tmp_path / f"{t + (100_000 if k else 0)}.png"
+        p.write_bytes(encode_navtech_png_bytes(scan))
+        paths.append(p)
+    with caplog.at_level(logging.WARNING, logger="service.core.archive"):
+        check_scan_times(paths)
+    assert "1 of 2 uploaded scans are named by a time up to +100.0 ms from their first azimuth's time" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="service.core.archive"):
+        check_scan_times(paths[:1])
+    assert "first azimuth" not in caplog.text
