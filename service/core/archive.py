@@ -138,6 +138,7 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
     """
     dest.mkdir(parents=True, exist_ok=True)
     written: dict[int, Path] = {}
+    packed: dict[int, str] = {}  # each scan's member name in the archive, for messages
     max_members = max_archive_members(max_files)
     members = 0
     total = 0
@@ -175,10 +176,12 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
                                   f"{MAX_SCAN_TIMESTAMP_US} us); name scan files by their timestamp in "
                                   f"microseconds since the Unix epoch")
         if stamp in written:  # by value: "0160.png" and "160.png" would be two keyframes of one time
+            # named as packed (folders too): 'x/y/250000.png' and '250000.png' differ only there
             raise BadRequestError(f"scan archive holds two files with timestamp {stamp} us "
-                                  f"({written[stamp].name!r} and {base!r}); keep one scan per timestamp")
+                                  f"({packed[stamp]!r} and {name!r}); keep one scan per timestamp")
         if len(written) + 1 > max_files:
             raise PayloadTooLargeError(f"scan archive holds more than {max_files} scans")
+        packed[stamp] = name
         return base, stamp
 
     if zipfile.is_zipfile(archive):

@@ -261,7 +261,7 @@ def test_two_scans_with_one_timestamp_are_400(client: httpx.Client, server: tupl
     r = client.post("/maps", data={"map_id": "dup-time"}, headers=AUTH,
                     files={"archive": ("a.zip", buf.getvalue()), "poses": ("p.csv", _poses_csv())})
     _problem(r, 400, f"two files with timestamp {keyframe_time(0)} us", f"'{keyframe_time(0)}.png'",
-             f"'{second.rsplit('/', 1)[-1]}'", "one scan per timestamp")
+             f"'{second}'", "one scan per timestamp")  # as packed, its folder too (QA, session 25)
     assert client.get("/maps/dup-time").status_code == 404
     assert not any(server[1].glob(".staging/job-*"))
 
