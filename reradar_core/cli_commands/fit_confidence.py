@@ -41,7 +41,8 @@ def register(app: typer.Typer) -> None:
         max_wrong_pct: float = typer.Option(0.5, min=0.0, max=100.0,
                                             help="The bar is at least the lowest confidence at which wrong "
                                                  "localized answers are at most this percent of the fit runs "
-                                                 "of every split."),
+                                                 "of every group: each split's training, unseen and look-alike "
+                                                 "sessions (and map spacing)."),
         wrong_cost: float = typer.Option(10.0, min=0.0,
                                          help="The bar also minimises WRONG_COST x wrong answers + refused correct "
                                               "answers on the fit runs (0: only the --max-wrong-pct rule)."),
@@ -63,8 +64,8 @@ def register(app: typer.Typer) -> None:
                                                   "localized answer is wrong; `reradar sim-suite "
                                                   "train-target-X-lookalike`), a group of their own for the bar."),
         reuse: bool = typer.Option(False, help="Re-fit from the runs saved by the last collection with the same "
-                                               "splits, step, models and spacings (cache) instead of localizing "
-                                               "again; an error when there are none."),
+                                               "splits, step, models, spacings and --lookalike (cache) instead of "
+                                               "localizing again; an error when there are none."),
         progress: bool = typer.Option(True, help="Progress bars."),
         threads: int = typer.Option(1, min=1, help="Torch threads (the machine is shared)."),
     ) -> None:
@@ -103,8 +104,9 @@ def register(app: typer.Typer) -> None:
             runs_path = cache_dir("confidence") / (f"runs-v{SIM_VERSION}-{'+'.join(names)}-step{query_step}"
                                                  f"-floor{PROBE_FLOOR:.2f}-with-unseen{tag}{maps_tag}{look_tag}.npz")
             if reuse and not runs_path.is_file():
-                raise ConfigError("--reuse: no saved runs for these splits, step, models and map spacings "
-                                  f"({runs_path.name} is not in the cache); run without --reuse to collect them")
+                raise ConfigError("--reuse: no saved runs for these splits, step, models, map spacings and "
+                                  f"--lookalike ({runs_path.name} is not in the cache; runs collected without "
+                                  "look-alike sessions need --no-lookalike); run without --reuse to collect them")
             if reuse:
                 data = FitData.load(runs_path)
             else:

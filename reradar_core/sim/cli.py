@@ -119,7 +119,7 @@ def register(app: typer.Typer) -> None:
         limit: int = typer.Option(None, min=1, help="Cap scans per sequence."),
         trajectory_dir: Path = typer.Option(None, help="Folder with the real Boreas trajectories."),
     ) -> None:
-        """Render a named benchmark suite or training split (skips sequences already complete)."""
+        """Render a named benchmark suite, training split or look-alike suite (skips sequences already complete)."""
         from reradar_core.paths import output_dir
         from reradar_core.sim.suites import build_suite
 

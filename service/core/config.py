@@ -309,7 +309,7 @@ class Settings(BaseSettings):
     @field_validator("log_level", mode="before")
     @classmethod
     def _log_level_in_any_case(cls, value: object) -> object:
-        # `reradar serve --log-level` takes lower case: the variable takes the same words
+        # `reradar serve --log-level` takes lower case: the variable takes its four levels in any case too
         return value.strip().upper() if isinstance(value, str) else value
 
     @field_validator("api_key", "vehicle_keys", mode="before")

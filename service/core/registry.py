@@ -629,7 +629,7 @@ class MapRegistry:
         """``build_map``'s ``load_scan`` over an archive's scans (``_load_scan``), refusing at the first scan whose
         time (``RadarScan.timestamp_us``, by which the map keys its keyframes) an earlier scan had, or a PNG whose
         time lies more than one sweep from its file name's (at which its pose was taken): the upload's check
-        (``archive.check_scan_times``) skips PNGs whose first row it cannot read cheaply.
+        (``archive.check_scan_times``) leaves to the build only PNGs the decoder refuses.
 
         Raises (from the loader): ScanFormatError naming both archive members and the time, or the member whose
         name and time disagree (``archive.scan_name_time_message``)."""

@@ -85,7 +85,7 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
     """Localize one scan on a map. JSON ``{map_id, scan_id}`` for a scan uploaded with ``POST /scans``, or
     multipart/form-data with ``map_id`` and a ``scan`` file (Navtech PNG / .npy). ``status`` is
     ``localized`` only when enough of the query's landmarks align with the chosen keyframe's (the floor and
-    ``min_inliers``) and, globally, the confidence reaches its bar; ``pose`` is then the query's pose in the
+    ``min_inliers``) and the confidence reaches its bar (global and tracked answers); ``pose`` is then the query's pose in the
     map frame (metres, degrees). With a ``session_id`` plus odometry, or an explicit ``prior_*``, the scan is tracked from that prior (``mode``
     ``tracking``), falling back to global localization when no consistent pose is found near it; a session
     scan without odometry, or a prior looser than 3 m sigma, is localized globally."""
