@@ -70,6 +70,7 @@ __all__ = [
     "check_pose_time_unit",
     "check_scan_name_times",
     "first_confirmed_problem",
+    "warn_names_off_first_azimuth",
     "scan_name_time_mismatch",
     "likely_time_unit",
     "range_grid_difference",
@@ -318,13 +319,22 @@ def check_scan_name_times(paths: list[Path], name_times_us: np.ndarray, preset: 
     if first is not None:
         more = f" ({disagree} of {len(paths)} scans disagree so; the first is named)" if disagree > 1 else ""
         raise DatasetError(f"{folder}: {first}{more}")
+    warn_names_off_first_azimuth(off_us, len(paths), preset, logger)
+
+
+def warn_names_off_first_azimuth(off_us: list[int], total: int, preset: RadarPreset, log: logging.Logger,
+                                 what: str = "scans") -> None:
+    """Log one warning when scans are named by a time more than one azimuth interval of ``preset`` from their first
+    azimuth's (``off_us``: name minus embedded time, µs, of the scans within a sweep of it; ``total``: all scans):
+    a naming convention, not another instant, but poses are taken at the names' times and mid-sweep poses half a
+    sweep after them, which assumes the first azimuth's (docs/CONVENTIONS.md)."""
     step_us = preset.sweep_period_s * 1e6 / preset.num_azimuths
     beyond = [d for d in off_us if abs(d) > step_us]
     if beyond:
-        worst = max(beyond, key=abs)
-        logger.warning("%d of %d scans are named by a time up to %+.1f ms from their first azimuth's time: poses are "
-                       "taken at the names' times and mid-sweep poses half a sweep after them, which assumes the names "
-                       "are the first azimuth's time (docs/CONVENTIONS.md)", len(beyond), len(paths), worst / 1e3)
+        log.warning("%d of %d %s are named by a time up to %+.1f ms from their first azimuth's time: poses are "
+                    "taken at the names' times and mid-sweep poses half a sweep after them, which assumes the names "
+                    "are the first azimuth's time (docs/CONVENTIONS.md)", len(beyond), total, what,
+                    max(beyond, key=abs) / 1e3)
 
 
 def _refuse_a_copy(carried: dict[int, Path], path: Path, t_us: int, preset: RadarPreset, folder: Path) -> None:

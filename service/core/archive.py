@@ -27,7 +27,11 @@ import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from reradar_core.io.datasets import first_confirmed_problem, scan_name_time_mismatch
+from reradar_core.io.datasets import (
+    first_confirmed_problem,
+    scan_name_time_mismatch,
+    warn_names_off_first_azimuth,
+)
 from reradar_core.io.presets import RadarPreset, get_preset
 from reradar_core.io.scan import MAX_SCAN_TIMESTAMP_US, navtech_png_first_time_us
 from service.core.errors import BadRequestError, PayloadTooLargeError
@@ -288,8 +292,7 @@ def check_scan_times(scan_paths: list[Path], preset: str | RadarPreset | None = 
     """
     sweep = preset if isinstance(preset, RadarPreset) else get_preset(preset or SWEEP_PRESET)
     seen: dict[int, str] = {}
-    step_us = sweep.sweep_period_s * 1e6 / sweep.num_azimuths
-    off_us: list[int] = []  # names within a sweep of their time but more than an azimuth off
+    off_us: list[int] = []  # name minus embedded time of the PNGs named within a sweep of their time
 
     def flagged() -> Iterator[Callable[[], str | None]]:
         for path in scan_paths:
@@ -309,7 +312,7 @@ def check_scan_times(scan_paths: list[Path], preset: str | RadarPreset | None = 
             problem = scan_name_time_message(path.name, t, sweep)
             if problem is None:
                 name = SCAN_NAME_PATTERN.match(path.name)
-                if name is not None and name.group(2) == "png" and abs(int(name.group(1)) - t) > step_us:
+                if name is not None and name.group(2) == "png":
                     off_us.append(int(name.group(1)) - t)
                 continue
 
@@ -325,11 +328,8 @@ def check_scan_times(scan_paths: list[Path], preset: str | RadarPreset | None = 
     if first is not None:
         more = f" ({disagree} of {len(scan_paths)} scans disagree so; the first is named)" if disagree > 1 else ""
         raise BadRequestError(first + more)
-    if off_us:  # as a sequence folder's (load_sequence): a convention, not another instant, but worth a word
-        logger.warning("%d of %d uploaded scans are named by a time up to %+.1f ms from their first azimuth's time: "
-                       "poses are taken at the names' times and mid-sweep poses half a sweep after them, which "
-                       "assumes the names are the first azimuth's time (docs/CONVENTIONS.md)", len(off_us),
-                       len(scan_paths), max(off_us, key=abs) / 1e3)
+    # as a sequence folder's (load_sequence): a convention, not another instant, but worth a word
+    warn_names_off_first_azimuth(off_us, len(scan_paths), sweep, logger, "uploaded scans")
 
 
 def scan_name_time_message(name: str, embedded_us: int, preset: str | RadarPreset | None = None) -> str | None:
