@@ -36,7 +36,7 @@ from service.api.ops_middleware import OpsMiddleware
 from service.api.routes import health, localize, maps, scans
 from service.api.routes.ui import install_ui
 from service.api.security import RequestLimits, build_guard, route_class
-from service.core.blas import limit_blas_threads
+from service.core.blas import limit_threads
 from service.core.config import Settings
 from service.core.errors import (
     PROBLEM_MEDIA_TYPE,
@@ -134,16 +134,6 @@ def prepare_process(cfg: Settings) -> None:
     if cfg.malloc_arenas:  # docs/OPERATIONS.md, memory
         limit_malloc_arenas(cfg.malloc_arenas)
     configure_logging(cfg.log_level, cfg.log_format)  # ops: one log format
-
-
-def limit_threads(cfg: Settings) -> None:
-    """Set torch's and BLAS' thread counts (RERADAR_TORCH_THREADS, RERADAR_BLAS_THREADS) before the model loads:
-    its ONNX Runtime session is created at torch's thread count (``OnnxNetwork``); loaded at another count, the
-    first request would create a second session."""
-    import torch
-
-    torch.set_num_threads(cfg.torch_threads)
-    limit_blas_threads(cfg.blas_threads)
 
 
 def load_served_extractor(cfg: Settings) -> FeatureExtractor:

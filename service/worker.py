@@ -294,14 +294,11 @@ def load_build_extractor(settings: Settings) -> FeatureExtractor:
     Raises:
         ReRadarError: unknown model name, missing, unreadable or mismatched weights.
     """
-    import torch
-
     from reradar_core.localization.extractor import load_default_extractor
-    from service.core.blas import limit_blas_threads
+    from service.core.blas import limit_threads
 
     configure_logging(settings.log_level, settings.log_format)
-    torch.set_num_threads(settings.torch_threads)
-    limit_blas_threads(settings.blas_threads)
+    limit_threads(settings)
     return load_default_extractor(settings.model)
 
 
