@@ -112,6 +112,23 @@ class WorldProfile:
     # roughness of building outlines and walls relative to v10's (``Primitives.seg_rough``: 1 = diffuse,
     # 0 = specular); < 1 makes them return mostly near normal incidence; issue 10's specular-façade probe
     facade_roughness_scale: float = 1.0
+    # regular roadsides (issue 10, session 26 probe): the share of tile sides (one side of the road in one tile,
+    # chosen per tile and side by a hash) lined by regular rows instead of randomly placed roadside objects:
+    # street trees of one size every ``roadside_tree_spacing_m`` at ``roadside_tree_setback_m`` beyond the road
+    # edge, lamp posts every ``roadside_pole_spacing_m`` at ``roadside_pole_setback_m``, façade rows at a constant
+    # setback (boulevard planting, plantation edges). On such a side the random poles and street trees are
+    # dropped (their draws are still made, so the rest of the tile is unchanged); 0 = v1-v10 roadsides. The
+    # spacings are whole numbers of road samples (2 m), Python-rounded: 5 m gives 4 m, 6 m gives 6 m
+    roadside_regular: float = 0.0
+    roadside_tree_spacing_m: float = 10.0
+    roadside_tree_setback_m: float = 3.0
+    roadside_tree_radius_m: float = 2.0
+    roadside_pole_spacing_m: float = 30.0
+    roadside_pole_setback_m: float = 1.0
+    roadside_facade_setback_m: float = 4.75
+    # control for the probe: > 0 moves each row tree and lamp post by U(-j, j) m along the road and across it,
+    # so the rows keep their density, sizes and mean setback but lose their regularity; 0 = exact rows
+    roadside_jitter_m: float = 0.0
 
 
 PROFILES: dict[str, WorldProfile] = {
@@ -452,11 +469,20 @@ class World:
                     rail = rail[far_from_road(0.5 * (rail[:, :2] + rail[:, 2:]), off - 0.5)]
                     prim.add_segments(rail, 1.5, 0.55, 0.35)
                     prim.add_points(rail[::1, :2], 1.2, 0)  # posts every sample
+            # regular roadsides (``roadside_regular``): which sides of this tile's road are lined by rows
+            regular_sides: tuple[float, ...] = ()
+            if pr.roadside_regular > 0:
+                u_side = _hash_uniform(np.array([stable_seed(ix, iy, 1), stable_seed(ix, iy, -1)],
+                                                dtype=np.uint64), stable_seed(self.seed, pr.name, "roadside-regular"))
+                regular_sides = tuple(sd for sd, u in zip((1.0, -1.0), u_side, strict=True)
+                                      if u < pr.roadside_regular)
             # terraced façades: a continuous building line at a per-tile setback, with recesses and gaps
             for side in (1.0, -1.0):
                 if len(a_idx) == 0 or rng.random() >= pr.frontage_prob:
                     continue
                 sb = w + rng.uniform(2.5, 7.0)
+                if side in regular_sides:
+                    sb = w + pr.roadside_facade_setback_m
                 off = np.full(len(a_idx), sb)
                 recess = rng.random(len(a_idx)) < 0.15
                 off[recess] += rng.uniform(0.5, 1.5, int(recess.sum()))
@@ -483,6 +509,9 @@ class World:
                     prim.add_points(seg[k, :2] + u * (seg[k, 2:] - seg[k, :2]),
                                     rng.lognormal(np.log(2.0), 1.0, n_det), 0)
             # poles and signs
+            if regular_sides:
+                # the random roadside objects below are drawn as always, then those on a regular side dropped
+                prim_all, prim = prim, Primitives()
             n_poles = rng.poisson(len(in_tile) * road.spacing_m / pr.pole_spacing_m)
             if n_poles:
                 xy = roadside_points(n_poles, 0.4, 2.0, 0.2)
@@ -499,6 +528,10 @@ class World:
             if n_st:
                 xy = roadside_points(n_st, 1.5, 4.5, 1.0)
                 self._add_trees(prim, rng, xy, rng.uniform(1.2, 3.0, len(xy)))
+            if regular_sides:
+                random_objects, prim = prim, prim_all
+                prim = Primitives.concat([prim, self._drop_on_sides(random_objects, regular_sides)])
+                self._add_regular_rows(prim, in_tile, regular_sides, ix, iy)
             # parked car slots along the kerb, inside the road edge
             if pr.parked_car_slot_prob > 0:
                 n_slots = rng.binomial(len(in_tile) * 2, pr.parked_car_slot_prob * road.spacing_m / 6.5)
@@ -625,6 +658,59 @@ class World:
             rcs = np.where(d < w, rcs * 0.25, rcs)
             prim.add_points(xy, rcs, 2)
         return prim
+
+    def _side_of(self, xy: np.ndarray) -> np.ndarray:
+        """+1 / -1: left / right of the nearest road sample's direction, for (N, 2) points."""
+        if len(xy) == 0:
+            return np.zeros(0)
+        _, i = self.road.nearest(xy)
+        tan = self.road.tangents[i]
+        rel = xy - self.road.points[i]
+        return np.where(rel[:, 1] * tan[:, 0] - rel[:, 0] * tan[:, 1] >= 0.0, 1.0, -1.0)
+
+    def _drop_on_sides(self, prim: Primitives, sides: tuple[float, ...]) -> Primitives:
+        """``prim`` (random roadside objects) without what stands on one of ``sides`` of the road."""
+        out = Primitives()
+        drop_p = np.isin(self._side_of(prim.pts), sides)
+        drop_d = np.isin(self._side_of(prim.disc[:, :2]), sides)
+        drop_s = np.isin(self._side_of(0.5 * (prim.seg[:, :2] + prim.seg[:, 2:])), sides)
+        out.pts, out.pts_rcs, out.pts_kind = prim.pts[~drop_p], prim.pts_rcs[~drop_p], prim.pts_kind[~drop_p]
+        out.disc, out.disc_refl, out.disc_trans = prim.disc[~drop_d], prim.disc_refl[~drop_d], prim.disc_trans[~drop_d]
+        for name in ("seg", "seg_refl", "seg_trans", "seg_rough", "seg_low"):
+            setattr(out, name, getattr(prim, name)[~drop_s])
+        return out
+
+    def _add_regular_rows(self, prim: Primitives, in_tile: np.ndarray, sides: tuple[float, ...], ix: int,
+                          iy: int) -> None:
+        """Rows of equal street trees and lamp posts at fixed spacings and setbacks on ``sides`` of the road
+        samples ``in_tile``: a row slot is every k-th road sample (k = spacing / sample step), counted along the
+        whole road network, so rows run on across tiles at one phase and both drives see the same rows."""
+        pr, road = self.profile, self.road
+        w = pr.road_half_width_m
+        rrng = np.random.default_rng(stable_seed(self.seed, pr.name, "roadside-rows", ix, iy))
+        nrm = np.stack([-road.tangents[in_tile, 1], road.tangents[in_tile, 0]], axis=1)
+        for spacing, setback, kind in ((pr.roadside_tree_spacing_m, pr.roadside_tree_setback_m, "tree"),
+                                       (pr.roadside_pole_spacing_m, pr.roadside_pole_setback_m, "pole")):
+            if not spacing > 0:
+                continue
+            k = max(1, int(round(spacing / road.spacing_m)))
+            slot = in_tile % k == 0
+            xy = np.concatenate([road.points[in_tile[slot]] + side * (w + setback) * nrm[slot] for side in sides])
+            d, _ = road.nearest(xy)
+            ok = d >= w + setback - 0.5  # not across another road (intersections)
+            xy = xy[ok]
+            if pr.roadside_jitter_m > 0:
+                tan = np.concatenate([road.tangents[in_tile[slot]] for _ in sides])[ok]
+                out = np.concatenate([side * nrm[slot] for side in sides])[ok]
+                j_along, j_across = rrng.uniform(-pr.roadside_jitter_m, pr.roadside_jitter_m, (2, len(xy), 1))
+                xy = xy + j_along * tan + j_across * out
+            if not len(xy):
+                continue
+            if kind == "tree":
+                self._add_trees(prim, rrng, xy, np.full(len(xy), pr.roadside_tree_radius_m))
+            else:
+                prim.add_points(xy, 4.0, 0)
+                prim.add_discs(np.column_stack([xy, np.full(len(xy), 0.15)]), 0.0, 0.0)
 
     @staticmethod
     def _add_trees(prim: Primitives, rng: np.random.Generator, xy: np.ndarray, radius: np.ndarray) -> None:
