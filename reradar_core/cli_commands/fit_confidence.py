@@ -63,8 +63,15 @@ def register(app: typer.Typer) -> None:
                                                   "look-alike world (the map's roads, other surroundings: every "
                                                   "localized answer is wrong; `reradar sim-suite "
                                                   "train-target-X-lookalike`), a group of their own for the bar."),
+        periodic: bool = typer.Option(True, help="Also localize each split's confidence sessions in a periodic "
+                                                 "world (the map's roads with one 40 m tile layout everywhere, so a "
+                                                 "street repeats itself; the map drive rendered there too; `reradar "
+                                                 "sim-suite train-target-X-periodic`): they choose the tie margin "
+                                                 "(LocalizationConfig.min_place_margin, reported as place_margin), "
+                                                 "not the coefficients, floor or bar."),
         reuse: bool = typer.Option(False, help="Re-fit from the runs saved by the last collection with the same "
-                                               "splits, step, models, spacings and --lookalike (cache) instead of "
+                                               "splits, step, models, spacings, --lookalike and --periodic (cache) "
+                                               "instead of "
                                                "localizing again; an error when there are none."),
         progress: bool = typer.Option(True, help="Progress bars."),
         threads: int = typer.Option(1, min=1, help="Torch threads (the machine is shared)."),
@@ -100,32 +107,35 @@ def register(app: typer.Typer) -> None:
             # the runs are cached per set of judged models (a model change never re-uses another model's runs)
             tag = "-models-" + hashlib.sha256(json.dumps(split_model, sort_keys=True).encode()).hexdigest()[:12]
             maps_tag = "" if spacings == (0.0,) else "-maps-" + "+".join(f"{m:g}m" for m in spacings)
-            look_tag = "-lookalike" if lookalike else ""
+            look_tag = ("-lookalike" if lookalike else "") + ("-periodic" if periodic else "")
             runs_path = cache_dir("confidence") / (f"runs-v{SIM_VERSION}-{'+'.join(names)}-step{query_step}"
                                                  f"-floor{PROBE_FLOOR:.2f}-with-unseen{tag}{maps_tag}{look_tag}.npz")
             if reuse and not runs_path.is_file():
-                raise ConfigError("--reuse: no saved runs for these splits, step, models, map spacings and "
-                                  f"--lookalike ({runs_path.name} is not in the cache; runs collected without "
-                                  "look-alike sessions need --no-lookalike); run without --reuse to collect them")
+                raise ConfigError("--reuse: no saved runs for these splits, step, models, map spacings, "
+                                  f"--lookalike and --periodic ({runs_path.name} is not in the cache; runs "
+                                  "collected without look-alike sessions need --no-lookalike, without periodic "
+                                  "worlds --no-periodic); run without --reuse to collect them")
             if reuse:
                 data = FitData.load(runs_path)
             else:
                 data = FitData.concat([collect_split(s, query_step, holdout, progress, model=split_model[s],
-                                                     map_spacing_m=m, lookalike=lookalike)
+                                                     map_spacing_m=m, lookalike=lookalike, periodic=periodic)
                                        for s in names for m in spacings])
                 data.save(runs_path)
             meta = {"command": "reradar " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
                     "splits": names, "sim_version": SIM_VERSION, "query_step": query_step, "holdout": holdout,
-                    "map_spacings_m": list(spacings), "lookalike": lookalike, "runs_from_cache": reuse,
+                    "map_spacings_m": list(spacings), "lookalike": lookalike, "periodic": periodic,
+                    "runs_from_cache": reuse,
                     "l2": l2, "label": "pose within the suite's success thresholds (e_t < R, e_r < 10 deg)"}
             meta["models"] = split_model
             model, report = fit_from_data(data, l2, max_wrong_pct / 100.0, meta, wrong_cost or None)
         except ReRadarError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from exc
-        ho = data.has_pose & data.heldout
-        fit = data.has_pose & ~data.heldout
-        unseen = data.has_pose & data.unseen
+        own = data.has_pose & ~data.periodic  # the periodic worlds' runs choose the tie margin, not the model
+        ho = own & data.heldout
+        fit = own & ~data.heldout
+        unseen = own & data.unseen
         plot_reliability({"held-out runs": (model.predict(data.cues[ho]), data.correct[ho]),
                           "fit runs": (model.predict(data.cues[fit]), data.correct[fit]),
                           "unseen sessions (all)": (model.predict(data.cues[unseen]), data.correct[unseen])}, plot,

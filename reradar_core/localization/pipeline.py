@@ -159,10 +159,12 @@ class LocalizationConfig:
             query's landmarks, else the answer is ``ambiguous`` (None: no such rule). Two places that fit the scan
             equally well are an unknown place, never a guess: the confidence's margin cue weighs such a tie, but
             a map with one drive at two positions (two GNSS offsets, look-alike streets) still gave ties answered
-            at confidence 0.9998, 500 m off (QA, session 21). Default 0.02, chosen on the training splits (every
-            2nd query of every session, each split's own model, 5,818 runs; docs/BENCHMARKS.md "Session 21"):
-            3,886 correct / 0 wrong / 26 revisits refused against 3,887 / 0 / 25 without the rule; 0.05 and 0.1
-            refused 6 and 42 correct answers. A radius of 15 m / 10 m refused 7 / 72 correct answers more; at 20 m a
+            at confidence 0.9998, 500 m off (QA, session 21). Default 0.075 since session 26, chosen by ``reradar
+            fit-confidence`` (``confidence_fit.choose_place_margin``: the widest margin that refuses at most 0.5 % of
+            the right answers of the training splits' unseen sessions, 12 of 2,582, while on their streets rebuilt
+            as periodic worlds it leaves 29 of 193 wrong answers one period off; docs/MODEL.md "Periodic streets";
+            ``test_shipped_place_margin_is_the_fitted_one``); 0.02 until then (session 21, docs/BENCHMARKS.md
+            "Session 21"). The tracking checks use it too. A radius of 15 m / 10 m refused 7 / 72 correct answers more; at 20 m a
             copy of the place 21-25 m away is not a rival for every keyframe, so 2-5 of the 8 demo queries on a map
             holding the demo drive twice 21-25 m apart were still answered on the wrong copy (QA re-test).
         verify_ties: ``guided`` only: screened candidates whose score lies within ``min_place_margin`` of the best
@@ -191,7 +193,7 @@ class LocalizationConfig:
     prescreen_keep: int | None = 5
     prescreen_source_points: int = 64
     prescreen_hypotheses: int = 1000
-    min_place_margin: float | None = 0.02
+    min_place_margin: float | None = 0.075
     place_margin_radius_m: float = 20.0
     verify_ties: int = 3
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import typer
@@ -44,6 +45,10 @@ def register(app: typer.Typer) -> None:
         preset: str = typer.Option("boreas", help=f"Radar preset: {', '.join(PRESETS)}."),
         layout: str = typer.Option(None, help="Dataset layout boreas/oxford/mulran (default: the preset's)."),
         profile: str = typer.Option("urban", help=f"World profile: {', '.join(PROFILES)}."),
+        tile_types: int = typer.Option(0, min=0, help="Draw the world's 40 m tiles from this many layouts, so "
+                                                      "places repeat (1: every tile the same, a street that repeats "
+                                                      "itself every 40 m, as the confidence fit's periodic worlds); "
+                                                      "0: every tile its own (the profile's default)."),
         condition: str = typer.Option("clear", help=f"Weather: {', '.join(CONDITIONS)}."),
         seed: int = typer.Option(0, help="World seed (same seed + same roads = same world)."),
         traversal_seed: int = typer.Option(None, help="Traversal seed (traffic, parked cars, noise); "
@@ -89,6 +94,8 @@ def register(app: typer.Typer) -> None:
             roads = [traj.xy] + [load_road_xy(r, time_unit) for r in (road or [])]
             # one world for every traversal that names the same roads, whichever it drives and in which direction
             world = World(RoadNetwork(canonical_roads(roads)), seed=seed, profile=profile)
+            if tile_types:  # the profile's own name: the tiles draw from the same seeds
+                world = World(world.road, seed=seed, profile=replace(world.profile, tile_types=tile_types))
             trav = Traversal(world, traversal_seed if traversal_seed is not None else seed + 1, condition)
             if lateral:
                 traj = offset_trajectory(traj, lateral)
@@ -98,7 +105,8 @@ def register(app: typer.Typer) -> None:
                 idx = idx[:limit]
             render_sequence(out, trav, traj, all_t[idx], idx, preset, layout, SensorConfig(), True,
                             meta={"trajectory": str(trajectory), "trajectory_time_unit": time_unit or "from file",
-                                  "lateral_m": lateral}, replace=overwrite)
+                                  "lateral_m": lateral, **({"tile_types": tile_types} if tile_types else {})},
+                            replace=overwrite)
         except ReRadarError as exc:
             raise _fail(exc) from exc
         span = (traj.timestamps_us[-1] - traj.timestamps_us[0]) / 1e6
@@ -112,14 +120,19 @@ def register(app: typer.Typer) -> None:
                                              "train-target-loop, train-target-loop-open, train-target-offroad; "
                                              "each train-target-X's look-alike sessions: train-target-X-lookalike "
                                              "(train-target-boreas-lookalike, train-target-loop-lookalike, "
-                                             "train-target-loop-open-lookalike, train-target-offroad-lookalike)."),
+                                             "train-target-loop-open-lookalike, train-target-offroad-lookalike); "
+                                             "its periodic world (map drive and confidence sessions): "
+                                             "train-target-X-periodic (train-target-boreas-periodic, "
+                                             "train-target-loop-periodic, train-target-loop-open-periodic, "
+                                             "train-target-offroad-periodic)."),
         root: Path = typer.Option(None, help="Output folder (default: sim/v<simulator version>/<name> in the "
                                   "cache, RERADAR_CACHE_DIR; with --every/--limit a sub-folder naming them)."),
         every: int = typer.Option(None, min=1, help="Override the suite's frame step."),
         limit: int = typer.Option(None, min=1, help="Cap scans per sequence."),
         trajectory_dir: Path = typer.Option(None, help="Folder with the real Boreas trajectories."),
     ) -> None:
-        """Render a named benchmark suite, training split or look-alike suite (skips sequences already complete)."""
+        """Render a named benchmark suite, training split, look-alike or periodic suite (skips sequences already
+        complete)."""
         from reradar_core.paths import output_dir
         from reradar_core.sim.suites import build_suite
 

@@ -452,8 +452,43 @@ def lookalike_suite(split: SuiteDef) -> SuiteDef:
                    purpose="confidence")
 
 
-for _split in ("train-target-boreas", "train-target-loop", "train-target-loop-open", "train-target-offroad"):
-    SUITES[f"{_split}-lookalike"] = lookalike_suite(SUITES[_split])
+#: world seed offset of a training split's periodic world (``periodic_suite``)
+PERIODIC_WORLD_SEED_OFFSET = 5000
+
+
+def periodic_suite(split: SuiteDef, bench: SuiteDef) -> SuiteDef:
+    """A training split's domain rebuilt as a *periodic* world: the same roads, profile and conditions, but
+    every 40 m world tile drawn from one layout (``WorldProfile.tile_types`` 1, world seed + 2000), so a straight
+    street repeats itself every tile, as rows of identical blocks or plantation stands do. Its sequences are the
+    benchmark suite ``bench``'s database drive (the map) and the split's ``confidence`` sessions (the queries):
+    there a place and the one a tile further look alike, and an answer one period off is wrong. ``reradar
+    fit-confidence --periodic`` fits the answer confidence on these runs too (docs/MODEL.md, "Periodic streets").
+
+    Args:
+        split: a ``train-target-X`` split; bench: the benchmark suite whose database shares its world.
+    """
+    maps = tuple(s for s in bench.sequences if s.role == "database")
+    sessions = tuple(s for s in split.sequences if s.role == "confidence")
+    return replace(split, name=f"{split.name}-periodic",
+                   description=f"{split.name}'s confidence sessions and {bench.name}'s map drive in a periodic world "
+                               f"(same roads, one tile layout everywhere, world seed "
+                               f"{split.world_seed + PERIODIC_WORLD_SEED_OFFSET}): places that repeat every 40 m",
+                   world_seed=split.world_seed + PERIODIC_WORLD_SEED_OFFSET,
+                   profile_overrides=split.profile_overrides + (("tile_types", 1),),
+                   sequences=maps + sessions, radius_m=bench.radius_m, purpose="confidence")
+
+
+def _register_confidence_worlds() -> None:
+    from reradar_core.training.suites import TRAINING_SPLITS
+
+    for split in ("train-target-boreas", "train-target-loop", "train-target-loop-open", "train-target-offroad"):
+        SUITES[f"{split}-lookalike"] = lookalike_suite(SUITES[split])
+        bench = TRAINING_SPLITS[split]
+        assert bench is not None
+        SUITES[f"{split}-periodic"] = periodic_suite(SUITES[split], SUITES[bench])
+
+
+_register_confidence_worlds()
 
 
 def suite_names(purpose: str | None = None) -> list[str]:

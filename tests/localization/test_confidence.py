@@ -365,6 +365,60 @@ def test_fit_chooses_the_floor_on_the_unseen_sessions() -> None:
     assert back.min_aligned_ratio == 0.5
 
 
+def test_periodic_runs_choose_the_tie_margin_only() -> None:
+    """Runs in periodic worlds (``SPLIT-periodic``) leave the coefficients, floor and bar as the other runs fit them
+    and choose the tie margin: of those that refuse at most 0.5 % of the right answers of the unseen sessions
+    elsewhere, the smallest that leaves the fewest periodic wrong answers (known margins: right answers elsewhere at
+    0.3 but 4 at 0.035; periodic wrong answers at 0.025 and 0.08, right ones at 0.2)."""
+    from reradar_core.localization.confidence_fit import (
+        PLACE_MARGIN_GRID,
+        FitData,
+        choose_place_margin,
+        fit_from_data,
+    )
+
+    rng = np.random.default_rng(3)
+    plain = _floor_data(rng, 3000, True)
+    k = CUE_NAMES.index("margin")
+    plain.cues[:, k] = 0.3
+    first_right = np.flatnonzero(plain.correct & ~plain.heldout)[:4]
+    plain.cues[first_right, k] = 0.035  # 4 right answers elsewhere that a margin above 0.035 would refuse
+    m = 400
+    per = FitData(np.tile(plain.cues[:1], (m, 1)), np.ones(m, bool), np.arange(m) % 2 == 0, np.ones(m, bool),
+                  np.ones(m, bool), np.zeros(m, bool), np.array(["train-target-loop-periodic"] * m), np.ones(m, bool))
+    per.cues[:, 0] = 0.9  # well aligned: above any floor and bar
+    per.cues[:, 1] = 3.0
+    per.cues[:, k] = np.where(per.correct, 0.2, np.where(np.arange(m) % 4 == 1, 0.025, 0.08))
+    both = FitData.concat([plain, per])
+    assert both.periodic.tolist() == [False] * 3000 + [True] * m
+    alone, _ = fit_from_data(plain, max_wrong_fraction=0.005)
+    model, report = fit_from_data(both, max_wrong_fraction=0.005)
+    np.testing.assert_array_equal(model.coef, alone.coef)
+    assert (model.min_aligned_ratio, model.min_confidence) == (alone.min_aligned_ratio, alone.min_confidence)
+    base = int((plain.correct & ~plain.heldout & plain.unseen & (alone.predict(plain.cues) >= alone.min_confidence)
+                & (plain.cues[:, 0] >= alone.min_aligned_ratio)).sum())
+    assert 4 <= 0.005 * base  # the 4 refused right answers fit the budget: the first margin above 0.08 wins
+    chosen, table = choose_place_margin(both, model)
+    assert report["place_margin"]["chosen"] == chosen == min(t for t in PLACE_MARGIN_GRID if t > 0.08)
+    rows = {r["margin"]: r for r in table}
+    assert rows[0.02]["periodic_wrong"] == m // 2 and rows[0.03]["periodic_wrong"] == m // 4
+    assert rows[0.09]["periodic_wrong"] == 0 and rows[0.09]["periodic_correct"] == m // 2
+    assert rows[0.03]["other_refused"] == 0 and rows[0.04]["other_refused"] == 4
+    # a budget too small for the 4: the margin stays below 0.035
+    assert choose_place_margin(both, model, max_refused_fraction=1.0 / (10 * base))[0] == 0.03
+
+
+def test_shipped_place_margin_is_the_fitted_one() -> None:
+    """``LocalizationConfig.min_place_margin`` is the margin the shipped fit chose (``reradar fit-confidence``
+    reports it; a re-fit that chooses another must update the default)."""
+    from reradar_core.localization.confidence import DEFAULT_MODEL_PATH
+    from reradar_core.localization.pipeline import LocalizationConfig
+
+    report = json.loads(DEFAULT_MODEL_PATH.read_text())["meta"]["report"]
+    assert LocalizationConfig().min_place_margin == report["place_margin"]["chosen"]
+    assert report["place_margin"]["periodic_runs"] > 0
+
+
 def test_pipeline_floor_comes_from_the_confidence_model(monkeypatch: pytest.MonkeyPatch) -> None:
     import reradar_core.localization.pipeline as pipeline
     from reradar_core.localization.pipeline import LocalizationConfig
@@ -422,7 +476,8 @@ def test_collect_split_labels_lookalike_runs_wrong_and_groups_them(monkeypatch: 
     seen: dict[str, object] = {}
 
     def fake_split_runs(split: str, method: object, config: object, query_step: int, progress: bool,
-                        map_spacing_m: float, lookalike: bool) -> tuple[float, Iterator[cf.SplitRun]]:
+                        map_spacing_m: float, lookalike: bool,
+                        periodic: bool = False) -> tuple[float, Iterator[cf.SplitRun]]:
         seen["lookalike"] = lookalike
         return 20.0, iter(runs if lookalike else runs[:2])
 
@@ -436,3 +491,44 @@ def test_collect_split_labels_lookalike_runs_wrong_and_groups_them(monkeypatch: 
     assert d.heldout.tolist() == [False, True, True]
     plain = cf.collect_split("train-target-loop", progress=False)
     assert seen["lookalike"] is False and plain.split.tolist() == ["train-target-loop"] * 2
+
+
+def test_collect_split_labels_periodic_runs_by_ground_truth_and_groups_them(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A periodic world's runs (map and session in a world whose streets repeat every tile) are labelled by ground
+    truth like the split's own: an answer one 40 m period off is wrong, one at the query's place right; their rows
+    form a group of their own (``SPLIT-periodic``)."""
+    import reradar_core.baselines.ours as ours
+    from reradar_core.localization import confidence_fit as cf
+    from reradar_core.localization.pipeline import LocalizationResult
+
+    gt = np.array([3.0, 4.0, 0.2])
+
+    class Loc:  # answered from a keyframe at the origin, ``off`` metres along x from the query's ground truth
+        def __init__(self, off: float) -> None:
+            rel = gt + [off, 0.0, 0.0]
+            self.best = _cand(0, (0.0, 0.0), 0.7, rel=rel, inliers=99, ratio=0.6, ambiguity=0.9, spread=7.5)
+
+        def localize(self, features: object, config: object) -> LocalizationResult:
+            return LocalizationResult("localized", None, self.best, gt.copy(), [self.best])
+
+    runs = [cf.SplitRun(None, gt, True, "full", Loc(0.0), 0, 10, False),
+            cf.SplitRun(None, gt, True, "full", Loc(0.0), 1, 10, True, periodic=True),
+            cf.SplitRun(None, gt, True, "full", Loc(40.0), 2, 10, True, periodic=True)]
+    seen: dict[str, object] = {}
+
+    def fake_split_runs(split: str, method: object, config: object, query_step: int, progress: bool,
+                        map_spacing_m: float, lookalike: bool,
+                        periodic: bool = False) -> tuple[float, Iterator[cf.SplitRun]]:
+        seen["periodic"] = periodic
+        return 20.0, iter(runs if periodic else runs[:1])
+
+    monkeypatch.setattr(cf, "split_runs", fake_split_runs)
+    monkeypatch.setattr(ours, "Ours", lambda *a, **k: None)
+    d = cf.collect_split("train-target-loop", progress=False, periodic=True)
+    assert seen["periodic"] is True
+    assert d.split.tolist() == ["train-target-loop", "train-target-loop-periodic", "train-target-loop-periodic"]
+    assert d.correct.tolist() == [True, True, False] and d.unseen.tolist() == [False, True, True]
+    assert [r.group for r in runs] == ["", "-periodic", "-periodic"]
+    assert cf.SplitRun(None, gt, False, "full", None, 0, 1, True, True).group == "-lookalike"
+    assert cf.collect_split("train-target-loop", progress=False).split.tolist() == ["train-target-loop"]
+    assert seen["periodic"] is False

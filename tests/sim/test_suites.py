@@ -10,7 +10,8 @@ from reradar_core.errors import ConfigError, DatasetError
 from reradar_core.io.datasets import load_sequence
 from reradar_core.io.poses import PoseSequence, write_txyyaw_csv
 from reradar_core.io.scan import read_navtech_png
-from reradar_core.sim.suites import SUITES, build_suite
+from reradar_core.sim.suites import SUITES, build_suite, suite_profile
+from reradar_core.sim.world import RoadNetwork, World
 from reradar_core.sim.writer import COMPLETE_MARKER
 
 
@@ -61,8 +62,9 @@ def test_suite_definitions():
     # training splits never contain query sequences, evaluation suites always do
     for name, suite in SUITES.items():
         roles = {s.role for s in suite.sequences}
-        if suite.purpose == "confidence":  # a training split's look-alike sessions: no weights, no queries
-            assert name.startswith("train-") and roles == {"confidence"}
+        if suite.purpose == "confidence":  # a split's look-alike / periodic sessions: no weights, no queries
+            assert name.startswith("train-")
+            assert roles == ({"database", "confidence"} if name.endswith("-periodic") else {"confidence"})
         elif name.startswith("train-"):
             assert roles <= {"train", "confidence"} and "train" in roles
         else:
@@ -112,6 +114,42 @@ def test_lookalike_splits_drive_the_confidence_sessions_on_the_same_roads_in_ano
     ta, tb = a.tile(int(x // a.tile_m), int(y // a.tile_m)), b.tile(int(x // b.tile_m), int(y // b.tile_m))
     assert len(ta.pts) > 0 and len(tb.pts) > 0
     assert not (ta.pts.shape == tb.pts.shape and np.allclose(ta.pts, tb.pts))
+
+
+def test_periodic_worlds_repeat_one_tile_layout_on_the_domains_roads():
+    """A training split's periodic suite: the benchmark suite's map drive and the split's confidence sessions in a
+    world of another seed whose every 40 m tile holds the same layout, so a tile's free-standing objects recur one
+    tile further (relative to the tile), on the domain's road network."""
+    from reradar_core.sim.suites import PERIODIC_WORLD_SEED_OFFSET, _shared_world
+    from reradar_core.training.suites import TRAINING_SPLITS
+
+    for name in ("train-target-boreas", "train-target-loop", "train-target-loop-open", "train-target-offroad"):
+        split, per, bench = SUITES[name], SUITES[f"{name}-periodic"], SUITES[str(TRAINING_SPLITS[name])]
+        assert per.purpose == "confidence" and per.radius_m == bench.radius_m
+        assert per.sequences == (tuple(s for s in bench.sequences if s.role == "database")
+                                 + tuple(s for s in split.sequences if s.role == "confidence"))
+        assert per.world_seed == split.world_seed + PERIODIC_WORLD_SEED_OFFSET
+        assert dict(per.profile_overrides)["tile_types"] == 1
+        assert (per.road_routes, per.profile, per.preset, per.layout, per.traffic_per_km, per.car_transmission) == \
+            (bench.road_routes, bench.profile, bench.preset, bench.layout, bench.traffic_per_km,
+             bench.car_transmission)
+        assert all(s.world_seed != per.world_seed for s in SUITES.values() if s.purpose != "confidence")
+    assert _shared_world("train-target-loop-periodic", None).profile.tile_types == 1
+    # the periodic loop profile on a straight road along x: a tile and the one two tiles further along the road
+    # hold the same objects, shifted by two tiles (every tile type-0; the road crosses both at the same offset)
+    road = RoadNetwork([np.column_stack([np.linspace(-600.0, 600.0, 601), np.full(601, 13.0)])])
+    world = World(road, seed=5, profile=suite_profile(SUITES["train-target-loop-periodic"]))
+    shift = 2 * world.tile_m
+    for iy in (-1, 0, 1):
+        ta, tb = world.tile(1, iy), world.tile(3, iy)
+        assert ta.pts.shape == tb.pts.shape and ta.seg.shape == tb.seg.shape and ta.disc.shape == tb.disc.shape
+        assert np.allclose(ta.pts + [shift, 0.0], tb.pts) and np.allclose(ta.disc + [shift, 0.0, 0.0], tb.disc)
+        assert np.allclose(ta.seg[:, [0, 2]] + shift, tb.seg[:, [0, 2]]) and np.allclose(ta.seg[:, [1, 3]], tb.seg[:, [1, 3]])
+    assert len(world.tile(1, 0).pts) > 0
+    # the split's own world (every tile its own layout) does not repeat
+    own = World(road, seed=5, profile=suite_profile(SUITES["train-target-loop"]))
+    assert not (own.tile(1, 0).pts.shape == own.tile(3, 0).pts.shape
+                and np.allclose(own.tile(1, 0).pts + [shift, 0.0], own.tile(3, 0).pts))
 
 
 def test_reversed_routes_revisit_the_same_road_heading_the_other_way():

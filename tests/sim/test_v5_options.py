@@ -88,6 +88,11 @@ def test_only_the_kaist_oord_and_boreas_worlds_differ_from_v4():
     boreas = {"boreas-sim", "train-target-boreas", "train-target-boreas-lookalike"}
     for name, s in SUITES.items():
         assert s.sensor_overrides == (), name
+        if name.endswith("-periodic"):  # session 26: the split's own overrides, then one tile layout everywhere
+            split = SUITES[name.removesuffix("-periodic")]
+            assert s.profile_overrides == split.profile_overrides + (("tile_types", 1),), name
+            assert suite_profile(s) == replace(suite_profile(split), tile_types=1)
+            continue
         assert s.traffic_lanes is None and s.median_m == 0.0 and s.ego_clearance_m is None, name
         if name in kaist:
             assert s.profile_overrides == (("frontage_prob", 0.4),), name

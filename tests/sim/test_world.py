@@ -133,7 +133,8 @@ def test_car_transmission_option_boreas_and_mulran_suites_only():
 
     roof = {"boreas-sim", "train-target-boreas", "loop-sim", "loop-sim-hard", "train-target-loop",
             "train-target-loop-open"}
-    roof |= {f"{n}-lookalike" for n in roof if n.startswith("train-")}  # session 25: the splits' look-alike worlds
+    # the splits' look-alike (session 25) and periodic (session 26) worlds
+    roof |= {f"{n}-{w}" for n in roof if n.startswith("train-") for w in ("lookalike", "periodic")}
     assert {n for n, s in SUITES.items() if s.profile != "mixed" and s.purpose != "test"
             and s.preset in ("boreas", "mulran")} == roof
     assert all(SUITES[n].car_transmission == 0.8 for n in roof)

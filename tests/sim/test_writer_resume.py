@@ -126,3 +126,17 @@ def test_help_names_the_profiles_resume_and_suite_folder():
     assert all(name in text for name in PROFILES) and "--overwrite" in text and "resumed" in text
     text = CliRunner().invoke(app, ["sim-suite", "--help"], terminal_width=200).output
     assert "sim/v<simulator version>/<name>" in text
+
+
+def test_tile_types_renders_a_periodic_world_recorded_as_another_render(traj, tmp_path):
+    """``--tile-types 1`` (every 40 m tile one layout, as the confidence fit's periodic worlds) is another world:
+    other scans, recorded in the folder's metadata, and refused into a render of the plain world."""
+    plain, periodic = tmp_path / "plain", tmp_path / "periodic"
+    assert _sim(traj, plain, "--limit", "2", "--seed", "3").exit_code == 0
+    res = _sim(traj, periodic, "--limit", "2", "--seed", "3", "--tile-types", "1")
+    assert res.exit_code == 0, res.output
+    assert _digests(periodic) != _digests(plain)
+    assert json.loads((periodic / "reradar_sim.json").read_text())["tile_types"] == 1
+    res = _sim(traj, plain, "--limit", "2", "--seed", "3", "--tile-types", "1")
+    assert res.exit_code == 2 and "--overwrite" in res.output
+    assert _sim(traj, tmp_path / "bad", "--tile-types", "-1").exit_code == 2
