@@ -37,6 +37,12 @@ def render(work: Path, profile: str, lookalike_seeds: list[int]) -> Path:
     runs = {"map": ["--every", "2", "--seed", "5"], "same": ["--lateral", "-1.0", "--traversal-seed", "31", "--seed", "5"]}
     for s in lookalike_seeds:
         runs[f"look{s}"] = ["--lateral", "-1.0", "--traversal-seed", "31", "--seed", str(s)]
+    return render_runs(d, common, runs)
+
+
+def render_runs(d: Path, common: list[str], runs: dict[str, list[str]]) -> Path:
+    """Render each of ``runs`` (name -> its ``reradar sim`` arguments after ``common``) into ``d/name`` unless it is
+    there, and the map ``d/map.h5`` from the run ``map`` unless it is there; returns ``d``."""
     for name, extra in runs.items():
         if not (d / name).is_dir():
             subprocess.run([*RERADAR, "sim", *common, *extra, "--out", str(d / name)], check=True,

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -34,7 +33,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from tracking_changed_scene import RERADAR, SPEED_MPS, STEP_M, loop_poses, write_trajectory  # noqa: E402
+from lookalike_worlds import render_runs  # noqa: E402
+from tracking_changed_scene import SPEED_MPS, STEP_M, loop_poses, write_trajectory  # noqa: E402
 
 #: the straight road: length (m) and its y (m; mid-tile, so the road crosses every tile at the same offset)
 STRAIGHT_M, STRAIGHT_Y_M = 240.0, 20.0
@@ -67,14 +67,7 @@ def render(work: Path, profile: str, route: str, tile_types: int) -> Path:
     runs = {"map": ["--every", str(map_every)]}
     for name, (lateral, trav, every) in drives.items():
         runs[name] = ["--lateral", str(lateral), "--traversal-seed", str(trav), "--every", str(every)]
-    for name, extra in runs.items():
-        if not (d / name).is_dir():
-            subprocess.run([*RERADAR, "sim", *common, *extra, "--out", str(d / name)], check=True,
-                           stdout=subprocess.DEVNULL)
-    if not (d / "map.h5").is_file():
-        subprocess.run([*RERADAR, "build-map", "--dataset", str(d / "map"), "--out", str(d / "map.h5")], check=True,
-                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    return d
+    return render_runs(d, common, runs)
 
 
 def main() -> None:

@@ -455,11 +455,29 @@ def test_split_models_applies_overrides_and_refuses_bad_ones() -> None:
         split_models("", ["train-target-boreas", "train-target-boreas"])
 
 
+def _patch_split_runs(monkeypatch: pytest.MonkeyPatch, runs: list, flag: str, plain: int) -> dict[str, object]:
+    """``confidence_fit.split_runs`` replaced by one yielding ``runs`` when its ``flag`` argument (``lookalike`` or
+    ``periodic``) is true, else their first ``plain``; returns the dict in which each call records the flag."""
+    import reradar_core.baselines.ours as ours
+    from reradar_core.localization import confidence_fit as cf
+
+    seen: dict[str, object] = {}
+
+    def fake_split_runs(split: str, method: object, config: object, query_step: int, progress: bool,
+                        map_spacing_m: float, lookalike: bool,
+                        periodic: bool = False) -> tuple[float, Iterator[cf.SplitRun]]:
+        seen[flag] = {"lookalike": lookalike, "periodic": periodic}[flag]
+        return 20.0, iter(runs if seen[flag] else runs[:plain])
+
+    monkeypatch.setattr(cf, "split_runs", fake_split_runs)
+    monkeypatch.setattr(ours, "Ours", lambda *a, **k: None)
+    return seen
+
+
 def test_collect_split_labels_lookalike_runs_wrong_and_groups_them(monkeypatch: pytest.MonkeyPatch) -> None:
     """A look-alike session's query (the map's road, other surroundings) is never a revisit: an answer at its
     ground-truth position is still wrong there, and its rows form a group of their own (``SPLIT-lookalike``) for
     the bar's per-group rule; the split's own sessions keep their labels."""
-    import reradar_core.baselines.ours as ours
     from reradar_core.localization import confidence_fit as cf
     from reradar_core.localization.pipeline import LocalizationResult
 
@@ -473,16 +491,7 @@ def test_collect_split_labels_lookalike_runs_wrong_and_groups_them(monkeypatch: 
     runs = [cf.SplitRun(None, gt, True, "full", Loc(), 0, 10, False),
             cf.SplitRun(None, gt, True, "full", Loc(), 9, 10, True),
             cf.SplitRun(None, gt, False, "full", Loc(), 9, 10, True, True)]
-    seen: dict[str, object] = {}
-
-    def fake_split_runs(split: str, method: object, config: object, query_step: int, progress: bool,
-                        map_spacing_m: float, lookalike: bool,
-                        periodic: bool = False) -> tuple[float, Iterator[cf.SplitRun]]:
-        seen["lookalike"] = lookalike
-        return 20.0, iter(runs if lookalike else runs[:2])
-
-    monkeypatch.setattr(cf, "split_runs", fake_split_runs)
-    monkeypatch.setattr(ours, "Ours", lambda *a, **k: None)
+    seen = _patch_split_runs(monkeypatch, runs, "lookalike", 2)
     d = cf.collect_split("train-target-loop", progress=False, lookalike=True)
     assert seen["lookalike"] is True
     assert d.split.tolist() == ["train-target-loop", "train-target-loop", "train-target-loop-lookalike"]
@@ -497,7 +506,6 @@ def test_collect_split_labels_periodic_runs_by_ground_truth_and_groups_them(monk
     """A periodic world's runs (map and session in a world whose streets repeat every tile) are labelled by ground
     truth like the split's own: an answer one 40 m period off is wrong, one at the query's place right; their rows
     form a group of their own (``SPLIT-periodic``)."""
-    import reradar_core.baselines.ours as ours
     from reradar_core.localization import confidence_fit as cf
     from reradar_core.localization.pipeline import LocalizationResult
 
@@ -514,16 +522,7 @@ def test_collect_split_labels_periodic_runs_by_ground_truth_and_groups_them(monk
     runs = [cf.SplitRun(None, gt, True, "full", Loc(0.0), 0, 10, False),
             cf.SplitRun(None, gt, True, "full", Loc(0.0), 1, 10, True, periodic=True),
             cf.SplitRun(None, gt, True, "full", Loc(40.0), 2, 10, True, periodic=True)]
-    seen: dict[str, object] = {}
-
-    def fake_split_runs(split: str, method: object, config: object, query_step: int, progress: bool,
-                        map_spacing_m: float, lookalike: bool,
-                        periodic: bool = False) -> tuple[float, Iterator[cf.SplitRun]]:
-        seen["periodic"] = periodic
-        return 20.0, iter(runs if periodic else runs[:1])
-
-    monkeypatch.setattr(cf, "split_runs", fake_split_runs)
-    monkeypatch.setattr(ours, "Ours", lambda *a, **k: None)
+    seen = _patch_split_runs(monkeypatch, runs, "periodic", 1)
     d = cf.collect_split("train-target-loop", progress=False, periodic=True)
     assert seen["periodic"] is True
     assert d.split.tolist() == ["train-target-loop", "train-target-loop-periodic", "train-target-loop-periodic"]
