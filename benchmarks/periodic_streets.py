@@ -13,7 +13,8 @@ boreas preset, all in worlds no training split renders):
 
 Then localizes every query scan globally on its map (``MapDatabase.localize``, as the benchmark does) with the shipped
 confidence model and, with ``--compare``, another model JSON (e.g. the previous commit's ``confidence_model.json``),
-and, with ``--place-margins``, other tie margins (``LocalizationConfig.min_place_margin``), and prints per drive and
+with ``--place-margins``, other tie margins (``LocalizationConfig.min_place_margin``), and with ``--repetitions``,
+other bars of the repeated-place rule (``LocalizationConfig.max_place_repetition``; ``none`` = off), and prints per drive and
 model: `localized` answers within 2 m / 2 deg, within the success thresholds (20 m, 10 deg)
 and wrong (outside them: one or more periods off), the wrong ones' scan, confidence and errors (m, deg).
 
@@ -79,6 +80,9 @@ def main() -> None:
     ap.add_argument("--compare", type=Path, default=None, help="another confidence model JSON to run as well")
     ap.add_argument("--place-margins", default="",
                     help="comma-separated LocalizationConfig.min_place_margin values to run as well (the tie rule)")
+    ap.add_argument("--repetitions", default="",
+                    help="comma-separated LocalizationConfig.max_place_repetition values to run as well (the repeated "
+                         "place rule; 'none' = off)")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     import torch
@@ -98,6 +102,9 @@ def main() -> None:
         models["compare"] = (ConfidenceModel.load(args.compare), base)
     for m in (float(v) for v in args.place_margins.split(",") if v.strip()):
         models[f"shipped, place margin {m:g}"] = (models["shipped"][0], replace(base, min_place_margin=m))
+    for v in (v.strip() for v in args.repetitions.split(",") if v.strip()):
+        rep = None if v.lower() == "none" else float(v)
+        models[f"shipped, place repetition {v}"] = (models["shipped"][0], replace(base, max_place_repetition=rep))
     ext = DescriptorExtractor.from_pretrained("default")
     totals: dict[str, dict[str, int]] = {m: {"scans": 0, "within_2m_2deg": 0, "correct": 0, "wrong": 0} for m in models}
     for route in args.routes.split(","):

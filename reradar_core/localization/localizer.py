@@ -11,9 +11,10 @@ every number the benchmark reports is measured on the service's code path.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TypeVar
 
 import numpy as np
@@ -24,6 +25,7 @@ from reradar_core.geometry.se2 import compose, wrap_angle
 from reradar_core.localization.confidence import confidence_cues, default_confidence_model, tracked_cues
 from reradar_core.localization.keyframes import KeyframeCache, KeyframeSource
 from reradar_core.localization.pipeline import (
+    REASON_AMBIGUOUS,
     REASON_INCONSISTENT,
     REASON_TOO_FEW_INLIERS,
     Candidate,
@@ -32,6 +34,7 @@ from reradar_core.localization.pipeline import (
     LocalizationResult,
     localize,
 )
+from reradar_core.localization.repetition import PlaceRepetition, place_repetition, repetition_keyframes
 from reradar_core.localization.tracking import (
     PosePrior,
     register_from_prior,
@@ -82,6 +85,9 @@ class Localizer:
         self.keyframes = keyframes
         self.config = config or LocalizationConfig()
         self.cache = KeyframeCache(keyframes, self.config.alignment, max_cached=cache_size)
+        # per keyframe and settings: a property of the map alone, so any query may fill it (``place_repetition``)
+        self._repetition: dict[tuple, PlaceRepetition] = {}
+        self._repetition_lock = threading.Lock()
         warm_up()  # the compiled kernels (numba) are compiled or loaded now, not in the first query
         if preload:
             self.cache.preload()
@@ -134,7 +140,45 @@ class Localizer:
         result = localize(features, candidates, config)
         result.timings_ms["retrieve_ms"] = (t1 - t0) * 1e3
         result.timings_ms["read_ms"] = read_s[0] * 1e3
+        if result.localized and config.max_place_repetition is not None and result.best is not None:
+            t2 = time.perf_counter()
+            repetition = self.place_repetition(result.best.keyframe_id, config).ratio
+            result.timings_ms["repetition_ms"] = (time.perf_counter() - t2) * 1e3
+            if repetition >= config.max_place_repetition:
+                # the winner's place repeats on the map: the scan fits the other copy as well (``max_place_repetition``)
+                result = replace(result, status="not_localized", reason=REASON_AMBIGUOUS, T_map_query=None)
         return result
+
+    def place_repetition(self, keyframe_id: int, config: LocalizationConfig | None = None) -> PlaceRepetition:
+        """How well the map shows keyframe ``keyframe_id``'s place elsewhere (``localization.repetition``): localized
+        like a query against its ``config.repetition_neighbours`` nearest keyframes within
+        ``config.place_margin_radius_m`` and the ``config.repetition_rivals`` keyframes retrieved for its global
+        descriptor that lie farther. Computed on first use (~25 screens and 1 + ``repetition_verify`` pose
+        estimates, ~20-40 ms) and cached per keyframe and settings; deterministic, so concurrent queries that
+        compute it twice store the same answer."""
+        config = config or self.config
+        key = (int(keyframe_id), config.place_margin_radius_m, config.repetition_rivals,
+               config.repetition_neighbours, config.repetition_verify, config.pose_method, config.min_inliers,
+               config.alignment, config.ransac)
+        with self._repetition_lock:
+            known = self._repetition.get(key)
+        if known is not None:
+            return known
+        kid = int(keyframe_id)
+        g = self.index.vector(kid)
+        idx, _ = self.index.search(np.asarray(g, np.float32).reshape(-1), min(config.repetition_rivals + 1, len(self)))
+        neighbours, rivals = repetition_keyframes(kid, self.keyframes.poses, [int(i) for i in idx[0] if i >= 0],
+                                                  config.place_margin_radius_m, config.repetition_neighbours)
+
+        def candidate(j: int) -> Candidate:
+            return Candidate(j, np.asarray(self.keyframes.poses[j], np.float64), None, 0.0, 0,
+                             loader=lambda: self.cache.get(j), grid_loader=lambda: self.cache.landmark_grid(j))
+
+        rep = place_repetition(self.cache.get(kid).features, np.asarray(self.keyframes.poses[kid], np.float64),
+                               [candidate(j) for j in neighbours], [candidate(j) for j in rivals], config)
+        with self._repetition_lock:
+            self._repetition[key] = rep
+        return rep
 
     def track(self, features: ScanFeatures, prior: PosePrior,
               config: LocalizationConfig | None = None) -> LocalizationResult:
@@ -249,5 +293,5 @@ class Localizer:
         return int(counts[outside].max()) >= own - margin
 
     def clear(self) -> None:
-        """Drop the cached keyframes."""
+        """Drop the cached keyframes (the place repetitions, a few bytes each, stay)."""
         self.cache.clear()

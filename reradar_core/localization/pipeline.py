@@ -167,6 +167,22 @@ class LocalizationConfig:
             "Session 21"). The tracking checks use it too. A radius of 15 m / 10 m refused 7 / 72 correct answers more; at 20 m a
             copy of the place 21-25 m away is not a rival for every keyframe, so 2-5 of the 8 demo queries on a map
             holding the demo drive twice 21-25 m apart were still answered on the wrong copy (QA re-test).
+        max_place_repetition / repetition_rivals / repetition_neighbours / repetition_verify: ``Localizer`` only
+            (global answers; a tracked one rests on its prior): an answer whose winning keyframe's place repeats on
+            the map is ``ambiguous``. A keyframe's repetition (``localization.repetition``) is localized like a
+            query: its aligned ratio against the best-screened of its ``repetition_neighbours`` (4) nearest
+            keyframes within ``place_margin_radius_m`` is the reference; among the ``repetition_rivals`` (20)
+            keyframes retrieved for it that lie farther, the ``repetition_verify`` (3) best-screened are verified,
+            and one whose pose puts the keyframe at another place (farther than the radius from where it is) and
+            aligns ``max_place_repetition`` (0.8) of the reference or more marks it (None: no such rule). 0.8
+            since session 27, chosen on training data (docs/MODEL.md "Repeated places"): of 0.70-1.10 in steps of
+            0.05, those that mark at most 0.5 % of the keyframes of each training pairing's map (the benchmark
+            database drives the target splits pair with: 0.80 and up mark none, 0.75 marks 3 of 181), and of those
+            the largest that leaves the fewest wrong answers among the fit runs of the splits' periodic worlds
+            (``train-target-X-periodic``: 30 wrong and 1,806 right with the tie margin alone; 0 / 1,426 at 0.8,
+            1 / 1,527 at 0.85, 8 / 1,749 at 1.0; the held-out tails 6 -> 0 wrong, 292 -> 205 right; docs/MODEL.md
+            "Repeated places"). Computed once per keyframe (~20-40 ms) and cached by the ``Localizer``. A keyframe
+            with no other keyframe within the radius (a map sparser than 20 m) is not judged.
         verify_ties: ``guided`` only: screened candidates whose score lies within ``min_place_margin`` of the best
             one's are verified too, at most this many beyond ``verify_k`` (0: off). Keyframes a few metres apart
             screen alike, and the order among them is chance: a reversed drive's scan screened 0.664 on a keyframe
@@ -196,6 +212,10 @@ class LocalizationConfig:
     min_place_margin: float | None = 0.075
     place_margin_radius_m: float = 20.0
     verify_ties: int = 3
+    max_place_repetition: float | None = 0.8
+    repetition_rivals: int = 20
+    repetition_neighbours: int = 4
+    repetition_verify: int = 3
 
     @property
     def prescreen_alignment(self) -> AlignmentConfig:
@@ -248,6 +268,11 @@ class LocalizationConfig:
             raise ConfigError(f"prescreen_keep must be >= 1 or None, got {self.prescreen_keep}")
         if self.min_place_margin is not None and not 0.0 <= self.min_place_margin <= 1.0:
             raise ConfigError(f"min_place_margin must be in [0, 1] or None, got {self.min_place_margin}")
+        if self.max_place_repetition is not None and not self.max_place_repetition > 0.0:
+            raise ConfigError(f"max_place_repetition must be > 0 or None, got {self.max_place_repetition}")
+        if self.repetition_rivals < 1 or self.repetition_neighbours < 1 or self.repetition_verify < 1:
+            raise ConfigError("repetition_rivals, repetition_neighbours and repetition_verify must be >= 1, got "
+                              f"{self.repetition_rivals}, {self.repetition_neighbours}, {self.repetition_verify}")
         if not self.place_margin_radius_m > 0.0:
             raise ConfigError(f"place_margin_radius_m must be > 0, got {self.place_margin_radius_m}")
         if self.prescreen_source_points < 2 or self.prescreen_hypotheses < 1:

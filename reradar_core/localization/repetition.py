@@ -1,0 +1,121 @@
+"""Place repetition: whether another place of the map looks like a keyframe's own place.
+
+A street built of one repeated block (a row of identical houses, a periodic world of the simulator) shows the
+radar the same scene every period. A scan there fits the map at every period; which keyframe wins is chance,
+and the tie margin (``LocalizationConfig.min_place_margin``) does not see it when the keyframe that wins sits at
+the scan's position within the period and the true place's keyframes sit a few metres off it: the winner then
+out-screens them by 8-11 % of the landmarks (QA, session 26: 2 of 20 answers one or two periods off on a road
+along a tile border, 40-80 m off at confidence 0.96-0.99). That is a property of the map, not of the scan, so
+it is measured on the map: a keyframe is localized against the map's other keyframes as a query would be. Its
+best aligned ratio against a keyframe of its own place (a neighbour a few metres away) is what a scan there
+aligns; a keyframe farther than the place radius whose own best pose puts the keyframe *at another place*
+(not the same place seen from 20-60 m away, which any keyframe down the road shows) and aligns about as much
+means the place repeats, and an answer resting on it is an unknown place (``ambiguous``), never a guess.
+
+    rep = place_repetition(features, T_map_keyframe, neighbours, rivals, config)
+    rep.ratio   # rival / neighbour aligned ratio; >= LocalizationConfig.max_place_repetition (0.8) -> refused
+
+``Localizer.place_repetition`` chooses the keyframes and caches the answer per keyframe.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from reradar_core.features import ScanFeatures
+from reradar_core.geometry.se2 import compose
+from reradar_core.localization.pipeline import Candidate, LocalizationConfig, verify_candidate
+from reradar_core.localization.screening import screen_candidates
+
+__all__ = ["PlaceRepetition", "place_repetition", "repetition_keyframes"]
+
+
+@dataclass(frozen=True)
+class PlaceRepetition:
+    """How well the map shows one keyframe's place elsewhere.
+
+    Attributes:
+        neighbour_score: the aligned ratio (fraction of the keyframe's landmarks its pose estimate aligns, in
+            [0, 1]) against the best-screened keyframe of its own place; 0 when it has none (or no pose).
+        rival_score: the best aligned ratio against a keyframe of another place whose pose puts the keyframe
+            farther than the place radius from where it is; 0 when there is none.
+        rival_keyframe_id: that keyframe (None when there is none).
+    """
+
+    neighbour_score: float
+    rival_score: float
+    rival_keyframe_id: int | None
+
+    @property
+    def ratio(self) -> float:
+        """``rival_score / neighbour_score``: about 1 where the place repeats, 0 on most streets (no keyframe
+        elsewhere poses it elsewhere); 0 when the keyframe has no neighbour at its place (not judged)."""
+        return self.rival_score / self.neighbour_score if self.neighbour_score > 0.0 else 0.0
+
+
+def repetition_keyframes(keyframe_id: int, poses: np.ndarray, retrieved: Sequence[int], radius_m: float,
+                         max_neighbours: int) -> tuple[list[int], list[int]]:
+    """The keyframes ``place_repetition`` compares a keyframe with.
+
+    Args:
+        keyframe_id: the keyframe.
+        poses: (N, 3) map poses of all keyframes (x m, y m, yaw rad; map frame).
+        retrieved: keyframe ids retrieved for it by global descriptor (best first; itself may be among them).
+        radius_m: the place radius: a keyframe within it (position) is the same place.
+        max_neighbours: same-place keyframes kept, the nearest first (a map that drives a street several times
+            holds many).
+
+    Returns:
+        (neighbours, rivals): the nearest ``max_neighbours`` other keyframes within ``radius_m``, and the
+        retrieved keyframes farther than ``radius_m``, in retrieval order.
+    """
+    xy = np.asarray(poses, np.float64)[:, :2]
+    dist = np.hypot(*(xy - xy[keyframe_id]).T)
+    near = np.flatnonzero(dist <= radius_m)
+    near = near[near != keyframe_id]
+    neighbours = [int(j) for j in near[np.argsort(dist[near], kind="stable")][:max_neighbours]]
+    rivals = [int(j) for j in retrieved if j != keyframe_id and dist[int(j)] > radius_m]
+    return neighbours, rivals
+
+
+def place_repetition(features: ScanFeatures, T_map_keyframe: np.ndarray, neighbours: Sequence[Candidate],
+                     rivals: Sequence[Candidate], config: LocalizationConfig) -> PlaceRepetition:
+    """Localize one keyframe against keyframes of its own place and of other places (``repetition_keyframes``).
+
+    All are screened (``screen_candidates``); the best-screened neighbour and the ``config.repetition_verify``
+    best-screened rivals are verified (``verify_candidate``: the query's pose estimate). A rival counts when its
+    pose puts the keyframe farther than ``config.place_margin_radius_m`` from ``T_map_keyframe``.
+
+    Args:
+        features: the keyframe's features (landmarks in metres, its sensor frame; unit local descriptors).
+        T_map_keyframe: (3,) its map pose (x m, y m, yaw rad).
+        neighbours, rivals: ``Candidate`` s of the other keyframes (map poses, features or loaders).
+        config: the query's settings (screen, pose estimate, place radius, ``repetition_verify``).
+
+    Returns:
+        ``PlaceRepetition`` (deterministic: the screen and the estimator are seeded).
+    """
+    def best_screened(cands: Sequence[Candidate], k: int) -> list[Candidate]:
+        if not cands:
+            return []
+        scores = screen_candidates(features.keypoints_xy_m, features.local_descriptors,
+                                   [c.screen_data(config.alignment) for c in cands], config.alignment)
+        return [cands[int(i)] for i in np.argsort(-scores, kind="stable")[:k]]
+
+    here = np.asarray(T_map_keyframe, np.float64)
+    neighbour = 0.0
+    for c in best_screened(neighbours, 1):
+        v = verify_candidate(features, c, config)
+        neighbour = v.inlier_ratio if v.T_keyframe_query is not None else 0.0
+    rival, rival_id = 0.0, None
+    for c in best_screened(rivals, config.repetition_verify):
+        v = verify_candidate(features, c, config)
+        if v.T_keyframe_query is None or v.inlier_ratio <= rival:
+            continue
+        posed = compose(np.asarray(c.T_map_keyframe, np.float64), v.T_keyframe_query)
+        if float(np.hypot(*(posed[:2] - here[:2]))) > config.place_margin_radius_m:  # not this place from afar
+            rival, rival_id = float(v.inlier_ratio), int(c.keyframe_id)
+    return PlaceRepetition(float(neighbour), rival, rival_id)

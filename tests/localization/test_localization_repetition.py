@@ -1,0 +1,127 @@
+"""Place repetition: a keyframe of a street that repeats itself every 40 m is marked, one of an ordinary street is
+not, and a global answer resting on a marked keyframe is ``ambiguous`` (``LocalizationConfig.max_place_repetition``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from reradar_core.errors import ConfigError
+from reradar_core.features import ScanFeatures
+from reradar_core.geometry.se2 import compose, inverse, transform_points
+from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer, PosePrior
+from reradar_core.localization.pipeline import REASON_AMBIGUOUS
+from reradar_core.localization.repetition import PlaceRepetition, repetition_keyframes
+from reradar_core.retrieval import GlobalIndex
+
+PERIOD_M = 40.0
+STREET_M = 400.0
+SPACING_M = 6.0  # does not divide the period: the keyframes of two periods sit 2-4 m apart within it
+RANGE_M = 60.0
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+
+def _world(periodic: bool, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(L, 2) landmarks along a 400 m street (metres, map frame) and their (L, 16) unit descriptors: one random
+    40 m block repeated (``periodic``) or a new block every 40 m."""
+    rng = np.random.default_rng(seed)
+    pts, desc = [], []
+    block = (rng.uniform([0.0, -40.0], [PERIOD_M, 40.0], (40, 2)), _unit(rng.normal(size=(40, 16))))
+    for k in range(int(STREET_M / PERIOD_M) + 2):
+        p, d = block if periodic else (rng.uniform([0.0, -40.0], [PERIOD_M, 40.0], (40, 2)),
+                                       _unit(rng.normal(size=(40, 16))))
+        pts.append(p + np.array([(k - 1) * PERIOD_M, 0.0]))
+        desc.append(d)
+    return np.concatenate(pts), np.concatenate(desc)
+
+
+def _scan(world: tuple[np.ndarray, np.ndarray], T_map_sensor: np.ndarray, rng: np.random.Generator,
+          frame: int) -> ScanFeatures:
+    """What a sensor at ``T_map_sensor`` sees of ``world`` within 60 m (landmarks in its frame, 5 cm noise); the
+    global descriptor depends on the position within the period only, so rivals one period away are retrieved in
+    both worlds alike."""
+    pts, desc = world
+    local = transform_points(inverse(T_map_sensor), pts)
+    seen = np.hypot(*local.T) < RANGE_M
+    phase = 2.0 * math.pi * float(T_map_sensor[0]) / PERIOD_M
+    g = _unit(np.array([math.cos(phase), math.sin(phase), *np.full(14, 0.1)]))
+    return ScanFeatures(g.astype(np.float32), local[seen] + rng.normal(scale=0.05, size=(int(seen.sum()), 2)),
+                        desc[seen], frame)
+
+
+def _localizer(periodic: bool, config: LocalizationConfig | None = None) -> tuple[Localizer, tuple]:
+    world = _world(periodic)
+    rng = np.random.default_rng(1)
+    xs = np.arange(0.0, STREET_M + 1e-9, SPACING_M)
+    poses = np.column_stack([xs, np.zeros_like(xs), np.zeros_like(xs)])
+    kfs = [_scan(world, p, rng, i) for i, p in enumerate(poses)]
+    index = GlobalIndex(np.stack([f.global_descriptor for f in kfs]))
+    return Localizer(index, InMemoryKeyframes(kfs, poses), config), world
+
+
+def test_repetition_keyframes_are_the_nearest_of_its_place_and_the_retrieved_of_other_places() -> None:
+    poses = np.array([[0.0, 0, 0], [5.0, 0, 0], [12.0, 0, 0], [19.0, 0, 0], [30.0, 0, 0], [100.0, 0, 0]])
+    neighbours, rivals = repetition_keyframes(2, poses, [2, 5, 0, 4, 3], radius_m=20.0, max_neighbours=2)
+    assert neighbours == [1, 3]  # both 7 m off (ties keep their order); keyframe 0 (12 m) is third
+    assert rivals == [5]  # 88 m; keyframe 4 (18 m) and 0 (12 m) are its own place; itself is never a rival
+    assert PlaceRepetition(0.0, 0.7, 5).ratio == 0.0  # no neighbour at its place: not judged
+    assert PlaceRepetition(0.8, 0.6, 5).ratio == pytest.approx(0.75)
+
+
+def test_a_keyframe_of_a_periodic_street_repeats_and_one_of_an_ordinary_street_does_not() -> None:
+    periodic, _ = _localizer(True)
+    ordinary, _ = _localizer(False)
+    kid = 33  # 198 m: mid-street
+    rep = periodic.place_repetition(kid)
+    assert rep.ratio >= 1.0 and rep.rival_keyframe_id is not None
+    offset = abs(periodic.keyframes.poses[rep.rival_keyframe_id][0] - periodic.keyframes.poses[kid][0])
+    assert offset > 20.0 and min(offset % PERIOD_M, PERIOD_M - offset % PERIOD_M) <= SPACING_M / 2 + 1e-9
+    assert periodic.place_repetition(kid) is rep  # cached
+    plain = ordinary.place_repetition(kid)
+    assert plain.neighbour_score > 0.5 and plain.ratio < 0.5  # keyframes down the road pose it where it is
+
+
+def test_an_answer_on_a_repeated_place_is_ambiguous_and_one_on_an_ordinary_street_is_not() -> None:
+    """The rule alone (tie margin off: here every period's keyframe screens alike, so the margin refuses too; on
+    real maps the winner's keyframe can out-screen the true place's, 2-4 m off within the period)."""
+    rng = np.random.default_rng(7)
+    T_map_query = np.array([198.0, 1.0, math.radians(4.0)])  # at keyframe 33's position within the period
+    no_margin = LocalizationConfig(min_place_margin=None)
+    periodic, world = _localizer(True)
+    query = _scan(world, T_map_query, rng, 99)
+    unruled = periodic.localize(query, LocalizationConfig(min_place_margin=None, max_place_repetition=None))
+    assert unruled.localized and unruled.T_map_query is not None  # on some period, by chance
+    res = periodic.localize(query, no_margin)
+    assert res.status == "not_localized" and res.reason == REASON_AMBIGUOUS and res.T_map_query is None
+    assert res.best is not None and res.best.keyframe_id == unruled.best.keyframe_id
+    assert periodic.place_repetition(res.best.keyframe_id, no_margin).ratio >= 0.95
+    assert "repetition_ms" in res.timings_ms
+    assert res.confidence == unruled.confidence  # the answer's cues are kept for diagnostics
+
+    ordinary, world = _localizer(False)
+    res = ordinary.localize(_scan(world, T_map_query, rng, 99))
+    assert res.localized and res.T_map_query is not None and "repetition_ms" in res.timings_ms
+    np.testing.assert_allclose(res.T_map_query[:2], T_map_query[:2], atol=0.3)
+
+
+def test_a_tracked_answer_on_a_repeated_place_is_kept() -> None:
+    """A pose prior tells the periods apart; the rule judges global answers only."""
+    rng = np.random.default_rng(8)
+    T_map_query = np.array([198.0, 1.0, math.radians(4.0)])
+    periodic, world = _localizer(True)
+    res = periodic.track(_scan(world, T_map_query, rng, 99), PosePrior(T_map_query + [0.5, -0.5, 0.01], 1.0, 0.03))
+    assert res.mode == "tracking" and res.localized and res.T_map_query is not None
+    np.testing.assert_allclose(res.T_map_query[:2], T_map_query[:2], atol=0.3)
+    assert compose(inverse(res.T_map_query), T_map_query)[2] == pytest.approx(0.0, abs=math.radians(0.5))
+
+
+@pytest.mark.parametrize("kwargs", [{"max_place_repetition": 0.0}, {"repetition_rivals": 0},
+                                    {"repetition_neighbours": 0}, {"repetition_verify": 0}])
+def test_repetition_settings_are_checked(kwargs: dict) -> None:
+    with pytest.raises(ConfigError):
+        LocalizationConfig(**kwargs)
