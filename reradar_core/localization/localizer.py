@@ -159,7 +159,7 @@ class Localizer:
         config = config or self.config
         key = (int(keyframe_id), config.place_margin_radius_m, config.repetition_rivals,
                config.repetition_neighbours, config.repetition_verify, config.pose_method, config.min_inliers,
-               config.alignment, config.ransac)
+               config.effective_min_inlier_ratio, config.alignment, config.ransac)
         with self._repetition_lock:
             known = self._repetition.get(key)
         if known is not None:

@@ -173,16 +173,17 @@ class LocalizationConfig:
             query: its aligned ratio against the best-screened of its ``repetition_neighbours`` (4) nearest
             keyframes within ``place_margin_radius_m`` is the reference; among the ``repetition_rivals`` (20)
             keyframes retrieved for it that lie farther, the ``repetition_verify`` (3) best-screened are verified,
-            and one whose pose puts the keyframe at another place (farther than the radius from where it is) and
-            aligns ``max_place_repetition`` (0.8) of the reference or more marks it (None: no such rule). 0.8
-            since session 27, chosen on training data (docs/MODEL.md "Repeated places"): of 0.70-1.10 in steps of
-            0.05, those that mark at most 0.5 % of the keyframes of each training pairing's map (the benchmark
-            database drives the target splits pair with: 0.80 and up mark none, 0.75 marks 3 of 181), and of those
-            the largest that leaves the fewest wrong answers among the fit runs of the splits' periodic worlds
-            (``train-target-X-periodic``: 30 wrong and 1,806 right with the tie margin alone; 0 / 1,426 at 0.8,
-            1 / 1,527 at 0.85, 8 / 1,749 at 1.0; the held-out tails 6 -> 0 wrong, 292 -> 205 right; docs/MODEL.md
-            "Repeated places"). Computed once per keyframe (~20-40 ms) and cached by the ``Localizer``. A keyframe
-            with no other keyframe within the radius (a map sparser than 20 m) is not judged.
+            and one whose pose puts the keyframe at another place (farther than the radius from where it is),
+            aligns at least the answers' floor (``effective_min_inlier_ratio``) and ``max_place_repetition``
+            (0.95) of the reference or more marks it (None: no such rule). 0.95 since session 27, chosen on
+            training data by the tie margin's rule (``benchmarks/place_repetition.py``; docs/MODEL.md "Repeated
+            places"): of 0.70-1.10 in steps of 0.05, those that refuse at most 0.5 % of the right answers of the
+            training splits' unseen sessions on their pairing maps (every scan a keyframe, and keyframes 12 m
+            apart; 0.90: 10 of 5,055, 0.85: 30), and of those the largest that leaves the fewest wrong answers
+            among the same splits' periodic worlds' runs (76 wrong with the tie margin alone, 2 at 0.90 and 0.95,
+            8 at 1.0; the held-out tails 14 -> 0). Computed once per keyframe (~20-40 ms) and cached by the
+            ``Localizer``. A keyframe with no other keyframe within the radius (a map sparser than 20 m) is not
+            judged.
         verify_ties: ``guided`` only: screened candidates whose score lies within ``min_place_margin`` of the best
             one's are verified too, at most this many beyond ``verify_k`` (0: off). Keyframes a few metres apart
             screen alike, and the order among them is chance: a reversed drive's scan screened 0.664 on a keyframe
@@ -212,7 +213,7 @@ class LocalizationConfig:
     min_place_margin: float | None = 0.075
     place_margin_radius_m: float = 20.0
     verify_ties: int = 3
-    max_place_repetition: float | None = 0.8
+    max_place_repetition: float | None = 0.95
     repetition_rivals: int = 20
     repetition_neighbours: int = 4
     repetition_verify: int = 3

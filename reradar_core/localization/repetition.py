@@ -9,11 +9,13 @@ along a tile border, 40-80 m off at confidence 0.96-0.99). That is a property of
 it is measured on the map: a keyframe is localized against the map's other keyframes as a query would be. Its
 best aligned ratio against a keyframe of its own place (a neighbour a few metres away) is what a scan there
 aligns; a keyframe farther than the place radius whose own best pose puts the keyframe *at another place*
-(not the same place seen from 20-60 m away, which any keyframe down the road shows) and aligns about as much
-means the place repeats, and an answer resting on it is an unknown place (``ambiguous``), never a guess.
+(not the same place seen from 20-60 m away, which any keyframe down the road shows), aligns at least what an
+answer must (the aligned-ratio floor: below it a reversed or slid pose is the noise every street shows, QA
+session 27) and about as much as the neighbour means the place repeats, and an answer resting on it is an unknown
+place (``ambiguous``), never a guess.
 
     rep = place_repetition(features, T_map_keyframe, neighbours, rivals, config)
-    rep.ratio   # rival / neighbour aligned ratio; >= LocalizationConfig.max_place_repetition (0.8) -> refused
+    rep.ratio   # rival / neighbour aligned ratio; >= LocalizationConfig.max_place_repetition (0.95) -> refused
 
 ``Localizer.place_repetition`` chooses the keyframes and caches the answer per keyframe.
 """
@@ -41,7 +43,8 @@ class PlaceRepetition:
         neighbour_score: the aligned ratio (fraction of the keyframe's landmarks its pose estimate aligns, in
             [0, 1]) against the best-screened keyframe of its own place; 0 when it has none (or no pose).
         rival_score: the best aligned ratio against a keyframe of another place whose pose puts the keyframe
-            farther than the place radius from where it is; 0 when there is none.
+            farther than the place radius from where it is, among those that reach the answers' aligned-ratio floor
+            (``LocalizationConfig.effective_min_inlier_ratio``); 0 when there is none.
         rival_keyframe_id: that keyframe (None when there is none).
     """
 
@@ -87,7 +90,8 @@ def place_repetition(features: ScanFeatures, T_map_keyframe: np.ndarray, neighbo
 
     All are screened (``screen_candidates``); the best-screened neighbour and the ``config.repetition_verify``
     best-screened rivals are verified (``verify_candidate``: the query's pose estimate). A rival counts when its
-    pose puts the keyframe farther than ``config.place_margin_radius_m`` from ``T_map_keyframe``.
+    pose puts the keyframe farther than ``config.place_margin_radius_m`` from ``T_map_keyframe`` and aligns at least
+    the answers' floor (``config.effective_min_inlier_ratio``).
 
     Args:
         features: the keyframe's features (landmarks in metres, its sensor frame; unit local descriptors).
@@ -111,9 +115,12 @@ def place_repetition(features: ScanFeatures, T_map_keyframe: np.ndarray, neighbo
         v = verify_candidate(features, c, config)
         neighbour = v.inlier_ratio if v.T_keyframe_query is not None else 0.0
     rival, rival_id = 0.0, None
+    floor = config.effective_min_inlier_ratio
     for c in best_screened(rivals, config.repetition_verify):
         v = verify_candidate(features, c, config)
-        if v.T_keyframe_query is None or v.inlier_ratio <= rival:
+        # a rival is a place the scan could be answered at: below the answers' floor it is the noise of wrong
+        # poses (reversed, slid along the street: 0.23-0.43 on ordinary streets 12-20 m between keyframes, QA)
+        if v.T_keyframe_query is None or v.inlier_ratio < floor or v.inlier_ratio <= rival:
             continue
         posed = compose(np.asarray(c.T_map_keyframe, np.float64), v.T_keyframe_query)
         if float(np.hypot(*(posed[:2] - here[:2]))) > config.place_margin_radius_m:  # not this place from afar

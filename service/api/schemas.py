@@ -237,7 +237,7 @@ class LocalizeResponse(_Model):
         "query's landmarks), ambiguous (a "
         "rival pose aligns as many landmarks, or a keyframe at another place, over 20 m from the answer, screens "
         "within 7.5 % of the query's landmarks of the winner: localization.min_place_margin, or the winning "
-        "keyframe's place repeats on the map: another place aligns 80 % of what its own does, "
+        "keyframe's place repeats on the map: another place aligns 95 % of what its own does, "
         "localization.max_place_repetition), low_confidence (below "
         "min_confidence). A "
         "failed tracking attempt (a registration below the bar or outside the prior's gate) falls back to global "

@@ -12,8 +12,8 @@ from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose, inverse, transform_points
 from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer, PosePrior
-from reradar_core.localization.pipeline import REASON_AMBIGUOUS
-from reradar_core.localization.repetition import PlaceRepetition, repetition_keyframes
+from reradar_core.localization.pipeline import REASON_AMBIGUOUS, Candidate
+from reradar_core.localization.repetition import PlaceRepetition, place_repetition, repetition_keyframes
 from reradar_core.retrieval import GlobalIndex
 
 PERIOD_M = 40.0
@@ -84,6 +84,28 @@ def test_a_keyframe_of_a_periodic_street_repeats_and_one_of_an_ordinary_street_d
     assert periodic.place_repetition(kid) is rep  # cached
     plain = ordinary.place_repetition(kid)
     assert plain.neighbour_score > 0.5 and plain.ratio < 0.5  # keyframes down the road pose it where it is
+
+
+def test_a_rival_below_the_answers_floor_does_not_count() -> None:
+    """A rival is a place the scan could be answered at: one aligning less than the answers' floor is noise. The
+    rival here is the place two periods on with every other landmark missing: it aligns about half of them."""
+    world = _world(True)
+    rng = np.random.default_rng(3)
+    T_map_kf = np.array([198.0, 0.0, 0.0])
+    kf = _scan(world, T_map_kf, rng, 0)
+    T_map_near, T_map_far = np.array([204.0, 0.0, 0.0]), np.array([278.0, 0.0, 0.0])
+    near = _scan(world, T_map_near, rng, 1)
+    full = _scan(world, T_map_far, rng, 2)
+    half = ScanFeatures(full.global_descriptor, full.keypoints_xy_m[::2], full.local_descriptors[::2], 2)
+
+    def rep(floor: float) -> PlaceRepetition:
+        return place_repetition(kf, T_map_kf, [Candidate(1, T_map_near, near, 0.0, 0)],
+                                [Candidate(2, T_map_far, half, 0.0, 0)], LocalizationConfig(min_inlier_ratio=floor))
+
+    low, high = rep(0.3), rep(0.7)
+    assert 0.3 <= low.rival_score < 0.7 and low.rival_keyframe_id == 2 and low.neighbour_score > 0.8
+    assert high.rival_score == 0.0 and high.rival_keyframe_id is None and high.ratio == 0.0
+    assert high.neighbour_score == pytest.approx(low.neighbour_score)  # the reference needs no floor
 
 
 def test_an_answer_on_a_repeated_place_is_ambiguous_and_one_on_an_ordinary_street_is_not() -> None:
