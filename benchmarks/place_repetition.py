@@ -8,8 +8,8 @@ on a benchmark query sequence:
    the map drive of its periodic world (``train-target-X-periodic``, ``sim.suites.periodic_suite``), each with every
    scan as a keyframe and with keyframes 12 m apart (``--map-spacings-m``; ``reradar build-map --min-spacing-m``):
    how many keyframes each bar marks.
-2. **Runs.** Each map's unseen sessions localized on it with the shipped settings but the rule off (as ``reradar
-   fit-confidence`` collects them): on a pairing map the split's ``confidence`` sessions, on a periodic map its world's
+2. **Runs.** Each map's unseen sessions localized on it with the shipped settings but the rule off (``reradar
+   fit-confidence`` collects its own runs with the rule off too, ``confidence_fit.collection_config``): on a pairing map the split's ``confidence`` sessions, on a periodic map its world's
    ``confidence`` sessions. Per run the winning keyframe, whether it is ``localized`` and whether within the success
    thresholds (suite radius, 10 deg). A bar refuses an answer whose winner's repetition reaches it. The last 15 % of
    each session is held out (``confidence_fit`` split).

@@ -52,7 +52,8 @@ from reradar_core.localization.confidence import (
 )
 from reradar_core.localization.keyframes import select_keyframes
 
-__all__ = ["SPLIT_MODELS", "FitData", "SplitRun", "choose_place_margin", "collect_split", "fit_from_data", "label_run",
+__all__ = ["SPLIT_MODELS", "FitData", "SplitRun", "choose_place_margin", "collect_split", "collection_config",
+           "fit_from_data", "label_run",
            "map_group", "plot_reliability", "split_models", "split_runs"]
 
 logger = logging.getLogger(__name__)
@@ -345,6 +346,16 @@ def split_runs(split: str, method: Any, config: Any, query_step: int = 1,
     return radius, runs()
 
 
+def collection_config(min_inlier_ratio: float = PROBE_FLOOR) -> Any:
+    """The ``LocalizationConfig`` of the fit's runs: no confidence bar, the aligned-ratio floor at
+    ``min_inlier_ratio`` and the tie margin at ``PROBE_PLACE_MARGIN`` (a higher floor or margin is applied afterwards
+    through their cues), and no repeated-place check (``max_place_repetition`` None: chosen on such runs itself)."""
+    from reradar_core.localization.pipeline import LocalizationConfig
+
+    return replace(LocalizationConfig(), min_confidence=0.0, min_inlier_ratio=min_inlier_ratio,
+                   min_place_margin=PROBE_PLACE_MARGIN, max_place_repetition=None)
+
+
 def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progress: bool = True,
                   min_inlier_ratio: float = PROBE_FLOOR, model: str | None = None,
                   map_spacing_m: float = 0.0, lookalike: bool = False, periodic: bool = False) -> FitData:
@@ -368,11 +379,10 @@ def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progre
         periodic: add the split's periodic world (``split_runs``), labelled ``SPLIT-periodic`` (a group of its own).
     """
     from reradar_core.baselines.ours import Ours
-    from reradar_core.localization.pipeline import LocalizationConfig
 
-    # the floor and the tie margin alone, at their lowest candidate values: every answer is labelled
-    config = replace(LocalizationConfig(), min_confidence=0.0, min_inlier_ratio=min_inlier_ratio,
-                     min_place_margin=PROBE_PLACE_MARGIN)
+    # the floor and the tie margin alone, at their lowest candidate values: every answer is labelled (the
+    # repeated-place check off: it is chosen on runs like these, ``benchmarks/place_repetition.py``)
+    config = collection_config(min_inlier_ratio)
     method = Ours(model or SPLIT_MODELS[split], localization=config)
     radius, runs = split_runs(split, method, config, query_step, progress, map_spacing_m, lookalike, periodic)
     rows, groups = [], []

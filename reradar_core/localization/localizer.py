@@ -15,7 +15,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -34,7 +34,12 @@ from reradar_core.localization.pipeline import (
     LocalizationResult,
     localize,
 )
-from reradar_core.localization.repetition import PlaceRepetition, place_repetition, repetition_keyframes
+from reradar_core.localization.repetition import (
+    PlaceRepetition,
+    place_repetition,
+    repetition_key,
+    repetition_keyframes,
+)
 from reradar_core.localization.tracking import (
     PosePrior,
     register_from_prior,
@@ -133,14 +138,12 @@ class Localizer:
             return load
 
         wanted = hits if config.rerank else hits[:1]
-        candidates = [Candidate(h.keyframe_id, h.T_map_keyframe, None, h.descriptor_distance, h.rank,
-                                loader=timed(self.cache.get, h.keyframe_id),
-                                grid_loader=timed(self.cache.landmark_grid, h.keyframe_id))
-                      for h in wanted]
+        candidates = [self._candidate(h.keyframe_id, h.rank, h.descriptor_distance, timed) for h in wanted]
         result = localize(features, candidates, config)
         result.timings_ms["retrieve_ms"] = (t1 - t0) * 1e3
         result.timings_ms["read_ms"] = read_s[0] * 1e3
-        if result.localized and config.max_place_repetition is not None and result.best is not None:
+        if (result.localized and config.max_place_repetition is not None and config.pose_method == "guided"
+                and result.best is not None):
             t2 = time.perf_counter()
             repetition = self.place_repetition(result.best.keyframe_id, config).ratio
             result.timings_ms["repetition_ms"] = (time.perf_counter() - t2) * 1e3
@@ -148,6 +151,18 @@ class Localizer:
                 # the winner's place repeats on the map: the scan fits the other copy as well (``max_place_repetition``)
                 result = replace(result, status="not_localized", reason=REASON_AMBIGUOUS, T_map_query=None)
         return result
+
+    def _candidate(self, keyframe_id: int, rank: int = 0, descriptor_distance: float = 0.0,
+                   wrap: Callable[..., Any] | None = None) -> Candidate:
+        """A ``Candidate`` of keyframe ``keyframe_id`` whose features, screen data and landmark grid come from the
+        cache on first use (through ``wrap(fetch, keyframe_id)`` when given: the read-stage timer)."""
+        def direct(fetch: Callable[[int], Any], j: int) -> Callable[[], Any]:
+            return lambda: fetch(j)
+
+        wrap = wrap or direct
+        return Candidate(int(keyframe_id), np.asarray(self.keyframes.poses[keyframe_id], np.float64).copy(), None,
+                         float(descriptor_distance), int(rank), loader=wrap(self.cache.get, keyframe_id),
+                         grid_loader=wrap(self.cache.landmark_grid, keyframe_id))
 
     def place_repetition(self, keyframe_id: int, config: LocalizationConfig | None = None) -> PlaceRepetition:
         """How well the map shows keyframe ``keyframe_id``'s place elsewhere (``localization.repetition``): localized
@@ -157,25 +172,23 @@ class Localizer:
         estimates, ~20-40 ms) and cached per keyframe and settings; deterministic, so concurrent queries that
         compute it twice store the same answer."""
         config = config or self.config
-        key = (int(keyframe_id), config.place_margin_radius_m, config.repetition_rivals,
-               config.repetition_neighbours, config.repetition_verify, config.pose_method, config.min_inliers,
-               config.effective_min_inlier_ratio, config.alignment, config.ransac)
+        key = (int(keyframe_id), repetition_key(config))
         with self._repetition_lock:
             known = self._repetition.get(key)
         if known is not None:
             return known
         kid = int(keyframe_id)
-        g = self.index.vector(kid)
-        idx, _ = self.index.search(np.asarray(g, np.float32).reshape(-1), min(config.repetition_rivals + 1, len(self)))
-        neighbours, rivals = repetition_keyframes(kid, self.keyframes.poses, [int(i) for i in idx[0] if i >= 0],
+        poses = self.keyframes.poses
+        # same-place keyframes (a dense map, several drives) can fill the retrieval: search past them
+        within = int((np.hypot(*(np.asarray(poses, np.float64)[:, :2] - np.asarray(poses[kid], np.float64)[:2]).T)
+                      <= config.place_margin_radius_m).sum())
+        idx, _ = self.index.search(np.asarray(self.index.vector(kid), np.float32).reshape(-1),
+                                   min(config.repetition_rivals + within, len(self)))
+        neighbours, rivals = repetition_keyframes(kid, poses, [int(i) for i in idx[0] if i >= 0],
                                                   config.place_margin_radius_m, config.repetition_neighbours)
-
-        def candidate(j: int) -> Candidate:
-            return Candidate(j, np.asarray(self.keyframes.poses[j], np.float64), None, 0.0, 0,
-                             loader=lambda: self.cache.get(j), grid_loader=lambda: self.cache.landmark_grid(j))
-
-        rep = place_repetition(self.cache.get(kid).features, np.asarray(self.keyframes.poses[kid], np.float64),
-                               [candidate(j) for j in neighbours], [candidate(j) for j in rivals], config)
+        rivals = rivals[: config.repetition_rivals]
+        rep = place_repetition(self.cache.get(kid).features, np.asarray(poses[kid], np.float64),
+                               [self._candidate(j) for j in neighbours], [self._candidate(j) for j in rivals], config)
         with self._repetition_lock:
             self._repetition[key] = rep
         return rep

@@ -167,13 +167,15 @@ class LocalizationConfig:
             "Session 21"). The tracking checks use it too. A radius of 15 m / 10 m refused 7 / 72 correct answers more; at 20 m a
             copy of the place 21-25 m away is not a rival for every keyframe, so 2-5 of the 8 demo queries on a map
             holding the demo drive twice 21-25 m apart were still answered on the wrong copy (QA re-test).
-        max_place_repetition / repetition_rivals / repetition_neighbours / repetition_verify: ``Localizer`` only
-            (global answers; a tracked one rests on its prior): an answer whose winning keyframe's place repeats on
-            the map is ``ambiguous``. A keyframe's repetition (``localization.repetition``) is localized like a
-            query: its aligned ratio against the best-screened of its ``repetition_neighbours`` (4) nearest
-            keyframes within ``place_margin_radius_m`` is the reference; among the ``repetition_rivals`` (20)
-            keyframes retrieved for it that lie farther, the ``repetition_verify`` (3) best-screened are verified,
-            and one whose pose puts the keyframe at another place (farther than the radius from where it is),
+        max_place_repetition / repetition_rivals / repetition_neighbours / repetition_verify: ``Localizer`` and
+            ``guided`` only (global answers; a tracked one rests on its prior; the bar was chosen for the guided
+            estimate): an answer whose winning keyframe's place repeats on the map is ``ambiguous``. A keyframe's
+            repetition (``localization.repetition``) is localized like a query: its aligned ratio against the
+            best-screened of its ``repetition_neighbours`` (4) nearest keyframes within ``place_margin_radius_m`` is
+            the reference; among the first ``repetition_rivals`` (20) keyframes retrieved for it that lie farther
+            (the retrieval reaches past the keyframes within the radius), the ``repetition_verify`` (3)
+            best-screened are verified, and one whose pose puts the keyframe at another place (farther than the
+            radius from where it is),
             aligns at least the answers' floor (``effective_min_inlier_ratio``) and ``max_place_repetition``
             (0.95) of the reference or more marks it (None: no such rule). 0.95 since session 27, chosen on
             training data by the tie margin's rule (``benchmarks/place_repetition.py``; docs/MODEL.md "Repeated

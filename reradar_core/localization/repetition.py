@@ -32,7 +32,7 @@ from reradar_core.geometry.se2 import compose
 from reradar_core.localization.pipeline import Candidate, LocalizationConfig, verify_candidate
 from reradar_core.localization.screening import screen_candidates
 
-__all__ = ["PlaceRepetition", "place_repetition", "repetition_keyframes"]
+__all__ = ["PlaceRepetition", "place_repetition", "repetition_key", "repetition_keyframes"]
 
 
 @dataclass(frozen=True)
@@ -57,6 +57,14 @@ class PlaceRepetition:
         """``rival_score / neighbour_score``: about 1 where the place repeats, 0 on most streets (no keyframe
         elsewhere poses it elsewhere); 0 when the keyframe has no neighbour at its place (not judged)."""
         return self.rival_score / self.neighbour_score if self.neighbour_score > 0.0 else 0.0
+
+
+def repetition_key(config: LocalizationConfig) -> tuple:
+    """Every setting of ``config`` that ``Localizer.place_repetition`` and ``place_repetition`` read (the choice of
+    keyframes, the screen, the pose estimate and the floor): a cached repetition is reused only under the same key."""
+    return (config.place_margin_radius_m, config.repetition_rivals, config.repetition_neighbours,
+            config.repetition_verify, config.pose_method, config.min_inliers, config.match_ratio,
+            config.effective_min_inlier_ratio, config.alignment, config.ransac)
 
 
 def repetition_keyframes(keyframe_id: int, poses: np.ndarray, retrieved: Sequence[int], radius_m: float,

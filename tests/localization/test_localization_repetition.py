@@ -13,7 +13,12 @@ from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose, inverse, transform_points
 from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer, PosePrior
 from reradar_core.localization.pipeline import REASON_AMBIGUOUS, Candidate
-from reradar_core.localization.repetition import PlaceRepetition, place_repetition, repetition_keyframes
+from reradar_core.localization.repetition import (
+    PlaceRepetition,
+    place_repetition,
+    repetition_key,
+    repetition_keyframes,
+)
 from reradar_core.retrieval import GlobalIndex
 
 PERIOD_M = 40.0
@@ -41,25 +46,27 @@ def _world(periodic: bool, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _scan(world: tuple[np.ndarray, np.ndarray], T_map_sensor: np.ndarray, rng: np.random.Generator,
-          frame: int) -> ScanFeatures:
+          frame: int, by_position: bool = False) -> ScanFeatures:
     """What a sensor at ``T_map_sensor`` sees of ``world`` within 60 m (landmarks in its frame, 5 cm noise); the
     global descriptor depends on the position within the period only, so rivals one period away are retrieved in
-    both worlds alike."""
+    both worlds alike (``by_position``: on the position along the street instead, a descriptor that ranks the
+    keyframes of the same place first)."""
     pts, desc = world
     local = transform_points(inverse(T_map_sensor), pts)
     seen = np.hypot(*local.T) < RANGE_M
-    phase = 2.0 * math.pi * float(T_map_sensor[0]) / PERIOD_M
+    phase = float(T_map_sensor[0]) / 100.0 if by_position else 2.0 * math.pi * float(T_map_sensor[0]) / PERIOD_M
     g = _unit(np.array([math.cos(phase), math.sin(phase), *np.full(14, 0.1)]))
     return ScanFeatures(g.astype(np.float32), local[seen] + rng.normal(scale=0.05, size=(int(seen.sum()), 2)),
                         desc[seen], frame)
 
 
-def _localizer(periodic: bool, config: LocalizationConfig | None = None) -> tuple[Localizer, tuple]:
+def _localizer(periodic: bool, config: LocalizationConfig | None = None, spacing_m: float = SPACING_M,
+               by_position: bool = False) -> tuple[Localizer, tuple]:
     world = _world(periodic)
     rng = np.random.default_rng(1)
-    xs = np.arange(0.0, STREET_M + 1e-9, SPACING_M)
+    xs = np.arange(0.0, STREET_M + 1e-9, spacing_m)
     poses = np.column_stack([xs, np.zeros_like(xs), np.zeros_like(xs)])
-    kfs = [_scan(world, p, rng, i) for i, p in enumerate(poses)]
+    kfs = [_scan(world, p, rng, i, by_position) for i, p in enumerate(poses)]
     index = GlobalIndex(np.stack([f.global_descriptor for f in kfs]))
     return Localizer(index, InMemoryKeyframes(kfs, poses), config), world
 
@@ -140,6 +147,53 @@ def test_a_tracked_answer_on_a_repeated_place_is_kept() -> None:
     assert res.mode == "tracking" and res.localized and res.T_map_query is not None
     np.testing.assert_allclose(res.T_map_query[:2], T_map_query[:2], atol=0.3)
     assert compose(inverse(res.T_map_query), T_map_query)[2] == pytest.approx(0.0, abs=math.radians(0.5))
+
+
+def test_a_dense_map_whose_descriptor_ranks_its_own_place_first_is_still_judged() -> None:
+    """Keyframes 1 m apart: the 40 within 20 m of a keyframe are retrieved before any other place, so the rivals
+    are searched past them (review, session 27: the rule was silently off on such maps)."""
+    dense, _ = _localizer(True, spacing_m=1.0, by_position=True)
+    kid = 198
+    ids, _ = dense.index.search(dense.index.vector(kid), 21)
+    assert all(abs(dense.keyframes.poses[int(i)][0] - 198.0) <= 20.0 for i in ids[0])  # the 21 nearest: same place
+    rep = dense.place_repetition(kid)
+    assert rep.neighbour_score > 0.95 and rep.rival_score > 0.9 and rep.rival_keyframe_id is not None  # was 0, 0
+    assert abs(dense.keyframes.poses[rep.rival_keyframe_id][0] - 198.0) > 20.0
+
+
+def test_the_cached_repetition_is_reused_only_under_the_same_settings() -> None:
+    periodic, _ = _localizer(True)
+    rep = periodic.place_repetition(33)
+    assert periodic.place_repetition(33, LocalizationConfig()) is rep
+    for changed in (LocalizationConfig(min_inlier_ratio=0.9), LocalizationConfig(match_ratio=0.3),
+                    LocalizationConfig(repetition_verify=1), LocalizationConfig(place_margin_radius_m=15.0)):
+        assert repetition_key(changed) != repetition_key(LocalizationConfig())
+        assert periodic.place_repetition(33, changed) is not rep  # computed again under those settings
+
+
+def test_the_check_is_skipped_when_off_or_for_mutual_nn_and_kept_in_a_tracking_fallback() -> None:
+    rng = np.random.default_rng(7)
+    T_map_query = np.array([198.0, 1.0, math.radians(4.0)])
+    periodic, world = _localizer(True)
+    query = _scan(world, T_map_query, rng, 99)
+    off = periodic.localize(query, LocalizationConfig(min_place_margin=None, max_place_repetition=None))
+    assert off.localized and "repetition_ms" not in off.timings_ms
+    mutual = periodic.localize(query, LocalizationConfig(pose_method="mutual_nn", min_place_margin=None))
+    assert "repetition_ms" not in mutual.timings_ms  # the bar was chosen for the guided estimate only
+    # a prior far from the scan: the tracking attempt fails and the global answer, refused, comes back as such
+    far = PosePrior(np.array([20.0, 0.0, 0.0]), 1.0, 0.03)
+    res = periodic.track(query, far, LocalizationConfig(min_place_margin=None))
+    assert res.mode == "global" and res.tracking_lost and res.status == "not_localized"
+    assert res.reason == REASON_AMBIGUOUS and res.best is not None and res.candidates and res.cues is not None
+
+
+def test_the_fit_collects_its_runs_with_the_check_off() -> None:
+    """``reradar fit-confidence`` labels every answer; the check is chosen on such runs, never applied to them."""
+    from reradar_core.localization.confidence_fit import PROBE_FLOOR, PROBE_PLACE_MARGIN, collection_config
+
+    config = collection_config()
+    assert config.max_place_repetition is None and config.min_confidence == 0.0
+    assert config.min_inlier_ratio == PROBE_FLOOR and config.min_place_margin == PROBE_PLACE_MARGIN
 
 
 @pytest.mark.parametrize("kwargs", [{"max_place_repetition": 0.0}, {"repetition_rivals": 0},
