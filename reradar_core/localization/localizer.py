@@ -36,6 +36,7 @@ from reradar_core.localization.pipeline import (
 )
 from reradar_core.localization.repetition import (
     PlaceRepetition,
+    distances_from,
     place_repetition,
     repetition_key,
     repetition_keyframes,
@@ -180,8 +181,7 @@ class Localizer:
         kid = int(keyframe_id)
         poses = self.keyframes.poses
         # same-place keyframes (a dense map, several drives) can fill the retrieval: search past them
-        within = int((np.hypot(*(np.asarray(poses, np.float64)[:, :2] - np.asarray(poses[kid], np.float64)[:2]).T)
-                      <= config.place_margin_radius_m).sum())
+        within = int((distances_from(kid, poses) <= config.place_margin_radius_m).sum())
         idx, _ = self.index.search(np.asarray(self.index.vector(kid), np.float32).reshape(-1),
                                    min(config.repetition_rivals + within, len(self)))
         neighbours, rivals = repetition_keyframes(kid, poses, [int(i) for i in idx[0] if i >= 0],

@@ -32,7 +32,7 @@ from reradar_core.geometry.se2 import compose
 from reradar_core.localization.pipeline import Candidate, LocalizationConfig, verify_candidate
 from reradar_core.localization.screening import screen_candidates
 
-__all__ = ["PlaceRepetition", "place_repetition", "repetition_key", "repetition_keyframes"]
+__all__ = ["PlaceRepetition", "distances_from", "place_repetition", "repetition_key", "repetition_keyframes"]
 
 
 @dataclass(frozen=True)
@@ -67,6 +67,12 @@ def repetition_key(config: LocalizationConfig) -> tuple:
             config.effective_min_inlier_ratio, config.alignment, config.ransac)
 
 
+def distances_from(keyframe_id: int, poses: np.ndarray) -> np.ndarray:
+    """(N,) float64 distances (metres, map frame) from keyframe ``keyframe_id`` to every keyframe of (N, 3) ``poses``."""
+    xy = np.asarray(poses, np.float64)[:, :2]
+    return np.hypot(*(xy - xy[keyframe_id]).T)
+
+
 def repetition_keyframes(keyframe_id: int, poses: np.ndarray, retrieved: Sequence[int], radius_m: float,
                          max_neighbours: int) -> tuple[list[int], list[int]]:
     """The keyframes ``place_repetition`` compares a keyframe with.
@@ -83,8 +89,7 @@ def repetition_keyframes(keyframe_id: int, poses: np.ndarray, retrieved: Sequenc
         (neighbours, rivals): the nearest ``max_neighbours`` other keyframes within ``radius_m``, and the
         retrieved keyframes farther than ``radius_m``, in retrieval order.
     """
-    xy = np.asarray(poses, np.float64)[:, :2]
-    dist = np.hypot(*(xy - xy[keyframe_id]).T)
+    dist = distances_from(keyframe_id, poses)
     near = np.flatnonzero(dist <= radius_m)
     near = near[near != keyframe_id]
     neighbours = [int(j) for j in near[np.argsort(dist[near], kind="stable")][:max_neighbours]]
