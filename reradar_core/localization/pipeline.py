@@ -175,9 +175,8 @@ class LocalizationConfig:
             the reference; among the first ``repetition_rivals`` (20) keyframes retrieved for it that lie farther
             (the retrieval reaches past the keyframes within the radius), the ``repetition_verify`` (3)
             best-screened are verified, and one whose pose puts the keyframe at another place (farther than the
-            radius from where it is),
-            aligns at least the answers' floor (``effective_min_inlier_ratio``) and ``max_place_repetition``
-            (0.95) of the reference or more marks it (None: no such rule). 0.95 since session 27, chosen on
+            radius from where it is), aligning at least the answers' floor (``effective_min_inlier_ratio``) and
+            ``max_place_repetition`` (0.95) of the reference or more, marks it (None: no such rule). 0.95 since session 27, chosen on
             training data by the tie margin's rule (``benchmarks/place_repetition.py``; docs/MODEL.md "Repeated
             places"): of 0.70-1.10 in steps of 0.05, those that refuse at most 0.5 % of the right answers of the
             training splits' unseen sessions on their pairing maps (every scan a keyframe, and keyframes 12 m
