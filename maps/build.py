@@ -1,8 +1,10 @@
-"""Build a keyframe map from radar scans with known poses (batched feature extraction, atomic write)."""
+"""Build a keyframe map from radar scans with known poses (batched feature extraction, the map's place
+repetition measured on what is stored, atomic write)."""
 
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -13,10 +15,18 @@ from maps.store import MapMetadata, MapWriter
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.io.scan import RadarScan
+from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer, RepetitionTable
 from reradar_core.localization.extractor import FeatureExtractor
 from reradar_core.localization.keyframes import select_keyframes  # re-exported: the map builder's rule
+from reradar_core.localization.repetition import default_repetition_workers
+from reradar_core.retrieval import GlobalIndex
 
-__all__ = ["select_keyframes", "cap_keypoints", "build_map", "build_map_from_sequence"]
+__all__ = ["select_keyframes", "cap_keypoints", "build_map", "build_map_from_sequence", "measure_place_repetition",
+           "REPETITION_CACHE_KEYFRAMES"]
+
+#: Keyframes whose screen data the place-repetition pass keeps in memory (~50 KB each: 1 GB at most); a larger map
+#: is read back through an LRU of this size.
+REPETITION_CACHE_KEYFRAMES = 20_000
 
 logger = logging.getLogger(__name__)
 
@@ -33,6 +43,32 @@ def cap_keypoints(features: ScanFeatures, max_keypoints: int | None) -> ScanFeat
                         features.local_descriptors[keep], features.timestamp_us)
 
 
+def measure_place_repetition(writer: MapWriter, config: LocalizationConfig, workers: int | None = None,
+                             progress: ProgressFn | None = None, show_progress: bool = False) -> RepetitionTable:
+    """Every keyframe's place repetition (``Localizer.place_repetitions``) on the keyframes ``writer`` holds, read
+    back as stored (float16 descriptors), with ``config``'s settings; ~20-40 ms per keyframe and thread.
+
+    Args:
+        progress: called with (done, total) as keyframes are measured.
+        show_progress: show a tqdm bar.
+    """
+    n = len(writer)
+    keyframes = InMemoryKeyframes(writer.read_keyframe, writer.poses, writer.timestamps_us)
+    localizer = Localizer(GlobalIndex(writer.global_descriptors), keyframes, config,
+                          cache_size=None if n <= REPETITION_CACHE_KEYFRAMES else REPETITION_CACHE_KEYFRAMES)
+    bar = tqdm(total=n, desc="place repetition", unit="keyframe", disable=not show_progress)
+
+    def step(done: int, total: int) -> None:
+        bar.update(done - bar.n)
+        if progress is not None:
+            progress(done, total)
+
+    try:
+        return localizer.place_repetitions(config, workers=workers or default_repetition_workers(), progress=step)
+    finally:
+        bar.close()
+
+
 def build_map(
     out: str | Path,
     extractor: FeatureExtractor,
@@ -47,6 +83,9 @@ def build_map(
     overwrite: bool = False,
     progress: ProgressFn | None = None,
     show_progress: bool = False,
+    place_repetition: bool = True,
+    localization: LocalizationConfig | None = None,
+    repetition_workers: int | None = None,
 ) -> Path:
     """Describe scans ``load_scan(0..N-1)`` in batches and write an HDF5 map at ``out`` (atomically).
 
@@ -59,8 +98,17 @@ def build_map(
         radar_preset: preset name recorded in the map.
         batch_size: scans per network batch.
         max_keypoints: optional cap on stored keypoints per keyframe (map size).
-        progress: called with (done, total) after each batch (background jobs report through it).
+        progress: called with (done, total) after each batch (background jobs report through it), and with
+            (total, total) about once a second while the place repetition is measured (a job's heartbeat and
+            cancel check keep running).
         show_progress: show a tqdm bar.
+        place_repetition: measure every keyframe's place repetition (``Localizer.place_repetitions``, ~20-40 ms
+            per keyframe and thread) and store it in the map, so that no query pays for it (the repeated-place
+            check, ``LocalizationConfig.max_place_repetition``); False: a map without it (measured as keyframes
+            first win, in every process).
+        localization: the settings it is measured with (default ``LocalizationConfig()``); a localizer with other
+            settings ignores the stored table.
+        repetition_workers: threads for that pass (default ``default_repetition_workers``).
 
     Returns:
         ``out``.
@@ -96,6 +144,18 @@ def build_map(
             bar.update(stop - start)
             if progress is not None:
                 progress(stop, n)
+        bar.close()
+        assert writer is not None
+        if place_repetition:
+            last = [time.monotonic()]
+
+            def beat(done: int, total: int) -> None:
+                if progress is not None and (done == total or time.monotonic() - last[0] >= 1.0):
+                    last[0] = time.monotonic()
+                    progress(n, n)
+
+            writer.set_place_repetition(measure_place_repetition(
+                writer, localization or LocalizationConfig(), repetition_workers, beat, show_progress))
     except BaseException as exc:
         if writer is not None:
             writer.__exit__(type(exc), exc, exc.__traceback__)

@@ -28,6 +28,10 @@ def build_map_command(
     max_keypoints: int | None = typer.Option(None, min=2, help="Cap stored keypoints per keyframe."),
     name: str | None = typer.Option(None, help="Map name stored in the file (default: sequence name)."),
     overwrite: bool = typer.Option(False, help="Replace an existing map file."),
+    place_repetition: bool = typer.Option(True, "--place-repetition/--no-place-repetition",
+                                          help="Measure where the map repeats itself (each keyframe localized "
+                                          "against the map, ~20-40 ms per keyframe and thread) and store it, so no "
+                                          "query pays for it (docs/MODEL.md, 'Repeated places')."),
     threads: int = typer.Option(1, min=1, help="torch CPU threads."),
     model: str = typer.Option("default", help="Descriptor model: registry name or .pt weights path."),
 ) -> None:
@@ -53,7 +57,7 @@ def build_map_command(
         output_file(out, "--out", (".h5", ".hdf5"))  # before the network runs over the whole sequence
         extractor = load_default_extractor(model)
         kwargs: dict[str, object] = dict(batch_size=batch_size, max_keypoints=max_keypoints,
-                                         overwrite=overwrite, show_progress=True)
+                                         overwrite=overwrite, show_progress=True, place_repetition=place_repetition)
         if name:
             kwargs["name"] = name
         build_map_from_sequence(dataset, out, extractor, layout=layout, preset=preset,
@@ -63,25 +67,39 @@ def build_map_command(
         raise typer.Exit(2) from exc
     meta = read_metadata(out)
     typer.echo(f"wrote {out}: {meta.num_keyframes} keyframes, D={meta.descriptor_dim}, "
-               f"model {meta.model_id}, {out.stat().st_size / 1e6:.1f} MB")
+               f"model {meta.model_id}, {out.stat().st_size / 1e6:.1f} MB"
+               + ("" if place_repetition else "; no place repetition stored (measured as keyframes first win)"))
 
 
 def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -> None:
     """Print a map's metadata as JSON, after checking that its arrays agree with it (poses, timestamps, global
-    descriptors and keyframe groups, one per keyframe; the checks of opening a map for localization)."""
+    descriptors and keyframe groups, one per keyframe; the checks of opening a map for localization), and its stored
+    place repetition (null when it has none): whether the default settings use it, the keyframes it marks
+    (repetition >= LocalizationConfig.max_place_repetition) and the largest repetition."""
     from maps.store import open_map
 
     if path.is_dir():
         typer.echo(f"error: {path} is a folder, not a map file (.h5)", err=True)
         raise typer.Exit(2)
+    from reradar_core.localization import LocalizationConfig, repetition_settings
+
     try:
         kf_map = open_map(path)
         meta = kf_map.metadata
+        table = kf_map.place_repetition
         kf_map.close()
     except ReRadarError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
-    typer.echo(json.dumps(meta.to_dict(), indent=2))
+    info = meta.to_dict()
+    # the stored place repetition: whether the default settings use it, and how many keyframes it marks
+    default = LocalizationConfig()
+    info["place_repetition"] = None if table is None else {
+        "default_settings": table.settings == repetition_settings(default),
+        "keyframes_marked": int((table.ratios >= (default.max_place_repetition or float("inf"))).sum()),
+        "max_ratio": round(float(table.ratios.max(initial=0.0)), 4),
+    }
+    typer.echo(json.dumps(info, indent=2))
 
 
 def register(app: typer.Typer) -> None:

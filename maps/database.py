@@ -51,6 +51,9 @@ class MapDatabase:
     Attributes:
         map: the open ``KeyframeMap``; index: the ``GlobalIndex`` over its global descriptors;
         localizer: the ``Localizer`` reading keyframes from ``map``.
+        repetition_stored: the map holds its place repetition (``/place_repetition``, written by ``build-map``).
+        repetition_adopted: ... and it was measured under ``config``'s settings, so the localizer uses it (else
+            each keyframe's is measured when it first wins).
 
     Args:
         keyframe_cache_size: keyframes whose features and compact screen data stay in memory between queries
@@ -83,6 +86,18 @@ class MapDatabase:
         kf_map.release_global_descriptors()  # the index holds its own copy
         _return_freed_memory()
         self.localizer = Localizer(self.index, source, config, cache_size=keyframe_cache_size, preload=preload)
+        # the place repetition measured when the map was built: no query pays for measuring its winner's
+        table = kf_map.place_repetition
+        self.repetition_stored = table is not None
+        self.repetition_adopted = table is not None and self.localizer.adopt_repetitions(table, config)
+        if self.repetition_stored and not self.repetition_adopted:
+            logger.info("%s: the stored place repetition was measured under other localization settings; each "
+                        "keyframe's is measured when it first wins (20-40 ms once per keyframe and process)",
+                        kf_map.path.name)
+        elif not self.repetition_stored and config.max_place_repetition is not None:
+            logger.info("%s: no stored place repetition (a map built before 2026-12-03 or with --no-place-repetition);"
+                        " each keyframe's is measured when it first wins (20-40 ms once per keyframe and process); "
+                        "rebuild it with `reradar build-map` to store it", kf_map.path.name)
 
     @classmethod
     def open(cls, path: str | Path, model_id: str | None = None, weights_sha256: str | None = None,

@@ -8,7 +8,10 @@ A map holds, for N keyframes of one traversal:
 - ``/timestamps_us`` (N,) int64 and ``/poses`` (N, 3) float64 ``T_map_keyframe`` = (x m, y m, yaw rad);
 - ``/global_descriptors`` (N, D) float32, L2-normalised rows;
 - ``/keyframes/<i:06d>/keypoints_xy_m`` (K_i, 2) float32 (keyframe sensor frame, metres) and
-  ``/keyframes/<i:06d>/local_descriptors`` (K_i, C) float16.
+  ``/keyframes/<i:06d>/local_descriptors`` (K_i, C) float16;
+- optionally ``/place_repetition``: every keyframe's measured place repetition (``RepetitionTable``: datasets
+  ``neighbour_score``, ``rival_score`` (N,) float64, ``rival_keyframe_id`` (N,) int64, attribute ``settings``), which
+  ``reradar build-map`` writes so that no query pays for measuring it.
 
 Writes go to a temporary file next to the target which is flushed, fsync'ed and renamed over the target
 only when complete, so a crash mid-write never leaves a half map visible under the map's name.
@@ -34,9 +37,10 @@ import h5py
 import numpy as np
 
 from reradar_core.bounds import MAX_ABS_COORDINATE_M
-from reradar_core.errors import MapFormatError, ModelMismatchError
+from reradar_core.errors import ConfigError, MapFormatError, ModelMismatchError
 from reradar_core.features import ScanFeatures
 from reradar_core.io.presets import PRESETS
+from reradar_core.localization.repetition import RepetitionTable
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -60,6 +64,7 @@ __all__ = [
     "MAX_KEYPOINTS_PER_KEYFRAME",
     "MAX_STORAGE_EXPANSION",
     "DESCRIPTOR_NORM_TOLERANCE",
+    "MAX_REPETITION_SETTINGS_CHARS",
     "PROBE_TIMEOUT_S",
     "probe_map",
 ]
@@ -97,6 +102,8 @@ _STORAGE_SLACK_BYTES = 4096
 #: Accepted deviation of a global descriptor's L2 norm from 1 (float32 rounding is ~1e-7); unit rows keep the
 #: descriptor distance ``sqrt(2 - 2 <a, b>)`` within [0, 2].
 DESCRIPTOR_NORM_TOLERANCE = 1e-3
+#: Longest accepted ``/place_repetition`` ``settings`` attribute, characters (the shipped settings: ~700).
+MAX_REPETITION_SETTINGS_CHARS = 16_384
 _INT64_MAX = int(np.iinfo(np.int64).max)
 
 _ATTR_FIELDS = (
@@ -484,6 +491,8 @@ class KeyframeMap:
         timestamps_us: (N,) int64.
         poses: (N, 3) float64 ``T_map_keyframe`` (x m, y m, yaw rad).
         global_descriptors: (N, D) float32.
+        place_repetition: the keyframes' place repetitions measured at build time (``RepetitionTable``), or None
+            for a map built without them (the localizer then measures each keyframe as it first wins).
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -496,6 +505,7 @@ class KeyframeMap:
             _check_links(self._file, self.path)
             self.metadata = _read_metadata(self._file, self.path)
             self.timestamps_us, self.poses, self.global_descriptors = self._read_arrays(self._file)
+            self.place_repetition = self._read_place_repetition(self._file)
         except MapFormatError:
             self.close()
             raise
@@ -533,6 +543,35 @@ class KeyframeMap:
             g = np.ascontiguousarray(g_ds[()], dtype=np.float32)
         _check_global_descriptors(g, path)
         return ts, poses, g
+
+    def _read_place_repetition(self, f: h5py.File) -> RepetitionTable | None:
+        """The optional ``/place_repetition`` group as a ``RepetitionTable`` (headers checked before data)."""
+        if "place_repetition" not in f:
+            return None
+        path, n = self.path, self.metadata.num_keyframes
+        if not isinstance(f.get("place_repetition", getlink=True), h5py.HardLink) or not isinstance(
+                f["place_repetition"], h5py.Group):
+            raise MapFormatError(f"{path}: '/place_repetition' must be a group")
+        grp = f["place_repetition"]
+        arrays = {}
+        for name, kinds, dtype_name in (("neighbour_score", "f", "float64"), ("rival_score", "f", "float64"),
+                                        ("rival_keyframe_id", "iu", "int64")):
+            ds = _dataset(grp, name, path)
+            _check_layout(ds, (n,), kinds, dtype_name, path, f"one per keyframe, num_keyframes = {n}")
+            _check_stored(ds, path)
+            arrays[name] = np.asarray(ds[()])
+        if "settings" not in grp.attrs:
+            raise MapFormatError(f"{path}: '/place_repetition' has no 'settings' attribute")
+        settings = _str_attr(grp.attrs, "settings", path)
+        if len(settings) > MAX_REPETITION_SETTINGS_CHARS:
+            raise MapFormatError(f"{path}: '/place_repetition' settings attribute holds {len(settings)} characters; "
+                                 f"at most {MAX_REPETITION_SETTINGS_CHARS} are accepted")
+        try:
+            return RepetitionTable(settings, arrays["neighbour_score"].astype(np.float64),
+                                   arrays["rival_score"].astype(np.float64),
+                                   arrays["rival_keyframe_id"].astype(np.int64))
+        except (ConfigError, OverflowError) as exc:
+            raise MapFormatError(f"{path}: '/place_repetition': {exc}") from exc
 
     def __len__(self) -> int:
         return self.metadata.num_keyframes
@@ -790,6 +829,8 @@ class MapWriter:
         self._poses: list[np.ndarray] = []
         self._glob: list[np.ndarray] = []
         self._n = 0
+        self._repetition: RepetitionTable | None = None
+        self._read_lock = threading.Lock()
 
     def __enter__(self) -> MapWriter:
         self._file = h5py.File(self._tmp, "w")
@@ -824,6 +865,41 @@ class MapWriter:
     def __len__(self) -> int:
         return self._n
 
+    @property
+    def poses(self) -> np.ndarray:
+        """(n, 3) float64 map poses of the keyframes added so far."""
+        return np.asarray(self._poses, dtype=np.float64).reshape(self._n, 3)
+
+    @property
+    def timestamps_us(self) -> np.ndarray:
+        """(n,) int64 timestamps of the keyframes added so far."""
+        return np.asarray(self._ts, dtype=np.int64).reshape(self._n)
+
+    @property
+    def global_descriptors(self) -> np.ndarray:
+        """(n, D) float32 global descriptors of the keyframes added so far."""
+        return np.asarray(self._glob, dtype=np.float32).reshape(self._n, self.metadata.descriptor_dim)
+
+    def read_keyframe(self, index: int) -> ScanFeatures:
+        """Keyframe ``index`` as written (float32 keypoints, float16 descriptors: what a reader of the finished map
+        gets), read back from the temporary file, so the map's place repetition can be measured on exactly what is
+        stored before the map is installed (``maps.build.measure_place_repetition``). Thread-safe."""
+        if self._file is None:
+            raise RuntimeError("MapWriter.read_keyframe outside its with-block")
+        if not 0 <= index < self._n:
+            raise IndexError(f"keyframe {index} out of range [0, {self._n})")
+        with self._read_lock:
+            grp = self._file["keyframes"][f"{index:06d}"]
+            kps = np.asarray(grp["keypoints_xy_m"][()], dtype=np.float32)
+            desc = np.asarray(grp["local_descriptors"][()], dtype=np.float16)
+        return ScanFeatures(self._glob[index], kps, desc, self._ts[index])
+
+    def set_place_repetition(self, table: RepetitionTable) -> None:
+        """Store ``table`` (one row per keyframe) as the map's ``/place_repetition`` when the map is finished."""
+        if len(table) != self._n:
+            raise ValueError(f"place repetition table has {len(table)} rows for {self._n} keyframes")
+        self._repetition = table
+
     def _finalize(self) -> None:
         assert self._file is not None
         f = self._file
@@ -838,6 +914,15 @@ class MapWriter:
             meta["created_utc"] = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
         for key in (*_ATTR_FIELDS, "pose_time"):
             f.attrs[key] = meta[key]
+        table = self._repetition
+        if table is not None:
+            if len(table) != self._n:
+                raise ValueError(f"place repetition table has {len(table)} rows for {self._n} keyframes")
+            grp = f.create_group("place_repetition")
+            grp.create_dataset("neighbour_score", data=np.asarray(table.neighbour_score, np.float64))
+            grp.create_dataset("rival_score", data=np.asarray(table.rival_score, np.float64))
+            grp.create_dataset("rival_keyframe_id", data=np.asarray(table.rival_keyframe_id, np.int64))
+            grp.attrs["settings"] = table.settings
         f.flush()
         f.close()
         self._file = None

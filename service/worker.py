@@ -180,7 +180,8 @@ def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
         build_map(built, ctx["extractor"],
                   registry.build_scan_loader(scans, spec["preset"]), poses,
                   radar_preset=spec["preset_name"], name=map_id, source=spec["source"],
-                  batch_size=settings.build_batch_size, progress=progress, overwrite=True)
+                  batch_size=settings.build_batch_size, progress=progress, overwrite=True,
+                  localization=settings.localization)  # the place repetition under the settings that serve it
         if queue.record(map_id).get("cancel") == "1":  # a DELETE during the last batch: nothing to install
             raise BuildCancelledError
         # recorded first, so a retry after a stop between the install and ``ready`` knows the file as its own

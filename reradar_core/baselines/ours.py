@@ -100,7 +100,14 @@ class Ours(PlaceRecognitionMethod):
         return self._localizer
 
     def ready_database(self, index: Any, db_prepared: Sequence[Prepared], db_poses: np.ndarray) -> None:
-        self.localizer(index, db_prepared, db_poses)
+        """Build the database's ``Localizer`` and measure every keyframe's place repetition, as ``reradar build-map``
+        stores it in a served map: map-building work, outside the queries' timing."""
+        localizer = self.localizer(index, db_prepared, db_poses)
+        cfg = self.localization
+        if cfg.max_place_repetition is not None and cfg.pose_method == "guided":
+            from reradar_core.localization.repetition import default_repetition_workers
+
+            localizer.place_repetitions(cfg, workers=default_repetition_workers())
 
     def localize(self, q_prepared: Prepared, q_desc: np.ndarray, index: Any,
                  db_prepared: Sequence[Prepared], db_poses: np.ndarray) -> Retrieval:

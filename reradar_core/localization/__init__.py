@@ -26,6 +26,7 @@ from reradar_core.localization.pipeline import (
     localize,
     verify_candidate,
 )
+from reradar_core.localization.repetition import PlaceRepetition, RepetitionTable, repetition_settings
 from reradar_core.localization.tracking import PosePrior, TrackingConfig
 
 __all__ = [
@@ -41,6 +42,9 @@ __all__ = [
     "KeyframeSource",
     "Localizer",
     "Retrieval",
+    "PlaceRepetition",
+    "RepetitionTable",
+    "repetition_settings",
     "PosePrior",
     "TrackingConfig",
     "REASON_INCONSISTENT",

@@ -15,9 +15,11 @@ from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Loc
 from reradar_core.localization.pipeline import REASON_AMBIGUOUS, Candidate
 from reradar_core.localization.repetition import (
     PlaceRepetition,
+    RepetitionTable,
     place_repetition,
     repetition_key,
     repetition_keyframes,
+    repetition_settings,
 )
 from reradar_core.retrieval import GlobalIndex
 
@@ -201,3 +203,75 @@ def test_the_fit_collects_its_runs_with_the_check_off() -> None:
 def test_repetition_settings_are_checked(kwargs: dict) -> None:
     with pytest.raises(ConfigError):
         LocalizationConfig(**kwargs)
+
+
+def test_a_whole_map_table_is_every_keyframes_repetition_with_any_number_of_threads() -> None:
+    periodic, _ = _localizer(True)
+    one = periodic.place_repetitions(workers=1)
+    fresh, _ = _localizer(True)
+    done: list[tuple[int, int]] = []
+    two = fresh.place_repetitions(workers=2, progress=lambda d, t: done.append((d, t)))
+    n = len(periodic)
+    assert len(one) == n and done[-1] == (n, n) and len(done) == n
+    for a in ("neighbour_score", "rival_score", "rival_keyframe_id"):
+        np.testing.assert_array_equal(getattr(one, a), getattr(two, a))
+    for kid in (0, 33, n - 1):
+        assert one.at(kid) == periodic.place_repetition(kid)
+    assert one.settings == repetition_settings(LocalizationConfig())
+    # mid-street keyframes of a periodic street repeat (the ends see part of the street only)
+    assert (one.ratios[10:-10] >= 0.95).mean() > 0.9
+    plain = _localizer(False)[0].place_repetitions()
+    assert (plain.ratios >= 0.95).sum() == 0
+
+
+def test_an_adopted_table_is_what_the_check_reads_under_its_settings_only() -> None:
+    rng = np.random.default_rng(7)
+    T_map_query = np.array([198.0, 1.0, math.radians(4.0)])
+    no_margin = LocalizationConfig(min_place_margin=None)
+    periodic, world = _localizer(True, no_margin)
+    query = _scan(world, T_map_query, rng, 99)
+    measured = periodic.place_repetitions()
+    # a fresh localizer answering from the table gives the answer it would measure
+    fresh, _ = _localizer(True, no_margin)
+    assert fresh.adopt_repetitions(measured)
+    res = fresh.localize(query)
+    assert res.status == "not_localized" and res.reason == REASON_AMBIGUOUS
+    # the table is read, not re-measured: one that marks nothing lets the same answer through
+    n = len(periodic)
+    blank = RepetitionTable(measured.settings, np.ones(n), np.zeros(n), np.full(n, -1))
+    trusting, _ = _localizer(True, no_margin)
+    assert trusting.adopt_repetitions(blank)
+    assert trusting.localize(query).localized
+    # another setting's (or another map size's) table is not taken: the keyframe is measured as it wins
+    other, _ = _localizer(True, no_margin)
+    assert not other.adopt_repetitions(RepetitionTable(repetition_settings(LocalizationConfig(repetition_verify=1)),
+                                                       np.ones(n), np.zeros(n), np.full(n, -1)))
+    assert not other.adopt_repetitions(RepetitionTable(measured.settings, np.ones(3), np.zeros(3), np.full(3, -1)))
+    assert other.localize(query).reason == REASON_AMBIGUOUS
+
+
+def test_repetition_settings_are_canonical_json_of_every_setting_read() -> None:
+    import json
+
+    base = repetition_settings(LocalizationConfig())
+    assert base == repetition_settings(LocalizationConfig()) and isinstance(json.loads(base), list)
+    from reradar_core.matching import AlignmentConfig
+
+    for changed in (LocalizationConfig(repetition_rivals=5), LocalizationConfig(min_inlier_ratio=0.9),
+                    LocalizationConfig(alignment=AlignmentConfig(score_threshold_m=1.0))):
+        assert repetition_settings(changed) != base
+
+
+@pytest.mark.parametrize("arrays, match", [
+    (([0.5, 0.5], [0.2], [-1, -1]), "one length"),
+    (([0.5, 1.5], [0.0, 0.0], [-1, -1]), "neighbour scores"),
+    (([0.5, 0.5], [np.nan, 0.0], [-1, -1]), "rival scores"),
+    (([0.5, 0.5], [0.4, 0.0], [1, 2]), r"\[-1, 2\)"),
+    (([0.5, 0.5], [0.4, 0.0], [0, -1]), "differ from their own"),
+    (([0.5, 0.5], [0.4, 0.0], [-1, -1]), "needs a rival score"),
+    (([0.5, 0.5], [0.0, 0.0], [0.5, -1.0]), "integers"),
+])
+def test_a_table_that_cannot_be_a_measure_is_refused(arrays: tuple, match: str) -> None:
+    n, r, i = (np.asarray(a) for a in arrays)
+    with pytest.raises(ConfigError, match=match):
+        RepetitionTable("{}", n, r, i)

@@ -120,3 +120,90 @@ def test_build_map_takes_the_pose_time_unit_it_asks_for(tmp_path: Path) -> None:
                                    "--time-unit", "minutes"])
     assert res.exit_code == 2 and "--time-unit must be one of" in res.output
     assert "--time-unit" in CliRunner().invoke(app, ["build-map", "--help"], env={"COLUMNS": "200"}).output
+
+
+class PeriodicStreetExtractor:
+    """Fake model over a street that repeats one random 40 m block: scan i (its timestamp) is a sensor at x = 6 i m
+    seeing the block's landmarks within 60 m; its global descriptor depends on the position within the period."""
+
+    model_id = "periodic"
+    weights_sha256 = "p" * 64
+    descriptor_dim = 16
+    cartesian = CartesianConfig()
+
+    def __init__(self) -> None:
+        rng = np.random.default_rng(0)
+        block = rng.uniform([0.0, -40.0], [40.0, 40.0], (40, 2))
+        desc = rng.normal(size=(40, 16))
+        self.points = np.concatenate([block + [40.0 * k, 0.0] for k in range(-1, 8)])
+        self.desc = np.tile(desc / np.linalg.norm(desc, axis=1, keepdims=True), (9, 1))
+        self.rng = np.random.default_rng(1)
+
+    def describe_batch(self, scans: list[RadarScan]) -> list[ScanFeatures]:
+        out = []
+        for scan in scans:
+            x = 6.0 * scan.timestamp_us
+            local = self.points - [x, 0.0]
+            seen = np.hypot(*local.T) < 60.0
+            phase = 2.0 * np.pi * x / 40.0
+            g = np.array([np.cos(phase), np.sin(phase), *np.full(14, 0.1)])
+            out.append(ScanFeatures((g / np.linalg.norm(g)).astype(np.float32),
+                                    local[seen] + self.rng.normal(scale=0.05, size=(int(seen.sum()), 2)),
+                                    self.desc[seen], scan.timestamp_us))
+        return out
+
+
+def _street_build(tmp_path: Path, name: str, **kwargs: object) -> Path:
+    n = 45  # 0..264 m, keyframes 6 m apart
+    poses = np.column_stack([6.0 * np.arange(n), np.zeros(n), np.zeros(n)])
+
+    def load(i: int) -> RadarScan:
+        return RadarScan.from_power(np.zeros((400, 3360), np.float32), "boreas", start_time_us=i)
+
+    return build_map(tmp_path / name, PeriodicStreetExtractor(), load, poses, radar_preset="boreas", **kwargs)
+
+
+def test_a_built_map_stores_its_place_repetition_measured_on_what_it_stores(tmp_path: Path) -> None:
+    from maps.database import MapDatabase
+    from reradar_core.localization import LocalizationConfig, Localizer, repetition_settings
+    from reradar_core.retrieval import GlobalIndex
+
+    beats: list[tuple[int, int]] = []
+    out = _street_build(tmp_path, "street.h5", batch_size=16, progress=lambda d, t: beats.append((d, t)))
+    assert beats[:3] == [(16, 45), (32, 45), (45, 45)] and beats[-1] == (45, 45)  # scans, then the repetition pass
+    with open_map(out) as m:
+        table = m.place_repetition
+        assert table is not None and table.settings == repetition_settings(LocalizationConfig())
+        # mid-street keyframes of the repeating street are marked
+        assert (table.ratios[8:-8] >= 0.95).all()
+        fresh = Localizer(GlobalIndex(m.global_descriptors), m, LocalizationConfig()).place_repetitions()
+        for a in ("neighbour_score", "rival_score", "rival_keyframe_id"):
+            np.testing.assert_array_equal(getattr(table, a), getattr(fresh, a))
+    db = MapDatabase.open(out)
+    assert db.repetition_stored and db.repetition_adopted
+    assert db.localizer.place_repetition(20) == table.at(20)
+    db.close()
+    other = MapDatabase.open(out, config=LocalizationConfig(repetition_verify=1))
+    assert other.repetition_stored and not other.repetition_adopted  # measured as keyframes win instead
+    other.close()
+
+    bare = _street_build(tmp_path, "bare.h5", place_repetition=False)
+    with open_map(bare) as m:
+        assert m.place_repetition is None
+    db = MapDatabase.open(bare)
+    assert not db.repetition_stored and not db.repetition_adopted
+    assert db.localizer.place_repetition(20) == table.at(20)  # the same measure, on first use
+    db.close()
+
+
+def test_a_build_stopped_during_the_repetition_pass_leaves_nothing(tmp_path: Path) -> None:
+    calls: list[tuple[int, int]] = []
+
+    def progress(done: int, total: int) -> None:
+        calls.append((done, total))
+        if len(calls) > 3:  # the 3 scan batches are done: stop in the repetition pass (a cancelled service job)
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        _street_build(tmp_path, "street.h5", batch_size=16, progress=progress)
+    assert list(tmp_path.iterdir()) == []

@@ -247,10 +247,77 @@ def test_shipped_demo_map_passes_every_check() -> None:
     """The demo map (built by `scripts/build_demo_map.py` through `maps.build.build_map`, as `reradar
     build-map` builds) opens and every keyframe reads through the validation."""
     from maps.paths import DEMO_MAP_PATH
+    from reradar_core.localization import LocalizationConfig, repetition_settings
 
     with open_map(DEMO_MAP_PATH) as m:
         assert len(m) > 0
+        # its place repetition is stored, under the shipped settings (rebuild the demo when they change)
+        assert m.place_repetition is not None
+        assert m.place_repetition.settings == repetition_settings(LocalizationConfig())
         for i in range(len(m)):
             kf = m.read_keyframe(i)
             assert np.all(np.isfinite(kf.keypoints_xy_m))
             assert float(np.max(np.hypot(*kf.keypoints_xy_m.T.astype(np.float64)))) <= MAX_KEYPOINT_RANGE_M
+
+
+def test_a_stored_place_repetition_round_trips_and_a_damaged_one_is_refused(tmp_path: Path) -> None:
+    from reradar_core.localization import RepetitionTable
+
+    rng = np.random.default_rng(40)
+    feats = _features(rng, 3)
+    table = RepetitionTable('[{"k":1}]', np.array([0.9, 0.8, 0.0]), np.array([0.0, 0.85, 0.0]), np.array([-1, 0, -1]))
+    with MapWriter(tmp_path / "r.h5", _meta()) as w:
+        for f in feats:
+            w.add(f, np.zeros(3))
+        with pytest.raises(ValueError, match="2 rows for 3 keyframes"):
+            w.set_place_repetition(RepetitionTable("{}", np.ones(2), np.zeros(2), np.full(2, -1)))
+        w.set_place_repetition(table)
+        back = w.read_keyframe(1)  # as stored: float16 descriptors
+        np.testing.assert_array_equal(back.local_descriptors, feats[1].local_descriptors.astype(np.float16))
+    with open_map(tmp_path / "r.h5") as m:
+        got = m.place_repetition
+        assert got is not None and got.settings == table.settings and got.at(1) == table.at(1)
+        np.testing.assert_array_equal(got.rival_keyframe_id, [-1, 0, -1])
+    with open_map(write_map(tmp_path / "plain.h5", _meta(), feats, np.zeros((3, 3)))) as m:
+        assert m.place_repetition is None  # optional: maps built before session 28, or with --no-place-repetition
+
+    def with_table(edit):  # type: ignore[no-untyped-def]
+        def add(f: h5py.File) -> None:
+            g = f.create_group("place_repetition")
+            g.create_dataset("neighbour_score", data=np.array([0.9, 0.8, 0.7]))
+            g.create_dataset("rival_score", data=np.zeros(3))
+            g.create_dataset("rival_keyframe_id", data=np.full(3, -1, np.int64))
+            g.attrs["settings"] = "[]"
+            edit(g)
+        return add
+
+    def put(name: str, data: object):  # type: ignore[no-untyped-def]
+        def edit(g: h5py.Group) -> None:
+            del g[name]
+            g.create_dataset(name, data=data)
+        return edit
+
+    def no_settings(g: h5py.Group) -> None:
+        del g.attrs["settings"]
+
+    def long_settings(g: h5py.Group) -> None:
+        g.attrs["settings"] = "x" * 20_000
+
+    def missing(g: h5py.Group) -> None:
+        del g["rival_score"]
+
+    for name, edit, match in (("short", put("neighbour_score", np.ones(2)), r"shape \(2,\)"),
+                              ("above1", put("neighbour_score", np.array([0.9, 1.5, 0.7])), r"\[0, 1\]"),
+                              ("nan", put("rival_score", np.array([np.nan, 0, 0])), r"\[0, 1\]"),
+                              ("floatid", put("rival_keyframe_id", np.zeros(3)), "int64"),
+                              ("badid", put("rival_keyframe_id", np.array([5, -1, -1])), r"\[-1, 3\)"),
+                              ("nosettings", no_settings, "no 'settings'"), ("long", long_settings, "16384"),
+                              ("missing", missing, "rival_score")):
+        with pytest.raises(MapFormatError, match=match):
+            open_map(_map_with(tmp_path, f"rep-{name}", with_table(edit)))
+
+    def not_a_group(f: h5py.File) -> None:
+        f.create_dataset("place_repetition", data=np.zeros(3))
+
+    with pytest.raises(MapFormatError, match="must be a group"):
+        open_map(_map_with(tmp_path, "rep-dataset", not_a_group))
