@@ -119,6 +119,12 @@ class MapInfo(_Model):
         "`mid_sweep` (every map written since 2026-11-30; docs/CONVENTIONS.md), or `first_azimuth` for an older map "
         "without the attribute: its answers are the first-azimuth pose, up to ~1 m behind the mid-sweep pose at "
         "driving speed (rebuild it with `reradar build-map` or `POST /maps`)."))
+    place_repetition: Literal["stored", "other_settings", "not_stored"] | None = Field(default=None, description=(
+        "Where the repeated-place check (an answer on a keyframe whose place repeats on the map is `ambiguous`) "
+        "reads each keyframe's place repetition: `stored` in the map under this service's localization settings "
+        "(every map built since 2026-12-03), `other_settings` (stored under other settings) or `not_stored` (an "
+        "older map, or one built with `--no-place-repetition`): in the last two cases each keyframe's is measured "
+        "when it first wins, 20-40 ms once per keyframe and process (rebuild the map to store it)."))
 
 
 class MapList(_Model):

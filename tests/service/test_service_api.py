@@ -56,8 +56,10 @@ def test_a_map_with_first_azimuth_poses_says_so(client: httpx.Client, fake_map: 
     old.write_bytes(fake_map.read_bytes())
     with h5py.File(old, "r+") as f:
         del f.attrs["pose_time"]
+        del f["place_repetition"]  # nor did it store its place repetition (session 28)
     register_map_file(client, old, "route-old")
-    assert client.get("/maps/route-old").json()["pose_time"] == "first_azimuth"
+    info = client.get("/maps/route-old").json()
+    assert info["pose_time"] == "first_azimuth" and info["place_repetition"] == "not_stored"
     assert client.delete("/maps/route-old", headers=AUTH).status_code in (200, 204)
 
 
@@ -79,6 +81,7 @@ def test_map_listing_and_registration_rules(client: httpx.Client, fake_map: Path
     assert info["state"] == "ready" and info["num_keyframes"] == N_KEYFRAMES and info["index_kind"] == "flat"
     assert client.get("/maps/route-a").json()["model_id"] == "fake-extractor"
     assert info["pose_time"] == "mid_sweep"
+    assert info["place_repetition"] == "stored"  # built by build_map under the service's (default) settings
     with fake_map.open("rb") as fh:
         files = {"map_file": ("fake.h5", fh.read())}
     assert client.post("/maps", data={"map_id": "route-a"}, files=files, headers=AUTH).status_code == 409

@@ -50,6 +50,8 @@ def map_info(entry: MapEntry, note: str | None = None) -> MapInfo:
         info.created_utc, info.source = m.created_utc, m.source
         info.index_kind = entry.db.index.kind
         info.pose_time = m.pose_time  # type: ignore[assignment]  # the store checks it is one of the two
+        info.place_repetition = ("stored" if entry.db.repetition_adopted
+                                 else "other_settings" if entry.db.repetition_stored else "not_stored")
     return info
 
 
