@@ -18,7 +18,6 @@ from reradar_core.io.scan import RadarScan
 from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer, RepetitionTable
 from reradar_core.localization.extractor import FeatureExtractor
 from reradar_core.localization.keyframes import select_keyframes  # re-exported: the map builder's rule
-from reradar_core.localization.repetition import default_repetition_workers
 from reradar_core.retrieval import GlobalIndex
 
 __all__ = ["select_keyframes", "cap_keypoints", "build_map", "build_map_from_sequence", "measure_place_repetition",
@@ -64,7 +63,7 @@ def measure_place_repetition(writer: MapWriter, config: LocalizationConfig, work
             progress(done, total)
 
     try:
-        return localizer.place_repetitions(config, workers=workers or default_repetition_workers(), progress=step)
+        return localizer.place_repetitions(config, workers=workers, progress=step)
     finally:
         bar.close()
 
@@ -108,7 +107,7 @@ def build_map(
             first win, in every process).
         localization: the settings it is measured with (default ``LocalizationConfig()``); a localizer with other
             settings ignores the stored table.
-        repetition_workers: threads for that pass (default ``default_repetition_workers``).
+        repetition_workers: threads for that pass (default: the usable cores, at most 4).
 
     Returns:
         ``out``.

@@ -94,7 +94,7 @@ class MapDatabase:
             logger.info("%s: the stored place repetition was measured under other localization settings; each "
                         "keyframe's is measured when it first wins (20-40 ms once per keyframe and process)",
                         kf_map.path.name)
-        elif not self.repetition_stored and config.max_place_repetition is not None:
+        elif not self.repetition_stored and config.checks_place_repetition:
             logger.info("%s: no stored place repetition (a map built before 2026-12-03 or with --no-place-repetition);"
                         " each keyframe's is measured when it first wins (20-40 ms once per keyframe and process); "
                         "rebuild it with `reradar build-map` to store it", kf_map.path.name)

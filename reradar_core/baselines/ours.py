@@ -103,11 +103,8 @@ class Ours(PlaceRecognitionMethod):
         """Build the database's ``Localizer`` and measure every keyframe's place repetition, as ``reradar build-map``
         stores it in a served map: map-building work, outside the queries' timing."""
         localizer = self.localizer(index, db_prepared, db_poses)
-        cfg = self.localization
-        if cfg.max_place_repetition is not None and cfg.pose_method == "guided":
-            from reradar_core.localization.repetition import default_repetition_workers
-
-            localizer.place_repetitions(cfg, workers=default_repetition_workers())
+        if self.localization.checks_place_repetition:
+            localizer.place_repetitions(self.localization)
 
     def localize(self, q_prepared: Prepared, q_desc: np.ndarray, index: Any,
                  db_prepared: Sequence[Prepared], db_poses: np.ndarray) -> Retrieval:

@@ -41,6 +41,8 @@ def stage_timings(extractor: Any, query_scans: Sequence[RadarScan], db_features:
     cfg = localization or LocalizationConfig()
     db = np.stack([f.global_descriptor for f in db_features]).astype(np.float32)
     localizer = Localizer(GlobalIndex(db), InMemoryKeyframes(list(db_features), db_poses), cfg)
+    if cfg.checks_place_repetition:  # measured with the map, as a built map stores it: not a query's stage
+        localizer.place_repetitions(cfg)
 
     rows: list[list[float]] = []
     scans = list(query_scans[:warmup]) + list(query_scans)

@@ -38,6 +38,7 @@ from reradar_core.localization.pipeline import (
 from reradar_core.localization.repetition import (
     PlaceRepetition,
     RepetitionTable,
+    default_repetition_workers,
     distances_from,
     place_repetition,
     repetition_key,
@@ -148,12 +149,11 @@ class Localizer:
         result = localize(features, candidates, config)
         result.timings_ms["retrieve_ms"] = (t1 - t0) * 1e3
         result.timings_ms["read_ms"] = read_s[0] * 1e3
-        if (result.localized and config.max_place_repetition is not None and config.pose_method == "guided"
-                and result.best is not None):
+        if result.localized and config.checks_place_repetition and result.best is not None:
             t2 = time.perf_counter()
             repetition = self.place_repetition(result.best.keyframe_id, config).ratio
             result.timings_ms["repetition_ms"] = (time.perf_counter() - t2) * 1e3
-            if repetition >= config.max_place_repetition:
+            if repetition >= config.max_place_repetition:  # type: ignore[operator]  # set: checks_place_repetition
                 # the winner's place repeats on the map: the scan fits the other copy as well (``max_place_repetition``)
                 result = replace(result, status="not_localized", reason=REASON_AMBIGUOUS, T_map_query=None)
         return result
@@ -200,20 +200,22 @@ class Localizer:
             self._repetition[key] = rep
         return rep
 
-    def place_repetitions(self, config: LocalizationConfig | None = None, workers: int = 1,
+    def place_repetitions(self, config: LocalizationConfig | None = None, workers: int | None = None,
                           progress: Callable[[int, int], None] | None = None) -> RepetitionTable:
         """Every keyframe's ``place_repetition`` under ``config`` (default: the localizer's), as one table: what
         ``reradar build-map`` stores in a map, so that no query pays the 20-40 ms of measuring its winner's.
 
         Args:
-            workers: threads measuring keyframes at once (the compiled kernels release the GIL); the table is the
-                same for any number (each keyframe's measure is deterministic).
+            workers: threads measuring keyframes at once (the compiled kernels release the GIL; default
+                ``default_repetition_workers``: the usable cores, at most 4); the table is the same for any number
+                (each keyframe's measure is deterministic).
             progress: called with (done, total) as keyframes are measured.
 
         Returns:
             ``RepetitionTable`` (row i = keyframe i); the repetitions are also cached in this localizer.
         """
         config = config or self.config
+        workers = default_repetition_workers() if workers is None else workers
         if workers < 1:
             raise ConfigError(f"workers must be >= 1, got {workers}")
         n = len(self)

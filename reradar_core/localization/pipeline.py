@@ -240,6 +240,12 @@ class LocalizationConfig:
         return self.top_k
 
     @property
+    def checks_place_repetition(self) -> bool:
+        """Whether ``Localizer.localize`` checks a localized global answer's place repetition: ``max_place_repetition``
+        is set and the pose method is the guided estimate (the bar was chosen for it)."""
+        return self.max_place_repetition is not None and self.pose_method == "guided"
+
+    @property
     def effective_min_inlier_ratio(self) -> float:
         """``min_inlier_ratio``, or the pose method's default when it is None."""
         if self.min_inlier_ratio is not None:

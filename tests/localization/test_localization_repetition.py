@@ -189,6 +189,12 @@ def test_the_check_is_skipped_when_off_or_for_mutual_nn_and_kept_in_a_tracking_f
     assert res.reason == REASON_AMBIGUOUS and res.best is not None and res.candidates and res.cues is not None
 
 
+def test_the_check_applies_to_guided_answers_with_a_bar_only() -> None:
+    assert LocalizationConfig().checks_place_repetition
+    assert not LocalizationConfig(max_place_repetition=None).checks_place_repetition
+    assert not LocalizationConfig(pose_method="mutual_nn").checks_place_repetition
+
+
 def test_the_fit_collects_its_runs_with_the_check_off() -> None:
     """``reradar fit-confidence`` labels every answer; the check is chosen on such runs, never applied to them."""
     from reradar_core.localization.confidence_fit import PROBE_FLOOR, PROBE_PLACE_MARGIN, collection_config
