@@ -15,13 +15,19 @@ from maps.store import MapMetadata, MapWriter
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.io.scan import RadarScan
-from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer, RepetitionTable
+from reradar_core.localization import (
+    InMemoryKeyframes,
+    KeyframeSource,
+    LocalizationConfig,
+    Localizer,
+    RepetitionTable,
+)
 from reradar_core.localization.extractor import FeatureExtractor
 from reradar_core.localization.keyframes import select_keyframes  # re-exported: the map builder's rule
 from reradar_core.retrieval import GlobalIndex
 
 __all__ = ["select_keyframes", "cap_keypoints", "build_map", "build_map_from_sequence", "measure_place_repetition",
-           "REPETITION_CACHE_KEYFRAMES"]
+           "add_place_repetition", "REPETITION_CACHE_KEYFRAMES"]
 
 #: Keyframes whose screen data the place-repetition pass keeps in memory (~50 KB each: 1 GB at most); a larger map
 #: is read back through an LRU of this size.
@@ -42,18 +48,21 @@ def cap_keypoints(features: ScanFeatures, max_keypoints: int | None) -> ScanFeat
                         features.local_descriptors[keep], features.timestamp_us)
 
 
-def measure_place_repetition(writer: MapWriter, config: LocalizationConfig, workers: int | None = None,
-                             progress: ProgressFn | None = None, show_progress: bool = False) -> RepetitionTable:
-    """Every keyframe's place repetition (``Localizer.place_repetitions``) on the keyframes ``writer`` holds, read
-    back as stored (float16 descriptors), with ``config``'s settings; ~20-40 ms per keyframe and thread.
+def measure_place_repetition(keyframes: KeyframeSource, global_descriptors: np.ndarray, config: LocalizationConfig,
+                             workers: int | None = None, progress: ProgressFn | None = None,
+                             show_progress: bool = False) -> RepetitionTable:
+    """Every keyframe's place repetition (``Localizer.place_repetitions``) with ``config``'s settings; ~20-40 ms per
+    keyframe and thread.
 
     Args:
+        keyframes: the map's keyframes as stored (a ``MapWriter``'s read back, or an open ``KeyframeMap``).
+        global_descriptors: (N, D) float32 unit global descriptors, row i = keyframe i.
+        workers: threads (default: the usable cores, at most 4).
         progress: called with (done, total) as keyframes are measured.
         show_progress: show a tqdm bar.
     """
-    n = len(writer)
-    keyframes = InMemoryKeyframes(writer.read_keyframe, writer.poses, writer.timestamps_us)
-    localizer = Localizer(GlobalIndex(writer.global_descriptors), keyframes, config,
+    n = len(keyframes)
+    localizer = Localizer(GlobalIndex(np.asarray(global_descriptors, np.float32)), keyframes, config,
                           cache_size=None if n <= REPETITION_CACHE_KEYFRAMES else REPETITION_CACHE_KEYFRAMES)
     bar = tqdm(total=n, desc="place repetition", unit="keyframe", disable=not show_progress)
 
@@ -66,6 +75,22 @@ def measure_place_repetition(writer: MapWriter, config: LocalizationConfig, work
         return localizer.place_repetitions(config, workers=workers, progress=step)
     finally:
         bar.close()
+
+
+def add_place_repetition(path: str | Path, out: str | Path | None = None, localization: LocalizationConfig | None = None,
+                         workers: int | None = None, show_progress: bool = False) -> RepetitionTable:
+    """Measure the place repetition of the map at ``path`` and store it (``maps.store.store_place_repetition``: into a
+    copy installed atomically at ``out``, default over ``path``), replacing one it holds: for maps built before
+    ``build-map`` stored it, or with ``--no-place-repetition``. Returns the table."""
+    from maps.store import open_map, store_place_repetition
+
+    with open_map(path) as m:
+        assert m.global_descriptors is not None
+        sha = m.content_sha256()
+        table = measure_place_repetition(m, m.global_descriptors, localization or LocalizationConfig(), workers,
+                                         show_progress=show_progress)
+    store_place_repetition(path, table, out, expect_sha256=sha)
+    return table
 
 
 def build_map(
@@ -153,8 +178,10 @@ def build_map(
                     last[0] = time.monotonic()
                     progress(n, n)
 
+            stored = InMemoryKeyframes(writer.read_keyframe, writer.poses, writer.timestamps_us)
             writer.set_place_repetition(measure_place_repetition(
-                writer, localization or LocalizationConfig(), repetition_workers, beat, show_progress))
+                stored, writer.global_descriptors, localization or LocalizationConfig(), repetition_workers, beat,
+                show_progress))
     except BaseException as exc:
         if writer is not None:
             writer.__exit__(type(exc), exc, exc.__traceback__)

@@ -1,4 +1,4 @@
-"""``reradar build-map`` and ``reradar map-info``: build and inspect HDF5 keyframe maps."""
+"""``reradar build-map``, ``map-info`` and ``map-repetition``: build, inspect and complete HDF5 keyframe maps."""
 
 from __future__ import annotations
 
@@ -102,7 +102,36 @@ def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -
     typer.echo(json.dumps(info, indent=2))
 
 
+def map_repetition_command(
+    path: Path = typer.Argument(..., help="Map file (.h5)."),
+    out: Path | None = typer.Option(None, "--out", help="Write the map with its place repetition here (.h5) instead "
+                                    "of replacing PATH (replaced atomically: the old file stays whole until then)."),
+    workers: int | None = typer.Option(None, "--workers", min=1, help="Threads (default: the usable cores, at most 4)."),
+) -> None:
+    """Measure where a map repeats itself (every keyframe localized against the map, ~20-40 ms per keyframe and
+    thread) and store it in the map, as `build-map` does since 2026-12-03: for maps built earlier or with
+    --no-place-repetition, without their scans. Replaces a stored one (measured under other settings)."""
+    from maps.build import add_place_repetition
+    from reradar_core.localization import LocalizationConfig
+    from reradar_core.paths import output_file
+
+    if path.is_dir():
+        typer.echo(f"error: {path} is a folder, not a map file (.h5)", err=True)
+        raise typer.Exit(2)
+    try:
+        if out is not None:
+            output_file(out, "--out", (".h5", ".hdf5"))
+        table = add_place_repetition(path, out, workers=workers, show_progress=True)
+    except ReRadarError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    marked = int((table.ratios >= (LocalizationConfig().max_place_repetition or float("inf"))).sum())
+    typer.echo(f"wrote {out or path}: place repetition of {len(table)} keyframes stored, {marked} marked "
+               f"(largest repetition {float(table.ratios.max(initial=0.0)):.3f})")
+
+
 def register(app: typer.Typer) -> None:
-    """Add ``build-map`` and ``map-info`` to the ``reradar`` command line."""
+    """Add ``build-map``, ``map-info`` and ``map-repetition`` to the ``reradar`` command line."""
     app.command("build-map")(build_map_command)
     app.command("map-info")(map_info_command)
+    app.command("map-repetition")(map_repetition_command)

@@ -92,12 +92,12 @@ class MapDatabase:
         self.repetition_adopted = table is not None and self.localizer.adopt_repetitions(table, config)
         if self.repetition_stored and not self.repetition_adopted:
             logger.info("%s: the stored place repetition was measured under other localization settings; each "
-                        "keyframe's is measured when it first wins (20-40 ms once per keyframe and process)",
-                        kf_map.path.name)
+                        "keyframe's is measured when it first wins (20-40 ms once per keyframe and process); "
+                        "`reradar map-repetition` measures it again under the defaults", kf_map.path.name)
         elif not self.repetition_stored and config.checks_place_repetition:
             logger.info("%s: no stored place repetition (a map built before 2026-12-03 or with --no-place-repetition);"
                         " each keyframe's is measured when it first wins (20-40 ms once per keyframe and process); "
-                        "rebuild it with `reradar build-map` to store it", kf_map.path.name)
+                        "`reradar map-repetition` stores it in the map", kf_map.path.name)
 
     @classmethod
     def open(cls, path: str | Path, model_id: str | None = None, weights_sha256: str | None = None,

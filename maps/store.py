@@ -51,6 +51,7 @@ __all__ = [
     "MapWriter",
     "open_map",
     "write_map",
+    "store_place_repetition",
     "install_file",
     "fsync_dir",
     "remove_stale_temp_files",
@@ -808,6 +809,51 @@ def remove_stale_temp_files(directory: str | Path) -> list[Path]:
     return removed
 
 
+def _write_place_repetition(f: h5py.File, table: RepetitionTable, num_keyframes: int) -> None:
+    """Write ``table`` as ``/place_repetition`` of the open map ``f`` (replacing one that is there)."""
+    if len(table) != num_keyframes:
+        raise ValueError(f"place repetition table has {len(table)} rows for {num_keyframes} keyframes")
+    if "place_repetition" in f:
+        del f["place_repetition"]
+    grp = f.create_group("place_repetition")
+    grp.create_dataset("neighbour_score", data=np.asarray(table.neighbour_score, np.float64))
+    grp.create_dataset("rival_score", data=np.asarray(table.rival_score, np.float64))
+    grp.create_dataset("rival_keyframe_id", data=np.asarray(table.rival_keyframe_id, np.int64))
+    grp.attrs["settings"] = table.settings
+
+
+def store_place_repetition(path: str | Path, table: RepetitionTable, out: str | Path | None = None,
+                           expect_sha256: str | None = None) -> Path:
+    """Write ``table`` into a copy of the map at ``path`` (replacing a stored one) and install the copy atomically at
+    ``out`` (default: over ``path``): a map built before its place repetition was stored gets it without its scans.
+    The original is untouched until the finished copy is renamed over it; on any error nothing is installed.
+
+    Args:
+        expect_sha256: the SHA-256 of the map the table was measured on: refused if the file at ``path`` is another.
+
+    Raises:
+        MapFormatError: ``path`` is not a readable map, or not the one measured; ValueError: the table's length is
+            not the map's.
+    """
+    import shutil
+
+    src, dst = Path(path), Path(out) if out is not None else Path(path)
+    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    try:
+        shutil.copyfile(src, tmp)
+        with KeyframeMap(tmp) as m:  # the copy is validated as any map is opened, and is the one measured
+            n = len(m)
+            if expect_sha256 is not None and m.content_sha256() != expect_sha256:
+                raise MapFormatError(f"{src}: the map changed while its place repetition was measured; run again")
+        with h5py.File(tmp, "r+") as f:
+            _write_place_repetition(f, table, n)
+        install_file(tmp, dst)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return dst
+
+
 class MapWriter:
     """Streaming, atomic map writer.
 
@@ -914,15 +960,8 @@ class MapWriter:
             meta["created_utc"] = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
         for key in (*_ATTR_FIELDS, "pose_time"):
             f.attrs[key] = meta[key]
-        table = self._repetition
-        if table is not None:
-            if len(table) != self._n:
-                raise ValueError(f"place repetition table has {len(table)} rows for {self._n} keyframes")
-            grp = f.create_group("place_repetition")
-            grp.create_dataset("neighbour_score", data=np.asarray(table.neighbour_score, np.float64))
-            grp.create_dataset("rival_score", data=np.asarray(table.rival_score, np.float64))
-            grp.create_dataset("rival_keyframe_id", data=np.asarray(table.rival_keyframe_id, np.int64))
-            grp.attrs["settings"] = table.settings
+        if self._repetition is not None:
+            _write_place_repetition(f, self._repetition, self._n)
         f.flush()
         f.close()
         self._file = None

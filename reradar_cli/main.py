@@ -29,6 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("reradar_core.training.cli", "Train the descriptor network with InfoNCE and save weights."),
     "build-map": ("maps.cli", "Build a keyframe map (global + local descriptors, poses) from a radar sequence."),
     "map-info": ("maps.cli", "Print a map's metadata as JSON."),
+    "map-repetition": ("maps.cli", "Measure where a map repeats itself and store it in the map (older maps)."),
     "bench": ("reradar_core.benchmark.cli", "Benchmark ReRadar against RingKey, RaPlace, RadVLAD, "
               "ResNet18-NetVLAD and ReFeree."),
     "serve": ("service.cli", "Run the HTTP service (settings from RERADAR_* environment variables)."),

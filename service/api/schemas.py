@@ -124,7 +124,7 @@ class MapInfo(_Model):
         "reads each keyframe's place repetition: `stored` in the map under this service's localization settings "
         "(every map built since 2026-12-03), `other_settings` (stored under other settings) or `not_stored` (an "
         "older map, or one built with `--no-place-repetition`): in the last two cases each keyframe's is measured "
-        "when it first wins, 20-40 ms once per keyframe and process (rebuild the map to store it)."))
+        "when it first wins, 20-40 ms once per keyframe and process (`reradar map-repetition MAP.h5` stores it)."))
 
 
 class MapList(_Model):

@@ -207,3 +207,35 @@ def test_a_build_stopped_during_the_repetition_pass_leaves_nothing(tmp_path: Pat
     with pytest.raises(KeyboardInterrupt):
         _street_build(tmp_path, "street.h5", batch_size=16, progress=progress)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_older_map_gets_its_place_repetition_without_its_scans(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from maps.build import add_place_repetition
+    from maps.store import store_place_repetition
+    from reradar_cli import app
+    from reradar_core.errors import MapFormatError
+
+    full = _street_build(tmp_path, "full.h5")
+    bare = _street_build(tmp_path, "bare.h5", place_repetition=False)
+    before = bare.read_bytes()
+    table = add_place_repetition(bare, tmp_path / "added.h5", workers=2)
+    assert bare.read_bytes() == before  # --out: the original is left as it was
+    with open_map(full) as a, open_map(tmp_path / "added.h5") as b:
+        assert a.place_repetition is not None and b.place_repetition is not None
+        for name in ("neighbour_score", "rival_score", "rival_keyframe_id"):
+            np.testing.assert_array_equal(getattr(a.place_repetition, name), getattr(b.place_repetition, name))
+        np.testing.assert_array_equal(a.poses, b.poses)
+        np.testing.assert_array_equal(a.read_keyframe(7).local_descriptors, b.read_keyframe(7).local_descriptors)
+    # a map replaced between the measure and the store is refused, and nothing is left behind
+    with pytest.raises(MapFormatError, match="changed while"):
+        store_place_repetition(bare, table, expect_sha256="0" * 64)
+    assert bare.read_bytes() == before and not list(tmp_path.glob(".*.tmp"))
+    # the command, in place
+    res = CliRunner().invoke(app, ["map-repetition", str(bare), "--workers", "1"])
+    assert res.exit_code == 0 and "place repetition of 45 keyframes stored" in res.output
+    with open_map(bare) as m:
+        assert m.place_repetition is not None and (m.place_repetition.ratios[8:-8] >= 0.95).all()
+    res = CliRunner().invoke(app, ["map-repetition", str(tmp_path / "missing.h5")])
+    assert res.exit_code == 2 and "no such map file" in res.output
