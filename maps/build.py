@@ -131,7 +131,8 @@ def build_map(
             check, ``LocalizationConfig.max_place_repetition``); False: a map without it (measured as keyframes
             first win, in every process).
         localization: the settings it is measured with (default ``LocalizationConfig()``); a localizer with other
-            settings ignores the stored table.
+            settings ignores the stored table. Settings without the check (``checks_place_repetition`` False) store
+            none.
         repetition_workers: threads for that pass (default: the usable cores, at most 4).
 
     Returns:
@@ -170,7 +171,8 @@ def build_map(
                 progress(stop, n)
         bar.close()
         assert writer is not None
-        if place_repetition:
+        config = localization or LocalizationConfig()
+        if place_repetition and config.checks_place_repetition:  # else no query would read it
             last = [time.monotonic()]
 
             def beat(done: int, total: int) -> None:
@@ -180,8 +182,7 @@ def build_map(
 
             stored = InMemoryKeyframes(writer.read_keyframe, writer.poses, writer.timestamps_us)
             writer.set_place_repetition(measure_place_repetition(
-                stored, writer.global_descriptors, localization or LocalizationConfig(), repetition_workers, beat,
-                show_progress))
+                stored, writer.global_descriptors, config, repetition_workers, beat, show_progress))
     except BaseException as exc:
         if writer is not None:
             writer.__exit__(type(exc), exc, exc.__traceback__)

@@ -325,12 +325,12 @@ def _show(value: object) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-def _attr_value(attrs: h5py.AttributeManager, key: str, path: Path) -> object:
-    """Root attribute ``key`` as one value; its shape is checked before it is read (an attribute may hold an
-    array of any size)."""
+def _attr_value(attrs: h5py.AttributeManager, key: str, path: Path, owner: str = "root") -> object:
+    """Attribute ``key`` (of the root, or of the group named by ``owner``) as one value; its shape is checked before
+    it is read (an attribute may hold an array of any size)."""
     shape = attrs.get_id(key).shape
     if shape not in ((), (1,)):
-        raise MapFormatError(f"{path}: root attribute {key!r} must be a single value, found shape {shape}")
+        raise MapFormatError(f"{path}: {owner} attribute {key!r} must be a single value, found shape {shape}")
     value = attrs[key]
     return value.reshape(-1)[0] if isinstance(value, np.ndarray) else value
 
@@ -555,15 +555,20 @@ class KeyframeMap:
             raise MapFormatError(f"{path}: '/place_repetition' must be a group")
         grp = f["place_repetition"]
         arrays = {}
-        for name, kinds, dtype_name in (("neighbour_score", "f", "float64"), ("rival_score", "f", "float64"),
-                                        ("rival_keyframe_id", "iu", "int64")):
+        for name, kinds, dtype_name in (("neighbour_score", "f", "a float dtype (float64)"),
+                                        ("rival_score", "f", "a float dtype (float64)"),
+                                        ("rival_keyframe_id", "iu", "an integer dtype (int64)")):
             ds = _dataset(grp, name, path)
             _check_layout(ds, (n,), kinds, dtype_name, path, f"one per keyframe, num_keyframes = {n}")
             _check_stored(ds, path)
             arrays[name] = np.asarray(ds[()])
         if "settings" not in grp.attrs:
             raise MapFormatError(f"{path}: '/place_repetition' has no 'settings' attribute")
-        settings = _str_attr(grp.attrs, "settings", path)
+        value = _attr_value(grp.attrs, "settings", path, "'/place_repetition'")
+        if not isinstance(value, (str, bytes)):
+            raise MapFormatError(f"{path}: '/place_repetition' attribute 'settings' must be text, found "
+                                 f"{type(value).__name__}")
+        settings = value.decode(errors="replace") if isinstance(value, bytes) else value
         if len(settings) > MAX_REPETITION_SETTINGS_CHARS:
             raise MapFormatError(f"{path}: '/place_repetition' settings attribute holds {len(settings)} characters; "
                                  f"at most {MAX_REPETITION_SETTINGS_CHARS} are accepted")

@@ -87,13 +87,16 @@ def default_repetition_workers() -> int:
 
 
 def _plain(value: Any) -> Any:
-    """``value`` as JSON-ready plain data: dataclasses as field dicts, tuples as lists, numpy scalars as numbers."""
+    """``value`` as JSON-ready plain data: dataclasses as field dicts, tuples as lists, every number as a float (a
+    setting given as 20 or 20.0 is one setting, as in ``repetition_key``'s tuple equality)."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, (list, tuple)):
         return [_plain(v) for v in value]
     if isinstance(value, np.generic):
-        return value.item()
+        value = value.item()
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
     return value
 
 

@@ -576,7 +576,8 @@ class MapRegistry:
             try:
                 build_map(entry.path, self.extractor, self.build_scan_loader(scan_paths, preset), poses,
                           radar_preset=preset_name, name=map_id, source=source,
-                          batch_size=self.settings.build_batch_size, progress=progress)
+                          batch_size=self.settings.build_batch_size, progress=progress,
+                          localization=self.settings.localization)  # the place repetition under the serving settings
                 identity = file_identity(entry.path)
                 db = self._open(entry.path)
                 with self._lock:

@@ -263,6 +263,8 @@ def test_repetition_settings_are_canonical_json_of_every_setting_read() -> None:
     assert base == repetition_settings(LocalizationConfig()) and isinstance(json.loads(base), list)
     from reradar_core.matching import AlignmentConfig
 
+    # a number is a number: 20 and 20.0 are one setting (QA: an int blocked a stored table's adoption)
+    assert repetition_settings(LocalizationConfig(place_margin_radius_m=20)) == base
     for changed in (LocalizationConfig(repetition_rivals=5), LocalizationConfig(min_inlier_ratio=0.9),
                     LocalizationConfig(alignment=AlignmentConfig(score_threshold_m=1.0))):
         assert repetition_settings(changed) != base

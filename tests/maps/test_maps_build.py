@@ -190,6 +190,10 @@ def test_a_built_map_stores_its_place_repetition_measured_on_what_it_stores(tmp_
     bare = _street_build(tmp_path, "bare.h5", place_repetition=False)
     with open_map(bare) as m:
         assert m.place_repetition is None
+    # settings under which no answer is checked store none (QA: the pass ran for nothing)
+    for unchecked in (LocalizationConfig(max_place_repetition=None), LocalizationConfig(pose_method="mutual_nn")):
+        with open_map(_street_build(tmp_path, f"u{len(list(tmp_path.iterdir()))}.h5", localization=unchecked)) as m:
+            assert m.place_repetition is None
     db = MapDatabase.open(bare)
     assert not db.repetition_stored and not db.repetition_adopted
     assert db.localizer.place_repetition(20) == table.at(20)  # the same measure, on first use

@@ -306,13 +306,21 @@ def test_a_stored_place_repetition_round_trips_and_a_damaged_one_is_refused(tmp_
     def missing(g: h5py.Group) -> None:
         del g["rival_score"]
 
+    def number_settings(g: h5py.Group) -> None:
+        g.attrs["settings"] = 5
+
+    def array_settings(g: h5py.Group) -> None:
+        g.attrs["settings"] = np.array(["a", "b", "c"], dtype=object)
+
     for name, edit, match in (("short", put("neighbour_score", np.ones(2)), r"shape \(2,\)"),
                               ("above1", put("neighbour_score", np.array([0.9, 1.5, 0.7])), r"\[0, 1\]"),
                               ("nan", put("rival_score", np.array([np.nan, 0, 0])), r"\[0, 1\]"),
-                              ("floatid", put("rival_keyframe_id", np.zeros(3)), "int64"),
+                              ("floatid", put("rival_keyframe_id", np.zeros(3)), "an integer dtype"),
                               ("badid", put("rival_keyframe_id", np.array([5, -1, -1])), r"\[-1, 3\)"),
                               ("nosettings", no_settings, "no 'settings'"), ("long", long_settings, "16384"),
-                              ("missing", missing, "rival_score")):
+                              ("missing", missing, "rival_score"),
+                              ("number", number_settings, "'settings' must be text"),
+                              ("array", array_settings, "'/place_repetition' attribute 'settings' must be a single")):
         with pytest.raises(MapFormatError, match=match):
             open_map(_map_with(tmp_path, f"rep-{name}", with_table(edit)))
 

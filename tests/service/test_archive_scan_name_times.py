@@ -77,8 +77,8 @@ def _members(carried: dict[int, int] | None = None) -> dict[str, bytes]:
 
 
 @contextmanager
-def _client(maps_dir: Path) -> Iterator[TestClient]:
-    cfg = Settings(maps_dir=maps_dir, load_demo_map=False, api_key=SecretStr(API_KEY), torch_threads=1)
+def _client(maps_dir: Path, **settings: Any) -> Iterator[TestClient]:
+    cfg = Settings(maps_dir=maps_dir, load_demo_map=False, api_key=SecretStr(API_KEY), torch_threads=1, **settings)
     with TestClient(create_app(cfg, FakeExtractor())) as client:
         yield client
 
@@ -137,6 +137,20 @@ def test_a_name_within_one_sweep_of_the_embedded_time_builds(tmp_path: Path) -> 
         assert r.status_code == 202, r.text
         info = _wait_built(client, "near")
         assert info["state"] == "ready" and info["num_keyframes"] == N, info
+
+
+def test_a_service_build_stores_the_place_repetition_under_the_services_settings(tmp_path: Path) -> None:
+    """QA (session 28): the in-process build measured it under the default settings, which a service configured
+    otherwise then ignored (each keyframe measured again as it first won)."""
+    from maps.store import open_map
+    from reradar_core.localization import LocalizationConfig, repetition_settings
+
+    own = LocalizationConfig(place_margin_radius_m=25.0)
+    with _client(tmp_path / "maps", localization=own) as client:
+        assert _post(client, "own", _members()).status_code == 202
+        assert _wait_built(client, "own")["place_repetition"] == "stored"
+    with open_map(tmp_path / "maps" / "own.h5") as m:
+        assert m.place_repetition is not None and m.place_repetition.settings == repetition_settings(own)
 
 
 def test_a_copy_under_another_name_is_still_called_a_copy(tmp_path: Path) -> None:
