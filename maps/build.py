@@ -29,9 +29,10 @@ from reradar_core.retrieval import GlobalIndex
 __all__ = ["select_keyframes", "cap_keypoints", "build_map", "build_map_from_sequence", "measure_place_repetition",
            "add_place_repetition", "REPETITION_CACHE_KEYFRAMES"]
 
-#: Keyframes whose screen data the place-repetition pass keeps in memory (~50 KB each: 1 GB at most); a larger map
-#: is read back through an LRU of this size.
-REPETITION_CACHE_KEYFRAMES = 20_000
+#: Keyframes whose screen data the place-repetition pass keeps in memory (~50 KB each: ~400 MB at most); a larger
+#: map is read back through an LRU of this size (the pass goes along the map, so neighbours stay cached; rivals
+#: beyond it are read again, ~1.3 ms each).
+REPETITION_CACHE_KEYFRAMES = 8_000
 
 logger = logging.getLogger(__name__)
 
@@ -78,9 +79,11 @@ def measure_place_repetition(keyframes: KeyframeSource, global_descriptors: np.n
 
 
 def add_place_repetition(path: str | Path, out: str | Path | None = None, localization: LocalizationConfig | None = None,
-                         workers: int | None = None, show_progress: bool = False) -> RepetitionTable:
-    """Measure the place repetition of the map at ``path`` and store it (``maps.store.store_place_repetition``: into a
-    copy installed atomically at ``out``, default over ``path``), replacing one it holds: for maps built before
+                         workers: int | None = None, show_progress: bool = False,
+                         overwrite: bool = False) -> RepetitionTable:
+    """Measure the place repetition of the map at ``path`` under ``localization`` (default ``LocalizationConfig()``)
+    and store it (``maps.store.store_place_repetition``: into a copy installed atomically at ``out``, default over
+    ``path``; an existing ``out`` only with ``overwrite``), replacing one it holds: for maps built before
     ``build-map`` stored it, or with ``--no-place-repetition``. Returns the table."""
     from maps.store import open_map, store_place_repetition
 
@@ -89,7 +92,7 @@ def add_place_repetition(path: str | Path, out: str | Path | None = None, locali
         sha = m.content_sha256()
         table = measure_place_repetition(m, m.global_descriptors, localization or LocalizationConfig(), workers,
                                          show_progress=show_progress)
-    store_place_repetition(path, table, out, expect_sha256=sha)
+    store_place_repetition(path, table, out, expect_sha256=sha, overwrite=overwrite)
     return table
 
 

@@ -96,7 +96,7 @@ def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -
     default = LocalizationConfig()
     info["place_repetition"] = None if table is None else {
         "default_settings": table.settings == repetition_settings(default),
-        "keyframes_marked": int((table.ratios >= (default.max_place_repetition or float("inf"))).sum()),
+        "keyframes_marked": table.marked(default.max_place_repetition),
         "max_ratio": round(float(table.ratios.max(initial=0.0)), 4),
     }
     typer.echo(json.dumps(info, indent=2))
@@ -107,10 +107,12 @@ def map_repetition_command(
     out: Path | None = typer.Option(None, "--out", help="Write the map with its place repetition here (.h5) instead "
                                     "of replacing PATH (replaced atomically: the old file stays whole until then)."),
     workers: int | None = typer.Option(None, "--workers", min=1, help="Threads (default: the usable cores, at most 4)."),
+    overwrite: bool = typer.Option(False, help="Replace an existing --out file."),
 ) -> None:
     """Measure where a map repeats itself (every keyframe localized against the map, ~20-40 ms per keyframe and
     thread) and store it in the map, as `build-map` does since 2026-12-03: for maps built earlier or with
-    --no-place-repetition, without their scans. Replaces a stored one (measured under other settings)."""
+    --no-place-repetition, without their scans. Measured under the default localization settings; replaces a stored
+    one. (A service configured with other settings measures maps it builds under its own.)"""
     from maps.build import add_place_repetition
     from reradar_core.localization import LocalizationConfig
     from reradar_core.paths import output_file
@@ -121,11 +123,14 @@ def map_repetition_command(
     try:
         if out is not None:
             output_file(out, "--out", (".h5", ".hdf5"))
-        table = add_place_repetition(path, out, workers=workers, show_progress=True)
+            if out.exists() and not overwrite:
+                typer.echo(f"error: {out} exists; pass --overwrite to replace it", err=True)
+                raise typer.Exit(2)
+        table = add_place_repetition(path, out, workers=workers, show_progress=True, overwrite=overwrite)
     except ReRadarError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
-    marked = int((table.ratios >= (LocalizationConfig().max_place_repetition or float("inf"))).sum())
+    marked = table.marked(LocalizationConfig().max_place_repetition)
     typer.echo(f"wrote {out or path}: place repetition of {len(table)} keyframes stored, {marked} marked "
                f"(largest repetition {float(table.ratios.max(initial=0.0)):.3f})")
 

@@ -90,7 +90,7 @@ class MapDatabase:
         table = kf_map.place_repetition
         self.repetition_stored = table is not None
         self.repetition_adopted = table is not None and self.localizer.adopt_repetitions(table, config)
-        if self.repetition_stored and not self.repetition_adopted:
+        if self.repetition_stored and not self.repetition_adopted and config.checks_place_repetition:
             logger.info("%s: the stored place repetition was measured under other localization settings; each "
                         "keyframe's is measured when it first wins (20-40 ms once per keyframe and process); "
                         "`reradar map-repetition` measures it again under the defaults", kf_map.path.name)

@@ -828,31 +828,44 @@ def _write_place_repetition(f: h5py.File, table: RepetitionTable, num_keyframes:
 
 
 def store_place_repetition(path: str | Path, table: RepetitionTable, out: str | Path | None = None,
-                           expect_sha256: str | None = None) -> Path:
+                           expect_sha256: str | None = None, overwrite: bool = False) -> Path:
     """Write ``table`` into a copy of the map at ``path`` (replacing a stored one) and install the copy atomically at
-    ``out`` (default: over ``path``): a map built before its place repetition was stored gets it without its scans.
-    The original is untouched until the finished copy is renamed over it; on any error nothing is installed.
+    ``out`` (default: over ``path``, or over the file a symbolic link ``path`` names): a map built before its place
+    repetition was stored gets it without its scans. The copy keeps the original's permission bits. The original is
+    untouched until the finished copy is renamed over it; on any error nothing is installed.
 
     Args:
         expect_sha256: the SHA-256 of the map the table was measured on: refused if the file at ``path`` is another.
+        overwrite: replace an existing ``out`` (``path`` itself is always replaced when ``out`` is None).
 
     Raises:
-        MapFormatError: ``path`` is not a readable map, or not the one measured; ValueError: the table's length is
-            not the map's.
+        MapFormatError: ``path`` is not a readable map, not the one measured, or was replaced while it was copied.
+        FileExistsError: ``out`` exists and not ``overwrite``. ValueError: the table's length is not the map's.
     """
     import shutil
 
-    src, dst = Path(path), Path(out) if out is not None else Path(path)
+    src = Path(path)
+    dst = Path(out) if out is not None else src.resolve()  # a link keeps pointing at the completed map
+    if out is not None and dst.exists() and not overwrite:
+        raise FileExistsError(errno.EEXIST, "file exists; pass overwrite to replace it", str(dst))
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+
+    def identity(st: os.stat_result) -> tuple[int, int, int, int]:
+        return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
+
     try:
+        before = identity(os.stat(src))
         shutil.copyfile(src, tmp)
+        shutil.copymode(src, tmp)
         with KeyframeMap(tmp) as m:  # the copy is validated as any map is opened, and is the one measured
             n = len(m)
             if expect_sha256 is not None and m.content_sha256() != expect_sha256:
                 raise MapFormatError(f"{src}: the map changed while its place repetition was measured; run again")
         with h5py.File(tmp, "r+") as f:
             _write_place_repetition(f, table, n)
-        install_file(tmp, dst)
+        if identity(os.stat(src)) != before:  # replaced meanwhile (e.g. re-registered): never revert it
+            raise MapFormatError(f"{src}: the map was replaced while its place repetition was stored; run again")
+        install_file(tmp, dst, exclusive=out is not None and not overwrite)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

@@ -149,11 +149,12 @@ class Localizer:
         result = localize(features, candidates, config)
         result.timings_ms["retrieve_ms"] = (t1 - t0) * 1e3
         result.timings_ms["read_ms"] = read_s[0] * 1e3
-        if result.localized and config.checks_place_repetition and result.best is not None:
+        bar = config.max_place_repetition
+        if result.localized and config.checks_place_repetition and bar is not None and result.best is not None:
             t2 = time.perf_counter()
             repetition = self.place_repetition(result.best.keyframe_id, config).ratio
             result.timings_ms["repetition_ms"] = (time.perf_counter() - t2) * 1e3
-            if repetition >= config.max_place_repetition:  # type: ignore[operator]  # set: checks_place_repetition
+            if repetition >= bar:
                 # the winner's place repeats on the map: the scan fits the other copy as well (``max_place_repetition``)
                 result = replace(result, status="not_localized", reason=REASON_AMBIGUOUS, T_map_query=None)
         return result
@@ -240,7 +241,9 @@ class Localizer:
                         progress(done, n)
             finally:  # a progress callback that raises (a cancelled build) stops the keyframes not yet begun
                 pool.shutdown(wait=True, cancel_futures=True)
-        return RepetitionTable.of(repetition_settings(config), [r for r in out if r is not None])
+        rows = [r for r in out if r is not None]
+        assert len(rows) == n, "every keyframe is measured before the table is made"
+        return RepetitionTable.of(repetition_settings(config), rows)
 
     def adopt_repetitions(self, table: RepetitionTable, config: LocalizationConfig | None = None) -> bool:
         """Use ``table`` (measured beforehand, e.g. stored in the map) for ``config``'s repeated-place check when it

@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import typing
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -40,8 +41,9 @@ from reradar_core.geometry.se2 import compose
 from reradar_core.localization.pipeline import Candidate, LocalizationConfig, verify_candidate
 from reradar_core.localization.screening import screen_candidates
 
-__all__ = ["PlaceRepetition", "RepetitionTable", "default_repetition_workers", "distances_from", "place_repetition",
-           "repetition_key", "repetition_keyframes", "repetition_settings"]
+__all__ = ["PlaceRepetition", "REPETITION_SETTINGS", "REPETITION_SETTINGS_VERSION", "RepetitionTable",
+           "default_repetition_workers", "distances_from", "place_repetition", "repetition_key",
+           "repetition_keyframes", "repetition_settings"]
 
 
 @dataclass(frozen=True)
@@ -68,12 +70,18 @@ class PlaceRepetition:
         return self.rival_score / self.neighbour_score if self.neighbour_score > 0.0 else 0.0
 
 
+#: The settings of ``LocalizationConfig`` that ``Localizer.place_repetition`` and ``place_repetition`` read (the
+#: choice of keyframes, the screen, the pose estimate and the floor), by name (``effective_min_inlier_ratio`` is a
+#: property); ``alignment`` and ``ransac`` are dataclasses of settings.
+REPETITION_SETTINGS = ("place_margin_radius_m", "repetition_rivals", "repetition_neighbours", "repetition_verify",
+                       "pose_method", "min_inliers", "match_ratio", "effective_min_inlier_ratio", "alignment", "ransac")
+#: Version of ``repetition_settings``' layout: a table stored under another is measured again.
+REPETITION_SETTINGS_VERSION = 1
+
+
 def repetition_key(config: LocalizationConfig) -> tuple:
-    """Every setting of ``config`` that ``Localizer.place_repetition`` and ``place_repetition`` read (the choice of
-    keyframes, the screen, the pose estimate and the floor): a cached repetition is reused only under the same key."""
-    return (config.place_margin_radius_m, config.repetition_rivals, config.repetition_neighbours,
-            config.repetition_verify, config.pose_method, config.min_inliers, config.match_ratio,
-            config.effective_min_inlier_ratio, config.alignment, config.ransac)
+    """``REPETITION_SETTINGS`` of ``config`` as a tuple: a cached repetition is reused only under the same key."""
+    return tuple(getattr(config, name) for name in REPETITION_SETTINGS)
 
 
 def default_repetition_workers() -> int:
@@ -87,23 +95,39 @@ def default_repetition_workers() -> int:
 
 
 def _plain(value: Any) -> Any:
-    """``value`` as JSON-ready plain data: dataclasses as field dicts, tuples as lists, every number as a float (a
-    setting given as 20 or 20.0 is one setting, as in ``repetition_key``'s tuple equality)."""
+    """``value`` as JSON-ready plain data: dataclasses as dicts of their fields, tuples as lists, numpy scalars as
+    Python numbers; a field declared ``float`` as a float even when given as an int (20 and 20.0 are one setting,
+    as in ``repetition_key``'s tuple equality)."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        hints = typing.get_type_hints(type(value))
+        return {f.name: _plain(_as_declared(getattr(value, f.name), hints.get(f.name))) for f in dataclasses.fields(value)}
     if isinstance(value, (list, tuple)):
         return [_plain(v) for v in value]
     if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        return float(value)
+        return value.item()
+    return value
+
+
+def _as_declared(value: Any, hint: Any) -> Any:
+    """An int ``value`` of a field whose declared type admits float but not int, as a float."""
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        admits = typing.get_args(hint) or (hint,)
+        if float in admits and int not in admits:
+            return float(value)
     return value
 
 
 def repetition_settings(config: LocalizationConfig) -> str:
-    """``repetition_key(config)`` as a canonical JSON string (sorted keys, floats as Python writes them): stored
-    with a ``RepetitionTable`` (in a map file), so a table is used only under the settings it was measured with."""
-    return json.dumps(_plain(repetition_key(config)), sort_keys=True, separators=(",", ":"))
+    """``REPETITION_SETTINGS`` of ``config`` as canonical JSON (an object by name, sorted keys, with the layout's
+    ``version``): stored with a ``RepetitionTable`` (in a map file), so a table is used only under the settings it
+    was measured with."""
+    hints = typing.get_type_hints(type(config))
+    named: dict[str, Any] = {"version": REPETITION_SETTINGS_VERSION}
+    for name in REPETITION_SETTINGS:
+        value = getattr(config, name)
+        named[name] = _plain(float(value) if name == "effective_min_inlier_ratio"
+                             else _as_declared(value, hints.get(name)))
+    return json.dumps(named, sort_keys=True, separators=(",", ":"))
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,6 +158,8 @@ class RepetitionTable:
                               f"{neighbour.shape}, {rival.shape}, {ids.shape}")
         if ids.dtype.kind not in "iu":
             raise ConfigError(f"rival keyframe ids must be integers, got {ids.dtype}")
+        if ids.dtype.kind == "u" and ids.size and int(ids.max()) > np.iinfo(np.int64).max:
+            raise ConfigError("rival keyframe ids must fit in int64")  # a uint64 would wrap to -1 on the cast
         ids = ids.astype(np.int64)
         n = neighbour.shape[0]
         for name, a in (("neighbour", neighbour), ("rival", rival)):
@@ -161,6 +187,10 @@ class RepetitionTable:
         """(N,) float64 ``PlaceRepetition.ratio`` of every keyframe."""
         n = self.neighbour_score
         return np.divide(self.rival_score, n, out=np.zeros_like(n), where=n > 0.0)
+
+    def marked(self, bar: float | None) -> int:
+        """Keyframes whose repetition reaches ``bar`` (``LocalizationConfig.max_place_repetition``; None: none)."""
+        return 0 if bar is None else int((self.ratios >= bar).sum())
 
     @classmethod
     def of(cls, settings: str, repetitions: Sequence[PlaceRepetition]) -> RepetitionTable:

@@ -122,9 +122,10 @@ class MapInfo(_Model):
     place_repetition: Literal["stored", "other_settings", "not_stored"] | None = Field(default=None, description=(
         "Where the repeated-place check (an answer on a keyframe whose place repeats on the map is `ambiguous`) "
         "reads each keyframe's place repetition: `stored` in the map under this service's localization settings "
-        "(every map built since 2026-12-03), `other_settings` (stored under other settings) or `not_stored` (an "
-        "older map, or one built with `--no-place-repetition`): in the last two cases each keyframe's is measured "
-        "when it first wins, 20-40 ms once per keyframe and process (`reradar map-repetition MAP.h5` stores it)."))
+        "(every map built since 2026-12-03 under them: maps this service builds are), `other_settings` (stored under "
+        "other settings) or `not_stored` (an older map, or one built with `--no-place-repetition`): in the last two "
+        "cases each keyframe's is measured when it first wins, 20-40 ms once per keyframe and process (`reradar "
+        "map-repetition MAP.h5` stores it under the default settings; a map built by this service, under its own)."))
 
 
 class MapList(_Model):

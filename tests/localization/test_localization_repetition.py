@@ -260,7 +260,9 @@ def test_repetition_settings_are_canonical_json_of_every_setting_read() -> None:
     import json
 
     base = repetition_settings(LocalizationConfig())
-    assert base == repetition_settings(LocalizationConfig()) and isinstance(json.loads(base), list)
+    named = json.loads(base)
+    assert base == repetition_settings(LocalizationConfig()) and named["version"] == 1
+    assert named["place_margin_radius_m"] == 20.0 and named["repetition_rivals"] == 20 and "alignment" in named
     from reradar_core.matching import AlignmentConfig
 
     # a number is a number: 20 and 20.0 are one setting (QA: an int blocked a stored table's adoption)
@@ -278,8 +280,30 @@ def test_repetition_settings_are_canonical_json_of_every_setting_read() -> None:
     (([0.5, 0.5], [0.4, 0.0], [0, -1]), "differ from their own"),
     (([0.5, 0.5], [0.4, 0.0], [-1, -1]), "needs a rival score"),
     (([0.5, 0.5], [0.0, 0.0], [0.5, -1.0]), "integers"),
+    (([0.5, 0.5], [0.0, 0.0], np.array([2**64 - 1, 2**64 - 1], np.uint64)), "fit in int64"),  # would wrap to -1
 ])
 def test_a_table_that_cannot_be_a_measure_is_refused(arrays: tuple, match: str) -> None:
     n, r, i = (np.asarray(a) for a in arrays)
     with pytest.raises(ConfigError, match=match):
         RepetitionTable("{}", n, r, i)
+
+
+def test_a_whole_map_pass_stopped_by_its_progress_callback_stops_measuring() -> None:
+    """A cancelled build raises from the progress callback: the keyframes not yet begun are not measured."""
+    periodic, _ = _localizer(True)
+    measured: list[int] = []
+    measure = periodic.place_repetition
+
+    def counting(keyframe_id: int, config: LocalizationConfig | None = None) -> PlaceRepetition:
+        measured.append(keyframe_id)
+        return measure(keyframe_id, config)
+
+    periodic.place_repetition = counting  # type: ignore[method-assign]
+
+    def stop(done: int, total: int) -> None:
+        if done == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        periodic.place_repetitions(workers=2, progress=stop)
+    assert 3 <= len(measured) < len(periodic) // 2

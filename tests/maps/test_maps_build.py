@@ -213,7 +213,8 @@ def test_a_build_stopped_during_the_repetition_pass_leaves_nothing(tmp_path: Pat
     assert list(tmp_path.iterdir()) == []
 
 
-def test_an_older_map_gets_its_place_repetition_without_its_scans(tmp_path: Path) -> None:
+def test_an_older_map_gets_its_place_repetition_without_its_scans(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     from typer.testing import CliRunner
 
     from maps.build import add_place_repetition
@@ -243,3 +244,34 @@ def test_an_older_map_gets_its_place_repetition_without_its_scans(tmp_path: Path
         assert m.place_repetition is not None and (m.place_repetition.ratios[8:-8] >= 0.95).all()
     res = CliRunner().invoke(app, ["map-repetition", str(tmp_path / "missing.h5")])
     assert res.exit_code == 2 and "no such map file" in res.output
+    # review (session 28): an existing --out is kept unless --overwrite; the copy keeps the map's permission bits;
+    # a symbolic link keeps pointing at the completed map; a map replaced while it is copied is never reverted
+    res = CliRunner().invoke(app, ["map-repetition", str(bare), "--out", str(full)])
+    assert res.exit_code == 2 and "--overwrite" in res.output
+    with pytest.raises(FileExistsError):
+        store_place_repetition(bare, table, full)
+    private = _street_build(tmp_path, "private.h5", place_repetition=False)
+    private.chmod(0o600)
+    link = tmp_path / "link.h5"
+    link.symlink_to(private)
+    add_place_repetition(link)
+    assert link.is_symlink() and (private.stat().st_mode & 0o777) == 0o600
+    with open_map(private) as m:
+        assert m.place_repetition is not None
+
+    import shutil
+
+    copy = shutil.copyfile
+
+    def copy_then_replace(src: str, dst: str) -> str:
+        out = copy(src, dst)
+        copy(full, tmp_path / "swap.h5")
+        (tmp_path / "swap.h5").replace(bare)  # another process re-registers the map meanwhile
+        return out
+
+    assert bare.read_bytes() != full.read_bytes()
+    monkeypatch.setattr(shutil, "copyfile", copy_then_replace)
+    with pytest.raises(MapFormatError, match="replaced while"):
+        store_place_repetition(bare, table)
+    monkeypatch.undo()
+    assert bare.read_bytes() == full.read_bytes() and not list(tmp_path.glob(".*.tmp"))
