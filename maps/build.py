@@ -27,7 +27,7 @@ from reradar_core.localization.keyframes import select_keyframes  # re-exported:
 from reradar_core.retrieval import GlobalIndex
 
 __all__ = ["select_keyframes", "cap_keypoints", "build_map", "build_map_from_sequence", "measure_place_repetition",
-           "add_place_repetition", "REPETITION_CACHE_KEYFRAMES"]
+           "add_place_repetition", "unjudged_warning", "REPETITION_CACHE_KEYFRAMES", "UNJUDGED_WARN_SHARE"]
 
 #: Keyframes whose screen data the place-repetition pass keeps in memory (~50 KB each: ~400 MB at most); a larger
 #: map is read back through an LRU of this size (the pass goes along the map, so neighbours stay cached; rivals
@@ -76,6 +76,23 @@ def measure_place_repetition(keyframes: KeyframeSource, global_descriptors: np.n
         return localizer.place_repetitions(config, workers=workers, progress=step)
     finally:
         bar.close()
+
+
+#: Share of a map's keyframes the repeated-place check may be unable to judge before the build warns.
+UNJUDGED_WARN_SHARE = 0.1
+
+
+def unjudged_warning(table: RepetitionTable, num_keyframes: int) -> str | None:
+    """A sentence for the user when over ``UNJUDGED_WARN_SHARE`` of the keyframes have no keyframe of their own place
+    aligning with them (the repeated-place check cannot judge them: a street that repeats itself is then answered
+    on whichever copy wins), else None."""
+    k = table.unjudged
+    if num_keyframes == 0 or k <= UNJUDGED_WARN_SHARE * num_keyframes:
+        return None
+    return (f"{k} of {num_keyframes} keyframes have no keyframe of their own place (within the place radius, 20 m by "
+            f"default) that aligns with them, so the repeated-place check cannot judge answers on them; build the "
+            f"map with keyframes closer together (--min-spacing-m well under the radius; docs/MODEL.md 'Repeated "
+            f"places')")
 
 
 def add_place_repetition(path: str | Path, out: str | Path | None = None, localization: LocalizationConfig | None = None,
@@ -184,8 +201,11 @@ def build_map(
                     progress(n, n)
 
             stored = InMemoryKeyframes(writer.read_keyframe, writer.poses, writer.timestamps_us)
-            writer.set_place_repetition(measure_place_repetition(
-                stored, writer.global_descriptors, config, repetition_workers, beat, show_progress))
+            table = measure_place_repetition(stored, writer.global_descriptors, config, repetition_workers, beat,
+                                             show_progress)
+            writer.set_place_repetition(table)
+            if (message := unjudged_warning(table, n)) is not None:
+                logger.warning("%s: %s", Path(out).name, message)
     except BaseException as exc:
         if writer is not None:
             writer.__exit__(type(exc), exc, exc.__traceback__)

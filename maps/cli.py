@@ -75,7 +75,8 @@ def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -
     """Print a map's metadata as JSON, after checking that its arrays agree with it (poses, timestamps, global
     descriptors and keyframe groups, one per keyframe; the checks of opening a map for localization), and its stored
     place repetition (null when it has none): whether the default settings use it, the keyframes it marks
-    (repetition >= LocalizationConfig.max_place_repetition) and the largest repetition."""
+    (repetition >= LocalizationConfig.max_place_repetition), those it cannot judge (no keyframe of their own place
+    aligns with them) and the largest repetition."""
     from maps.store import open_map
 
     if path.is_dir():
@@ -97,6 +98,7 @@ def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -
     info["place_repetition"] = None if table is None else {
         "default_settings": table.settings == repetition_settings(default),
         "keyframes_marked": table.marked(default.max_place_repetition),
+        "keyframes_unjudged": table.unjudged,
         "max_ratio": round(float(table.ratios.max(initial=0.0)), 4),
     }
     typer.echo(json.dumps(info, indent=2))
@@ -113,7 +115,7 @@ def map_repetition_command(
     thread) and store it in the map, as `build-map` does since 2026-12-03: for maps built earlier or with
     --no-place-repetition, without their scans. Measured under the default localization settings; replaces a stored
     one. (A service configured with other settings measures maps it builds under its own.)"""
-    from maps.build import add_place_repetition
+    from maps.build import add_place_repetition, unjudged_warning
     from reradar_core.localization import LocalizationConfig
     from reradar_core.paths import output_file
 
@@ -133,6 +135,8 @@ def map_repetition_command(
     marked = table.marked(LocalizationConfig().max_place_repetition)
     typer.echo(f"wrote {out or path}: place repetition of {len(table)} keyframes stored, {marked} marked "
                f"(largest repetition {float(table.ratios.max(initial=0.0)):.3f})")
+    if (message := unjudged_warning(table, len(table))) is not None:
+        typer.echo(f"warning: {message}", err=True)
 
 
 def register(app: typer.Typer) -> None:

@@ -192,6 +192,12 @@ class RepetitionTable:
         """Keyframes whose repetition reaches ``bar`` (``LocalizationConfig.max_place_repetition``; None: none)."""
         return 0 if bar is None else int((self.ratios >= bar).sum())
 
+    @property
+    def unjudged(self) -> int:
+        """Keyframes the check cannot judge: no keyframe of their own place (within the place radius) aligned with
+        them (``neighbour_score`` 0), e.g. on a map whose keyframes lie farther apart than the radius."""
+        return int((self.neighbour_score <= 0.0).sum())
+
     @classmethod
     def of(cls, settings: str, repetitions: Sequence[PlaceRepetition]) -> RepetitionTable:
         """The table of ``repetitions`` (item i = keyframe i)."""

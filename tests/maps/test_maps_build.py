@@ -153,12 +153,12 @@ class PeriodicStreetExtractor:
         return out
 
 
-def _street_build(tmp_path: Path, name: str, **kwargs: object) -> Path:
-    n = 45  # 0..264 m, keyframes 6 m apart
-    poses = np.column_stack([6.0 * np.arange(n), np.zeros(n), np.zeros(n)])
+def _street_build(tmp_path: Path, name: str, step: int = 1, **kwargs: object) -> Path:
+    n = 45  # 0..264 m, keyframes 6 m apart (step 4: 0..1056 m, 24 m apart)
+    poses = np.column_stack([6.0 * step * np.arange(n), np.zeros(n), np.zeros(n)])
 
     def load(i: int) -> RadarScan:
-        return RadarScan.from_power(np.zeros((400, 3360), np.float32), "boreas", start_time_us=i)
+        return RadarScan.from_power(np.zeros((400, 3360), np.float32), "boreas", start_time_us=step * i)
 
     return build_map(tmp_path / name, PeriodicStreetExtractor(), load, poses, radar_preset="boreas", **kwargs)
 
@@ -275,3 +275,25 @@ def test_an_older_map_gets_its_place_repetition_without_its_scans(tmp_path: Path
         store_place_repetition(bare, table)
     monkeypatch.undo()
     assert bare.read_bytes() == full.read_bytes() and not list(tmp_path.glob(".*.tmp"))
+
+
+def test_a_map_too_sparse_for_the_check_says_so(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Keyframes 24 m apart: none has a keyframe of its own place (20 m), so the repeated-place check cannot judge
+    any of them; the build warns and map-info counts them."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from reradar_cli import app
+
+    with caplog.at_level("WARNING", logger="maps.build"):
+        sparse = _street_build(tmp_path, "sparse.h5", step=4)
+    assert "45 of 45 keyframes have no keyframe of their own place" in caplog.text
+    info = json.loads(CliRunner().invoke(app, ["map-info", str(sparse)]).output)
+    assert info["place_repetition"]["keyframes_unjudged"] == 45 and info["place_repetition"]["keyframes_marked"] == 0
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="maps.build"):
+        dense = _street_build(tmp_path, "dense.h5")
+    assert "have no keyframe of their own place" not in caplog.text
+    info = json.loads(CliRunner().invoke(app, ["map-info", str(dense)]).output)
+    assert info["place_repetition"]["keyframes_unjudged"] <= 2  # at most the street's ends

@@ -244,7 +244,7 @@ def test_map_info_checks_the_arrays_and_build_map_checks_its_output_first(tmp_pa
     assert res.exit_code == 0 and json.loads(res.output)["num_keyframes"] == 80
     # an ordinary street: the stored place repetition (default settings) marks no keyframe
     assert json.loads(res.output)["place_repetition"] == {"default_settings": True, "keyframes_marked": 0,
-                                                          "max_ratio": 0.6667}
+                                                          "keyframes_unjudged": 0, "max_ratio": 0.6667}
     broken = tmp_path / "broken.h5"
     shutil.copy(DEMO_MAP_PATH, broken)
     with h5py.File(broken, "a") as f:
