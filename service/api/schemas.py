@@ -105,7 +105,8 @@ class MapInfo(_Model):
     scans_total: int = 0
     error: str | None = Field(default=None, description="Why building or loading failed.")
     note: str | None = Field(default=None, description=(
-        "While `building`: why the build may not be progressing (e.g. no map-build worker is running)."))
+        "While `building`: why the build may not be progressing (e.g. no map-build worker is running), or, with "
+        "every scan described (`progress` 1), that it is measuring where the map repeats itself before it is ready."))
     model_id: str | None = None
     weights_sha256: str | None = None
     radar_preset: str | None = None

@@ -54,7 +54,7 @@ from maps.store import fsync_dir
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
 from service.core.errors import ConflictError, NotFoundError
-from service.core.registry import FileIdentity, MapEntry, MapRegistry, file_identity, utc_now
+from service.core.registry import FileIdentity, MapEntry, MapRegistry, file_identity, last_pass_note, utc_now
 from service.core.shared_state import SharedStateUnavailableError, arq_redis_settings
 
 __all__ = ["BuildQueue", "QueuedMapRegistry", "JOB_FUNCTION", "ARQ_IN_PROGRESS_PREFIX", "ARQ_JOB_PREFIX", "jobs_dir",
@@ -515,7 +515,7 @@ class QueuedMapRegistry(MapRegistry):
             if rec.get("state") not in _ACTIVE:
                 return None
             return build_note(rec, self.queue.newest_worker_beat(), time.time(),
-                              self.settings.build_heartbeat_stale_s)
+                              self.settings.build_heartbeat_stale_s) or last_pass_note(entry)
         except redis.RedisError:
             return None
 

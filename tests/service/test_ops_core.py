@@ -152,6 +152,23 @@ def test_build_note_names_a_missing_worker_and_a_silent_one() -> None:
     assert note is not None and "retry" in note
 
 
+def test_a_build_with_every_scan_described_says_it_is_in_its_last_pass() -> None:
+    """Session 28: after the last scan a build measures the map's place repetition (20-40 ms per keyframe) with
+    progress at 100 %; the note says so instead of leaving it to look stuck."""
+    from pathlib import Path
+
+    from service.core.registry import MapEntry, last_pass_note
+
+    def entry(state: str, done: int, total: int) -> MapEntry:
+        return MapEntry("m", Path("m.h5"), state, scans_done=done, scans_total=total)  # type: ignore[arg-type]
+
+    note = last_pass_note(entry("building", 80, 80))
+    assert note is not None and "measuring where the map repeats itself" in note
+    assert entry("building", 80, 80).progress == 1.0
+    for e in (entry("building", 79, 80), entry("building", 0, 0), entry("ready", 80, 80), entry("failed", 80, 80)):
+        assert last_pass_note(e) is None
+
+
 def test_json_lines_leave_out_uvicorns_coloured_copy() -> None:
     """QA (session 21): uvicorn's start-up lines carried ``color_message`` (the message with terminal escape codes)."""
     record = logging.LogRecord("uvicorn.error", logging.INFO, "", 0, "Uvicorn running on %s", ("http://x",), None)
