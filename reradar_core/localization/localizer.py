@@ -225,21 +225,13 @@ class Localizer:
         def measure(keyframe_id: int) -> None:
             out[keyframe_id] = self.place_repetition(keyframe_id, config)
 
-        done = 0
-        if workers == 1:
-            for i in range(n):
-                measure(i)
-                done += 1
+        pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="place-repetition") if workers > 1 else None
+        try:
+            for done, _ in enumerate(pool.map(measure, range(n)) if pool else map(measure, range(n)), start=1):
                 if progress is not None:
                     progress(done, n)
-        else:
-            pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="place-repetition")
-            try:
-                for _ in pool.map(measure, range(n)):
-                    done += 1
-                    if progress is not None:
-                        progress(done, n)
-            finally:  # a progress callback that raises (a cancelled build) stops the keyframes not yet begun
+        finally:  # a progress callback that raises (a cancelled build) stops the keyframes not yet begun
+            if pool is not None:
                 pool.shutdown(wait=True, cancel_futures=True)
         rows = [r for r in out if r is not None]
         assert len(rows) == n, "every keyframe is measured before the table is made"
