@@ -99,7 +99,7 @@ def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -
         "default_settings": table.settings == repetition_settings(default),
         "keyframes_marked": table.marked(default.max_place_repetition),
         "keyframes_unjudged": table.unjudged,
-        "max_ratio": round(float(table.ratios.max(initial=0.0)), 4),
+        "max_ratio": round(table.max_ratio, 4),
     }
     typer.echo(json.dumps(info, indent=2))
 
@@ -134,7 +134,7 @@ def map_repetition_command(
         raise typer.Exit(2) from exc
     marked = table.marked(LocalizationConfig().max_place_repetition)
     typer.echo(f"wrote {out or path}: place repetition of {len(table)} keyframes stored, {marked} marked "
-               f"(largest repetition {float(table.ratios.max(initial=0.0)):.3f})")
+               f"(largest repetition {table.max_ratio:.3f})")
     if (message := unjudged_warning(table, len(table))) is not None:
         typer.echo(f"warning: {message}", err=True)
 

@@ -188,6 +188,11 @@ class RepetitionTable:
         n = self.neighbour_score
         return np.divide(self.rival_score, n, out=np.zeros_like(n), where=n > 0.0)
 
+    @property
+    def max_ratio(self) -> float:
+        """The largest repetition of the map (0 for an empty one)."""
+        return float(self.ratios.max(initial=0.0))
+
     def marked(self, bar: float | None) -> int:
         """Keyframes whose repetition reaches ``bar`` (``LocalizationConfig.max_place_repetition``; None: none)."""
         return 0 if bar is None else int((self.ratios >= bar).sum())
