@@ -24,6 +24,8 @@ Overrides (``--set``, repeatable), applied on top of the suite's definition:
     db.condition=NAME            weather condition of the database drive (e.g. snow_cover: a winter map)
     query.sensor.FIELD=V         SensorConfig field of the query drive only (session 18: e.g. target_gain, a wet radome)
     route.speed_min=V, route.speed_max=V   cruise speed range of both drives (synthetic routes), m/s
+    world.seed=N, route.seed=N   another world (its objects) / another synthetic route (both drives and the world's
+                                 roads): a second calibration route of the same suite definition (session 29)
     world.grid_lines=N           a whole street grid around the loop route: its block lines extended across the
                                  area plus N more parallel streets each side (session 15 probe);
                                  world.grid_extend_m=V how far the lines reach beyond the route (default 300 m)
@@ -180,6 +182,15 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
         cap = None if raw.lower() == "none" else float(raw)
         db_def = replace(db_def, route=replace(db_def.route, max_lateral_accel_mps2=cap))
         q_def = replace(q_def, route=replace(q_def.route, max_lateral_accel_mps2=cap))
+    road_routes = suite.road_routes
+    if "route.seed" in ov:  # session 29: a second calibration route (same generator, other seed) for both drives
+        rs = int(ov["route.seed"])  # type: ignore[call-overload]
+        if any(r.kind != "loop" for r in road_routes):
+            raise SystemExit("route.seed applies to synthetic (loop) routes only")
+        road_routes = tuple(replace(r, seed=rs) for r in road_routes)
+        db_def = replace(db_def, route=replace(db_def.route, seed=rs))
+        q_def = replace(q_def, route=replace(q_def.route, seed=rs))
+    world_seed = int(ov["world.seed"]) if "world.seed" in ov else suite.world_seed  # type: ignore[call-overload]
     if "query.lateral_m" in ov:
         q_def = replace(q_def, route=replace(q_def.route, lateral_m=float(ov["query.lateral_m"])))  # type: ignore[arg-type]
     if "db.lateral_m" in ov:
@@ -196,12 +207,12 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
     sensor = sensor_with(SensorConfig(**dict(suite.sensor_overrides)), ov)  # type: ignore[arg-type]
     # the query drive's own sensor differences (session 18: e.g. a wet radome on one run, ``query.sensor.target_gain``)
     q_sensor = sensor_with(sensor, {k[len("query."):]: v for k, v in ov.items() if k.startswith("query.sensor.")})
-    lines = [S._route_trajectory(replace(r, lateral_m=0.0), None).xy for r in suite.road_routes]
+    lines = [S._route_trajectory(replace(r, lateral_m=0.0), None).xy for r in road_routes]
     if "world.grid_lines" in ov:  # session 15: a whole street grid around the loop route (a planned district)
-        lines += [g for r in suite.road_routes if r.kind == "loop"
+        lines += [g for r in road_routes if r.kind == "loop"
                   for g in street_grid(r, int(ov["world.grid_lines"]), float(ov.get("world.grid_extend_m", 300.0)))]  # type: ignore[arg-type]
     road = W.RoadNetwork(lines)
-    world = W.World(road, seed=suite.world_seed, profile=profile_with(S.suite_profile(suite), ov))
+    world = W.World(road, seed=world_seed, profile=profile_with(S.suite_profile(suite), ov))
 
     def times(seq: S.SequenceDef):
         traj = S._route_trajectory(seq.route, None)
