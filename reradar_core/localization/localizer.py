@@ -54,6 +54,7 @@ from reradar_core.localization.tracking import (
 )
 from reradar_core.matching import count_aligned
 from reradar_core.matching.kernels import warm_up
+from reradar_core.matching.motion import MotionConfig, keyframe_twists, motion_polish
 from reradar_core.retrieval import GlobalIndex, similarity_to_distance
 
 _Item = TypeVar("_Item")
@@ -100,6 +101,7 @@ class Localizer:
         self._repetition: dict[tuple, PlaceRepetition] = {}
         self._repetition_tables: dict[tuple, RepetitionTable] = {}
         self._repetition_lock = threading.Lock()
+        self._twists: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # per settings: a property of the map
         warm_up()  # the compiled kernels (numba) are compiled or loaded now, not in the first query
         if preload:
             self.cache.preload()
@@ -157,7 +159,44 @@ class Localizer:
             if repetition >= bar:
                 # the winner's place repeats on the map: the scan fits the other copy as well (``max_place_repetition``)
                 result = replace(result, status="not_localized", reason=REASON_AMBIGUOUS, T_map_query=None)
-        return result
+        return self._motion_compensated(features, result, config)
+
+    def keyframe_twists(self, config: MotionConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Every keyframe's motion on the map drive (``matching.motion.keyframe_twists``: (N, 3) vx m/s, vy m/s, yaw
+        rate rad/s, and (N,) known), computed once per map and settings."""
+        mc = config or self.config.motion
+        key = (mc.max_keyframe_gap_s, mc.max_speed_mps, mc.max_yaw_rate_radps)
+        with self._repetition_lock:
+            got = self._twists.get(key)
+        if got is None:
+            got = keyframe_twists(np.asarray(self.keyframes.poses, np.float64),
+                                  np.asarray(self.keyframes.timestamps_us, np.int64), mc)
+            with self._repetition_lock:
+                self._twists[key] = got
+        return got
+
+    def _motion_compensated(self, features: ScanFeatures, result: LocalizationResult,
+                            config: LocalizationConfig) -> LocalizationResult:
+        """``result`` with its pose motion-compensated (``matching.motion.motion_polish``) when it is localized, the
+        motion compensation is on and the winning keyframe's motion on the map is known; the decision, confidence
+        and cues stay the rigid registration's. ``timings_ms["motion_ms"]``."""
+        mc = config.motion
+        best = result.best
+        if not mc.enabled or not result.localized or best is None or best.T_keyframe_query is None:
+            return result
+        t0 = time.perf_counter()
+        twists, known = self.keyframe_twists(mc)
+        kid = best.keyframe_id
+        polished = None
+        if known[kid]:
+            dst = self.cache.get(kid).features.keypoints_xy_m
+            polished = motion_polish(features.keypoints_xy_m, dst, best.T_keyframe_query, twists[kid], mc)
+        result.timings_ms["motion_ms"] = (time.perf_counter() - t0) * 1e3
+        if polished is None:
+            return result
+        best = replace(best, T_keyframe_query=polished.T_dst_src)
+        return replace(result, best=best, T_map_query=compose(np.asarray(best.T_map_keyframe, np.float64),
+                                                               polished.T_dst_src))
 
     def _candidate(self, keyframe_id: int, rank: int = 0, descriptor_distance: float = 0.0,
                    wrap: Callable[..., Any] | None = None) -> Candidate:
@@ -308,9 +347,10 @@ class Localizer:
             confidence = float(model.predict(cues)) if cues is not None else 0.0
             if config.pose_method != "guided" or confidence >= config.effective_min_confidence:  # as ``localize``
                 track_ms = (time.perf_counter() - t0) * 1e3
-                return LocalizationResult("localized", None, best, T_map_query, verified,
-                                          {"track_ms": track_ms, "verify_ms": track_ms}, confidence, cues,
-                                          mode="tracking")
+                return self._motion_compensated(
+                    features, LocalizationResult("localized", None, best, T_map_query, verified,
+                                                 {"track_ms": track_ms, "verify_ms": track_ms}, confidence, cues,
+                                                 mode="tracking"), config)
         track_ms = (time.perf_counter() - t0) * 1e3
         result = self.localize(features, config)
         result.tracking_lost = True

@@ -45,6 +45,7 @@ from reradar_core.matching import (
     estimate_rigid_2d,
     match_descriptors,
 )
+from reradar_core.matching.motion import MotionConfig
 
 __all__ = [
     "LocalizationConfig",
@@ -139,6 +140,9 @@ class LocalizationConfig:
         alignment: settings of the guided estimator (its own ``min_inliers`` is replaced by this config's).
         ransac: RANSAC settings of ``mutual_nn`` (threshold in metres, iterations, seed).
         tracking: settings of tracking mode (``Localizer.track``; ``localization.tracking``).
+        motion: motion compensation of a localized answer's pose (``Localizer``; ``matching.motion``: both scans
+            de-skewed, the query's motion fitted with its pose; the decision, confidence and cues are the rigid
+            registration's). ``MotionConfig(enabled=False)``: the rigid pose, as before session 29.
         min_confidence: ``guided`` only: an answer that passes the checks above is ``localized`` only when its
             confidence (``reradar_core.localization.confidence``: calibrated probability that the pose is
             within the success thresholds) reaches this bar; the aligned-ratio bar stays as a floor. None =
@@ -207,6 +211,7 @@ class LocalizationConfig:
     alignment: AlignmentConfig = field(default_factory=AlignmentConfig)
     ransac: RansacConfig = field(default_factory=RansacConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
     min_confidence: float | None = None
     prescreen_keep: int | None = 5
     prescreen_source_points: int = 64

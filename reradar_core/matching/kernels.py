@@ -173,6 +173,9 @@ def warm_up() -> bool:
     buckets = bucket_landmarks(pts, 2.0, 64)
     nearest_within(pts, 2.0, buckets, len(pts))
     refine_poses(pts, np.zeros((1, 3)), (2.0, 1.0), pts, buckets)
+    from reradar_core.matching.motion_kernels import motion_fit
+
+    motion_fit(pts, np.zeros(2), pts, buckets, np.zeros(6), np.zeros(6), np.ones(6), (2.0,), 1, 1)
     from reradar_core.landmarks.cen2018_kernels import warm_up as warm_up_detector
 
     warm_up_detector()  # the landmark detector of every query's features

@@ -1,0 +1,252 @@
+"""Motion compensation of an answer's pose: both scans de-skewed, the query's motion fitted with its pose.
+
+A scanning radar turns once per sweep (0.25 s at 4 Hz) while the vehicle moves, so every azimuth is seen from the
+pose at its own time: at 10 m/s a landmark ahead is seen 1.25 m from where a landmark behind would put it, and in
+a turn at 40 deg/s the first and last azimuths are 10 deg apart. A rigid registration of two such sweeps aligns
+their mid-sweep poses only where the two distortions cancel (same direction, speed and turn); a revisit driven the
+other way, or a turn, keeps part of them as pose error. Measured on the benchmark's `loop-sim-hard` queries with
+the true motion of both drives (docs/BENCHMARKS.md "Session 29"): de-skewing both scans cut the mean translation
+error from 0.25 m to 0.08 m and the heading error from 0.29 to 0.21 deg; de-skewing one side only made both worse.
+
+So, after an answer is chosen (its decision, confidence and cues untouched), ``motion_polish``:
+
+1. de-skews the map keyframe's landmarks with its own motion (``keyframe_twists``: the map drive's keyframe poses
+   and times, neighbours in time within ``max_keyframe_gap_s``);
+2. fits the query's pose *and* its motion (body-frame velocity and yaw rate, constant over the sweep) to them by
+   Gauss-Newton with nearest-landmark association at shrinking radii, each query landmark moved by its own time
+   offset from mid-sweep (``azimuth_time_offsets``). The motion is observable only through landmarks at many
+   azimuths, and a forward speed mimics a turn for landmarks abeam (a street's two sides are seen a half sweep
+   apart), so the motion has a prior: forward speed around the map drive's speed at that keyframe (vehicles
+   pass a place at similar speeds; ``speed_sigma_mps``), no sideways speed (a car does not slide;
+   ``lateral_speed_sigma_mps``), a weak yaw-rate prior (``yaw_rate_sigma_radps``).
+
+With the motion fitted rather than known, the benchmark's `loop-sim-hard` answers go from 0.251 m / 0.294 deg to
+0.070 m / 0.225 deg (docs/BENCHMARKS.md "Session 29"; the priors chosen on the training splits). The Gauss-Newton
+rounds run compiled (``motion_kernels``, ~1.2 ms an answer) when numba is there.
+
+The rigid answer is kept when the map's motion at the keyframe is unknown (no keyframe within
+``max_keyframe_gap_s``), when fewer than ``min_associated`` landmarks associate, or when the fit moves the pose
+more than ``max_shift_m`` / ``max_turn_rad`` (a compensation is a correction of at most a sweep's travel, not a
+new answer).
+
+Frames and conventions (docs/CONVENTIONS.md): sensor frame x forward, y left; azimuth a clockwise from +x,
+azimuth index k at time t0 + k T / A, mid-sweep at t0 + (A - 1) / 2 * T / A; a twist is (vx m/s, vy m/s,
+yaw rate rad/s) in the body frame at mid-sweep.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from reradar_core.errors import ConfigError
+from reradar_core.geometry.se2 import relative_pose, wrap_angle
+from reradar_core.jit import jit_enabled
+
+__all__ = ["MotionConfig", "MotionPolish", "azimuth_time_offsets", "deskew_points", "keyframe_twists",
+           "motion_polish"]
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """Settings of the motion-compensated pose (``motion_polish``); seconds, metres, radians.
+
+    Attributes:
+        enabled: compensate the answers' poses (False: the rigid registration's pose, as before session 29).
+        sweep_period_s, num_azimuths: the radar's sweep (every Navtech preset here: 0.25 s, 400 azimuths).
+        max_keyframe_gap_s: a map keyframe's motion is taken from its neighbours in time within this gap (2 s);
+            a keyframe with none is not compensated (the answer keeps its rigid pose).
+        max_speed_mps, max_yaw_rate_radps: a keyframe motion faster than these (60 m/s, 3 rad/s) is not a drive's
+            (keyframes with made-up times, or poses from two drives interleaved): its motion counts as unknown.
+        speed_sigma_mps: prior on the query's forward speed, around the map drive's speed at the keyframe (3 m/s).
+        lateral_speed_sigma_mps: prior on its sideways speed, around 0 (0.3 m/s: a car does not slide).
+        yaw_rate_sigma_radps: prior on its yaw rate, around 0 (1 rad/s: weak; a U-turn is ~0.8).
+        radii_m: association radii of the Gauss-Newton rounds, coarse to fine (the pose polish's, from the
+            counting radius 0.75 m down).
+        iterations: Gauss-Newton steps per radius.
+        min_associated: landmarks that must associate at the last radius.
+        max_shift_m, max_turn_rad: a fit that moves the rigid pose farther is discarded.
+        The priors were chosen on the training splits' unseen sessions (docs/BENCHMARKS.md "Session 29").
+    """
+
+    enabled: bool = True
+    sweep_period_s: float = 0.25
+    num_azimuths: int = 400
+    max_keyframe_gap_s: float = 2.0
+    max_speed_mps: float = 60.0
+    max_yaw_rate_radps: float = 3.0
+    speed_sigma_mps: float = 3.0
+    lateral_speed_sigma_mps: float = 0.3
+    yaw_rate_sigma_radps: float = 1.0
+    radii_m: tuple[float, ...] = (0.75, 0.6, 0.5, 0.4)
+    iterations: int = 3
+    min_associated: int = 12
+    max_shift_m: float = 3.0
+    max_turn_rad: float = math.radians(3.0)
+
+    def __post_init__(self) -> None:
+        if self.sweep_period_s <= 0 or self.num_azimuths < 1 or self.max_keyframe_gap_s <= 0:
+            raise ConfigError("sweep_period_s and max_keyframe_gap_s must be positive and num_azimuths >= 1")
+        if min(self.speed_sigma_mps, self.lateral_speed_sigma_mps, self.yaw_rate_sigma_radps) <= 0:
+            raise ConfigError("the motion priors' sigmas must be positive")
+        if not self.radii_m or min(self.radii_m) <= 0 or self.iterations < 1 or self.min_associated < 3:
+            raise ConfigError("radii_m must be positive radii, iterations >= 1 and min_associated >= 3")
+        if self.max_shift_m <= 0 or self.max_turn_rad <= 0 or self.max_speed_mps <= 0 or self.max_yaw_rate_radps <= 0:
+            raise ConfigError("max_shift_m, max_turn_rad, max_speed_mps and max_yaw_rate_radps must be positive")
+
+
+@dataclass(frozen=True)
+class MotionPolish:
+    """A motion-compensated pose.
+
+    Attributes:
+        T_dst_src: (3,) float64 pose of the source scan (mid-sweep) in the destination keyframe's frame.
+        twist: (3,) float64 the source scan's fitted motion (vx m/s, vy m/s, yaw rate rad/s), body frame.
+        num_associated: landmarks associated at the last radius.
+    """
+
+    T_dst_src: np.ndarray
+    twist: np.ndarray
+    num_associated: int
+
+
+def azimuth_time_offsets(xy_m: np.ndarray, config: MotionConfig = MotionConfig()) -> np.ndarray:
+    """(N, 2) landmark positions in the sensor frame (x forward, y left, metres) -> (N,) float64 time of the azimuth
+    each lies at, relative to mid-sweep, seconds (in [-T/2, T/2]; azimuth 0 = straight ahead, seen first)."""
+    xy = np.asarray(xy_m, np.float64).reshape(-1, 2)
+    a = np.mod(np.arctan2(-xy[:, 1], xy[:, 0]), 2.0 * np.pi)  # clockwise from +x
+    t, n = config.sweep_period_s, config.num_azimuths
+    return a / (2.0 * np.pi) * t - (n - 1) / (2.0 * n) * t
+
+
+def deskew_points(xy_m: np.ndarray, tau_s: np.ndarray, twist: np.ndarray) -> np.ndarray:
+    """Move (N, 2) points seen at time offsets ``tau_s`` (N,) from a sensor moving with ``twist`` (vx, vy, yaw rate;
+    body frame at mid-sweep) into the mid-sweep sensor frame: R(w tau) p + v tau (first order in tau: the sweep's
+    turn is at most a few degrees). Returns (N, 2) float64 metres."""
+    xy = np.asarray(xy_m, np.float64).reshape(-1, 2)
+    tau = np.asarray(tau_s, np.float64).reshape(-1)
+    vx, vy, w = (float(v) for v in np.asarray(twist, np.float64).reshape(3))
+    c, s = np.cos(w * tau), np.sin(w * tau)
+    return np.column_stack([c * xy[:, 0] - s * xy[:, 1] + vx * tau, s * xy[:, 0] + c * xy[:, 1] + vy * tau])
+
+
+def keyframe_twists(poses: np.ndarray, timestamps_us: np.ndarray,
+                    config: MotionConfig = MotionConfig()) -> tuple[np.ndarray, np.ndarray]:
+    """Each map keyframe's motion from its neighbours in time (the map drive's own poses).
+
+    Args:
+        poses: (N, 3) ``T_map_keyframe`` (x m, y m, yaw rad) at mid-sweep.
+        timestamps_us: (N,) scan times, microseconds (any order; keyframes of one drive).
+    Returns:
+        (N, 3) float64 twists (vx m/s, vy m/s, yaw rate rad/s; body frame) and (N,) bool: known (a neighbour in time
+        within ``max_keyframe_gap_s``; central difference when both are, one-sided otherwise; within
+        ``max_speed_mps`` and ``max_yaw_rate_radps``). Unknown rows are 0.
+    """
+    poses = np.asarray(poses, np.float64).reshape(-1, 3)
+    t = np.asarray(timestamps_us, np.int64).reshape(-1)
+    n = len(t)
+    twists = np.zeros((n, 3), np.float64)
+    known = np.zeros(n, bool)
+    order = np.argsort(t, kind="stable")
+    gap_us = config.max_keyframe_gap_s * 1e6
+    for j, k in enumerate(order):
+        before = order[j - 1] if j > 0 and 0 < t[k] - t[order[j - 1]] <= gap_us else None
+        after = order[j + 1] if j + 1 < n and 0 < t[order[j + 1]] - t[k] <= gap_us else None
+        if before is None and after is None:
+            continue
+        i0 = k if before is None else before
+        i1 = k if after is None else after
+        dt = (t[i1] - t[i0]) * 1e-6
+        twist = relative_pose(poses[i0], poses[i1]) / dt
+        if math.hypot(twist[0], twist[1]) <= config.max_speed_mps and abs(twist[2]) <= config.max_yaw_rate_radps:
+            twists[k] = twist
+            known[k] = True
+    return twists, known
+
+
+def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndarray, dst_twist: np.ndarray,
+                  config: MotionConfig = MotionConfig()) -> MotionPolish | None:
+    """The source scan's mid-sweep pose in the destination keyframe's frame, both scans' motion compensated.
+
+    Args:
+        src_xy_m: (N, 2) the query's landmarks (its sensor frame, metres), as seen (skewed).
+        dst_xy_m: (M, 2) the keyframe's landmarks, as seen.
+        T_dst_src: (3,) the rigid registration's pose (start of the fit).
+        dst_twist: (3,) the keyframe's motion (``keyframe_twists``); its speed is the prior's forward speed.
+    Returns:
+        ``MotionPolish``, or None when too few landmarks associate or the fit moves the pose more than
+        ``max_shift_m`` / ``max_turn_rad`` (keep the rigid pose).
+    """
+    src = np.asarray(src_xy_m, np.float64).reshape(-1, 2)
+    dst_twist = np.asarray(dst_twist, np.float64).reshape(3)
+    dst = deskew_points(dst_xy_m, azimuth_time_offsets(dst_xy_m, config), dst_twist)
+    if len(src) < config.min_associated or len(dst) < config.min_associated:
+        return None
+    tree = cKDTree(dst)
+    tau = azimuth_time_offsets(src, config)
+    start = np.asarray(T_dst_src, np.float64).reshape(3)
+    prior_mean = np.array([0.0, 0.0, 0.0, float(np.hypot(dst_twist[0], dst_twist[1])), 0.0, 0.0])
+    prior_precision = np.array([0.0, 0.0, 0.0, config.speed_sigma_mps ** -2, config.lateral_speed_sigma_mps ** -2,
+                                config.yaw_rate_sigma_radps ** -2])
+    prior_hessian = np.diag(prior_precision) + 1e-9 * np.eye(6)
+    x = np.concatenate([start, prior_mean[3:]])
+
+    def step(x: np.ndarray, src_m: np.ndarray, tau_m: np.ndarray, dst_m: np.ndarray) -> np.ndarray:
+        """One Gauss-Newton step on pairs src_m[i] <-> dst_m[i] (first order in tau), with the motion prior."""
+        c, s = math.cos(x[2]), math.sin(x[2])
+        lm = deskew_points(src_m, tau_m, x[3:])
+        residual = (dst_m - np.column_stack([c * lm[:, 0] - s * lm[:, 1] + x[0],
+                                             s * lm[:, 0] + c * lm[:, 1] + x[1]])).reshape(-1)  # x0, y0, x1, ...
+        # d pred / d params, rows interleaved as the residual: translation, heading, velocity (rotated into the
+        # keyframe's frame), yaw rate (d(R(w tau) p)/dw = tau (-py, px), rotated)
+        jac = np.zeros((2 * len(src_m), 6))
+        jac[0::2, 0] = 1.0
+        jac[1::2, 1] = 1.0
+        jac[0::2, 2] = -s * lm[:, 0] - c * lm[:, 1]
+        jac[1::2, 2] = c * lm[:, 0] - s * lm[:, 1]
+        jac[0::2, 3], jac[1::2, 3] = c * tau_m, s * tau_m
+        jac[0::2, 4], jac[1::2, 4] = -s * tau_m, c * tau_m
+        px, py = -src_m[:, 1] * tau_m, src_m[:, 0] * tau_m
+        jac[0::2, 5], jac[1::2, 5] = c * px - s * py, s * px + c * py
+        gradient = jac.T @ residual - prior_precision * (x - prior_mean)
+        return x + np.linalg.solve(jac.T @ jac + prior_hessian, gradient)
+
+    # nearest-landmark association at shrinking radii, from the rigid pose and the prior's motion
+    if jit_enabled():  # the same rounds compiled (``motion_kernels``); a near-tie look-up takes the numpy path
+        from reradar_core.matching.motion_kernels import motion_fit
+        from reradar_core.matching.nn_kernels import bucket_landmarks
+
+        fitted, associated, unsure = motion_fit(src, tau, dst, bucket_landmarks(dst, 1.5, 1 << 16), x, prior_mean,
+                                                prior_precision, config.radii_m, config.iterations,
+                                                config.min_associated)
+        if not unsure:
+            return _checked(fitted, associated, start, config)
+    associated = 0
+    for radius in config.radii_m:
+        for _ in range(config.iterations):
+            c, s = math.cos(x[2]), math.sin(x[2])
+            local = deskew_points(src, tau, x[3:])
+            pred = np.column_stack([c * local[:, 0] - s * local[:, 1] + x[0], s * local[:, 0] + c * local[:, 1] + x[1]])
+            dist, idx = tree.query(pred, distance_upper_bound=radius)
+            m = np.isfinite(dist)
+            associated = int(m.sum())
+            if associated < config.min_associated:
+                return None
+            x = step(x, src[m], tau[m], dst[idx[m]])
+    return _checked(x, associated, start, config)
+
+
+def _checked(x: np.ndarray, associated: int, start: np.ndarray, config: MotionConfig) -> MotionPolish | None:
+    """The fitted parameters as a ``MotionPolish``, or None when too few landmarks associated or the pose moved
+    more than ``max_shift_m`` / ``max_turn_rad`` from the rigid ``start``."""
+    if associated < config.min_associated:
+        return None
+    x = np.asarray(x, np.float64).copy()
+    x[2] = wrap_angle(float(x[2]))
+    if (math.hypot(x[0] - start[0], x[1] - start[1]) > config.max_shift_m
+            or abs(wrap_angle(float(x[2] - start[2]))) > config.max_turn_rad):
+        return None
+    return MotionPolish(x[:3].copy(), x[3:].copy(), int(associated))

@@ -1,0 +1,173 @@
+"""Motion compensation (``matching.motion``): azimuth times, de-skewing, a map drive's motion, and the pose of a scan
+seen from a moving sensor recovered where the rigid registration keeps the skew as error."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from reradar_core.errors import ConfigError
+from reradar_core.features import ScanFeatures
+from reradar_core.geometry.se2 import compose, inverse, relative_pose, transform_points
+from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer
+from reradar_core.matching.motion import (
+    MotionConfig,
+    azimuth_time_offsets,
+    deskew_points,
+    keyframe_twists,
+    motion_polish,
+)
+from reradar_core.matching.ransac import fit_rigid_2d
+from reradar_core.retrieval import GlobalIndex
+
+T_SWEEP = 0.25
+MID = 399 / 800 * T_SWEEP  # mid-sweep time after the first azimuth, 400 azimuths
+
+
+def test_azimuth_times_run_clockwise_from_straight_ahead() -> None:
+    xy = np.array([[10.0, 0.0], [0.0, -10.0], [-10.0, 0.0], [0.0, 10.0]])  # ahead, right, behind, left
+    np.testing.assert_allclose(azimuth_time_offsets(xy), np.array([0.0, 0.25, 0.5, 0.75]) * T_SWEEP - MID,
+                               atol=1e-12)
+
+
+def test_deskew_moves_points_by_the_motion_at_their_time() -> None:
+    xy = np.array([[0.0, -10.0], [0.0, 10.0]])  # right (seen early), left (seen late)
+    tau = azimuth_time_offsets(xy)
+    moved = deskew_points(xy, tau, np.array([10.0, 0.0, 0.0]))  # 10 m/s forward
+    np.testing.assert_allclose(moved[:, 0], 10.0 * tau, atol=1e-12)
+    turned = deskew_points(np.array([[20.0, 0.0]]), np.array([0.1]), np.array([0.0, 0.0, 0.5]))
+    np.testing.assert_allclose(turned, [[20.0 * math.cos(0.05), 20.0 * math.sin(0.05)]], atol=1e-12)
+
+
+def test_keyframe_twists_from_a_drive_on_a_circle() -> None:
+    # 8 m/s on a circle of radius 40 m (0.2 rad/s), a keyframe every 0.75 s; one keyframe 10 s later alone
+    t = np.arange(8) * 0.75
+    th = 0.2 * t
+    poses = np.column_stack([40 * np.sin(th), 40 * (1 - np.cos(th)), th])
+    poses = np.vstack([poses, [500.0, 0.0, 0.0]])
+    stamps = (np.append(t, 30.0) * 1e6).astype(np.int64)
+    twists, known = keyframe_twists(poses[::-1], stamps[::-1])  # any order
+    twists, known = twists[::-1], known[::-1]
+    assert known[:8].all() and not known[8]
+    np.testing.assert_allclose(twists[:8, 2], 0.2, atol=1e-9)
+    np.testing.assert_allclose(np.hypot(twists[:8, 0], twists[:8, 1]), 8.0, rtol=0.02)  # chord of 0.15-0.3 rad
+    np.testing.assert_array_equal(twists[8], 0.0)
+    # made-up times (poses 50 m apart 1 us apart) are no drive: unknown
+    _, known = keyframe_twists(np.column_stack([np.arange(4) * 50.0, np.zeros(4), np.zeros(4)]), np.arange(4))
+    assert not known.any()
+
+
+def _seen_from(world_xy: np.ndarray, T_world_sensor: np.ndarray, twist: np.ndarray) -> np.ndarray:
+    """Where a sensor at ``T_world_sensor`` (mid-sweep) moving with ``twist`` sees world points (the inverse of
+    ``deskew_points`` after ``transform_points``, solved by fixed-point iteration on each point's azimuth time)."""
+    local = transform_points(inverse(T_world_sensor), world_xy)
+    seen = local.copy()
+    for _ in range(20):
+        tau = azimuth_time_offsets(seen)
+        w = twist[2] * tau
+        shifted = local - np.outer(tau, twist[:2])
+        seen = np.column_stack([np.cos(-w) * shifted[:, 0] - np.sin(-w) * shifted[:, 1],
+                                np.sin(-w) * shifted[:, 0] + np.cos(-w) * shifted[:, 1]])
+    return seen
+
+
+def _street(rng: np.random.Generator, n: int = 600) -> np.ndarray:
+    """World landmarks along a 200 m street (x), both sides and some far returns, none near the x axis ahead
+    (the sweep's seam, where a point's time jumps by a sweep)."""
+    x = rng.uniform(-100, 100, n)
+    y = np.where(rng.random(n) < 0.5, 1.0, -1.0) * rng.uniform(6, 40, n)
+    return np.column_stack([x, y])
+
+
+def test_motion_polish_recovers_the_pose_the_skew_hides() -> None:
+    rng = np.random.default_rng(3)
+    world = _street(rng)
+    T_w_kf = np.array([0.0, 0.0, 0.0])
+    kf_twist = np.array([10.0, 0.0, 0.0])  # the map drive at 10 m/s east
+    T_w_q = np.array([2.0, 3.5, math.pi + 0.03])  # the query drives the other way, 3.5 m over
+    q_twist = np.array([9.0, 0.0, 0.2])  # 9 m/s, turning at 11 deg/s
+    kf_seen = _seen_from(world, T_w_kf, kf_twist)
+    q_seen = _seen_from(world, T_w_q, q_twist) + rng.normal(scale=0.03, size=world.shape)
+    truth = relative_pose(T_w_kf, T_w_q)
+    # the rigid fit of the skewed scans (what the registration answers) misses by the skew
+    rigid = fit_rigid_2d(q_seen, kf_seen)
+    assert np.hypot(*(rigid[:2] - truth[:2])) > 0.2
+    polished = motion_polish(q_seen, kf_seen, rigid, kf_twist)
+    assert polished is not None and polished.num_associated > 500
+    assert np.hypot(*(polished.T_dst_src[:2] - truth[:2])) < 0.03
+    assert abs(polished.T_dst_src[2] - truth[2]) < math.radians(0.05)
+    np.testing.assert_allclose(polished.twist, q_twist, atol=0.3)
+
+
+def test_motion_polish_keeps_the_rigid_pose_when_it_cannot_help() -> None:
+    rng = np.random.default_rng(4)
+    world = _street(rng, 8)
+    seen = _seen_from(world, np.zeros(3), np.zeros(3))
+    assert motion_polish(seen, seen, np.zeros(3), np.zeros(3)) is None  # fewer than min_associated landmarks
+    world = _street(rng)
+    seen = _seen_from(world, np.zeros(3), np.zeros(3))
+    start = np.array([0.3, 0.0, 0.0])  # the rigid pose 0.3 m off: the fit corrects it, unless that moves it too far
+    fixed = motion_polish(seen, seen, start, np.zeros(3))
+    assert fixed is not None and np.hypot(*fixed.T_dst_src[:2]) < 0.01
+    assert motion_polish(seen, seen, start, np.zeros(3), MotionConfig(max_shift_m=0.1)) is None
+    with pytest.raises(ConfigError):
+        MotionConfig(speed_sigma_mps=0.0)
+    with pytest.raises(ConfigError):
+        MotionConfig(radii_m=())
+
+
+def test_localizer_answers_the_compensated_pose_and_the_same_decision() -> None:
+    rng = np.random.default_rng(5)
+    world = _street(rng, 900)
+    # a map drive east at 10 m/s, a keyframe every 0.75 s (7.5 m)
+    n = 6
+    poses = np.column_stack([np.arange(n) * 7.5 - 20.0, np.zeros(n), np.zeros(n)])
+    stamps = (np.arange(n) * 0.75e6).astype(np.int64)
+    twist = np.array([10.0, 0.0, 0.0])
+
+    def unit(x: np.ndarray) -> np.ndarray:
+        return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+    desc = unit(rng.normal(size=(len(world), 16)))  # one local descriptor per world landmark
+
+    def features(T_w_s: np.ndarray, tw: np.ndarray, g: np.ndarray, ts: int) -> ScanFeatures:
+        seen = _seen_from(world, T_w_s, tw)
+        keep = np.hypot(seen[:, 0], seen[:, 1]) < 80.0
+        return ScanFeatures(g, seen[keep], desc[keep], ts)
+
+    g = unit(rng.normal(size=(n, 16)))
+    kfs = [features(poses[i], twist, g[i], int(stamps[i])) for i in range(n)]
+    loc = Localizer(GlobalIndex(g), InMemoryKeyframes(kfs, poses, stamps))
+    T_w_q = np.array([poses[3, 0] + 1.5, 3.5, math.pi])  # driving the other way past keyframe 3
+    query = features(T_w_q, np.array([9.0, 0.0, 0.0]), unit(g[3] + 0.05 * rng.normal(size=16)), 10**9)
+    compensated = loc.localize(query)
+    rigid = loc.localize(query, LocalizationConfig(motion=MotionConfig(enabled=False)))
+    assert compensated.localized and rigid.localized
+    assert compensated.best.keyframe_id == rigid.best.keyframe_id
+    assert compensated.confidence == rigid.confidence and compensated.cues == rigid.cues
+    np.testing.assert_allclose(compensated.T_map_query,
+                               compose(poses[compensated.best.keyframe_id], compensated.best.T_keyframe_query))
+    err = np.hypot(*(compensated.T_map_query[:2] - T_w_q[:2]))
+    assert err < 0.1 < np.hypot(*(rigid.T_map_query[:2] - T_w_q[:2]))
+    assert "motion_ms" in compensated.timings_ms
+
+
+def test_compiled_fit_agrees_with_the_numpy_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    pytest.importorskip("numba")
+    rng = np.random.default_rng(6)
+    world = _street(rng)
+    kf_twist = np.array([8.0, 0.0, 0.1])
+    kf_seen = _seen_from(world, np.zeros(3), kf_twist)
+    q_seen = _seen_from(world, np.array([1.0, -2.0, math.pi - 0.02]), np.array([7.0, 0.1, -0.3]))
+    q_seen += rng.normal(scale=0.03, size=q_seen.shape)
+    start = fit_rigid_2d(q_seen, kf_seen)
+    monkeypatch.setenv("RERADAR_JIT", "1")
+    compiled = motion_polish(q_seen, kf_seen, start, kf_twist)
+    monkeypatch.setenv("RERADAR_JIT", "0")
+    plain = motion_polish(q_seen, kf_seen, start, kf_twist)
+    assert compiled is not None and plain is not None
+    assert compiled.num_associated == plain.num_associated
+    np.testing.assert_allclose(compiled.T_dst_src, plain.T_dst_src, atol=1e-9)
+    np.testing.assert_allclose(compiled.twist, plain.twist, atol=1e-7)
