@@ -349,11 +349,15 @@ def split_runs(split: str, method: Any, config: Any, query_step: int = 1,
 def collection_config(min_inlier_ratio: float = PROBE_FLOOR) -> Any:
     """The ``LocalizationConfig`` of the fit's runs: no confidence bar, the aligned-ratio floor at
     ``min_inlier_ratio`` and the tie margin at ``PROBE_PLACE_MARGIN`` (a higher floor or margin is applied afterwards
-    through their cues), and no repeated-place check (``max_place_repetition`` None: chosen on such runs itself)."""
+    through their cues), no repeated-place check (``max_place_repetition`` None: chosen on such runs itself), and
+    the rigid registration's poses (no motion compensation: the cues a served answer is judged on are the rigid
+    registration's, ``Localizer._motion_compensated``, and a label computed from the same pose keeps them paired)."""
     from reradar_core.localization.pipeline import LocalizationConfig
+    from reradar_core.matching.motion import MotionConfig
 
     return replace(LocalizationConfig(), min_confidence=0.0, min_inlier_ratio=min_inlier_ratio,
-                   min_place_margin=PROBE_PLACE_MARGIN, max_place_repetition=None)
+                   min_place_margin=PROBE_PLACE_MARGIN, max_place_repetition=None,
+                   motion=MotionConfig(enabled=False))
 
 
 def collect_split(split: str, query_step: int = 1, holdout: float = 0.15, progress: bool = True,

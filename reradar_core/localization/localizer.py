@@ -11,6 +11,7 @@ every number the benchmark reports is measured on the service's code path.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -60,6 +61,8 @@ from reradar_core.retrieval import GlobalIndex, similarity_to_distance
 _Item = TypeVar("_Item")
 
 __all__ = ["Localizer", "Retrieval"]
+
+_log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -190,13 +193,19 @@ class Localizer:
         polished = None
         if known[kid]:
             dst = self.cache.get(kid).features.keypoints_xy_m
-            polished = motion_polish(features.keypoints_xy_m, dst, best.T_keyframe_query, twists[kid], mc)
+            try:
+                polished = motion_polish(features.keypoints_xy_m, dst, best.T_keyframe_query, twists[kid], mc)
+            except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:  # a numerical failure: rigid pose
+                _log.warning("motion compensation failed on keyframe %d (%s); rigid pose kept", kid, exc)
         result.timings_ms["motion_ms"] = (time.perf_counter() - t0) * 1e3
         if polished is None:
             return result
+        old = best
         best = replace(best, T_keyframe_query=polished.T_dst_src)
-        return replace(result, best=best, T_map_query=compose(np.asarray(best.T_map_keyframe, np.float64),
-                                                               polished.T_dst_src))
+        # the winner's entry among the candidates answers the same pose (the API lists both)
+        candidates = [best if c is old else c for c in result.candidates]
+        return replace(result, best=best, candidates=candidates,
+                       T_map_query=compose(np.asarray(best.T_map_keyframe, np.float64), polished.T_dst_src))
 
     def _candidate(self, keyframe_id: int, rank: int = 0, descriptor_distance: float = 0.0,
                    wrap: Callable[..., Any] | None = None) -> Candidate:

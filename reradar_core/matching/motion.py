@@ -68,6 +68,9 @@ class MotionConfig:
             counting radius 0.75 m down).
         iterations: Gauss-Newton steps per radius.
         min_associated: landmarks that must associate at the last radius.
+        min_fit_share: the compensated pose must associate at the last radius at least this share of what the rigid
+            pose associates there with the scans as seen (1.0: at least as many; a fit that settled on a wrong
+            motion, e.g. a sweep in which a U-turn begins, associates fewer and the rigid pose is kept).
         max_shift_m, max_turn_rad: a fit that moves the rigid pose farther is discarded.
         The priors were chosen on the training splits' unseen sessions (docs/BENCHMARKS.md "Session 29").
     """
@@ -84,10 +87,18 @@ class MotionConfig:
     radii_m: tuple[float, ...] = (0.75, 0.6, 0.5, 0.4)
     iterations: int = 3
     min_associated: int = 12
+    min_fit_share: float = 1.0
     max_shift_m: float = 3.0
     max_turn_rad: float = math.radians(3.0)
 
     def __post_init__(self) -> None:
+        numbers = (self.sweep_period_s, self.max_keyframe_gap_s, self.max_speed_mps, self.max_yaw_rate_radps,
+                   self.speed_sigma_mps, self.lateral_speed_sigma_mps, self.yaw_rate_sigma_radps, self.max_shift_m,
+                   self.max_turn_rad, *self.radii_m)
+        if not all(math.isfinite(v) for v in numbers):
+            raise ConfigError("the motion settings must be finite numbers")
+        if not 0.0 < self.min_fit_share <= 1.0:
+            raise ConfigError(f"min_fit_share must be in (0, 1], got {self.min_fit_share}")
         if self.sweep_period_s <= 0 or self.num_azimuths < 1 or self.max_keyframe_gap_s <= 0:
             raise ConfigError("sweep_period_s and max_keyframe_gap_s must be positive and num_azimuths >= 1")
         if min(self.speed_sigma_mps, self.lateral_speed_sigma_mps, self.yaw_rate_sigma_radps) <= 0:
@@ -141,9 +152,10 @@ def keyframe_twists(poses: np.ndarray, timestamps_us: np.ndarray,
         poses: (N, 3) ``T_map_keyframe`` (x m, y m, yaw rad) at mid-sweep.
         timestamps_us: (N,) scan times, microseconds (any order; keyframes of one drive).
     Returns:
-        (N, 3) float64 twists (vx m/s, vy m/s, yaw rate rad/s; body frame) and (N,) bool: known (a neighbour in time
-        within ``max_keyframe_gap_s``; central difference when both are, one-sided otherwise; within
-        ``max_speed_mps`` and ``max_yaw_rate_radps``). Unknown rows are 0.
+        (N, 3) float64 twists (vx m/s, vy m/s, yaw rate rad/s; body frame: constant motion along the arc between
+        the neighbours, exact for a constant turn) and (N,) bool: known (a neighbour in time within
+        ``max_keyframe_gap_s``; central difference when both are, one-sided otherwise; the heading turning less than
+        90 deg between them; within ``max_speed_mps`` and ``max_yaw_rate_radps``). Unknown rows are 0.
     """
     poses = np.asarray(poses, np.float64).reshape(-1, 3)
     t = np.asarray(timestamps_us, np.int64).reshape(-1)
@@ -160,7 +172,17 @@ def keyframe_twists(poses: np.ndarray, timestamps_us: np.ndarray,
         i0 = k if before is None else before
         i1 = k if after is None else after
         dt = (t[i1] - t[i0]) * 1e-6
-        twist = relative_pose(poses[i0], poses[i1]) / dt
+        chord = relative_pose(poses[i0], poses[i1])  # in i0's frame; heading change wrapped to (-pi, pi]
+        turn = float(chord[2])
+        if abs(turn) > math.pi / 2:  # neighbours too far apart in heading to say how it turned between them
+            continue
+        # under constant motion the chord runs along the heading halfway between its ends, and its length is the
+        # arc's times sinc(turn / 2); that heading is the body frame of every pose on the arc, k's included
+        c, s = math.cos(turn / 2), math.sin(turn / 2)
+        along = (c * chord[0] + s * chord[1]) / dt
+        across = (-s * chord[0] + c * chord[1]) / dt
+        stretch = 1.0 if turn == 0.0 else (turn / 2) / math.sin(turn / 2)
+        twist = np.array([along * stretch, across * stretch, turn / dt])
         if math.hypot(twist[0], twist[1]) <= config.max_speed_mps and abs(twist[2]) <= config.max_yaw_rate_radps:
             twists[k] = twist
             known[k] = True
@@ -177,17 +199,25 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
         T_dst_src: (3,) the rigid registration's pose (start of the fit).
         dst_twist: (3,) the keyframe's motion (``keyframe_twists``); its speed is the prior's forward speed.
     Returns:
-        ``MotionPolish``, or None when too few landmarks associate or the fit moves the pose more than
-        ``max_shift_m`` / ``max_turn_rad`` (keep the rigid pose).
+        ``MotionPolish``, or None (keep the rigid pose) when an input is not finite, too few landmarks associate (fewer
+        than ``min_associated``, or at the last radius fewer than ``min_fit_share`` of what the rigid pose associates
+        with the scans as seen), or the fit moves the pose more than ``max_shift_m`` / ``max_turn_rad``.
     """
     src = np.asarray(src_xy_m, np.float64).reshape(-1, 2)
+    seen = np.asarray(dst_xy_m, np.float64).reshape(-1, 2)
     dst_twist = np.asarray(dst_twist, np.float64).reshape(3)
-    dst = deskew_points(dst_xy_m, azimuth_time_offsets(dst_xy_m, config), dst_twist)
-    if len(src) < config.min_associated or len(dst) < config.min_associated:
+    start = np.asarray(T_dst_src, np.float64).reshape(3)
+    if (len(src) < config.min_associated or len(seen) < config.min_associated or not np.isfinite(src).all()
+            or not np.isfinite(seen).all() or not np.isfinite(dst_twist).all() or not np.isfinite(start).all()):
         return None
+    dst = deskew_points(seen, azimuth_time_offsets(seen, config), dst_twist)
+    # what the rigid pose associates at the last radius with the scans as seen: the bar the fit must reach
+    c, s = math.cos(start[2]), math.sin(start[2])
+    rigid_pred = np.column_stack([c * src[:, 0] - s * src[:, 1] + start[0], s * src[:, 0] + c * src[:, 1] + start[1]])
+    rigid_count = int(np.isfinite(cKDTree(seen).query(rigid_pred, distance_upper_bound=config.radii_m[-1])[0]).sum())
+    bar = max(config.min_associated, math.ceil(config.min_fit_share * rigid_count))
     tree = cKDTree(dst)
     tau = azimuth_time_offsets(src, config)
-    start = np.asarray(T_dst_src, np.float64).reshape(3)
     prior_mean = np.array([0.0, 0.0, 0.0, float(np.hypot(dst_twist[0], dst_twist[1])), 0.0, 0.0])
     prior_precision = np.array([0.0, 0.0, 0.0, config.speed_sigma_mps ** -2, config.lateral_speed_sigma_mps ** -2,
                                 config.yaw_rate_sigma_radps ** -2])
@@ -201,7 +231,7 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
         residual = (dst_m - np.column_stack([c * lm[:, 0] - s * lm[:, 1] + x[0],
                                              s * lm[:, 0] + c * lm[:, 1] + x[1]])).reshape(-1)  # x0, y0, x1, ...
         # d pred / d params, rows interleaved as the residual: translation, heading, velocity (rotated into the
-        # keyframe's frame), yaw rate (d(R(w tau) p)/dw = tau (-py, px), rotated)
+        # keyframe's frame), yaw rate (rotated)
         jac = np.zeros((2 * len(src_m), 6))
         jac[0::2, 0] = 1.0
         jac[1::2, 1] = 1.0
@@ -209,7 +239,9 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
         jac[1::2, 2] = c * lm[:, 0] - s * lm[:, 1]
         jac[0::2, 3], jac[1::2, 3] = c * tau_m, s * tau_m
         jac[0::2, 4], jac[1::2, 4] = -s * tau_m, c * tau_m
-        px, py = -src_m[:, 1] * tau_m, src_m[:, 0] * tau_m
+        cw, sw = np.cos(x[5] * tau_m), np.sin(x[5] * tau_m)
+        px = -(sw * src_m[:, 0] + cw * src_m[:, 1]) * tau_m  # d(R(w tau) p)/dw = tau R'(w tau) p
+        py = (cw * src_m[:, 0] - sw * src_m[:, 1]) * tau_m
         jac[0::2, 5], jac[1::2, 5] = c * px - s * py, s * px + c * py
         gradient = jac.T @ residual - prior_precision * (x - prior_mean)
         return x + np.linalg.solve(jac.T @ jac + prior_hessian, gradient)
@@ -223,7 +255,7 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
                                                 prior_precision, config.radii_m, config.iterations,
                                                 config.min_associated)
         if not unsure:
-            return _checked(fitted, associated, start, config)
+            return _checked(fitted, associated, bar, start, config)
     associated = 0
     for radius in config.radii_m:
         for _ in range(config.iterations):
@@ -236,13 +268,14 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
             if associated < config.min_associated:
                 return None
             x = step(x, src[m], tau[m], dst[idx[m]])
-    return _checked(x, associated, start, config)
+    return _checked(x, associated, bar, start, config)
 
 
-def _checked(x: np.ndarray, associated: int, start: np.ndarray, config: MotionConfig) -> MotionPolish | None:
-    """The fitted parameters as a ``MotionPolish``, or None when too few landmarks associated or the pose moved
+def _checked(x: np.ndarray, associated: int, bar: int, start: np.ndarray, config: MotionConfig) -> MotionPolish | None:
+    """The fitted parameters as a ``MotionPolish``, or None when fewer than ``bar`` landmarks associated at the last
+    radius (``min_associated``, and ``min_fit_share`` of the rigid pose's), the fit is not finite, or the pose moved
     more than ``max_shift_m`` / ``max_turn_rad`` from the rigid ``start``."""
-    if associated < config.min_associated:
+    if associated < bar or not np.isfinite(x).all():
         return None
     x = np.asarray(x, np.float64).copy()
     x[2] = wrap_angle(float(x[2]))

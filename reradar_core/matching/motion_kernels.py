@@ -4,7 +4,7 @@ The fit's ~20 numpy passes over a few hundred landmarks per Gauss-Newton step, 1
 Python call overhead alone; one compiled loop over the landmarks per step (association through the landmark buckets
 of ``nn_kernels``, the normal equations accumulated in place) costs a fraction of it. It does the same operations
 as the numpy path except the order of the normal equations' sums (BLAS there, left to right here), so the two agree
-to rounding (~1e-12 m), not to the bit (``tests/matching/test_matching_motion.py`` compares them); a look-up that
+to rounding (1e-9 m tested), not to the bit (``tests/matching/test_matching_motion.py`` compares them); a look-up that
 hits a near-tie (``TIE_BAND_M2``) makes the caller take the numpy path, whose KD-tree decides it.
 """
 
@@ -54,7 +54,8 @@ def _motion_fit_kernel(src: np.ndarray, tau: np.ndarray, dst: np.ndarray, x0: np
                 if best < ub:
                     q = order[best_at]
                     rx, ry = dst[q, 0] - px, dst[q, 1] - py
-                    ax, ay = -src[p, 1] * t, src[p, 0] * t
+                    ax = -(sw * src[p, 0] + cw * src[p, 1]) * t  # d(R(w tau) p)/dw = tau R'(w tau) p
+                    ay = (cw * src[p, 0] - sw * src[p, 1]) * t
                     # the two Jacobian rows: x (1, 0, a2, a3, a4, a5) and y (0, 1, b2, b3, b4, b5)
                     jx[2], jx[3], jx[4], jx[5] = -s * lx - c * ly, c * t, -s * t, c * ax - s * ay
                     jy[2], jy[3], jy[4], jy[5] = c * lx - s * ly, s * t, c * t, s * ax + c * ay
