@@ -25,9 +25,10 @@ With the motion fitted rather than known, the benchmark's `loop-sim-hard` answer
 rounds run compiled (``motion_kernels``, ~1.2 ms an answer) when numba is there.
 
 The rigid answer is kept when the map's motion at the keyframe is unknown (no keyframe within
-``max_keyframe_gap_s``), when fewer than ``min_associated`` landmarks associate, or when the fit moves the pose
-more than ``max_shift_m`` / ``max_turn_rad`` (a compensation is a correction of at most a sweep's travel, not a
-new answer).
+``max_keyframe_gap_s``, or one whose heading turned more than 90 deg), when the fit associates fewer landmarks at the
+last radius than the rigid pose does with the scans as seen (``min_fit_share``: a fit that settled on a wrong
+motion), when an input is not finite, or when the fit moves the pose more than ``max_shift_m`` / ``max_turn_rad`` (a
+compensation is a correction of at most a sweep's travel, not a new answer).
 
 Frames and conventions (docs/CONVENTIONS.md): sensor frame x forward, y left; azimuth a clockwise from +x,
 azimuth index k at time t0 + k T / A, mid-sweep at t0 + (A - 1) / 2 * T / A; a twist is (vx m/s, vy m/s,
