@@ -22,7 +22,7 @@ So, after an answer is chosen (its decision, confidence and cues untouched), ``m
 
 With the motion fitted rather than known, the benchmark's `loop-sim-hard` answers go from 0.251 m / 0.294 deg to
 0.070 m / 0.225 deg (docs/BENCHMARKS.md "Session 29"; the priors chosen on the training splits). The Gauss-Newton
-rounds run compiled (``motion_kernels``, ~1.2 ms an answer) when numba is there.
+rounds run compiled (``motion_kernels``, ~1.3 ms an answer) when numba is there.
 
 The rigid answer is kept when the map's motion at the keyframe is unknown (no keyframe within
 ``max_keyframe_gap_s``, or one whose heading turned more than 90 deg), when the fit associates fewer landmarks at the
@@ -44,7 +44,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from reradar_core.errors import ConfigError
-from reradar_core.geometry.se2 import relative_pose, wrap_angle
+from reradar_core.geometry.se2 import relative_pose, transform_points, wrap_angle
 from reradar_core.jit import jit_enabled
 
 __all__ = ["MotionConfig", "MotionPolish", "azimuth_time_offsets", "deskew_points", "keyframe_twists",
@@ -213,9 +213,8 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
         return None
     dst = deskew_points(seen, azimuth_time_offsets(seen, config), dst_twist)
     # what the rigid pose associates at the last radius with the scans as seen: the bar the fit must reach
-    c, s = math.cos(start[2]), math.sin(start[2])
-    rigid_pred = np.column_stack([c * src[:, 0] - s * src[:, 1] + start[0], s * src[:, 0] + c * src[:, 1] + start[1]])
-    rigid_count = int(np.isfinite(cKDTree(seen).query(rigid_pred, distance_upper_bound=config.radii_m[-1])[0]).sum())
+    rigid_at = transform_points(start, src)
+    rigid_count = int(np.isfinite(cKDTree(seen).query(rigid_at, distance_upper_bound=config.radii_m[-1])[0]).sum())
     bar = max(config.min_associated, math.ceil(config.min_fit_share * rigid_count))
     tree = cKDTree(dst)
     tau = azimuth_time_offsets(src, config)
@@ -229,8 +228,7 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
         """One Gauss-Newton step on pairs src_m[i] <-> dst_m[i] (first order in tau), with the motion prior."""
         c, s = math.cos(x[2]), math.sin(x[2])
         lm = deskew_points(src_m, tau_m, x[3:])
-        residual = (dst_m - np.column_stack([c * lm[:, 0] - s * lm[:, 1] + x[0],
-                                             s * lm[:, 0] + c * lm[:, 1] + x[1]])).reshape(-1)  # x0, y0, x1, ...
+        residual = (dst_m - transform_points(x[:3], lm)).reshape(-1)  # x0, y0, x1, y1, ...
         # d pred / d params, rows interleaved as the residual: translation, heading, velocity (rotated into the
         # keyframe's frame), yaw rate (rotated)
         jac = np.zeros((2 * len(src_m), 6))
@@ -260,9 +258,7 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
     associated = 0
     for radius in config.radii_m:
         for _ in range(config.iterations):
-            c, s = math.cos(x[2]), math.sin(x[2])
-            local = deskew_points(src, tau, x[3:])
-            pred = np.column_stack([c * local[:, 0] - s * local[:, 1] + x[0], s * local[:, 0] + c * local[:, 1] + x[1]])
+            pred = transform_points(x[:3], deskew_points(src, tau, x[3:]))
             dist, idx = tree.query(pred, distance_upper_bound=radius)
             m = np.isfinite(dist)
             associated = int(m.sum())
