@@ -216,7 +216,6 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
     rigid_at = transform_points(start, src)
     rigid_count = int(np.isfinite(cKDTree(seen).query(rigid_at, distance_upper_bound=config.radii_m[-1])[0]).sum())
     bar = max(config.min_associated, math.ceil(config.min_fit_share * rigid_count))
-    tree = cKDTree(dst)
     tau = azimuth_time_offsets(src, config)
     prior_mean = np.array([0.0, 0.0, 0.0, float(np.hypot(dst_twist[0], dst_twist[1])), 0.0, 0.0])
     prior_precision = np.array([0.0, 0.0, 0.0, config.speed_sigma_mps ** -2, config.lateral_speed_sigma_mps ** -2,
@@ -255,6 +254,7 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
                                                 config.min_associated)
         if not unsure:
             return _checked(fitted, associated, bar, start, config)
+    tree = cKDTree(dst)
     associated = 0
     for radius in config.radii_m:
         for _ in range(config.iterations):
