@@ -163,30 +163,33 @@ def keyframe_twists(poses: np.ndarray, timestamps_us: np.ndarray,
     n = len(t)
     twists = np.zeros((n, 3), np.float64)
     known = np.zeros(n, bool)
+    if n < 2:
+        return twists, known
+    # every keyframe at once, in time order (a map may hold 100,000: a loop over them cost ~3 s)
     order = np.argsort(t, kind="stable")
-    gap_us = config.max_keyframe_gap_s * 1e6
-    for j, k in enumerate(order):
-        before = order[j - 1] if j > 0 and 0 < t[k] - t[order[j - 1]] <= gap_us else None
-        after = order[j + 1] if j + 1 < n and 0 < t[order[j + 1]] - t[k] <= gap_us else None
-        if before is None and after is None:
-            continue
-        i0 = k if before is None else before
-        i1 = k if after is None else after
-        dt = (t[i1] - t[i0]) * 1e-6
-        chord = relative_pose(poses[i0], poses[i1])  # in i0's frame; heading change wrapped to (-pi, pi]
-        turn = float(chord[2])
-        if abs(turn) > math.pi / 2:  # neighbours too far apart in heading to say how it turned between them
-            continue
-        # under constant motion the chord runs along the heading halfway between its ends, and its length is the
-        # arc's times sinc(turn / 2); that heading is the body frame of every pose on the arc, k's included
-        c, s = math.cos(turn / 2), math.sin(turn / 2)
-        along = (c * chord[0] + s * chord[1]) / dt
-        across = (-s * chord[0] + c * chord[1]) / dt
-        stretch = 1.0 if turn == 0.0 else (turn / 2) / math.sin(turn / 2)
-        twist = np.array([along * stretch, across * stretch, turn / dt])
-        if math.hypot(twist[0], twist[1]) <= config.max_speed_mps and abs(twist[2]) <= config.max_yaw_rate_radps:
-            twists[k] = twist
-            known[k] = True
+    ts = t[order]
+    gaps = np.diff(ts)
+    close = (gaps > 0) & (gaps <= config.max_keyframe_gap_s * 1e6)  # between sorted keyframes j and j + 1
+    has_before = np.concatenate([[False], close])
+    has_after = np.concatenate([close, [False]])
+    j = np.arange(n)
+    i0 = np.where(has_before, j - 1, j)  # sorted positions of the two ends: the neighbours, or k itself
+    i1 = np.where(has_after, j + 1, j)
+    ok = has_before | has_after
+    dt = np.where(ok, (ts[i1] - ts[i0]) * 1e-6, 1.0)
+    chord = relative_pose(poses[order[i0]], poses[order[i1]])  # in i0's frame; heading change wrapped to (-pi, pi]
+    turn = chord[:, 2]
+    # under constant motion the chord runs along the heading halfway between its ends, and its length is the arc's
+    # times sinc(turn / 2); that heading is the body frame of every pose on the arc, k's included
+    c, s = np.cos(turn / 2), np.sin(turn / 2)
+    stretch = 1.0 / np.sinc(turn / (2 * np.pi))  # (turn / 2) / sin(turn / 2), 1 at no turn
+    found = np.column_stack([(c * chord[:, 0] + s * chord[:, 1]) / dt * stretch,
+                             (-s * chord[:, 0] + c * chord[:, 1]) / dt * stretch, turn / dt])
+    # neighbours turned more than 90 deg apart cannot say how it turned between them; faster is no drive's motion
+    ok &= ((np.abs(turn) <= math.pi / 2) & (np.hypot(found[:, 0], found[:, 1]) <= config.max_speed_mps)
+           & (np.abs(found[:, 2]) <= config.max_yaw_rate_radps))
+    twists[order[ok]] = found[ok]
+    known[order] = ok
     return twists, known
 
 
