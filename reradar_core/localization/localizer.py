@@ -99,12 +99,13 @@ class Localizer:
         self.keyframes = keyframes
         self.config = config or LocalizationConfig()
         self.cache = KeyframeCache(keyframes, self.config.alignment, max_cached=cache_size)
-        # per keyframe and settings: a property of the map alone, so any query may fill it (``place_repetition``);
-        # whole tables measured beforehand (a map's stored one, ``adopt_repetitions``) per settings
+        # properties of the map alone, so any query may fill them, under one lock: each keyframe's place repetition
+        # per settings (``place_repetition``), whole tables measured beforehand (a map's stored one,
+        # ``adopt_repetitions``) per settings, and the keyframes' motion on the map drive per settings (``keyframe_twists``)
+        self._cache_lock = threading.Lock()
         self._repetition: dict[tuple, PlaceRepetition] = {}
         self._repetition_tables: dict[tuple, RepetitionTable] = {}
-        self._repetition_lock = threading.Lock()
-        self._twists: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # per settings: a property of the map
+        self._twists: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         warm_up()  # the compiled kernels (numba) are compiled or loaded now, not in the first query
         if preload:
             self.cache.preload()
@@ -169,12 +170,12 @@ class Localizer:
         rate rad/s, and (N,) known), computed once per map and settings."""
         mc = config or self.config.motion
         key = (mc.max_keyframe_gap_s, mc.max_speed_mps, mc.max_yaw_rate_radps)
-        with self._repetition_lock:
+        with self._cache_lock:
             got = self._twists.get(key)
         if got is None:
             got = keyframe_twists(np.asarray(self.keyframes.poses, np.float64),
                                   np.asarray(self.keyframes.timestamps_us, np.int64), mc)
-            with self._repetition_lock:
+            with self._cache_lock:
                 self._twists[key] = got
         return got
 
@@ -229,7 +230,7 @@ class Localizer:
         config = config or self.config
         settings = repetition_key(config)
         key = (int(keyframe_id), settings)
-        with self._repetition_lock:
+        with self._cache_lock:
             table = self._repetition_tables.get(settings)
             known = self._repetition.get(key) if table is None else table.at(int(keyframe_id))
         if known is not None:
@@ -245,7 +246,7 @@ class Localizer:
         rivals = rivals[: config.repetition_rivals]
         rep = place_repetition(self.cache.get(kid).features, np.asarray(poses[kid], np.float64),
                                [self._candidate(j) for j in neighbours], [self._candidate(j) for j in rivals], config)
-        with self._repetition_lock:
+        with self._cache_lock:
             self._repetition[key] = rep
         return rep
 
@@ -292,7 +293,7 @@ class Localizer:
         config = config or self.config
         if len(table) != len(self) or table.settings != repetition_settings(config):
             return False
-        with self._repetition_lock:
+        with self._cache_lock:
             self._repetition_tables[repetition_key(config)] = table
         return True
 
