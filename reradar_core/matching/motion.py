@@ -65,14 +65,20 @@ class MotionConfig:
         speed_sigma_mps: prior on the query's forward speed, around the map drive's speed at the keyframe (3 m/s).
         lateral_speed_sigma_mps: prior on its sideways speed, around 0 (0.3 m/s: a car does not slide).
         yaw_rate_sigma_radps: prior on its yaw rate, around 0 (1 rad/s: weak; a U-turn is ~0.8).
-        radii_m: association radii of the Gauss-Newton rounds, coarse to fine (the pose polish's, from the
-            counting radius 0.75 m down).
+        radii_m: association radii of the Gauss-Newton rounds, coarse to fine: from 3 m, because on a drive the
+            other way at 20-30 m/s the rigid pose is 1.4-2.8 m off along the track (each sweep's skew pulls the
+            other way) and a fit whose first association is narrower cannot reach the right pose (session 30),
+            down to the pose polish's 0.75-0.4 m.
         iterations: Gauss-Newton steps per radius.
         min_associated: landmarks that must associate at the last radius.
         min_fit_share: the compensated pose must associate at the last radius at least this share of what the rigid
             pose associates there with the scans as seen (1.0: at least as many; a fit that settled on a wrong
             motion, e.g. a sweep in which a U-turn begins, associates fewer and the rigid pose is kept).
-        max_shift_m, max_turn_rad: a fit that moves the rigid pose farther is discarded.
+        max_shift_m, max_turn_rad: a fit that moves the rigid pose farther is discarded; the shift allowed is at least
+            a sweep's travel at the map drive's speed there (7.5 m at 30 m/s).
+        Bounds (checked): sigmas 1e-4..1e4, at most 32 radii of at most 50 m, 1..50 iterations, min_associated
+        3..10,000, a sweep of at most 10 s and 100,000 azimuths (a typo must fail at start-up, not slow or silence
+        every answer).
         The priors were chosen on the training splits' unseen sessions (docs/BENCHMARKS.md "Session 29").
     """
 
@@ -85,7 +91,7 @@ class MotionConfig:
     speed_sigma_mps: float = 3.0
     lateral_speed_sigma_mps: float = 0.3
     yaw_rate_sigma_radps: float = 1.0
-    radii_m: tuple[float, ...] = (0.75, 0.6, 0.5, 0.4)
+    radii_m: tuple[float, ...] = (3.0, 2.0, 1.5, 1.0, 0.75, 0.6, 0.5, 0.4)
     iterations: int = 3
     min_associated: int = 12
     min_fit_share: float = 1.0
@@ -108,6 +114,15 @@ class MotionConfig:
             raise ConfigError("radii_m must be positive radii, iterations >= 1 and min_associated >= 3")
         if self.max_shift_m <= 0 or self.max_turn_rad <= 0 or self.max_speed_mps <= 0 or self.max_yaw_rate_radps <= 0:
             raise ConfigError("max_shift_m, max_turn_rad, max_speed_mps and max_yaw_rate_radps must be positive")
+        # upper bounds: 1 / sigma^2 must not overflow, and no setting may make every answer slow
+        if max(self.speed_sigma_mps, self.lateral_speed_sigma_mps, self.yaw_rate_sigma_radps) > 1e4 or min(
+                self.speed_sigma_mps, self.lateral_speed_sigma_mps, self.yaw_rate_sigma_radps) < 1e-4:
+            raise ConfigError("the motion priors' sigmas must be between 1e-4 and 1e4")
+        if len(self.radii_m) > 32 or max(self.radii_m) > 50.0 or self.iterations > 50 or self.min_associated > 10_000:
+            raise ConfigError("radii_m must hold at most 32 radii of at most 50 m, iterations at most 50 and "
+                              "min_associated at most 10000")
+        if self.sweep_period_s > 10.0 or self.num_azimuths > 100_000:
+            raise ConfigError("sweep_period_s must be at most 10 s and num_azimuths at most 100000")
 
 
 @dataclass(frozen=True)
@@ -224,6 +239,8 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
     prior_precision = np.array([0.0, 0.0, 0.0, config.speed_sigma_mps ** -2, config.lateral_speed_sigma_mps ** -2,
                                 config.yaw_rate_sigma_radps ** -2])
     prior_hessian = np.diag(prior_precision) + 1e-9 * np.eye(6)
+    # a sweep's travel at the map drive's speed: how far the two sweeps' skews can have pulled the rigid pose
+    max_shift = max(config.max_shift_m, config.sweep_period_s * prior_mean[3])
     x = np.concatenate([start, prior_mean[3:]])
 
     def step(x: np.ndarray, src_m: np.ndarray, tau_m: np.ndarray, dst_m: np.ndarray) -> np.ndarray:
@@ -256,7 +273,7 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
                                                 prior_precision, config.radii_m, config.iterations,
                                                 config.min_associated)
         if not unsure:
-            return _checked(fitted, associated, bar, start, config)
+            return _checked(fitted, associated, bar, start, max_shift, config)
     tree = cKDTree(dst)
     associated = 0
     for radius in config.radii_m:
@@ -268,18 +285,19 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
             if associated < config.min_associated:
                 return None
             x = step(x, src[m], tau[m], dst[idx[m]])
-    return _checked(x, associated, bar, start, config)
+    return _checked(x, associated, bar, start, max_shift, config)
 
 
-def _checked(x: np.ndarray, associated: int, bar: int, start: np.ndarray, config: MotionConfig) -> MotionPolish | None:
+def _checked(x: np.ndarray, associated: int, bar: int, start: np.ndarray, max_shift: float,
+             config: MotionConfig) -> MotionPolish | None:
     """The fitted parameters as a ``MotionPolish``, or None when fewer than ``bar`` landmarks associated at the last
     radius (``min_associated``, and ``min_fit_share`` of the rigid pose's), the fit is not finite, or the pose moved
-    more than ``max_shift_m`` / ``max_turn_rad`` from the rigid ``start``."""
+    more than ``max_shift`` (m) / ``max_turn_rad`` from the rigid ``start``."""
     if associated < bar or not np.isfinite(x).all():
         return None
     x = np.asarray(x, np.float64).copy()
     x[2] = wrap_angle(float(x[2]))
-    if (math.hypot(x[0] - start[0], x[1] - start[1]) > config.max_shift_m
+    if (math.hypot(x[0] - start[0], x[1] - start[1]) > max_shift
             or abs(wrap_angle(float(x[2] - start[2]))) > config.max_turn_rad):
         return None
     return MotionPolish(x[:3].copy(), x[3:].copy(), int(associated))

@@ -10,7 +10,7 @@ import pytest
 
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
-from reradar_core.geometry.se2 import compose, inverse, relative_pose, transform_points
+from reradar_core.geometry.se2 import compose, inverse, relative_pose, transform_points, wrap_angle
 from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer
 from reradar_core.matching.motion import (
     MotionConfig,
@@ -99,6 +99,38 @@ def test_motion_polish_recovers_the_pose_the_skew_hides() -> None:
     assert np.hypot(*(polished.T_dst_src[:2] - truth[:2])) < 0.03
     assert abs(polished.T_dst_src[2] - truth[2]) < math.radians(0.05)
     np.testing.assert_allclose(polished.twist, q_twist, atol=0.3)
+
+
+def test_motion_polish_reaches_a_fast_drive_the_other_way() -> None:
+    # both drives at 25 m/s, the query the other way: the skews pull the rigid pose along the track by more than the
+    # fine radii reach (the registration answered 1.4-2.8 m off at 20-30 m/s, session 30's QA)
+    rng = np.random.default_rng(7)
+    world = _street(rng)
+    kf_twist = np.array([25.0, 0.0, 0.0])
+    T_w_q = np.array([1.0, 3.5, math.pi])
+    kf_seen = _seen_from(world, np.zeros(3), kf_twist)
+    q_seen = _seen_from(world, T_w_q, np.array([25.0, 0.0, 0.0])) + rng.normal(scale=0.03, size=world.shape)
+    truth = relative_pose(np.zeros(3), T_w_q)
+    start = truth + np.array([1.6, 0.0, 0.0])  # along the track, as the registration answers
+    fine_only = motion_polish(q_seen, kf_seen, start, kf_twist, MotionConfig(radii_m=(0.75, 0.6, 0.5, 0.4)))
+    assert fine_only is None or np.hypot(*(fine_only.T_dst_src[:2] - truth[:2])) > 0.5
+    polished = motion_polish(q_seen, kf_seen, start, kf_twist)
+    assert polished is not None
+    assert np.hypot(*(polished.T_dst_src[:2] - truth[:2])) < 0.05
+    assert abs(wrap_angle(float(polished.T_dst_src[2] - truth[2]))) < math.radians(0.05)
+    # 4 m off at 30 m/s: more than max_shift_m (3 m) but less than a sweep's travel (7.5 m), so still reached
+    far = motion_polish(q_seen, kf_seen, truth + np.array([4.0, 0.0, 0.0]), np.array([30.0, 0.0, 0.0]),
+                        MotionConfig(radii_m=(5.0, 3.0, 2.0, 1.5, 1.0, 0.75, 0.6, 0.5, 0.4)))
+    assert far is not None and np.hypot(*(far.T_dst_src[:2] - truth[:2])) < 1.0
+
+
+@pytest.mark.parametrize("bad", [{"yaw_rate_sigma_radps": 1e-200}, {"speed_sigma_mps": 1e9}, {"iterations": 2000},
+                                 {"sweep_period_s": 250.0}, {"num_azimuths": 10 ** 12}, {"min_associated": 100_000},
+                                 {"radii_m": (60.0, 0.4)}, {"radii_m": (1.0,) * 40}])
+def test_motion_settings_out_of_range_fail_at_construction(bad: dict) -> None:
+    # accepted, each would have failed or slowed every answer instead (overflow of 1 / sigma^2, 290 ms fits)
+    with pytest.raises(ConfigError):
+        MotionConfig(**bad)
 
 
 def test_motion_polish_keeps_the_rigid_pose_when_it_cannot_help() -> None:
