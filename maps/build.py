@@ -27,7 +27,7 @@ from reradar_core.localization.keyframes import select_keyframes  # re-exported:
 from reradar_core.retrieval import GlobalIndex
 
 __all__ = ["select_keyframes", "cap_keypoints", "build_map", "build_map_from_sequence", "measure_place_repetition",
-           "add_place_repetition", "unjudged_warning", "REPETITION_CACHE_KEYFRAMES", "UNJUDGED_WARN_SHARE"]
+           "add_place_repetition", "unjudged_warning", "motion_warning", "MOTION_UNKNOWN_WARN_SHARE", "REPETITION_CACHE_KEYFRAMES", "UNJUDGED_WARN_SHARE"]
 
 #: Keyframes whose screen data the place-repetition pass keeps in memory (~50 KB each: ~400 MB at most); a larger
 #: map is read back through an LRU of this size (the pass goes along the map, so neighbours stay cached; rivals
@@ -95,6 +95,29 @@ def unjudged_warning(table: RepetitionTable, num_keyframes: int) -> str | None:
             f"places')")
 
 
+#: Share of a map's keyframes whose motion on the map drive may be unknown before the build warns.
+MOTION_UNKNOWN_WARN_SHARE = 0.1
+
+
+def motion_warning(poses: np.ndarray, timestamps_us: np.ndarray, config: LocalizationConfig | None = None) -> str | None:
+    """A sentence for the user when over ``MOTION_UNKNOWN_WARN_SHARE`` of the keyframes have no known motion on the
+    map drive (``matching.motion.keyframe_twists``: no keyframe within ``max_keyframe_gap_s`` in time, or times and
+    poses that are no drive's), so answers on them keep the rigid pose (not motion-compensated), else None."""
+    from reradar_core.matching.motion import keyframe_twists
+
+    motion = (config or LocalizationConfig()).motion
+    if not motion.enabled or len(poses) == 0:
+        return None
+    _, known = keyframe_twists(np.asarray(poses, np.float64), np.asarray(timestamps_us, np.int64), motion)
+    k = int((~known).sum())
+    if k <= MOTION_UNKNOWN_WARN_SHARE * len(known):
+        return None
+    return (f"{k} of {len(known)} keyframes have no keyframe within {motion.max_keyframe_gap_s:g} s of them on the map "
+            f"drive (or their times and poses are no drive's), so answers on them are not motion-compensated (their "
+            f"pose error is the rigid registration's, 1.2-4.5x larger on the benchmark suites); build the map with "
+            f"keyframes closer in time (a smaller --min-spacing-m; docs/CONVENTIONS.md 'Motion compensation')")
+
+
 def add_place_repetition(path: str | Path, out: str | Path | None = None, localization: LocalizationConfig | None = None,
                          workers: int | None = None, show_progress: bool = False,
                          overwrite: bool = False) -> RepetitionTable:
@@ -104,7 +127,7 @@ def add_place_repetition(path: str | Path, out: str | Path | None = None, locali
     ``build-map`` stored it, or with ``--no-place-repetition``. Returns the table."""
     from maps.store import open_map, store_place_repetition
 
-    with open_map(path) as m:
+    with open_map(path, read_place_repetition=False) as m:  # a damaged table is what this replaces
         assert m.global_descriptors is not None
         sha = m.content_sha256()
         table = measure_place_repetition(m, m.global_descriptors, localization or LocalizationConfig(), workers,
@@ -206,6 +229,8 @@ def build_map(
             writer.set_place_repetition(table)
             if (message := unjudged_warning(table, n)) is not None:
                 logger.warning("%s: %s", Path(out).name, message)
+        if (message := motion_warning(writer.poses, writer.timestamps_us, config)) is not None:
+            logger.warning("%s: %s", Path(out).name, message)
     except BaseException as exc:
         if writer is not None:
             writer.__exit__(type(exc), exc, exc.__traceback__)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import typer
 
 from reradar_core.errors import ReRadarError
@@ -76,18 +77,22 @@ def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -
     descriptors and keyframe groups, one per keyframe; the checks of opening a map for localization), and its stored
     place repetition (null when it has none): whether the default settings use it, the keyframes it marks
     (repetition >= LocalizationConfig.max_place_repetition), those it cannot judge (no keyframe of their own place
-    aligns with them) and the largest repetition."""
+    aligns with them) and the largest repetition; and how many keyframes have a known motion on the map drive
+    (``keyframe_motion``: answers on the others are not motion-compensated)."""
     from maps.store import open_map
 
     if path.is_dir():
         typer.echo(f"error: {path} is a folder, not a map file (.h5)", err=True)
         raise typer.Exit(2)
+    from maps.build import motion_warning
     from reradar_core.localization import LocalizationConfig, repetition_settings
+    from reradar_core.matching.motion import keyframe_twists
 
     try:
         kf_map = open_map(path)
         meta = kf_map.metadata
         table = kf_map.place_repetition
+        poses, stamps = np.asarray(kf_map.poses, np.float64), np.asarray(kf_map.timestamps_us, np.int64)
         kf_map.close()
     except ReRadarError as exc:
         typer.echo(f"error: {exc}", err=True)
@@ -101,7 +106,11 @@ def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -
         "keyframes_unjudged": table.unjudged,
         "max_ratio": round(table.max_ratio, 4),
     }
+    _, known = keyframe_twists(poses, stamps, default.motion)
+    info["keyframe_motion"] = {"known": int(known.sum()), "keyframes": len(known)}
     typer.echo(json.dumps(info, indent=2))
+    if (message := motion_warning(poses, stamps, default)) is not None:
+        typer.echo(f"warning: {message}", err=True)
 
 
 def map_repetition_command(

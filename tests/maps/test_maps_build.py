@@ -9,7 +9,7 @@ import pytest
 
 from maps.build import build_map, build_map_from_sequence, cap_keypoints, select_keyframes
 from maps.store import open_map
-from reradar_core.errors import ConfigError
+from reradar_core.errors import ConfigError, MapFormatError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.cartesian import CartesianConfig
 from reradar_core.io.datasets import write_sequence_poses, write_sequence_scan
@@ -289,11 +289,80 @@ def test_a_map_too_sparse_for_the_check_says_so(tmp_path: Path, caplog: pytest.L
     with caplog.at_level("WARNING", logger="maps.build"):
         sparse = _street_build(tmp_path, "sparse.h5", step=4)
     assert "45 of 45 keyframes have no keyframe of their own place" in caplog.text
-    info = json.loads(CliRunner().invoke(app, ["map-info", str(sparse)]).output)
+    info = json.loads(CliRunner().invoke(app, ["map-info", str(sparse)]).stdout)
     assert info["place_repetition"]["keyframes_unjudged"] == 45 and info["place_repetition"]["keyframes_marked"] == 0
     caplog.clear()
     with caplog.at_level("WARNING", logger="maps.build"):
         dense = _street_build(tmp_path, "dense.h5")
     assert "have no keyframe of their own place" not in caplog.text
-    info = json.loads(CliRunner().invoke(app, ["map-info", str(dense)]).output)
+    info = json.loads(CliRunner().invoke(app, ["map-info", str(dense)]).stdout)
     assert info["place_repetition"]["keyframes_unjudged"] <= 2  # at most the street's ends
+
+
+def test_a_map_without_a_drive_in_time_says_its_answers_are_not_motion_compensated(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Keyframes 6 m apart 1 us apart (made-up times) or 25 s apart: no keyframe has a known motion on the map drive,
+    so no answer is motion-compensated; the build warns and map-info counts them. At 8 m/s (0.75 s apart) every
+    keyframe's motion is known and nothing is said."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from reradar_cli import app
+
+    n = 30
+    poses = np.column_stack([6.0 * np.arange(n), np.zeros(n), np.zeros(n)])
+
+    def build(name: str, dt_us: int) -> Path:
+        def load(i: int) -> RadarScan:
+            return RadarScan.from_power(np.zeros((400, 3360), np.float32), "boreas", start_time_us=dt_us * i)
+
+        return build_map(tmp_path / name, PeriodicStreetExtractor(), load, poses, radar_preset="boreas",
+                         place_repetition=False)
+
+    for name, dt_us in (("madeup.h5", 1), ("sparse.h5", 25_000_000)):
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="maps.build"):
+            out = build(name, dt_us)
+        assert "30 of 30 keyframes have no keyframe within 2 s of them" in caplog.text
+        res = CliRunner().invoke(app, ["map-info", str(out)])
+        assert res.exit_code == 0 and json.loads(res.stdout)["keyframe_motion"] == {"known": 0, "keyframes": 30}
+        assert "not motion-compensated" in res.stderr
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="maps.build"):
+        out = build("drive.h5", 750_000)
+    assert "motion-compensated" not in caplog.text
+    res = CliRunner().invoke(app, ["map-info", str(out)])
+    assert json.loads(res.stdout)["keyframe_motion"] == {"known": 30, "keyframes": 30} and res.stderr == ""
+
+
+def test_a_damaged_place_repetition_is_measured_again_by_map_repetition(tmp_path: Path) -> None:
+    """A NaN score or a table one row short makes the map unreadable (its error says the remedy); `reradar
+    map-repetition` replaces the table without reading it, and the map is whole again (keyframes untouched)."""
+    import h5py
+    from typer.testing import CliRunner
+
+    from reradar_cli import app
+
+    good = _street_build(tmp_path, "street.h5")
+    with open_map(good) as m:
+        poses, table = m.poses.copy(), m.place_repetition
+    assert table is not None
+    for damage in ("nan", "short"):
+        bad = tmp_path / f"{damage}.h5"
+        bad.write_bytes(good.read_bytes())
+        with h5py.File(bad, "r+") as f:
+            scores = f["place_repetition/rival_score"]
+            if damage == "nan":
+                scores[3] = np.nan
+            else:
+                del f["place_repetition/rival_score"]
+                f["place_repetition"].create_dataset("rival_score", data=np.asarray(table.rival_score)[:-1])
+        with pytest.raises(MapFormatError, match="`reradar map-repetition` measures and stores it again"):
+            open_map(bad)
+        res = CliRunner().invoke(app, ["map-repetition", str(bad)])
+        assert res.exit_code == 0, res.output
+        with open_map(bad) as m:
+            assert m.place_repetition is not None
+            np.testing.assert_array_equal(m.place_repetition.rival_score, table.rival_score)
+            np.testing.assert_array_equal(m.poses, poses)
