@@ -493,10 +493,11 @@ class KeyframeMap:
         poses: (N, 3) float64 ``T_map_keyframe`` (x m, y m, yaw rad).
         global_descriptors: (N, D) float32.
         place_repetition: the keyframes' place repetitions measured at build time (``RepetitionTable``), or None
-            for a map built without them (the localizer then measures each keyframe as it first wins).
+            for a map built without them (the localizer then measures each keyframe as it first wins), or opened
+            with ``read_place_repetition=False`` (a table about to be replaced is not read, so a damaged one can be).
     """
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, read_place_repetition: bool = True) -> None:
         self.path = Path(path)
         self._lock = threading.Lock()
         self._sha256: str | None = None
@@ -506,7 +507,10 @@ class KeyframeMap:
             _check_links(self._file, self.path)
             self.metadata = _read_metadata(self._file, self.path)
             self.timestamps_us, self.poses, self.global_descriptors = self._read_arrays(self._file)
-            self.place_repetition = self._read_place_repetition(self._file)
+            try:
+                self.place_repetition = self._read_place_repetition(self._file) if read_place_repetition else None
+            except MapFormatError as exc:  # the remedy: measure it again (the keyframes are intact)
+                raise MapFormatError(f"{exc}; `reradar map-repetition` measures and stores it again") from exc
         except MapFormatError:
             self.close()
             raise
@@ -659,14 +663,16 @@ class KeyframeMap:
         self.close()
 
 
-def open_map(path: str | Path, model_id: str | None = None, weights_sha256: str | None = None) -> KeyframeMap:
-    """Open the map at ``path``; if ``weights_sha256`` is given, refuse a map built by another model.
+def open_map(path: str | Path, model_id: str | None = None, weights_sha256: str | None = None,
+             read_place_repetition: bool = True) -> KeyframeMap:
+    """Open the map at ``path``; if ``weights_sha256`` is given, refuse a map built by another model;
+    ``read_place_repetition=False``: leave its ``/place_repetition`` unread (``KeyframeMap``).
 
     Raises:
         MapFormatError: unreadable / wrong schema / inconsistent file.
         ModelMismatchError: built with other weights.
     """
-    kf_map = KeyframeMap(path)
+    kf_map = KeyframeMap(path, read_place_repetition)
     if weights_sha256 is not None:
         try:
             check_model(kf_map.metadata, model_id or "?", weights_sha256, kf_map.path)
@@ -857,7 +863,8 @@ def store_place_repetition(path: str | Path, table: RepetitionTable, out: str | 
         before = identity(os.stat(src))
         shutil.copyfile(src, tmp)
         shutil.copymode(src, tmp)
-        with KeyframeMap(tmp) as m:  # the copy is validated as any map is opened, and is the one measured
+        # the copy is validated as any map is opened (but the table it replaces), and is the one measured
+        with KeyframeMap(tmp, read_place_repetition=False) as m:
             n = len(m)
             if expect_sha256 is not None and m.content_sha256() != expect_sha256:
                 raise MapFormatError(f"{src}: the map changed while its place repetition was measured; run again")
