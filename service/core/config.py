@@ -96,6 +96,39 @@ MIN_KEY_LENGTH = 16
 OPERATOR_KEY_FILE = ".operator-key"
 
 
+def _sequence_fields(value: object, config: type) -> object:
+    """``value`` (the nested dict pydantic-settings builds from ``RERADAR_LOCALIZATION__*`` variables) with each text
+    given for a tuple field of the dataclass ``config`` (e.g. ``MOTION__RADII_M``) read as a list: ``[3, 2, 1]``,
+    ``(3, 2, 1)`` or ``3,2,1`` (pydantic-settings decodes JSON only for top-level fields; a nested tuple was refused
+    as "Input should be a valid tuple" whatever was written). Text that does not parse is left for pydantic's error."""
+    import dataclasses
+    import json
+    import types
+    import typing
+
+    if not isinstance(value, dict) or not dataclasses.is_dataclass(config):
+        return value
+    hints = typing.get_type_hints(config)
+    out = dict(value)
+    for name, given in value.items():
+        hint = hints.get(name)
+        options = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
+        nested = next((o for o in options if isinstance(o, type) and dataclasses.is_dataclass(o)), None)
+        if nested is not None:
+            out[name] = _sequence_fields(given, nested)
+        elif isinstance(given, str) and any(typing.get_origin(o) in (tuple, list) for o in options):
+            text = given.strip()
+            if text[:1] + text[-1:] in ("()", "[]"):
+                text = text[1:-1]
+            if text.lower() in ("none", "null") and type(None) in options:
+                continue
+            try:
+                out[name] = json.loads(f"[{text}]")
+            except ValueError:
+                pass
+    return out
+
+
 def is_loopback(host: str | None) -> bool:
     """True for 127.0.0.0/8, ::1, ``localhost`` (and IPv4-mapped loopback)."""
     import ipaddress
@@ -290,6 +323,11 @@ class Settings(BaseSettings):
             raise ValueError("; ".join(f"{v} is no localization setting" + (f" (did you mean {near}?)" if near else
                                        " (docs/SERVICE.md lists them)") for v, near in typos))
         return self
+
+    @field_validator("localization", mode="before")
+    @classmethod
+    def _sequences_from_text(cls, value: object) -> object:
+        return _sequence_fields(value, LocalizationConfig)
 
     @field_validator("redis_url")
     @classmethod

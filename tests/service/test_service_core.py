@@ -66,6 +66,24 @@ def test_keys_have_no_usable_default(monkeypatch: pytest.MonkeyPatch, tmp_path: 
     monkeypatch.delenv("RERADAR_TOP_K")
 
 
+@pytest.mark.parametrize("text", ["[3, 2, 0.5]", "(3, 2, 0.5)", "3,2,0.5", " 3, 2, 0.5 "])
+def test_tuple_settings_are_read_from_their_nested_variables(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
+                                                             text: str) -> None:
+    """QA (session 30): RERADAR_LOCALIZATION__MOTION__RADII_M was refused as "Input should be a valid tuple" in
+    every form (pydantic-settings decodes JSON only for top-level fields); only the whole-JSON form worked."""
+    monkeypatch.setenv("RERADAR_LOCALIZATION__MOTION__RADII_M", text)
+    monkeypatch.setenv("RERADAR_LOCALIZATION__ALIGNMENT__REFINE_THRESHOLDS_M", text)
+    s = Settings(maps_dir=tmp_path)
+    assert s.localization.motion.radii_m == (3.0, 2.0, 0.5)
+    assert s.localization.alignment.refine_thresholds_m == (3.0, 2.0, 0.5)
+    monkeypatch.setenv("RERADAR_LOCALIZATION__MOTION__RADII_M", "3, two")  # still a settings error, not a guess
+    with pytest.raises(ValidationError, match="radii_m"):
+        Settings(maps_dir=tmp_path)
+    monkeypatch.setenv("RERADAR_LOCALIZATION__MOTION__RADII_M", "60, 1")  # and still validated by the config
+    with pytest.raises(ValidationError, match="at most 50 m"):
+        Settings(maps_dir=tmp_path)
+
+
 def test_misspelt_settings_are_refused_or_reported(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     """QA (session 21): RERADAR_LOCALIZATION__TOPK=3 started a server that used top_k 10, and a typo in
     RERADAR_NETWORK_RUNTIME ended in a traceback (exit 3) instead of the one-line settings error (exit 2)."""
