@@ -10,6 +10,10 @@ boreas preset, all in worlds no training split renders):
   two query drives, 1 m right (traversal seed 31) and 1.5 m left (traversal seed 77) of it, every 4th scan;
 - ``loop``: the 120 x 80 m loop of ``tracking_changed_scene.py``: the map drive (every 2nd scan) and a drive 1 m to
   the side (traversal seed 31), every scan.
+- ``outback``: the straight road driven out and back (the red-teams' "out-and-back" street): 240 m heading +x at
+  8 m/s, a U-turn of radius 4 m to the left at 3 m/s (43 deg/s; the speed changes within one step, so the U-turn's
+  first scan starts turning within its sweep), and 240 m back heading -x in the other lane (8 m over); the map
+  drive (every 3rd scan) and a drive 1 m to the side (traversal seed 31), every 2nd scan.
 
 Then localizes every query scan globally on its map (``MapDatabase.localize``, as the benchmark does) with the shipped
 confidence model and, with ``--compare``, another model JSON (e.g. the previous commit's ``confidence_model.json``),
@@ -27,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -44,7 +49,11 @@ STRAIGHT_M, STRAIGHT_Y_M = 240.0, 20.0
 ROUTES = {
     "straight": (3, {"right1m": (-1.0, 31, 4), "left1.5m": (1.5, 77, 4)}),
     "loop": (2, {"same": (-1.0, 31, 1)}),
+    "outback": (3, {"right1m": (-1.0, 31, 2)}),
 }
+
+#: the out-and-back road's U-turn: radius (m) and speed in it (m/s)
+UTURN_R_M, UTURN_SPEED_MPS = 4.0, 3.0
 
 
 def straight_poses() -> np.ndarray:
@@ -53,11 +62,33 @@ def straight_poses() -> np.ndarray:
     return np.column_stack([x, np.full_like(x, STRAIGHT_Y_M), np.zeros_like(x)])
 
 
+def outback_poses() -> tuple[np.ndarray, np.ndarray]:
+    """(N,) times s and (N, 3) x m, y m, yaw rad every ``STEP_M`` along the out-and-back road: the straight road
+    heading +x, a left U-turn of radius ``UTURN_R_M`` at ``UTURN_SPEED_MPS``, the road back heading -x at
+    ``SPEED_MPS``."""
+    out = straight_poses()
+    n_turn = int(round(math.pi * UTURN_R_M / STEP_M))
+    phi = np.arange(1, n_turn + 1) * (math.pi / n_turn)
+    cx, cy = STRAIGHT_M, STRAIGHT_Y_M + UTURN_R_M
+    turn = np.column_stack([cx + UTURN_R_M * np.sin(phi), cy - UTURN_R_M * np.cos(phi), phi])
+    back_x = np.arange(STRAIGHT_M - STEP_M, -STEP_M / 2, -STEP_M)
+    back = np.column_stack([back_x, np.full_like(back_x, STRAIGHT_Y_M + 2 * UTURN_R_M), np.full_like(back_x, math.pi)])
+    poses = np.vstack([out, turn, back])
+    speed = np.r_[np.full(len(out), SPEED_MPS), np.full(n_turn, UTURN_SPEED_MPS), np.full(len(back), SPEED_MPS)]
+    # the time to reach each pose: the step before it at the speed of the stretch the pose belongs to
+    step = np.r_[0.0, np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1)]
+    return np.cumsum(step / speed), poses
+
+
 def render(work: Path, profile: str, route: str, tile_types: int) -> Path:
     """The route's map and query drives in the profile's periodic world under ``work/route-profile`` (kept)."""
     if route == "straight":
         write_trajectory(work / "straight.csv", straight_poses())
         common = ["--trajectory", str(work / "straight.csv")]
+    elif route == "outback":
+        t_s, poses = outback_poses()
+        write_trajectory(work / "outback.csv", poses, t_s)
+        common = ["--trajectory", str(work / "outback.csv")]
     else:
         write_trajectory(work / "map.csv", loop_poses(0.0))
         write_trajectory(work / "rev.csv", loop_poses(0.3, reverse=True))

@@ -57,9 +57,9 @@ def loop_poses(start_fraction: float = 0.0, reverse: bool = False) -> np.ndarray
     return dense[:: int(round(STEP_M / ds))]
 
 
-def write_trajectory(path: Path, poses: np.ndarray) -> None:
-    """A ``t_s,x,y,yaw_rad`` CSV at ``SPEED_MPS``."""
-    t = np.arange(len(poses)) * STEP_M / SPEED_MPS
+def write_trajectory(path: Path, poses: np.ndarray, t_s: np.ndarray | None = None) -> None:
+    """A ``t_s,x,y,yaw_rad`` CSV: the (N,) times ``t_s`` (s), or poses ``STEP_M`` apart at ``SPEED_MPS``."""
+    t = np.arange(len(poses)) * STEP_M / SPEED_MPS if t_s is None else np.asarray(t_s, np.float64)
     yaw = (poses[:, 2] + math.pi) % (2 * math.pi) - math.pi
     rows = [f"{ti:.6f},{x:.4f},{y:.4f},{a:.6f}" for ti, x, y, a in zip(t, poses[:, 0], poses[:, 1], yaw, strict=True)]
     path.write_text("t_s,x,y,yaw_rad\n" + "\n".join(rows) + "\n")
