@@ -323,7 +323,8 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
         lat, outc, kinds, conf, prior = [], [], [], [], None
         for n, (f, gt) in enumerate(zip(feats, gts, strict=True)):
             if prior is not None:
-                prior = prior.moved(noisy_odometry(relative_pose(gts[n - 1], gt), odometry_noise, rng))
+                prior = prior.moved(noisy_odometry(relative_pose(gts[n - 1], gt), odometry_noise, rng),
+                                    timestamp_us=f.timestamp_us)  # as the service's sessions: a speed for the pose
             t0 = time.perf_counter()
             res = db.track(f, prior) if prior is not None else db.localize(f)
             lat.append((time.perf_counter() - t0) * 1e3)
@@ -331,7 +332,7 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
             kinds.append("tracking" if res.mode == "tracking" else ("lost" if res.tracking_lost else "global"))
             conf.append(float(res.confidence) if res.confidence is not None else math.nan)
             if res.localized:
-                prior = PosePrior(res.T_map_query, 0.5, math.radians(1.0))
+                prior = PosePrior(res.T_map_query, 0.5, math.radians(1.0), f.timestamp_us)
         summary = _summarise(lat, outc)
         tracked = np.array(kinds) == "tracking"
         summary["tracked_scans"] = int(tracked.sum())

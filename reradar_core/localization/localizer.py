@@ -180,10 +180,11 @@ class Localizer:
         return got
 
     def _motion_compensated(self, features: ScanFeatures, result: LocalizationResult,
-                            config: LocalizationConfig) -> LocalizationResult:
+                            config: LocalizationConfig, query_twist: np.ndarray | None = None) -> LocalizationResult:
         """``result`` with its pose motion-compensated (``matching.motion.motion_polish``) when it is localized, the
         motion compensation is on and the winning keyframe's motion on the map is known; the decision, confidence
-        and cues stay the rigid registration's. ``timings_ms["motion_ms"]``."""
+        and cues stay the rigid registration's. ``query_twist``: the vehicle's own motion (a tracked scan's
+        odometry, ``PosePrior.twist``), the fit's prior instead of the map drive's speed. ``timings_ms["motion_ms"]``."""
         mc = config.motion
         best = result.best
         if not mc.enabled or not result.localized or best is None or best.T_keyframe_query is None:
@@ -195,7 +196,8 @@ class Localizer:
         if known[kid]:
             dst = self.cache.get(kid).features.keypoints_xy_m
             try:
-                polished = motion_polish(features.keypoints_xy_m, dst, best.T_keyframe_query, twists[kid], mc)
+                polished = motion_polish(features.keypoints_xy_m, dst, best.T_keyframe_query, twists[kid], mc,
+                                         query_twist)
             except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:  # a numerical failure: rigid pose
                 _log.warning("motion compensation failed on keyframe %d (%s); rigid pose kept", kid, exc)
         result.timings_ms["motion_ms"] = (time.perf_counter() - t0) * 1e3
@@ -360,7 +362,7 @@ class Localizer:
                 return self._motion_compensated(
                     features, LocalizationResult("localized", None, best, T_map_query, verified,
                                                  {"track_ms": track_ms, "verify_ms": track_ms}, confidence, cues,
-                                                 mode="tracking"), config)
+                                                 mode="tracking"), config, prior.twist)
         track_ms = (time.perf_counter() - t0) * 1e3
         result = self.localize(features, config)
         result.tracking_lost = True

@@ -44,6 +44,7 @@ from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose, inverse, wrap_angle
 from reradar_core.localization.confidence import landmark_spread_m
 from reradar_core.matching import LandmarkGrid, refine_pose
+from reradar_core.matching.motion import odometry_twist
 
 __all__ = ["PosePrior", "TrackingConfig", "tracking_candidates", "register_from_prior", "Registration"]
 
@@ -56,11 +57,18 @@ class PosePrior:
         T_map_query: (3,) float64 (x m, y m, yaw rad), map frame.
         sigma_xy_m: standard deviation of the position, metres (> 0).
         sigma_yaw_rad: standard deviation of the heading, radians (> 0).
+        timestamp_us: the scan time this pose is at (microseconds), or None (unknown): with the next scan's time
+            it turns odometry into a speed (``moved``).
+        twist: (3,) float64 the vehicle's motion when it reached this pose (vx m/s, vy m/s, yaw rate rad/s, body
+            frame; ``matching.motion.odometry_twist``), or None: the motion compensation's prior for a scan
+            tracked from this prior (a vehicle standing still or reversing is then fitted from its own motion).
     """
 
     T_map_query: np.ndarray
     sigma_xy_m: float
     sigma_yaw_rad: float
+    timestamp_us: int | None = None
+    twist: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         pose = np.asarray(self.T_map_query, np.float64).reshape(-1)
@@ -71,18 +79,30 @@ class PosePrior:
             raise ConfigError(f"prior sigmas must be positive and finite, got {self.sigma_xy_m}, "
                               f"{self.sigma_yaw_rad}")
         object.__setattr__(self, "T_map_query", pose)
+        if self.twist is not None:
+            twist = np.asarray(self.twist, np.float64).reshape(-1)
+            if twist.shape != (3,) or not np.all(np.isfinite(twist)):
+                raise ConfigError(f"a prior's motion needs a finite (vx, vy, yaw rate), got {self.twist!r}")
+            object.__setattr__(self, "twist", twist)
+        if self.timestamp_us is not None:
+            object.__setattr__(self, "timestamp_us", int(self.timestamp_us))
 
     def moved(self, T_prev_curr: np.ndarray, sigma_growth: float = 0.1, min_sigma_xy_m: float = 0.5,
-              min_sigma_yaw_rad: float = math.radians(1.0)) -> PosePrior:
+              min_sigma_yaw_rad: float = math.radians(1.0), timestamp_us: int | None = None) -> PosePrior:
         """The prior after relative motion ``T_prev_curr`` (odometry, in this pose's frame): composed pose,
         sigmas grown by ``sigma_growth`` x distance travelled (and the heading sigma by that x turn, wrapped: a
-        turn given as 350 degrees is one of -10, QA session 23)."""
+        turn given as 350 degrees is one of -10, QA session 23). With the new scan's ``timestamp_us`` and this
+        pose's, the odometry over the time between them is the new prior's ``twist`` (``odometry_twist``: None
+        when the scans are over 2 s apart, out of order, or the motion is no vehicle's)."""
         motion = np.asarray(T_prev_curr, np.float64).reshape(3)
         dist = float(np.hypot(motion[0], motion[1]))
         turn = abs(float(wrap_angle(motion[2])))
+        twist = None
+        if timestamp_us is not None and self.timestamp_us is not None:
+            twist = odometry_twist(motion, (int(timestamp_us) - self.timestamp_us) * 1e-6)
         return PosePrior(compose(self.T_map_query, motion),
                          max(min_sigma_xy_m, self.sigma_xy_m + sigma_growth * dist),
-                         max(min_sigma_yaw_rad, self.sigma_yaw_rad + sigma_growth * turn))
+                         max(min_sigma_yaw_rad, self.sigma_yaw_rad + sigma_growth * turn), timestamp_us, twist)
 
 
 @dataclass(frozen=True)

@@ -48,7 +48,7 @@ from reradar_core.geometry.se2 import relative_pose, transform_points, wrap_angl
 from reradar_core.jit import jit_enabled
 
 __all__ = ["MotionConfig", "MotionPolish", "azimuth_time_offsets", "deskew_points", "keyframe_twists",
-           "motion_polish"]
+           "motion_polish", "odometry_twist"]
 
 
 @dataclass(frozen=True)
@@ -193,23 +193,49 @@ def keyframe_twists(poses: np.ndarray, timestamps_us: np.ndarray,
     ok = has_before | has_after
     dt = np.where(ok, (ts[i1] - ts[i0]) * 1e-6, 1.0)
     chord = relative_pose(poses[order[i0]], poses[order[i1]])  # in i0's frame; heading change wrapped to (-pi, pi]
-    turn = chord[:, 2]
-    # under constant motion the chord runs along the heading halfway between its ends, and its length is the arc's
-    # times sinc(turn / 2); that heading is the body frame of every pose on the arc, k's included
-    c, s = np.cos(turn / 2), np.sin(turn / 2)
-    stretch = 1.0 / np.sinc(turn / (2 * np.pi))  # (turn / 2) / sin(turn / 2), 1 at no turn
-    found = np.column_stack([(c * chord[:, 0] + s * chord[:, 1]) / dt * stretch,
-                             (-s * chord[:, 0] + c * chord[:, 1]) / dt * stretch, turn / dt])
-    # neighbours turned more than 90 deg apart cannot say how it turned between them; faster is no drive's motion
-    ok &= ((np.abs(turn) <= math.pi / 2) & (np.hypot(found[:, 0], found[:, 1]) <= config.max_speed_mps)
-           & (np.abs(found[:, 2]) <= config.max_yaw_rate_radps))
+    found, plausible = _arc_twists(chord, dt, config)
+    ok &= plausible
     twists[order[ok]] = found[ok]
     known[order] = ok
     return twists, known
 
 
+def _arc_twists(chord: np.ndarray, dt_s: np.ndarray, config: MotionConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) constant motions (vx m/s, vy m/s, yaw rate rad/s; body frame) that move a pose by ``chord`` ((N, 3),
+    in the first pose's frame, heading change wrapped) in ``dt_s`` (N,) seconds (> 0), and (N,) bool: plausible (a
+    turn of at most 90 deg between the ends, within ``max_speed_mps`` and ``max_yaw_rate_radps``)."""
+    turn = chord[:, 2]
+    # under constant motion the chord runs along the heading halfway between its ends, and its length is the arc's
+    # times sinc(turn / 2); that heading is the body frame of every pose on the arc
+    c, s = np.cos(turn / 2), np.sin(turn / 2)
+    stretch = 1.0 / np.sinc(turn / (2 * np.pi))  # (turn / 2) / sin(turn / 2), 1 at no turn
+    found = np.column_stack([(c * chord[:, 0] + s * chord[:, 1]) / dt_s * stretch,
+                             (-s * chord[:, 0] + c * chord[:, 1]) / dt_s * stretch, turn / dt_s])
+    # ends turned more than 90 deg apart cannot say how it turned between them; faster is no drive's motion
+    plausible = ((np.abs(turn) <= math.pi / 2) & (np.hypot(found[:, 0], found[:, 1]) <= config.max_speed_mps)
+                 & (np.abs(found[:, 2]) <= config.max_yaw_rate_radps))
+    return found, plausible
+
+
+def odometry_twist(T_prev_curr: np.ndarray, dt_s: float, config: MotionConfig = MotionConfig()) -> np.ndarray | None:
+    """The vehicle's motion from its odometry between two scans: (3,) float64 (vx m/s, vy m/s, yaw rate rad/s; body
+    frame, constant along the arc; negative vx in reverse gear, 0 standing still), or None when ``dt_s`` is not in
+    (0, ``max_keyframe_gap_s``], the odometry is not finite, or the motion is implausible (as ``keyframe_twists``).
+
+    Args:
+        T_prev_curr: (3,) the odometry (x m, y m, yaw rad) in the previous scan's frame.
+        dt_s: seconds between the two scans.
+    """
+    chord = np.asarray(T_prev_curr, np.float64).reshape(1, 3).copy()
+    if not (np.isfinite(chord).all() and math.isfinite(dt_s) and 0.0 < dt_s <= config.max_keyframe_gap_s):
+        return None
+    chord[0, 2] = wrap_angle(float(chord[0, 2]))
+    found, plausible = _arc_twists(chord, np.array([dt_s]), config)
+    return found[0] if plausible[0] else None
+
+
 def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndarray, dst_twist: np.ndarray,
-                  config: MotionConfig = MotionConfig()) -> MotionPolish | None:
+                  config: MotionConfig = MotionConfig(), src_twist: np.ndarray | None = None) -> MotionPolish | None:
     """The source scan's mid-sweep pose in the destination keyframe's frame, both scans' motion compensated.
 
     Args:
@@ -217,6 +243,10 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
         dst_xy_m: (M, 2) the keyframe's landmarks, as seen.
         T_dst_src: (3,) the rigid registration's pose (start of the fit).
         dst_twist: (3,) the keyframe's motion (``keyframe_twists``); its speed is the prior's forward speed.
+        src_twist: (3,) the query's motion as the vehicle measured it (``odometry_twist``: a tracked scan), or
+            None. Given, it is the prior's mean (forward and sideways speed, yaw rate; same sigmas) and the fit's
+            start, in place of the map drive's speed going forward: a vehicle standing still, reversing or driving
+            at another speed than the map drive is then fitted from its own motion.
     Returns:
         ``MotionPolish``, or None (keep the rigid pose) when an input is not finite, too few landmarks associate (fewer
         than ``min_associated``, or at the last radius fewer than ``min_fit_share`` of what the rigid pose associates
@@ -235,12 +265,17 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
     rigid_count = int(np.isfinite(cKDTree(seen).query(rigid_at, distance_upper_bound=config.radii_m[-1])[0]).sum())
     bar = max(config.min_associated, math.ceil(config.min_fit_share * rigid_count))
     tau = azimuth_time_offsets(src, config)
-    prior_mean = np.array([0.0, 0.0, 0.0, float(np.hypot(dst_twist[0], dst_twist[1])), 0.0, 0.0])
+    if src_twist is not None and not np.isfinite(np.asarray(src_twist, np.float64)).all():
+        return None
+    prior_mean = (np.array([0.0, 0.0, 0.0, float(np.hypot(dst_twist[0], dst_twist[1])), 0.0, 0.0])
+                  if src_twist is None else np.concatenate([np.zeros(3), np.asarray(src_twist, np.float64).reshape(3)]))
     prior_precision = np.array([0.0, 0.0, 0.0, config.speed_sigma_mps ** -2, config.lateral_speed_sigma_mps ** -2,
                                 config.yaw_rate_sigma_radps ** -2])
     prior_hessian = np.diag(prior_precision) + 1e-9 * np.eye(6)
-    # a sweep's travel at the map drive's speed: how far the two sweeps' skews can have pulled the rigid pose
-    max_shift = max(config.max_shift_m, config.sweep_period_s * prior_mean[3])
+    # a sweep's travel at the map drive's (or the measured query's) speed: how far the skews can have pulled the
+    # rigid pose
+    max_shift = max(config.max_shift_m, config.sweep_period_s * float(max(np.hypot(dst_twist[0], dst_twist[1]),
+                                                                          np.hypot(prior_mean[3], prior_mean[4]))))
     x = np.concatenate([start, prior_mean[3:]])
 
     def step(x: np.ndarray, src_m: np.ndarray, tau_m: np.ndarray, dst_m: np.ndarray) -> np.ndarray:

@@ -78,27 +78,31 @@ class SessionStore:
             self._items.move_to_end(key)
             return item[1]
 
-    def prior_for(self, session_id: str, map_id: str, odometry: np.ndarray | None) -> PosePrior | None:
+    def prior_for(self, session_id: str, map_id: str, odometry: np.ndarray | None,
+                  timestamp_us: int | None = None) -> PosePrior | None:
         """The prior to track the session's next scan from: the state moved by ``odometry`` ((3,) x m, y m,
         yaw rad in the previous scan's frame). None when the session has no state or without odometry (the
         scan is then localized globally; module docstring). The prior may still be too loose to track from
-        (after a long stretch without a fix, or a lost session): the caller asks ``TrackingConfig.covers``."""
+        (after a long stretch without a fix, or a lost session): the caller asks ``TrackingConfig.covers``.
+        ``timestamp_us``: the new scan's time; with the last scan's, the odometry gives the vehicle's motion
+        (``PosePrior.twist``: the motion compensation's prior)."""
         if odometry is None:
             return None
         state = self.get(session_id, map_id)
         if state is None:
             return None
-        return state.moved(odometry, self.config.odometry_sigma_growth)
+        return state.moved(odometry, self.config.odometry_sigma_growth, timestamp_us=timestamp_us)
 
     def update(self, session_id: str, map_id: str, T_map_query: np.ndarray | None,
-               prior: PosePrior | None) -> None:
-        """Record the outcome of a scan: its pose when localized; else the prior it was tracked from (so odometry
-        keeps accumulating); else - no prior: the scan came without odometry (``prior_for``), so the vehicle
-        moved an unknown distance - the last pose with ``lost_sigma_m`` (no later scan is tracked from it)."""
+               prior: PosePrior | None, timestamp_us: int | None = None) -> None:
+        """Record the outcome of a scan (taken at ``timestamp_us``, when known): its pose when localized; else the
+        prior it was tracked from (so odometry keeps accumulating); else - no prior: the scan came without odometry
+        (``prior_for``), so the vehicle moved an unknown distance - the last pose with ``lost_sigma_m`` (no later
+        scan is tracked from it)."""
         c = self.config
         state: PosePrior | None
         if T_map_query is not None:
-            state = PosePrior(T_map_query, c.fix_sigma_m, math.radians(c.fix_sigma_yaw_deg))
+            state = PosePrior(T_map_query, c.fix_sigma_m, math.radians(c.fix_sigma_yaw_deg), timestamp_us)
         elif prior is None:
             last = self.get(session_id, map_id)
             state = None if last is None else PosePrior(last.T_map_query, c.lost_sigma_m, math.pi)

@@ -229,14 +229,15 @@ class RedisSessionStore(SessionStore):
             return None
         try:
             item = json.loads(blob)
+            stamp = item.get("timestamp_us")  # absent in values written before session 30
             return PosePrior(np.array(item["pose"], np.float64), float(item["sigma_xy_m"]),
-                             float(item["sigma_yaw_rad"]))
+                             float(item["sigma_yaw_rad"]), None if stamp is None else int(stamp))
         except (ValueError, KeyError, TypeError, ReRadarError):
             return None  # a value this version cannot read: start the session afresh
 
     def _store(self, session_id: str, map_id: str, state: PosePrior) -> None:
         value = json.dumps({"pose": [float(v) for v in state.T_map_query], "sigma_xy_m": state.sigma_xy_m,
-                            "sigma_yaw_rad": state.sigma_yaw_rad})
+                            "sigma_yaw_rad": state.sigma_yaw_rad, "timestamp_us": state.timestamp_us})
         if time.monotonic() < self._skip_until:
             return
         try:

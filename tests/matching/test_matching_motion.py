@@ -11,13 +11,14 @@ import pytest
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose, inverse, relative_pose, transform_points, wrap_angle
-from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer
+from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer, PosePrior
 from reradar_core.matching.motion import (
     MotionConfig,
     azimuth_time_offsets,
     deskew_points,
     keyframe_twists,
     motion_polish,
+    odometry_twist,
 )
 from reradar_core.matching.ransac import fit_rigid_2d
 from reradar_core.retrieval import GlobalIndex
@@ -133,6 +134,40 @@ def test_motion_settings_out_of_range_fail_at_construction(bad: dict) -> None:
         MotionConfig(**bad)
 
 
+def test_odometry_twist_is_the_vehicles_motion_between_two_scans() -> None:
+    # 0.25 s on a circle of radius 20 m at 8 m/s (0.4 rad/s); reversing; standing; implausible or unusable gaps
+    th = 0.4 * 0.25
+    arc = np.array([20 * math.sin(th), 20 * (1 - math.cos(th)), th])
+    np.testing.assert_allclose(odometry_twist(arc, 0.25), [8.0, 0.0, 0.4], atol=1e-9)
+    np.testing.assert_allclose(odometry_twist(np.array([-1.0, 0.0, 0.0]), 0.25), [-4.0, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_array_equal(odometry_twist(np.zeros(3), 0.25), np.zeros(3))
+    for chord, dt in ((arc, 0.0), (arc, -0.25), (arc, 2.5), (np.array([50.0, 0.0, 0.0]), 0.25),
+                      (np.array([np.nan, 0.0, 0.0]), 0.25), (arc, float("nan"))):
+        assert odometry_twist(chord, dt) is None
+
+
+def test_motion_polish_fits_a_reversing_vehicle_from_its_own_motion() -> None:
+    # the map drive east at 10 m/s; the query reverses west at 4 m/s (facing east): the map drive's speed as the
+    # prior is 14 m/s off, the vehicle's odometry says -4 m/s
+    rng = np.random.default_rng(8)
+    world = _street(rng)
+    kf_twist = np.array([10.0, 0.0, 0.0])
+    q_twist = np.array([-4.0, 0.0, 0.0])
+    T_w_q = np.array([1.0, 0.5, 0.01])
+    kf_seen = _seen_from(world, np.zeros(3), kf_twist)
+    q_seen = _seen_from(world, T_w_q, q_twist) + rng.normal(scale=0.03, size=world.shape)
+    truth = relative_pose(np.zeros(3), T_w_q)
+    rigid = fit_rigid_2d(q_seen, kf_seen)
+    guessed = motion_polish(q_seen, kf_seen, rigid, kf_twist)
+    measured = motion_polish(q_seen, kf_seen, rigid, kf_twist, src_twist=q_twist)
+    assert measured is not None
+    assert np.hypot(*(measured.T_dst_src[:2] - truth[:2])) < 0.03
+    np.testing.assert_allclose(measured.twist, q_twist, atol=0.3)
+    guessed_err = math.inf if guessed is None else np.hypot(*(guessed.T_dst_src[:2] - truth[:2]))
+    assert guessed_err > 2 * np.hypot(*(measured.T_dst_src[:2] - truth[:2]))
+    assert motion_polish(q_seen, kf_seen, rigid, kf_twist, src_twist=np.array([np.nan, 0.0, 0.0])) is None
+
+
 def test_motion_polish_keeps_the_rigid_pose_when_it_cannot_help() -> None:
     rng = np.random.default_rng(4)
     world = _street(rng, 8)
@@ -192,6 +227,16 @@ def test_localizer_answers_the_compensated_pose_and_the_same_decision() -> None:
     err = np.hypot(*(compensated.T_map_query[:2] - T_w_q[:2]))
     assert err < 0.1 < np.hypot(*(rigid.T_map_query[:2] - T_w_q[:2]))
     assert "motion_ms" in compensated.timings_ms
+    # tracked from a prior whose odometry says how the vehicle moved: that motion is the fit's prior
+    last = PosePrior(T_w_q - np.array([-2.25, 0.0, 0.0]), 0.5, math.radians(1.0), 10**9 - 250_000)
+    prior = last.moved(np.array([2.25, 0.0, 0.0]), timestamp_us=10**9)  # 2.25 m in 0.25 s, heading west
+    np.testing.assert_allclose(prior.twist, [9.0, 0.0, 0.0], atol=1e-9)
+    tracked = loc.track(query, prior)
+    assert tracked.mode == "tracking" and tracked.localized
+    assert np.hypot(*(tracked.T_map_query[:2] - T_w_q[:2])) < 0.1
+    assert last.moved(np.array([2.25, 0.0, 0.0])).twist is None  # no time: the map drive's speed
+    with pytest.raises(ConfigError):
+        PosePrior(T_w_q, 0.5, 0.1, twist=np.array([1.0, np.inf, 0.0]))
 
 
 def test_compiled_fit_agrees_with_the_numpy_path(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -64,3 +64,27 @@ def test_redis_down_or_a_bad_value_forgets_the_session() -> None:
     stub.down = True
     assert s.get("car-1", "demo") is None
     s.update("car-1", "demo", np.zeros(3), None)  # no exception: the answer is still returned
+
+
+def test_a_sessions_scan_times_give_the_next_prior_the_vehicles_motion() -> None:
+    """Session 30: the scan's time is kept with the session's pose (in Redis too, so another worker reads it), and
+    the next scan's odometry over the time between them is the prior's motion (the motion compensation's prior).
+    A value written before (no time) still reads, without a motion."""
+    from service.core.sessions import SessionStore
+
+    stub = StubRedis()
+    for a, b in ((_store(stub), _store(stub)), (SessionStore(), None)):
+        b = b or a
+        a.update("car-1", "demo", np.array([10.0, -2.0, 0.0]), None, timestamp_us=5_000_000)
+        prior = b.prior_for("car-1", "demo", np.array([-1.0, 0.0, 0.0]), timestamp_us=5_250_000)  # reversing
+        assert prior is not None and prior.timestamp_us == 5_250_000
+        np.testing.assert_allclose(prior.twist, [-4.0, 0.0, 0.0], atol=1e-12)
+        assert b.prior_for("car-1", "demo", np.zeros(3)).twist is None  # no time given: no motion
+        stale = b.prior_for("car-1", "demo", np.zeros(3), timestamp_us=9_000_000)  # 4 s later: too long to say
+        assert stale is not None and stale.twist is None
+        b.update("car-1", "demo", None, prior)  # not localized: the prior, its time included, is kept
+        kept = a.get("car-1", "demo")
+        assert kept is not None and kept.timestamp_us == 5_250_000
+    stub.data["t:v1:session:demo:car-2"] = b'{"pose": [1, 2, 0], "sigma_xy_m": 0.5, "sigma_yaw_rad": 0.02}'
+    old = _store(stub).get("car-2", "demo")
+    assert old is not None and old.timestamp_us is None

@@ -102,14 +102,17 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         # (``TrackingConfig.covers``; docs/SERVICE.md)
         # the session store is Redis in fleet mode: its calls block, so they run in the threadpool, never on the
         # event loop (a hung Redis would stall every request of the replica, health checks included)
-        prior = explicit or (await run_in_threadpool(state.sessions.prior_for, session_id, map_id, odometry)
+        # the scan's time turns the session's odometry into the vehicle's motion (the motion compensation's prior);
+        # 0 is a scan without a time (an array upload): none
+        stamp = int(inp.features.timestamp_us) or None
+        prior = explicit or (await run_in_threadpool(state.sessions.prior_for, session_id, map_id, odometry, stamp)
                              if session_id else None)
         if prior is not None:
             result = await run_in_threadpool(db.track, inp.features, prior, config)
         else:
             result = await run_in_threadpool(db.localize, inp.features, config)
     if session_id:
-        await run_in_threadpool(state.sessions.update, session_id, map_id, result.T_map_query, prior)
+        await run_in_threadpool(state.sessions.update, session_id, map_id, result.T_map_query, prior, stamp)
     timings = {**inp.timings_ms, **result.timings_ms}
     state.metrics.observe_stages(timings)
     state.metrics.inc("reradar_localizations_total", status=result.status)
