@@ -101,21 +101,42 @@ MOTION_UNKNOWN_WARN_SHARE = 0.1
 
 def motion_warning(poses: np.ndarray, timestamps_us: np.ndarray, config: LocalizationConfig | None = None) -> str | None:
     """A sentence for the user when over ``MOTION_UNKNOWN_WARN_SHARE`` of the keyframes have no known motion on the
-    map drive (``matching.motion.keyframe_twists``: no keyframe within ``max_keyframe_gap_s`` in time, or times and
-    poses that are no drive's), so answers on them keep the rigid pose (not motion-compensated), else None."""
+    map drive (``matching.motion.keyframe_twists`` under ``config.motion``), so answers on them keep the rigid pose
+    (not motion-compensated), with the reason that applies: no keyframe within ``max_keyframe_gap_s`` in time (a
+    sparser map, or a single keyframe), or neighbours whose times and poses are no drive's (e.g. a wrong time unit);
+    else None."""
     from reradar_core.matching.motion import keyframe_twists
 
     motion = (config or LocalizationConfig()).motion
-    if not motion.enabled or len(poses) == 0:
+    n = len(poses)
+    if not motion.enabled or n == 0:
         return None
-    _, known = keyframe_twists(np.asarray(poses, np.float64), np.asarray(timestamps_us, np.int64), motion)
-    k = int((~known).sum())
-    if k <= MOTION_UNKNOWN_WARN_SHARE * len(known):
+    stamps = np.asarray(timestamps_us, np.int64)
+    _, known = keyframe_twists(np.asarray(poses, np.float64), stamps, motion)
+    unknown = int((~known).sum())
+    if unknown <= MOTION_UNKNOWN_WARN_SHARE * n:
         return None
-    return (f"{k} of {len(known)} keyframes have no keyframe within {motion.max_keyframe_gap_s:g} s of them on the map "
-            f"drive (or their times and poses are no drive's), so answers on them are not motion-compensated (their "
-            f"pose error is the rigid registration's, 1.2-4.5x larger on the benchmark suites); build the map with "
-            f"keyframes closer in time (a smaller --min-spacing-m; docs/CONVENTIONS.md 'Motion compensation')")
+    head = (f"{unknown} of {n} keyframes have no known motion on the map drive, so answers on them are not "
+            f"motion-compensated (the rigid registration's pose, 1.2-4.8x the translation error on the benchmark "
+            f"suites; docs/CONVENTIONS.md 'Motion compensation')")
+    if n == 1:
+        return head + ": a map of one keyframe has no neighbour in time to take its motion from"
+    # which keyframes have a neighbour in time within the gap: those unknown anyway are no drive's
+    order = np.argsort(stamps, kind="stable")
+    gaps = np.diff(stamps[order])
+    close_pair = (gaps > 0) & (gaps <= motion.max_keyframe_gap_s * 1e6)
+    near = np.zeros(n, bool)
+    near[order] = np.concatenate([[False], close_pair]) | np.concatenate([close_pair, [False]])
+    far, odd = int((~known & ~near).sum()), int((~known & near).sum())
+    parts = []
+    if far:
+        parts.append(f"{far} have no keyframe within {motion.max_keyframe_gap_s:g} s of them (keep keyframes closer "
+                     f"in time: a smaller --min-spacing-m, or more of the drive's scans)")
+    if odd:
+        parts.append(f"{odd} have neighbours whose times and poses are no drive's (faster than "
+                     f"{motion.max_speed_mps:g} m/s or turning over 90 deg between them: check the pose file's time "
+                     f"unit)")
+    return head + ": " + "; ".join(parts)
 
 
 def add_place_repetition(path: str | Path, out: str | Path | None = None, localization: LocalizationConfig | None = None,

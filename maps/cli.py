@@ -107,7 +107,9 @@ def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -
         "max_ratio": round(table.max_ratio, 4),
     }
     _, known = keyframe_twists(poses, stamps, default.motion)
-    info["keyframe_motion"] = {"known": int(known.sum()), "keyframes": len(known)}
+    # under the default settings, as the rest of this report (a server's own are in its GET /maps)
+    info["keyframe_motion"] = {"known": int(known.sum()), "keyframes": len(known),
+                               "max_keyframe_gap_s": default.motion.max_keyframe_gap_s}
     typer.echo(json.dumps(info, indent=2))
     if (message := motion_warning(poses, stamps, default)) is not None:
         typer.echo(f"warning: {message}", err=True)

@@ -44,7 +44,7 @@ from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import compose, inverse, wrap_angle
 from reradar_core.localization.confidence import landmark_spread_m
 from reradar_core.matching import LandmarkGrid, refine_pose
-from reradar_core.matching.motion import odometry_twist
+from reradar_core.matching.motion import MotionConfig, odometry_twist
 
 __all__ = ["PosePrior", "TrackingConfig", "tracking_candidates", "register_from_prior", "Registration"]
 
@@ -85,21 +85,27 @@ class PosePrior:
                 raise ConfigError(f"a prior's motion needs a finite (vx, vy, yaw rate), got {self.twist!r}")
             object.__setattr__(self, "twist", twist)
         if self.timestamp_us is not None:
-            object.__setattr__(self, "timestamp_us", int(self.timestamp_us))
+            stamp = int(self.timestamp_us)
+            if not -(2**63) <= stamp < 2**63:  # an int64 of microseconds, as every scan time here
+                raise ConfigError(f"a prior's timestamp_us must be a 64-bit integer, got {self.timestamp_us!r}")
+            object.__setattr__(self, "timestamp_us", stamp)
 
     def moved(self, T_prev_curr: np.ndarray, sigma_growth: float = 0.1, min_sigma_xy_m: float = 0.5,
-              min_sigma_yaw_rad: float = math.radians(1.0), timestamp_us: int | None = None) -> PosePrior:
+              min_sigma_yaw_rad: float = math.radians(1.0), timestamp_us: int | None = None,
+              motion_config: MotionConfig | None = None) -> PosePrior:
         """The prior after relative motion ``T_prev_curr`` (odometry, in this pose's frame): composed pose,
         sigmas grown by ``sigma_growth`` x distance travelled (and the heading sigma by that x turn, wrapped: a
         turn given as 350 degrees is one of -10, QA session 23). With the new scan's ``timestamp_us`` and this
-        pose's, the odometry over the time between them is the new prior's ``twist`` (``odometry_twist``: None
-        when the scans are over 2 s apart, out of order, or the motion is no vehicle's)."""
+        pose's, the odometry over the time between them is the new prior's ``twist`` (``odometry_twist`` under
+        ``motion_config``, default ``MotionConfig()``: None when the scans are more than ``max_keyframe_gap_s``
+        apart, out of order, or the motion is no vehicle's)."""
         motion = np.asarray(T_prev_curr, np.float64).reshape(3)
         dist = float(np.hypot(motion[0], motion[1]))
         turn = abs(float(wrap_angle(motion[2])))
         twist = None
         if timestamp_us is not None and self.timestamp_us is not None:
-            twist = odometry_twist(motion, (int(timestamp_us) - self.timestamp_us) * 1e-6)
+            twist = odometry_twist(motion, (int(timestamp_us) - self.timestamp_us) * 1e-6,
+                                   motion_config or MotionConfig())
         return PosePrior(compose(self.T_map_query, motion),
                          max(min_sigma_xy_m, self.sigma_xy_m + sigma_growth * dist),
                          max(min_sigma_yaw_rad, self.sigma_yaw_rad + sigma_growth * turn), timestamp_us, twist)

@@ -76,9 +76,9 @@ class MotionConfig:
             motion, e.g. a sweep in which a U-turn begins, associates fewer and the rigid pose is kept).
         max_shift_m, max_turn_rad: a fit that moves the rigid pose farther is discarded; the shift allowed is at least
             a sweep's travel at the map drive's speed there (7.5 m at 30 m/s).
-        Bounds (checked): sigmas 1e-4..1e4, at most 32 radii of at most 50 m, 1..50 iterations, min_associated
-        3..10,000, a sweep of at most 10 s and 100,000 azimuths (a typo must fail at start-up, not slow or silence
-        every answer).
+        Bounds (checked): sigmas 1e-4..1e4, radii decreasing and at most 10 m, at most 100 Gauss-Newton steps
+        (radii x iterations), min_associated 3..10,000, a sweep of at most 10 s and 100,000 azimuths (a typo must
+        fail at start-up, not slow or silence every answer).
         The priors were chosen on the training splits' unseen sessions (docs/BENCHMARKS.md "Session 29").
     """
 
@@ -118,9 +118,13 @@ class MotionConfig:
         if max(self.speed_sigma_mps, self.lateral_speed_sigma_mps, self.yaw_rate_sigma_radps) > 1e4 or min(
                 self.speed_sigma_mps, self.lateral_speed_sigma_mps, self.yaw_rate_sigma_radps) < 1e-4:
             raise ConfigError("the motion priors' sigmas must be between 1e-4 and 1e4")
-        if len(self.radii_m) > 32 or max(self.radii_m) > 50.0 or self.iterations > 50 or self.min_associated > 10_000:
-            raise ConfigError("radii_m must hold at most 32 radii of at most 50 m, iterations at most 50 and "
-                              "min_associated at most 10000")
+        if any(b >= a for a, b in zip(self.radii_m, self.radii_m[1:], strict=False)):
+            raise ConfigError(f"radii_m must run coarse to fine (each radius smaller than the one before), got "
+                              f"{self.radii_m}")
+        if (max(self.radii_m) > 10.0 or len(self.radii_m) * self.iterations > 100 or self.iterations > 50
+                or self.min_associated > 10_000):
+            raise ConfigError("radii_m must be at most 10 m, len(radii_m) x iterations at most 100 Gauss-Newton "
+                              "steps (default 24) and min_associated at most 10000")
         if self.sweep_period_s > 10.0 or self.num_azimuths > 100_000:
             raise ConfigError("sweep_period_s must be at most 10 s and num_azimuths at most 100000")
 

@@ -120,6 +120,11 @@ class MapInfo(_Model):
         "`mid_sweep` (every map written since 2026-11-30; docs/CONVENTIONS.md), or `first_azimuth` for an older map "
         "without the attribute: its answers are the first-azimuth pose, up to ~1 m behind the mid-sweep pose at "
         "driving speed (rebuild it with `reradar build-map` or `POST /maps`)."))
+    keyframes_motion_known: int | None = Field(default=None, ge=0, description=(
+        "Keyframes whose motion on the map drive is known under this service's localization settings (a keyframe "
+        "within `max_keyframe_gap_s`, 2 s, of it in time, and a plausible drive between them): answers on the others "
+        "keep the rigid registration's pose, not motion-compensated (docs/CONVENTIONS.md 'Motion compensation'). "
+        "Fewer than `num_keyframes` on a map whose scans are over 2 s apart, or whose times are not the drive's."))
     place_repetition: Literal["stored", "other_settings", "not_stored"] | None = Field(default=None, description=(
         "Where the repeated-place check (an answer on a keyframe whose place repeats on the map is `ambiguous`) "
         "reads each keyframe's place repetition: `stored` in the map under this service's localization settings "

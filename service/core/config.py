@@ -100,7 +100,8 @@ def _sequence_fields(value: object, config: type) -> object:
     """``value`` (the nested dict pydantic-settings builds from ``RERADAR_LOCALIZATION__*`` variables) with each text
     given for a tuple field of the dataclass ``config`` (e.g. ``MOTION__RADII_M``) read as a list: ``[3, 2, 1]``,
     ``(3, 2, 1)`` or ``3,2,1`` (pydantic-settings decodes JSON only for top-level fields; a nested tuple was refused
-    as "Input should be a valid tuple" whatever was written). Text that does not parse is left for pydantic's error."""
+    as "Input should be a valid tuple" whatever was written); values apart by commas and / or blanks. Text that does
+    not parse is left for pydantic's error."""
     import dataclasses
     import json
     import types
@@ -122,6 +123,8 @@ def _sequence_fields(value: object, config: type) -> object:
                 text = text[1:-1]
             if text.lower() in ("none", "null") and type(None) in options:
                 continue
+            # values apart by commas and / or blanks, a trailing comma allowed: "3,2,1", "3 2 1", "3, 2, 1,"
+            text = re.sub(r"[\s,]+", ",", text.strip().strip(","))
             try:
                 out[name] = json.loads(f"[{text}]")
             except ValueError:

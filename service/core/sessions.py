@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from reradar_core.localization import PosePrior
+from reradar_core.matching.motion import MotionConfig
 
 __all__ = ["SessionStore", "SessionConfig"]
 
@@ -79,19 +80,21 @@ class SessionStore:
             return item[1]
 
     def prior_for(self, session_id: str, map_id: str, odometry: np.ndarray | None,
-                  timestamp_us: int | None = None) -> PosePrior | None:
+                  timestamp_us: int | None = None, motion: MotionConfig | None = None) -> PosePrior | None:
         """The prior to track the session's next scan from: the state moved by ``odometry`` ((3,) x m, y m,
         yaw rad in the previous scan's frame). None when the session has no state or without odometry (the
         scan is then localized globally; module docstring). The prior may still be too loose to track from
         (after a long stretch without a fix, or a lost session): the caller asks ``TrackingConfig.covers``.
         ``timestamp_us``: the new scan's time; with the last scan's, the odometry gives the vehicle's motion
-        (``PosePrior.twist``: the motion compensation's prior)."""
+        (``PosePrior.twist``: the motion compensation's prior) under ``motion`` (the service's localization
+        settings' ``motion``; default ``MotionConfig()``)."""
         if odometry is None:
             return None
         state = self.get(session_id, map_id)
         if state is None:
             return None
-        return state.moved(odometry, self.config.odometry_sigma_growth, timestamp_us=timestamp_us)
+        return state.moved(odometry, self.config.odometry_sigma_growth, timestamp_us=timestamp_us,
+                           motion_config=motion)
 
     def update(self, session_id: str, map_id: str, T_map_query: np.ndarray | None,
                prior: PosePrior | None, timestamp_us: int | None = None) -> None:

@@ -232,7 +232,7 @@ class RedisSessionStore(SessionStore):
             stamp = item.get("timestamp_us")  # absent in values written before session 30
             return PosePrior(np.array(item["pose"], np.float64), float(item["sigma_xy_m"]),
                              float(item["sigma_yaw_rad"]), None if stamp is None else int(stamp))
-        except (ValueError, KeyError, TypeError, ReRadarError):
+        except (ValueError, KeyError, TypeError, OverflowError, ReRadarError):  # e.g. a time of 1e400
             return None  # a value this version cannot read: start the session afresh
 
     def _store(self, session_id: str, map_id: str, state: PosePrior) -> None:

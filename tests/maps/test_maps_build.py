@@ -320,20 +320,22 @@ def test_a_map_without_a_drive_in_time_says_its_answers_are_not_motion_compensat
         return build_map(tmp_path / name, PeriodicStreetExtractor(), load, poses, radar_preset="boreas",
                          place_repetition=False)
 
-    for name, dt_us in (("madeup.h5", 1), ("sparse.h5", 25_000_000)):
+    for name, dt_us, reason in (("madeup.h5", 1, "30 have neighbours whose times and poses are no drive's"),
+                                ("sparse.h5", 25_000_000, "30 have no keyframe within 2 s of them")):
         caplog.clear()
         with caplog.at_level("WARNING", logger="maps.build"):
             out = build(name, dt_us)
-        assert "30 of 30 keyframes have no keyframe within 2 s of them" in caplog.text
+        assert "30 of 30 keyframes have no known motion on the map drive" in caplog.text and reason in caplog.text
         res = CliRunner().invoke(app, ["map-info", str(out)])
-        assert res.exit_code == 0 and json.loads(res.stdout)["keyframe_motion"] == {"known": 0, "keyframes": 30}
-        assert "not motion-compensated" in res.stderr
+        assert res.exit_code == 0
+        assert json.loads(res.stdout)["keyframe_motion"] == {"known": 0, "keyframes": 30, "max_keyframe_gap_s": 2.0}
+        assert "not motion-compensated" in res.stderr and reason in res.stderr
     caplog.clear()
     with caplog.at_level("WARNING", logger="maps.build"):
         out = build("drive.h5", 750_000)
     assert "motion-compensated" not in caplog.text
     res = CliRunner().invoke(app, ["map-info", str(out)])
-    assert json.loads(res.stdout)["keyframe_motion"] == {"known": 30, "keyframes": 30} and res.stderr == ""
+    assert json.loads(res.stdout)["keyframe_motion"]["known"] == 30 and res.stderr == ""
 
 
 def test_a_damaged_place_repetition_is_measured_again_by_map_repetition(tmp_path: Path) -> None:

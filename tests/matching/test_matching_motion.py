@@ -127,7 +127,8 @@ def test_motion_polish_reaches_a_fast_drive_the_other_way() -> None:
 
 @pytest.mark.parametrize("bad", [{"yaw_rate_sigma_radps": 1e-200}, {"speed_sigma_mps": 1e9}, {"iterations": 2000},
                                  {"sweep_period_s": 250.0}, {"num_azimuths": 10 ** 12}, {"min_associated": 100_000},
-                                 {"radii_m": (60.0, 0.4)}, {"radii_m": (1.0,) * 40}])
+                                 {"radii_m": (60.0, 0.4)}, {"radii_m": (1.0,) * 40}, {"radii_m": (0.4, 0.75, 3.0)},
+                                 {"radii_m": tuple(np.linspace(10, 0.4, 40))}, {"iterations": 34}])
 def test_motion_settings_out_of_range_fail_at_construction(bad: dict) -> None:
     # accepted, each would have failed or slowed every answer instead (overflow of 1 / sigma^2, 290 ms fits)
     with pytest.raises(ConfigError):

@@ -9,6 +9,7 @@ import numpy as np
 import redis
 
 from reradar_core.localization import PosePrior
+from reradar_core.matching.motion import MotionConfig
 from service.core.sessions import SessionConfig
 from service.core.shared_state import Keys, RedisSessionStore
 
@@ -82,9 +83,18 @@ def test_a_sessions_scan_times_give_the_next_prior_the_vehicles_motion() -> None
         assert b.prior_for("car-1", "demo", np.zeros(3)).twist is None  # no time given: no motion
         stale = b.prior_for("car-1", "demo", np.zeros(3), timestamp_us=9_000_000)  # 4 s later: too long to say
         assert stale is not None and stale.twist is None
+        # ... unless the service's motion settings allow it (RERADAR_LOCALIZATION__MOTION__MAX_KEYFRAME_GAP_S)
+        allowed = b.prior_for("car-1", "demo", np.zeros(3), 9_000_000, MotionConfig(max_keyframe_gap_s=5.0))
+        assert allowed is not None and allowed.twist is not None
         b.update("car-1", "demo", None, prior)  # not localized: the prior, its time included, is kept
         kept = a.get("car-1", "demo")
         assert kept is not None and kept.timestamp_us == 5_250_000
     stub.data["t:v1:session:demo:car-2"] = b'{"pose": [1, 2, 0], "sigma_xy_m": 0.5, "sigma_yaw_rad": 0.02}'
     old = _store(stub).get("car-2", "demo")
     assert old is not None and old.timestamp_us is None
+    # a value no version writes (QA, session 30: these were a 500 on every scan of the session): forgotten
+    for stamp in ("Infinity", "-Infinity", "1e400", "1" + "0" * 400, "1e19"):
+        value = '{"pose": [1, 2, 0], "sigma_xy_m": 0.5, "sigma_yaw_rad": 0.02, "timestamp_us": ' + stamp + "}"
+        stub.data["t:v1:session:demo:car-3"] = value.encode()
+        assert _store(stub).get("car-3", "demo") is None
+        assert _store(stub).prior_for("car-3", "demo", np.zeros(3), timestamp_us=1) is None

@@ -103,3 +103,15 @@ def test_pose_headings_are_reported_in_minus_180_to_180() -> None:
         assert -180.0 < deg <= 180.0
         assert deg == pytest.approx(math.degrees(float(wrap_angle(yaw))), abs=1e-9)
     assert Pose2D.from_array(np.array([0.0, 0.0, -math.pi])).yaw_deg == 180.0
+
+
+def test_map_info_counts_the_keyframes_whose_motion_is_known(client: httpx.Client, fake_map: Path) -> None:
+    """``keyframes_motion_known``: the keyframes whose motion on the map drive is known under the service's settings
+    (answers on the others are not motion-compensated), as ``keyframe_twists`` counts them."""
+    from maps.store import open_map
+    from reradar_core.matching.motion import keyframe_twists
+
+    with open_map(fake_map) as m:
+        _, known = keyframe_twists(m.poses, m.timestamps_us)
+    info = client.get("/maps/route-t").json()
+    assert info["keyframes_motion_known"] == int(known.sum()) and 0 <= info["keyframes_motion_known"] <= len(known)

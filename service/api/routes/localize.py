@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -102,11 +103,14 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         # (``TrackingConfig.covers``; docs/SERVICE.md)
         # the session store is Redis in fleet mode: its calls block, so they run in the threadpool, never on the
         # event loop (a hung Redis would stall every request of the replica, health checks included)
-        # the scan's time turns the session's odometry into the vehicle's motion (the motion compensation's prior);
-        # 0 is a scan without a time (an array upload): none
-        stamp = int(inp.features.timestamp_us) or None
-        prior = explicit or (await run_in_threadpool(state.sessions.prior_for, session_id, map_id, odometry, stamp)
-                             if session_id else None)
+        # the scan's time turns the session's odometry into the vehicle's motion (the motion compensation's prior;
+        # a scan without a time reads 0, so two of them are no time apart and give none)
+        stamp = int(inp.features.timestamp_us)
+        moved = (await run_in_threadpool(state.sessions.prior_for, session_id, map_id, odometry, stamp, config.motion)
+                 if session_id else None)
+        if explicit is not None and moved is not None:  # the vehicle's own motion holds whichever pose it starts from
+            explicit = replace(explicit, timestamp_us=stamp, twist=moved.twist)
+        prior = explicit or moved
         if prior is not None:
             result = await run_in_threadpool(db.track, inp.features, prior, config)
         else:
