@@ -24,6 +24,7 @@ from reradar_core.localization import (
 )
 from reradar_core.localization.extractor import FeatureExtractor
 from reradar_core.localization.keyframes import select_keyframes  # re-exported: the map builder's rule
+from reradar_core.matching.motion import keyframe_twists, time_neighbours
 from reradar_core.retrieval import GlobalIndex
 
 __all__ = ["select_keyframes", "cap_keypoints", "build_map", "build_map_from_sequence", "measure_place_repetition",
@@ -99,20 +100,20 @@ def unjudged_warning(table: RepetitionTable, num_keyframes: int) -> str | None:
 MOTION_UNKNOWN_WARN_SHARE = 0.1
 
 
-def motion_warning(poses: np.ndarray, timestamps_us: np.ndarray, config: LocalizationConfig | None = None) -> str | None:
+def motion_warning(poses: np.ndarray, timestamps_us: np.ndarray, config: LocalizationConfig | None = None,
+                   known: np.ndarray | None = None) -> str | None:
     """A sentence for the user when over ``MOTION_UNKNOWN_WARN_SHARE`` of the keyframes have no known motion on the
     map drive (``matching.motion.keyframe_twists`` under ``config.motion``), so answers on them keep the rigid pose
     (not motion-compensated), with the reason that applies: no keyframe within ``max_keyframe_gap_s`` in time (a
     sparser map, or a single keyframe), or neighbours whose times and poses are no drive's (e.g. a wrong time unit);
-    else None."""
-    from reradar_core.matching.motion import keyframe_twists
-
+    else None. ``known``: (N,) bool, the ``keyframe_twists`` flags when the caller has them."""
     motion = (config or LocalizationConfig()).motion
     n = len(poses)
     if not motion.enabled or n == 0:
         return None
     stamps = np.asarray(timestamps_us, np.int64)
-    _, known = keyframe_twists(np.asarray(poses, np.float64), stamps, motion)
+    if known is None:
+        _, known = keyframe_twists(np.asarray(poses, np.float64), stamps, motion)
     unknown = int((~known).sum())
     if unknown <= MOTION_UNKNOWN_WARN_SHARE * n:
         return None
@@ -122,11 +123,9 @@ def motion_warning(poses: np.ndarray, timestamps_us: np.ndarray, config: Localiz
     if n == 1:
         return head + ": a map of one keyframe has no neighbour in time to take its motion from"
     # which keyframes have a neighbour in time within the gap: those unknown anyway are no drive's
-    order = np.argsort(stamps, kind="stable")
-    gaps = np.diff(stamps[order])
-    close_pair = (gaps > 0) & (gaps <= motion.max_keyframe_gap_s * 1e6)
+    order, has_before, has_after = time_neighbours(stamps, motion.max_keyframe_gap_s)
     near = np.zeros(n, bool)
-    near[order] = np.concatenate([[False], close_pair]) | np.concatenate([close_pair, [False]])
+    near[order] = has_before | has_after
     far, odd = int((~known & ~near).sum()), int((~known & near).sum())
     parts = []
     if far:

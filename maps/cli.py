@@ -111,7 +111,7 @@ def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -
     info["keyframe_motion"] = {"known": int(known.sum()), "keyframes": len(known),
                                "max_keyframe_gap_s": default.motion.max_keyframe_gap_s}
     typer.echo(json.dumps(info, indent=2))
-    if (message := motion_warning(poses, stamps, default)) is not None:
+    if (message := motion_warning(poses, stamps, default, known)) is not None:
         typer.echo(f"warning: {message}", err=True)
 
 

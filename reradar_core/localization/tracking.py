@@ -85,10 +85,13 @@ class PosePrior:
                 raise ConfigError(f"a prior's motion needs a finite (vx, vy, yaw rate), got {self.twist!r}")
             object.__setattr__(self, "twist", twist)
         if self.timestamp_us is not None:
-            stamp = int(self.timestamp_us)
-            if not -(2**63) <= stamp < 2**63:  # an int64 of microseconds, as every scan time here
-                raise ConfigError(f"a prior's timestamp_us must be a 64-bit integer, got {self.timestamp_us!r}")
-            object.__setattr__(self, "timestamp_us", stamp)
+            # an int64 of microseconds, as every scan time here (a float only when whole: 1.7 us is no scan time)
+            given = self.timestamp_us
+            whole = isinstance(given, (int, np.integer)) or (isinstance(given, (float, np.floating))
+                                                            and math.isfinite(given) and float(given).is_integer())
+            if not whole or not -(2**63) <= int(given) < 2**63:
+                raise ConfigError(f"a prior's timestamp_us must be a 64-bit integer, got {given!r}")
+            object.__setattr__(self, "timestamp_us", int(given))
 
     def moved(self, T_prev_curr: np.ndarray, sigma_growth: float = 0.1, min_sigma_xy_m: float = 0.5,
               min_sigma_yaw_rad: float = math.radians(1.0), timestamp_us: int | None = None,

@@ -27,8 +27,10 @@ rounds run compiled (``motion_kernels``, ~1.3 ms an answer) when numba is there.
 The rigid answer is kept when the map's motion at the keyframe is unknown (no keyframe within
 ``max_keyframe_gap_s``, or one whose heading turned more than 90 deg), when the fit associates fewer landmarks at the
 last radius than the rigid pose does with the scans as seen (``min_fit_share``: a fit that settled on a wrong
-motion), when an input is not finite, or when the fit moves the pose more than ``max_shift_m`` / ``max_turn_rad`` (a
-compensation is a correction of at most a sweep's travel, not a new answer).
+motion), when an input is not finite, or when the fit moves the pose more than ``max_shift_m`` or a sweep's travel
+(whichever is more) / ``max_turn_rad`` (a compensation is a correction of at most a sweep's travel, not a new
+answer). A tracked scan brings the vehicle's own motion (its odometry over the time between its scans,
+``odometry_twist``), which then centres the prior instead of the map drive's speed (``src_twist``).
 
 Frames and conventions (docs/CONVENTIONS.md): sensor frame x forward, y left; azimuth a clockwise from +x,
 azimuth index k at time t0 + k T / A, mid-sweep at t0 + (A - 1) / 2 * T / A; a twist is (vx m/s, vy m/s,
@@ -48,7 +50,7 @@ from reradar_core.geometry.se2 import relative_pose, transform_points, wrap_angl
 from reradar_core.jit import jit_enabled
 
 __all__ = ["MotionConfig", "MotionPolish", "azimuth_time_offsets", "deskew_points", "keyframe_twists",
-           "motion_polish", "odometry_twist"]
+           "motion_polish", "odometry_twist", "time_neighbours"]
 
 
 @dataclass(frozen=True)
@@ -62,9 +64,11 @@ class MotionConfig:
             a keyframe with none is not compensated (the answer keeps its rigid pose).
         max_speed_mps, max_yaw_rate_radps: a keyframe motion faster than these (60 m/s, 3 rad/s) is not a drive's
             (keyframes with made-up times, or poses from two drives interleaved): its motion counts as unknown.
-        speed_sigma_mps: prior on the query's forward speed, around the map drive's speed at the keyframe (3 m/s).
-        lateral_speed_sigma_mps: prior on its sideways speed, around 0 (0.3 m/s: a car does not slide).
-        yaw_rate_sigma_radps: prior on its yaw rate, around 0 (1 rad/s: weak; a U-turn is ~0.8).
+        speed_sigma_mps: prior on the query's forward speed, around the map drive's speed at the keyframe, or around
+            the vehicle's own (a tracked scan's odometry, ``motion_polish``'s ``src_twist``) (3 m/s).
+        lateral_speed_sigma_mps: prior on its sideways speed, around 0 or the odometry's (0.3 m/s: a car does not
+            slide).
+        yaw_rate_sigma_radps: prior on its yaw rate, around 0 or the odometry's (1 rad/s: weak; a U-turn is ~0.8).
         radii_m: association radii of the Gauss-Newton rounds, coarse to fine: from 3 m, because on a drive the
             other way at 20-30 m/s the rigid pose is 1.4-2.8 m off along the track (each sweep's skew pulls the
             other way) and a fit whose first association is narrower cannot reach the right pose (session 30),
@@ -74,11 +78,12 @@ class MotionConfig:
         min_fit_share: the compensated pose must associate at the last radius at least this share of what the rigid
             pose associates there with the scans as seen (1.0: at least as many; a fit that settled on a wrong
             motion, e.g. a sweep in which a U-turn begins, associates fewer and the rigid pose is kept).
-        max_shift_m, max_turn_rad: a fit that moves the rigid pose farther is discarded; the shift allowed is at least
-            a sweep's travel at the map drive's speed there (7.5 m at 30 m/s).
-        Bounds (checked): sigmas 1e-4..1e4, radii decreasing and at most 10 m, at most 100 Gauss-Newton steps
-        (radii x iterations), min_associated 3..10,000, a sweep of at most 10 s and 100,000 azimuths (a typo must
-        fail at start-up, not slow or silence every answer).
+        max_shift_m, max_turn_rad: a fit that moves the rigid pose farther is discarded; the shift allowed is
+            max(``max_shift_m``, a sweep's travel at the larger of the map drive's and the query's measured speed)
+            (7.5 m at 30 m/s).
+        Bounds (checked): sigmas 1e-4..1e4, radii decreasing and at most 10 m, at most 50 iterations and 100
+        Gauss-Newton steps (radii x iterations), min_associated 3..10,000, a sweep of at most 10 s and 100,000
+        azimuths (a typo must fail at start-up, not slow or silence every answer).
         The priors were chosen on the training splits' unseen sessions (docs/BENCHMARKS.md "Session 29").
     """
 
@@ -123,8 +128,8 @@ class MotionConfig:
                               f"{self.radii_m}")
         if (max(self.radii_m) > 10.0 or len(self.radii_m) * self.iterations > 100 or self.iterations > 50
                 or self.min_associated > 10_000):
-            raise ConfigError("radii_m must be at most 10 m, len(radii_m) x iterations at most 100 Gauss-Newton "
-                              "steps (default 24) and min_associated at most 10000")
+            raise ConfigError("radii_m must be at most 10 m, iterations at most 50, len(radii_m) x iterations at "
+                              "most 100 Gauss-Newton steps (default 24) and min_associated at most 10000")
         if self.sweep_period_s > 10.0 or self.num_azimuths > 100_000:
             raise ConfigError("sweep_period_s must be at most 10 s and num_azimuths at most 100000")
 
@@ -185,12 +190,8 @@ def keyframe_twists(poses: np.ndarray, timestamps_us: np.ndarray,
     if n < 2:
         return twists, known
     # every keyframe at once, in time order (a map may hold 100,000: a loop over them cost ~3 s)
-    order = np.argsort(t, kind="stable")
+    order, has_before, has_after = time_neighbours(t, config.max_keyframe_gap_s)
     ts = t[order]
-    gaps = np.diff(ts)
-    close = (gaps > 0) & (gaps <= config.max_keyframe_gap_s * 1e6)  # between sorted keyframes j and j + 1
-    has_before = np.concatenate([[False], close])
-    has_after = np.concatenate([close, [False]])
     j = np.arange(n)
     i0 = np.where(has_before, j - 1, j)  # sorted positions of the two ends: the neighbours, or k itself
     i1 = np.where(has_after, j + 1, j)
@@ -202,6 +203,21 @@ def keyframe_twists(poses: np.ndarray, timestamps_us: np.ndarray,
     twists[order[ok]] = found[ok]
     known[order] = ok
     return twists, known
+
+
+def time_neighbours(timestamps_us: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which scans of one drive have a neighbour in time within ``max_gap_s`` (a later time, not an equal one).
+
+    Args:
+        timestamps_us: (N,) int64 scan times, microseconds, any order.
+    Returns:
+        (N,) int64 the stable time order, and (N,) bool each (in that order): a neighbour before, one after.
+    """
+    t = np.asarray(timestamps_us, np.int64).reshape(-1)
+    order = np.argsort(t, kind="stable")
+    gaps = np.diff(t[order])
+    close = (gaps > 0) & (gaps <= max_gap_s * 1e6)  # between sorted scans j and j + 1
+    return order, np.concatenate([[False], close]), np.concatenate([close, [False]])
 
 
 def _arc_twists(chord: np.ndarray, dt_s: np.ndarray, config: MotionConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -254,7 +270,8 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
     Returns:
         ``MotionPolish``, or None (keep the rigid pose) when an input is not finite, too few landmarks associate (fewer
         than ``min_associated``, or at the last radius fewer than ``min_fit_share`` of what the rigid pose associates
-        with the scans as seen), or the fit moves the pose more than ``max_shift_m`` / ``max_turn_rad``.
+        with the scans as seen), or the fit moves the pose more than the shift allowed (``MotionConfig.max_shift_m``,
+        at least a sweep's travel) / ``max_turn_rad``.
     """
     src = np.asarray(src_xy_m, np.float64).reshape(-1, 2)
     seen = np.asarray(dst_xy_m, np.float64).reshape(-1, 2)

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 import os
 import re
 import secrets
+import types
+import typing
 from pathlib import Path
 from typing import Any, Literal
 
@@ -102,11 +106,6 @@ def _sequence_fields(value: object, config: type) -> object:
     ``(3, 2, 1)`` or ``3,2,1`` (pydantic-settings decodes JSON only for top-level fields; a nested tuple was refused
     as "Input should be a valid tuple" whatever was written); values apart by commas and / or blanks. Text that does
     not parse is left for pydantic's error."""
-    import dataclasses
-    import json
-    import types
-    import typing
-
     if not isinstance(value, dict) or not dataclasses.is_dataclass(config):
         return value
     hints = typing.get_type_hints(config)

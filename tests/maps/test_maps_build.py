@@ -368,3 +368,32 @@ def test_a_damaged_place_repetition_is_measured_again_by_map_repetition(tmp_path
             assert m.place_repetition is not None
             np.testing.assert_array_equal(m.place_repetition.rival_score, table.rival_score)
             np.testing.assert_array_equal(m.poses, poses)
+
+
+def test_get_maps_counts_the_keyframes_whose_motion_is_known_under_the_servers_settings(tmp_path: Path) -> None:
+    """``GET /maps/{id}``'s ``keyframes_motion_known``: the keyframes whose motion on the map drive is known under the
+    service's own localization settings (here 30 keyframes 6 m apart every 0.25 s: 24 m/s, known by default; not
+    under a 20 m/s limit)."""
+    import dataclasses
+
+    from maps.database import MapDatabase
+    from reradar_core.localization import LocalizationConfig
+    from reradar_core.matching.motion import MotionConfig
+    from service.api.routes.maps import map_info
+    from service.core.registry import MapEntry
+
+    n = 30
+    poses = np.column_stack([6.0 * np.arange(n), np.zeros(n), np.zeros(n)])
+
+    def load(i: int) -> RadarScan:
+        return RadarScan.from_power(np.zeros((400, 3360), np.float32), "boreas", start_time_us=250_000 * i)
+
+    out = build_map(tmp_path / "drive.h5", PeriodicStreetExtractor(), load, poses, radar_preset="boreas",
+                    place_repetition=False)
+    slow = dataclasses.replace(LocalizationConfig(), motion=MotionConfig(max_speed_mps=20.0))
+    for config, known in ((LocalizationConfig(), 30), (slow, 0)):
+        db = MapDatabase.open(out, config=config)
+        try:
+            assert map_info(MapEntry("drive", out, "ready", db)).keyframes_motion_known == known
+        finally:
+            db.close()

@@ -236,8 +236,23 @@ def test_localizer_answers_the_compensated_pose_and_the_same_decision() -> None:
     assert tracked.mode == "tracking" and tracked.localized
     assert np.hypot(*(tracked.T_map_query[:2] - T_w_q[:2])) < 0.1
     assert last.moved(np.array([2.25, 0.0, 0.0])).twist is None  # no time: the map drive's speed
+    # a vehicle reversing at 4 m/s (facing east, moving west) past keyframe 2: its odometry says so, the map drive's
+    # 10 m/s forward does not; tracked with the scans' times it is fitted from its own motion
+    T_w_r = np.array([poses[2, 0] + 1.0, -3.5, 0.0])
+    reversing = features(T_w_r, np.array([-4.0, 0.0, 0.0]), unit(g[2] + 0.05 * rng.normal(size=16)), 2 * 10**9)
+    before = PosePrior(T_w_r + np.array([1.0, 0.0, 0.0]), 0.5, math.radians(1.0), 2 * 10**9 - 250_000)
+    timed = loc.track(reversing, before.moved(np.array([-1.0, 0.0, 0.0]), timestamp_us=2 * 10**9))
+    untimed = loc.track(reversing, before.moved(np.array([-1.0, 0.0, 0.0])))
+    assert timed.mode == untimed.mode == "tracking"
+    err_timed = np.hypot(*(timed.T_map_query[:2] - T_w_r[:2]))
+    err_untimed = np.hypot(*(untimed.T_map_query[:2] - T_w_r[:2]))
+    assert err_timed < 0.05 and err_untimed > 2 * err_timed, (err_timed, err_untimed)
     with pytest.raises(ConfigError):
         PosePrior(T_w_q, 0.5, 0.1, twist=np.array([1.0, np.inf, 0.0]))
+    for stamp in (float("nan"), 1.7, 2**63, "12"):  # a scan time is a whole int64 of microseconds
+        with pytest.raises(ConfigError):
+            PosePrior(T_w_q, 0.5, 0.1, timestamp_us=stamp)  # type: ignore[arg-type]
+    assert PosePrior(T_w_q, 0.5, 0.1, timestamp_us=np.int64(5)).timestamp_us == 5
 
 
 def test_compiled_fit_agrees_with_the_numpy_path(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -14,7 +14,15 @@ from reradar_core.geometry.se2 import relative_pose
 from reradar_core.io.scan import encode_navtech_png_bytes
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from service_test_fakes import keyframe_poses, make_scan, register_map_file  # noqa: E402
+from service_test_fakes import (  # noqa: E402
+    API_KEY,
+    keyframe_poses,
+    keyframe_time,
+    make_scan,
+    register_map_file,
+    started_app,
+    upload_map_file,
+)
 
 
 @pytest.fixture(scope="module")
@@ -105,13 +113,49 @@ def test_pose_headings_are_reported_in_minus_180_to_180() -> None:
     assert Pose2D.from_array(np.array([0.0, 0.0, -math.pi])).yaw_deg == 180.0
 
 
-def test_map_info_counts_the_keyframes_whose_motion_is_known(client: httpx.Client, fake_map: Path) -> None:
-    """``keyframes_motion_known``: the keyframes whose motion on the map drive is known under the service's settings
-    (answers on the others are not motion-compensated), as ``keyframe_twists`` counts them."""
-    from maps.store import open_map
-    from reradar_core.matching.motion import keyframe_twists
+def test_a_sessions_scan_times_give_the_tracked_answer_the_vehicles_motion(
+        tmp_path: Path, fake_map: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Session 30: each scan's own time is kept with the session's pose, and the next scan's odometry over the time
+    between them is the vehicle's motion that ``Localizer.track`` receives (``PosePrior.twist``) - also when the
+    request sends an explicit prior, under the service's motion settings."""
+    import math
 
-    with open_map(fake_map) as m:
-        _, known = keyframe_twists(m.poses, m.timestamps_us)
-    info = client.get("/maps/route-t").json()
-    assert info["keyframes_motion_known"] == int(known.sum()) and 0 <= info["keyframes_motion_known"] <= len(known)
+    from reradar_core.localization import Localizer
+
+    seen: list[object] = []
+    real_track = Localizer.track
+
+    def recording(self: Localizer, features: object, prior: object, config: object = None) -> object:
+        seen.append(prior)
+        return real_track(self, features, prior, config)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Localizer, "track", recording)
+    poses = keyframe_poses()
+    step = relative_pose(poses[3], poses[3] + [0.2 * np.cos(poses[3, 2]), 0.2 * np.sin(poses[3, 2]), 0.0])
+
+    def post(c: object, t_us: int, **fields: object) -> dict:
+        files = {"scan": ("q.png", encode_navtech_png_bytes(make_scan(3, t_us)), "image/png")}
+        r = c.post("/localize", data={"map_id": "route-m", **{k: str(v) for k, v in fields.items()}},  # type: ignore[attr-defined]
+                   files=files, headers={"X-API-Key": API_KEY})
+        assert r.status_code == 200, r.text
+        return r.json()
+
+    odo = {"odom_dx_m": step[0], "odom_dy_m": step[1], "odom_dyaw_deg": 0.0}
+    with started_app(tmp_path / "maps") as c:
+        assert upload_map_file(c, fake_map, "route-m").status_code in (200, 201, 202)
+        t0 = keyframe_time(3)
+        assert post(c, t0, session_id="veh")["mode"] == "global"
+        tracked = post(c, t0 + 250_000, session_id="veh", **odo)  # 0.2 m in 0.25 s: 0.8 m/s
+        assert tracked["mode"] == "tracking"
+        prior = seen[-1]
+        assert prior.timestamp_us == t0 + 250_000  # type: ignore[attr-defined]
+        np.testing.assert_allclose(prior.twist, [0.8, 0.0, 0.0], atol=1e-6)  # type: ignore[attr-defined]
+        # an explicit prior in the session keeps the scan's time and the vehicle's motion
+        post(c, t0 + 500_000, session_id="veh", prior_x_m=poses[3, 0], prior_y_m=poses[3, 1],
+             prior_yaw_deg=math.degrees(poses[3, 2]), **odo)
+        prior = seen[-1]
+        assert prior.timestamp_us == t0 + 500_000 and prior.twist is not None  # type: ignore[attr-defined]
+    with started_app(tmp_path / "maps", localization={"motion": {"max_keyframe_gap_s": 0.1}}) as c:
+        post(c, t0, session_id="veh2")
+        post(c, t0 + 250_000, session_id="veh2", **odo)  # 0.25 s apart: over this service's 0.1 s
+        assert seen[-1].twist is None  # type: ignore[attr-defined]

@@ -108,8 +108,8 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         stamp = int(inp.features.timestamp_us)
         moved = (await run_in_threadpool(state.sessions.prior_for, session_id, map_id, odometry, stamp, config.motion)
                  if session_id else None)
-        if explicit is not None and moved is not None:  # the vehicle's own motion holds whichever pose it starts from
-            explicit = replace(explicit, timestamp_us=stamp, twist=moved.twist)
+        if explicit is not None:  # the scan's time, and the vehicle's own motion whichever pose it starts from
+            explicit = replace(explicit, timestamp_us=stamp, twist=None if moved is None else moved.twist)
         prior = explicit or moved
         if prior is not None:
             result = await run_in_threadpool(db.track, inp.features, prior, config)
