@@ -229,9 +229,9 @@ class RedisSessionStore(SessionStore):
             return None
         try:
             item = json.loads(blob)
-            stamp = item.get("timestamp_us")  # absent in values written before session 30
+            # the scan time is absent in values written before session 30; ``PosePrior`` checks it is an int64
             return PosePrior(np.array(item["pose"], np.float64), float(item["sigma_xy_m"]),
-                             float(item["sigma_yaw_rad"]), None if stamp is None else int(stamp))
+                             float(item["sigma_yaw_rad"]), item.get("timestamp_us"))
         except (ValueError, KeyError, TypeError, OverflowError, ReRadarError):  # e.g. a time of 1e400
             return None  # a value this version cannot read: start the session afresh
 

@@ -93,7 +93,7 @@ def test_a_sessions_scan_times_give_the_next_prior_the_vehicles_motion() -> None
     old = _store(stub).get("car-2", "demo")
     assert old is not None and old.timestamp_us is None
     # a value no version writes (QA, session 30: these were a 500 on every scan of the session): forgotten
-    for stamp in ("Infinity", "-Infinity", "1e400", "1" + "0" * 400, "1e19"):
+    for stamp in ("Infinity", "-Infinity", "1e400", "1" + "0" * 400, "1e19", "1.7", '"12"'):
         value = '{"pose": [1, 2, 0], "sigma_xy_m": 0.5, "sigma_yaw_rad": 0.02, "timestamp_us": ' + stamp + "}"
         stub.data["t:v1:session:demo:car-3"] = value.encode()
         assert _store(stub).get("car-3", "demo") is None
