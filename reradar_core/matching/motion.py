@@ -277,8 +277,10 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
     seen = np.asarray(dst_xy_m, np.float64).reshape(-1, 2)
     dst_twist = np.asarray(dst_twist, np.float64).reshape(3)
     start = np.asarray(T_dst_src, np.float64).reshape(3)
+    measured = None if src_twist is None else np.asarray(src_twist, np.float64).reshape(3)
     if (len(src) < config.min_associated or len(seen) < config.min_associated or not np.isfinite(src).all()
-            or not np.isfinite(seen).all() or not np.isfinite(dst_twist).all() or not np.isfinite(start).all()):
+            or not np.isfinite(seen).all() or not np.isfinite(dst_twist).all() or not np.isfinite(start).all()
+            or (measured is not None and not np.isfinite(measured).all())):
         return None
     dst = deskew_points(seen, azimuth_time_offsets(seen, config), dst_twist)
     # what the rigid pose associates at the last radius with the scans as seen: the bar the fit must reach
@@ -286,17 +288,15 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
     rigid_count = int(np.isfinite(cKDTree(seen).query(rigid_at, distance_upper_bound=config.radii_m[-1])[0]).sum())
     bar = max(config.min_associated, math.ceil(config.min_fit_share * rigid_count))
     tau = azimuth_time_offsets(src, config)
-    if src_twist is not None and not np.isfinite(np.asarray(src_twist, np.float64)).all():
-        return None
-    prior_mean = (np.array([0.0, 0.0, 0.0, float(np.hypot(dst_twist[0], dst_twist[1])), 0.0, 0.0])
-                  if src_twist is None else np.concatenate([np.zeros(3), np.asarray(src_twist, np.float64).reshape(3)]))
+    map_speed = float(np.hypot(dst_twist[0], dst_twist[1]))
+    prior_mean = np.concatenate([np.zeros(3), [map_speed, 0.0, 0.0] if measured is None else measured])
     prior_precision = np.array([0.0, 0.0, 0.0, config.speed_sigma_mps ** -2, config.lateral_speed_sigma_mps ** -2,
                                 config.yaw_rate_sigma_radps ** -2])
     prior_hessian = np.diag(prior_precision) + 1e-9 * np.eye(6)
     # a sweep's travel at the map drive's (or the measured query's) speed: how far the skews can have pulled the
     # rigid pose
-    max_shift = max(config.max_shift_m, config.sweep_period_s * float(max(np.hypot(dst_twist[0], dst_twist[1]),
-                                                                          np.hypot(prior_mean[3], prior_mean[4]))))
+    max_shift = max(config.max_shift_m,
+                    config.sweep_period_s * max(map_speed, float(np.hypot(prior_mean[3], prior_mean[4]))))
     x = np.concatenate([start, prior_mean[3:]])
 
     def step(x: np.ndarray, src_m: np.ndarray, tau_m: np.ndarray, dst_m: np.ndarray) -> np.ndarray:
