@@ -10,8 +10,13 @@ With ``--localizer`` every pair instead runs through the service's ``Localizer``
 its odometry pose, and the table counts, per gap, the answers ``localized`` within 2 m / 2 deg (correct),
 ``localized`` outside them (a confident wrong pose, what issue 11 forbids) and refused, with the confidences.
 
+With ``--leave-one-out`` every scan runs through the ``Localizer`` on a map of the other ten (mid-sweep poses and times,
+so the answers are motion-compensated as on a served map). Both ``Localizer`` modes also check the answers' pose
+covariance against their errors (``benchmark.metrics.covariance_report``).
+
 Usage:
     python scripts/real_oxford_pose.py ../shared/data/real-oxford [--model default] [--max-keypoints 512]
+    python scripts/real_oxford_pose.py ../shared/data/real-oxford --leave-one-out
     python scripts/real_oxford_pose.py ../shared/data/real-oxford --rotate-seed 0 --localizer
 """
 
@@ -23,8 +28,9 @@ from dataclasses import replace
 
 import numpy as np
 
+from reradar_core.benchmark.metrics import covariance_report
 from reradar_core.evaluation.metrics import localization_errors, localization_success, radius_for
-from reradar_core.geometry.se2 import relative_pose
+from reradar_core.geometry.se2 import relative_pose, wrap_angle
 from reradar_core.io.datasets import load_sequence
 from reradar_core.matching import (
     AlignmentConfig,
@@ -49,6 +55,10 @@ def main() -> None:
     ap.add_argument("--rotate-seed", type=int, default=None,
                     help="turn every query scan by a random whole-azimuth heading (seeded) before describing it")
     ap.add_argument("--json", default=None, help="also write the per-gap table as JSON here")
+    ap.add_argument("--leave-one-out", action="store_true",
+                    help="run every scan through the service's Localizer on a map of the other scans (mid-sweep poses "
+                         "and times from the odometry, so every keyframe's motion is known and the answers are "
+                         "motion-compensated, as on a served map); count the answers and check their pose covariance")
     ap.add_argument("--localizer", action="store_true",
                     help="run every pair through the service's Localizer on a one-keyframe map (shipped floor, "
                          "confidence bar and search) and count correct / wrong / refused answers")
@@ -70,6 +80,9 @@ def main() -> None:
         dyaw = shift * 2 * np.pi / scans[0].num_azimuths
     print(f"pose method {args.pose_method}; model {ex.name} ({ex.model_id}), {len(scans)} scans, "
           f"{np.mean([len(f.keypoints_xy_m) for f in feats]):.0f} keypoints per scan in the image")
+    if args.leave_one_out:
+        _leave_one_out(feats, qfeats, seq.mid_sweep_poses(), dyaw, args)
+        return
     if args.localizer:
         _localizer_table(feats, qfeats, poses, dyaw, args)
         return
@@ -136,6 +149,8 @@ def _localizer_table(feats: list, qfeats: list, poses: np.ndarray, dyaw: np.ndar
     rows: list[dict[str, object]] = []
     n_good = n_bad = n_refused = 0
     all_wrong: list[tuple[int, int, float, float, float]] = []
+    cov_errors: list[np.ndarray] = []  # the correct answers' errors and covariances (the pose covariance's check)
+    covariances: list[np.ndarray] = []
     for gap in range(1, args.max_gap + 1):
         good, bad, refused, dist, conf_good, conf_bad, reasons = 0, 0, 0, [], [], [], []
         for i in range(len(feats) - gap):
@@ -155,6 +170,11 @@ def _localizer_table(feats: list, qfeats: list, poses: np.ndarray, dyaw: np.ndar
             if localization_success(e_t, e_r, 2.0, 2.0)[0]:
                 good += 1
                 conf_good.append(res.confidence)
+                if res.pose_covariance is not None:
+                    err = T_map_query_gt - res.T_map_query
+                    err[2] = float(wrap_angle(err[2]))
+                    cov_errors.append(err)
+                    covariances.append(res.pose_covariance)
             else:
                 bad += 1
                 conf_bad.append(res.confidence)
@@ -172,9 +192,70 @@ def _localizer_table(feats: list, qfeats: list, poses: np.ndarray, dyaw: np.ndar
           f"(wrong) {total['wrong']}, refused {total['refused']}")
     for i, j, off_m, off_deg, c in all_wrong:
         print(f"  wrong: scan {i} -> {j}: {off_m:.2f} m, {off_deg:.2f} deg off at confidence {c:.3f}")
+    calibration = covariance_report(np.array(cov_errors), np.array(covariances)) if cov_errors else None
+    if calibration is not None:
+        _print_calibration(calibration)
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump({"mode": "localizer", "rows": rows, "total": total}, fh, indent=2)
+            json.dump({"mode": "localizer", "rows": rows, "total": total, "pose_covariance": calibration}, fh,
+                      indent=2)
+
+
+def _leave_one_out(feats: list, qfeats: list, poses: np.ndarray, dyaw: np.ndarray, args: argparse.Namespace) -> None:
+    """Each scan j localized by the ``Localizer`` on a map of every other scan (``poses``: mid-sweep, with the scans'
+    times): correct (within 2 m / 2 deg), wrong and refused answers, the mean errors, and the pose covariance's
+    calibration over the correct ones (``benchmark.metrics.covariance_report``)."""
+    from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer
+    from reradar_core.retrieval import GlobalIndex
+
+    config = LocalizationConfig()
+    good, bad, refused = 0, [], 0
+    errors, covariances, e_t_all, e_r_all = [], [], [], []
+    for j in range(len(feats)):
+        others = [i for i in range(len(feats)) if i != j]
+        keyframes = InMemoryKeyframes([feats[i] for i in others], poses[others],
+                                      np.array([feats[i].timestamp_us for i in others]))
+        g = np.stack([np.asarray(feats[i].global_descriptor, np.float32).reshape(-1) for i in others])
+        res = Localizer(GlobalIndex(g), keyframes, config).localize(qfeats[j])
+        if not res.localized or res.T_map_query is None:
+            refused += 1
+            continue
+        gt = poses[j].copy()
+        gt[2] -= dyaw[j]  # the query scan was turned (see main)
+        e_t, e_r = localization_errors(res.T_map_query[None], gt[None])
+        if not localization_success(e_t, e_r, 2.0, 2.0)[0]:
+            bad.append((j, float(e_t[0]), float(e_r[0]), res.confidence))
+            continue
+        good += 1
+        e_t_all.append(float(e_t[0]))
+        e_r_all.append(float(e_r[0]))
+        if res.pose_covariance is not None:
+            err = gt - res.T_map_query
+            err[2] = float(wrap_angle(err[2]))
+            errors.append(err)
+            covariances.append(res.pose_covariance)
+    print(f"leave-one-out: {len(feats)} scans, localized within 2 m / 2 deg {good} (mean {np.mean(e_t_all):.3f} m / "
+          f"{np.mean(e_r_all):.3f} deg), localized outside (wrong) {len(bad)}, refused {refused}")
+    for j, off_m, off_deg, c in bad:
+        print(f"  wrong: scan {j}: {off_m:.2f} m, {off_deg:.2f} deg off at confidence {c:.3f}")
+    calibration = covariance_report(np.array(errors), np.array(covariances)) if errors else None
+    if calibration is not None:
+        _print_calibration(calibration)
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump({"mode": "leave-one-out", "correct": good, "wrong": len(bad), "refused": refused,
+                       "mean_e_t_m": float(np.mean(e_t_all)) if e_t_all else None,
+                       "mean_e_r_deg": float(np.mean(e_r_all)) if e_r_all else None,
+                       "pose_covariance": calibration}, fh, indent=2)
+
+
+def _print_calibration(c: dict) -> None:
+    """One line of ``covariance_report``'s figures."""
+    print(f"pose covariance over the {c['n']} correct answers: NEES {c['nees']:.2f} (3 when calibrated), inside its "
+          f"50 / 90 / 95 / 99 % ellipsoids {c['inside_50_pct']:.1f} / {c['inside_90_pct']:.1f} / "
+          f"{c['inside_95_pct']:.1f} / {c['inside_99_pct']:.1f} %, RMS error {c['rms_position_m']:.3f} m / "
+          f"{c['rms_heading_deg']:.3f} deg (predicted {c['predicted_rms_position_m']:.3f} m / "
+          f"{c['predicted_rms_heading_deg']:.3f} deg)")
 
 
 if __name__ == "__main__":

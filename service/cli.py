@@ -278,7 +278,10 @@ def localize_command(
     if as_json:
         typer.echo(json.dumps(res.model_dump(), indent=2))
     elif res.status == "localized" and res.pose is not None and res.keyframe is not None:
-        typer.echo(f"localized: x={res.pose.x_m:.2f} m y={res.pose.y_m:.2f} m yaw={res.pose.yaw_deg:.2f} deg "
+        unc = res.pose_uncertainty
+        sigma = (f" (1 sigma {unc.sigma_x_m:.2f} m / {unc.sigma_y_m:.2f} m / {unc.sigma_yaw_deg:.2f} deg)"
+                 if unc is not None else "")
+        typer.echo(f"localized: x={res.pose.x_m:.2f} m y={res.pose.y_m:.2f} m yaw={res.pose.yaw_deg:.2f} deg{sigma} "
                    f"(map {res.map_id}, keyframe {res.keyframe.keyframe_id}, {res.num_inliers} inliers, "
                    f"{res.mode}, {res.timings_ms.get('total_ms', 0):.0f} ms)")
     else:

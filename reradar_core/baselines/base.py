@@ -47,6 +47,8 @@ class Retrieval:
         pose: estimated map-frame pose ``T_map_query`` (x [m], y [m], yaw [rad]), or None.
         descriptor_index: database index of the nearest global descriptor alone, before any re-ranking, for
             methods that re-rank (ReRadar's screen); None when ``index`` already is that (no re-ranking).
+        pose_covariance: (3, 3) covariance of ``pose`` (x m, y m, yaw rad; map frame), or None (ReRadar's
+            ``LocalizationResult.pose_covariance``; no other method gives one).
     """
 
     index: int
@@ -54,6 +56,7 @@ class Retrieval:
     heading_rad: float | None = None
     pose: np.ndarray | None = None
     descriptor_index: int | None = None
+    pose_covariance: np.ndarray | None = None
 
 
 class PlaceRecognitionMethod(ABC):

@@ -117,5 +117,6 @@ class Ours(PlaceRecognitionMethod):
         top = min(res.candidates, key=lambda c: c.rank).keyframe_id if res.candidates else j
         if res.localized and res.T_map_query is not None:
             heading = float(relative_pose(db_poses[j], res.T_map_query)[2])
-            return Retrieval(j, dist, heading, np.asarray(res.T_map_query, np.float64), descriptor_index=int(top))
+            return Retrieval(j, dist, heading, np.asarray(res.T_map_query, np.float64), descriptor_index=int(top),
+                             pose_covariance=res.pose_covariance)
         return Retrieval(j, dist, None, None, descriptor_index=int(top))

@@ -36,7 +36,10 @@ from reradar_core.evaluation import (
 #: What "rejected" means for each success rule (results.json ``rejection``; None = the method never rejects).
 REJECTION_RULES: dict[str, str | None] = {"pose": "not_localized", "heading": None, "none": None}
 
-__all__ = ["QueryOutcome", "make_outcome", "summarise", "pr_curve"]
+__all__ = ["QueryOutcome", "covariance_calibration", "covariance_report", "make_outcome", "summarise", "pr_curve"]
+
+#: ellipsoid probabilities the benchmark reports the pose covariance's coverage at
+COVERAGE_LEVELS = (0.5, 0.9, 0.95, 0.99)
 
 
 @dataclass
@@ -52,6 +55,8 @@ class QueryOutcome:
         positive: (Q,) bool, the database holds a keyframe within R (a true revisit).
         heading_err_deg: (Q,) |yaw error| degrees (NaN without estimate).
         trans_err_m: (Q,) translation error, metres (NaN without a pose estimate).
+        pose_covariance: (Q, 3, 3) covariance of ``est_pose`` (x m, y m, yaw rad; NaN rows: none), or None when
+            the method gives none (every method but ReRadar).
     """
 
     retrieved: np.ndarray
@@ -61,6 +66,7 @@ class QueryOutcome:
     positive: np.ndarray
     heading_err_deg: np.ndarray
     trans_err_m: np.ndarray
+    pose_covariance: np.ndarray | None = None
 
 
 def make_outcome(retrieved: np.ndarray, distance: np.ndarray, est_pose: np.ndarray, query_poses: np.ndarray,
@@ -143,3 +149,60 @@ def pr_curve(distance: np.ndarray, correct: np.ndarray, positive: np.ndarray) ->
     """(precision, recall) over thresholds, RaPlace protocol (``evaluation.precision_recall_curve``)."""
     pr = precision_recall_curve(distance, correct, positive)
     return pr.precision, pr.recall
+
+
+def covariance_calibration(out: QueryOutcome, pose_gt: np.ndarray, covariance: np.ndarray,
+                           radius_m: float) -> dict[str, Any] | None:
+    """How well the answers' pose covariances describe their errors (``covariance_report``), over the successful
+    answers that have one.
+
+    Args:
+        out: the outcome (its ``est_pose``, ``trans_err_m``, ``heading_err_deg``).
+        pose_gt: (Q, 3) ground truth of the estimated poses (x m, y m, yaw rad; mid-sweep).
+        covariance: (Q, 3, 3) covariance of each ``est_pose`` (x m, y m, yaw rad), NaN where none.
+        radius_m: the success radius (metres; with 10 deg).
+    Returns:
+        ``covariance_report``'s figures, or None when no successful answer has a covariance.
+    """
+    from reradar_core.geometry.se2 import wrap_angle
+
+    cov = np.asarray(covariance, np.float64).reshape(-1, 3, 3)
+    success = localization_success(out.trans_err_m, out.heading_err_deg, radius_m)
+    m = success & np.isfinite(cov).all(axis=(1, 2))
+    if not m.any():
+        return None
+    e = np.asarray(pose_gt, np.float64)[m] - np.asarray(out.est_pose, np.float64)[m]
+    e[:, 2] = wrap_angle(e[:, 2])
+    return covariance_report(e, cov[m])
+
+
+def covariance_report(errors: np.ndarray, covariance: np.ndarray) -> dict[str, Any]:
+    """Calibration figures of pose covariances against the poses' errors.
+
+    Args:
+        errors: (n, 3) ground truth - estimate (x m, y m, yaw rad; the heading wrapped), n >= 1.
+        covariance: (n, 3, 3) each estimate's covariance (x m, y m, yaw rad).
+    Returns:
+        ``n``, ``nees`` (mean normalised squared error e^T C^-1 e: 3 when calibrated), ``inside_P_pct`` (percent of
+        errors inside the covariance's P ellipsoid, 3-DoF, P in ``COVERAGE_LEVELS``; P when calibrated),
+        ``position_inside_95_pct`` / ``heading_inside_95_pct`` (the same for position and heading alone), and the
+        RMS errors against the RMS the covariances predict (``rms_position_m`` / ``predicted_rms_position_m``,
+        ``rms_heading_deg`` / ``predicted_rms_heading_deg``).
+    """
+    from scipy.stats import chi2
+
+    e = np.asarray(errors, np.float64).reshape(-1, 3)
+    c = np.asarray(covariance, np.float64).reshape(-1, 3, 3)
+    d2 = np.einsum("ni,ni->n", e, np.linalg.solve(c, e[..., None])[..., 0])
+    d2_pos = np.einsum("ni,ni->n", e[:, :2], np.linalg.solve(c[:, :2, :2], e[:, :2, None])[..., 0])
+    d2_yaw = e[:, 2] ** 2 / c[:, 2, 2]
+    res: dict[str, Any] = {"n": int(len(e)), "nees": float(d2.mean())}
+    for p in COVERAGE_LEVELS:
+        res[f"inside_{round(p * 100)}_pct"] = 100.0 * float(np.mean(d2 <= chi2.ppf(p, 3)))
+    res["position_inside_95_pct"] = 100.0 * float(np.mean(d2_pos <= chi2.ppf(0.95, 2)))
+    res["heading_inside_95_pct"] = 100.0 * float(np.mean(d2_yaw <= chi2.ppf(0.95, 1)))
+    res["rms_position_m"] = float(np.sqrt((e[:, :2] ** 2).sum(1).mean()))
+    res["predicted_rms_position_m"] = float(np.sqrt((c[:, 0, 0] + c[:, 1, 1]).mean()))
+    res["rms_heading_deg"] = float(np.degrees(np.sqrt((e[:, 2] ** 2).mean())))
+    res["predicted_rms_heading_deg"] = float(np.degrees(np.sqrt(c[:, 2, 2].mean())))
+    return res

@@ -164,6 +164,22 @@ def results_markdown(results: dict[str, Any]) -> str:
             lines.append(f"| {labels.get(m, m)} | " + " | ".join(_fmt(rows.get(m, {}).get("wrong_pose_pct"), "{:.2f}")
                                                  for rows in seqs.values()) + " |")
         lines.append("")
+    covs = [m for m in methods if any(rows.get(m, {}).get("pose_covariance") for rows in seqs.values())]
+    if covs:
+        lines += ["Pose covariance (successful answers with one): how well it describes their errors. NEES = mean "
+                  "e^T C^-1 e (3 when calibrated); inside = % of errors within its 50 / 95 / 99 % ellipsoid; RMS error "
+                  "(predicted by the covariances):", "", "| Method | sequence | answers | NEES | inside 50 / 95 / 99 % | "
+                  "position RMS m | heading RMS ° |", "|---|---|---|---|---|---|---|"]
+        for m in covs:
+            for seq, rows in seqs.items():
+                c = rows.get(m, {}).get("pose_covariance")
+                if not c:
+                    continue
+                lines.append(f"| {labels.get(m, m)} | {seq} | {c['n']} | {c['nees']:.2f} | {c['inside_50_pct']:.1f} / "
+                             f"{c['inside_95_pct']:.1f} / {c['inside_99_pct']:.1f} | {c['rms_position_m']:.3f} "
+                             f"({c['predicted_rms_position_m']:.3f}) | {c['rms_heading_deg']:.3f} "
+                             f"({c['predicted_rms_heading_deg']:.3f}) |")
+        lines.append("")
     stress = results.get("rotation_stress")
     if stress:
         lines += ["### Rotation stress (random heading offset added to every query scan; Recall@1 over the "

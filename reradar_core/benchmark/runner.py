@@ -27,7 +27,13 @@ from tqdm import tqdm
 
 from reradar_core.baselines.base import PlaceRecognitionMethod, Prepared
 from reradar_core.benchmark.cache import FeatureCache, sequence_key
-from reradar_core.benchmark.metrics import QueryOutcome, make_outcome, retrieval_correct, summarise
+from reradar_core.benchmark.metrics import (
+    QueryOutcome,
+    covariance_calibration,
+    make_outcome,
+    retrieval_correct,
+    summarise,
+)
 from reradar_core.benchmark.rotation import heading_offsets, rotate_pose, rotate_scan
 from reradar_core.errors import ConfigError
 from reradar_core.geometry.se2 import compose
@@ -187,6 +193,7 @@ def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: n
     retrieved = np.zeros(q, np.int64)
     dist = np.zeros(q)
     est = np.full((q, 3), np.nan)
+    covariance = np.full((q, 3, 3), np.nan)  # ReRadar's pose covariances (NaN: none)
     by_descriptor = np.full(q, -1, np.int64)  # global-descriptor top 1 of re-ranking methods (-1: none)
     t_total = 0.0
     if bar is not None:
@@ -204,13 +211,20 @@ def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: n
             by_descriptor[i] = r.descriptor_index
         if r.pose is not None:
             est[i] = r.pose
+            if r.pose_covariance is not None:
+                covariance[i] = r.pose_covariance
         elif r.heading_rad is not None:
             # heading-only: the keyframe's position, the estimated yaw (only the yaw is scored)
             est[i] = compose(db_poses[r.index], np.array([0.0, 0.0, r.heading_rad]))
     outcome = make_outcome(retrieved, dist, est, query_poses, db_poses, radius_m, rule, gt_poses)
+    if np.isfinite(covariance).any():
+        outcome.pose_covariance = covariance
     summary = summarise(outcome, query_poses, db_poses, radius_m, rule, gt_poses)
     search_ms = 1e3 * t_total / max(q, 1)
     summary["ms_per_query"] = float(np.nanmean(query.compute_ms) + search_ms) if q else None
+    summary["pose_covariance"] = (covariance_calibration(outcome, query_poses if gt_poses is None else gt_poses,
+                                                         covariance, radius_m)
+                                  if rule == "pose" and np.isfinite(covariance).any() else None)
     summary["recall@1_descriptor"] = descriptor_recall_at_1(by_descriptor, outcome.positive, query_poses,
                                                             db_poses, radius_m)
     return MethodRun(outcome, summary, search_ms)
@@ -317,13 +331,15 @@ def _save_outcome(path: Path, run: MethodRun, query_xy: np.ndarray, db_xy: np.nd
     """``per_query/<sequence>/<method>.npz`` (docs/BENCHMARKS.md, "Per-query files"): two instants, each named -
     ``query_xy`` / ``db_xy`` are the scans' positions at their timestamps (first azimuth, what the datasets' pose
     files give and what retrieval is judged on), ``est_pose`` and ``query_pose_mid_sweep`` are mid-sweep poses (x m,
-    y m, yaw rad; what the errors are measured against)."""
+    y m, yaw rad; what the errors are measured against), and ReRadar's ``pose_covariance`` (Q, 3, 3) of ``est_pose`` (x m,
+    y m, yaw rad; NaN rows: none)."""
     o = run.outcome
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(path, retrieved=o.retrieved, distance=o.distance, est_pose=o.est_pose,
                         correct=o.correct, positive=o.positive, heading_err_deg=o.heading_err_deg,
                         trans_err_m=o.trans_err_m, query_xy=query_xy, db_xy=db_xy,
-                        query_pose_mid_sweep=query_pose_mid_sweep)
+                        query_pose_mid_sweep=query_pose_mid_sweep,
+                        **({} if o.pose_covariance is None else {"pose_covariance": o.pose_covariance}))
 
 
 def _rotation_indices(n: int, limit: int | None) -> np.ndarray:

@@ -351,7 +351,7 @@ def collection_config(min_inlier_ratio: float = PROBE_FLOOR) -> Any:
     ``min_inlier_ratio`` and the tie margin at ``PROBE_PLACE_MARGIN`` (a higher floor or margin is applied afterwards
     through their cues), no repeated-place check (``max_place_repetition`` None: chosen on such runs itself), and
     the rigid registration's poses (no motion compensation: the cues a served answer is judged on are the rigid
-    registration's, ``Localizer._motion_compensated``, and a label computed from the same pose keeps them paired)."""
+    registration's, ``Localizer._final_pose``, and a label computed from the same pose keeps them paired)."""
     from reradar_core.localization.pipeline import LocalizationConfig
     from reradar_core.matching.motion import MotionConfig
 

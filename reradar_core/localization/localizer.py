@@ -55,7 +55,14 @@ from reradar_core.localization.tracking import (
 )
 from reradar_core.matching import count_aligned
 from reradar_core.matching.kernels import warm_up
-from reradar_core.matching.motion import MotionConfig, keyframe_twists, motion_polish
+from reradar_core.matching.motion import (
+    MotionConfig,
+    azimuth_time_offsets,
+    deskew_points,
+    keyframe_twists,
+    motion_polish,
+)
+from reradar_core.matching.uncertainty import registration_covariance, rotate_covariance
 from reradar_core.retrieval import GlobalIndex, similarity_to_distance
 
 _Item = TypeVar("_Item")
@@ -163,7 +170,7 @@ class Localizer:
             if repetition >= bar:
                 # the winner's place repeats on the map: the scan fits the other copy as well (``max_place_repetition``)
                 result = replace(result, status="not_localized", reason=REASON_AMBIGUOUS, T_map_query=None)
-        return self._motion_compensated(features, result, config)
+        return self._final_pose(features, result, config)
 
     def keyframe_twists(self, config: MotionConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Every keyframe's motion on the map drive (``matching.motion.keyframe_twists``: (N, 3) vx m/s, vy m/s, yaw
@@ -179,36 +186,58 @@ class Localizer:
                 self._twists[key] = got
         return got
 
-    def _motion_compensated(self, features: ScanFeatures, result: LocalizationResult,
-                            config: LocalizationConfig, query_twist: np.ndarray | None = None) -> LocalizationResult:
-        """``result`` with its pose motion-compensated (``matching.motion.motion_polish``) when it is localized, the
-        motion compensation is on and the winning keyframe's motion on the map is known; the decision, confidence
-        and cues stay the rigid registration's. ``query_twist``: the vehicle's own motion (a tracked scan's
-        odometry, ``PosePrior.twist``), the fit's prior instead of the map drive's speed. ``timings_ms["motion_ms"]``."""
-        mc = config.motion
+    def _final_pose(self, features: ScanFeatures, result: LocalizationResult, config: LocalizationConfig,
+                    query_twist: np.ndarray | None = None) -> LocalizationResult:
+        """``result`` (when localized) with its pose motion-compensated (``matching.motion.motion_polish``: when the
+        compensation is on and the winning keyframe's motion on the map is known) and its covariance
+        (``matching.uncertainty.registration_covariance`` on the final pose's landmark pairs, de-skewed as the pose
+        is; in the map frame). The decision, confidence and cues stay the rigid registration's. ``query_twist``:
+        the vehicle's own motion (a tracked scan's odometry, ``PosePrior.twist``), the fit's prior instead of the map
+        drive's speed. ``timings_ms["motion_ms"]`` and ``["covariance_ms"]``."""
+        mc, cc = config.motion, config.covariance
         best = result.best
-        if not mc.enabled or not result.localized or best is None or best.T_keyframe_query is None:
+        if (not (mc.enabled or cc.enabled) or not result.localized or best is None
+                or best.T_keyframe_query is None):
             return result
-        t0 = time.perf_counter()
-        twists, known = self.keyframe_twists(mc)
         kid = best.keyframe_id
+        src = np.asarray(features.keypoints_xy_m, np.float64)
+        dst = self.cache.get(kid).features.keypoints_xy_m
+        T_keyframe_query = np.asarray(best.T_keyframe_query, np.float64)
         polished = None
-        if known[kid]:
-            dst = self.cache.get(kid).features.keypoints_xy_m
+        if mc.enabled:
+            t0 = time.perf_counter()
+            twists, known = self.keyframe_twists(mc)
+            if known[kid]:
+                try:
+                    polished = motion_polish(src, dst, T_keyframe_query, twists[kid], mc, query_twist)
+                except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:  # a numerical failure: rigid pose
+                    _log.warning("motion compensation failed on keyframe %d (%s); rigid pose kept", kid, exc)
+            result.timings_ms["motion_ms"] = (time.perf_counter() - t0) * 1e3
+            if polished is not None:
+                # the covariance is of the pose as fitted: the landmarks de-skewed as the fit moved them
+                T_keyframe_query = polished.T_dst_src
+                src = deskew_points(src, azimuth_time_offsets(src, mc), polished.twist)
+                dst = deskew_points(dst, azimuth_time_offsets(dst, mc), twists[kid])
+        T_map_keyframe = np.asarray(best.T_map_keyframe, np.float64)
+        covariance = None
+        if cc.enabled:
+            t0 = time.perf_counter()
             try:
-                polished = motion_polish(features.keypoints_xy_m, dst, best.T_keyframe_query, twists[kid], mc,
-                                         query_twist)
-            except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:  # a numerical failure: rigid pose
-                _log.warning("motion compensation failed on keyframe %d (%s); rigid pose kept", kid, exc)
-        result.timings_ms["motion_ms"] = (time.perf_counter() - t0) * 1e3
+                in_keyframe = registration_covariance(src, dst, T_keyframe_query, cc)
+            except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:  # a numerical failure: none
+                _log.warning("pose covariance failed on keyframe %d (%s); none given", kid, exc)
+                in_keyframe = None
+            if in_keyframe is not None:
+                covariance = rotate_covariance(in_keyframe, float(T_map_keyframe[2]))
+            result.timings_ms["covariance_ms"] = (time.perf_counter() - t0) * 1e3
         if polished is None:
-            return result
+            return replace(result, pose_covariance=covariance)
         old = best
         best = replace(best, T_keyframe_query=polished.T_dst_src)
         # the winner's entry among the candidates answers the same pose (the API lists both)
         candidates = [best if c is old else c for c in result.candidates]
-        return replace(result, best=best, candidates=candidates,
-                       T_map_query=compose(np.asarray(best.T_map_keyframe, np.float64), polished.T_dst_src))
+        return replace(result, best=best, candidates=candidates, pose_covariance=covariance,
+                       T_map_query=compose(T_map_keyframe, polished.T_dst_src))
 
     def _candidate(self, keyframe_id: int, rank: int = 0, descriptor_distance: float = 0.0,
                    wrap: Callable[..., Any] | None = None) -> Candidate:
@@ -359,7 +388,7 @@ class Localizer:
             confidence = float(model.predict(cues)) if cues is not None else 0.0
             if config.pose_method != "guided" or confidence >= config.effective_min_confidence:  # as ``localize``
                 track_ms = (time.perf_counter() - t0) * 1e3
-                return self._motion_compensated(
+                return self._final_pose(
                     features, LocalizationResult("localized", None, best, T_map_query, verified,
                                                  {"track_ms": track_ms, "verify_ms": track_ms}, confidence, cues,
                                                  mode="tracking"), config, prior.twist)

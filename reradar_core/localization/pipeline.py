@@ -46,6 +46,7 @@ from reradar_core.matching import (
     match_descriptors,
 )
 from reradar_core.matching.motion import MotionConfig
+from reradar_core.matching.uncertainty import PoseCovarianceConfig
 
 __all__ = [
     "LocalizationConfig",
@@ -143,6 +144,9 @@ class LocalizationConfig:
         motion: motion compensation of a localized answer's pose (``Localizer``; ``matching.motion``: both scans
             de-skewed, the query's motion fitted with its pose; the decision, confidence and cues are the rigid
             registration's). ``MotionConfig(enabled=False)``: the rigid pose, as before session 29.
+        covariance: a localized answer's pose covariance (``Localizer``; ``matching.uncertainty``: the final
+            registration's landmark pairs, scaled by factors fitted on the training splits; ``LocalizationResult.
+            pose_covariance``). ``PoseCovarianceConfig(enabled=False)``: none.
         min_confidence: ``guided`` only: an answer that passes the checks above is ``localized`` only when its
             confidence (``reradar_core.localization.confidence``: calibrated probability that the pose is
             within the success thresholds) reaches this bar; the aligned-ratio bar stays as a floor. None =
@@ -212,6 +216,7 @@ class LocalizationConfig:
     ransac: RansacConfig = field(default_factory=RansacConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
+    covariance: PoseCovarianceConfig = field(default_factory=PoseCovarianceConfig)
     min_confidence: float | None = None
     prescreen_keep: int | None = 5
     prescreen_source_points: int = 64
@@ -414,6 +419,9 @@ class LocalizationResult:
         confidence: probability in [0, 1] that the winner's pose is within the success thresholds (shipped
             ``ConfidenceModel``; 0 without a pose), also when not localized.
         cues: the confidence's inputs (None without a pose).
+        pose_covariance: (3, 3) float64 covariance of ``T_map_query`` (x m, y m, yaw rad; map frame; m^2, m rad,
+            rad^2) when localized and ``config.covariance`` is on (``Localizer``), else None: how precise the pose
+            is, calibrated on the training splits (``matching.uncertainty``).
     """
 
     status: Status
@@ -426,6 +434,7 @@ class LocalizationResult:
     cues: ConfidenceCues | None = None
     mode: Literal["global", "tracking"] = "global"
     tracking_lost: bool = False
+    pose_covariance: np.ndarray | None = None
 
     @property
     def localized(self) -> bool:

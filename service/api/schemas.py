@@ -76,6 +76,28 @@ class Pose2D(_Model):
         return cls(x_m=float(pose[0]), y_m=float(pose[1]), yaw_deg=math.degrees(math.pi if yaw == -math.pi else yaw))
 
 
+class PoseUncertainty(_Model):
+    """How precise a localized pose is: its covariance in the map frame, in the API's units."""
+
+    covariance: list[list[float]] = Field(description=(
+        "3 x 3 covariance of the pose (rows and columns x_m, y_m, yaw_deg; entries m^2, m deg, deg^2; map frame), "
+        "row-major, symmetric. From the final registration's landmark pairs (a street lined on one side only is "
+        "loose along it), scaled by factors fitted on training data so that about 95 % of right answers' errors "
+        "lie inside its 95 % ellipsoid (docs/MODEL.md, Pose covariance). The matched keyframe's own map pose is "
+        "taken as exact."))
+    sigma_x_m: float = Field(description="Standard deviation of x, metres (sqrt of covariance[0][0]).")
+    sigma_y_m: float = Field(description="Standard deviation of y, metres (sqrt of covariance[1][1]).")
+    sigma_yaw_deg: float = Field(description="Standard deviation of the heading, degrees (sqrt of covariance[2][2]).")
+
+    @classmethod
+    def from_array(cls, cov: np.ndarray) -> PoseUncertainty:
+        """From a (3, 3) covariance of (x m, y m, yaw rad): the heading's rows and columns turned into degrees."""
+        scale = np.array([1.0, 1.0, math.degrees(1.0)])
+        c = np.asarray(cov, np.float64).reshape(3, 3) * np.outer(scale, scale)
+        return cls(covariance=[[float(v) for v in row] for row in c], sigma_x_m=math.sqrt(max(c[0, 0], 0.0)),
+                   sigma_y_m=math.sqrt(max(c[1, 1], 0.0)), sigma_yaw_deg=math.sqrt(max(c[2, 2], 0.0)))
+
+
 class HealthResponse(_Model):
     status: Literal["ok"] = "ok"
 
@@ -262,6 +284,10 @@ class LocalizeResponse(_Model):
         "azimuth's timestamp + 124.7 ms at 4 Hz (the antenna turns while the vehicle moves; a registration of "
         "whole sweeps aligns their mid-sweep poses)."))
     relative_pose: Pose2D | None = Field(default=None, description="Query pose in the matched keyframe's sensor frame.")
+    pose_uncertainty: PoseUncertainty | None = Field(default=None, description=(
+        "How precise `pose` is (its covariance and standard deviations), when localized; null otherwise, or when "
+        "too few landmarks pair at the final pose to say. `confidence` says whether the pose is right, this how "
+        "close: for fusing the answer with odometry."))
     keyframe: RetrievedKeyframe | None = Field(default=None, description="The keyframe the query was registered to.")
     num_matches: int = 0
     num_inliers: int = 0

@@ -128,3 +128,33 @@ def test_summary_splits_revisit_and_no_match_queries():
                   query, db, 20.0, "heading")
     assert h["rejection"] is None and h["correct_rejection_pct"] is None and h["n_rejected_no_match"] is None
     assert h["recall@1"] == pytest.approx(100.0) and h["recall@1_all"] == pytest.approx(50.0)
+
+
+def test_covariance_calibration_of_errors_drawn_from_the_covariances():
+    # 4,000 answers whose errors are drawn from their own (varied, correlated) covariances: 95 % lie inside the 95 %
+    # ellipsoid and the mean normalised squared error is 3; the same errors against covariances 4x too small are not
+    from reradar_core.benchmark.metrics import covariance_calibration
+
+    rng = np.random.default_rng(0)
+    q = 4000
+    a = rng.normal(size=(q, 3, 3)) * np.array([0.1, 0.1, 0.003])[None, :, None]
+    cov = a @ a.transpose(0, 2, 1) + np.diag([1e-3, 1e-3, 1e-6])
+    err = np.einsum("nij,nj->ni", np.linalg.cholesky(cov), rng.normal(size=(q, 3)))
+    gt = np.column_stack([rng.uniform(0, 100, q), rng.uniform(0, 100, q), rng.uniform(-3, 3, q)])
+    est = gt - err
+    out = make_outcome(np.zeros(q, np.int64), np.zeros(q), est, gt, gt[:1], 1e9, "pose")
+    cal = covariance_calibration(out, gt, cov, 1e9)
+    assert cal["n"] == q
+    assert cal["nees"] == pytest.approx(3.0, abs=0.15)
+    assert cal["inside_95_pct"] == pytest.approx(95.0, abs=1.0)
+    assert cal["inside_50_pct"] == pytest.approx(50.0, abs=2.5)
+    assert cal["position_inside_95_pct"] == pytest.approx(95.0, abs=1.0)
+    assert cal["heading_inside_95_pct"] == pytest.approx(95.0, abs=1.0)
+    assert cal["rms_position_m"] == pytest.approx(cal["predicted_rms_position_m"], rel=0.05)
+    tight = covariance_calibration(out, gt, cov / 16.0, 1e9)
+    assert tight["nees"] == pytest.approx(48.0, rel=0.06) and tight["inside_95_pct"] < 40.0
+    # only successful answers with a covariance count; none: None
+    cov_nan = cov.copy()
+    cov_nan[: q // 2] = np.nan
+    assert covariance_calibration(out, gt, cov_nan, 1e9)["n"] == q // 2
+    assert covariance_calibration(out, gt, np.full_like(cov, np.nan), 1e9) is None

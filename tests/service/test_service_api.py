@@ -153,6 +153,14 @@ def test_inline_localize_recovers_rotation(client: httpx.Client) -> None:
     expected_yaw = math.degrees(float(wrap_angle(keyframe_poses()[4, 2] + math.radians(s * 0.9))))
     assert res["pose"]["yaw_deg"] == pytest.approx(expected_yaw, abs=0.5)
     assert "decode_ms" in res["timings_ms"] and "extract_ms" in res["timings_ms"]
+    # how precise the pose is: a symmetric 3 x 3 covariance (x m, y m, yaw deg) whose diagonal the sigmas are, and
+    # small enough that the pose's actual error (within 0.5 m / deg above) is not many sigmas off
+    unc = res["pose_uncertainty"]
+    cov = np.array(unc["covariance"])
+    assert cov.shape == (3, 3) and np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
+    np.testing.assert_allclose([unc["sigma_x_m"], unc["sigma_y_m"], unc["sigma_yaw_deg"]], np.sqrt(np.diag(cov)))
+    assert 0.0 < unc["sigma_x_m"] < 2.0 and 0.0 < unc["sigma_y_m"] < 2.0 and 0.0 < unc["sigma_yaw_deg"] < 2.0
+    assert "covariance_ms" in res["timings_ms"]
 
 
 def test_navtech_npy_transport_gives_the_pngs_answer(client: httpx.Client) -> None:
@@ -199,7 +207,7 @@ def test_unknown_place_is_not_localized(client: httpx.Client) -> None:
     files = {"scan": ("q.png", _png(999, 0), "image/png")}
     res = client.post("/localize", data={"map_id": "route-a"}, files=files).json()
     assert res["status"] == "not_localized" and res["reason"] in ("too_few_inliers", "too_few_matches")
-    assert res["pose"] is None
+    assert res["pose"] is None and res["pose_uncertainty"] is None
 
 
 def test_bad_scan_inputs_get_4xx(client: httpx.Client) -> None:

@@ -21,6 +21,7 @@ from service.api.schemas import (
     LocalizeRequest,
     LocalizeResponse,
     Pose2D,
+    PoseUncertainty,
     RetrievedKeyframe,
 )
 from service.core.config import MAP_ID_PATTERN
@@ -136,6 +137,8 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         pose=Pose2D.from_array(result.T_map_query) if result.T_map_query is not None else None,
         relative_pose=Pose2D.from_array(best.T_keyframe_query)
         if localized and best is not None and best.T_keyframe_query is not None else None,
+        pose_uncertainty=PoseUncertainty.from_array(result.pose_covariance)
+        if localized and result.pose_covariance is not None else None,
         keyframe=keyframe,
         num_matches=best.num_matches if best else 0,
         num_inliers=best.num_inliers if best else 0,

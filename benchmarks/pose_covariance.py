@@ -1,0 +1,184 @@
+"""Fit the pose covariance's scales (``matching.uncertainty.PoseCovarianceConfig``) on training data, and print its table.
+
+Data (never a benchmark query sequence): each target training split's sessions localized on its pairing map, the
+benchmark database drive of its domain (``confidence_fit.split_runs``: the pairing ``reradar fit-confidence`` uses,
+each split with its target-adapted model), with the shipped settings but the covariance's scales at 1 (the
+registration's own sigma^2 H^-1). Kept: revisit queries answered ``localized`` within the success thresholds (suite
+radius, 10 deg); a wrong answer is the confidence's business, not the covariance's. Per answer the error
+(ground truth - estimate; x m, y m, yaw rad, map frame) and the unscaled covariance. The last 15 % of each session is
+held out (``confidence_fit``'s split).
+
+Models, each fitted by maximum likelihood (Gaussian errors) on the rows outside the held-out tails:
+
+- ``scaled``: S C0 S, S = diag(sqrt(k_t), sqrt(k_t), sqrt(k_r)) (what ``PoseCovarianceConfig`` ships);
+- ``scaled+floor``: S C0 S + diag(a^2, a^2, b^2): the registration's geometry plus an error every answer has;
+- ``constant``: diag(a^2, a^2, b^2), the same for every answer (what a user without a covariance would assume);
+
+reported per split (fit rows and held-out tails): the mean normalised squared error (NEES, 3 when calibrated),
+the share of answers inside the 50 / 90 / 95 / 99 % ellipsoids (3-DoF, and position / heading alone), the
+held-out negative log-likelihood per answer (lower = the model predicts the errors better), and the Spearman
+correlation between the predicted and the actual error sizes.
+
+    python benchmarks/pose_covariance.py [--splits train-target-loop,...] [--step 2] [--data /tmp/cov.npz] [--out cov.json]
+
+About 8 minutes on two cores with the renders and features cached (``reradar sim-suite``; features are computed
+and cached on first use). ``--data`` keeps the collected rows: a second run with the same file only fits.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from scipy import optimize, stats
+
+HOLDOUT = 0.15
+
+
+def collect(splits: list[str], step: int) -> dict[str, np.ndarray]:
+    """Rows (``split``, ``heldout``, ``unseen``, ``error`` (M, 3), ``cov0`` (M, 3, 3)) of the splits' right answers."""
+    from reradar_core.baselines.ours import Ours
+    from reradar_core.evaluation.metrics import localization_errors, localization_success
+    from reradar_core.geometry.se2 import wrap_angle
+    from reradar_core.localization.confidence_fit import SPLIT_MODELS, split_runs
+    from reradar_core.localization.pipeline import LocalizationConfig
+    from reradar_core.matching.uncertainty import PoseCovarianceConfig
+
+    config = replace(LocalizationConfig(), covariance=PoseCovarianceConfig(position_scale=1.0, heading_scale=1.0))
+    rows: dict[str, list] = {"split": [], "heldout": [], "unseen": [], "error": [], "cov0": []}
+    for split in splits:
+        method = Ours(SPLIT_MODELS[split], localization=config)
+        radius, runs = split_runs(split, method, config, step, progress=True)
+        for run in runs:
+            if run.map_name != "full" or not run.revisit:
+                continue
+            res = run.localizer.localize(run.features, config)
+            if not res.localized or res.T_map_query is None or res.pose_covariance is None:
+                continue
+            e_t, e_r = localization_errors(res.T_map_query[None], run.T_map_query[None])
+            if not localization_success(e_t, e_r, radius)[0]:
+                continue
+            err = np.asarray(run.T_map_query, np.float64) - res.T_map_query
+            err[2] = float(wrap_angle(err[2]))
+            rows["split"].append(split)
+            rows["heldout"].append(run.index >= (1.0 - HOLDOUT) * run.session_size)
+            rows["unseen"].append(run.unseen)
+            rows["error"].append(err)
+            rows["cov0"].append(res.pose_covariance)
+    return {"split": np.array(rows["split"], dtype=str), "heldout": np.array(rows["heldout"], bool),
+            "unseen": np.array(rows["unseen"], bool), "error": np.array(rows["error"], np.float64).reshape(-1, 3),
+            "cov0": np.array(rows["cov0"], np.float64).reshape(-1, 3, 3)}
+
+
+def scaled(cov0: np.ndarray, k_t: float, k_r: float) -> np.ndarray:
+    """(M, 3, 3) S C0 S with S = diag(sqrt(k_t), sqrt(k_t), sqrt(k_r)) (``registration_covariance``'s scaling)."""
+    s = np.sqrt(np.array([k_t, k_t, k_r]))
+    return cov0 * np.outer(s, s)
+
+
+def floored(cov0: np.ndarray, k_t: float, k_r: float, a_m: float, b_rad: float) -> np.ndarray:
+    """(M, 3, 3) S C0 S + diag(a^2, a^2, b^2)."""
+    return scaled(cov0, k_t, k_r) + np.diag([a_m ** 2, a_m ** 2, b_rad ** 2])
+
+
+def constant(n: int, a_m: float, b_rad: float) -> np.ndarray:
+    """(n, 3, 3) diag(a^2, a^2, b^2)."""
+    return np.broadcast_to(np.diag([a_m ** 2, a_m ** 2, b_rad ** 2]), (n, 3, 3)).copy()
+
+
+def nll(error: np.ndarray, cov: np.ndarray) -> float:
+    """Mean Gaussian negative log-likelihood per answer (3-DoF, without the constant)."""
+    _, logdet = np.linalg.slogdet(cov)
+    d2 = np.einsum("ni,ni->n", error, np.linalg.solve(cov, error[..., None])[..., 0])
+    return float(0.5 * (logdet + d2).mean())
+
+
+def fit(error: np.ndarray, cov0: np.ndarray) -> dict[str, dict[str, float]]:
+    """Both models' maximum-likelihood parameters on these rows."""
+    ks = optimize.minimize(lambda p: nll(error, scaled(cov0, *np.exp(p))), np.log([20.0, 80.0]),
+                           method="Nelder-Mead", options={"xatol": 1e-6, "fatol": 1e-9, "maxiter": 2000}).x
+    kf = optimize.minimize(lambda p: nll(error, floored(cov0, *np.exp(p))), np.log([10.0, 10.0, 0.02, 0.003]),
+                           method="Nelder-Mead", options={"xatol": 1e-7, "fatol": 1e-9, "maxiter": 8000}).x
+    # the constant model's ML is closed form: the mean squared errors
+    a = math.sqrt(float((error[:, :2] ** 2).mean()))
+    b = math.sqrt(float((error[:, 2] ** 2).mean()))
+    return {"scaled": {"position_scale": float(np.exp(ks[0])), "heading_scale": float(np.exp(ks[1]))},
+            "scaled+floor": {"position_scale": float(np.exp(kf[0])), "heading_scale": float(np.exp(kf[1])),
+                             "position_floor_m": float(np.exp(kf[2])),
+                             "heading_floor_deg": math.degrees(float(np.exp(kf[3])))},
+            "constant": {"position_sigma_m": a, "heading_sigma_deg": math.degrees(b)}}
+
+
+def report(error: np.ndarray, cov: np.ndarray) -> dict[str, float]:
+    """Calibration figures of ``cov`` against ``error`` (``benchmark.metrics.covariance_report``, as ``reradar bench``
+    reports them), the mean negative log-likelihood and the Spearman correlations of predicted and actual error
+    sizes (position, heading; nan for a constant model, which predicts one size)."""
+    from reradar_core.benchmark.metrics import covariance_report
+
+    out: dict[str, float] = {**covariance_report(error, cov), "nll": nll(error, cov)}
+    size = np.sqrt(cov[:, 0, 0] + cov[:, 1, 1])
+    out["spearman_pos"] = (float(stats.spearmanr(size, np.hypot(error[:, 0], error[:, 1]))[0])
+                           if np.ptp(size) > 0 else math.nan)
+    out["spearman_yaw"] = (float(stats.spearmanr(np.sqrt(cov[:, 2, 2]), np.abs(error[:, 2]))[0])
+                           if np.ptp(cov[:, 2, 2]) > 0 else math.nan)
+    return out
+
+
+def main() -> None:
+    from reradar_core.localization.confidence_fit import SPLIT_MODELS
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--splits", default=",".join(SPLIT_MODELS), help="comma-separated training splits")
+    ap.add_argument("--step", type=int, default=2, help="every step-th query scan of each session")
+    ap.add_argument("--data", default=None, help="collected rows (.npz): read when it exists (several, comma-separated: "
+                    "all read and pooled), else collected and written")
+    ap.add_argument("--out", type=Path, default=None, help="write the fitted parameters and the table as JSON")
+    args = ap.parse_args()
+    splits = [s for s in args.splits.split(",") if s]
+    files = [Path(f) for f in args.data.split(",") if f] if args.data else []
+    if files and all(f.exists() for f in files):
+        loaded = [np.load(f) for f in files]
+        data = {k: np.concatenate([z[k] for z in loaded]) for k in loaded[0].files}
+    else:
+        data = collect(splits, args.step)
+        if files:
+            np.savez_compressed(files[0], **data)
+    fitting = ~data["heldout"]
+    params = fit(data["error"][fitting], data["cov0"][fitting])
+    sc, fl, co = params["scaled"], params["scaled+floor"], params["constant"]
+    print(f"scaled: position_scale {sc['position_scale']:.2f}, heading_scale {sc['heading_scale']:.2f}; "
+          f"scaled+floor: {fl['position_scale']:.2f}, {fl['heading_scale']:.2f}, {fl['position_floor_m']:.4f} m, "
+          f"{fl['heading_floor_deg']:.4f} deg; constant: {co['position_sigma_m']:.4f} m, {co['heading_sigma_deg']:.4f} deg (fit on {fitting.sum()} answers)")
+    table = []
+    for name in sorted(set(data["split"])) + ["all"]:
+        for part, mask in (("fit", fitting), ("held out", data["heldout"])):
+            m = mask & ((data["split"] == name) if name != "all" else True)
+            if not m.any():
+                continue
+            e = data["error"][m]
+            for model, cov in (("scaled", scaled(data["cov0"][m], sc["position_scale"], sc["heading_scale"])),
+                               ("scaled+floor", floored(data["cov0"][m], fl["position_scale"], fl["heading_scale"],
+                                                        fl["position_floor_m"], math.radians(fl["heading_floor_deg"]))),
+                               ("constant", constant(int(m.sum()), co["position_sigma_m"],
+                                                     math.radians(co["heading_sigma_deg"])))):
+                row = {"split": name, "part": part, "model": model, **report(e, cov)}
+                table.append(row)
+    print("| split | rows | model | n | NEES | inside 50 / 90 / 95 / 99 % (3-DoF) | position inside 95 % | heading inside 95 % | NLL | "
+          "Spearman pos / yaw | RMS pos m (predicted) | RMS yaw deg (predicted) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in table:
+        print(f"| {r['split']} | {r['part']} | {r['model']} | {r['n']} | {r['nees']:.2f} | "
+              f"{r['inside_50_pct']:.1f} / {r['inside_90_pct']:.1f} / {r['inside_95_pct']:.1f} / "
+              f"{r['inside_99_pct']:.1f} | {r['position_inside_95_pct']:.1f} | {r['heading_inside_95_pct']:.1f} | "
+              f"{r['nll']:.2f} | {r['spearman_pos']:.2f} / {r['spearman_yaw']:.2f} | {r['rms_position_m']:.3f} "
+              f"({r['predicted_rms_position_m']:.3f}) | {r['rms_heading_deg']:.3f} ({r['predicted_rms_heading_deg']:.3f}) |")
+    if args.out is not None:
+        args.out.write_text(json.dumps({"params": params, "table": table}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
