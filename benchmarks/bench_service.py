@@ -279,8 +279,9 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
     from tqdm import tqdm
 
     from maps.database import MapDatabase
+    from reradar_core.benchmark.metrics import covariance_report
     from reradar_core.evaluation import localization_errors, localization_success, radius_for
-    from reradar_core.geometry.se2 import relative_pose
+    from reradar_core.geometry.se2 import relative_pose, wrap_angle
     from reradar_core.io.datasets import load_sequence
     from reradar_core.localization import LocalizationConfig, PosePrior
     from reradar_core.model import DescriptorExtractor
@@ -321,6 +322,8 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
             res_seq[name] = _summarise(lat, outc)
         rng = np.random.default_rng(seed)
         lat, outc, kinds, conf, prior = [], [], [], [], None
+        cov_err: dict[str, list[np.ndarray]] = {"global": [], "tracking": []}  # right answers' errors, covariances
+        cov_mat: dict[str, list[np.ndarray]] = {"global": [], "tracking": []}
         for n, (f, gt) in enumerate(zip(feats, gts, strict=True)):
             if prior is not None:
                 prior = prior.moved(noisy_odometry(relative_pose(gts[n - 1], gt), odometry_noise, rng),
@@ -331,6 +334,11 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
             outc.append(judge(res, gt, radius_m))
             kinds.append("tracking" if res.mode == "tracking" else ("lost" if res.tracking_lost else "global"))
             conf.append(float(res.confidence) if res.confidence is not None else math.nan)
+            if outc[-1] in ("ok", "off") and res.pose_covariance is not None:
+                err = np.asarray(gt, np.float64) - res.T_map_query
+                err[2] = float(wrap_angle(err[2]))
+                cov_err["tracking" if res.mode == "tracking" else "global"].append(err)
+                cov_mat["tracking" if res.mode == "tracking" else "global"].append(res.pose_covariance)
             if res.localized:
                 prior = PosePrior(res.T_map_query, 0.5, math.radians(1.0), f.timestamp_us)
         summary = _summarise(lat, outc)
@@ -343,6 +351,9 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
         conf_tracked = np.asarray(conf)[tracked]
         summary["tracked_confidence_p5"] = _pct(list(conf_tracked), 5) if tracked.any() else math.nan
         summary["tracked_below_bar"] = int(np.sum(conf_tracked < LocalizationConfig().effective_min_confidence))
+        # the pose covariance against the right answers' errors, tracked and global answers apart
+        summary["pose_covariance"] = {k: covariance_report(np.array(cov_err[k]), np.array(cov_mat[k]))
+                                      for k in cov_err if cov_err[k]}
         res_seq["tracking"] = summary
         res_seq["tracked_p50_over_global_p50"] = summary["tracked_p50_ms"] / res_seq["global"]["p50_ms"]
         out[seq.name] = res_seq

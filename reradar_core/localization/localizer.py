@@ -223,7 +223,8 @@ class Localizer:
         if cc.enabled:
             t0 = time.perf_counter()
             try:
-                in_keyframe = registration_covariance(src, dst, T_keyframe_query, cc)
+                in_keyframe = registration_covariance(src, dst, T_keyframe_query, cc,
+                                                      motion_compensated=polished is not None)
             except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:  # a numerical failure: none
                 _log.warning("pose covariance failed on keyframe %d (%s); none given", kid, exc)
                 in_keyframe = None
@@ -231,12 +232,12 @@ class Localizer:
                 covariance = rotate_covariance(in_keyframe, float(T_map_keyframe[2]))
             result.timings_ms["covariance_ms"] = (time.perf_counter() - t0) * 1e3
         if polished is None:
-            return replace(result, pose_covariance=covariance)
+            return replace(result, pose_covariance=covariance, motion_compensated=False)
         old = best
         best = replace(best, T_keyframe_query=polished.T_dst_src)
         # the winner's entry among the candidates answers the same pose (the API lists both)
         candidates = [best if c is old else c for c in result.candidates]
-        return replace(result, best=best, candidates=candidates, pose_covariance=covariance,
+        return replace(result, best=best, candidates=candidates, pose_covariance=covariance, motion_compensated=True,
                        T_map_query=compose(T_map_keyframe, polished.T_dst_src))
 
     def _candidate(self, keyframe_id: int, rank: int = 0, descriptor_distance: float = 0.0,

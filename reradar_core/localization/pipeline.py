@@ -422,6 +422,9 @@ class LocalizationResult:
         pose_covariance: (3, 3) float64 covariance of ``T_map_query`` (x m, y m, yaw rad; map frame; m^2, m rad,
             rad^2) when localized and ``config.covariance`` is on (``Localizer``), else None: how precise the pose
             is, calibrated on the training splits (``matching.uncertainty``).
+        motion_compensated: the answered pose is the motion-compensated one (``Localizer``; False: the rigid
+            registration's, because the compensation is off, the winning keyframe's motion on the map is unknown or
+            the fit was discarded).
     """
 
     status: Status
@@ -435,6 +438,7 @@ class LocalizationResult:
     mode: Literal["global", "tracking"] = "global"
     tracking_lost: bool = False
     pose_covariance: np.ndarray | None = None
+    motion_compensated: bool = False
 
     @property
     def localized(self) -> bool:

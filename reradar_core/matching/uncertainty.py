@@ -17,11 +17,12 @@ every landmark with another point of the same wall just as closely (W = n n^T + 
 normal and the tangent, l1 <= l2 the eigenvalues of the neighbours' scatter: I for a round cluster, n n^T for a
 straight line; point-to-line ICP, Censi 2007). So a street lined by façades on one side only comes out loose along
 the street. That figure assumes independent landmark errors; two scans' landmarks are not (the same structure,
-detected with the same biases, the sweep's motion fitted from them), so it is 3-7 times too small in standard
-deviation (sqrt(10.4) in position, sqrt(43.7) in heading). ``position_scale`` and ``heading_scale`` inflate the
-position block and the heading variance (S C S with S = diag(sqrt(k_t), sqrt(k_t), sqrt(k_r)): correlations
-unchanged); they were fitted by maximum likelihood on the training splits' right answers (``benchmarks/
-pose_covariance.py``, docs/MODEL.md "Pose covariance"), never on a benchmark query sequence.
+detected with the same biases, the sweep's motion fitted from them), so it is 3-8 times too small in standard
+deviation. ``position_scale`` and ``heading_scale`` inflate the position block and the heading variance (S C S with
+S = diag(sqrt(k_t), sqrt(k_t), sqrt(k_r)): correlations unchanged), one pair for a motion-compensated pose and one for
+a rigid registration's (``rigid_*``), each chosen so that 95 % of the training splits' right answers of that kind lie
+inside the 95 % ellipse / interval (``benchmarks/pose_covariance.py``, docs/MODEL.md "Pose covariance"), never on a
+benchmark query sequence.
 
 Frames and units: the covariance is of ``T_dst_src`` (x m, y m, yaw rad) in the destination (keyframe) frame;
 ``rotate_covariance`` expresses it in another frame (the map's: ``T_map_keyframe``'s heading). The keyframe's own
@@ -54,9 +55,12 @@ class PoseCovarianceConfig:
             nearest ``neighbours`` keyframe landmarks within this distance (1.5 m, 8); fewer than 3: a point.
         min_pairs: fewer pairs than this give no covariance (too few to say; a localized answer has at least 12
             aligned landmarks).
-        position_scale: variance factor on the position block of sigma^2 H^-1 (fitted on the training splits,
-            ``benchmarks/pose_covariance.py``).
-        heading_scale: variance factor on the heading variance (fitted likewise).
+        position_scale: variance factor on the position block of sigma^2 H^-1 for a motion-compensated pose (fitted
+            on the training splits, ``benchmarks/pose_covariance.py``: 95 % of their right answers' position errors
+            inside the 95 % ellipse).
+        heading_scale: variance factor on the heading variance of a motion-compensated pose (fitted likewise).
+        rigid_position_scale, rigid_heading_scale: the same for a rigid registration's pose (no compensation: the
+            two sweeps' skews are left in it where they do not cancel, which its landmark pairs cannot show).
         prior_sigma_m, prior_sigma_deg: a prior on the pose (10 m, 10 deg: a right answer lies within the success
             thresholds, 20 m / 10 deg), added to the registration's information, so that a direction the landmarks
             do not pin (every landmark on one straight wall) gets this much uncertainty rather than none at all.
@@ -67,8 +71,10 @@ class PoseCovarianceConfig:
     neighbourhood_m: float = 1.5
     neighbours: int = 8
     min_pairs: int = 12
-    position_scale: float = 10.4
-    heading_scale: float = 43.7
+    position_scale: float = 10.5
+    heading_scale: float = 42.2
+    rigid_position_scale: float = 15.0
+    rigid_heading_scale: float = 62.9
     prior_sigma_m: float = 10.0
     prior_sigma_deg: float = 10.0
 
@@ -81,14 +87,16 @@ class PoseCovarianceConfig:
                               f"{self.neighbourhood_m} and {self.neighbours}")
         if not 3 <= self.min_pairs <= 10_000:
             raise ConfigError(f"pose covariance min_pairs must be in [3, 10000], got {self.min_pairs}")
-        for name in ("position_scale", "heading_scale", "prior_sigma_m", "prior_sigma_deg"):
+        for name in ("position_scale", "heading_scale", "rigid_position_scale", "rigid_heading_scale", "prior_sigma_m",
+                     "prior_sigma_deg"):
             v = getattr(self, name)
             if not (math.isfinite(v) and 1e-6 <= v <= 1e6):
                 raise ConfigError(f"pose covariance {name} must be in [1e-6, 1e6], got {v}")
 
 
 def registration_covariance(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndarray,
-                            config: PoseCovarianceConfig = PoseCovarianceConfig()) -> np.ndarray | None:
+                            config: PoseCovarianceConfig = PoseCovarianceConfig(),
+                            motion_compensated: bool = True) -> np.ndarray | None:
     """Covariance of a registered pose from its landmark pairs (module docstring), calibrated.
 
     Args:
@@ -96,6 +104,8 @@ def registration_covariance(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_sr
         dst_xy_m: (M, 2) the keyframe's landmarks in its sensor frame, metres (likewise).
         T_dst_src: (3,) the registered pose (x m, y m, yaw rad) of the query in the keyframe's frame.
         config: association radius, minimum pairs and the fitted scales.
+        motion_compensated: the pose is a motion-compensated one (``position_scale`` / ``heading_scale``), or a rigid
+            registration's (``rigid_position_scale`` / ``rigid_heading_scale``).
     Returns:
         (3, 3) float64 covariance of (x m, y m, yaw rad) in the keyframe's frame (m^2, m rad, rad^2), or None when
         fewer than ``min_pairs`` landmarks pair or an input is not finite. A direction the pairs do not fix (every
@@ -132,7 +142,9 @@ def registration_covariance(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_sr
     sigma2 = max(float((w00 * rx * rx + 2.0 * w01 * rx * ry + w11 * ry * ry).sum()) / dof, 1e-4)
     # information = the scaled registration's plus the prior's, so a direction the landmarks leave free (one straight
     # wall) comes out as loose as the prior instead of singular
-    s_inv = 1.0 / np.sqrt(np.array([config.position_scale, config.position_scale, config.heading_scale]))
+    k_t, k_r = ((config.position_scale, config.heading_scale) if motion_compensated
+                else (config.rigid_position_scale, config.rigid_heading_scale))
+    s_inv = 1.0 / np.sqrt(np.array([k_t, k_t, k_r]))
     information = h / sigma2 * np.outer(s_inv, s_inv) + np.diag(
         [config.prior_sigma_m ** -2, config.prior_sigma_m ** -2, math.radians(config.prior_sigma_deg) ** -2])
     cov = np.linalg.inv(information)

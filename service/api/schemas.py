@@ -4,7 +4,7 @@ poses are in the map frame unless the field is named ``relative_*``."""
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -79,7 +79,8 @@ class Pose2D(_Model):
 class PoseUncertainty(_Model):
     """How precise a localized pose is: its covariance in the map frame, in the API's units."""
 
-    covariance: list[list[float]] = Field(description=(
+    covariance: list[Annotated[list[float], Field(min_length=3, max_length=3)]] = Field(
+        min_length=3, max_length=3, description=(
         "3 x 3 covariance of the pose (rows and columns x_m, y_m, yaw_deg; entries m^2, m deg, deg^2; map frame), "
         "row-major, symmetric. From the final registration's landmark pairs (a street lined on one side only is "
         "loose along it), scaled by factors fitted on training data so that about 95 % of right answers' errors "
@@ -288,6 +289,10 @@ class LocalizeResponse(_Model):
         "How precise `pose` is (its covariance and standard deviations), when localized; null otherwise, or when "
         "too few landmarks pair at the final pose to say. `confidence` says whether the pose is right, this how "
         "close: for fusing the answer with odometry."))
+    motion_compensated: bool = Field(default=False, description=(
+        "`pose` is motion-compensated (both sweeps de-skewed, the vehicle's motion fitted with the pose; docs/"
+        "CONVENTIONS.md, Motion compensation); false: the rigid registration's pose (compensation off, the "
+        "keyframe's motion on the map unknown, or the fit discarded), whose `pose_uncertainty` is scaled for that."))
     keyframe: RetrievedKeyframe | None = Field(default=None, description="The keyframe the query was registered to.")
     num_matches: int = 0
     num_inliers: int = 0

@@ -221,6 +221,7 @@ def test_localizer_answers_the_compensated_pose_and_the_same_decision() -> None:
     compensated = loc.localize(query)
     rigid = loc.localize(query, LocalizationConfig(motion=MotionConfig(enabled=False)))
     assert compensated.localized and rigid.localized
+    assert compensated.motion_compensated and not rigid.motion_compensated
     assert compensated.best.keyframe_id == rigid.best.keyframe_id
     assert compensated.confidence == rigid.confidence and compensated.cues == rigid.cues
     np.testing.assert_allclose(compensated.T_map_query,

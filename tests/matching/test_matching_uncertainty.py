@@ -76,6 +76,12 @@ def test_the_fitted_scales_multiply_the_variances() -> None:
         position_scale=4.0, heading_scale=9.0, prior_sigma_m=1e6, prior_sigma_deg=1e6))
     assert base is not None and scaled is not None
     np.testing.assert_allclose(np.sqrt(np.diag(scaled) / np.diag(base)), [2.0, 2.0, 3.0], rtol=1e-6)
+    # a rigid registration's pose (no motion compensation) takes the rigid scales
+    rigid = registration_covariance(query, poles, np.zeros(3), PoseCovarianceConfig(
+        rigid_position_scale=25.0, rigid_heading_scale=4.0, prior_sigma_m=1e6, prior_sigma_deg=1e6),
+        motion_compensated=False)
+    assert rigid is not None
+    np.testing.assert_allclose(np.sqrt(np.diag(rigid) / np.diag(base)), [5.0, 5.0, 2.0], rtol=1e-6)
 
 
 def test_covariance_turns_with_the_frame() -> None:
@@ -126,13 +132,14 @@ def test_localizer_answers_carry_their_covariance_in_the_map_frame() -> None:
     query = features(poses[2] + np.array([0.4, 1.0, 0.01]), g[2], 10**9)
     rigid = LocalizationConfig(motion=MotionConfig(enabled=False))  # unskewed scans: compare with the rigid pose's
     res = loc.localize(query, rigid)
-    assert res.localized and res.pose_covariance is not None
+    assert res.localized and res.pose_covariance is not None and not res.motion_compensated
     cov = res.pose_covariance
     assert cov.shape == (3, 3) and np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
     assert cov[1, 1] > 4.0 * cov[0, 0]  # loose along the street (the map's y), pinned across it by the façade
     # the same covariance as the registration's, turned from the keyframe's frame (heading north) into the map's
     kid = res.best.keyframe_id
-    in_keyframe = registration_covariance(query.keypoints_xy_m, kfs[kid].keypoints_xy_m, res.best.T_keyframe_query)
+    in_keyframe = registration_covariance(query.keypoints_xy_m, kfs[kid].keypoints_xy_m, res.best.T_keyframe_query,
+                                          motion_compensated=False)
     assert in_keyframe is not None
     np.testing.assert_allclose(cov, rotate_covariance(in_keyframe, math.pi / 2), rtol=1e-9, atol=1e-15)
     assert "covariance_ms" in res.timings_ms

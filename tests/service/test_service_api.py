@@ -160,7 +160,7 @@ def test_inline_localize_recovers_rotation(client: httpx.Client) -> None:
     assert cov.shape == (3, 3) and np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
     np.testing.assert_allclose([unc["sigma_x_m"], unc["sigma_y_m"], unc["sigma_yaw_deg"]], np.sqrt(np.diag(cov)))
     assert 0.0 < unc["sigma_x_m"] < 2.0 and 0.0 < unc["sigma_y_m"] < 2.0 and 0.0 < unc["sigma_yaw_deg"] < 2.0
-    assert "covariance_ms" in res["timings_ms"]
+    assert "covariance_ms" in res["timings_ms"] and isinstance(res["motion_compensated"], bool)
 
 
 def test_navtech_npy_transport_gives_the_pngs_answer(client: httpx.Client) -> None:
@@ -207,7 +207,7 @@ def test_unknown_place_is_not_localized(client: httpx.Client) -> None:
     files = {"scan": ("q.png", _png(999, 0), "image/png")}
     res = client.post("/localize", data={"map_id": "route-a"}, files=files).json()
     assert res["status"] == "not_localized" and res["reason"] in ("too_few_inliers", "too_few_matches")
-    assert res["pose"] is None and res["pose_uncertainty"] is None
+    assert res["pose"] is None and res["pose_uncertainty"] is None and res["motion_compensated"] is False
 
 
 def test_bad_scan_inputs_get_4xx(client: httpx.Client) -> None:

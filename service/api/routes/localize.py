@@ -139,6 +139,7 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         if localized and best is not None and best.T_keyframe_query is not None else None,
         pose_uncertainty=PoseUncertainty.from_array(result.pose_covariance)
         if localized and result.pose_covariance is not None else None,
+        motion_compensated=localized and result.motion_compensated,
         keyframe=keyframe,
         num_matches=best.num_matches if best else 0,
         num_inliers=best.num_inliers if best else 0,
