@@ -280,8 +280,8 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
 
     from maps.database import MapDatabase
     from reradar_core.benchmark.metrics import covariance_report
-    from reradar_core.evaluation import localization_errors, localization_success, radius_for
-    from reradar_core.geometry.se2 import relative_pose, wrap_angle
+    from reradar_core.evaluation import localization_errors, localization_success, pose_error, radius_for
+    from reradar_core.geometry.se2 import relative_pose
     from reradar_core.io.datasets import load_sequence
     from reradar_core.localization import LocalizationConfig, PosePrior
     from reradar_core.model import DescriptorExtractor
@@ -335,9 +335,7 @@ def bench_localizer(map_path: Path, sequences: list[Path], every: int, odometry_
             kinds.append("tracking" if res.mode == "tracking" else ("lost" if res.tracking_lost else "global"))
             conf.append(float(res.confidence) if res.confidence is not None else math.nan)
             if outc[-1] in ("ok", "off") and res.pose_covariance is not None:
-                err = np.asarray(gt, np.float64) - res.T_map_query
-                err[2] = float(wrap_angle(err[2]))
-                cov_err["tracking" if res.mode == "tracking" else "global"].append(err)
+                cov_err["tracking" if res.mode == "tracking" else "global"].append(pose_error(gt, res.T_map_query))
                 cov_mat["tracking" if res.mode == "tracking" else "global"].append(res.pose_covariance)
             if res.localized:
                 prior = PosePrior(res.T_map_query, 0.5, math.radians(1.0), f.timestamp_us)

@@ -5,18 +5,21 @@ benchmark database drive of its domain (``confidence_fit.split_runs``: the pairi
 each split with its target-adapted model), with the shipped settings but the covariance's scales at 1 (the
 registration's own sigma^2 H^-1). Kept: revisit queries answered ``localized`` within the success thresholds (suite
 radius, 10 deg); a wrong answer is the confidence's business, not the covariance's. Per answer the error
-(ground truth - estimate; x m, y m, yaw rad, map frame) and the unscaled covariance. The last 15 % of each session is
+(ground truth - estimate; x m, y m, yaw rad, map frame) and the covariance with scales 1 (the registration's own
+sigma^2 H^-1 with the prior's information added; every model below scales only the registration's part, as the
+library does). The last 15 % of each session is
 held out (``confidence_fit``'s split).
 
 Models, each fitted on the rows outside the held-out tails:
 
-- ``shipped``: S C0 S, S = diag(sqrt(k_t), sqrt(k_t), sqrt(k_r)), one (k_t, k_r) for motion-compensated answers and one
-  for rigid ones (``PoseCovarianceConfig``), each chosen so that 95 % of those answers' position errors lie inside the
-  95 % ellipse (k_t) and 95 % of their heading errors inside the 95 % interval (k_r): what the API promises;
+- ``shipped``: the registration part scaled by S = diag(sqrt(k_t), sqrt(k_t), sqrt(k_r)) (``scaled``), one (k_t, k_r)
+  for motion-compensated answers and one for rigid ones (``PoseCovarianceConfig``), each chosen so that 95 % of those
+  answers' position errors lie inside the 95 % ellipse (k_t) and 95 % of their heading errors inside the 95 %
+  interval (k_r): what the API promises;
 - ``scaled-ML``: one (k_t, k_r) for all answers by maximum likelihood (Gaussian errors: NEES 3 on the fit rows, but
   the errors' tails are heavier than a Gaussian's, so fewer than 95 % inside the 95 % ellipsoid);
-- ``scaled+floor``: S C0 S + diag(a^2, a^2, b^2) by maximum likelihood: the registration's geometry plus an error
-  every answer has;
+- ``scaled+floor``: the scaled model + diag(a^2, a^2, b^2) by maximum likelihood: the registration's geometry plus an
+  error every answer has;
 - ``constant``: diag(a^2, a^2, b^2), the same for every answer (what a user without a covariance would assume);
 
 reported per split (fit rows and held-out tails): the mean normalised squared error (NEES, 3 when calibrated),
@@ -26,7 +29,7 @@ correlation between the predicted and the actual error sizes.
 
     python benchmarks/pose_covariance.py [--splits train-target-loop,...] [--step 2] [--data /tmp/cov.npz] [--out cov.json]
 
-About 8 minutes on two cores with the renders and features cached (``reradar sim-suite``; features are computed
+About 10 minutes on two cores with the renders and features cached (``reradar sim-suite``; features are computed
 and cached on first use). ``--data`` keeps the collected rows: a second run with the same file only fits.
 """
 
@@ -48,8 +51,7 @@ def collect(splits: list[str], step: int) -> dict[str, np.ndarray]:
     """Rows (``split``, ``heldout``, ``unseen``, ``compensated``, ``error`` (M, 3), ``cov0`` (M, 3, 3)) of the splits'
     right answers."""
     from reradar_core.baselines.ours import Ours
-    from reradar_core.evaluation.metrics import localization_errors, localization_success
-    from reradar_core.geometry.se2 import wrap_angle
+    from reradar_core.evaluation.metrics import localization_errors, localization_success, pose_error
     from reradar_core.localization.confidence_fit import SPLIT_MODELS, split_runs
     from reradar_core.localization.pipeline import LocalizationConfig
     from reradar_core.matching.uncertainty import PoseCovarianceConfig
@@ -69,8 +71,7 @@ def collect(splits: list[str], step: int) -> dict[str, np.ndarray]:
             e_t, e_r = localization_errors(res.T_map_query[None], run.T_map_query[None])
             if not localization_success(e_t, e_r, radius)[0]:
                 continue
-            err = np.asarray(run.T_map_query, np.float64) - res.T_map_query
-            err[2] = float(wrap_angle(err[2]))
+            err = pose_error(run.T_map_query, res.T_map_query)
             rows["split"].append(split)
             rows["heldout"].append(run.index >= (1.0 - HOLDOUT) * run.session_size)
             rows["unseen"].append(run.unseen)
@@ -83,10 +84,22 @@ def collect(splits: list[str], step: int) -> dict[str, np.ndarray]:
             "cov0": np.array(rows["cov0"], np.float64).reshape(-1, 3, 3)}
 
 
+def prior_information() -> np.ndarray:
+    """(3, 3) the shipped prior's information (``PoseCovarianceConfig.prior_sigma_m`` / ``prior_sigma_deg``)."""
+    from reradar_core.matching.uncertainty import PoseCovarianceConfig
+
+    c = PoseCovarianceConfig()
+    return np.diag([c.prior_sigma_m ** -2, c.prior_sigma_m ** -2, math.radians(c.prior_sigma_deg) ** -2])
+
+
 def scaled(cov0: np.ndarray, k_t: float, k_r: float) -> np.ndarray:
-    """(M, 3, 3) S C0 S with S = diag(sqrt(k_t), sqrt(k_t), sqrt(k_r)) (``registration_covariance``'s scaling)."""
-    s = np.sqrt(np.array([k_t, k_t, k_r]))
-    return cov0 * np.outer(s, s)
+    """(M, 3, 3) the covariance ``registration_covariance`` gives with scales (k_t, k_r), from the one it gave with
+    scales 1 (``cov0``, which holds the prior): (S^-1 (cov0^-1 - P) S^-1 + P)^-1, S = diag(sqrt(k_t), sqrt(k_t),
+    sqrt(k_r)), P the prior's information: only the registration's part is scaled, as in the library."""
+    p = prior_information()
+    s_inv = 1.0 / np.sqrt(np.array([k_t, k_t, k_r]))
+    registration = np.linalg.inv(cov0) - p
+    return np.linalg.inv(registration * np.outer(s_inv, s_inv) + p)
 
 
 def floored(cov0: np.ndarray, k_t: float, k_r: float, a_m: float, b_rad: float) -> np.ndarray:
@@ -107,12 +120,34 @@ def nll(error: np.ndarray, cov: np.ndarray) -> float:
 
 
 def quantile_scales(error: np.ndarray, cov0: np.ndarray, level: float = 0.95) -> tuple[float, float]:
-    """(k_t, k_r) that put ``level`` of these rows' position errors inside the ``level`` ellipse of k_t C0's position
-    block and ``level`` of their heading errors inside the ``level`` interval of k_r C0's heading variance."""
-    d2_pos = np.einsum("ni,ni->n", error[:, :2], np.linalg.solve(cov0[:, :2, :2], error[:, :2, None])[..., 0])
-    d2_yaw = error[:, 2] ** 2 / cov0[:, 2, 2]
-    return (float(np.quantile(d2_pos, level) / stats.chi2.ppf(level, 2)),
-            float(np.quantile(d2_yaw, level) / stats.chi2.ppf(level, 1)))
+    """(k_t, k_r) that put ``level`` of these rows' position errors inside the ``level`` ellipse of the scaled model's
+    position block (``scaled``) and ``level`` of their heading errors inside the ``level`` interval of its heading
+    variance. The prior makes the shares depend on the two scales only nearly separately: a few alternating rounds of
+    bisection (in log scale) on each."""
+    def share_pos(k_t: float, k_r: float) -> float:
+        c = scaled(cov0, k_t, k_r)
+        d2 = np.einsum("ni,ni->n", error[:, :2], np.linalg.solve(c[:, :2, :2], error[:, :2, None])[..., 0])
+        return float(np.mean(d2 <= stats.chi2.ppf(level, 2)))
+
+    def share_yaw(k_t: float, k_r: float) -> float:
+        c = scaled(cov0, k_t, k_r)
+        return float(np.mean(error[:, 2] ** 2 / c[:, 2, 2] <= stats.chi2.ppf(level, 1)))
+
+    def solve(share: object, lo: float = 1e-3, hi: float = 1e5) -> float:
+        """The smallest scale (to 1e-4 relative) whose share reaches ``level``."""
+        for _ in range(60):
+            mid = math.sqrt(lo * hi)
+            if share(mid) >= level:  # type: ignore[operator]
+                hi = mid
+            else:
+                lo = mid
+        return hi
+
+    k_t = k_r = 1.0
+    for _ in range(3):
+        k_t = solve(lambda k, k_r=k_r: share_pos(k, k_r))
+        k_r = solve(lambda k, k_t=k_t: share_yaw(k_t, k))
+    return k_t, k_r
 
 
 def shipped(cov0: np.ndarray, compensated: np.ndarray, params: dict[str, float]) -> np.ndarray:
@@ -123,9 +158,12 @@ def shipped(cov0: np.ndarray, compensated: np.ndarray, params: dict[str, float])
 
 
 def fit(error: np.ndarray, cov0: np.ndarray, compensated: np.ndarray) -> dict[str, dict[str, float]]:
-    """Every model's parameters on these rows (module docstring)."""
-    k_t, k_r = quantile_scales(error[compensated], cov0[compensated])
-    rk_t, rk_r = quantile_scales(error[~compensated], cov0[~compensated])
+    """Every model's parameters on these rows (module docstring). A kind of answer (motion-compensated, rigid) with no
+    rows keeps the other kind's scales (reported as such: ``*_rows`` 0)."""
+    k_t, k_r = quantile_scales(error[compensated], cov0[compensated]) if compensated.any() else (math.nan, math.nan)
+    rk_t, rk_r = quantile_scales(error[~compensated], cov0[~compensated]) if (~compensated).any() else (k_t, k_r)
+    if not compensated.any():
+        k_t, k_r = rk_t, rk_r
     ks = optimize.minimize(lambda p: nll(error, scaled(cov0, *np.exp(p))), np.log([20.0, 80.0]),
                            method="Nelder-Mead", options={"xatol": 1e-6, "fatol": 1e-9, "maxiter": 2000}).x
     kf = optimize.minimize(lambda p: nll(error, floored(cov0, *np.exp(p))), np.log([10.0, 10.0, 0.02, 0.003]),

@@ -29,8 +29,8 @@ from dataclasses import replace
 import numpy as np
 
 from reradar_core.benchmark.metrics import covariance_report
-from reradar_core.evaluation.metrics import localization_errors, localization_success, radius_for
-from reradar_core.geometry.se2 import relative_pose, wrap_angle
+from reradar_core.evaluation.metrics import localization_errors, localization_success, pose_error, radius_for
+from reradar_core.geometry.se2 import relative_pose
 from reradar_core.io.datasets import load_sequence
 from reradar_core.matching import (
     AlignmentConfig,
@@ -171,9 +171,7 @@ def _localizer_table(feats: list, qfeats: list, poses: np.ndarray, dyaw: np.ndar
                 good += 1
                 conf_good.append(res.confidence)
                 if res.pose_covariance is not None:
-                    err = T_map_query_gt - res.T_map_query
-                    err[2] = float(wrap_angle(err[2]))
-                    cov_errors.append(err)
+                    cov_errors.append(pose_error(T_map_query_gt, res.T_map_query))
                     covariances.append(res.pose_covariance)
             else:
                 bad += 1
@@ -230,9 +228,7 @@ def _leave_one_out(feats: list, qfeats: list, poses: np.ndarray, dyaw: np.ndarra
         e_t_all.append(float(e_t[0]))
         e_r_all.append(float(e_r[0]))
         if res.pose_covariance is not None:
-            err = gt - res.T_map_query
-            err[2] = float(wrap_angle(err[2]))
-            errors.append(err)
+            errors.append(pose_error(gt, res.T_map_query))
             covariances.append(res.pose_covariance)
     print(f"leave-one-out: {len(feats)} scans, localized within 2 m / 2 deg {good} (mean {np.mean(e_t_all):.3f} m / "
           f"{np.mean(e_r_all):.3f} deg), localized outside (wrong) {len(bad)}, refused {refused}")

@@ -25,6 +25,7 @@ from reradar_core.evaluation import (
     has_revisit,
     localization_errors,
     localization_success,
+    pose_error,
     precision_recall_curve,
     proportion_interval,
     retrieval_correct,
@@ -151,29 +152,26 @@ def pr_curve(distance: np.ndarray, correct: np.ndarray, positive: np.ndarray) ->
     return pr.precision, pr.recall
 
 
-def covariance_calibration(out: QueryOutcome, pose_gt: np.ndarray, covariance: np.ndarray,
-                           radius_m: float) -> dict[str, Any] | None:
-    """How well the answers' pose covariances describe their errors (``covariance_report``), over the successful
-    answers that have one.
+def covariance_calibration(out: QueryOutcome, pose_gt: np.ndarray, radius_m: float) -> dict[str, Any] | None:
+    """How well the answers' pose covariances (``out.pose_covariance``) describe their errors (``covariance_report``),
+    over the successful answers that have one.
 
     Args:
-        out: the outcome (its ``est_pose``, ``trans_err_m``, ``heading_err_deg``).
+        out: the outcome (its ``est_pose``, ``trans_err_m``, ``heading_err_deg`` and ``pose_covariance``: (Q, 3, 3) of
+            each ``est_pose``, x m, y m, yaw rad, NaN where none).
         pose_gt: (Q, 3) ground truth of the estimated poses (x m, y m, yaw rad; mid-sweep).
-        covariance: (Q, 3, 3) covariance of each ``est_pose`` (x m, y m, yaw rad), NaN where none.
         radius_m: the success radius (metres; with 10 deg).
     Returns:
         ``covariance_report``'s figures, or None when no successful answer has a covariance.
     """
-    from reradar_core.geometry.se2 import wrap_angle
-
-    cov = np.asarray(covariance, np.float64).reshape(-1, 3, 3)
+    if out.pose_covariance is None:
+        return None
+    cov = np.asarray(out.pose_covariance, np.float64).reshape(-1, 3, 3)
     success = localization_success(out.trans_err_m, out.heading_err_deg, radius_m)
     m = success & np.isfinite(cov).all(axis=(1, 2))
     if not m.any():
         return None
-    e = np.asarray(pose_gt, np.float64)[m] - np.asarray(out.est_pose, np.float64)[m]
-    e[:, 2] = wrap_angle(e[:, 2])
-    return covariance_report(e, cov[m])
+    return covariance_report(pose_error(np.asarray(pose_gt)[m], np.asarray(out.est_pose)[m]), cov[m])
 
 
 def covariance_report(errors: np.ndarray, covariance: np.ndarray) -> dict[str, Any]:

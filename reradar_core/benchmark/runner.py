@@ -222,9 +222,8 @@ def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: n
     summary = summarise(outcome, query_poses, db_poses, radius_m, rule, gt_poses)
     search_ms = 1e3 * t_total / max(q, 1)
     summary["ms_per_query"] = float(np.nanmean(query.compute_ms) + search_ms) if q else None
-    summary["pose_covariance"] = (covariance_calibration(outcome, query_poses if gt_poses is None else gt_poses,
-                                                         covariance, radius_m)
-                                  if rule == "pose" and np.isfinite(covariance).any() else None)
+    summary["pose_covariance"] = (covariance_calibration(outcome, query_poses if gt_poses is None else gt_poses, radius_m)
+                                  if rule == "pose" else None)
     summary["recall@1_descriptor"] = descriptor_recall_at_1(by_descriptor, outcome.positive, query_poses,
                                                             db_poses, radius_m)
     return MethodRun(outcome, summary, search_ms)

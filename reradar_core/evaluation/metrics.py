@@ -41,6 +41,7 @@ __all__ = [
     "precision_recall_curve",
     "f1_max",
     "localization_errors",
+    "pose_error",
     "localization_success",
     "success_rate",
     "rotation_success",
@@ -186,6 +187,14 @@ def f1_max(top1_distance: np.ndarray, is_correct: np.ndarray,
         (f1max, precision (T,), recall (T,), thresholds (T,)), thresholds increasing.
     """
     return tuple(precision_recall_curve(top1_distance, is_correct, has_revisit))  # type: ignore[return-value]
+
+
+def pose_error(T_map_query_gt: np.ndarray, T_map_query_est: np.ndarray) -> np.ndarray:
+    """Signed pose errors, ground truth - estimate: (..., 3) float64 (x m, y m, yaw rad; the frame of the poses; the
+    heading difference wrapped to (-pi, pi]), for (..., 3) poses. What a pose covariance describes (``e^T C^-1 e``)."""
+    e = np.asarray(T_map_query_gt, np.float64) - np.asarray(T_map_query_est, np.float64)
+    e[..., 2] = wrap_angle(e[..., 2])
+    return e
 
 
 def localization_errors(T_map_query_est: np.ndarray, T_map_query_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

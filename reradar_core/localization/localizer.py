@@ -55,13 +55,7 @@ from reradar_core.localization.tracking import (
 )
 from reradar_core.matching import count_aligned
 from reradar_core.matching.kernels import warm_up
-from reradar_core.matching.motion import (
-    MotionConfig,
-    azimuth_time_offsets,
-    deskew_points,
-    keyframe_twists,
-    motion_polish,
-)
+from reradar_core.matching.motion import MotionConfig, deskewed, keyframe_twists, motion_polish
 from reradar_core.matching.uncertainty import registration_covariance, rotate_covariance
 from reradar_core.retrieval import GlobalIndex, similarity_to_distance
 
@@ -214,14 +208,13 @@ class Localizer:
                     _log.warning("motion compensation failed on keyframe %d (%s); rigid pose kept", kid, exc)
             result.timings_ms["motion_ms"] = (time.perf_counter() - t0) * 1e3
             if polished is not None:
-                # the covariance is of the pose as fitted: the landmarks de-skewed as the fit moved them
                 T_keyframe_query = polished.T_dst_src
-                src = deskew_points(src, azimuth_time_offsets(src, mc), polished.twist)
-                dst = deskew_points(dst, azimuth_time_offsets(dst, mc), twists[kid])
         T_map_keyframe = np.asarray(best.T_map_keyframe, np.float64)
         covariance = None
         if cc.enabled:
             t0 = time.perf_counter()
+            if polished is not None:  # the covariance is of the pose as fitted: both sweeps de-skewed as the fit did
+                src, dst = deskewed(src, polished.twist, mc), deskewed(dst, twists[kid], mc)
             try:
                 in_keyframe = registration_covariance(src, dst, T_keyframe_query, cc,
                                                       motion_compensated=polished is not None)

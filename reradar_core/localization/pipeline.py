@@ -420,8 +420,9 @@ class LocalizationResult:
             ``ConfidenceModel``; 0 without a pose), also when not localized.
         cues: the confidence's inputs (None without a pose).
         pose_covariance: (3, 3) float64 covariance of ``T_map_query`` (x m, y m, yaw rad; map frame; m^2, m rad,
-            rad^2) when localized and ``config.covariance`` is on (``Localizer``), else None: how precise the pose
-            is, calibrated on the training splits (``matching.uncertainty``).
+            rad^2) when localized and ``config.covariance`` is on (``Localizer``): how precise the pose is, calibrated
+            on the training splits (``matching.uncertainty``). None otherwise, and when fewer than
+            ``covariance.min_pairs`` landmarks pair at the final pose or the computation fails numerically.
         motion_compensated: the answered pose is the motion-compensated one (``Localizer``; False: the rigid
             registration's, because the compensation is off, the winning keyframe's motion on the map is unknown or
             the fit was discarded).

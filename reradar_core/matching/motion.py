@@ -49,7 +49,7 @@ from reradar_core.errors import ConfigError
 from reradar_core.geometry.se2 import relative_pose, transform_points, wrap_angle
 from reradar_core.jit import jit_enabled
 
-__all__ = ["MotionConfig", "MotionPolish", "azimuth_time_offsets", "deskew_points", "keyframe_twists",
+__all__ = ["MotionConfig", "MotionPolish", "azimuth_time_offsets", "deskew_points", "deskewed", "keyframe_twists",
            "motion_polish", "odometry_twist", "time_neighbours"]
 
 
@@ -169,6 +169,12 @@ def deskew_points(xy_m: np.ndarray, tau_s: np.ndarray, twist: np.ndarray) -> np.
     return np.column_stack([c * xy[:, 0] - s * xy[:, 1] + vx * tau, s * xy[:, 0] + c * xy[:, 1] + vy * tau])
 
 
+def deskewed(xy_m: np.ndarray, twist: np.ndarray, config: MotionConfig = MotionConfig()) -> np.ndarray:
+    """(N, 2) landmarks of one sweep, as seen (sensor frame, metres), moved into its mid-sweep frame: each by its
+    azimuth's time (``azimuth_time_offsets``) and the sweep's motion ``twist`` (``deskew_points``)."""
+    return deskew_points(xy_m, azimuth_time_offsets(xy_m, config), twist)
+
+
 def keyframe_twists(poses: np.ndarray, timestamps_us: np.ndarray,
                     config: MotionConfig = MotionConfig()) -> tuple[np.ndarray, np.ndarray]:
     """Each map keyframe's motion from its neighbours in time (the map drive's own poses).
@@ -282,7 +288,7 @@ def motion_polish(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndar
             or not np.isfinite(seen).all() or not np.isfinite(dst_twist).all() or not np.isfinite(start).all()
             or (measured is not None and not np.isfinite(measured).all())):
         return None
-    dst = deskew_points(seen, azimuth_time_offsets(seen, config), dst_twist)
+    dst = deskewed(seen, dst_twist, config)
     # what the rigid pose associates at the last radius with the scans as seen: the bar the fit must reach
     rigid_at = transform_points(start, src)
     rigid_count = int(np.isfinite(cKDTree(seen).query(rigid_at, distance_upper_bound=config.radii_m[-1])[0]).sum())

@@ -63,7 +63,11 @@ class PoseCovarianceConfig:
             two sweeps' skews are left in it where they do not cancel, which its landmark pairs cannot show).
         prior_sigma_m, prior_sigma_deg: a prior on the pose (10 m, 10 deg: a right answer lies within the success
             thresholds, 20 m / 10 deg), added to the registration's information, so that a direction the landmarks
-            do not pin (every landmark on one straight wall) gets this much uncertainty rather than none at all.
+            do not pin (every landmark on one straight wall) gets this much uncertainty rather than none at all
+            (at most 1000 m / 180 deg).
+        The rigid scales were fitted on answers whose compensation was discarded or whose keyframe's motion was
+        unknown (the shipped settings' rigid answers); with the compensation switched off
+        (``MotionConfig(enabled=False)``) every answer takes them, a population not measured separately.
     """
 
     enabled: bool = True
@@ -71,10 +75,10 @@ class PoseCovarianceConfig:
     neighbourhood_m: float = 1.5
     neighbours: int = 8
     min_pairs: int = 12
-    position_scale: float = 10.5
-    heading_scale: float = 42.2
-    rigid_position_scale: float = 15.0
-    rigid_heading_scale: float = 62.9
+    position_scale: float = 10.6
+    heading_scale: float = 42.3
+    rigid_position_scale: float = 15.1
+    rigid_heading_scale: float = 63.2
     prior_sigma_m: float = 10.0
     prior_sigma_deg: float = 10.0
 
@@ -87,11 +91,16 @@ class PoseCovarianceConfig:
                               f"{self.neighbourhood_m} and {self.neighbours}")
         if not 3 <= self.min_pairs <= 10_000:
             raise ConfigError(f"pose covariance min_pairs must be in [3, 10000], got {self.min_pairs}")
-        for name in ("position_scale", "heading_scale", "rigid_position_scale", "rigid_heading_scale", "prior_sigma_m",
-                     "prior_sigma_deg"):
+        for name in ("position_scale", "heading_scale", "rigid_position_scale", "rigid_heading_scale"):
             v = getattr(self, name)
             if not (math.isfinite(v) and 1e-6 <= v <= 1e6):
                 raise ConfigError(f"pose covariance {name} must be in [1e-6, 1e6], got {v}")
+        # a looser prior leaves a free direction (one straight wall) so weakly pinned that the inverse loses its
+        # positive definiteness in float64 (review, session 31: eigenvalues down to -1e27 at 1e6 m)
+        if not (math.isfinite(self.prior_sigma_m) and 1e-3 <= self.prior_sigma_m <= 1e3):
+            raise ConfigError(f"pose covariance prior_sigma_m must be in [0.001, 1000] m, got {self.prior_sigma_m}")
+        if not (math.isfinite(self.prior_sigma_deg) and 1e-3 <= self.prior_sigma_deg <= 180.0):
+            raise ConfigError(f"pose covariance prior_sigma_deg must be in [0.001, 180] deg, got {self.prior_sigma_deg}")
 
 
 def registration_covariance(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndarray,
@@ -108,8 +117,9 @@ def registration_covariance(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_sr
             registration's (``rigid_position_scale`` / ``rigid_heading_scale``).
     Returns:
         (3, 3) float64 covariance of (x m, y m, yaw rad) in the keyframe's frame (m^2, m rad, rad^2), or None when
-        fewer than ``min_pairs`` landmarks pair or an input is not finite. A direction the pairs do not fix (every
-        landmark on one straight wall leaves the pose free along it) gets the prior's uncertainty.
+        fewer than ``min_pairs`` landmarks pair, an input is not finite, or the result is not a positive definite
+        matrix of finite numbers. A direction the pairs do not fix (every landmark on one straight wall leaves the
+        pose free along it) gets the prior's uncertainty.
     """
     src = np.asarray(src_xy_m, np.float64).reshape(-1, 2)
     dst = np.asarray(dst_xy_m, np.float64).reshape(-1, 2)
@@ -148,9 +158,11 @@ def registration_covariance(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_sr
     information = h / sigma2 * np.outer(s_inv, s_inv) + np.diag(
         [config.prior_sigma_m ** -2, config.prior_sigma_m ** -2, math.radians(config.prior_sigma_deg) ** -2])
     cov = np.linalg.inv(information)
-    if not np.isfinite(cov).all():  # never a non-finite number in an answer (it would not serialise either)
+    cov = 0.5 * (cov + cov.T)
+    # never a non-finite number (it would not serialise) nor a matrix that is no covariance (a filter would diverge)
+    if not np.isfinite(cov).all() or not np.linalg.eigvalsh(cov)[0] > 0.0:
         return None
-    return 0.5 * (cov + cov.T)
+    return cov
 
 
 def landmark_information(dst_xy_m: np.ndarray, which: np.ndarray, tree: cKDTree,

@@ -83,9 +83,9 @@ class PoseUncertainty(_Model):
         min_length=3, max_length=3, description=(
         "3 x 3 covariance of the pose (rows and columns x_m, y_m, yaw_deg; entries m^2, m deg, deg^2; map frame), "
         "row-major, symmetric. From the final registration's landmark pairs (a street lined on one side only is "
-        "loose along it), scaled by factors fitted on training data so that about 95 % of right answers' errors "
-        "lie inside its 95 % ellipsoid (docs/MODEL.md, Pose covariance). The matched keyframe's own map pose is "
-        "taken as exact."))
+        "loose along it), scaled by factors fitted on training data so that 95 % of right answers' position errors "
+        "lie inside its 95 % ellipse and 95 % of their heading errors inside its 95 % interval (docs/MODEL.md, Pose "
+        "covariance: measured coverage per kind of drive). The matched keyframe's own map pose is taken as exact."))
     sigma_x_m: float = Field(description="Standard deviation of x, metres (sqrt of covariance[0][0]).")
     sigma_y_m: float = Field(description="Standard deviation of y, metres (sqrt of covariance[1][1]).")
     sigma_yaw_deg: float = Field(description="Standard deviation of the heading, degrees (sqrt of covariance[2][2]).")

@@ -143,7 +143,9 @@ def test_covariance_calibration_of_errors_drawn_from_the_covariances():
     gt = np.column_stack([rng.uniform(0, 100, q), rng.uniform(0, 100, q), rng.uniform(-3, 3, q)])
     est = gt - err
     out = make_outcome(np.zeros(q, np.int64), np.zeros(q), est, gt, gt[:1], 1e9, "pose")
-    cal = covariance_calibration(out, gt, cov, 1e9)
+    assert covariance_calibration(out, gt, 1e9) is None  # no covariances in the outcome
+    out.pose_covariance = cov
+    cal = covariance_calibration(out, gt, 1e9)
     assert cal["n"] == q
     assert cal["nees"] == pytest.approx(3.0, abs=0.15)
     assert cal["inside_95_pct"] == pytest.approx(95.0, abs=1.0)
@@ -151,10 +153,12 @@ def test_covariance_calibration_of_errors_drawn_from_the_covariances():
     assert cal["position_inside_95_pct"] == pytest.approx(95.0, abs=1.0)
     assert cal["heading_inside_95_pct"] == pytest.approx(95.0, abs=1.0)
     assert cal["rms_position_m"] == pytest.approx(cal["predicted_rms_position_m"], rel=0.05)
-    tight = covariance_calibration(out, gt, cov / 16.0, 1e9)
+    out.pose_covariance = cov / 16.0
+    tight = covariance_calibration(out, gt, 1e9)
     assert tight["nees"] == pytest.approx(48.0, rel=0.06) and tight["inside_95_pct"] < 40.0
     # only successful answers with a covariance count; none: None
-    cov_nan = cov.copy()
-    cov_nan[: q // 2] = np.nan
-    assert covariance_calibration(out, gt, cov_nan, 1e9)["n"] == q // 2
-    assert covariance_calibration(out, gt, np.full_like(cov, np.nan), 1e9) is None
+    out.pose_covariance = cov.copy()
+    out.pose_covariance[: q // 2] = np.nan
+    assert covariance_calibration(out, gt, 1e9)["n"] == q // 2
+    out.pose_covariance = np.full_like(cov, np.nan)
+    assert covariance_calibration(out, gt, 1e9) is None

@@ -12,8 +12,8 @@ from scipy.spatial import cKDTree
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import inverse, transform_points
-from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer
-from reradar_core.matching.motion import MotionConfig
+from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer, PosePrior
+from reradar_core.matching.motion import MotionConfig, azimuth_time_offsets, deskew_points, deskewed, motion_polish
 from reradar_core.matching.ransac import fit_rigid_2d
 from reradar_core.matching.uncertainty import (
     PoseCovarianceConfig,
@@ -23,7 +23,7 @@ from reradar_core.matching.uncertainty import (
 )
 from reradar_core.retrieval import GlobalIndex
 
-UNSCALED = PoseCovarianceConfig(position_scale=1.0, heading_scale=1.0, prior_sigma_m=1e6, prior_sigma_deg=1e6)
+UNSCALED = PoseCovarianceConfig(position_scale=1.0, heading_scale=1.0, prior_sigma_m=1e3, prior_sigma_deg=180.0)
 
 
 def _poles(n: int = 60, radius: float = 20.0) -> np.ndarray:
@@ -73,12 +73,12 @@ def test_the_fitted_scales_multiply_the_variances() -> None:
     query = poles + rng.normal(scale=0.05, size=poles.shape)
     base = registration_covariance(query, poles, np.zeros(3), UNSCALED)
     scaled = registration_covariance(query, poles, np.zeros(3), PoseCovarianceConfig(
-        position_scale=4.0, heading_scale=9.0, prior_sigma_m=1e6, prior_sigma_deg=1e6))
+        position_scale=4.0, heading_scale=9.0, prior_sigma_m=1e3, prior_sigma_deg=180.0))
     assert base is not None and scaled is not None
     np.testing.assert_allclose(np.sqrt(np.diag(scaled) / np.diag(base)), [2.0, 2.0, 3.0], rtol=1e-6)
     # a rigid registration's pose (no motion compensation) takes the rigid scales
     rigid = registration_covariance(query, poles, np.zeros(3), PoseCovarianceConfig(
-        rigid_position_scale=25.0, rigid_heading_scale=4.0, prior_sigma_m=1e6, prior_sigma_deg=1e6),
+        rigid_position_scale=25.0, rigid_heading_scale=4.0, prior_sigma_m=1e3, prior_sigma_deg=180.0),
         motion_compensated=False)
     assert rigid is not None
     np.testing.assert_allclose(np.sqrt(np.diag(rigid) / np.diag(base)), [5.0, 5.0, 2.0], rtol=1e-6)
@@ -88,6 +88,19 @@ def test_covariance_turns_with_the_frame() -> None:
     cov = np.diag([4.0, 0.01, 1e-4])  # loose along the keyframe's x
     turned = rotate_covariance(cov, math.pi / 2)  # a keyframe heading north: loose along the map's y
     np.testing.assert_allclose(turned, np.diag([0.01, 4.0, 1e-4]), atol=1e-12)
+    # a full covariance turned by 30 deg, by hand: position block R C R^T, position-heading column R c, heading alone
+    full = np.array([[0.04, 0.01, 0.002], [0.01, 0.09, -0.003], [0.002, -0.003, 1e-4]])
+    c, s = math.cos(math.radians(30.0)), math.sin(math.radians(30.0))
+    r = np.array([[c, -s], [s, c]])
+    want = np.empty((3, 3))
+    want[:2, :2] = r @ full[:2, :2] @ r.T
+    want[:2, 2] = want[2, :2] = r @ full[:2, 2]
+    want[2, 2] = full[2, 2]
+    np.testing.assert_allclose(rotate_covariance(full, math.radians(30.0)), want, atol=1e-15)
+    # a point 1 m along the keyframe's x with its error, turned with the frame: the same mahalanobis distance
+    err_kf = np.array([0.1, -0.2, 0.004])
+    err_map = np.concatenate([r @ err_kf[:2], err_kf[2:]])
+    assert err_map @ np.linalg.solve(want, err_map) == pytest.approx(err_kf @ np.linalg.solve(full, err_kf))
 
 
 def test_too_few_pairs_or_bad_input_give_none() -> None:
@@ -102,7 +115,7 @@ def test_too_few_pairs_or_bad_input_give_none() -> None:
 
 @pytest.mark.parametrize("bad", [{"radius_m": 0.0}, {"radius_m": 50.0}, {"position_scale": float("nan")},
                                  {"heading_scale": 0.0}, {"min_pairs": 2}, {"neighbours": 100},
-                                 {"prior_sigma_m": -1.0}])
+                                 {"prior_sigma_m": -1.0}, {"prior_sigma_m": 1e6}, {"prior_sigma_deg": 1e6}])
 def test_covariance_settings_out_of_range_fail_at_construction(bad: dict) -> None:
     with pytest.raises(ConfigError):
         PoseCovarianceConfig(**bad)
@@ -147,6 +160,45 @@ def test_localizer_answers_carry_their_covariance_in_the_map_frame() -> None:
                                                  covariance=PoseCovarianceConfig(enabled=False)))
     assert off.localized and off.pose_covariance is None
     np.testing.assert_allclose(off.T_map_query, res.T_map_query)
-    # with the motion compensation (the default) the answer has one too, of the compensated pose
-    compensated = loc.localize(query)
-    assert compensated.localized and compensated.pose_covariance is not None
+    # a scan seen from a sensor moving at 8 m/s (as the map drive): the motion compensation (the default) answers the
+    # compensated pose, and its covariance is that of the de-skewed landmarks, with the compensated pose's scales
+    twist = np.array([8.0, 0.0, 0.0])
+    T_w_q = poses[2] + np.array([0.4, 1.0, 0.01])
+    local = transform_points(inverse(T_w_q), world)
+    keep = np.hypot(local[:, 0], local[:, 1]) < 60.0
+    tau = azimuth_time_offsets(local[keep])
+    seen = deskew_points(local[keep], tau, -twist)  # first order: where the moving sensor sees them
+    moving = ScanFeatures(g[2], seen, desc[keep], 10**9)
+    compensated = loc.localize(moving)
+    assert compensated.localized and compensated.motion_compensated and compensated.pose_covariance is not None
+    kid = compensated.best.keyframe_id
+    twists, _ = loc.keyframe_twists()
+    np.testing.assert_allclose(twists[kid], twist, atol=1e-6)
+    src_fit = deskewed(seen, _fitted_twist(loc, moving, kid), MotionConfig())
+    want = registration_covariance(src_fit, deskewed(kfs[kid].keypoints_xy_m, twists[kid], MotionConfig()),
+                                   compensated.best.T_keyframe_query, motion_compensated=True)
+    assert want is not None
+    # (the twist refitted here agrees with the Localizer's to ~1e-6: a tolerance well inside what de-skewing changes)
+    np.testing.assert_allclose(compensated.pose_covariance, rotate_covariance(want, math.pi / 2), rtol=1e-4)
+    as_seen = registration_covariance(seen, kfs[kid].keypoints_xy_m, compensated.best.T_keyframe_query)
+    assert as_seen is not None
+    assert not np.allclose(compensated.pose_covariance, rotate_covariance(as_seen, math.pi / 2), rtol=1e-2)
+    # the covariance changes no pose: the same compensated answer with it off
+    no_cov = loc.localize(moving, LocalizationConfig(covariance=PoseCovarianceConfig(enabled=False)))
+    assert no_cov.pose_covariance is None and no_cov.motion_compensated
+    np.testing.assert_array_equal(no_cov.T_map_query, compensated.T_map_query)
+    # a tracked answer carries one too, in the same map frame
+    tracked = loc.track(moving, PosePrior(compensated.T_map_query, 0.5, math.radians(1.0)))
+    assert tracked.mode == "tracking" and tracked.localized and tracked.pose_covariance is not None
+    np.testing.assert_allclose(np.sqrt(np.diag(tracked.pose_covariance)), np.sqrt(np.diag(compensated.pose_covariance)),
+                               rtol=0.5)
+
+
+def _fitted_twist(loc: Localizer, features: ScanFeatures, kid: int) -> np.ndarray:
+    """The query motion the ``Localizer``'s compensation fits (``motion_polish`` from its rigid answer)."""
+    rigid = loc.localize(features, LocalizationConfig(motion=MotionConfig(enabled=False)))
+    twists, _ = loc.keyframe_twists()
+    polished = motion_polish(features.keypoints_xy_m, loc.cache.get(kid).features.keypoints_xy_m,
+                             rigid.best.T_keyframe_query, twists[kid])
+    assert polished is not None
+    return polished.twist

@@ -330,3 +330,22 @@ def test_close_closes_every_map_and_delete_lets_requests_in_flight_finish(tmp_pa
     assert again is doomed and doomed.map._file is None  # closed when the last request was done with it
     registry.close()
     assert kept.map._file is None and registry.entries() == []
+
+
+def test_pose_uncertainty_turns_the_heading_into_degrees() -> None:
+    """The API's covariance is the library's (x m, y m, yaw rad) with the heading's row and column in degrees."""
+    import math
+
+    import numpy as np
+
+    from service.api.schemas import PoseUncertainty
+
+    cov = np.array([[1.0, 0.1, 0.01], [0.1, 2.0, 0.02], [0.01, 0.02, 1e-4]])
+    u = PoseUncertainty.from_array(cov)
+    d = math.degrees(1.0)
+    assert u.covariance[0][2] == pytest.approx(0.01 * d) and u.covariance[2][0] == pytest.approx(0.01 * d)  # 0.573
+    assert u.covariance[1][2] == pytest.approx(0.02 * d)
+    assert u.covariance[2][2] == pytest.approx(1e-4 * d * d)  # 0.3283 deg^2
+    assert u.covariance[0][1] == pytest.approx(0.1) and u.covariance[1][1] == pytest.approx(2.0)
+    assert (u.sigma_x_m, u.sigma_y_m) == (pytest.approx(1.0), pytest.approx(math.sqrt(2.0)))
+    assert u.sigma_yaw_deg == pytest.approx(0.01 * d)  # 0.573 deg
