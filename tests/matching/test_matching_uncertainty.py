@@ -13,7 +13,13 @@ from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import inverse, transform_points
 from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer, PosePrior
-from reradar_core.matching.motion import MotionConfig, azimuth_time_offsets, deskew_points, deskewed, motion_polish
+from reradar_core.matching.motion import (
+    MotionConfig,
+    azimuth_time_offsets,
+    deskew_points,
+    deskewed,
+    motion_polish,
+)
 from reradar_core.matching.ransac import fit_rigid_2d
 from reradar_core.matching.uncertainty import (
     PoseCovarianceConfig,
