@@ -84,26 +84,20 @@ def collect(splits: list[str], step: int) -> dict[str, np.ndarray]:
             "cov0": np.array(rows["cov0"], np.float64).reshape(-1, 3, 3)}
 
 
-def prior_information() -> np.ndarray:
-    """(3, 3) the shipped prior's information (``PoseCovarianceConfig.prior_sigma_m`` / ``prior_sigma_deg``)."""
-    from reradar_core.matching.uncertainty import PoseCovarianceConfig
-
-    c = PoseCovarianceConfig()
-    return np.diag([c.prior_sigma_m ** -2, c.prior_sigma_m ** -2, math.radians(c.prior_sigma_deg) ** -2])
-
-
 def scaled(cov0: np.ndarray, k_t: float, k_r: float) -> np.ndarray:
     """(M, 3, 3) the covariance ``registration_covariance`` gives with scales (k_t, k_r), from the one it gave with
     scales 1 (``cov0``, which holds the prior): (S^-1 (cov0^-1 - P) S^-1 + P)^-1, S = diag(sqrt(k_t), sqrt(k_t),
     sqrt(k_r)), P the prior's information: only the registration's part is scaled, as in the library."""
-    p = prior_information()
+    from reradar_core.matching.uncertainty import PoseCovarianceConfig
+
+    p = PoseCovarianceConfig().prior_information  # the shipped prior, as the rows were collected with
     s_inv = 1.0 / np.sqrt(np.array([k_t, k_t, k_r]))
     registration = np.linalg.inv(cov0) - p
     return np.linalg.inv(registration * np.outer(s_inv, s_inv) + p)
 
 
 def floored(cov0: np.ndarray, k_t: float, k_r: float, a_m: float, b_rad: float) -> np.ndarray:
-    """(M, 3, 3) S C0 S + diag(a^2, a^2, b^2)."""
+    """(M, 3, 3) the scaled model (``scaled``) + diag(a^2, a^2, b^2)."""
     return scaled(cov0, k_t, k_r) + np.diag([a_m ** 2, a_m ** 2, b_rad ** 2])
 
 

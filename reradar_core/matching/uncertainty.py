@@ -102,6 +102,11 @@ class PoseCovarianceConfig:
         if not (math.isfinite(self.prior_sigma_deg) and 1e-3 <= self.prior_sigma_deg <= 180.0):
             raise ConfigError(f"pose covariance prior_sigma_deg must be in [0.001, 180] deg, got {self.prior_sigma_deg}")
 
+    @property
+    def prior_information(self) -> np.ndarray:
+        """(3, 3) float64 the prior's information (inverse covariance) on (x m, y m, yaw rad): diag(1 / sigma^2)."""
+        return np.diag([self.prior_sigma_m ** -2, self.prior_sigma_m ** -2, math.radians(self.prior_sigma_deg) ** -2])
+
 
 def registration_covariance(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_src: np.ndarray,
                             config: PoseCovarianceConfig = PoseCovarianceConfig(),
@@ -155,8 +160,7 @@ def registration_covariance(src_xy_m: np.ndarray, dst_xy_m: np.ndarray, T_dst_sr
     k_t, k_r = ((config.position_scale, config.heading_scale) if motion_compensated
                 else (config.rigid_position_scale, config.rigid_heading_scale))
     s_inv = 1.0 / np.sqrt(np.array([k_t, k_t, k_r]))
-    information = h / sigma2 * np.outer(s_inv, s_inv) + np.diag(
-        [config.prior_sigma_m ** -2, config.prior_sigma_m ** -2, math.radians(config.prior_sigma_deg) ** -2])
+    information = h / sigma2 * np.outer(s_inv, s_inv) + config.prior_information
     cov = np.linalg.inv(information)
     cov = 0.5 * (cov + cov.T)
     # never a non-finite number (it would not serialise) nor a matrix that is no covariance (a filter would diverge)
