@@ -1,6 +1,7 @@
-"""Render the first two scans of every sequence of the given suites with this checkout and compare them byte for
-byte with an earlier simulator version's renders in the cache (default v4): the check that a simulator change
-left those suites as they were (docs/SIMULATOR.md).
+"""Render the first two scans of every sequence of the given suites, and ``--spread`` scans spread along each drive
+(default 6), with this checkout and compare them byte for byte with an earlier simulator version's renders in the
+cache (default v4): the check that a simulator change left those suites as they were (docs/SIMULATOR.md). The
+spread scans (session 32) catch a change confined to one part of a world, which the first scans can miss.
 
     RERADAR_CACHE_DIR=... python benchmarks/verify_sim_identity.py --against 4 loop-sim offroad-sim train-source
 
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import math
 import shutil
 import sys
 import tempfile
@@ -23,7 +25,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from reradar_core.paths import cache_dir  # noqa: E402
-from reradar_core.sim.suites import build_suite  # noqa: E402
+from reradar_core.sim.suites import SUITES, build_suite  # noqa: E402
 from reradar_core.sim.writer import SIM_VERSION, carry_over  # noqa: E402
 
 
@@ -32,26 +34,39 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("suites", nargs="+")
     ap.add_argument("--against", default="4", help="simulator version of the reference renders")
     ap.add_argument("--trajectory-dir", default=None, help="real Boreas trajectories (Boreas suites)")
+    ap.add_argument("--spread", type=int, default=6,
+                    help="also compare this many scans spread along every drive (0 = the first two only)")
     ap.add_argument("--carry-over", action="store_true",
                     help="take identical suites over into the current version's cache (hard links)")
     a = ap.parse_args(argv)
     bad = n = 0
     for name in a.suites:
-        tmp = Path(tempfile.mkdtemp())
-        data = build_suite(name, root=tmp, progress=False, limit=2, trajectory_dir=a.trajectory_dir)
-        suite_bad = 0
-        outs = data.database + data.queries + data.training + data.confidence
         old_root = cache_dir("sim", f"v{a.against}", name)
-        for out in outs:
-            ref = old_root / out.name
-            for p in sorted(out.rglob("*.png")):
-                q = ref / p.relative_to(out)
-                same = q.is_file() and hashlib.md5(q.read_bytes()).digest() == hashlib.md5(p.read_bytes()).digest()
-                suite_bad += not same
-                n += 1
-                print(name, out.name, p.name, "identical" if same else "DIFFERENT", flush=True)
+        suite_bad = 0
+        outs: list[Path] = []
+        # the first scans of every sequence, then scans spread along every drive (session 32: a change confined
+        # to one part of a world, e.g. open land, leaves the first scans alike): the sequences' common frame step
+        # times m, so every spread scan is one the old render holds
+        defs = SUITES[name].sequences
+        step = math.lcm(*(d.every for d in defs))
+        frames = min((len(list((old_root / d.name).rglob("*.png"))) * d.every for d in defs
+                      if (old_root / d.name).is_dir()), default=0)
+        passes = [(None, 2)] + ([(step * max(1, frames // (step * a.spread)), a.spread)] if a.spread else [])
+        for every, limit in passes:
+            tmp = Path(tempfile.mkdtemp())
+            data = build_suite(name, root=tmp, progress=False, every=every, limit=limit,
+                               trajectory_dir=a.trajectory_dir)
+            outs = data.database + data.queries + data.training + data.confidence
+            for out in outs:
+                ref = old_root / out.name
+                for p in sorted(out.rglob("*.png")):
+                    q = ref / p.relative_to(out)
+                    same = q.is_file() and hashlib.md5(q.read_bytes()).digest() == hashlib.md5(p.read_bytes()).digest()
+                    suite_bad += not same
+                    n += 1
+                    print(name, out.name, p.name, "identical" if same else "DIFFERENT", flush=True)
+            shutil.rmtree(tmp, ignore_errors=True)
         bad += suite_bad
-        shutil.rmtree(tmp, ignore_errors=True)
         if a.carry_over and not suite_bad and SIM_VERSION != a.against:
             new_root = cache_dir("sim", f"v{SIM_VERSION}", name)  # creates the folder: only when carrying over
             for out in outs:

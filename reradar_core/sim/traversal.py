@@ -182,6 +182,11 @@ class Traversal:
                            static: Primitives) -> Primitives:
         """Traversal-specific geometry near ``center_xy``: parked cars, moving vehicles, snow banks."""
         out = Primitives()
+        if self.world.has_transient_clutter():
+            key = self.seed if self.world.profile.ground_clutter_redraw == "traversal" else \
+                stable_seed(self.seed, int(round(t_s * 1e6)))
+            xy, rcs = self.world.transient_clutter(center_xy, radius_m + 10.0, key)
+            out.add_points(xy, rcs, 2)
         cars = self.parked_cars(static)
         if len(cars):
             out.add_segments(car_segments(cars), self.CAR_REFLECTIVITY, self.CAR_TRANSMISSION, 0.5, ELEV_VEHICLE)

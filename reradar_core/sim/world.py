@@ -129,6 +129,24 @@ class WorldProfile:
     # control for the probe: > 0 moves each row tree and lamp post by U(-j, j) m along the road and across it,
     # so the rows keep their density, sizes and mean setback but lose their regularity; 0 = exact rows
     roadside_jitter_m: float = 0.0
+    # open land (issue 10, simulator v11): the share of the road length that runs through land where a third
+    # smooth random field over ``open_scale_m`` lies below its ``open_share``-quantile over the road samples;
+    # there the built and vegetation densities are 0 (flat open moor, a loch shore): only the ground clutter, the
+    # road's posts / sign plates / kerbs / rails and ``open_terrain`` x the zone's terrain ridges remain;
+    # 0 = no open land (v1-v10)
+    open_share: float = 0.0
+    open_scale_m: float = 400.0
+    # ground clutter that persists (issue 10, session 32 probe): the share of the ground-clutter points that are
+    # part of the world (rocks, stumps, kerb stones); the rest is drawn anew, with the same density and RCS
+    # distribution, on every traversal (``"traversal"``) or every scan (``"scan"``): returns of grass, heather and
+    # gravel whose pattern within a resolution cell does not survive another run (wind, wetness, a viewpoint
+    # centimetres off). 1.0 = v1-v10 (every point fixed in the world)
+    ground_clutter_persistence: float = 1.0
+    ground_clutter_redraw: str = "traversal"
+    # the same share in open land only (``open_share``): open moor's heather and grass move with the wind
+    open_clutter_persistence: float = 1.0
+    # terrain ridges kept in open land, relative to the zone's density (0 = none: flat moor, a loch shore)
+    open_terrain: float = 0.0
 
 
 PROFILES: dict[str, WorldProfile] = {
@@ -349,6 +367,14 @@ class World:
         self.tile_m = float(tile_m)
         self._cache: OrderedDict[tuple[int, int], Primitives] = OrderedDict()
         self._cache_tiles = cache_tiles
+        self._open_thr: float | None = None
+        if profile.ground_clutter_redraw not in ("traversal", "scan"):
+            raise ConfigError(f"ground_clutter_redraw must be 'traversal' or 'scan', not {profile.ground_clutter_redraw!r}")
+        for name in ("open_share", "ground_clutter_persistence", "open_clutter_persistence"):
+            if not 0.0 <= getattr(profile, name) <= 1.0:
+                raise ConfigError(f"{name} must lie in [0, 1], not {getattr(profile, name)!r}")
+        if profile.open_share > 0 and not profile.open_scale_m > 0:
+            raise ConfigError(f"open_scale_m must be > 0, not {profile.open_scale_m!r}")
 
     def tile(self, ix: int, iy: int) -> Primitives:
         key = (ix, iy)
@@ -387,25 +413,48 @@ class World:
         pr = self.profile
         if pr.zone_contrast <= 0:
             return 1.0, 1.0
-        g = np.asarray(xy, dtype=np.float64) / pr.zone_scale_m
+        built, veg = (max(0.0, 1.0 + pr.zone_contrast * (2.0 * self._value_noise(xy, pr.zone_scale_m, salt) - 1.0))
+                      for salt in ("zone-built", "zone-veg"))
+        return built, veg
+
+    def is_open_land(self, xy: np.ndarray) -> bool:
+        """True where world point ``xy`` (m) lies in open land (``WorldProfile.open_share``; False when 0)."""
+        pr = self.profile
+        if pr.open_share <= 0:
+            return False
+        return self._value_noise(xy, pr.open_scale_m, "zone-open") < self._open_threshold()
+
+    def _open_threshold(self) -> float:
+        """The ``open_share``-quantile of the open-land field over the road samples: the routes of this world run
+        through open land for that share of their length whatever the draw of the field (a route crosses only
+        a few ``open_scale_m`` cells, so an area share would leave its own share to chance)."""
+        if self._open_thr is None:
+            pts = self.road.points[:: max(1, len(self.road.points) // 4000)]
+            v = np.array([self._value_noise(p, self.profile.open_scale_m, "zone-open") for p in pts])
+            self._open_thr = float(np.quantile(v, self.profile.open_share)) if len(v) else -1.0
+        return self._open_thr
+
+    def _value_noise(self, xy: np.ndarray, scale_m: float, salt: str) -> float:
+        """Smoothstep-interpolated value noise in [0, 1) on a ``scale_m`` lattice hashed from the world seed."""
+        g = np.asarray(xy, dtype=np.float64) / scale_m
         i0 = np.floor(g).astype(np.int64)
         f = g - i0
         f = f * f * (3 - 2 * f)
-        out = []
-        for salt in ("zone-built", "zone-veg"):
-            s = stable_seed(self.seed, salt)
-            v = 0.0
-            for dx in (0, 1):
-                for dy in (0, 1):
-                    cid = np.array([stable_seed(int(i0[0]) + dx, int(i0[1]) + dy)], dtype=np.uint64)
-                    w = (f[0] if dx else 1 - f[0]) * (f[1] if dy else 1 - f[1])
-                    v += w * float(_hash_uniform(cid, s)[0])
-            out.append(max(0.0, 1.0 + pr.zone_contrast * (2.0 * v - 1.0)))
-        return out[0], out[1]
+        s = stable_seed(self.seed, salt)
+        v = 0.0
+        for dx in (0, 1):
+            for dy in (0, 1):
+                cid = np.array([stable_seed(int(i0[0]) + dx, int(i0[1]) + dy)], dtype=np.uint64)
+                w = (f[0] if dx else 1 - f[0]) * (f[1] if dy else 1 - f[1])
+                v += w * float(_hash_uniform(cid, s)[0])
+        return v
 
     def _generate(self, ix: int, iy: int) -> Primitives:
         pr = self.profile
         built, veg = self.zone_factors(np.array([(ix + 0.5) * self.tile_m, (iy + 0.5) * self.tile_m]))
+        terrain = veg
+        if self.is_open_land(np.array([(ix + 0.5) * self.tile_m, (iy + 0.5) * self.tile_m])):
+            built, veg, terrain = 0.0, 0.0, pr.open_terrain * veg
         if built != 1.0 or veg != 1.0:
             pr = replace(pr, frontage_prob=min(1.0, pr.frontage_prob * built),
                          building_prob_per_tile=pr.building_prob_per_tile * built,
@@ -413,7 +462,7 @@ class World:
                          fence_per_tile=pr.fence_per_tile * built,
                          street_tree_prob=pr.street_tree_prob * veg, tree_per_tile=pr.tree_per_tile * veg,
                          hedge_per_tile=pr.hedge_per_tile * veg,
-                         terrain_ridges_per_tile=pr.terrain_ridges_per_tile * veg)
+                         terrain_ridges_per_tile=pr.terrain_ridges_per_tile * terrain)
         if pr.tile_types > 0:
             kind = int(_hash_uniform(np.array([stable_seed(ix, iy)], dtype=np.uint64),
                                      stable_seed(self.seed, "tile-type"))[0] * pr.tile_types)
@@ -650,14 +699,67 @@ class World:
             prim.add_segments(segs, rng.lognormal(np.log(0.3), 0.5, len(segs)), 0.45, 1.0, low=True)
 
         # --- diffuse ground clutter (persistent texture), weaker on the asphalt
-        n_g = rng.poisson(pr.ground_clutter_per_m2 * t * t)
-        if n_g:
-            xy = np.array([x0, y0]) + rng.uniform(0, t, (n_g, 2))
-            d, _ = road.nearest(xy)
-            rcs = rng.lognormal(np.log(pr.ground_clutter_rcs), 1.0, n_g)
-            rcs = np.where(d < w, rcs * 0.25, rcs)
+        xy, rcs = self._ground_clutter(rng, x0, y0, pr.ground_clutter_per_m2, pr)
+        persistence = self.clutter_persistence(ix, iy)
+        if persistence < 1.0 and len(xy):
+            # own generator: the draws above stay as they were; the rest is drawn per traversal / scan
+            keep = np.random.default_rng(stable_seed(self.seed, "clutter-keep", ix, iy)).random(len(xy))
+            keep = keep < persistence
+            xy, rcs = xy[keep], rcs[keep]
+        if len(xy):
             prim.add_points(xy, rcs, 2)
         return prim
+
+    def _ground_clutter(self, rng: np.random.Generator, x0: float, y0: float, per_m2: float,
+                        pr: WorldProfile) -> tuple[np.ndarray, np.ndarray]:
+        """Ground-clutter points of the tile at (x0, y0): (N, 2) world xy, (N,) RCS, weaker on the asphalt."""
+        t = self.tile_m
+        n_g = rng.poisson(per_m2 * t * t)
+        if not n_g:
+            return np.zeros((0, 2)), np.zeros(0)
+        xy = np.array([x0, y0]) + rng.uniform(0, t, (n_g, 2))
+        d, _ = self.road.nearest(xy)
+        rcs = rng.lognormal(np.log(pr.ground_clutter_rcs), 1.0, n_g)
+        rcs = np.where(d < pr.road_half_width_m, rcs * 0.25, rcs)
+        return xy, rcs
+
+    def clutter_persistence(self, ix: int, iy: int) -> float:
+        """Share of tile (ix, iy)'s ground clutter fixed in the world (``ground_clutter_persistence``, or
+        ``open_clutter_persistence`` in open land)."""
+        pr = self.profile
+        if pr.open_share > 0 and self.is_open_land(np.array([(ix + 0.5) * self.tile_m, (iy + 0.5) * self.tile_m])):
+            return pr.open_clutter_persistence
+        return pr.ground_clutter_persistence
+
+    def has_transient_clutter(self) -> bool:
+        """Whether any ground clutter is drawn per traversal / scan (``transient_clutter``)."""
+        pr = self.profile
+        return pr.ground_clutter_persistence < 1.0 or (pr.open_share > 0 and pr.open_clutter_persistence < 1.0)
+
+    def transient_clutter(self, center_xy: np.ndarray, radius_m: float, key: int) -> tuple[np.ndarray, np.ndarray]:
+        """The non-persistent share of the ground clutter near ``center_xy`` (``clutter_persistence`` < 1), drawn
+        from ``key`` (a traversal's or a scan's seed) with the tile's density and RCS distribution: (N, 2) world
+        xy, (N,) RCS. Land-use zones and open land change the objects, not the clutter, so neither does this."""
+        pr = self.profile
+        if not self.has_transient_clutter():
+            return np.zeros((0, 2)), np.zeros(0)
+        cx, cy = float(center_xy[0]), float(center_xy[1])
+        t = self.tile_m
+        xs, rs = [], []
+        for ix in range(int(np.floor((cx - radius_m) / t)), int(np.floor((cx + radius_m) / t)) + 1):
+            for iy in range(int(np.floor((cy - radius_m) / t)), int(np.floor((cy + radius_m) / t)) + 1):
+                nx = min(max(cx, ix * t), (ix + 1) * t)
+                ny = min(max(cy, iy * t), (iy + 1) * t)
+                share = 1.0 - self.clutter_persistence(ix, iy)
+                if (nx - cx) ** 2 + (ny - cy) ** 2 > radius_m ** 2 or share <= 0:
+                    continue
+                rng = np.random.default_rng(stable_seed(self.seed, "clutter-transient", key, ix, iy))
+                xy, rcs = self._ground_clutter(rng, ix * t, iy * t, pr.ground_clutter_per_m2 * share, pr)
+                xs.append(xy)
+                rs.append(rcs)
+        if not xs:
+            return np.zeros((0, 2)), np.zeros(0)
+        return np.concatenate(xs), np.concatenate(rs)
 
     def _side_of(self, xy: np.ndarray) -> np.ndarray:
         """+1 / -1: left / right of the nearest road sample's direction, for (N, 2) points."""

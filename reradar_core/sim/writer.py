@@ -37,7 +37,7 @@ logger = logging.getLogger(__name__)
 COMPLETE_MARKER = ".reradar_complete"
 #: Bumped whenever the world or sensor model changes what is rendered: cached sequences rendered by another
 #: version are re-rendered instead of being reused.
-SIM_VERSION = "10"
+SIM_VERSION = "11"
 _STARTED = ".reradar_render_version"
 
 
