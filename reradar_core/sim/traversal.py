@@ -185,7 +185,9 @@ class Traversal:
         if self.world.has_transient_clutter():
             key = self.seed if self.world.profile.ground_clutter_redraw == "traversal" else \
                 stable_seed(self.seed, int(round(t_s * 1e6)))
-            xy, rcs = self.world.transient_clutter(center_xy, radius_m + 10.0, key)
+            # the static world is queried out to the range plus the sweep's motion plus 5 m (sensor.py); 15 m
+            # covers sweeps at up to 40 m/s
+            xy, rcs = self.world.transient_clutter(center_xy, radius_m + 15.0, key)
             out.add_points(xy, rcs, 2)
         cars = self.parked_cars(static)
         if len(cars):

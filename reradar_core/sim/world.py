@@ -368,11 +368,17 @@ class World:
         self._cache: OrderedDict[tuple[int, int], Primitives] = OrderedDict()
         self._cache_tiles = cache_tiles
         self._open_thr: float | None = None
+        self._open_tiles: dict[tuple[int, int], bool] = {}
+        # transient clutter of one traversal, per tile (``ground_clutter_redraw`` "traversal": every scan of the
+        # drive sees the same draw, so it is drawn once per tile)
+        self._transient: OrderedDict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
         if profile.ground_clutter_redraw not in ("traversal", "scan"):
             raise ConfigError(f"ground_clutter_redraw must be 'traversal' or 'scan', not {profile.ground_clutter_redraw!r}")
         for name in ("open_share", "ground_clutter_persistence", "open_clutter_persistence"):
             if not 0.0 <= getattr(profile, name) <= 1.0:
                 raise ConfigError(f"{name} must lie in [0, 1], not {getattr(profile, name)!r}")
+        if not profile.open_terrain >= 0.0:
+            raise ConfigError(f"open_terrain must be >= 0, not {profile.open_terrain!r}")
         if profile.open_share > 0 and not profile.open_scale_m > 0:
             raise ConfigError(f"open_scale_m must be > 0, not {profile.open_scale_m!r}")
 
@@ -418,16 +424,27 @@ class World:
         return built, veg
 
     def is_open_land(self, xy: np.ndarray) -> bool:
-        """True where world point ``xy`` (m) lies in open land (``WorldProfile.open_share``; False when 0)."""
+        """True where world point ``xy`` (m) lies in open land (``WorldProfile.open_share``; False when 0, True
+        everywhere when 1). What a tile holds is decided at its centre (``tile_is_open``)."""
         pr = self.profile
         if pr.open_share <= 0:
             return False
+        if pr.open_share >= 1:
+            return True
         return self._value_noise(xy, pr.open_scale_m, "zone-open") < self._open_threshold()
 
+    def tile_is_open(self, ix: int, iy: int) -> bool:
+        """Whether tile (ix, iy) is open land (its centre is; cached per tile)."""
+        key = (ix, iy)
+        if key not in self._open_tiles:
+            self._open_tiles[key] = self.is_open_land(np.array([(ix + 0.5) * self.tile_m, (iy + 0.5) * self.tile_m]))
+        return self._open_tiles[key]
+
     def _open_threshold(self) -> float:
-        """The ``open_share``-quantile of the open-land field over the road samples: the routes of this world run
-        through open land for that share of their length whatever the draw of the field (a route crosses only
-        a few ``open_scale_m`` cells, so an area share would leave its own share to chance)."""
+        """The ``open_share``-quantile of the open-land field over the road samples of the whole road network
+        (every route of this world together): they run through open land for that share of their length whatever
+        the draw of the field (a route crosses only a few ``open_scale_m`` cells, so an area share would leave its
+        own share to chance). At most ~4,000 samples, evenly strided."""
         if self._open_thr is None:
             pts = self.road.points[:: max(1, len(self.road.points) // 4000)]
             v = np.array([self._value_noise(p, self.profile.open_scale_m, "zone-open") for p in pts])
@@ -453,7 +470,7 @@ class World:
         pr = self.profile
         built, veg = self.zone_factors(np.array([(ix + 0.5) * self.tile_m, (iy + 0.5) * self.tile_m]))
         terrain = veg
-        if self.is_open_land(np.array([(ix + 0.5) * self.tile_m, (iy + 0.5) * self.tile_m])):
+        if self.tile_is_open(ix, iy):
             built, veg, terrain = 0.0, 0.0, pr.open_terrain * veg
         if built != 1.0 or veg != 1.0:
             pr = replace(pr, frontage_prob=min(1.0, pr.frontage_prob * built),
@@ -727,7 +744,7 @@ class World:
         """Share of tile (ix, iy)'s ground clutter fixed in the world (``ground_clutter_persistence``, or
         ``open_clutter_persistence`` in open land)."""
         pr = self.profile
-        if pr.open_share > 0 and self.is_open_land(np.array([(ix + 0.5) * self.tile_m, (iy + 0.5) * self.tile_m])):
+        if pr.open_share > 0 and self.tile_is_open(ix, iy):
             return pr.open_clutter_persistence
         return pr.ground_clutter_persistence
 
@@ -753,8 +770,17 @@ class World:
                 share = 1.0 - self.clutter_persistence(ix, iy)
                 if (nx - cx) ** 2 + (ny - cy) ** 2 > radius_m ** 2 or share <= 0:
                     continue
-                rng = np.random.default_rng(stable_seed(self.seed, "clutter-transient", key, ix, iy))
-                xy, rcs = self._ground_clutter(rng, ix * t, iy * t, pr.ground_clutter_per_m2 * share, pr)
+                ck = (key, ix, iy)
+                if ck in self._transient:
+                    self._transient.move_to_end(ck)
+                    xy, rcs = self._transient[ck]
+                else:
+                    rng = np.random.default_rng(stable_seed(self.seed, "clutter-transient", key, ix, iy))
+                    xy, rcs = self._ground_clutter(rng, ix * t, iy * t, pr.ground_clutter_per_m2 * share, pr)
+                    if pr.ground_clutter_redraw == "traversal":  # a scan's key never comes back
+                        self._transient[ck] = (xy, rcs)
+                        if len(self._transient) > self._cache_tiles:
+                            self._transient.popitem(last=False)
                 xs.append(xy)
                 rs.append(rcs)
         if not xs:

@@ -53,6 +53,11 @@ def test_open_land_covers_the_share_of_the_roads_and_holds_only_ground_clutter()
         pts = road.points[::3]
         is_open = np.array([world.is_open_land(p) for p in pts])
         assert abs(is_open.mean() - share) < 0.02
+        # what renders is decided per 40 m tile, at its centre: the road's share through open tiles is the same
+        tiles = np.floor(pts / world.tile_m).astype(int)
+        assert abs(np.mean([world.tile_is_open(int(i), int(j)) for i, j in tiles]) - share) < 0.03
+    everywhere = World(road, seed=7, profile=replace(base, open_share=1.0))
+    assert all(everywhere.tile_is_open(int(i), int(j)) for i, j in np.floor(road.points[::50] / 40.0).astype(int))
     world = World(road, seed=7, profile=replace(base, open_share=0.35, open_scale_m=600.0))
     plain = World(road, seed=7, profile=base)
     n_open = n_closed = 0
@@ -95,8 +100,8 @@ def test_transient_clutter_keeps_the_density_and_is_drawn_per_traversal_or_per_s
         return trav.dynamic_primitives(t_s, centre, radius, world.query(centre, radius + 15.0)).pts
 
     a, b, c = transient(none, 1, 0.0), transient(none, 1, 5.0), transient(none, 2, 0.0)
-    # the same density as the fixed clutter (the dynamic query reaches 10 m farther; same tiles here)
-    assert abs(len(a) / len(fixed.query(centre, radius + 10.0).pts) - 1.0) < 0.05
+    # the same density as the fixed clutter (the dynamic query reaches 15 m farther; same tiles here)
+    assert abs(len(a) / len(fixed.query(centre, radius + 15.0).pts) - 1.0) < 0.05
     np.testing.assert_array_equal(a, b)  # one traversal: the same clutter at every scan
     assert not np.isin(c[:, 0], a[:, 0]).any()  # another traversal: other clutter
     per_scan = World(road, seed=2, profile=replace(base, ground_clutter_persistence=0.0, ground_clutter_redraw="scan"))
@@ -142,6 +147,40 @@ def test_bad_settings_are_refused_by_name():
                       (dict(open_share=1.5), "open_share"), (dict(ground_clutter_persistence=-0.1),
                                                             "ground_clutter_persistence"),
                       (dict(open_clutter_persistence=2.0), "open_clutter_persistence"),
-                      (dict(open_share=0.2, open_scale_m=0.0), "open_scale_m")):
+                      (dict(open_share=0.2, open_scale_m=0.0), "open_scale_m"),
+                      (dict(open_terrain=-1.0), "open_terrain")):
         with pytest.raises(ConfigError, match=name):
             World(road, seed=1, profile=replace(PROFILES["offroad"], **bad))
+
+
+def test_zone_factors_keep_their_mean_and_bounds():
+    """The land-use zones (simulator v6, shared with the open-land field's value noise): factor 1 +- contrast, mean 1."""
+    world = World(straight_road(400.0), seed=3, profile=replace(PROFILES["offroad"], zone_contrast=0.8))
+    f = np.array([world.zone_factors(np.array([x, y])) for x in np.arange(0.0, 3000.0, 37.0)
+                  for y in np.arange(0.0, 3000.0, 41.0)])
+    assert f.min() >= 0.2 - 1e-12 and f.max() <= 1.8 + 1e-12
+    assert abs(f.mean() - 1.0) < 0.05
+    assert f[:, 0].std() > 0.1 and abs(np.corrcoef(f[:, 0], f[:, 1])[0, 1]) < 0.3  # two independent fields
+
+
+def test_rendered_scans_in_open_land_change_with_the_traversal_only():
+    """Through the sensor: the same scan renders identically; another traversal's open-land clutter differs."""
+    from reradar_core.sim.sensor import render_scan, scan_seed
+
+    from .conftest import CLEAN, T0, linear_trajectory
+
+    road = straight_road(1200.0)
+    base = replace(PROFILES["offroad"], open_share=1.0, open_clutter_persistence=0.0, tree_per_tile=0.0)
+    world = World(road, seed=2, profile=base)
+    traj = linear_trajectory(speed_mps=5.0)
+
+    def scan(seed: int, profile=base) -> np.ndarray:
+        w = world if profile is base else World(road, seed=2, profile=profile)
+        return render_scan(Traversal(w, seed=seed, traffic_per_km=0.0), traj, T0, "oxford", scan_seed(1, 0),
+                           CLEAN).power
+    a, b, c = scan(1), scan(1), scan(2)
+    np.testing.assert_array_equal(a, b)
+    assert np.mean(a != c) > 0.05  # other heather, other returns
+    fixed = replace(base, open_clutter_persistence=1.0)
+    np.testing.assert_array_equal(scan(1, fixed), scan(2, fixed))  # fixed clutter: the traversal does not matter
+

@@ -81,7 +81,7 @@ def test_only_the_kaist_oord_and_boreas_worlds_differ_from_v4():
     suite and its training split run on 16 m arterials (``road_half_width_m`` 8, the ``suburban`` profile: 6).
     Every other suite keeps v4's world, traffic and sensor (byte-identical renders); for them ``suite_profile`` is
     the profile itself. (Simulator v8 changes no world: it lets the beam pass over cars on the MulRan suites, as
-    v4 did on the Boreas ones; ``test_world.py``.)"""
+    v4 did on the Boreas ones; ``test_world.py``. Simulator v11 adds open moor to ``offroad-sim-hard`` alone.)"""
     # (session 25: a training split's look-alike suite renders the split's profile in a world of another seed)
     kaist = {"loop-sim", "train-target-loop", "train-target-loop-lookalike"}
     oord = {"offroad-sim", "offroad-sim-hard", "train-target-offroad", "train-target-offroad-lookalike"}
@@ -101,9 +101,13 @@ def test_only_the_kaist_oord_and_boreas_worlds_differ_from_v4():
             assert prof.frontage_prob != PROFILES["urban"].frontage_prob
             assert replace(prof, frontage_prob=PROFILES["urban"].frontage_prob) == PROFILES["urban"]
         elif name in oord:
-            assert s.profile_overrides == (("zone_contrast", 0.8),), name
+            # simulator v11: the Two Lochs-like suite alone adds flat open moor with clutter drawn per drive
+            moor = (("open_share", 0.2), ("open_scale_m", 600.0), ("open_clutter_persistence", 0.0))
+            assert s.profile_overrides == (("zone_contrast", 0.8),) + (moor if name == "offroad-sim-hard" else ()), name
             prof = suite_profile(s)
             assert prof.name == "offroad" and prof.zone_contrast == 0.8 and PROFILES["offroad"].zone_contrast == 0.0
+            assert (prof.open_share, prof.open_clutter_persistence) == ((0.2, 0.0) if name == "offroad-sim-hard"
+                                                                        else (0.0, 1.0))
         elif name in boreas:
             assert s.profile_overrides == (("road_half_width_m", 8.0),), name
             prof = suite_profile(s)
