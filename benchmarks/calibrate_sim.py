@@ -265,8 +265,8 @@ def _scan(power_u8: np.ndarray, t0: int, preset: str) -> RadarScan:
                      p.range_resolution_m, p.range_offset_m, preset=p.name)
 
 
-def recall_at_1(method_name: str, data: dict[str, object]) -> float:
-    """Recall@1 (%) of one baseline on the rendered subset: correct top-1 retrievals / all queries."""
+def query_hits(method_name: str, data: dict[str, object]) -> np.ndarray:
+    """(Q,) bool: one baseline's top-1 retrieval lies within the suite's radius of each query of the subset."""
     from reradar_core.baselines import make_method
 
     m = make_method(method_name)
@@ -276,13 +276,27 @@ def recall_at_1(method_name: str, data: dict[str, object]) -> float:
         m.fit(db)
     index = m.build_index([m.describe_prepared(r) for r in db])
     db_xy = np.asarray(data["db_pose"])[:, :2]
-    hits = 0
     q_pose = np.asarray(data["q_pose"])
+    hits = np.zeros(len(q_pose), dtype=bool)
     for i, (p, t) in enumerate(zip(data["q_scans"], data["q_t"], strict=True)):  # type: ignore[call-overload]
         rec = m.prepare(_scan(p, int(t), preset))
         j = int(np.argmin(m.distance(m.describe_prepared(rec), index)))
-        hits += float(np.hypot(*(db_xy[j] - q_pose[i, :2]))) <= float(data["radius"])  # type: ignore[arg-type]
-    return 100.0 * hits / max(len(q_pose), 1)
+        hits[i] = float(np.hypot(*(db_xy[j] - q_pose[i, :2]))) <= float(data["radius"])  # type: ignore[arg-type]
+    return hits
+
+
+def recall_at_1(method_name: str, data: dict[str, object]) -> float:
+    """Recall@1 (%) of one baseline on the rendered subset: correct top-1 retrievals / all queries."""
+    hits = query_hits(method_name, data)
+    return 100.0 * float(hits.sum()) / max(len(hits), 1)
+
+
+def emit_row(row: dict[str, object], json_path: Path | None) -> None:
+    """Print one result row as JSON and append it to ``json_path`` (a JSON-lines file) when given."""
+    print(json.dumps(row))
+    if json_path is not None:
+        with json_path.open("a") as f:
+            f.write(json.dumps(row) + "\n")
 
 
 #: Published real-data Recall@1 (%) of the baselines (paper, Tables OORD / MulRan / Boreas).
@@ -380,10 +394,7 @@ def main(argv: list[str] | None = None) -> int:
         t1 = time.perf_counter()
         row[name] = round(recall_at_1(name, data), 1)
         row[f"{name}_s"] = round(time.perf_counter() - t1, 1)
-    print(json.dumps(row))
-    if a.json is not None:
-        with a.json.open("a") as f:
-            f.write(json.dumps(row) + "\n")
+    emit_row(row, a.json)
     return 0
 
 
@@ -391,5 +402,5 @@ if __name__ == "__main__":
     raise SystemExit(main())
 
 
-__all__ = ["render_subset", "recall_at_1", "parse_overrides", "sensor_with", "profile_with", "calibration_table",
+__all__ = ["render_subset", "query_hits", "recall_at_1", "emit_row", "parse_overrides", "sensor_with", "profile_with", "calibration_table",
            "PUBLISHED"]

@@ -14,7 +14,6 @@ Each row is printed as JSON and appended to ``--json``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -28,26 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import calibrate_sim as C  # noqa: E402
 
-from reradar_core.baselines import make_method  # noqa: E402
 from reradar_core.sim import suites as S  # noqa: E402
 from reradar_core.sim import world as W  # noqa: E402
-
-
-def query_hits(method_name: str, data: dict[str, object]) -> np.ndarray:
-    """(Q,) bool: the baseline's top-1 lies within the suite's radius of each query (as ``C.recall_at_1``)."""
-    m = make_method(method_name)
-    preset = str(data["preset"])
-    db = [m.prepare(C._scan(p, int(t), preset)) for p, t in zip(data["db_scans"], data["db_t"], strict=True)]  # type: ignore[call-overload]
-    if m.needs_fit:
-        m.fit(db)
-    index = m.build_index([m.describe_prepared(r) for r in db])
-    db_xy = np.asarray(data["db_pose"])[:, :2]
-    q_pose = np.asarray(data["q_pose"])
-    out = []
-    for i, (p, t) in enumerate(zip(data["q_scans"], data["q_t"], strict=True)):  # type: ignore[call-overload]
-        j = int(np.argmin(m.distance(m.describe_prepared(m.prepare(C._scan(p, int(t), preset))), index)))
-        out.append(float(np.hypot(*(db_xy[j] - q_pose[i, :2]))) <= float(data["radius"]))  # type: ignore[arg-type]
-    return np.array(out, dtype=bool)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -83,15 +64,12 @@ def main(argv: list[str] | None = None) -> int:
                               "deep_open_pct": round(100 * deep.mean(), 1),
                               "render_s": round(time.perf_counter() - t0, 1), "load1": round(os.getloadavg()[0], 2)}
     for name in [s.strip() for s in a.methods.split(",") if s.strip()]:
-        h = query_hits(name, data)
+        h = C.query_hits(name, data)
         row[name] = round(100 * h.mean(), 1)
         row[f"{name}_open"] = round(100 * h[is_open].mean(), 1) if is_open.any() else None
         row[f"{name}_closed"] = round(100 * h[~is_open].mean(), 1) if (~is_open).any() else None
     row["utc"] = time.strftime("%H:%M:%S", time.gmtime())
-    print(json.dumps(row))
-    if a.json is not None:
-        with a.json.open("a") as f:
-            f.write(json.dumps(row) + "\n")
+    C.emit_row(row, a.json)
     return 0
 
 
