@@ -435,6 +435,8 @@ class World:
 
     def tile_is_open(self, ix: int, iy: int) -> bool:
         """Whether tile (ix, iy) is open land (its centre is; cached per tile)."""
+        if self.profile.open_share <= 0:
+            return False
         key = (ix, iy)
         if key not in self._open_tiles:
             self._open_tiles[key] = self.is_open_land(np.array([(ix + 0.5) * self.tile_m, (iy + 0.5) * self.tile_m]))
