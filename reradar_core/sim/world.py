@@ -393,21 +393,25 @@ class World:
             self._cache.popitem(last=False)
         return prim
 
-    def query(self, center_xy: np.ndarray, radius_m: float) -> Primitives:
-        """All static primitives of tiles within ``radius_m`` of ``center_xy`` (world frame)."""
+    def tiles_near(self, center_xy: np.ndarray, radius_m: float) -> list[tuple[int, int]]:
+        """Indices (ix, iy) of the tiles with any point within ``radius_m`` of ``center_xy`` (world frame)."""
         cx, cy = float(center_xy[0]), float(center_xy[1])
         t = self.tile_m
         ix0, ix1 = int(np.floor((cx - radius_m) / t)), int(np.floor((cx + radius_m) / t))
         iy0, iy1 = int(np.floor((cy - radius_m) / t)), int(np.floor((cy + radius_m) / t))
-        parts = []
+        out = []
         for ix in range(ix0, ix1 + 1):
             for iy in range(iy0, iy1 + 1):
                 # skip tiles entirely outside the circle
                 nx = min(max(cx, ix * t), (ix + 1) * t)
                 ny = min(max(cy, iy * t), (iy + 1) * t)
                 if (nx - cx) ** 2 + (ny - cy) ** 2 <= radius_m ** 2:
-                    parts.append(self.tile(ix, iy))
-        return Primitives.concat(parts)
+                    out.append((ix, iy))
+        return out
+
+    def query(self, center_xy: np.ndarray, radius_m: float) -> Primitives:
+        """All static primitives of tiles within ``radius_m`` of ``center_xy`` (world frame)."""
+        return Primitives.concat([self.tile(ix, iy) for ix, iy in self.tiles_near(center_xy, radius_m)])
 
     # ------------------------------------------------------------------ generation
     def zone_factors(self, xy: np.ndarray) -> tuple[float, float]:
@@ -746,7 +750,7 @@ class World:
         """Share of tile (ix, iy)'s ground clutter fixed in the world (``ground_clutter_persistence``, or
         ``open_clutter_persistence`` in open land)."""
         pr = self.profile
-        if pr.open_share > 0 and self.tile_is_open(ix, iy):
+        if self.tile_is_open(ix, iy):
             return pr.open_clutter_persistence
         return pr.ground_clutter_persistence
 
@@ -762,29 +766,25 @@ class World:
         pr = self.profile
         if not self.has_transient_clutter():
             return np.zeros((0, 2)), np.zeros(0)
-        cx, cy = float(center_xy[0]), float(center_xy[1])
         t = self.tile_m
         xs, rs = [], []
-        for ix in range(int(np.floor((cx - radius_m) / t)), int(np.floor((cx + radius_m) / t)) + 1):
-            for iy in range(int(np.floor((cy - radius_m) / t)), int(np.floor((cy + radius_m) / t)) + 1):
-                nx = min(max(cx, ix * t), (ix + 1) * t)
-                ny = min(max(cy, iy * t), (iy + 1) * t)
-                share = 1.0 - self.clutter_persistence(ix, iy)
-                if (nx - cx) ** 2 + (ny - cy) ** 2 > radius_m ** 2 or share <= 0:
-                    continue
-                ck = (key, ix, iy)
-                if ck in self._transient:
-                    self._transient.move_to_end(ck)
-                    xy, rcs = self._transient[ck]
-                else:
-                    rng = np.random.default_rng(stable_seed(self.seed, "clutter-transient", key, ix, iy))
-                    xy, rcs = self._ground_clutter(rng, ix * t, iy * t, pr.ground_clutter_per_m2 * share, pr)
-                    if pr.ground_clutter_redraw == "traversal":  # a scan's key never comes back
-                        self._transient[ck] = (xy, rcs)
-                        if len(self._transient) > self._cache_tiles:
-                            self._transient.popitem(last=False)
-                xs.append(xy)
-                rs.append(rcs)
+        for ix, iy in self.tiles_near(center_xy, radius_m):
+            share = 1.0 - self.clutter_persistence(ix, iy)
+            if share <= 0:
+                continue
+            ck = (key, ix, iy)
+            if ck in self._transient:
+                self._transient.move_to_end(ck)
+                xy, rcs = self._transient[ck]
+            else:
+                rng = np.random.default_rng(stable_seed(self.seed, "clutter-transient", key, ix, iy))
+                xy, rcs = self._ground_clutter(rng, ix * t, iy * t, pr.ground_clutter_per_m2 * share, pr)
+                if pr.ground_clutter_redraw == "traversal":  # a scan's key never comes back
+                    self._transient[ck] = (xy, rcs)
+                    if len(self._transient) > self._cache_tiles:
+                        self._transient.popitem(last=False)
+            xs.append(xy)
+            rs.append(rcs)
         if not xs:
             return np.zeros((0, 2)), np.zeros(0)
         return np.concatenate(xs), np.concatenate(rs)
