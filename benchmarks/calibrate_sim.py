@@ -146,6 +146,23 @@ def _traversal(world: W.World, seed: int, cond: T.Condition, ov: dict[str, objec
     return trav
 
 
+def subset_world(suite_name: str, ov: dict[str, object]) -> W.World:
+    """The simulated world of a suite under the overrides ``ov`` (``world.seed``, ``route.seed``, ``world.grid_lines``,
+    ``profile.*``): the one ``render_subset`` renders and the probes test positions in (``World.is_open_land``)."""
+    suite = S.SUITES[suite_name]
+    road_routes = suite.road_routes
+    if "route.seed" in ov:
+        if any(r.kind != "loop" for r in road_routes):
+            raise SystemExit("route.seed applies to synthetic (loop) routes only")
+        road_routes = tuple(replace(r, seed=int(ov["route.seed"])) for r in road_routes)  # type: ignore[call-overload]
+    lines = [S._route_trajectory(replace(r, lateral_m=0.0), None).xy for r in road_routes]
+    if "world.grid_lines" in ov:  # session 15: a whole street grid around the loop route (a planned district)
+        lines += [g for r in road_routes if r.kind == "loop"
+                  for g in street_grid(r, int(ov["world.grid_lines"]), float(ov.get("world.grid_extend_m", 300.0)))]  # type: ignore[arg-type]
+    world_seed = int(ov["world.seed"]) if "world.seed" in ov else suite.world_seed  # type: ignore[call-overload]
+    return W.World(W.RoadNetwork(lines), seed=world_seed, profile=profile_with(S.suite_profile(suite), ov))
+
+
 def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, query_seq: str | None,
                   ov: dict[str, object], db_every: int = 1, use_cache: bool = True,
                   all_queries: bool = False, revisit_m: float | None = None) -> dict[str, object]:
@@ -182,15 +199,10 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
         cap = None if raw.lower() == "none" else float(raw)
         db_def = replace(db_def, route=replace(db_def.route, max_lateral_accel_mps2=cap))
         q_def = replace(q_def, route=replace(q_def.route, max_lateral_accel_mps2=cap))
-    road_routes = suite.road_routes
     if "route.seed" in ov:  # session 29: a second calibration route (same generator, other seed) for both drives
         rs = int(ov["route.seed"])  # type: ignore[call-overload]
-        if any(r.kind != "loop" for r in road_routes):
-            raise SystemExit("route.seed applies to synthetic (loop) routes only")
-        road_routes = tuple(replace(r, seed=rs) for r in road_routes)
         db_def = replace(db_def, route=replace(db_def.route, seed=rs))
         q_def = replace(q_def, route=replace(q_def.route, seed=rs))
-    world_seed = int(ov["world.seed"]) if "world.seed" in ov else suite.world_seed  # type: ignore[call-overload]
     if "query.lateral_m" in ov:
         q_def = replace(q_def, route=replace(q_def.route, lateral_m=float(ov["query.lateral_m"])))  # type: ignore[arg-type]
     if "db.lateral_m" in ov:
@@ -207,12 +219,7 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
     sensor = sensor_with(SensorConfig(**dict(suite.sensor_overrides)), ov)  # type: ignore[arg-type]
     # the query drive's own sensor differences (session 18: e.g. a wet radome on one run, ``query.sensor.target_gain``)
     q_sensor = sensor_with(sensor, {k[len("query."):]: v for k, v in ov.items() if k.startswith("query.sensor.")})
-    lines = [S._route_trajectory(replace(r, lateral_m=0.0), None).xy for r in road_routes]
-    if "world.grid_lines" in ov:  # session 15: a whole street grid around the loop route (a planned district)
-        lines += [g for r in road_routes if r.kind == "loop"
-                  for g in street_grid(r, int(ov["world.grid_lines"]), float(ov.get("world.grid_extend_m", 300.0)))]  # type: ignore[arg-type]
-    road = W.RoadNetwork(lines)
-    world = W.World(road, seed=world_seed, profile=profile_with(S.suite_profile(suite), ov))
+    world = subset_world(suite_name, ov)
 
     def times(seq: S.SequenceDef):
         traj = S._route_trajectory(seq.route, None)

@@ -17,7 +17,6 @@ import argparse
 import os
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -26,9 +25,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import calibrate_sim as C  # noqa: E402
-
-from reradar_core.sim import suites as S  # noqa: E402
-from reradar_core.sim import world as W  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -47,13 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     w0, w1 = (float(x) for x in a.window.split(":"))
     t0 = time.perf_counter()
     data = C.render_subset(a.suite, (w0, w1), a.queries, None, ov, 1, False, False, a.revisit_m)
-    suite = S.SUITES[a.suite]
-    routes = suite.road_routes
-    if "route.seed" in ov:
-        routes = tuple(replace(r, seed=int(ov["route.seed"])) for r in routes)  # type: ignore[call-overload]
-    road = W.RoadNetwork([S._route_trajectory(replace(r, lateral_m=0.0), None).xy for r in routes])
-    world = W.World(road, seed=int(ov.get("world.seed", suite.world_seed)),  # type: ignore[call-overload]
-                    profile=C.profile_with(S.suite_profile(suite), ov))
+    world = C.subset_world(a.suite, ov)
     q = np.asarray(data["q_pose"])[:, :2]
     is_open = np.array([world.is_open_land(p) for p in q], dtype=bool)
     ring = a.deep_m * np.stack([np.cos(np.linspace(0, 2 * np.pi, 16, endpoint=False)),

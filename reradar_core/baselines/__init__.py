@@ -4,7 +4,8 @@
 (``ringkey``, ``raplace``, ``radvlad``, ``resnet18-netvlad``, ``referee``; each module cites its reference
 file and commit), the variants this project ran before (``raplace-nodc``, ``radvlad-half``; never the
 reference rows), and ReRadar itself as ``ours`` / ``ours-<model>`` for every name in
-``reradar_core.model.available_models()``.
+``reradar_core.model.available_models()``; any ReRadar name with ``+far`` (``our-3-offroad-w05+far``) adds
+ReRadar's far view for refused queries (``reradar_core.localization.far_view``; ours, not the paper's method).
 """
 
 from __future__ import annotations
@@ -33,6 +34,10 @@ def ours_model_names() -> list[str]:
 def default_method_names() -> list[str]:
     """Every baseline plus ReRadar with every shipped model (named by the model, e.g. ``our-3-boreas``)."""
     return list(BASELINES) + ours_model_names()
+
+
+#: Suffix of a ReRadar method name that adds the far view (``our-3-offroad-w05+far``).
+FAR_SUFFIX = "+far"
 
 
 def make_method(name: str) -> PlaceRecognitionMethod:
@@ -73,6 +78,14 @@ def make_method(name: str) -> PlaceRecognitionMethod:
         from reradar_core.baselines.referee import ReFeree
 
         return ReFeree()
+    if key.endswith(FAR_SUFFIX):  # ReRadar with its far view (``localization.far_view``), a separately named row
+        from reradar_core.baselines.ours import Ours
+        from reradar_core.localization.far_view import FarViewConfig
+
+        near = make_method(name.strip()[: -len(FAR_SUFFIX)])
+        if not isinstance(near, Ours):
+            raise ConfigError(f"{FAR_SUFFIX!r} applies to ReRadar models only, not to {near.name!r}")
+        return Ours(near.extractor, near.localization, name=near.name + FAR_SUFFIX, far_view=FarViewConfig())
     known = ours_model_names()
     if name.strip().endswith(".pt"):  # a weights file (with its .json) outside the registry, e.g. a training run
         from pathlib import Path

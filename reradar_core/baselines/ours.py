@@ -7,6 +7,9 @@ best 5 in full) and verifies (full guided pose
 estimation of the best ``verify_k``, 1 by default, re-ranking by inliers), which gives the answer keyframe and ``T_map_query``. ``distance`` (PR curves) is the
 Euclidean distance between unit descriptors over the whole database.
 Model names come from ``reradar_core.model.available_models()`` (e.g. ``default``, ``our-1``, ``our-3-...``).
+With ``far_view`` (method names ending in ``+far``), a refused answer is localized again in the far view
+(``reradar_core.localization.far_view``): every scan is described in both views up front (the benchmark does not time
+it), and the answer names ``TwoViewResult.place_id``; ``distance`` stays the near view's.
 """
 
 from __future__ import annotations
@@ -39,6 +42,11 @@ def features_to_prepared(f: ScanFeatures) -> Prepared:
             "timestamp_us": np.asarray(f.timestamp_us, dtype=np.int64)}
 
 
+def _far_part(p: Prepared) -> Prepared:
+    """The far view's features of a prepared scan (keys ``far_*``)."""
+    return {k[len("far_"):]: v for k, v in p.items() if k.startswith("far_")}
+
+
 def prepared_to_features(p: Prepared) -> ScanFeatures:
     return ScanFeatures(p["global"], p["keypoints"], p["local"], int(np.asarray(p["timestamp_us"])))
 
@@ -55,10 +63,22 @@ class Ours(PlaceRecognitionMethod):
     provides_pose = True
     provides_heading = True
 
-    def __init__(self, model: str | Any = "default", localization: Any = None, name: str | None = None) -> None:
+    def __init__(self, model: str | Any = "default", localization: Any = None, name: str | None = None,
+                 far_view: Any = None) -> None:
         from reradar_core.localization import LocalizationConfig
 
         self.extractor = load_extractor(model) if isinstance(model, str) else model
+        # ReRadar's far view (``localization.far_view``): a second look at the whole range for refused queries
+        self.far_view = far_view
+        self.far_extractor = self.extractor.with_view(far_view.cartesian) if far_view is not None else None
+        if far_view is not None and far_view.landmark_z_q is not None:
+            from dataclasses import replace
+
+            from reradar_core.landmarks import Cen2018Config
+
+            base = getattr(self.extractor, "landmark_config", None) or Cen2018Config()
+            self.far_extractor.landmark_config = replace(base, z_q=float(far_view.landmark_z_q))
+        self._far_localizer: Any = None
         self.model_name = model if isinstance(model, str) else str(getattr(model, "model_id", "custom"))
         self.name = name or ("ours" if self.model_name == "default" else f"ours-{self.model_name}")
         self.localization = localization or LocalizationConfig()
@@ -66,14 +86,26 @@ class Ours(PlaceRecognitionMethod):
         self._localizer_of: tuple[int, int] | None = None
 
     def params(self) -> dict[str, Any]:
-        return {"model": str(getattr(self.extractor, "model_id", self.model_name)),
-                "sha": str(getattr(self.extractor, "weights_sha256", "")), "v": 1}
+        out = {"model": str(getattr(self.extractor, "model_id", self.model_name)),
+               "sha": str(getattr(self.extractor, "weights_sha256", "")), "v": 1}
+        if self.far_view is not None:
+            out["far_view"] = [int(self.far_view.width_px), float(self.far_view.resolution_m)]
+            if self.far_view.landmark_z_q is not None:
+                out["far_view"].append(float(self.far_view.landmark_z_q))
+        return out
 
     def prepare(self, scan: RadarScan) -> Prepared:
         # only the landmarks within the image's reach: the keypoints are the same, the detector looks less far
         lm = landmarks_for(scan, getattr(self.extractor, "landmark_config", None),
                            getattr(self.extractor, "landmark_range_m", None))
-        return features_to_prepared(self.extractor.describe(scan, landmarks=lm))
+        prepared = features_to_prepared(self.extractor.describe(scan, landmarks=lm))
+        if self.far_extractor is not None:
+            # the bench describes every scan up front; the far view is used only for refused queries
+            far_lm = landmarks_for(scan, getattr(self.far_extractor, "landmark_config", None),
+                                   self.far_extractor.landmark_range_m)
+            prepared.update({f"far_{k}": v for k, v in
+                             features_to_prepared(self.far_extractor.describe(scan, landmarks=far_lm)).items()})
+        return prepared
 
     def describe_prepared(self, prepared: Prepared) -> np.ndarray:
         return np.asarray(prepared["global"], dtype=np.float32)
@@ -96,6 +128,15 @@ class Ours(PlaceRecognitionMethod):
             keyframes = InMemoryKeyframes(lambda j: prepared_to_features(db_prepared[j]), db_poses,
                                           np.array([int(np.asarray(p["timestamp_us"])) for p in db_prepared]))
             self._localizer = Localizer(index, keyframes, self.localization, preload=True)
+            self._far_localizer = None
+            if self.far_extractor is not None:
+                from reradar_core.retrieval import GlobalIndex
+
+                far = [_far_part(p) for p in db_prepared]
+                far_index = GlobalIndex(np.stack([np.asarray(p["global"], np.float32).reshape(-1) for p in far]))
+                far_keyframes = InMemoryKeyframes(lambda j: prepared_to_features(far[j]), db_poses,
+                                                  keyframes.timestamps_us)
+                self._far_localizer = Localizer(far_index, far_keyframes, self.localization, preload=True)
             self._localizer_of = key
         return self._localizer
 
@@ -105,16 +146,28 @@ class Ours(PlaceRecognitionMethod):
         localizer = self.localizer(index, db_prepared, db_poses)
         if self.localization.checks_place_repetition:
             localizer.place_repetitions(self.localization)
+            if self._far_localizer is not None:
+                self._far_localizer.place_repetitions(self.localization)
 
     def localize(self, q_prepared: Prepared, q_desc: np.ndarray, index: Any,
                  db_prepared: Sequence[Prepared], db_poses: np.ndarray) -> Retrieval:
+        from reradar_core.localization import localize_two_views
+
         localizer = self.localizer(index, db_prepared, db_poses)
-        res = localizer.localize(prepared_to_features(q_prepared), self.localization)
+        far = None if self._far_localizer is None else (lambda: prepared_to_features(_far_part(q_prepared)))
+        answer = localize_two_views(localizer, prepared_to_features(q_prepared), self._far_localizer, far,
+                                    self.localization, self.far_view)
+        res = answer.result
         if res.best is None:  # nothing retrieved: the database is empty
             raise ConfigError("the database holds no scans: nothing to localize against")
-        j, dist = int(res.best.keyframe_id), float(res.best.descriptor_distance)
-        # the global descriptor's own top 1 (retrieval rank 0), before the landmark screen re-ranks
-        top = min(res.candidates, key=lambda c: c.rank).keyframe_id if res.candidates else j
+        j = int(answer.place_id) if answer.place_id is not None else int(res.best.keyframe_id)
+        # the score a PR curve thresholds stays the near view's (the far view's distances are on another scale:
+        # its no-match queries lie nearer than the near view's true matches, so mixing them costs F1max points)
+        near_best = answer.near_result.best
+        dist = float(near_best.descriptor_distance if near_best is not None else res.best.descriptor_distance)
+        # the (near view's) global descriptor's own top 1 (retrieval rank 0), before the landmark screen re-ranks
+        near = answer.near_result
+        top = min(near.candidates, key=lambda c: c.rank).keyframe_id if near.candidates else j
         if res.localized and res.T_map_query is not None:
             heading = float(relative_pose(db_poses[j], res.T_map_query)[2])
             return Retrieval(j, dist, heading, np.asarray(res.T_map_query, np.float64), descriptor_index=int(top),

@@ -4,6 +4,7 @@ over a map's keyframes (``KeyframeSource``), with a tracking mode from a pose pr
 
 from reradar_core.localization.confidence import ConfidenceCues, ConfidenceModel, default_confidence_model
 from reradar_core.localization.extractor import FeatureExtractor, load_default_extractor
+from reradar_core.localization.far_view import FarViewConfig, TwoViewResult, localize_two_views
 from reradar_core.localization.keyframes import (
     CachedKeyframe,
     InMemoryKeyframes,
@@ -30,6 +31,9 @@ from reradar_core.localization.repetition import PlaceRepetition, RepetitionTabl
 from reradar_core.localization.tracking import PosePrior, TrackingConfig
 
 __all__ = [
+    "FarViewConfig",
+    "TwoViewResult",
+    "localize_two_views",
     "ConfidenceCues",
     "ConfidenceModel",
     "default_confidence_model",

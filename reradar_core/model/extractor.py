@@ -16,6 +16,7 @@ import json
 import logging
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -223,6 +224,25 @@ class DescriptorExtractor:
                                      f"than its JSON describes?): {_mismatch_summary(exc)}") from None
         return cls(net, weights_sha256=sha, name=meta.get("name", path.stem), metadata=meta,
                    onnx_network=_onnx_network(path, sha, resolve_runtime(runtime)), **kwargs)
+
+    def with_view(self, cartesian: CartesianConfig) -> DescriptorExtractor:
+        """The same weights on another Cartesian view (``CartesianConfig``: width px, metres per px).
+
+        The network is fully convolutional up to F' and NetVLAD aggregates any number of cells, so the weights
+        apply to another image size or scale without retraining (the far view of ``localization.far_view``:
+        257 px at 1.28 m reach the radar's 165 m). Runs in torch: the exported ONNX graph fixes the trained
+        input size. The copy shares the weights (read-only) and keeps its own disc-mask cache; ``model_id``
+        names the view (``...-in257``), so a map built with one view refuses queries of another.
+        """
+        import copy
+
+        net = copy.copy(self.net)  # shallow: shares the modules (weights), owns its attributes
+        net.config = replace(self.config, cartesian_width_px=int(cartesian.width_px),
+                             cartesian_resolution_m=float(cartesian.resolution_m))
+        net.__dict__["_disc_cache"] = {}
+        out = copy.copy(self)
+        out.net, out.config, out.onnx_network = net, net.config, None
+        return out
 
     # ---------------------------------------------------------------- properties
     @property

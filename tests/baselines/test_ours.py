@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from reradar_core.baselines.ours import Ours, features_to_prepared, prepared_to_features
 from reradar_core.features import ScanFeatures
@@ -68,3 +69,15 @@ def test_prepared_round_trip():
     g = prepared_to_features(features_to_prepared(f))
     assert g.timestamp_us == 123 and g.local_descriptors.dtype == np.float16
     assert np.allclose(g.global_descriptor, f.global_descriptor)
+
+
+def test_far_suffix_names_a_separate_row_and_applies_to_recall_methods_only() -> None:
+    from reradar_core.baselines import make_method, ours_model_names
+    from reradar_core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="ReRadar models only"):
+        make_method("raplace+far")
+    model = ours_model_names()[0]
+    m = make_method(model + "+far")
+    assert m.name == model + "+far" and m.far_view is not None
+    assert m.params()["far_view"] == [257, 1.28] and "far_view" not in make_method(model).params()

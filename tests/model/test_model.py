@@ -401,3 +401,25 @@ def test_every_shipped_model_still_loads_with_its_sha256_checked():
     for name in available_models():
         ex = DescriptorExtractor.from_pretrained(name, runtime="torch")
         assert ex.weights_sha256 == ex.metadata["sha256"], name
+
+
+def test_with_view_runs_the_same_weights_on_a_wider_coarser_image(extractor):
+    from reradar_core.geometry.cartesian import CartesianConfig
+
+    scan = _scan(5)
+    before = extractor.describe(scan, landmarks=np.zeros((0, 2))).global_descriptor
+    far = extractor.with_view(CartesianConfig(257, 1.28))
+    assert far.model_id.endswith("-in257") and extractor.model_id.endswith("-in201")
+    assert (far.cartesian.width_px, far.cartesian.resolution_m) == (257, 1.28)
+    assert far.runtime == "torch" and far.net.backbone is extractor.net.backbone  # the same weights
+    # a landmark 150 m out lies outside the near image and inside the far one
+    xy = np.array([[150.0, 0.0], [10.0, 5.0]])
+    assert len(extractor.describe(scan, landmarks=xy).keypoints_xy_m) == 1
+    feats = far.describe(scan, landmarks=xy)
+    assert len(feats.keypoints_xy_m) == 2 and abs(np.linalg.norm(feats.global_descriptor) - 1) < 1e-5
+    assert far.landmark_range_m > 165.0 > extractor.landmark_range_m
+    # exact 90-degree invariance holds on the odd-sized far image too
+    rolled = scan.with_power(np.roll(scan.power, scan.num_azimuths // 4, axis=0))
+    assert float(feats.global_descriptor @ far.describe(rolled, landmarks=np.zeros((0, 2))).global_descriptor) >= 0.99
+    # the near view is unchanged by the far one (own config, own disc-mask cache)
+    np.testing.assert_array_equal(extractor.describe(scan, landmarks=np.zeros((0, 2))).global_descriptor, before)

@@ -1,0 +1,119 @@
+"""ReRadar's far view (``reradar_core.localization.far_view``) on a calibration route: every query localized in the
+near view alone and with the far view for refused answers, split by open land (``WorldProfile.open_share``).
+
+The subset and overrides are those of ``calibrate_sim.py`` (``--set world.seed=N --set route.seed=N``: another
+world and route of the suite's definition, not the benchmark's own query drive), so a choice about the far view
+is made on routes the benchmark does not score. Two readings of a refused answer's place are reported (Recall@1
+counts the place an answer names, localized or not):
+
+    screened   the best-screened candidate (as the near view has always reported it)
+    top1       the answering view's global-descriptor top 1
+    place      the shipped rule, ``TwoViewResult.place_id`` (two views only): the far top 1 only when the near
+               view held fewer landmarks than ``FarViewConfig.sparse_landmarks``, else the near best-screened
+
+and for both, the answers' success rate (localized within the suite's radius and 10 degrees) and wrong poses
+(localized outside them). One JSON row per run (``--json`` appends).
+
+    OPENBLAS_NUM_THREADS=1 python benchmarks/probe_far_view.py --suite offroad-sim-hard --model our-3-offroad-w05 \\
+        --set world.seed=23 --set route.seed=23 --label route23
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import calibrate_sim as C  # noqa: E402
+
+from reradar_core.baselines import make_method  # noqa: E402
+from reradar_core.baselines.ours import Ours, _far_part, prepared_to_features  # noqa: E402
+from reradar_core.geometry.se2 import wrap_angle  # noqa: E402
+from reradar_core.localization import localize_two_views  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--suite", default="offroad-sim-hard")
+    ap.add_argument("--model", default="our-3-offroad-w05")
+    ap.add_argument("--window", default="0:1")
+    ap.add_argument("--queries", type=int, default=2000)
+    ap.add_argument("--revisit-m", type=float, default=25.0)
+    ap.add_argument("--set", dest="overrides", action="append", default=[], help="as calibrate_sim.py --set")
+    ap.add_argument("--label", default="")
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--no-cache", action="store_true", help="neither read nor write the render cache")
+    ap.add_argument("--far-z-q", type=float, default=None,
+                    help="the far view's landmark threshold (FarViewConfig.landmark_z_q; default: the near view's)")
+    a = ap.parse_args(argv)
+    ov = C.parse_overrides(a.overrides)
+    w0, w1 = (float(x) for x in a.window.split(":"))
+    t0 = time.perf_counter()
+    data = C.render_subset(a.suite, (w0, w1), a.queries, None, ov, 1, not a.no_cache, False, a.revisit_m)
+    preset, radius = str(data["preset"]), float(data["radius"])  # type: ignore[arg-type]
+    db_pose, q_pose = np.asarray(data["db_pose"]), np.asarray(data["q_pose"])
+    method = make_method(a.model + "+far")
+    if a.far_z_q is not None:  # the same method with another far-view landmark threshold
+        method = Ours(method.extractor, method.localization, name=method.name,
+                      far_view=replace(method.far_view, landmark_z_q=a.far_z_q))
+    db = [method.prepare(C._scan(s, int(t), preset)) for s, t in zip(data["db_scans"], data["db_t"], strict=True)]  # type: ignore[call-overload]
+    qs = [method.prepare(C._scan(s, int(t), preset)) for s, t in zip(data["q_scans"], data["q_t"], strict=True)]  # type: ignore[call-overload]
+    index = method.build_index([method.describe_prepared(p) for p in db])
+    method.ready_database(index, db, db_pose)
+    near_map, far_map = method.localizer(index, db, db_pose), method._far_localizer
+
+    def place_ok(j: int, i: int) -> bool:
+        return bool(np.hypot(*(db_pose[j, :2] - q_pose[i, :2])) <= radius)
+
+    def pose_ok(r, i: int) -> bool:  # type: ignore[no-untyped-def]
+        e = r.T_map_query - q_pose[i]
+        return bool(np.hypot(e[0], e[1]) <= radius and abs(np.rad2deg(wrap_angle(e[2]))) <= 10.0)
+
+    def top1(r) -> int:  # type: ignore[no-untyped-def]
+        return int(min(r.candidates, key=lambda c: c.rank).keyframe_id)
+
+    rec: dict[str, list[bool]] = {k: [] for k in ("near_screened", "near_top1", "two_screened", "two_top1",
+                                                   "near_sr", "two_sr", "near_wrong", "two_wrong", "far_used",
+                                                   "two_place", "near_sparse")}
+    for i, qp in enumerate(qs):
+        out = localize_two_views(near_map, prepared_to_features(qp), far_map,
+                                 lambda qp=qp: prepared_to_features(_far_part(qp)), method.localization,
+                                 method.far_view)
+        for tag, r in (("near", out.near_result), ("two", out.result)):
+            rec[f"{tag}_screened"].append(place_ok(int(r.best.keyframe_id), i))
+            rec[f"{tag}_top1"].append(place_ok(int(r.best.keyframe_id) if r.localized else top1(r), i))
+            rec[f"{tag}_sr"].append(r.localized and pose_ok(r, i))
+            rec[f"{tag}_wrong"].append(r.localized and not pose_ok(r, i))
+        rec["two_place"].append(place_ok(int(out.place_id), i))  # the shipped rule (TwoViewResult.place_id)
+        rec["near_sparse"].append(out.near_sparse)
+        rec["far_used"].append(out.view == "far")
+    world = C.subset_world(a.suite, ov)
+    is_open = np.array([world.is_open_land(p) for p in q_pose[:, :2]], dtype=bool)
+    row: dict[str, object] = {"label": a.label, "suite": a.suite, "model": a.model, "far_z_q": a.far_z_q,
+                              "window": a.window,
+                              "overrides": ov, "queries": len(qs), "database": len(db),
+                              "open_pct": round(100 * is_open.mean(), 1)}
+    for k, v in rec.items():
+        if k in ("far_used", "near_sparse"):
+            row[k] = int(np.sum(v))
+            continue
+        h = np.asarray(v, bool)
+        row[k] = round(100 * h.mean(), 2)
+        if k.endswith(("screened", "top1", "place")):
+            row[f"{k}_open"] = round(100 * h[is_open].mean(), 1) if is_open.any() else None
+    row["seconds"] = round(time.perf_counter() - t0, 1)
+    print(json.dumps(row), flush=True)
+    if a.json:
+        with open(a.json, "a") as fh:
+            fh.write(json.dumps(row) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

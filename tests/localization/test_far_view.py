@@ -1,0 +1,126 @@
+"""The far view (``localization.far_view``): a refused near answer is looked at again over the whole range."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from reradar_core.errors import ConfigError
+from reradar_core.features import ScanFeatures
+from reradar_core.geometry.se2 import inverse, transform_points
+from reradar_core.localization import FarViewConfig, InMemoryKeyframes, Localizer, localize_two_views
+from reradar_core.localization.far_view import VIEW_FAR, VIEW_NEAR
+from reradar_core.retrieval import GlobalIndex
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+
+def _keyframe(rng: np.random.Generator, ts: int, reach_m: float) -> ScanFeatures:
+    kps = rng.uniform(-reach_m, reach_m, size=(150, 2))
+    return ScanFeatures(_unit(rng.normal(size=16)).astype(np.float32), kps.astype(np.float32),
+                        _unit(rng.normal(size=(150, 32))).astype(np.float16), ts)
+
+
+def _seen_from(kf: ScanFeatures, T_kf_query: np.ndarray, rng: np.random.Generator) -> ScanFeatures:
+    """The keyframe's landmarks (70 %) and descriptors seen from T_kf_query, with 30 unrelated points."""
+    sel = np.sort(rng.choice(len(kf.keypoints_xy_m), 105, replace=False))
+    pts = transform_points(inverse(T_kf_query), kf.keypoints_xy_m[sel].astype(np.float64))
+    pts += rng.normal(scale=0.1, size=pts.shape)
+    desc = kf.local_descriptors[sel].astype(np.float32) + rng.normal(scale=0.05, size=(105, 32))
+    out = rng.uniform(-60, 60, size=(30, 2))
+    g = _unit(kf.global_descriptor.astype(np.float64) + rng.normal(scale=0.05, size=16)).astype(np.float32)
+    return ScanFeatures(g, np.vstack([pts, out]).astype(np.float32),
+                        _unit(np.vstack([desc, rng.normal(size=(30, 32))])).astype(np.float16), 10**9)
+
+
+def _map(kfs: list[ScanFeatures], poses: np.ndarray) -> Localizer:
+    return Localizer(GlobalIndex(np.stack([k.global_descriptor for k in kfs])), InMemoryKeyframes(kfs, poses),
+                     preload=True)
+
+
+@pytest.fixture(scope="module")
+def two_views() -> tuple[Localizer, Localizer, list[ScanFeatures], list[ScanFeatures], np.ndarray]:
+    rng = np.random.default_rng(3)
+    poses = np.column_stack([np.arange(6) * 400.0, np.zeros(6), np.zeros(6)])
+    near = [_keyframe(rng, 1000 * i, 60.0) for i in range(6)]
+    far = [_keyframe(rng, 1000 * i, 160.0) for i in range(6)]
+    return _map(near, poses), _map(far, poses), near, far, poses
+
+
+def test_config_geometry_and_validation() -> None:
+    cfg = FarViewConfig()
+    assert (cfg.cartesian.width_px, cfg.cartesian.resolution_m) == (257, 1.28)
+    assert cfg.reach_m == pytest.approx(164.48)
+    for bad in ({"width_px": 256}, {"width_px": 1}, {"resolution_m": 0.0}, {"landmark_z_q": -1.0},
+                {"sparse_landmarks": -1}):
+        with pytest.raises(ConfigError):
+            FarViewConfig(**bad)
+
+
+def test_a_refused_near_answer_is_answered_by_the_far_view(two_views) -> None:
+    near_map, far_map, near_kfs, far_kfs, poses = two_views
+    rng = np.random.default_rng(4)
+    T_kf_query = np.array([3.0, -1.5, np.deg2rad(20.0)])
+    # near view: nothing that persists (random landmarks); far view: keyframe 4 seen from T_kf_query
+    near_q = _keyframe(rng, 10**9, 60.0)
+    far_q = _seen_from(far_kfs[4], T_kf_query, rng)
+    out = localize_two_views(near_map, near_q, far_map, lambda: far_q)
+    assert out.near_result.status == "not_localized"
+    assert out.view == VIEW_FAR and out.result.localized and out.result.best.keyframe_id == 4
+    T_map_query = poses[4] + np.array([T_kf_query[0], T_kf_query[1], T_kf_query[2]])  # keyframe yaw 0
+    np.testing.assert_allclose(out.result.T_map_query[:2], T_map_query[:2], atol=0.3)
+    assert out.result.T_map_query[2] == pytest.approx(T_map_query[2], abs=np.deg2rad(1.0))
+
+
+def test_a_localized_near_answer_never_computes_the_far_view(two_views) -> None:
+    near_map, far_map, near_kfs, _, _ = two_views
+    rng = np.random.default_rng(5)
+    near_q = _seen_from(near_kfs[1], np.array([2.0, 1.0, 0.1]), rng)
+
+    def far_features() -> ScanFeatures:
+        raise AssertionError("the far view was computed for a localized query")
+
+    out = localize_two_views(near_map, near_q, far_map, far_features)
+    assert out.view == VIEW_NEAR and out.result is out.near_result
+    assert out.result.localized and out.result.best.keyframe_id == 1
+
+
+def test_without_a_far_view_the_refusal_stands(two_views) -> None:
+    near_map, _, _, _, _ = two_views
+    near_q = _keyframe(np.random.default_rng(6), 10**9, 60.0)
+    out = localize_two_views(near_map, near_q, None, None)
+    assert out.view == VIEW_NEAR and out.result.status == "not_localized"
+
+
+def test_far_view_of_another_map_is_refused(two_views) -> None:
+    near_map, _, _, far_kfs, poses = two_views
+    other = _map(far_kfs[:3], poses[:3])
+    near_q = _keyframe(np.random.default_rng(7), 10**9, 60.0)
+    with pytest.raises(ConfigError, match="same map"):
+        localize_two_views(near_map, near_q, other, lambda: near_q)
+
+
+def test_a_refused_far_answer_names_the_far_descriptors_top_place(two_views) -> None:
+    near_map, far_map, _, far_kfs, _ = two_views
+    rng = np.random.default_rng(8)
+    near_q = _keyframe(rng, 10**9, 60.0)
+    # the far descriptor points at keyframe 2, but none of its landmarks persist: nothing verifies
+    lost = _keyframe(rng, 10**9, 160.0)
+    far_q = ScanFeatures(far_kfs[2].global_descriptor, lost.keypoints_xy_m, lost.local_descriptors, 10**9)
+    out = localize_two_views(near_map, near_q, far_map, lambda: far_q)
+    assert out.view == VIEW_FAR and not out.result.localized and out.near_sparse  # 150 landmarks < 512
+    assert out.place_id == 2
+    assert min(out.result.candidates, key=lambda c: c.rank).keyframe_id == 2
+    # a near view full of landmarks (here: at least 100) keeps naming its own best-screened candidate
+    full = localize_two_views(near_map, near_q, far_map, lambda: far_q, far_view=FarViewConfig(sparse_landmarks=100))
+    assert full.view == VIEW_FAR and not full.near_sparse
+    assert full.place_id == full.near_result.best.keyframe_id
+
+
+def test_a_localized_answer_names_its_winner(two_views) -> None:
+    near_map, far_map, near_kfs, _, _ = two_views
+    near_q = _seen_from(near_kfs[3], np.array([1.0, 0.5, -0.2]), np.random.default_rng(9))
+    out = localize_two_views(near_map, near_q, far_map, None)
+    assert out.result.localized and out.place_id == out.result.best.keyframe_id == 3
