@@ -18,6 +18,8 @@ Usage:
     python scripts/real_oxford_pose.py ../shared/data/real-oxford [--model default] [--max-keypoints 512]
     python scripts/real_oxford_pose.py ../shared/data/real-oxford --leave-one-out
     python scripts/real_oxford_pose.py ../shared/data/real-oxford --rotate-seed 0 --localizer
+    python scripts/real_oxford_pose.py ../shared/data/real-oxford --localizer --far-view only       # the far view alone
+    python scripts/real_oxford_pose.py ../shared/data/real-oxford --localizer --far-view fallback   # as '+far'
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from reradar_core.benchmark.metrics import covariance_report
 from reradar_core.evaluation.metrics import localization_errors, localization_success, pose_error, radius_for
 from reradar_core.geometry.se2 import relative_pose
 from reradar_core.io.datasets import load_sequence
+from reradar_core.localization import FarViewConfig
 from reradar_core.matching import (
     AlignmentConfig,
     RansacConfig,
@@ -62,10 +65,20 @@ def main() -> None:
     ap.add_argument("--localizer", action="store_true",
                     help="run every pair through the service's Localizer on a one-keyframe map (shipped floor, "
                          "confidence bar and search) and count correct / wrong / refused answers")
+    ap.add_argument("--far-view", choices=("only", "fallback"), default=None,
+                    help="ReRadar's far view (257 px at 1.28 m/px, the whole range; reradar_core.localization."
+                         "far_view): 'only' describes every scan in it instead of the model's own image (every mode); "
+                         "'fallback' (--localizer / --leave-one-out) localizes refused answers again in it, as the "
+                         "'+far' benchmark method does")
     args = ap.parse_args()
 
     seq = load_sequence(args.folder, layout="oxford")
     ex = DescriptorExtractor.from_pretrained(args.model, max_keypoints=args.max_keypoints or None)
+    far_ex = ex.with_view(FarViewConfig().cartesian) if args.far_view else None
+    if args.far_view == "only":
+        ex, far_ex = far_ex, None
+    elif args.far_view == "fallback" and not (args.localizer or args.leave_one_out):
+        ap.error("--far-view fallback needs --localizer or --leave-one-out")
     scans = [seq.load_scan(i) for i in range(len(seq))]
     feats = [ex.describe(s) for s in scans]  # the landmarks the service detects (the extractor's settings)
     poses = seq.poses.poses
@@ -78,6 +91,10 @@ def main() -> None:
         turned = [replace(s, power=np.roll(s.power, -int(k), axis=0)) for s, k in zip(scans, shift, strict=True)]
         qfeats = [ex.describe(s) for s in turned]
         dyaw = shift * 2 * np.pi / scans[0].num_azimuths
+    # the far view's features of every map scan and query (fallback mode), or None
+    args.far = None if far_ex is None else ([far_ex.describe(s) for s in scans],
+                                            [far_ex.describe(s) for s in (turned if args.rotate_seed is not None
+                                                                          else scans)])
     print(f"pose method {args.pose_method}; model {ex.name} ({ex.model_id}), {len(scans)} scans, "
           f"{np.mean([len(f.keypoints_xy_m) for f in feats]):.0f} keypoints per scan in the image")
     if args.leave_one_out:
@@ -137,10 +154,27 @@ def main() -> None:
             json.dump({"model": ex.name, "model_id": ex.model_id, "rows": rows}, fh, indent=2)
 
 
+def _localize(feats: list, qfeats: list, keys: list[int], j: int, poses: np.ndarray, config: object,
+              args: argparse.Namespace) -> object:
+    """Query j through a ``Localizer`` on a map of the scans ``keys`` (at ``poses``); with ``args.far`` (the far
+    view's map and query features) a refused answer is localized again in the far view (``localize_two_views``)."""
+    from reradar_core.localization import InMemoryKeyframes, Localizer, localize_two_views
+    from reradar_core.retrieval import GlobalIndex
+
+    def map_of(fs: list) -> Localizer:
+        keyframes = InMemoryKeyframes([fs[i] for i in keys], poses[keys], np.array([fs[i].timestamp_us for i in keys]))
+        g = np.stack([np.asarray(fs[i].global_descriptor, np.float32).reshape(-1) for i in keys])
+        return Localizer(GlobalIndex(g), keyframes, config)  # type: ignore[arg-type]
+
+    if args.far is None:
+        return map_of(feats).localize(qfeats[j])
+    far_feats, far_qfeats = args.far
+    return localize_two_views(map_of(feats), qfeats[j], map_of(far_feats), lambda: far_qfeats[j]).result
+
+
 def _localizer_table(feats: list, qfeats: list, poses: np.ndarray, dyaw: np.ndarray, args: argparse.Namespace) -> None:
     """Per gap: the ``Localizer``'s answers for query j on the map {scan i = j - gap at poses[i]}."""
-    from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer
-    from reradar_core.retrieval import GlobalIndex
+    from reradar_core.localization import LocalizationConfig
 
     config = LocalizationConfig()
     print("| gap (frames) | pairs | mean distance (m) | localized within 2 m / 2 deg | localized outside (wrong) | "
@@ -157,10 +191,7 @@ def _localizer_table(feats: list, qfeats: list, poses: np.ndarray, dyaw: np.ndar
             j = i + gap
             T_map_query_gt = poses[j].copy()
             T_map_query_gt[2] -= dyaw[j]  # the query scan was turned (see main)
-            keyframes = InMemoryKeyframes([feats[i]], poses[i][None], np.array([feats[i].timestamp_us]))
-            loc = Localizer(GlobalIndex(np.asarray(feats[i].global_descriptor, np.float32).reshape(1, -1)),
-                            keyframes, config)
-            res = loc.localize(qfeats[j])
+            res = _localize(feats, qfeats, [i], j, poses, config, args)
             dist.append(float(np.hypot(*(poses[j][:2] - poses[i][:2]))))
             if not res.localized or res.T_map_query is None:
                 refused += 1
@@ -203,18 +234,14 @@ def _leave_one_out(feats: list, qfeats: list, poses: np.ndarray, dyaw: np.ndarra
     """Each scan j localized by the ``Localizer`` on a map of every other scan (``poses``: mid-sweep, with the scans'
     times): correct (within 2 m / 2 deg), wrong and refused answers, the mean errors, and the pose covariance's
     calibration over the correct ones (``benchmark.metrics.covariance_report``)."""
-    from reradar_core.localization import InMemoryKeyframes, LocalizationConfig, Localizer
-    from reradar_core.retrieval import GlobalIndex
+    from reradar_core.localization import LocalizationConfig
 
     config = LocalizationConfig()
     good, bad, refused = 0, [], 0
     errors, covariances, e_t_all, e_r_all = [], [], [], []
     for j in range(len(feats)):
         others = [i for i in range(len(feats)) if i != j]
-        keyframes = InMemoryKeyframes([feats[i] for i in others], poses[others],
-                                      np.array([feats[i].timestamp_us for i in others]))
-        g = np.stack([np.asarray(feats[i].global_descriptor, np.float32).reshape(-1) for i in others])
-        res = Localizer(GlobalIndex(g), keyframes, config).localize(qfeats[j])
+        res = _localize(feats, qfeats, others, j, poses, config, args)
         if not res.localized or res.T_map_query is None:
             refused += 1
             continue
