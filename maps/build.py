@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from maps.paths import far_view_path
 from maps.store import MapMetadata, MapWriter
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
@@ -23,6 +24,7 @@ from reradar_core.localization import (
     RepetitionTable,
 )
 from reradar_core.localization.extractor import FeatureExtractor
+from reradar_core.localization.far_view import FarViewConfig
 from reradar_core.localization.keyframes import select_keyframes  # re-exported: the map builder's rule
 from reradar_core.matching.motion import keyframe_twists, time_neighbours
 from reradar_core.retrieval import GlobalIndex
@@ -173,6 +175,7 @@ def build_map(
     place_repetition: bool = True,
     localization: LocalizationConfig | None = None,
     repetition_workers: int | None = None,
+    far_view: FarViewConfig | None = None,
 ) -> Path:
     """Describe scans ``load_scan(0..N-1)`` in batches and write an HDF5 map at ``out`` (atomically).
 
@@ -197,10 +200,16 @@ def build_map(
             settings ignores the stored table. Settings without the check (``checks_place_repetition`` False) store
             none.
         repetition_workers: threads for that pass (default: the usable cores, at most 4).
+        far_view: also write the far-view companion ``far_view_path(out)`` (the same scans, poses and times
+            described by ``extractor.with_view(far_view.cartesian)``; ReRadar's far view, docs/MODEL.md), which a
+            served map uses for the answers its own view refuses. None: no companion (and an old one at that path
+            is removed, since it would describe another map).
 
     Returns:
         ``out``.
     """
+    if far_view is not None and not hasattr(extractor, "with_view"):
+        raise ConfigError(f"model {extractor.model_id!r} cannot describe a far view (no with_view)")
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
     n = len(poses)
     if n == 0:
@@ -260,6 +269,16 @@ def build_map(
     assert writer is not None
     writer.__exit__(None, None, None)
     logger.info("wrote map %s with %d keyframes", out, n)
+    companion = far_view_path(out)
+    if far_view is None:
+        companion.unlink(missing_ok=True)
+    else:
+        far_extractor = extractor.with_view(far_view.cartesian)  # type: ignore[attr-defined]
+        build_map(companion, far_extractor, load_scan, poses, radar_preset=radar_preset,
+                  name=f"{name or Path(out).stem} (far view)", source=source, batch_size=batch_size,
+                  max_keypoints=max_keypoints, overwrite=True, progress=None, show_progress=show_progress,
+                  place_repetition=place_repetition, localization=localization,
+                  repetition_workers=repetition_workers)
     return Path(out)
 
 

@@ -35,6 +35,11 @@ def build_map_command(
                                           "query pays for it (docs/MODEL.md, 'Repeated places')."),
     threads: int = typer.Option(1, min=1, help="torch CPU threads."),
     model: str = typer.Option("default", help="Descriptor model: registry name or .pt weights path."),
+    far_view: bool = typer.Option(False, "--far-view/--no-far-view",
+                                  help="Also write <out>.far.h5: the keyframes in ReRadar's far view (257 px at "
+                                  "1.28 m/px, the radar's whole range), which the service uses for the answers the "
+                                  "map's own view refuses (open land; docs/MODEL.md, 'The far view'). About twice "
+                                  "the build time and map size."),
 ) -> None:
     """Build a keyframe map (global + local descriptors, poses) from a radar sequence folder."""
     import torch
@@ -61,6 +66,10 @@ def build_map_command(
                                          overwrite=overwrite, show_progress=True, place_repetition=place_repetition)
         if name:
             kwargs["name"] = name
+        if far_view:
+            from reradar_core.localization import FarViewConfig
+
+            kwargs["far_view"] = FarViewConfig()
         build_map_from_sequence(dataset, out, extractor, layout=layout, preset=preset,
                                 min_spacing_m=min_spacing_m, time_unit=time_unit, **kwargs)
     except ReRadarError as exc:
@@ -70,6 +79,11 @@ def build_map_command(
     typer.echo(f"wrote {out}: {meta.num_keyframes} keyframes, D={meta.descriptor_dim}, "
                f"model {meta.model_id}, {out.stat().st_size / 1e6:.1f} MB"
                + ("" if place_repetition else "; no place repetition stored (measured as keyframes first win)"))
+    if far_view:
+        from maps.paths import far_view_path
+
+        far = far_view_path(out)
+        typer.echo(f"wrote {far}: the same keyframes in the far view, {far.stat().st_size / 1e6:.1f} MB")
 
 
 def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -> None:

@@ -10,13 +10,14 @@ worker process.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from maps.arrays import MapArrays
 from maps.store import KeyframeMap, MapMetadata, open_map
-from reradar_core.errors import ConfigError
+from reradar_core.errors import ConfigError, MapFormatError
 from reradar_core.features import ScanFeatures
 from reradar_core.localization import (
     KeyframeSource,
@@ -25,6 +26,8 @@ from reradar_core.localization import (
     Localizer,
     PosePrior,
     Retrieval,
+    TwoViewResult,
+    localize_two_views,
 )
 from reradar_core.retrieval import GlobalIndex, IndexConfig
 
@@ -86,6 +89,8 @@ class MapDatabase:
         kf_map.release_global_descriptors()  # the index holds its own copy
         _return_freed_memory()
         self.localizer = Localizer(self.index, source, config, cache_size=keyframe_cache_size, preload=preload)
+        #: the far-view companion (``attach_far``): the same keyframes in ReRadar's far view, or None
+        self.far: MapDatabase | None = None
         # the place repetition measured when the map was built: no query pays for measuring its winner's
         table = kf_map.place_repetition
         self.repetition_stored = table is not None
@@ -120,12 +125,35 @@ class MapDatabase:
         """``Localizer.localize`` on this map."""
         return self.localizer.localize(query, config)
 
+    def attach_far(self, far: MapDatabase) -> None:
+        """Serve ``far`` (the far-view companion, ``maps.paths.far_view_path``) for the answers this map refuses.
+
+        Raises:
+            MapFormatError: ``far`` does not hold this map's keyframes (another count, poses or times: a companion
+                left from another map); ``far`` is not attached.
+        """
+        same = (len(far) == len(self) and np.array_equal(far.localizer.keyframes.poses, self.localizer.keyframes.poses)
+                and np.array_equal(far.localizer.keyframes.timestamps_us, self.localizer.keyframes.timestamps_us))
+        if not same:
+            raise MapFormatError(f"{far.map.path.name} does not hold the keyframes of {self.map.path.name} (another "
+                                 "count, poses or times); rebuild it with `reradar build-map --far-view`")
+        self.far = far
+
+    def localize_views(self, query: ScanFeatures, far_features: Callable[[], ScanFeatures] | None,
+                       config: LocalizationConfig | None = None) -> TwoViewResult:
+        """``localize``, and when refused, again in the far view (``localize_two_views``) if this map has a far
+        companion and ``far_features`` computes the query's far-view features (only called then)."""
+        far = self.far.localizer if self.far is not None and far_features is not None else None
+        return localize_two_views(self.localizer, query, far, far_features, config)
+
     def track(self, query: ScanFeatures, prior: PosePrior,
               config: LocalizationConfig | None = None) -> LocalizationResult:
         """``Localizer.track`` on this map (tracking mode, global fallback)."""
         return self.localizer.track(query, prior, config)
 
     def close(self) -> None:
+        if self.far is not None:
+            self.far.close()
         self.localizer.clear()
         if self.arrays is not None:
             self.arrays.close()

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
@@ -31,8 +31,9 @@ if TYPE_CHECKING:
 
 __all__ = ["FarViewConfig", "TwoViewResult", "localize_two_views", "VIEW_NEAR", "VIEW_FAR"]
 
-VIEW_NEAR = "near"
-VIEW_FAR = "far"
+View = Literal["near", "far"]
+VIEW_NEAR: View = "near"
+VIEW_FAR: View = "far"
 
 
 @dataclass(frozen=True)
@@ -93,7 +94,7 @@ class TwoViewResult:
     """
 
     result: LocalizationResult
-    view: str
+    view: View
     near_result: LocalizationResult
     near_sparse: bool = False
 

@@ -6,7 +6,7 @@ import json
 import math
 import re
 from collections import Counter
-from collections.abc import AsyncGenerator, Iterable
+from collections.abc import AsyncGenerator, Callable, Iterable
 from contextlib import aclosing
 from dataclasses import dataclass, field
 from typing import Any
@@ -277,6 +277,9 @@ class ScanInput:
     scan_id: str | None
     fields: dict[str, Any]
     timings_ms: dict[str, float] = field(default_factory=dict)
+    #: computes the scan's far-view features (inline scans, when the service has a far view); None for a cached
+    #: ``scan_id`` (its decoded scan is not kept: such a request is answered in the map's own view only)
+    far_features: Callable[[], ScanFeatures] | None = None
 
 
 def scan_request_body(json_model: type[BaseModel], form_fields: dict[str, dict[str, Any]]) -> dict[str, Any]:
@@ -360,9 +363,9 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         fields.pop("scan_id")
         data, filename = await read_scan_upload(upload, state.settings.max_scan_pixels, scan_layout)
         timings: dict[str, float] = {}
-        features, _, _ = await run_in_threadpool(state.describe_upload, data, filename, preset, timings,
-                                                 scan_layout, map_id or fields.get("map_id"))
-        return ScanInput(features, None, fields, timings)
+        features, _, _, scan = await run_in_threadpool(state.describe_upload, data, filename, preset, timings,
+                                                       scan_layout, map_id or fields.get("map_id"))
+        return ScanInput(features, None, fields, timings, state.far_features_of(scan, timings))
     raise UnsupportedMediaError(
         f"unsupported Content-Type {ctype or '(none)'!r}: send application/json with a scan_id or "
         f"multipart/form-data with a 'scan' file"

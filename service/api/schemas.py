@@ -309,6 +309,10 @@ class LocalizeResponse(_Model):
         "`tracking`: registered from the session's / the request's prior; `global`: retrieval + re-ranking."))
     tracking_lost: bool = Field(default=False, description=(
         "A prior was given but no consistent pose was found near it; this is the global answer."))
+    view: Literal["near", "far"] = Field(default="near", description=(
+        "`far`: the map's own view refused and this is the far view's answer (the same network on the radar's "
+        "whole range, from the map's far-view companion written by `reradar build-map --far-view`; inline scans "
+        "on such maps only); `near`: the map's own view (docs/MODEL.md, 'The far view')."))
     session_id: str | None = None
     alignment_score: float = Field(default=0.0, description=(
         "Fraction of the query's landmarks aligned with the keyframe's (0-1); `localized` needs at least the "

@@ -223,6 +223,10 @@ class Settings(BaseSettings):
         "with 512 landmarks, measured) stay in memory (LRU). A cold keyframe costs ~1.3 ms to read and grid, "
         "as much as screening it, so maps up to this size are held whole; 1000 keeps a 100,000-keyframe map "
         "at ~0.5 KB per keyframe of cache on top of the index."))
+    far_view: bool = Field(default=True, description=(
+        "Serve a map's far-view companion (`<map>.far.h5`, written by `reradar build-map --far-view`) for the "
+        "answers its own view refuses: the same network on the radar's whole range (docs/MODEL.md, 'The far view'). "
+        "Maps without one are served as before; `false` ignores every companion."))
     preload_keyframes: bool = Field(default=True, description=(
         "Read every keyframe when a map that fits in `keyframe_cache_size` is loaded, so no query pays for "
         "cold reads (560 keyframes: ~1 s at start-up, ~28 MB)."))

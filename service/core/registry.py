@@ -32,7 +32,7 @@ import numpy as np
 from maps.arrays import prune_arrays
 from maps.build import build_map
 from maps.database import MapDatabase
-from maps.paths import DEMO_MAP_PATH
+from maps.paths import DEMO_MAP_PATH, FAR_VIEW_SUFFIX, far_view_path
 from maps.store import (
     KeyframeMap,
     MapMetadata,
@@ -60,6 +60,7 @@ from reradar_core.io.scan import (
     scan_header,
 )
 from reradar_core.localization.extractor import FeatureExtractor
+from reradar_core.localization.far_view import FarViewConfig
 from reradar_core.retrieval import IndexConfig
 from service.core.archive import SCAN_NAME_PATTERN, duplicate_scan_time_message, scan_name_time_message
 from service.core.config import MAP_ID_PATTERN, Settings
@@ -165,6 +166,10 @@ class MapRegistry:
         self._holders: dict[MapDatabase, int] = {}
         self._retired: set[MapDatabase] = set()
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-build")
+        # ReRadar's far view (the same weights on the radar's whole range) for maps with a far-view companion
+        self.far_extractor: FeatureExtractor | None = None
+        if settings.far_view and hasattr(extractor, "with_view"):
+            self.far_extractor = extractor.with_view(FarViewConfig().cartesian)
 
     # ---- paths and ids -------------------------------------------------------------------------------------
     def validate_id(self, map_id: str) -> str:
@@ -335,15 +340,42 @@ class MapRegistry:
         return kf_map
 
     def _database(self, kf_map: KeyframeMap) -> MapDatabase:
-        """The served database over the open, checked ``kf_map`` (index, keyframe cache, shared arrays); the map
-        is closed when that fails."""
+        """The served database over the open, checked ``kf_map`` (index, keyframe cache, shared arrays) with its
+        far-view companion when it has one (``_attach_far``); the map is closed when that fails."""
         try:
-            return MapDatabase(kf_map, self.index_config, keyframe_cache_size=self.settings.keyframe_cache_size,
-                               config=self.settings.localization, preload=self.settings.preload_keyframes,
-                               arrays_dir=self.settings.arrays_dir)
+            db = MapDatabase(kf_map, self.index_config, keyframe_cache_size=self.settings.keyframe_cache_size,
+                             config=self.settings.localization, preload=self.settings.preload_keyframes,
+                             arrays_dir=self.settings.arrays_dir)
         except BaseException:
             kf_map.close()
             raise
+        self._attach_far(db)
+        return db
+
+    def _attach_far(self, db: MapDatabase) -> None:
+        """Open the map's far-view companion (``far_view_path``) under the far view's model id and attach it. A
+        companion that does not open or does not hold the map's keyframes is not served (logged); the map is."""
+        path = far_view_path(db.map.path)
+        if self.far_extractor is None or not path.is_file():
+            return
+        try:
+            far_map = open_map(path, self.far_extractor.model_id, self.far_extractor.weights_sha256)
+        except (ReRadarError, OSError) as exc:
+            logger.warning("%s: far view not served: %s", path.name, exc)
+            return
+        try:
+            far = MapDatabase(far_map, self.index_config, keyframe_cache_size=self.settings.keyframe_cache_size,
+                              config=self.settings.localization, preload=self.settings.preload_keyframes,
+                              arrays_dir=self.settings.arrays_dir)
+        except (ReRadarError, OSError) as exc:
+            far_map.close()
+            logger.warning("%s: far view not served: %s", path.name, exc)
+            return
+        try:
+            db.attach_far(far)
+        except ReRadarError as exc:
+            far.close()
+            logger.warning("%s: far view not served: %s", path.name, exc)
 
     def install_demo_map(self) -> None:
         """Copy the shipped demo map to ``<maps_dir>/demo.h5`` unless a map ``demo`` exists already; an
@@ -377,6 +409,8 @@ class MapRegistry:
         remove_stale_temp_files(self.maps_dir)
         self._load_jobs()
         for path in sorted(self.maps_dir.glob("*.h5")):
+            if path.name.endswith(FAR_VIEW_SUFFIX):  # a map's far-view companion, opened with its map
+                continue
             map_id = path.stem
             if not _ID_RE.match(map_id):
                 logger.warning("ignoring %s: file name is not a valid map id", path)
@@ -395,7 +429,8 @@ class MapRegistry:
         if arrays_dir is None:
             return
         with self._lock:
-            keep = [e.db.arrays.path.name for e in self._entries.values() if e.db is not None and e.db.arrays]
+            dbs = [d for e in self._entries.values() if e.db is not None for d in (e.db, e.db.far) if d is not None]
+            keep = [d.arrays.path.name for d in dbs if d.arrays]
         try:
             prune_arrays(arrays_dir, keep)
         except OSError as exc:
@@ -670,6 +705,7 @@ class MapRegistry:
         if map_id == DEMO_MAP_ID:  # before the file goes: a crash in between leaves neither to reinstall
             (self.maps_dir / DEMO_DELETED_MARKER).touch()
         entry.path.unlink(missing_ok=True)
+        far_view_path(entry.path).unlink(missing_ok=True)
         self._verified_marker(map_id).unlink(missing_ok=True)
         self._drop_job(map_id)
         fsync_dir(self.maps_dir)

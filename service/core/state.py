@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -10,7 +11,13 @@ import numpy as np
 from reradar_core.errors import ReRadarError, ScanFormatError
 from reradar_core.features import ScanFeatures
 from reradar_core.io.presets import get_preset
-from reradar_core.io.scan import NpyLayout, load_scan_bytes, range_bins_ambiguous, same_range_geometry
+from reradar_core.io.scan import (
+    NpyLayout,
+    RadarScan,
+    load_scan_bytes,
+    range_bins_ambiguous,
+    same_range_geometry,
+)
 from reradar_core.localization import LocalizationConfig
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
@@ -54,16 +61,16 @@ class ServiceState:
 
     def describe_upload(self, data: bytes, filename: str, preset: str | None, timings_ms: dict[str, float],
                         scan_layout: NpyLayout = "polar", map_id: str | None = None,
-                        ) -> tuple[ScanFeatures, str | None, bool]:
+                        ) -> tuple[ScanFeatures, str | None, bool, RadarScan]:
         """Decode an uploaded scan (PNG / .npy, an .npy as ``scan_layout``) and compute its features; adds
         ``decode_ms``/``extract_ms``. Without ``preset``, the geometry of the ready map ``map_id`` is used where
         the scan fits it (``load_scan_bytes``'s ``map_preset``).
 
         Returns:
-            The features, the scan's preset, and whether that preset was left open: none was given and the scan
+            The features, the scan's preset, whether that preset was left open: none was given and the scan
             does not fix one (a polar .npy carries no geometry; 3,360 range bins fit presets of different bin
-            size), so it is ``map_id``'s or a guess. ``check_cached_preset`` refuses such a scan on a map of
-            another range geometry.
+            size), so it is ``map_id``'s or a guess (``check_cached_preset`` refuses such a scan on a map of
+            another range geometry), and the decoded scan (``far_features_of``).
 
         Raises:
             ScanFormatError: empty, corrupt or wrongly shaped scans, non-finite features.
@@ -87,7 +94,22 @@ class ServiceState:
             raise ScanFormatError("the scan produced a non-finite descriptor (empty or saturated scan?)")
         timings_ms["decode_ms"] = (t1 - t0) * 1e3
         timings_ms["extract_ms"] = (t2 - t1) * 1e3
-        return features, scan.preset, preset_open
+        return features, scan.preset, preset_open, scan
+
+    def far_features_of(self, scan: RadarScan, timings_ms: dict[str, float]) -> Callable[[], ScanFeatures] | None:
+        """Computes ``scan``'s far-view features when called (``MapDatabase.localize_views`` calls it only for a
+        refused answer on a map with a far-view companion), adding ``far_extract_ms``; None without a far view."""
+        far = self.registry.far_extractor
+        if far is None:
+            return None
+
+        def compute() -> ScanFeatures:
+            t0 = time.perf_counter()
+            try:
+                return far.describe(scan)
+            finally:
+                timings_ms["far_extract_ms"] = (time.perf_counter() - t0) * 1e3
+        return compute
 
     def check_cached_preset(self, scan_id: str, preset: str | None, preset_open: bool, map_id: str) -> None:
         """Refuse a cached scan whose preset the client left open (``describe_upload``: a guess, or the map's its

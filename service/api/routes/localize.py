@@ -13,6 +13,7 @@ from starlette.concurrency import run_in_threadpool
 
 from reradar_core.geometry.se2 import wrap_angle
 from reradar_core.localization import PosePrior
+from reradar_core.localization.far_view import VIEW_NEAR, View
 from service.api.deps import StateDep
 from service.api.scan_input import read_scan_input, scan_request_body
 from service.api.schemas import (
@@ -112,10 +113,12 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         if explicit is not None:  # the scan's time, and the vehicle's own motion whichever pose it starts from
             explicit = replace(explicit, timestamp_us=stamp, twist=None if moved is None else moved.twist)
         prior = explicit or moved
+        view: View = VIEW_NEAR
         if prior is not None:
             result = await run_in_threadpool(db.track, inp.features, prior, config)
-        else:
-            result = await run_in_threadpool(db.localize, inp.features, config)
+        else:  # a refused answer looks again in the far view when the map has one (``MapDatabase.localize_views``)
+            answer = await run_in_threadpool(db.localize_views, inp.features, inp.far_features, config)
+            result, view = answer.result, answer.view
     if session_id:
         await run_in_threadpool(state.sessions.update, session_id, map_id, result.T_map_query, prior, stamp)
     timings = {**inp.timings_ms, **result.timings_ms}
@@ -154,6 +157,7 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
                     for c in result.candidates],
         mode=result.mode,
         tracking_lost=result.tracking_lost,
+        view=view,
         session_id=session_id,
         alignment_score=result.alignment_score,
         timings_ms=timings,

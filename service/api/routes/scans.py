@@ -42,7 +42,7 @@ async def upload_scan(
         state.registry.ready(map_id)  # 404 / 409 before the upload is read
     data, filename = await read_scan_upload(scan, state.settings.max_scan_pixels, scan_layout)
     timings: dict[str, float] = {}
-    features, scan_preset, preset_open = await run_in_threadpool(state.describe_upload, data, filename, preset,
+    features, scan_preset, preset_open, _ = await run_in_threadpool(state.describe_upload, data, filename, preset,
                                                                  timings, scan_layout, map_id or None)
     state.metrics.observe_stages(timings)
     entry = await run_in_threadpool(state.cache.put, features, scan_preset, preset_open)  # Redis in fleet mode
