@@ -358,7 +358,8 @@ class MapRegistry:
         path = far_view_path(db.map.path)
         if self.far_extractor is None or not path.is_file():
             return
-        try:
+        try:  # read through in a child process first, as a map placed in the folder is (``_probe_unverified``)
+            self._probe_unverified(path.name[: -len(".h5")], path, file_identity(path))
             far_map = open_map(path, self.far_extractor.model_id, self.far_extractor.weights_sha256)
         except (ReRadarError, OSError) as exc:
             logger.warning("%s: far view not served: %s", path.name, exc)
@@ -707,6 +708,7 @@ class MapRegistry:
         entry.path.unlink(missing_ok=True)
         far_view_path(entry.path).unlink(missing_ok=True)
         self._verified_marker(map_id).unlink(missing_ok=True)
+        self._verified_marker(far_view_path(entry.path).name[: -len(".h5")]).unlink(missing_ok=True)
         self._drop_job(map_id)
         fsync_dir(self.maps_dir)
         self.prune_map_arrays()

@@ -162,3 +162,20 @@ def test_without_a_far_view_setting_the_companion_is_ignored(far_map: Path, tmp_
         assert registry.ready("open").far is not None
     finally:
         registry.close()
+
+
+def test_a_damaged_companion_leaves_the_map_served(far_map: Path, tmp_path: Path,
+                                                   caplog: pytest.LogCaptureFixture) -> None:
+    maps_dir = tmp_path / "maps"
+    maps_dir.mkdir()
+    shutil.copy(far_map, maps_dir / "open.h5")
+    (maps_dir / "open.far.h5").write_bytes(b"\x89HDF\r\n\x1a\n" + b"\x00" * 4000)  # an HDF5 signature, then nothing
+    registry = MapRegistry(Settings(maps_dir=maps_dir, load_demo_map=False), NearFake())
+    try:
+        with caplog.at_level("WARNING"):
+            registry.load_all()
+        db = registry.ready("open")
+        assert db.far is None and len(db) == len(keyframe_poses())
+        assert any("far view not served" in r.getMessage() for r in caplog.records)
+    finally:
+        registry.close()
