@@ -29,7 +29,7 @@ if TYPE_CHECKING:
     from reradar_core.localization.localizer import Localizer
     from reradar_core.localization.pipeline import LocalizationConfig, LocalizationResult
 
-__all__ = ["FarViewConfig", "TwoViewResult", "localize_two_views", "VIEW_NEAR", "VIEW_FAR"]
+__all__ = ["FarViewConfig", "TwoViewResult", "localize_two_views", "far_fallback", "VIEW_NEAR", "VIEW_FAR", "View"]
 
 View = Literal["near", "far"]
 VIEW_NEAR: View = "near"
@@ -135,7 +135,16 @@ def localize_two_views(near: Localizer, near_features: ScanFeatures, far: Locali
         config: ``LocalizationConfig`` for both views (None: each localizer's own).
         far_view: the far view's settings (None: ``FarViewConfig()``); only ``sparse_landmarks`` is read here.
     """
-    result = near.localize(near_features, config)
+    return far_fallback(near.localize(near_features, config), near, near_features, far, far_features, config,
+                        far_view)
+
+
+def far_fallback(result: LocalizationResult, near: Localizer, near_features: ScanFeatures, far: Localizer | None,
+                 far_features: Callable[[], ScanFeatures] | None, config: LocalizationConfig | None = None,
+                 far_view: FarViewConfig | None = None) -> TwoViewResult:
+    """The second half of ``localize_two_views``: ``result`` (the near view's global answer for ``near_features``,
+    e.g. a tracked request's global fallback) stands when localized or without a far view; else the far view
+    localizes the query (arguments as ``localize_two_views``)."""
     if result.localized or far is None or far_features is None:
         return TwoViewResult(result, VIEW_NEAR, result)
     if len(far) != len(near):

@@ -19,7 +19,7 @@ from reradar_core.errors import ConfigError, MapFormatError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.cartesian import CartesianConfig
 from reradar_core.io.scan import RadarScan, encode_navtech_png_bytes
-from reradar_core.localization import FarViewConfig
+from reradar_core.localization import FarViewConfig, PosePrior
 from service.core.config import Settings
 from service.core.registry import MapRegistry
 from service.demo import serve_in_thread
@@ -106,6 +106,12 @@ def test_a_refused_answer_is_given_by_the_far_view(far_map: Path) -> None:
         np.testing.assert_allclose(answer.result.T_map_query[:2], keyframe_poses()[3, :2], atol=0.5)
         # without the query's far features the map's own answer stands
         assert near_db.localize_views(NearFake().describe(scan), None).view == "near"
+        # a tracked request with nothing to register near its prior falls back to the global answer, and that
+        # refused one to the far view
+        prior = PosePrior(keyframe_poses()[3].copy(), 2.0, 0.05)
+        tracked = near_db.track_views(NearFake().describe(scan), prior, far_features)
+        assert tracked.near_result.mode == "global" and tracked.view == "far" and tracked.result.localized
+        assert tracked.result.best.keyframe_id == 3
     finally:
         near_db.close()  # closes the attached far view too
 

@@ -13,7 +13,6 @@ from starlette.concurrency import run_in_threadpool
 
 from reradar_core.geometry.se2 import wrap_angle
 from reradar_core.localization import PosePrior
-from reradar_core.localization.far_view import VIEW_NEAR, View
 from service.api.deps import StateDep
 from service.api.scan_input import read_scan_input, scan_request_body
 from service.api.schemas import (
@@ -113,12 +112,13 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         if explicit is not None:  # the scan's time, and the vehicle's own motion whichever pose it starts from
             explicit = replace(explicit, timestamp_us=stamp, twist=None if moved is None else moved.twist)
         prior = explicit or moved
-        view: View = VIEW_NEAR
+        # a refused global answer looks again in the far view when the map has one (``MapDatabase.localize_views``;
+        # a tracked request's global fallback too, ``track_views``)
         if prior is not None:
-            result = await run_in_threadpool(db.track, inp.features, prior, config)
-        else:  # a refused answer looks again in the far view when the map has one (``MapDatabase.localize_views``)
+            answer = await run_in_threadpool(db.track_views, inp.features, prior, inp.far_features, config)
+        else:
             answer = await run_in_threadpool(db.localize_views, inp.features, inp.far_features, config)
-            result, view = answer.result, answer.view
+        result, view = answer.result, answer.view
     if session_id:
         await run_in_threadpool(state.sessions.update, session_id, map_id, result.T_map_query, prior, stamp)
     timings = {**inp.timings_ms, **result.timings_ms}
