@@ -277,8 +277,8 @@ class ScanInput:
     scan_id: str | None
     fields: dict[str, Any]
     timings_ms: dict[str, float] = field(default_factory=dict)
-    #: computes the scan's far-view features (inline scans, when the service has a far view); None for a cached
-    #: ``scan_id`` (its decoded scan is not kept: such a request is answered in the map's own view only)
+    #: the scan's far-view features, computed on first call (inline scans, when the service has a far view; a
+    #: cached ``scan_id``'s when they were computed at upload, ``CachedScan.far_features``), or None
     far_features: Callable[[], ScanFeatures] | None = None
 
 
@@ -324,7 +324,8 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         target = map_id or fields.get("map_id")
         if target:
             state.check_cached_preset(scan_id, cached.preset, cached.preset_open, target)
-        return ScanInput(cached.features, scan_id, fields)
+        far = cached.far_features  # computed at upload while a map had a far-view companion, else None
+        return ScanInput(cached.features, scan_id, fields, far_features=None if far is None else (lambda: far))
     if ctype == "multipart/form-data":
         # two files, so that a repeated `scan` gets the "given more than once" answer below (the body is bounded)
         form = await read_multipart_form(request, max_files=2, max_fields=16)

@@ -311,9 +311,9 @@ class LocalizeResponse(_Model):
         "A prior was given but no consistent pose was found near it; this is the global answer."))
     view: Literal["near", "far"] = Field(default="near", description=(
         "`far`: the map's own view refused and this is the far view's answer (the same network on the radar's "
-        "whole range, from the map's far-view companion written by `reradar build-map --far-view`; inline scans "
-        "on such maps, global answers and a tracked request's global fallback); `near`: the map's own view "
-        "(docs/MODEL.md, 'The far view')."))
+        "whole range, from the map's far-view companion written by `reradar build-map --far-view`; global answers "
+        "and a tracked request's global fallback, for inline scans and scans uploaded while a map had a "
+        "companion); `near`: the map's own view (docs/MODEL.md, 'The far view')."))
     session_id: str | None = None
     alignment_score: float = Field(default=0.0, description=(
         "Fraction of the query's landmarks aligned with the keyframe's (0-1); `localized` needs at least the "

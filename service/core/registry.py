@@ -498,6 +498,12 @@ class MapRegistry:
                 return
         db.close()
 
+    def serves_far_view(self, map_id: str | None = None) -> bool:
+        """Map ``map_id`` (None: any loaded map) has a far-view companion attached (``_attach_far``)."""
+        with self._lock:
+            entries = [self._entries.get(map_id)] if map_id else list(self._entries.values())
+        return any(e is not None and e.db is not None and e.db.far is not None for e in entries)
+
     @property
     def num_ready(self) -> int:
         with self._lock:

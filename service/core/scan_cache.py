@@ -34,6 +34,9 @@ class CachedScan:
     #: no preset was given and the scan does not fix one: ``preset`` is a guess or the upload's map's
     #: (``describe_upload``); such a scan is refused on a map of another range geometry (``check_cached_preset``)
     preset_open: bool = False
+    #: the scan's far-view features (computed at upload while a loaded map has a far-view companion, ``POST
+    #: /scans``), or None: a request by this ``scan_id`` is then answered in the map's own view only
+    far_features: ScanFeatures | None = None
 
 
 class ScanCache:
@@ -46,9 +49,11 @@ class ScanCache:
         self._items: TTLCache[str, CachedScan] = TTLCache(maxsize=max_entries, ttl=ttl_s, timer=clock)
         self._lock = threading.Lock()  # cachetools caches are not thread-safe
 
-    def put(self, features: ScanFeatures, preset: str | None, preset_open: bool = False) -> CachedScan:
-        """Store ``features`` under a new random id (evicting the least recently used beyond the bound)."""
-        entry = CachedScan(new_scan_id(), features, preset, preset_open)
+    def put(self, features: ScanFeatures, preset: str | None, preset_open: bool = False,
+            far_features: ScanFeatures | None = None) -> CachedScan:
+        """Store ``features`` (and the far view's, when given) under a new random id (evicting the least recently
+        used beyond the bound)."""
+        entry = CachedScan(new_scan_id(), features, preset, preset_open, far_features)
         with self._lock:
             self._items[entry.scan_id] = entry
         return entry

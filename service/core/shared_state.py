@@ -123,24 +123,34 @@ def connect(url: str) -> redis.Redis:
 
 
 # ---- uploaded scans --------------------------------------------------------------------------------------
-def encode_features(features: ScanFeatures, preset: str | None, preset_open: bool = False) -> bytes:
-    """``ScanFeatures`` + preset (and whether the scan left it open: ``CachedScan.preset_open``) as an ``.npz``
-    blob (no pickle): ~90 KB for 1200 keypoints x 32 float16."""
+def encode_features(features: ScanFeatures, preset: str | None, preset_open: bool = False,
+                    far_features: ScanFeatures | None = None) -> bytes:
+    """``ScanFeatures`` + preset (and whether the scan left it open: ``CachedScan.preset_open``), and the far view's
+    features when given (``CachedScan.far_features``, keys ``far_*``), as an ``.npz`` blob (no pickle): ~90 KB for
+    1200 keypoints x 32 float16."""
+    far: dict[str, Any] = {} if far_features is None else {
+        "far_global_descriptor": far_features.global_descriptor, "far_keypoints_xy_m": far_features.keypoints_xy_m,
+        "far_local_descriptors": far_features.local_descriptors}
     buf = io.BytesIO()
     np.savez(buf, global_descriptor=features.global_descriptor, keypoints_xy_m=features.keypoints_xy_m,
              local_descriptors=features.local_descriptors, timestamp_us=np.int64(features.timestamp_us),
-             preset=np.array(preset or ""), preset_open=np.bool_(preset_open))
+             preset=np.array(preset or ""), preset_open=np.bool_(preset_open), **far)
     return buf.getvalue()
 
 
-def decode_features(blob: bytes) -> tuple[ScanFeatures, str | None, bool]:
-    """Inverse of ``encode_features`` (a blob of an earlier version, without ``preset_open``: False)."""
+def decode_features(blob: bytes) -> tuple[ScanFeatures, str | None, bool, ScanFeatures | None]:
+    """Inverse of ``encode_features`` (a blob of an earlier version, without ``preset_open``: False; without far
+    features: None)."""
     with np.load(io.BytesIO(blob), allow_pickle=False) as z:
         features = ScanFeatures(z["global_descriptor"], z["keypoints_xy_m"], z["local_descriptors"],
                                 int(z["timestamp_us"]))
         preset = str(z["preset"]) or None
         preset_open = bool(z["preset_open"]) if "preset_open" in z.files else False
-    return features, preset, preset_open
+        far = None
+        if "far_global_descriptor" in z.files:
+            far = ScanFeatures(z["far_global_descriptor"], z["far_keypoints_xy_m"], z["far_local_descriptors"],
+                               int(z["timestamp_us"]))
+    return features, preset, preset_open, far
 
 
 def _json_record(raw: bytes) -> dict[str, Any] | None:
@@ -164,11 +174,12 @@ class RedisScanStore(ScanCache):
         self._redis = client
         self._keys = keys
 
-    def put(self, features: ScanFeatures, preset: str | None, preset_open: bool = False) -> CachedScan:
-        entry = CachedScan(new_scan_id(), features, preset, preset_open)
+    def put(self, features: ScanFeatures, preset: str | None, preset_open: bool = False,
+            far_features: ScanFeatures | None = None) -> CachedScan:
+        entry = CachedScan(new_scan_id(), features, preset, preset_open, far_features)
         try:
-            self._redis.set(self._keys.scan(entry.scan_id), encode_features(features, preset, preset_open),
-                            px=int(self.ttl_s * 1000))
+            self._redis.set(self._keys.scan(entry.scan_id),
+                            encode_features(features, preset, preset_open, far_features), px=int(self.ttl_s * 1000))
         except redis.RedisError as exc:
             raise SharedStateUnavailableError(
                 "the shared scan store (Redis) is unavailable, so the scan was not stored; send the scan "
@@ -185,11 +196,11 @@ class RedisScanStore(ScanCache):
         if blob is None:
             return None
         try:
-            features, preset, preset_open = decode_features(blob)
+            features, preset, preset_open, far = decode_features(blob)
         except (ValueError, KeyError, TypeError, OSError, ReRadarError):  # not a value this version wrote
             logger.warning("scan %s: unreadable value in the shared scan store; treated as unknown", scan_id)
             return None
-        return CachedScan(scan_id, features, preset, preset_open)
+        return CachedScan(scan_id, features, preset, preset_open, far)
 
     def __len__(self) -> int:
         return 0

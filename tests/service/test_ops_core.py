@@ -100,8 +100,8 @@ def test_features_encoding_round_trip_is_exact_and_pickle_free() -> None:
     f = ScanFeatures(g / np.linalg.norm(g), rng.normal(size=(512, 2)) * 50, rng.normal(size=(512, 16)), 123456789)
     blob = encode_features(f, "boreas")
     assert len(blob) < 24_000  # what docs/OPERATIONS.md sizes Redis with
-    back, preset, assumed = decode_features(blob)
-    assert preset == "boreas" and not assumed and back.timestamp_us == 123456789
+    back, preset, assumed, far = decode_features(blob)
+    assert preset == "boreas" and not assumed and back.timestamp_us == 123456789 and far is None
     for name in ("global_descriptor", "keypoints_xy_m", "local_descriptors"):
         a, b = getattr(f, name), getattr(back, name)
         assert a.dtype == b.dtype and np.array_equal(a, b)
@@ -109,6 +109,12 @@ def test_features_encoding_round_trip_is_exact_and_pickle_free() -> None:
     with np.load(io.BytesIO(blob), allow_pickle=False) as z:  # loads without pickle
         assert set(z.files) == {"global_descriptor", "keypoints_xy_m", "local_descriptors", "timestamp_us", "preset",
                                 "preset_open"}
+    # the far view's features (a scan uploaded while a map has a far-view companion) travel with it
+    far_f = ScanFeatures(g / np.linalg.norm(g), rng.normal(size=(300, 2)) * 150, rng.normal(size=(300, 16)), 123456789)
+    back, _, _, far = decode_features(encode_features(f, "boreas", far_features=far_f))
+    assert far is not None and np.array_equal(back.keypoints_xy_m, f.keypoints_xy_m)
+    for name in ("global_descriptor", "keypoints_xy_m", "local_descriptors"):
+        assert np.array_equal(getattr(far, name), getattr(far_f, name))
 
 
 def test_trajectory_subsample_keeps_ends_and_bound() -> None:

@@ -147,7 +147,19 @@ def test_the_service_serves_the_companion_and_deletes_it_with_the_map(far_map: P
         res = r.json()
         assert res["status"] == "localized" and res["view"] == "far" and res["keyframe"]["keyframe_id"] == 2
         assert "far_extract_ms" in res["timings_ms"]
+        # by scan_id: the far features were computed at upload, as this server has a far-view map
+        up = client.post("/scans", files={"scan": ("q.png", png, "image/png")}, headers={"X-API-Key": API_KEY})
+        assert up.status_code == 201, up.text
+        assert "far_extract_ms" in up.json()["timings_ms"]
+        r = client.post("/localize", json={"map_id": "open", "scan_id": up.json()["scan_id"]},
+                        headers={"X-API-Key": API_KEY})
+        assert r.status_code == 200, r.text
+        by_id = r.json()
+        assert by_id["view"] == "far" and by_id["status"] == "localized" and by_id["keyframe"]["keyframe_id"] == 2
         assert client.delete("/maps/open", headers={"X-API-Key": API_KEY}).status_code in (200, 204)
+        # with no far-view map left, an upload computes no far features (and a request by it answers near)
+        up = client.post("/scans", files={"scan": ("q.png", png, "image/png")}, headers={"X-API-Key": API_KEY})
+        assert up.status_code == 201 and "far_extract_ms" not in up.json()["timings_ms"]
     assert not (maps_dir / "open.h5").exists() and not (maps_dir / "open.far.h5").exists()
 
 

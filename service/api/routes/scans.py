@@ -42,10 +42,16 @@ async def upload_scan(
         state.registry.ready(map_id)  # 404 / 409 before the upload is read
     data, filename = await read_scan_upload(scan, state.settings.max_scan_pixels, scan_layout)
     timings: dict[str, float] = {}
-    features, scan_preset, preset_open, _ = await run_in_threadpool(state.describe_upload, data, filename, preset,
-                                                                 timings, scan_layout, map_id or None)
+    features, scan_preset, preset_open, decoded = await run_in_threadpool(
+        state.describe_upload, data, filename, preset, timings, scan_layout, map_id or None)
+    # the far view's features too while the map (any map, without map_id) has a far-view companion: a request by
+    # this scan_id can then look again in the far view as an inline one does (``far_extract_ms``)
+    describe_far = state.far_features_of(decoded, timings)
+    far = None
+    if describe_far is not None and state.registry.serves_far_view(map_id or None):
+        far = await run_in_threadpool(describe_far)
     state.metrics.observe_stages(timings)
-    entry = await run_in_threadpool(state.cache.put, features, scan_preset, preset_open)  # Redis in fleet mode
+    entry = await run_in_threadpool(state.cache.put, features, scan_preset, preset_open, far)  # Redis in fleet mode
     # a guess: left open and not the map's (with map_id the open preset is that map's, checked on use all the same)
     assumed = preset_open and scan_preset != state.map_preset(map_id or None)
     return ScanInfo(scan_id=entry.scan_id, timestamp_us=int(features.timestamp_us), preset=scan_preset,
