@@ -27,7 +27,6 @@ from reradar_core.localization import (
     PosePrior,
     Retrieval,
     TwoViewResult,
-    localize_two_views,
 )
 from reradar_core.localization.far_view import far_fallback
 from reradar_core.retrieval import GlobalIndex, IndexConfig
@@ -142,16 +141,16 @@ class MapDatabase:
 
     def localize_views(self, query: ScanFeatures, far_features: Callable[[], ScanFeatures] | None,
                        config: LocalizationConfig | None = None) -> TwoViewResult:
-        """``localize``, and when refused, again in the far view (``localize_two_views``) if this map has a far
-        companion and ``far_features`` computes the query's far-view features (only called then)."""
+        """``localize``, and when refused, again in the far view (``far_fallback``, as ``localize_two_views``) if this
+        map has a far companion and ``far_features`` computes the query's far-view features (only called then)."""
         far = self.far.localizer if self.far is not None and far_features is not None else None
-        return localize_two_views(self.localizer, query, far, far_features, config)
+        return far_fallback(self.localize(query, config), self.localizer, query, far, far_features, config)
 
     def track_views(self, query: ScanFeatures, prior: PosePrior, far_features: Callable[[], ScanFeatures] | None,
                     config: LocalizationConfig | None = None) -> TwoViewResult:
         """``track``, and when that ends in a refused global answer (no consistent pose near the prior, or a prior
         too loose to track from), the far view as in ``localize_views``; a refused tracked answer stands."""
-        result = self.localizer.track(query, prior, config)
+        result = self.track(query, prior, config)
         if result.mode != "global":
             return TwoViewResult(result, "near", result)
         far = self.far.localizer if self.far is not None and far_features is not None else None
