@@ -143,8 +143,8 @@ class MapDatabase:
                        config: LocalizationConfig | None = None) -> TwoViewResult:
         """``localize``, and when refused, again in the far view (``far_fallback``, as ``localize_two_views``) if this
         map has a far companion and ``far_features`` computes the query's far-view features (only called then)."""
-        far = self.far.localizer if self.far is not None and far_features is not None else None
-        return far_fallback(self.localize(query, config), self.localizer, query, far, far_features, config)
+        return far_fallback(self.localize(query, config), self.localizer, query, self._far_localizer, far_features,
+                            config)
 
     def track_views(self, query: ScanFeatures, prior: PosePrior, far_features: Callable[[], ScanFeatures] | None,
                     config: LocalizationConfig | None = None) -> TwoViewResult:
@@ -153,8 +153,11 @@ class MapDatabase:
         result = self.track(query, prior, config)
         if result.mode != "global":
             return TwoViewResult(result, "near", result)
-        far = self.far.localizer if self.far is not None and far_features is not None else None
-        return far_fallback(result, self.localizer, query, far, far_features, config)
+        return far_fallback(result, self.localizer, query, self._far_localizer, far_features, config)
+
+    @property
+    def _far_localizer(self) -> Localizer | None:
+        return self.far.localizer if self.far is not None else None
 
     def track(self, query: ScanFeatures, prior: PosePrior,
               config: LocalizationConfig | None = None) -> LocalizationResult:

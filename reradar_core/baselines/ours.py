@@ -163,10 +163,9 @@ class Ours(PlaceRecognitionMethod):
         j = int(answer.place_id) if answer.place_id is not None else int(res.best.keyframe_id)
         # the score a PR curve thresholds stays the near view's (the far view's distances are on another scale:
         # its no-match queries lie nearer than the near view's true matches, so mixing them costs F1max points)
-        near_best = answer.near_result.best
-        dist = float(near_best.descriptor_distance if near_best is not None else res.best.descriptor_distance)
-        # the (near view's) global descriptor's own top 1 (retrieval rank 0), before the landmark screen re-ranks
         near = answer.near_result
+        dist = float((near.best or res.best).descriptor_distance)
+        # the (near view's) global descriptor's own top 1 (retrieval rank 0), before the landmark screen re-ranks
         top = min(near.candidates, key=lambda c: c.rank).keyframe_id if near.candidates else j
         if res.localized and res.T_map_query is not None:
             heading = float(relative_pose(db_poses[j], res.T_map_query)[2])

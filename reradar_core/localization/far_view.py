@@ -47,7 +47,7 @@ class FarViewConfig:
             view's pixels instead of the 6.5x of 513 px at 0.64 m). On ``offroad-sim-hard`` (v11), descriptor
             alone with ``our-3-offroad-w05``: 257 px at 1.28 m retrieves 88 % of the revisit queries in open land
             against the near view's 33 %, but only 76 % of the others (near view: 100 %), so it is a fallback and
-            not a replacement (docs/BENCHMARKS.md, "Session 33").
+            not a replacement (docs/MODEL.md, "The far view").
         landmark_z_q: the far view's Cen 2018 detection threshold (``Cen2018Config.z_q``); None (default) = the
             near view's (paper: 3.0). 2.0 finds 5-10x the landmarks in open land but localized no more queries on
             a calibration route (docs/MODEL.md, "The far view"): a probe setting, not a default.

@@ -339,9 +339,9 @@ class MapRegistry:
             raise
         return kf_map
 
-    def _database(self, kf_map: KeyframeMap) -> MapDatabase:
+    def _database(self, kf_map: KeyframeMap, far_view: bool = True) -> MapDatabase:
         """The served database over the open, checked ``kf_map`` (index, keyframe cache, shared arrays) with its
-        far-view companion when it has one (``_attach_far``); the map is closed when that fails."""
+        far-view companion when it has one and ``far_view`` (``_attach_far``); the map is closed when that fails."""
         try:
             db = MapDatabase(kf_map, self.index_config, keyframe_cache_size=self.settings.keyframe_cache_size,
                              config=self.settings.localization, preload=self.settings.preload_keyframes,
@@ -349,7 +349,8 @@ class MapRegistry:
         except BaseException:
             kf_map.close()
             raise
-        self._attach_far(db)
+        if far_view:
+            self._attach_far(db)
         return db
 
     def _attach_far(self, db: MapDatabase) -> None:
@@ -360,16 +361,9 @@ class MapRegistry:
             return
         try:  # read through in a child process first, as a map placed in the folder is (``_probe_unverified``)
             self._probe_unverified(path.name[: -len(".h5")], path, file_identity(path))
-            far_map = open_map(path, self.far_extractor.model_id, self.far_extractor.weights_sha256)
+            far = self._database(open_map(path, self.far_extractor.model_id, self.far_extractor.weights_sha256),
+                                 far_view=False)
         except (ReRadarError, OSError) as exc:
-            logger.warning("%s: far view not served: %s", path.name, exc)
-            return
-        try:
-            far = MapDatabase(far_map, self.index_config, keyframe_cache_size=self.settings.keyframe_cache_size,
-                              config=self.settings.localization, preload=self.settings.preload_keyframes,
-                              arrays_dir=self.settings.arrays_dir)
-        except (ReRadarError, OSError) as exc:
-            far_map.close()
             logger.warning("%s: far view not served: %s", path.name, exc)
             return
         try:
