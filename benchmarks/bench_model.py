@@ -3,10 +3,12 @@
 Usage:
     python benchmarks/bench_model.py [--threads 2] [--repeats 30] [--quick]
     python benchmarks/bench_model.py --threads 1 --runtimes our-3-boreas-w05,our-3-boreas [--rounds 4]
+    python benchmarks/bench_model.py --threads 1 --runtimes our-3-boreas-w05 --views near,far
 
 ``--runtimes`` times the named shipped models' networks through ``DescriptorExtractor.run_images`` in ONNX Runtime
 and in torch (``reradar_core.model.runtime``), alternating the two round by round in one process, and prints the
-medians and the torch / ONNX ratio.
+medians and the torch / ONNX ratio; ``--views near,far`` also times ReRadar's far view (the same weights on 257 px,
+``DescriptorExtractor.with_view``; ONNX Runtime runs it when the graph's image size is free, since session 34).
 
 Prints a markdown table (the one in docs/BENCHMARKS.md, "Descriptor model speed"). Random weights give the
 same speed as trained ones; the shipped default model is timed through ``DescriptorExtractor`` when present.
@@ -58,12 +60,21 @@ def _boreas_like_scan(seed: int = 0) -> RadarScan:
     return RadarScan.from_power(power, preset="boreas")
 
 
-def bench_runtimes(names: list[str], repeats: int, rounds: int, batch: int = 16) -> None:
-    """Per model: batch-1 and batch-``batch`` network time in ONNX Runtime and torch, alternating round by round."""
-    print("| model | runtime | batch 1 (ms) | batch 16 (ms / image) | torch / ONNX, batch 1 | torch / ONNX, batch 16 |")
-    print("|---|---|---|---|---|---|")
-    for name in names:
+def bench_runtimes(names: list[str], repeats: int, rounds: int, batch: int = 16,
+                   views: tuple[str, ...] = ("near",)) -> None:
+    """Per model and view: batch-1 and batch-``batch`` network time in ONNX Runtime and torch, alternating round by
+    round. ``views``: "near" (the trained input) and/or "far" (``FarViewConfig``'s 257 px, ``with_view``)."""
+    from reradar_core.localization.far_view import FarViewConfig
+
+    print("| model | view | runtime | batch 1 (ms) | batch 16 (ms / image) | torch / ONNX, batch 1 | "
+          "torch / ONNX, batch 16 |")
+    print("|---|---|---|---|---|---|---|")
+    for name, view in ((n, v) for n in names for v in views):
         exs = {rt: DescriptorExtractor.from_pretrained(name, runtime=rt) for rt in ("onnx", "torch")}
+        if view == "far":
+            exs = {rt: ex.with_view(FarViewConfig().cartesian) for rt, ex in exs.items()}
+        if exs["onnx"].runtime != "onnx":
+            print(f"| {name} | {view} | (no ONNX graph of a free image size: torch only) | | | | |")
         w = exs["torch"].cartesian.width_px
         rng = np.random.default_rng(0)
         x1, xb = rng.random((1, w, w), dtype=np.float32), rng.random((batch, w, w), dtype=np.float32)
@@ -80,7 +91,7 @@ def bench_runtimes(names: list[str], repeats: int, rounds: int, batch: int = 16)
         for rt in exs:
             ratios = (f"{np.median(r1):.2f} ({min(r1):.2f}-{max(r1):.2f}) | {np.median(rb):.2f} "
                       f"({min(rb):.2f}-{max(rb):.2f})") if rt == "onnx" else " | "
-            print(f"| {name} | {rt} | {m1[rt]:.2f} | {mb[rt]:.2f} | {ratios} |")
+            print(f"| {name} | {view} ({w} px) | {rt} | {m1[rt]:.2f} | {mb[rt]:.2f} | {ratios} |")
 
 
 def main() -> None:
@@ -90,12 +101,16 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="only the default configuration")
     ap.add_argument("--runtimes", default="", help="comma-separated shipped models: time ONNX Runtime against torch")
     ap.add_argument("--rounds", type=int, default=4, help="alternating rounds for --runtimes")
+    ap.add_argument("--views", default="near", help="for --runtimes: near and/or far (comma-separated)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {args.threads} threads, {platform.processor() or platform.machine()}, "
           f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     if args.runtimes:
-        bench_runtimes([n for n in args.runtimes.split(",") if n], args.repeats, args.rounds)
+        views = tuple(v for v in args.views.split(",") if v)
+        if not views or set(views) - {"near", "far"}:
+            ap.error(f"--views takes near and/or far, got {args.views!r}")
+        bench_runtimes([n for n in args.runtimes.split(",") if n], args.repeats, args.rounds, views=views)
         return
     configs = [ModelConfig()]
     if not args.quick:

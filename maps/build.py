@@ -188,9 +188,10 @@ def build_map(
         radar_preset: preset name recorded in the map.
         batch_size: scans per network batch.
         max_keypoints: optional cap on stored keypoints per keyframe (map size).
-        progress: called with (done, total) after each batch (background jobs report through it), and with
-            (total, total) about once a second while the place repetition is measured (a job's heartbeat and
-            cancel check keep running).
+        progress: called with (done, total) after each batch (background jobs report through it), and again with
+            the last (done, total) about once a second while the place repetition is measured (a job's heartbeat
+            and cancel check keep running). ``total`` counts scan descriptions: N, or 2 N with ``far_view``, whose
+            pass over the scans (done N + 1 ... 2 N; about as long again as the map's: docs/BENCHMARKS.md, "Session 34") follows the map's.
         show_progress: show a tqdm bar.
         place_repetition: measure every keyframe's place repetition (``Localizer.place_repetitions``, ~20-40 ms
             per keyframe and thread) and store it in the map, so that no query pays for it (the repeated-place
@@ -216,6 +217,7 @@ def build_map(
         raise ConfigError("cannot build a map from zero scans")
     if batch_size < 1:
         raise ConfigError(f"batch_size must be >= 1, got {batch_size}")
+    total = n if far_view is None else 2 * n  # scan descriptions: the far view describes every scan again
     writer: MapWriter | None = None
     bar = tqdm(total=n, desc=f"build-map {Path(out).name}", unit="scan", disable=not show_progress)
     try:
@@ -240,7 +242,7 @@ def build_map(
                 writer.add(f, poses[start + i], timestamp_us=scan.timestamp_us)
             bar.update(stop - start)
             if progress is not None:
-                progress(stop, n)
+                progress(stop, total)
         bar.close()
         assert writer is not None
         config = localization or LocalizationConfig()
@@ -250,7 +252,7 @@ def build_map(
             def beat(done: int, total: int) -> None:
                 if progress is not None and (done == total or time.monotonic() - last[0] >= 1.0):
                     last[0] = time.monotonic()
-                    progress(n, n)
+                    progress(n, total)
 
             stored = InMemoryKeyframes(writer.read_keyframe, writer.poses, writer.timestamps_us)
             table = measure_place_repetition(stored, writer.global_descriptors, config, repetition_workers, beat,
@@ -274,9 +276,15 @@ def build_map(
         companion.unlink(missing_ok=True)
     else:
         far_extractor = extractor.with_view(far_view.cartesian)  # type: ignore[attr-defined]
+
+        def far_progress(done: int, _n: int) -> None:
+            if progress is not None:
+                progress(n + done, total)  # after the map's n scan descriptions
+
         build_map(companion, far_extractor, load_scan, poses, radar_preset=radar_preset,
                   name=f"{name or Path(out).stem} (far view)", source=source, batch_size=batch_size,
-                  max_keypoints=max_keypoints, overwrite=True, progress=None, show_progress=show_progress,
+                  max_keypoints=max_keypoints, overwrite=True, progress=None if progress is None else far_progress,
+                  show_progress=show_progress,
                   place_repetition=place_repetition, localization=localization,
                   repetition_workers=repetition_workers)
     return Path(out)

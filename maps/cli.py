@@ -57,6 +57,15 @@ def build_map_command(
     if out.exists() and not overwrite:
         typer.echo(f"error: {out} exists; pass --overwrite to replace it", err=True)
         raise typer.Exit(2)
+    from maps.paths import FAR_VIEW_SUFFIX, far_view_path
+
+    if out.name.endswith(FAR_VIEW_SUFFIX):  # the service would take the map for a companion and never serve it
+        typer.echo(f"error: --out {out.name}: a map's file name must not end in {FAR_VIEW_SUFFIX}, the name of a "
+                   f"far-view companion (e.g. --out {out.name[: -len(FAR_VIEW_SUFFIX)]}.h5)", err=True)
+        raise typer.Exit(2)
+    if far_view and far_view_path(out).exists() and not overwrite:
+        typer.echo(f"error: {far_view_path(out)} exists; pass --overwrite to replace it", err=True)
+        raise typer.Exit(2)
     try:
         if time_unit is not None and time_unit.strip().lower() not in TIME_UNITS:
             raise typer.BadParameter(f"--time-unit must be one of {sorted(TIME_UNITS)}, got {time_unit!r}")
@@ -80,8 +89,6 @@ def build_map_command(
                f"model {meta.model_id}, {out.stat().st_size / 1e6:.1f} MB"
                + ("" if place_repetition else "; no place repetition stored (measured as keyframes first win)"))
     if far_view:
-        from maps.paths import far_view_path
-
         far = far_view_path(out)
         typer.echo(f"wrote {far}: the same keyframes in the far view, {far.stat().st_size / 1e6:.1f} MB")
 

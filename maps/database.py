@@ -31,7 +31,7 @@ from reradar_core.localization import (
 from reradar_core.localization.far_view import far_fallback
 from reradar_core.retrieval import GlobalIndex, IndexConfig
 
-__all__ = ["Retrieval", "MapDatabase"]
+__all__ = ["Retrieval", "MapDatabase", "far_view_mismatch"]
 
 logger = logging.getLogger(__name__)
 
@@ -46,6 +46,21 @@ def _return_freed_memory() -> None:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):
         pass
+
+
+def far_view_mismatch(near: KeyframeSource, far: KeyframeSource) -> str | None:
+    """How the keyframes of ``far`` (a far-view companion, ``maps.paths.far_view_path``) differ from those of its
+    map ``near``: another count, or another pose (x m, y m, yaw rad, compared exactly) or time (us) of a keyframe,
+    as a companion built from other scans or poses has; None when they are the same keyframes."""
+    if len(far) != len(near):
+        return f"it holds {len(far)} keyframes, the map {len(near)}"
+    for what, a, b in (("pose", near.poses, far.poses), ("time", near.timestamps_us, far.timestamps_us)):
+        differ = np.flatnonzero(np.any(np.asarray(a).reshape(len(near), -1) != np.asarray(b).reshape(len(near), -1),
+                                       axis=1))
+        if differ.size:
+            return (f"the {what} of {differ.size} of its {len(near)} keyframes differs from the map's (the first: "
+                    f"keyframe {int(differ[0])})")
+    return None
 
 
 class MapDatabase:
@@ -132,11 +147,10 @@ class MapDatabase:
             MapFormatError: ``far`` does not hold this map's keyframes (another count, poses or times: a companion
                 left from another map); ``far`` is not attached.
         """
-        same = (len(far) == len(self) and np.array_equal(far.localizer.keyframes.poses, self.localizer.keyframes.poses)
-                and np.array_equal(far.localizer.keyframes.timestamps_us, self.localizer.keyframes.timestamps_us))
-        if not same:
-            raise MapFormatError(f"{far.map.path.name} does not hold the keyframes of {self.map.path.name} (another "
-                                 "count, poses or times); rebuild it with `reradar build-map --far-view`")
+        problem = far_view_mismatch(self.localizer.keyframes, far.localizer.keyframes)
+        if problem is not None:
+            raise MapFormatError(f"{far.map.path.name} does not hold the keyframes of {self.map.path.name} ({problem}); "
+                                 "rebuild it with `reradar build-map --far-view`")
         self.far = far
 
     def localize_views(self, query: ScanFeatures, far_features: Callable[[], ScanFeatures] | None,

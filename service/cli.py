@@ -283,10 +283,12 @@ def localize_command(
                  if unc is not None else "")
         typer.echo(f"localized: x={res.pose.x_m:.2f} m y={res.pose.y_m:.2f} m yaw={res.pose.yaw_deg:.2f} deg{sigma} "
                    f"(map {res.map_id}, keyframe {res.keyframe.keyframe_id}, {res.num_inliers} inliers, "
-                   f"{res.mode}, {res.timings_ms.get('total_ms', 0):.0f} ms)")
+                   f"{res.mode}{', far view' if res.view == 'far' else ''}, "
+                   f"{res.timings_ms.get('total_ms', 0):.0f} ms)")
     else:
         typer.echo(f"not localized: {res.reason} ({res.num_inliers} inliers, {100 * res.inlier_ratio:.1f} % of "
-                   f"the landmarks aligned, confidence {res.confidence:.2f})")
+                   f"the landmarks aligned, confidence {res.confidence:.2f}"
+                   f"{'; the far view refused it too' if res.view == 'far' else ''})")
     raise typer.Exit(0 if res.status == "localized" else 1)
 
 

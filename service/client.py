@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import re
 import time
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -270,19 +271,26 @@ class ReRadarClient:
         """``GET /maps/{map_id}`` (ValueError for an invalid map id, ``check_map_id``)."""
         return self._parse(self._http.get(f"/maps/{check_map_id(map_id)}"), MapInfo)
 
-    def register_map(self, map_id: str, map_path: str | Path) -> MapInfo:
-        """Upload a prebuilt HDF5 map."""
+    def register_map(self, map_id: str, map_path: str | Path, far_map_path: str | Path | None = None) -> MapInfo:
+        """Upload a prebuilt HDF5 map; ``far_map_path``: with its far-view companion (the ``<map>.far.h5`` that
+        ``reradar build-map --far-view`` wrote with it), served with the map (``MapInfo.far_view``); a companion
+        that does not hold the map's keyframes is refused (422) and nothing is registered."""
         p = Path(map_path)
-        with p.open("rb") as fh:
-            resp = self._http.post("/maps", data={"map_id": map_id},
-                                   files={"map_file": (p.name, fh, "application/x-hdf5")})
+        with ExitStack() as stack:
+            files = {"map_file": (p.name, stack.enter_context(p.open("rb")), "application/x-hdf5")}
+            if far_map_path is not None:
+                f = Path(far_map_path)
+                files["far_map_file"] = (f.name, stack.enter_context(f.open("rb")), "application/x-hdf5")
+            resp = self._http.post("/maps", data={"map_id": map_id}, files=files)
         return self._parse(resp, MapInfo)
 
     def register_map_from_scans(self, map_id: str, archive_path: str | Path, poses_path: str | Path,
-                                preset: str | None = None) -> MapInfo:
-        """Upload a scan archive + poses; the server builds the map in the background (poll ``wait_for_map``)."""
+                                preset: str | None = None, far_view: bool = False) -> MapInfo:
+        """Upload a scan archive + poses; the server builds the map in the background (poll ``wait_for_map``).
+        ``far_view``: also build its far-view companion (about as long again as the map's own build: 1.8x for 120 scans; docs/SERVICE.md,
+        "The far view"); a service that serves no far view refuses it (400)."""
         a, p = Path(archive_path), Path(poses_path)
-        data = {"map_id": map_id, **({"preset": preset} if preset else {})}
+        data = {"map_id": map_id, **({"preset": preset} if preset else {}), **({"far_view": "true"} if far_view else {})}
         with a.open("rb") as fa, p.open("rb") as fp:
             resp = self._http.post("/maps", data=data, files={"archive": (a.name, fa, "application/octet-stream"),
                                                                "poses": (p.name, fp, "text/csv")})

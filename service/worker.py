@@ -25,9 +25,10 @@ from typing import Any, cast
 import numpy as np
 import redis
 
-from maps.store import install_file
+from maps.paths import far_view_path
 from reradar_core.errors import ReRadarError
 from reradar_core.localization.extractor import FeatureExtractor
+from reradar_core.localization.far_view import FarViewConfig
 from service.core.config import Settings
 from service.core.errors import scrub_paths
 from service.core.jobs import (
@@ -43,7 +44,13 @@ from service.core.jobs import (
     sweep_orphan_jobs,
 )
 from service.core.logs import configure_logging
-from service.core.registry import RECORD_TIME_FORMAT, MapRegistry, build_failure_message, file_identity
+from service.core.registry import (
+    RECORD_TIME_FORMAT,
+    MapRegistry,
+    build_failure_message,
+    file_identity,
+    install_map_files,
+)
 from service.core.shared_state import Keys, arq_redis_settings, connect, replica_id
 
 __all__ = ["run_worker", "build_map_job", "BuildCancelledError", "register"]
@@ -176,18 +183,20 @@ def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
     # written inside the job folder, then installed: replicas starting meanwhile clean up temporary map files
     # of processes they cannot see (other containers), which must not include a build in progress
     built = job_dir / f"{map_id}.h5"
+    far_view = bool(spec.get("far_view"))  # with the far-view companion (POST /maps far_view=true)
     try:
         build_map(built, ctx["extractor"],
                   registry.build_scan_loader(scans, spec["preset"]), poses,
                   radar_preset=spec["preset_name"], name=map_id, source=spec["source"],
                   batch_size=settings.build_batch_size, progress=progress, overwrite=True,
-                  localization=settings.localization)  # the place repetition under the settings that serve it
+                  localization=settings.localization,  # the place repetition under the settings that serve it
+                  far_view=FarViewConfig() if far_view else None)
         if queue.record(map_id).get("cancel") == "1":  # a DELETE during the last batch: nothing to install
             raise BuildCancelledError
         # recorded first, so a retry after a stop between the install and ``ready`` knows the file as its own
         queue.update(map_id, installed=identity_text(file_identity(built)))
-        try:
-            install_file(built, target, exclusive=True)
+        try:  # the companion first: replicas loading the map on the ``built`` event find it beside it
+            install_map_files(built, target, far_view_path(built) if far_view else None)
         except FileExistsError:
             raise MapIdTakenError(
                 f"another map was registered as {map_id!r} while this one was being built, so the built map was "
@@ -195,7 +204,7 @@ def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
     finally:
         stop.set()
         beater.join(timeout=5)
-    return _finish(ctx, map_id, job_id, len(scans))
+    return _finish(ctx, map_id, job_id, len(scans) * (2 if far_view else 1))
 
 
 async def build_map_job(ctx: dict[str, Any], map_id: str, job_id: str) -> str:

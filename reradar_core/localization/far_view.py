@@ -144,11 +144,21 @@ def far_fallback(result: LocalizationResult, near: Localizer, near_features: Sca
                  far_view: FarViewConfig | None = None) -> TwoViewResult:
     """The second half of ``localize_two_views``: ``result`` (the near view's global answer for ``near_features``,
     e.g. a tracked request's global fallback) stands when localized or without a far view; else the far view
-    localizes the query (arguments as ``localize_two_views``)."""
+    localizes the query (arguments as ``localize_two_views``).
+
+    The far answer carries what the request went through before it: ``tracking_lost`` of ``result`` (a tracked
+    request whose registration failed stays marked so, whichever view answers its global fallback) and the near
+    attempt's stage timings, added to the far view's stage by stage (``timings_ms``: ``screen_ms`` is the time both
+    views spent screening, ...; ``track_ms`` the tracking attempt), so the stages account for the whole request.
+    """
     if result.localized or far is None or far_features is None:
         return TwoViewResult(result, VIEW_NEAR, result)
     if len(far) != len(near):
         raise ConfigError(f"the far view holds {len(far)} keyframes but the near view {len(near)}: "
                           "they must be the same map")
     sparse = len(near_features.keypoints_xy_m) < (far_view or FarViewConfig()).sparse_landmarks
-    return TwoViewResult(far.localize(far_features(), config), VIEW_FAR, result, near_sparse=sparse)
+    answer = far.localize(far_features(), config)
+    answer.tracking_lost = result.tracking_lost
+    answer.timings_ms = {k: result.timings_ms.get(k, 0.0) + answer.timings_ms.get(k, 0.0)
+                         for k in {**result.timings_ms, **answer.timings_ms}}
+    return TwoViewResult(answer, VIEW_FAR, result, near_sparse=sparse)

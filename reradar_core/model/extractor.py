@@ -230,9 +230,10 @@ class DescriptorExtractor:
 
         The network is fully convolutional up to F' and NetVLAD aggregates any number of cells, so the weights
         apply to another image size or scale without retraining (the far view of ``localization.far_view``:
-        257 px at 1.28 m reach the radar's 165 m). Runs in torch: the exported ONNX graph fixes the trained
-        input size. The copy shares the weights (read-only) and keeps its own disc-mask cache; ``model_id``
-        names the view (``...-in257``), so a map built with one view refuses queries of another.
+        257 px at 1.28 m reach the radar's 165 m). Runs in ONNX Runtime when this extractor does and its graph
+        takes any image size (``OnnxNetwork.free_size``: exported since session 34), in torch otherwise (an older
+        graph fixed at the trained size). The copy shares the weights (read-only) and keeps its own disc-mask
+        cache; ``model_id`` names the view (``...-in257``), so a map built with one view refuses queries of another.
         """
         import copy
 
@@ -241,7 +242,8 @@ class DescriptorExtractor:
                              cartesian_resolution_m=float(cartesian.resolution_m))
         net.__dict__["_disc_cache"] = {}
         out = copy.copy(self)
-        out.net, out.config, out.onnx_network = net, net.config, None
+        onnx = self.onnx_network if getattr(self.onnx_network, "free_size", False) else None
+        out.net, out.config, out.onnx_network = net, net.config, onnx
         return out
 
     # ---------------------------------------------------------------- properties

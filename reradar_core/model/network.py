@@ -46,6 +46,11 @@ def disc_image_mask(width_px: int) -> torch.Tensor:
     return ((ax[:, None] ** 2 + ax[None, :] ** 2) <= (width_px / 2.0) ** 2).float()
 
 
+def _exporting() -> bool:
+    """True while ``torch.export`` traces the network (``runtime.export_onnx``): image sizes are symbolic then."""
+    return bool(torch.compiler.is_exporting())
+
+
 def group_max_pool(x: torch.Tensor, group_order: int) -> torch.Tensor:
     """Max over the ``group_order`` channels of each regular field: (B, F*N, H, W) -> (B, F, H, W).
 
@@ -188,24 +193,33 @@ class DescriptorNet(nn.Module):
         if config.output_dim is not None:
             self.proj = nn.Linear(config.vlad_dim, config.output_dim, bias=True)
 
-    def cell_weights(self, fmap: torch.Tensor) -> torch.Tensor | None:
-        """Disc weights of F' cells (``ModelConfig.disc_mask``), or None when every cell is aggregated."""
+    def cell_weights(self, fmap: torch.Tensor, width_px: int | None = None) -> torch.Tensor | None:
+        """Disc weights of F' cells (``ModelConfig.disc_mask``), or None when every cell is aggregated.
+
+        ``width_px``: the input image's width, px (None: ``config.cartesian_width_px``, the view the network was
+        configured for). ``forward`` passes the input's own width, so an exported graph with a free image size
+        computes the disc of the image it is given (the far view's 257 px as well as the trained 201 px).
+        """
         if not self.config.disc_mask:
             return None
         h, w = fmap.shape[-2:]
-        key = (h, w, str(fmap.device))
+        width = self.config.cartesian_width_px if width_px is None else width_px
+        if _exporting():  # symbolic sizes: computed in the graph, never cached
+            return disc_weights(h, w, self.config.stride, width).to(fmap.device)
+        key = (h, w, width, str(fmap.device))
         cache = self.__dict__.setdefault("_disc_cache", {})
         if key not in cache:
-            cache[key] = disc_weights(h, w, self.config.stride, self.config.cartesian_width_px).to(fmap.device)
+            cache[key] = disc_weights(h, w, self.config.stride, width).to(fmap.device)
         return cache[key]
 
-    def vlad(self, fmap: torch.Tensor) -> torch.Tensor:
-        """F' (B, C, h, w) -> (B, K*C) raw NetVLAD vector (disc-masked when configured)."""
-        return self.netvlad(fmap, self.cell_weights(fmap))
+    def vlad(self, fmap: torch.Tensor, width_px: int | None = None) -> torch.Tensor:
+        """F' (B, C, h, w) -> (B, K*C) raw NetVLAD vector (disc-masked when configured; ``width_px`` as
+        ``cell_weights``)."""
+        return self.netvlad(fmap, self.cell_weights(fmap, width_px))
 
-    def aggregate(self, fmap: torch.Tensor) -> torch.Tensor:
-        """F' (B, C, h, w) -> (B, D) L2-normalised global descriptor."""
-        v = self.vlad(fmap)
+    def aggregate(self, fmap: torch.Tensor, width_px: int | None = None) -> torch.Tensor:
+        """F' (B, C, h, w) -> (B, D) L2-normalised global descriptor (``width_px`` as ``cell_weights``)."""
+        v = self.vlad(fmap, width_px)
         if self.proj is not None:
             v = F.normalize(self.proj(v), dim=1)
         return v
@@ -215,6 +229,8 @@ class DescriptorNet(nn.Module):
         if not self.config.disc_mask_input:
             return x
         w = x.shape[-1]
+        if _exporting():
+            return x * disc_image_mask(w).to(x.device).to(x.dtype)
         key = ("input", w, str(x.device))
         cache = self.__dict__.setdefault("_disc_cache", {})
         if key not in cache:
@@ -224,7 +240,7 @@ class DescriptorNet(nn.Module):
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, 1, W, W) images -> ((B, D) descriptors, (B, C, h, h) F')."""
         fmap = self.backbone(self.mask_input(x))
-        return self.aggregate(fmap), fmap
+        return self.aggregate(fmap, x.shape[-1]), fmap
 
     @torch.no_grad()
     def init_whitening(self, vlad: torch.Tensor, eps: float = 1e-6) -> None:

@@ -51,6 +51,8 @@ _INPUT, _OUTPUTS = "image", ("descriptor", "feature_map")
 #: largest relative difference between the exported graph's outputs and torch's that ``export_onnx`` accepts
 #: (measured: 2e-7 descriptor, 5e-7 F'; a wrong graph is off by O(1))
 EXPORT_TOLERANCE = 1e-4
+#: image sizes an exported graph accepts (px); the check's second size: the far view's (``FarViewConfig``)
+MIN_IMAGE_PX, MAX_IMAGE_PX, CHECK_OTHER_PX = 33, 1025, 257
 
 
 def onnx_path_for(weights_path: str | Path) -> Path:
@@ -68,12 +70,16 @@ def resolve_runtime(runtime: str | None) -> str:
 
 
 def export_onnx(net: Any, path: str | Path, *, weights_sha256: str) -> Path:
-    """Write ``net`` (a plain ``DescriptorNet``) as an ONNX graph (opset 20, free batch axis) to ``path``.
+    """Write ``net`` (a plain ``DescriptorNet``) as an ONNX graph (opset 20, free batch axis and image size) to
+    ``path``.
 
-    Input ``image``: (B, 1, W, W) float32 Cartesian images; outputs ``descriptor`` (B, D) float32 and
-    ``feature_map`` (B, C, h, h) float32, as ``DescriptorNet.forward``. BatchNorm is folded first, as the
-    extractor runs it. The graph is checked against torch on a random batch before it is written (atomically:
-    a temporary file renamed into place). Deterministic: the same weights and package versions give the same bytes.
+    Input ``image``: (B, 1, W, W) float32 Cartesian images of any odd or even size W in [``MIN_IMAGE_PX``,
+    ``MAX_IMAGE_PX``] (the trained view's 201 px, the far view's 257 px: ``OnnxNetwork.free_size``); outputs
+    ``descriptor`` (B, D) float32 and ``feature_map`` (B, C, h, h) float32, as ``DescriptorNet.forward`` (the
+    sensor-disc masks are computed in the graph from W). BatchNorm is folded first, as the extractor runs it. The
+    graph is checked against torch on random batches at the trained size and at ``CHECK_OTHER_PX`` before it is
+    written (atomically: a temporary file renamed into place). Deterministic: the same weights and package versions
+    give the same bytes.
     """
     import onnx
     import torch
@@ -84,32 +90,53 @@ def export_onnx(net: Any, path: str | Path, *, weights_sha256: str) -> Path:
     fused = fuse_batchnorm(net)  # a copy of ``net``, BatchNorm folded
     w = fused.config.cartesian_width_px
     batch = torch.export.Dim("batch", min=1, max=4096)
+    side = torch.export.Dim("side", min=MIN_IMAGE_PX, max=MAX_IMAGE_PX)
     with warnings.catch_warnings(), _quiet_loggers("onnx_ir", "onnxscript", "torch.onnx", "torch.export"):
         warnings.simplefilter("ignore")  # the exporter's notices about torch internals and its graph passes
-        # a copy again: tracing fills the network's disc-weight cache with placeholder tensors, and ``fused``
-        # still has to run the check below
+        # a copy again, so that tracing leaves nothing behind on ``fused``, which still has to run the check below
         program = torch.onnx.export(copy.deepcopy(fused), (torch.zeros(2, 1, w, w),), dynamo=True,
-                                    dynamic_shapes=({0: batch},), input_names=[_INPUT], output_names=list(_OUTPUTS),
-                                    optimize=True, verbose=False)
+                                    dynamic_shapes=({0: batch, 2: side, 3: side},), input_names=[_INPUT],
+                                    output_names=list(_OUTPUTS), optimize=True, verbose=False)
     if program is None:  # only when exporting to a file path, which this does not
         raise RuntimeError("torch.onnx.export returned no program")
     model = program.model_proto
+    _strip_node_metadata(model)
     onnx.helper.set_model_props(model, {WEIGHTS_SHA_PROPERTY: weights_sha256,
                                         MODEL_ID_PROPERTY: fused.config.model_id})
     data = model.SerializeToString()
-    images = torch.rand(3, 1, w, w, generator=torch.Generator().manual_seed(0))
-    with torch.inference_mode():
-        expected = [t.numpy() for t in fused(images)]
-    got = _session(data, 1).run(None, {_INPUT: images.numpy()})
-    for name, a, b in zip(_OUTPUTS, got, expected, strict=True):
-        err = float(np.abs(a - b).max() / max(float(np.abs(b).max()), 1e-12))
-        if a.shape != b.shape or not err <= EXPORT_TOLERANCE:
-            raise RuntimeError(f"exported ONNX graph differs from the torch network on {name}: shape {a.shape} vs "
-                               f"{b.shape}, relative difference {err:.2e}")
+    session = _session(data, 1)
+    for size in (w, CHECK_OTHER_PX):
+        images = torch.rand(3, 1, size, size, generator=torch.Generator().manual_seed(0))
+        with torch.inference_mode():
+            expected = [t.numpy() for t in fused(images)]
+        got = session.run(None, {_INPUT: images.numpy()})
+        for name, a, b in zip(_OUTPUTS, got, expected, strict=True):
+            err = float(np.abs(a - b).max() / max(float(np.abs(b).max()), 1e-12))
+            if a.shape != b.shape or not err <= EXPORT_TOLERANCE:
+                raise RuntimeError(f"exported ONNX graph differs from the torch network on {name} at {size} px: "
+                                   f"shape {a.shape} vs {b.shape}, relative difference {err:.2e}")
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_bytes(data)
     os.replace(tmp, path)
     return path
+
+
+def _strip_node_metadata(model: Any) -> None:
+    """Drop the exporter's per-node debug records (source locations, FX node names) from ``model`` in place.
+
+    With a free image size they name Python objects by memory address (``<function sym_min at 0x...>``), so two
+    exports of the same weights would differ in bytes; the graph's computation does not read them."""
+    graphs = [model.graph] + [f for f in model.functions]
+    while graphs:
+        g = graphs.pop()
+        for node in g.node:
+            del node.metadata_props[:]
+            for a in node.attribute:  # subgraphs (If / Loop bodies)
+                if a.HasField("g"):
+                    graphs.append(a.g)
+                graphs.extend(a.graphs)
+    for vi in list(model.graph.value_info) + list(model.graph.input) + list(model.graph.output):
+        del vi.metadata_props[:]
 
 
 @contextlib.contextmanager
@@ -142,6 +169,9 @@ def _session(model: str | bytes, threads: int) -> Any:
 class OnnxNetwork:
     """The exported network run by ONNX Runtime: (B, 1, W, W) float32 -> ((B, D) descriptors, (B, C, h, h) F').
 
+    ``free_size``: the graph takes any image size W (exported since session 34), so a view of another size
+    (``DescriptorExtractor.with_view``) runs it too; False for an older graph fixed at the trained size.
+
     Raises ``ConfigError`` when onnxruntime is missing, the file is not a readable graph, or it was exported from
     other weights than ``weights_sha256``. Thread-safe (ONNX Runtime sessions are); picklable (sessions are
     re-created after unpickling).
@@ -167,6 +197,9 @@ class OnnxNetwork:
             raise ConfigError(f"{self.path.name} was exported from other weights (sha256 {recorded[:12] or 'none'}…, "
                               f"the weights are {weights_sha256[:12]}…); re-export it with `reradar export-onnx`")
         self.model_id = props.get(MODEL_ID_PROPERTY, "")
+        # graphs exported before session 34 fix the trained image size (dims 2, 3 are numbers, not names)
+        shape = session.get_inputs()[0].shape
+        self.free_size = len(shape) == 4 and not isinstance(shape[2], int) and not isinstance(shape[3], int)
         self._sessions[threads] = session
 
     @staticmethod

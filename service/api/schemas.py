@@ -124,8 +124,12 @@ class MapInfo(_Model):
     state: Literal["ready", "building", "failed"]
     progress: float = Field(ge=0, le=1, description="Build progress, fraction of scans described.")
     num_keyframes: int = 0
-    scans_done: int = 0
-    scans_total: int = 0
+    scans_done: int = Field(default=0, description=(
+        "Scan descriptions made so far by the build (with `far_view`, the far view's follow the map's); a `ready` "
+        "map: its keyframes."))
+    scans_total: int = Field(default=0, description=(
+        "Scan descriptions the build makes: the archive's scans, twice with `far_view` (once in each view; a far "
+        "one costs about as much again as the map's); a `ready` map: its keyframes."))
     error: str | None = Field(default=None, description="Why building or loading failed.")
     note: str | None = Field(default=None, description=(
         "While `building`: why the build may not be progressing (e.g. no map-build worker is running), or, with "
@@ -148,6 +152,11 @@ class MapInfo(_Model):
         "within `max_keyframe_gap_s`, 2 s, of it in time, and a plausible drive between them): answers on the others "
         "keep the rigid registration's pose, not motion-compensated (docs/CONVENTIONS.md 'Motion compensation'). "
         "Fewer than `num_keyframes` on a map whose scans are over 2 s apart, or whose times are not the drive's."))
+    far_view: bool = Field(default=False, description=(
+        "`true`: the map is served with its far-view companion (`<id>.far.h5`, from `POST /maps` with `far_view=true` "
+        "or `far_map_file`, or `reradar build-map --far-view`): an answer its own view refuses is looked at again in "
+        "the far view (`view: far`; docs/SERVICE.md, 'The far view'); while `building`, that the build also builds "
+        "one. `false`: no companion, or none served (`RERADAR_FAR_VIEW=false`, or one that does not fit the map)."))
     place_repetition: Literal["stored", "other_settings", "not_stored"] | None = Field(default=None, description=(
         "Where the repeated-place check (an answer on a keyframe whose place repeats on the map is `ambiguous`) "
         "reads each keyframe's place repetition: `stored` in the map under this service's localization settings "

@@ -50,6 +50,7 @@ from typing import Any, cast
 import numpy as np
 import redis
 
+from maps.paths import far_view_path
 from maps.store import fsync_dir
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
@@ -157,10 +158,12 @@ def installed_by(rec: dict[str, str], target: Path) -> bool:
 
 def remove_installed_map(rec: dict[str, str], target: Path) -> bool:
     """Remove ``target`` when it is the map file an attempt of the build of ``rec`` installed (``installed_by``:
-    never a map registered otherwise), durably; whether it did."""
+    never a map registered otherwise), and its far-view companion (installed before it by the same attempt),
+    durably; whether it did."""
     if not installed_by(rec, target):
         return False
     target.unlink(missing_ok=True)
+    far_view_path(target).unlink(missing_ok=True)
     fsync_dir(target.parent)
     return True
 
@@ -319,11 +322,13 @@ class BuildQueue:
 
     # ---- enqueue / cancel ---------------------------------------------------------------------------------
     def enqueue(self, map_id: str, job_id: str, scans_total: int, source: str,
-                taken: Callable[[], bool] | None = None) -> None:
+                taken: Callable[[], bool] | None = None, far_view: bool = False) -> None:
         """Claim ``map_id`` across every replica, write its record and put the build on the queue.
 
         ``taken``: checked once the claim is held (a map file installed under the id since the caller's
         check, whose upload claimed and released the id before this claim, frees the claim again: 409).
+        ``far_view``: the build also builds the map's far-view companion (the record's ``far_view``, 1 or 0, which
+        every replica shows while it is building).
 
         Raises:
             ConflictError: another build or upload of ``map_id`` exists. redis.RedisError: Redis is down.
@@ -336,7 +341,8 @@ class BuildQueue:
                 raise ConflictError(f"map {map_id!r} already exists (registered by another request moments "
                                     f"ago); DELETE /maps/{map_id} first or pick another id")
             self.update(map_id, map_id=map_id, state="queued", scans_done=0, scans_total=scans_total, attempts=0,
-                        error="", worker="", heartbeat=0, cancel=0, source=source, created_utc=utc_now())
+                        error="", worker="", heartbeat=0, cancel=0, source=source, created_utc=utc_now(),
+                        far_view=int(far_view))
             self.redis.sadd(self.keys.builds, map_id)
             asyncio.run(self._enqueue(map_id, job_id))
         except BaseException:
@@ -446,7 +452,7 @@ class QueuedMapRegistry(MapRegistry):
                 logger.info("map %s dropped: deleted by another replica", map_id, extra={"map_id": map_id})
             super().check_free(map_id)
 
-    def register_file(self, map_id: str, staged: Path) -> MapEntry:
+    def register_file(self, map_id: str, staged: Path, far_staged: Path | None = None) -> MapEntry:
         """As ``MapRegistry.register_file``, holding the fleet-wide claim of ``map_id``
         (``BuildQueue.claim_upload``) from before the id check until the upload is installed or failed: a build
         or another upload of the id through any replica meanwhile gets 409. Redis down: the upload goes ahead
@@ -465,10 +471,12 @@ class QueuedMapRegistry(MapRegistry):
             logger.warning("map %s: upload not claimed in Redis (%s); installed only if the id is free", map_id, exc)
         except BaseException:
             staged.unlink(missing_ok=True)
+            if far_staged is not None:
+                far_staged.unlink(missing_ok=True)
             raise
         try:
             with self._in_flight(map_id), self._claim_kept(map_id, token, claimed):
-                return super().register_file(map_id, staged)
+                return super().register_file(map_id, staged, far_staged)
         finally:
             if claimed:
                 try:
@@ -520,16 +528,20 @@ class QueuedMapRegistry(MapRegistry):
             return None
 
     def start_build(self, map_id: str, scan_paths: list[Path], poses: np.ndarray, preset: str | None,
-                    workdir: Path, source: str) -> MapEntry:
-        """Reserve ``map_id``, move ``workdir`` to the shared jobs folder and enqueue its build."""
+                    workdir: Path, source: str, far_view: bool = False) -> MapEntry:
+        """Reserve ``map_id``, move ``workdir`` to the shared jobs folder and enqueue its build (``far_view``:
+        with its far-view companion, built by the worker as ``MapRegistry.start_build`` builds it)."""
+        if far_view:
+            self.check_far_view_served("far_view")
         with self._in_flight(map_id):
-            return self._queue_build(map_id, scan_paths, poses, preset, workdir, source)
+            return self._queue_build(map_id, scan_paths, poses, preset, workdir, source, far_view)
 
     def _queue_build(self, map_id: str, scan_paths: list[Path], poses: np.ndarray, preset: str | None,
-                     workdir: Path, source: str) -> MapEntry:
+                     workdir: Path, source: str, far_view: bool = False) -> MapEntry:
         first = self._load_scan(scan_paths[0], preset)  # fail fast, synchronously, on unreadable scans
         preset_name = preset or first.preset or "unknown"
-        entry = self._reserve(map_id, scans_total=len(scan_paths))
+        scans_total = len(scan_paths) * (2 if far_view else 1)  # scan descriptions: the far view's follow
+        entry = self._reserve(map_id, scans_total=scans_total, far_view=far_view)
         job_id = uuid.uuid4().hex
         job_dir = jobs_dir(self.maps_dir) / job_id
         try:
@@ -537,10 +549,12 @@ class QueuedMapRegistry(MapRegistry):
             os.replace(workdir, job_dir / "work")
             np.save(job_dir / "poses.npy", np.asarray(poses, dtype=np.float64))
             spec = {"map_id": map_id, "job_id": job_id, "preset": preset, "preset_name": preset_name,
-                    "source": source, "scans": [str(p.relative_to(workdir)) for p in scan_paths]}
+                    "source": source, "scans": [str(p.relative_to(workdir)) for p in scan_paths],
+                    "far_view": far_view}
             (job_dir / "spec.json").write_text(json.dumps(spec))
             try:
-                self.queue.enqueue(map_id, job_id, len(scan_paths), source, taken=self.path_for(map_id).exists)
+                self.queue.enqueue(map_id, job_id, scans_total, source, taken=self.path_for(map_id).exists,
+                                   far_view=far_view)
             except redis.RedisError as exc:
                 full = isinstance(exc, redis.exceptions.OutOfMemoryError) or "OOM" in str(exc)
                 logger.warning("map %s: build not queued (Redis %s)", map_id, "full" if full else "unavailable")
@@ -663,6 +677,7 @@ class QueuedMapRegistry(MapRegistry):
                 if entry.state == "building":
                     entry.scans_done = int(rec.get("scans_done", 0))
                     entry.scans_total = int(rec.get("scans_total", 0))
+                    entry.far_view = rec.get("far_view") == "1"
                     if rec.get("job_id"):
                         with self._lock:
                             self._job_ids[map_id] = rec["job_id"]

@@ -15,6 +15,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -31,7 +32,7 @@ import numpy as np
 
 from maps.arrays import prune_arrays
 from maps.build import build_map
-from maps.database import MapDatabase
+from maps.database import MapDatabase, far_view_mismatch
 from maps.paths import DEMO_MAP_PATH, FAR_VIEW_SUFFIX, far_view_path
 from maps.store import (
     KeyframeMap,
@@ -44,12 +45,14 @@ from maps.store import (
     remove_stale_temp_files,
 )
 from reradar_core.errors import (
+    ConfigError,
     MapFormatError,
     ModelMismatchError,
     ReRadarError,
     ScanFormatError,
     ScanTooLargeError,
 )
+from reradar_core.geometry.cartesian import CartesianConfig
 from reradar_core.io.scan import (
     RadarScan,
     check_header_size,
@@ -67,7 +70,7 @@ from service.core.config import MAP_ID_PATTERN, Settings
 from service.core.errors import BadRequestError, ConflictError, NotFoundError, scrub_paths
 
 __all__ = ["MapEntry", "MapRegistry", "MapState", "DEMO_MAP_ID", "FileIdentity", "build_failure_message",
-           "file_identity"]
+           "file_identity", "install_map_files"]
 
 logger = logging.getLogger(__name__)
 
@@ -108,6 +111,36 @@ def file_identity(path: Path) -> FileIdentity | None:
     return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
 
 
+def install_map_files(built: Path, target: Path, far_built: Path | None = None) -> None:
+    """Install the complete map file ``built`` as ``target`` (``install_file``, never over an existing map:
+    ``exclusive``) and, first, its far-view companion ``far_built`` (when given) as ``far_view_path(target)``: a
+    process that opens the map as soon as it appears (another replica on a shared maps folder) finds its companion
+    beside it. A companion already there without its map (left by a process stopped between the two steps of an
+    install or a delete) describes no served map and is replaced.
+
+    Raises:
+        FileExistsError: a map file ``target`` exists (or appeared meanwhile): nothing of this call is left
+            installed, ``built`` and ``far_built`` stay in place.
+    """
+    far_target = far_view_path(target)
+    far_identity = None
+    if far_built is not None:
+        far_identity = file_identity(far_built)  # a hard link or a rename keeps it
+        try:
+            install_file(far_built, far_target, exclusive=True)
+        except FileExistsError:
+            if target.exists():
+                raise
+            install_file(far_built, far_target)  # a companion without its map
+    try:
+        install_file(built, target, exclusive=True)
+    except BaseException:
+        if far_identity is not None and file_identity(far_target) == far_identity:  # ours only, back in place
+            os.replace(far_target, far_built)  # type: ignore[arg-type]
+            fsync_dir(far_target.parent)
+        raise
+
+
 #: UTC time format of the registry's and the build records' timestamps (``registered_utc``, ``created_utc``, ...)
 RECORD_TIME_FORMAT = "%Y-%m-%dT%H:%M:%SZ"
 
@@ -122,7 +155,9 @@ class MapEntry:
     """One registered map and its state (``ready``, ``building`` or ``failed`` with ``error``).
 
     ``file_id``: the ``file_identity`` of the map file this entry opened (None for a build in progress or a
-    failed build, which have none): ``MapSync`` reopens the map when the file under its name changes."""
+    failed build, which have none): ``MapSync`` reopens the map when the file under its name changes.
+    ``far_view``: a build in progress also builds the map's far-view companion (``start_build(far_view=True)``);
+    whether a ready map is served with one is ``db.far``."""
 
     map_id: str
     path: Path
@@ -133,12 +168,25 @@ class MapEntry:
     scans_total: int = 0
     registered_utc: str = field(default_factory=utc_now)
     file_id: FileIdentity | None = None
+    far_view: bool = False
 
     @property
     def progress(self) -> float:
         if self.state == "ready":
             return 1.0
         return self.scans_done / self.scans_total if self.scans_total else 0.0
+
+
+def _same_view(metadata: MapMetadata, view: CartesianConfig) -> bool:
+    """The map of ``metadata`` was described on the Cartesian image ``view`` (side px, m/px)."""
+    return (metadata.cartesian_width_px == int(view.width_px)
+            and math.isclose(metadata.cartesian_resolution_m, float(view.resolution_m), rel_tol=1e-9))
+
+
+def _far_marker_id(path: Path) -> str:
+    """The name a far-view companion's ``FileIdentity`` is recorded under in ``.verified`` (``x.far.h5`` ->
+    ``x.far``: no map id has a dot)."""
+    return path.name[: -len(".h5")]
 
 
 def last_pass_note(entry: MapEntry) -> str | None:
@@ -171,6 +219,26 @@ class MapRegistry:
         if settings.far_view and hasattr(extractor, "with_view"):
             self.far_extractor = extractor.with_view(FarViewConfig().cartesian)
 
+    @property
+    def far_view_enabled(self) -> bool:
+        """Maps are served with their far-view companions here (``RERADAR_FAR_VIEW`` and a model that can
+        describe the far view: ``far_extractor``)."""
+        return self.far_extractor is not None
+
+    def check_far_view_served(self, field_name: str) -> None:
+        """Refuse a registration asking for a far-view companion (form field ``field_name``) where none would be
+        served (``far_view_enabled``).
+
+        Raises:
+            BadRequestError: saying why and what to send instead.
+        """
+        if self.far_view_enabled:
+            return
+        why = ("its far view is switched off (RERADAR_FAR_VIEW=false)" if not self.settings.far_view
+               else f"its model {self.extractor.model_id!r} cannot describe the far view")
+        raise BadRequestError(f"{field_name!r} asks for a far-view companion, but this service serves none: {why}; "
+                              f"register the map without {field_name!r}")
+
     # ---- paths and ids -------------------------------------------------------------------------------------
     def validate_id(self, map_id: str) -> str:
         if not isinstance(map_id, str) or not _ID_RE.match(map_id):
@@ -202,7 +270,7 @@ class MapRegistry:
         path.parent.mkdir(exist_ok=True)
         record = {"map_id": entry.map_id, "state": entry.state, "error": entry.error,
                   "scans_total": entry.scans_total, "registered_utc": entry.registered_utc,
-                  "source": source, "pid": os.getpid()}
+                  "source": source, "far_view": entry.far_view, "pid": os.getpid()}
         tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.part")
         tmp.write_text(json.dumps(record))
         install_file(tmp, path)
@@ -304,15 +372,32 @@ class MapRegistry:
             return
         self._mark_verified(map_id, identity)
 
-    def check_compatible(self, metadata: MapMetadata, path: Path) -> None:
-        """Refuse a map whose descriptors cannot be compared with the running model's: another global descriptor
-        length D, or another local descriptor length C (where the extractor states it: ``local_dim``). Such a
-        map would load and then fail every localization.
+    def check_compatible(self, metadata: MapMetadata, path: Path, extractor: FeatureExtractor | None = None) -> None:
+        """Refuse a map whose descriptors cannot be compared with those of ``extractor`` (default: the running
+        model; ``far_extractor`` for a far-view companion): another global descriptor length D, another local
+        descriptor length C (where the extractor states it: ``local_dim``), or another view (the Cartesian image
+        its keyframes were described on, px and m/px: the far view has the near one's weights, so the weights hash
+        alone does not tell a companion from its map). Such a map would load and then fail every localization.
 
         Raises:
-            MapFormatError: naming the map's and the model's lengths.
+            MapFormatError: naming the map's and the model's lengths or views.
         """
-        ext = self.extractor
+        ext = extractor or self.extractor
+        view = getattr(ext, "cartesian", None)  # the FeatureExtractor protocol's; a test double may lack it
+        if view is not None and not _same_view(metadata, view):
+            if extractor is not None:
+                hint = ("it is no far-view companion: send the <map>.far.h5 that `reradar build-map --far-view` "
+                        "writes beside the map")
+            elif _same_view(metadata, FarViewConfig().cartesian):
+                hint = ("it is a far-view companion (`reradar build-map --far-view` writes it as <map>.far.h5): "
+                        "register it together with its map ('far_map_file'), not as a map")
+            else:
+                hint = "rebuild the map with this model"
+            raise MapFormatError(
+                f"{path}: the map's keyframes were described on a {metadata.cartesian_width_px} px image at "
+                f"{metadata.cartesian_resolution_m:g} m/px, but {ext.model_id!r} describes "
+                f"{int(view.width_px)} px at {float(view.resolution_m):g} m/px: their descriptors are not comparable; "
+                f"{hint}")
         dim = int(ext.descriptor_dim)
         if metadata.descriptor_dim != dim:
             raise MapFormatError(
@@ -339,6 +424,24 @@ class MapRegistry:
             raise
         return kf_map
 
+    def _open_far_checked(self, path: Path) -> KeyframeMap:
+        """Open the far-view companion ``path`` as ``_open_checked`` opens a map, under the far view's model
+        (``far_extractor``: weights hash, descriptor lengths and the far view's image); closed again when refused.
+
+        Raises:
+            MapFormatError, ModelMismatchError: as ``_open_checked``; ConfigError: no far view is served here.
+        """
+        far = self.far_extractor
+        if far is None:
+            raise ConfigError("this service serves no far view (RERADAR_FAR_VIEW=false, or a model without one)")
+        kf_map = open_map(path, far.model_id, far.weights_sha256)
+        try:
+            self.check_compatible(kf_map.metadata, path, far)
+        except BaseException:
+            kf_map.close()
+            raise
+        return kf_map
+
     def _database(self, kf_map: KeyframeMap, far_view: bool = True) -> MapDatabase:
         """The served database over the open, checked ``kf_map`` (index, keyframe cache, shared arrays) with its
         far-view companion when it has one and ``far_view`` (``_attach_far``); the map is closed when that fails."""
@@ -357,12 +460,21 @@ class MapRegistry:
         """Open the map's far-view companion (``far_view_path``) under the far view's model id and attach it. A
         companion that does not open or does not hold the map's keyframes is not served (logged); the map is."""
         path = far_view_path(db.map.path)
-        if self.far_extractor is None or not path.is_file():
+        if self.far_extractor is None or not (path.exists() or path.is_symlink()):
+            return
+        if not path.is_file():  # a folder, or a link to nothing, under the companion's name
+            logger.warning("%s: far view not served: not a readable file", path.name)
             return
         try:  # read through in a child process first, as a map placed in the folder is (``_probe_unverified``)
-            self._probe_unverified(path.name[: -len(".h5")], path, file_identity(path))
-            far = self._database(open_map(path, self.far_extractor.model_id, self.far_extractor.weights_sha256),
-                                 far_view=False)
+            self._probe_unverified(_far_marker_id(path), path, file_identity(path))
+            kf_map = self._open_far_checked(path)
+            # the keyframes first: a companion of another map is refused before its shared arrays are written
+            problem = far_view_mismatch(db.localizer.keyframes, kf_map)
+            if problem is not None:
+                kf_map.close()
+                raise MapFormatError(f"it does not hold the keyframes of {db.map.path.name} ({problem}); rebuild "
+                                     "it with `reradar build-map --far-view`")
+            far = self._database(kf_map, far_view=False)
         except (ReRadarError, OSError) as exc:
             logger.warning("%s: far view not served: %s", path.name, exc)
             return
@@ -371,6 +483,8 @@ class MapRegistry:
         except ReRadarError as exc:
             far.close()
             logger.warning("%s: far view not served: %s", path.name, exc)
+            return
+        logger.info("%s: far view served with map %s (%d keyframes)", path.name, db.map.path.stem, len(far))
 
     def install_demo_map(self) -> None:
         """Copy the shipped demo map to ``<maps_dir>/demo.h5`` unless a map ``demo`` exists already; an
@@ -405,6 +519,10 @@ class MapRegistry:
         self._load_jobs()
         for path in sorted(self.maps_dir.glob("*.h5")):
             if path.name.endswith(FAR_VIEW_SUFFIX):  # a map's far-view companion, opened with its map
+                owner = path.with_name(path.name[: -len(FAR_VIEW_SUFFIX)] + ".h5")
+                if not owner.exists():
+                    logger.warning("%s: far-view companion without its map %s: not served (a map file's name "
+                                   "must not end in %s)", path.name, owner.name, FAR_VIEW_SUFFIX)
                 continue
             map_id = path.stem
             if not _ID_RE.match(map_id):
@@ -522,11 +640,11 @@ class MapRegistry:
             if map_id in self._entries or self.path_for(map_id).exists():
                 raise ConflictError(self.taken_message(map_id, self._entries.get(map_id)))
 
-    def _reserve(self, map_id: str, scans_total: int = 0) -> MapEntry:
+    def _reserve(self, map_id: str, scans_total: int = 0, far_view: bool = False) -> MapEntry:
         path = self.path_for(map_id)
         with self._lock:
             self.check_free(map_id)
-            entry = MapEntry(map_id, path, "building", scans_total=scans_total)
+            entry = MapEntry(map_id, path, "building", scans_total=scans_total, far_view=far_view)
             self._entries[map_id] = entry
             return entry
 
@@ -534,27 +652,40 @@ class MapRegistry:
         with self._lock:
             self._entries.pop(map_id, None)
 
-    def register_file(self, map_id: str, staged: Path) -> MapEntry:
-        """Validate the uploaded map at ``staged`` (format, model hash, descriptor lengths) and install it as
-        ``map_id``.
+    def register_file(self, map_id: str, staged: Path, far_staged: Path | None = None) -> MapEntry:
+        """Validate the uploaded map at ``staged`` (format, model hash, descriptor lengths and view) and install it
+        as ``map_id``; with ``far_staged``, the uploaded far-view companion (``reradar build-map --far-view``'s
+        ``<map>.far.h5``) too, checked likewise under the far view's model (``far_extractor``) and against the map's
+        keyframes (count, poses, times: ``far_view_mismatch``), installed beside the map (``install_map_files``)
+        and served with it.
 
-        ``staged`` must be inside the staging folder; it is moved (renamed) on success, deleted on failure. It is
-        read through in a child process first (``probe_map``), then opened once in this process: the checks
-        before the install and the served database share that open file.
+        ``staged`` and ``far_staged`` must be inside the staging folder; they are moved (renamed) on success,
+        deleted on failure. Each is read through in a child process first (``probe_map``), then opened once in
+        this process: the checks before the install and the served database share that open file.
 
-        The install never replaces a file (``install_file(exclusive=True)``): on a shared maps folder another
-        process may have installed a map under this id since the id check.
+        The install never replaces a map file (``install_map_files``): on a shared maps folder another process
+        may have installed a map under this id since the id check.
 
         Raises:
-            ConflictError: the id is taken. MapFormatError / ModelMismatchError: invalid map (nothing stored).
+            ConflictError: the id is taken. BadRequestError: ``far_staged`` where no far view is served
+            (``check_far_view_served``). MapFormatError / ModelMismatchError: invalid map or companion, or a
+            companion that does not hold the map's keyframes (nothing stored, nothing registered).
         """
+        staged_files = [staged] if far_staged is None else [staged, far_staged]
         try:
+            if far_staged is not None:
+                self.check_far_view_served("far_map_file")
             entry = self._reserve(map_id)
         except BaseException:
-            staged.unlink(missing_ok=True)
+            for path in staged_files:
+                path.unlink(missing_ok=True)
             raise
+        far_target = far_view_path(entry.path)
         installed = False
         kf_map: KeyframeMap | None = None
+        far_kf: KeyframeMap | None = None
+        db: MapDatabase | None = None
+        far_db: MapDatabase | None = None
         try:
             try:
                 # first in a child process: a crafted file that crashes or hangs the HDF5 library costs the child
@@ -564,40 +695,82 @@ class MapRegistry:
                 kf_map = self._open_checked(staged)
             except ReRadarError as exc:  # the message names the staged file: say "the uploaded map" instead
                 raise type(exc)(str(exc).replace(str(staged), "the uploaded map")) from None
+            if far_staged is not None:
+                try:
+                    probe_map(far_staged)
+                    far_kf = self._open_far_checked(far_staged)
+                except ReRadarError as exc:
+                    raise type(exc)(str(exc).replace(str(far_staged), "the uploaded far-view map ('far_map_file')")
+                                    ) from None
+                problem = far_view_mismatch(kf_map, far_kf)
+                if problem is not None:
+                    raise MapFormatError(
+                        f"the uploaded far-view map ('far_map_file') does not hold the keyframes of the uploaded map "
+                        f"('map_file'): {problem}; send the <map>.far.h5 that `reradar build-map --far-view` wrote "
+                        "together with this map (the same scans and poses), or register the map without it")
             identity = file_identity(staged)  # a hard link or a rename keeps it
+            far_identity = file_identity(far_staged) if far_staged is not None else None
             try:
-                install_file(staged, entry.path, exclusive=True)
+                install_map_files(staged, entry.path, far_staged)
             except FileExistsError:
                 raise ConflictError(self.taken_message(map_id, None)) from None
             installed = True
             entry.file_id = identity
-            # the open file is now the installed one (same inode, which a hard link or a rename keeps; HDF5 reads
-            # through its descriptor, never by name again): its messages name it by its new path
+            # the open files are now the installed ones (same inodes, which a hard link or a rename keeps; HDF5
+            # reads through its descriptor, never by name again): their messages name them by their new paths
             kf_map.path = entry.path
             try:  # opening reads every keyframe (shared arrays, preload): their checks refuse it here
-                entry.db = self._database(kf_map)
+                db = self._database(kf_map, far_view=far_kf is None)  # closes ``kf_map`` when it fails
             except ReRadarError as exc:
                 raise type(exc)(str(exc).replace(str(entry.path), "the uploaded map")) from None
-            entry.scans_total = entry.scans_done = len(entry.db)
+            if far_kf is not None:
+                far_kf.path = far_target
+                opening, far_kf = far_kf, None  # ``_database`` closes it when it fails
+                try:
+                    far_db = self._database(opening, far_view=False)
+                    db.attach_far(far_db)  # checked above (``far_view_mismatch``): the same keyframes
+                except ReRadarError as exc:
+                    raise type(exc)(str(exc).replace(str(far_target), "the uploaded far-view map")) from None
+                far_db = None  # closed with ``db`` from now on
+            entry.db = db
+            entry.scans_total = entry.scans_done = len(db)
             entry.state = "ready"
             self._mark_verified(map_id, identity)  # probed before the install: not again at the next start
+            if far_identity is not None:
+                self._mark_verified(_far_marker_id(far_target), far_identity)
             return entry
         except BaseException:
-            if kf_map is not None and entry.db is None:  # closing twice is harmless (``_database`` may have)
+            for opened in (far_db, far_kf, db):  # closing twice is harmless (``_database`` may have)
+                if opened is not None:
+                    opened.close()
+            if kf_map is not None and db is None:
                 kf_map.close()
-            staged.unlink(missing_ok=True)
-            if installed and entry.db is None:  # only the file this call installed, never another writer's
+            for path in staged_files:
+                path.unlink(missing_ok=True)
+            if installed:  # only the files this call installed, never another writer's
                 entry.path.unlink(missing_ok=True)
+                if far_staged is not None:
+                    far_target.unlink(missing_ok=True)
+                fsync_dir(self.maps_dir)
             self._release(map_id)
             raise
 
     def start_build(self, map_id: str, scan_paths: list[Path], poses: np.ndarray, preset: str | None,
-                    workdir: Path, source: str) -> MapEntry:
+                    workdir: Path, source: str, far_view: bool = False) -> MapEntry:
         """Reserve ``map_id`` and build its map from ``scan_paths`` in the background.
 
         ``poses`` (N, 3) float64 ``T_map_sensor`` per scan. ``workdir`` (extracted scans) is removed when the
-        job ends. Progress is visible through ``get(map_id)``.
+        job ends; the map is written there and then installed (``install_map_files``). ``far_view``: also build
+        the map's far-view companion from the same scans and poses (``build_map(far_view=...)``, as ``reradar
+        build-map --far-view``; about as long again as the map's own pass), installed beside the map and served with
+        it. Progress is visible through ``get(map_id)``: ``scans_total`` counts the scan descriptions, N or 2 N.
+
+        Raises:
+            BadRequestError: ``far_view`` where no far view is served (``check_far_view_served``).
+            ScanFormatError: the first scan is unreadable or its preset ambiguous. ConflictError: the id is taken.
         """
+        if far_view:
+            self.check_far_view_served("far_view")
         first = self._load_scan(scan_paths[0], preset)  # fail fast, synchronously, on unreadable scans
         if preset is None and range_bins_ambiguous(first.num_range_bins):
             # a PNG does not say its bin size: read as the first fitting preset, a boreas-2021 archive was built
@@ -607,7 +780,7 @@ class MapRegistry:
                 f"bin size ({preset_bin_sizes(presets_with_bins(first.num_range_bins))}): give 'preset', the one "
                 "they were recorded with")
         preset_name = preset or first.preset or "unknown"
-        entry = self._reserve(map_id, scans_total=len(scan_paths))
+        entry = self._reserve(map_id, scans_total=len(scan_paths) * (2 if far_view else 1), far_view=far_view)
         try:
             self._write_job(entry, source)  # durable before the client is told 202
         except BaseException:
@@ -618,19 +791,32 @@ class MapRegistry:
             entry.scans_done = done
 
         def job() -> None:
+            # written in the job's folder and then installed, the far-view companion first: the map appears whole
+            built = workdir / f"{map_id}.h5"
             try:
-                build_map(entry.path, self.extractor, self.build_scan_loader(scan_paths, preset), poses,
+                build_map(built, self.extractor, self.build_scan_loader(scan_paths, preset), poses,
                           radar_preset=preset_name, name=map_id, source=source,
                           batch_size=self.settings.build_batch_size, progress=progress,
-                          localization=self.settings.localization)  # the place repetition under the serving settings
-                identity = file_identity(entry.path)
+                          localization=self.settings.localization,  # the place repetition under the serving settings
+                          far_view=FarViewConfig() if far_view else None)
+                far_built = far_view_path(built) if far_view else None
+                identity = file_identity(built)
+                far_identity = file_identity(far_built) if far_built is not None else None
+                try:
+                    install_map_files(built, entry.path, far_built)
+                except FileExistsError:
+                    raise ConflictError(self.taken_message(map_id, None)) from None
+                if far_identity is not None:  # written by this process: opened without a probe (``_attach_far``)
+                    self._mark_verified(_far_marker_id(far_view_path(entry.path)), far_identity)
                 db = self._open(entry.path)
                 with self._lock:
                     entry.file_id = identity
                     entry.db = db
+                    entry.scans_total = entry.scans_done = len(db)  # as a map loaded from its file
                     entry.state = "ready"
                 self._drop_job(map_id)
-                logger.info("map %s built: %d keyframes", map_id, len(db))
+                logger.info("map %s built: %d keyframes%s", map_id, len(db),
+                            ", with its far view" if db.far is not None else "")
             except Exception as exc:  # noqa: BLE001 - a failed job is reported through GET /maps/{id}
                 logger.exception("building map %s failed", map_id)
                 entry.error = scrub_paths(build_failure_message(exc), [self.maps_dir])
@@ -708,7 +894,7 @@ class MapRegistry:
         entry.path.unlink(missing_ok=True)
         far_view_path(entry.path).unlink(missing_ok=True)
         self._verified_marker(map_id).unlink(missing_ok=True)
-        self._verified_marker(far_view_path(entry.path).name[: -len(".h5")]).unlink(missing_ok=True)
+        self._verified_marker(_far_marker_id(far_view_path(entry.path))).unlink(missing_ok=True)
         self._drop_job(map_id)
         fsync_dir(self.maps_dir)
         self.prune_map_arrays()

@@ -54,7 +54,10 @@ function renderMaps() {
     fill.style.width = `${Math.round(100 * (m.progress || 0))}%`;
     bar.append(fill);
     prog.append(bar, el("span", ` ${Math.round(100 * (m.progress || 0))}%`, "muted"));
-    tr.append(prog, el("td", m.num_keyframes || (m.scans_total ? `${m.scans_done}/${m.scans_total} scans` : "-")));
+    // with its far-view companion (served, or being built: then both views' scan descriptions are counted)
+    const views = m.far_view ? " (map + far view)" : "";
+    tr.append(prog, el("td", m.num_keyframes ? `${m.num_keyframes}${views}`
+      : (m.scans_total ? `${m.scans_done}/${m.scans_total} scans${views}` : "-")));
     tr.addEventListener("click", () => { state.selected = m.id; state.trajectoryKey = null; refresh(); });
     body.append(tr);
   }

@@ -124,3 +124,25 @@ def test_a_localized_answer_names_its_winner(two_views) -> None:
     near_q = _seen_from(near_kfs[3], np.array([1.0, 0.5, -0.2]), np.random.default_rng(9))
     out = localize_two_views(near_map, near_q, far_map, None)
     assert out.result.localized and out.place_id == out.result.best.keyframe_id == 3
+
+
+def test_a_far_answer_to_a_lost_track_stays_marked_lost_and_counts_both_views_time(two_views) -> None:
+    """QA session 34: a tracked request whose registration failed and whose global fallback the far view answered
+    came back ``tracking_lost: false`` without ``track_ms``; the near view's stage times were missing too."""
+    from reradar_core.localization import PosePrior
+    from reradar_core.localization.far_view import far_fallback
+
+    near_map, far_map, _, far_kfs, poses = two_views
+    rng = np.random.default_rng(8)
+    near_q = _keyframe(rng, 10**9, 60.0)  # nothing the near view can register
+    far_q = _seen_from(far_kfs[2], np.array([1.0, 2.0, 0.2]), rng)
+    prior = PosePrior(poses[2] + np.array([1.0, 2.0, 0.2]), sigma_xy_m=1.0, sigma_yaw_rad=np.deg2rad(2.0))
+    tracked = near_map.track(near_q, prior)
+    assert tracked.tracking_lost and tracked.mode == "global" and not tracked.localized
+    near_times = dict(tracked.timings_ms)
+    out = far_fallback(tracked, near_map, near_q, far_map, lambda: far_q)
+    assert out.view == VIEW_FAR and out.result.localized and out.result.best.keyframe_id == 2
+    assert out.result.tracking_lost is True
+    assert out.result.timings_ms["track_ms"] == pytest.approx(near_times["track_ms"])
+    assert out.result.timings_ms["verify_ms"] > near_times["verify_ms"] > 0
+    assert out.near_result is tracked and tracked.timings_ms == near_times  # the near answer is left as it was

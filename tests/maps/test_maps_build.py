@@ -122,6 +122,23 @@ def test_build_map_takes_the_pose_time_unit_it_asks_for(tmp_path: Path) -> None:
     assert "--time-unit" in CliRunner().invoke(app, ["build-map", "--help"], env={"COLUMNS": "200"}).output
 
 
+def test_build_map_refuses_far_view_names_it_would_clash_with(tmp_path: Path) -> None:
+    """QA session 34: ``--out z.far.h5`` wrote a map the service takes for a companion (never served), and an
+    existing companion was replaced without ``--overwrite``. Both are refused before the network runs."""
+    from typer.testing import CliRunner
+
+    from reradar_cli import app
+
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    res = CliRunner().invoke(app, ["build-map", "--dataset", str(seq), "--out", str(tmp_path / "z.far.h5")])
+    assert res.exit_code == 2 and "must not end in .far.h5" in res.output and "z.h5" in res.output
+    (tmp_path / "y.far.h5").write_bytes(b"an earlier companion")
+    res = CliRunner().invoke(app, ["build-map", "--dataset", str(seq), "--out", str(tmp_path / "y.h5"), "--far-view"])
+    assert res.exit_code == 2 and "y.far.h5 exists; pass --overwrite" in res.output
+    assert (tmp_path / "y.far.h5").read_bytes() == b"an earlier companion" and not (tmp_path / "y.h5").exists()
+
+
 class PeriodicStreetExtractor:
     """Fake model over a street that repeats one random 40 m block: scan i (its timestamp) is a sensor at x = 6 i m
     seeing the block's landmarks within 60 m; its global descriptor depends on the position within the period."""

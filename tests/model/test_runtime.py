@@ -156,3 +156,55 @@ def test_shipped_default_model_runs_in_onnx_runtime_with_torch_outputs():
     g0, f0 = ref.run_images(x)
     np.testing.assert_allclose(g, g0, atol=1e-5)
     np.testing.assert_allclose(f, f0, atol=1e-5 * float(np.abs(f0).max()))
+
+
+def test_graph_takes_any_image_size_with_torch_outputs(saved):
+    """Since session 34 the graph's image size is free: the far view's 257 px (and any other size) runs in ONNX
+    Runtime with torch's outputs, the sensor-disc masks computed from the image it is given."""
+    path, _ = saved
+    fast = DescriptorExtractor.from_file(path, runtime="onnx")
+    ref = DescriptorExtractor.from_file(path, runtime="torch")
+    assert fast.onnx_network is not None and fast.onnx_network.free_size
+    for size in (257, 121):
+        x = np.random.default_rng(size).random((2, size, size), dtype=np.float32)
+        g, f = fast.run_images(x)
+        g0, f0 = ref.run_images(x)
+        assert f.shape == f0.shape and f.shape[-1] == f0.shape[-1] > 0
+        np.testing.assert_allclose(g, g0, atol=1e-5)
+        np.testing.assert_allclose(f, f0, atol=1e-5 * float(np.abs(f0).max()))
+
+
+def test_export_is_byte_identical_on_a_rerun(saved, tmp_path):
+    """The same weights export to the same bytes (the exporter's debug records, which name objects by memory
+    address, are dropped), so a re-export of unchanged weights changes no shipped file."""
+    path, _ = saved
+    a = tmp_path / "a.pt"
+    a.write_bytes(path.read_bytes())
+    a.with_suffix(".json").write_bytes(path.with_suffix(".json").read_bytes())
+    assert export_weights_onnx(a).read_bytes() == onnx_path_for(path).read_bytes()  # the fixture's export
+
+
+def test_far_view_of_the_default_model_runs_in_onnx_runtime_with_torch_outputs():
+    from reradar_core.geometry.cartesian import CartesianConfig
+
+    far = CartesianConfig(257, 1.28)
+    fast = DescriptorExtractor.from_pretrained().with_view(far)
+    ref = DescriptorExtractor.from_pretrained(runtime="torch").with_view(far)
+    assert (fast.runtime, ref.runtime) == ("onnx", "torch")
+    assert fast.model_id == ref.model_id and fast.model_id.endswith("-in257")
+    x = np.random.default_rng(7).random((2, 257, 257), dtype=np.float32)
+    g, f = fast.run_images(x)
+    g0, f0 = ref.run_images(x)
+    np.testing.assert_allclose(g, g0, atol=1e-5)
+    np.testing.assert_allclose(f, f0, atol=1e-5 * float(np.abs(f0).max()))
+
+
+def test_a_fixed_size_graph_leaves_the_other_view_to_torch(saved, monkeypatch):
+    """A graph exported before session 34 fixes the trained size: ``with_view`` then runs the view in torch."""
+    from reradar_core.geometry.cartesian import CartesianConfig
+
+    path, _ = saved
+    ex = DescriptorExtractor.from_file(path, runtime="onnx")
+    monkeypatch.setattr(ex.onnx_network, "free_size", False)
+    assert ex.with_view(CartesianConfig(257, 1.28)).runtime == "torch"
+    assert ex.runtime == "onnx"

@@ -439,14 +439,13 @@ def test_delete_answered_at_the_end_of_a_build_always_wins(
 
         monkeypatch.setattr(maps.build, "build_map", build)
     else:
-        real_install = worker.install_file
+        real_install = worker.install_map_files
 
-        def install(src: Path, dst: Path, exclusive: bool = False) -> Path:
-            out = real_install(src, dst, exclusive=exclusive)
+        def install(built: Path, target: Path, far_built: Path | None = None) -> None:
+            real_install(built, target, far_built)
             delete_on_b()
-            return out
 
-        monkeypatch.setattr(worker, "install_file", install)
+        monkeypatch.setattr(worker, "install_map_files", install)
     events = fleet.client.pubsub(ignore_subscribe_messages=True)
     events.subscribe(fleet.keys.map_events)
     try:
@@ -605,3 +604,67 @@ def test_post_right_after_a_delete_elsewhere_is_accepted(fleet: Fleet, map_files
     assert fleet.a.get("xr").state == "ready"
     entry = fleet.a.register_file("xr", fleet.stage(fleet.a, map_files["v2"]))
     assert entry.state == "ready" and _keyframes(fleet.a, "xr") == 4
+
+
+# ---- 7. a build with its far-view companion (POST /maps far_view=true) on the queue ---------------------------
+@pytest.mark.parametrize("delete_after_install", [False, True])
+def test_a_far_view_build_installs_the_companion_first_and_every_replica_serves_it(
+        fleet: Fleet, monkeypatch: pytest.MonkeyPatch, delete_after_install: bool) -> None:
+    from test_service_far_view import NearFake, far_scan
+
+    import service.worker as worker
+
+    def replica() -> QueuedMapRegistry:  # replicas with a model that has a far view
+        reg = QueuedMapRegistry(fleet.settings, NearFake(), BuildQueue(fleet.client, fleet.keys, fleet.settings),
+                                publish=lambda op, map_id: fleet.events.append((op, map_id)))
+        reg.load_all()
+        return reg
+
+    a, b = replica(), replica()
+    try:
+        n = 4
+        work = a.staging_dir() / f"job-{uuid.uuid4().hex}"
+        (work / "scans").mkdir(parents=True)
+        paths = []
+        for i in range(n):
+            paths.append(work / "scans" / f"{keyframe_time(i)}.png")
+            paths[-1].write_bytes(encode_navtech_png_bytes(far_scan(i, keyframe_time(i))))
+        poses = np.column_stack([np.arange(n) * 40.0, np.zeros(n), np.zeros(n)])
+        entry = a.start_build("moor", paths, poses, "boreas", work, source="upload:test.zip", far_view=True)
+        assert entry.far_view and entry.scans_total == 2 * n
+        rec = fleet.record("moor")
+        assert rec["far_view"] == "1" and rec["scans_total"] == str(2 * n)
+        fleet.sync(b).reconcile()
+        assert b.get("moor").state == "building" and b.get("moor").far_view  # every replica says so
+        installed: list[str] = []
+        real_install = registry_module.install_file
+
+        def install(src: Path, dst: Path, exclusive: bool = False) -> Path:
+            installed.append(Path(dst).name)
+            return real_install(src, dst, exclusive=exclusive)
+
+        monkeypatch.setattr(registry_module, "install_file", install)
+        if delete_after_install:
+            real_files = worker.install_map_files
+
+            def install_then_delete(built: Path, target: Path, far_built: Path | None = None) -> None:
+                real_files(built, target, far_built)
+                assert b.delete("moor").state == "building"  # answered as a cancel
+
+            monkeypatch.setattr(worker, "install_map_files", install_then_delete)
+        ctx = {**fleet.worker_ctx(), "extractor": NearFake(), "registry": MapRegistry(fleet.settings, NearFake())}
+        outcome = asyncio.run(worker.build_map_job(ctx, "moor", rec["job_id"]))
+        assert installed == ["moor.far.h5", "moor.h5"]  # a replica that loads the map finds its companion
+        if delete_after_install:  # the cancelled build leaves neither file
+            assert outcome == "cancelled"
+            assert not (fleet.maps_dir / "moor.h5").exists() and not (fleet.maps_dir / "moor.far.h5").exists()
+            return
+        assert outcome == "ready" and fleet.record("moor")["scans_done"] == str(2 * n)
+        for reg in (a, b):
+            fleet.sync(reg).reconcile()
+            assert reg.get("moor").state == "ready" and reg.serves_far_view("moor")
+        b.delete("moor")
+        assert not (fleet.maps_dir / "moor.h5").exists() and not (fleet.maps_dir / "moor.far.h5").exists()
+    finally:
+        a.close()
+        b.close()

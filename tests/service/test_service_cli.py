@@ -81,3 +81,27 @@ def test_localize_command_sends_the_api_key(tmp_path: Path, fake_map: Path) -> N
         assert res.exit_code == 0 and res.output.startswith("localized: "), res.output
         res = CliRunner().invoke(app, base, env={"RERADAR_CLIENT_API_KEY": vehicle})
         assert res.exit_code == 0 and res.output.startswith("localized: "), res.output
+
+
+def test_localize_command_says_when_the_far_view_answered(app_and_url: tuple[typer.Typer, str], tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """QA session 34: an answer of the map's far view printed like any other; only --json showed `view`."""
+    from service.client import ReRadarClient
+
+    app, url = app_and_url
+    scan = tmp_path / "q.png"
+    scan.write_bytes(encode_navtech_png_bytes(make_scan(2, 0)))
+    real = ReRadarClient.localize
+
+    def as_far(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+        return real(self, *args, **kwargs).model_copy(update={"view": "far"})
+
+    res = CliRunner().invoke(app, ["localize", str(scan), "--server", url, "--map", "cli-map"])
+    assert res.exit_code == 0 and "far view" not in res.output, res.output
+    monkeypatch.setattr(ReRadarClient, "localize", as_far)
+    res = CliRunner().invoke(app, ["localize", str(scan), "--server", url, "--map", "cli-map"])
+    assert res.exit_code == 0 and res.output.startswith("localized: ") and ", far view," in res.output, res.output
+    unknown = tmp_path / "u.png"
+    unknown.write_bytes(encode_navtech_png_bytes(make_scan(12345, 0)))
+    res = CliRunner().invoke(app, ["localize", str(unknown), "--server", url, "--map", "cli-map"])
+    assert res.exit_code == 1 and "the far view refused it too" in res.output, res.output

@@ -3,13 +3,20 @@ answers the map's own view refuses, deleted with it, and never served for anothe
 
 from __future__ import annotations
 
+import io
 import shutil
 import sys
+import time
+import zipfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
+from fastapi.testclient import TestClient
+from pydantic import SecretStr
 
 from maps.build import build_map
 from maps.database import MapDatabase
@@ -23,9 +30,17 @@ from reradar_core.localization import FarViewConfig, PosePrior
 from service.core.config import Settings
 from service.core.registry import MapRegistry
 from service.demo import serve_in_thread
+from service.main import create_app
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from service_test_fakes import API_KEY, FakeExtractor, keyframe_poses, keyframe_time  # noqa: E402
+from service_test_fakes import (  # noqa: E402
+    API_KEY,
+    FakeExtractor,
+    keyframe_poses,
+    keyframe_time,
+    started_app,
+    upload_map_file,
+)
 
 NEAR_REACH_M = 64.0
 
@@ -182,6 +197,25 @@ def test_without_a_far_view_setting_the_companion_is_ignored(far_map: Path, tmp_
         registry.close()
 
 
+def test_a_copy_of_the_map_as_its_companion_is_not_served(far_map: Path, tmp_path: Path,
+                                                           caplog: pytest.LogCaptureFixture) -> None:
+    """The far view has the map's weights, so the weights hash passed a copy of the map itself as its companion
+    (the same keyframes): the image it was described on tells them apart."""
+    maps_dir = tmp_path / "maps"
+    maps_dir.mkdir()
+    shutil.copy(far_map, maps_dir / "open.h5")
+    shutil.copy(far_map, maps_dir / "open.far.h5")
+    registry = MapRegistry(Settings(maps_dir=maps_dir, load_demo_map=False), NearFake())
+    try:
+        with caplog.at_level("WARNING"):
+            registry.load_all()
+        assert registry.ready("open").far is None
+        assert any("far view not served" in r.getMessage() and "257 px at 1.28 m/px" in r.getMessage()
+                   for r in caplog.records)
+    finally:
+        registry.close()
+
+
 def test_a_damaged_companion_leaves_the_map_served(far_map: Path, tmp_path: Path,
                                                    caplog: pytest.LogCaptureFixture) -> None:
     maps_dir = tmp_path / "maps"
@@ -195,5 +229,247 @@ def test_a_damaged_companion_leaves_the_map_served(far_map: Path, tmp_path: Path
         db = registry.ready("open")
         assert db.far is None and len(db) == len(keyframe_poses())
         assert any("far view not served" in r.getMessage() for r in caplog.records)
+    finally:
+        registry.close()
+
+
+# ---- maps registered through POST /maps: built with the companion (archive + far_view) or sent with it ----------
+
+AUTH = {"X-API-Key": API_KEY}
+N_SCANS = len(keyframe_poses())
+
+
+@contextmanager
+def far_app(maps_dir: Path, **settings: object) -> Iterator[TestClient]:
+    """A ``TestClient`` of the app started over ``maps_dir`` with ``NearFake`` (a model with a far view)."""
+    cfg = Settings(maps_dir=maps_dir, load_demo_map=False, api_key=SecretStr(API_KEY), torch_threads=1,
+                   **settings)  # type: ignore[arg-type]
+    with TestClient(create_app(cfg, NearFake())) as client:
+        yield client
+
+
+def _registry(client: TestClient) -> MapRegistry:
+    return client.app.state.reradar.registry  # type: ignore[attr-defined, no-any-return]
+
+
+def _far_archive() -> dict[str, tuple[str, bytes]]:
+    """``POST /maps`` files: the open-land scans of ``far_map`` as a zip of PNGs, and their poses (t_s,x,y,yaw)."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for i in range(N_SCANS):
+            zf.writestr(f"{keyframe_time(i)}.png", encode_navtech_png_bytes(far_scan(i, keyframe_time(i))))
+    poses = keyframe_poses()
+    lines = ["t_s,x,y,yaw"] + [f"{keyframe_time(i) / 1e6:.6f}," + ",".join(repr(float(v)) for v in poses[i])
+                               for i in range(N_SCANS)]
+    return {"archive": ("scans.zip", buf.getvalue()), "poses": ("poses.csv", ("\n".join(lines) + "\n").encode())}
+
+
+def _wait_built(client: TestClient, map_id: str, timeout_s: float = 120.0) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while (info := client.get(f"/maps/{map_id}").json())["state"] == "building" and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return info
+
+
+def _localize_far_scan(client: TestClient, map_id: str) -> dict:
+    png = encode_navtech_png_bytes(far_scan(2, keyframe_time(2) + 5))
+    r = client.post("/localize", data={"map_id": map_id}, files={"scan": ("q.png", png, "image/png")}, headers=AUTH)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def _left_in(maps_dir: Path, map_id: str) -> list[str]:
+    """Files of ``map_id`` (map, companion, verification records) and anything staged, left in ``maps_dir``."""
+    return sorted(str(p.relative_to(maps_dir)) for p in maps_dir.rglob("*")
+                  if p.is_file() and (p.name.startswith(f"{map_id}.") or ".staging" in p.parts))
+
+
+def test_an_archive_built_with_far_view_is_served_with_its_companion(tmp_path: Path) -> None:
+    maps_dir = tmp_path / "maps"
+    with far_app(maps_dir) as client:
+        r = client.post("/maps", data={"map_id": "moor", "preset": "boreas", "far_view": "true"},
+                        files=_far_archive(), headers=AUTH)
+        assert r.status_code == 202, r.text
+        assert r.json()["far_view"] is True and r.json()["scans_total"] == 2 * N_SCANS  # both views' descriptions
+        info = _wait_built(client, "moor")
+        assert info["state"] == "ready", info
+        assert info["far_view"] is True and info["num_keyframes"] == N_SCANS and info["progress"] == 1.0
+        assert [(m["id"], m["far_view"]) for m in client.get("/maps").json()["data"]] == [("moor", True)]
+        registry = _registry(client)
+        assert registry.serves_far_view("moor")
+        # the companion the CLI's `build-map --far-view` writes: the same keyframes, in the far view
+        assert (maps_dir / "moor.far.h5").is_file() and not list((maps_dir / ".staging").iterdir())
+        with open_map(maps_dir / "moor.far.h5", "fake-extractor-in257", "f" * 64) as far_kf:
+            assert far_kf.metadata.cartesian_width_px == 257 and len(far_kf) == N_SCANS
+            np.testing.assert_array_equal(far_kf.poses, registry.ready("moor").map.poses)
+        res = _localize_far_scan(client, "moor")  # open land: nothing within the map's own 64 m
+        assert res["view"] == "far" and res["status"] == "localized" and res["keyframe"]["keyframe_id"] == 2
+        # without far_view the same archive builds the map alone
+        r = client.post("/maps", data={"map_id": "near", "preset": "boreas"}, files=_far_archive(), headers=AUTH)
+        assert r.status_code == 202 and r.json()["far_view"] is False and r.json()["scans_total"] == N_SCANS
+        assert _wait_built(client, "near")["far_view"] is False and not (maps_dir / "near.far.h5").exists()
+        assert _localize_far_scan(client, "near")["view"] == "near"
+        # deleted with its map (and its verification record)
+        assert client.delete("/maps/moor", headers=AUTH).status_code == 200
+        assert not registry.serves_far_view("moor") and _left_in(maps_dir, "moor") == []
+    with far_app(maps_dir) as client:  # nothing of it comes back at the next start
+        assert [m["id"] for m in client.get("/maps").json()["data"]] == ["near"]
+
+
+def test_a_map_file_registers_with_its_far_map_file(far_map: Path, tmp_path: Path) -> None:
+    maps_dir = tmp_path / "maps"
+    with far_app(maps_dir) as client:
+        with far_map.open("rb") as fm, far_view_path(far_map).open("rb") as ff:
+            r = client.post("/maps", data={"map_id": "open"}, headers=AUTH,
+                            files={"map_file": ("open.h5", fm), "far_map_file": ("open.far.h5", ff)})
+        assert r.status_code == 201, r.text
+        assert r.json()["far_view"] is True and r.json()["state"] == "ready"
+        assert _registry(client).serves_far_view("open") and (maps_dir / "open.far.h5").is_file()
+        assert client.get("/maps/open").json()["far_view"] is True
+        res = _localize_far_scan(client, "open")
+        assert res["view"] == "far" and res["status"] == "localized" and res["keyframe"]["keyframe_id"] == 2
+        # the same map without its companion: served alone
+        r = upload_map_file(client, far_map, "plain")
+        assert r.status_code == 201 and r.json()["far_view"] is False
+        assert client.delete("/maps/open", headers=AUTH).status_code == 200
+        assert _left_in(maps_dir, "open") == []
+
+
+@pytest.fixture(scope="module")
+def other_far_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A far-view map of other scans (times 1 us later) over the same poses: the companion of another map."""
+    return build_map(tmp_path_factory.mktemp("other") / "other.h5", FarFake(),
+                     lambda i: far_scan(i, keyframe_time(i) + 1), keyframe_poses(), radar_preset="boreas")
+
+
+@pytest.mark.parametrize("case", ["another_maps_companion", "fewer_keyframes", "the_map_itself"])
+def test_a_far_map_file_that_does_not_fit_the_map_is_422_and_nothing_is_registered(
+        far_map: Path, other_far_map: Path, tmp_path: Path, case: str) -> None:
+    maps_dir = tmp_path / "maps"
+    if case == "fewer_keyframes":
+        far = build_map(tmp_path / "few.h5", FarFake(), lambda i: far_scan(i, keyframe_time(i)),
+                        keyframe_poses()[:4], radar_preset="boreas")
+    else:
+        far = {"another_maps_companion": other_far_map, "the_map_itself": far_map}[case]
+    expect = {"another_maps_companion": "the time of 6 of its 6 keyframes differs",
+              "fewer_keyframes": "it holds 4 keyframes, the map 6",
+              "the_map_itself": "257 px at 1.28 m/px"}[case]
+    with far_app(maps_dir) as client:
+        with far_map.open("rb") as fm, far.open("rb") as ff:
+            r = client.post("/maps", data={"map_id": "open"}, headers=AUTH,
+                            files={"map_file": ("open.h5", fm), "far_map_file": ("open.far.h5", ff)})
+        assert r.status_code == 422, r.text
+        detail = r.json()["detail"]
+        assert expect in detail and "far_map_file" in detail and str(tmp_path) not in detail, detail
+        assert "build-map --far-view" in detail
+        assert client.get("/maps/open").status_code == 404 and client.get("/maps").json()["count"] == 0
+        assert _left_in(maps_dir, "open") == []
+        # the id is free again: the map alone registers
+        assert upload_map_file(client, far_map, "open").status_code == 201
+
+
+def test_a_far_view_companion_sent_as_the_map_is_refused(far_map: Path, tmp_path: Path) -> None:
+    with far_app(tmp_path / "maps") as client:
+        r = upload_map_file(client, far_view_path(far_map), "comp")
+        assert r.status_code == 422, r.text
+        assert "far-view companion" in r.json()["detail"] and "'far_map_file'" in r.json()["detail"]
+        assert client.get("/maps/comp").status_code == 404
+
+
+def test_far_view_requests_where_the_service_serves_none_are_400(far_map: Path, tmp_path: Path) -> None:
+    maps_dir = tmp_path / "maps"
+    with far_app(maps_dir, far_view=False) as client:
+        r = client.post("/maps", data={"map_id": "moor", "preset": "boreas", "far_view": "true"},
+                        files=_far_archive(), headers=AUTH)
+        assert r.status_code == 400, r.text
+        assert "RERADAR_FAR_VIEW=false" in r.json()["detail"] and "'far_view'" in r.json()["detail"]
+        with far_map.open("rb") as fm, far_view_path(far_map).open("rb") as ff:
+            r = client.post("/maps", data={"map_id": "open"}, headers=AUTH,
+                            files={"map_file": ("open.h5", fm), "far_map_file": ("open.far.h5", ff)})
+        assert r.status_code == 400, r.text
+        assert "RERADAR_FAR_VIEW=false" in r.json()["detail"] and "'far_map_file'" in r.json()["detail"]
+        assert client.get("/maps").json()["count"] == 0
+        assert _left_in(maps_dir, "moor") == [] and _left_in(maps_dir, "open") == []
+        # far_view=false is the default, and allowed
+        r = client.post("/maps", data={"map_id": "moor", "preset": "boreas", "far_view": "false"},
+                        files=_far_archive(), headers=AUTH)
+        assert r.status_code == 202 and _wait_built(client, "moor")["far_view"] is False
+    with started_app(tmp_path / "fake") as client:  # a model without a far view
+        r = client.post("/maps", data={"map_id": "moor", "preset": "boreas", "far_view": "true"},
+                        files=_far_archive(), headers=AUTH)
+        assert r.status_code == 400 and "cannot describe the far view" in r.json()["detail"], r.text
+
+
+def test_far_view_fields_go_with_their_kind_of_upload(far_map: Path, tmp_path: Path) -> None:
+    with far_app(tmp_path / "maps") as client:
+        with far_map.open("rb") as fm:
+            r = client.post("/maps", data={"map_id": "open", "far_view": "true"}, headers=AUTH,
+                            files={"map_file": ("open.h5", fm)})
+        assert r.status_code == 400 and "'far_map_file'" in r.json()["detail"], r.text
+        with far_view_path(far_map).open("rb") as ff:
+            r = client.post("/maps", data={"map_id": "moor", "preset": "boreas"}, headers=AUTH,
+                            files={**_far_archive(), "far_map_file": ("open.far.h5", ff)})
+        assert r.status_code == 400 and "'far_view=true'" in r.json()["detail"], r.text
+        r = client.post("/maps", data={"map_id": "open"}, headers=AUTH,
+                        files={"map_file": ("open.h5", far_map.read_bytes()), "far_map_file": ("f.h5", b"")})
+        assert r.status_code == 400 and "empty" in r.json()["detail"], r.text
+        assert client.get("/maps").json()["count"] == 0
+
+
+def test_the_client_registers_maps_with_their_far_view(far_map: Path, tmp_path: Path) -> None:
+    from service.client import ReRadarAPIError, ReRadarClient
+
+    files = _far_archive()
+    (tmp_path / "scans.zip").write_bytes(files["archive"][1])
+    (tmp_path / "poses.csv").write_bytes(files["poses"][1])
+    settings = Settings(maps_dir=tmp_path / "maps", load_demo_map=False, api_key=API_KEY, torch_threads=1)
+    with serve_in_thread(settings, NearFake()) as url, ReRadarClient(url, api_key=API_KEY) as client:
+        info = client.register_map("open", far_map, far_map_path=far_view_path(far_map))
+        assert info.state == "ready" and info.far_view
+        assert not client.register_map("plain", far_map).far_view
+        with pytest.raises(ReRadarAPIError) as refused:  # another map's keyframes: nothing registered
+            client.register_map("bad", far_map, far_map_path=far_map)
+        assert refused.value.status_code == 422 and "far_map_file" in refused.value.detail
+        assert client.register_map_from_scans("moor", tmp_path / "scans.zip", tmp_path / "poses.csv", preset="boreas",
+                                              far_view=True).far_view
+        built = client.wait_for_map("moor", timeout_s=120)
+        assert built.far_view and built.num_keyframes == N_SCANS
+        assert sorted(m.id for m in client.list_maps().data) == ["moor", "open", "plain"]
+
+
+def test_what_the_folder_holds_under_a_companions_name_is_logged(far_map: Path, tmp_path: Path,
+                                                                 caplog: pytest.LogCaptureFixture) -> None:
+    """QA session 34: a companion without its map, a folder under a companion's name were skipped without a word,
+    an attached one was not logged either, and a companion of another map had its shared arrays file written
+    before its keyframes were compared."""
+    maps_dir = tmp_path / "maps"
+    maps_dir.mkdir()
+    shutil.copy(far_map, maps_dir / "open.h5")
+    shutil.copy(far_view_path(far_map), maps_dir / "open.far.h5")
+    shutil.copy(far_view_path(far_map), maps_dir / "lone.far.h5")  # its map is not there
+    shutil.copy(far_map, maps_dir / "other.h5")
+    (maps_dir / "other.far.h5").mkdir()  # a folder under the companion's name
+    other = build_map(tmp_path / "x.h5", FarFake(), lambda i: far_scan(i, keyframe_time(i) + 1), keyframe_poses(),
+                      radar_preset="boreas")
+    shutil.copy(far_map, maps_dir / "third.h5")
+    shutil.copy(other, maps_dir / "third.far.h5")  # another map's companion: other scan times
+    registry = MapRegistry(Settings(maps_dir=maps_dir, load_demo_map=False), NearFake())
+    try:
+        with caplog.at_level("INFO"):
+            registry.load_all()
+        log = [r.getMessage() for r in caplog.records]
+        assert registry.ready("open").far is not None
+        assert any(m.startswith("open.far.h5: far view served with map open") for m in log)
+        assert any(m.startswith("lone.far.h5: far-view companion without its map lone.h5") for m in log)
+        assert any(m.startswith("other.far.h5: far view not served: not a readable file") for m in log)
+        assert any(m.startswith("third.far.h5: far view not served") and "does not hold the keyframes" in m
+                   for m in log)
+        assert registry.ready("other").far is None and registry.ready("third").far is None
+        arrays = registry.settings.arrays_dir
+        assert arrays is not None  # shared arrays are on by default
+        served = [registry.ready(m) for m in ("open", "other", "third")]
+        used = {d.arrays.path.name for db in served for d in (db, db.far) if d is not None and d.arrays is not None}
+        assert len(used) >= 2  # the maps' and the served companion's
+        assert {p.name for p in arrays.iterdir() if p.is_file() and not p.name.endswith(".lock")} == used
     finally:
         registry.close()

@@ -313,7 +313,10 @@ def test_text_fields_sent_as_files_are_400_on_every_form_route(client: httpx.Cli
     _problem(client.post("/scans", files=[scan, ("preset", ("p.txt", b"boreas"))]), 400, "['preset'] were sent")
     r = client.post("/maps", headers=AUTH, files=[("map_file", ("m.h5", fake_map.read_bytes())),
                                                   ("map_id", ("id.txt", b"qa-file"))])
-    _problem(r, 400, "['map_id'] were sent as files", "['archive', 'map_file', 'poses'] are files")
+    _problem(r, 400, "['map_id'] were sent as files", "['archive', 'far_map_file', 'map_file', 'poses'] are files")
+    r = client.post("/maps", headers=AUTH, data={"map_id": "qa-file"},
+                    files=[("map_file", ("m.h5", fake_map.read_bytes())), ("far_view", ("f.txt", b"true"))])
+    _problem(r, 400, "['far_view'] were sent as files")
     # the same fields as text are fine
     assert client.post("/scans", files=[scan], data={"preset": "boreas"}).status_code == 201
     assert client.post("/localize", files=[scan], data={"map_id": "qa", "session_id": "s1"}).status_code == 200

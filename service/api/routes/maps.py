@@ -12,6 +12,7 @@ import numpy as np
 from fastapi import APIRouter, File, Form, Request, Response, UploadFile, status
 from starlette.concurrency import run_in_threadpool
 
+from maps.paths import far_view_path
 from reradar_core.errors import DatasetError, PoseFileError, TimeUnitError
 from reradar_core.io.datasets import check_pose_span, check_pose_time_unit, mid_sweep_poses_in
 from reradar_core.io.poses import TXYYAW_TIME_HEADERS, read_poses
@@ -41,7 +42,10 @@ _E = {"model": ErrorResponse}
 def map_info(entry: MapEntry, note: str | None = None) -> MapInfo:
     info = MapInfo(id=entry.map_id, state=entry.state, progress=entry.progress, error=entry.error, note=note,
                    scans_done=entry.scans_done, scans_total=entry.scans_total,
-                   registered_utc=entry.registered_utc)
+                   registered_utc=entry.registered_utc,
+                   # served with a companion; while building, whether the build makes one
+                   far_view=(entry.db.far is not None) if entry.db is not None else (entry.state == "building"
+                                                                                     and entry.far_view))
     if entry.db is not None:
         m = entry.db.metadata
         info.num_keyframes = len(entry.db)
@@ -90,7 +94,8 @@ def _declared_time_unit(pose_path: Path) -> str | None:
 
 
 def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, archive: UploadFile | None,
-              poses: UploadFile | None, preset: str | None) -> tuple[MapEntry, bool]:
+              poses: UploadFile | None, preset: str | None, far_view: bool = False,
+              far_map_file: UploadFile | None = None) -> tuple[MapEntry, bool]:
     registry = state.registry
     registry.validate_id(map_id)
     registry.path_for(map_id)
@@ -102,13 +107,32 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         if preset is not None:  # it would be ignored: a map file records the preset it was built with
             raise BadRequestError("'preset' applies to a scan 'archive' (the preset of its scans); a prebuilt "
                                   "'map_file' carries its own preset: leave 'preset' out")
+        if far_view:  # a prebuilt map's companion is built already: it comes as a file
+            raise BadRequestError("'far_view' asks a scan 'archive' build for a far-view companion; a prebuilt "
+                                  "'map_file' comes with its companion as 'far_map_file' (the <map>.far.h5 of "
+                                  "`reradar build-map --far-view`)")
+        if far_map_file is not None:
+            registry.check_far_view_served("far_map_file")  # before anything is stored
         staged = registry.staging_dir() / f"{uuid.uuid4().hex}.h5"
-        if _save_upload(map_file, staged) == 0:
+        far_staged = far_view_path(staged) if far_map_file is not None else None
+        try:
+            if _save_upload(map_file, staged) == 0:
+                raise BadRequestError("the uploaded map file is empty")
+            if far_map_file is not None and far_staged is not None and _save_upload(far_map_file, far_staged) == 0:
+                raise BadRequestError("the uploaded far-view map file ('far_map_file') is empty")
+        except BaseException:
             staged.unlink(missing_ok=True)
-            raise BadRequestError("the uploaded map file is empty")
-        return registry.register_file(map_id, staged), False
+            if far_staged is not None:
+                far_staged.unlink(missing_ok=True)
+            raise
+        return registry.register_file(map_id, staged, far_staged), False
+    if far_map_file is not None:
+        raise BadRequestError("'far_map_file' goes with a prebuilt 'map_file'; an 'archive' build makes its own "
+                              "far-view companion with 'far_view=true'")
     if poses is None:
         raise BadRequestError("'archive' needs a 'poses' file (Boreas radar_poses.csv, MulRan global_pose.csv or t,x,y,yaw CSV)")
+    if far_view:
+        registry.check_far_view_served("far_view")  # before the archive is unpacked
     if preset is not None and preset.lower() not in PRESETS:
         raise BadRequestError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
     # early check so a large archive is not unpacked for a taken id; start_build re-checks atomically
@@ -153,7 +177,8 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         # keyframe poses at mid-sweep (docs/CONVENTIONS.md); every preset sweeps 400 azimuths at 4 Hz
         pose_arr = mid_sweep_poses_in(track, stamps, get_preset(preset or SWEEP_PRESET))
         entry = state.registry.start_build(map_id, scan_paths, pose_arr, preset, work,
-                                           source=f"upload:{archive.filename or 'archive'}")  # type: ignore[union-attr]
+                                           source=f"upload:{archive.filename or 'archive'}",  # type: ignore[union-attr]
+                                           far_view=far_view)
         return entry, True
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
@@ -167,18 +192,27 @@ def register_map(
     state: StateDep,
     _auth: ApiKeyDep,
     _form: FormDep,
-    _fields: Annotated[None, form_fields("map_id", "map_file", "archive", "poses", "preset",
-                                                 files=("map_file", "archive", "poses"))],
+    _fields: Annotated[None, form_fields("map_id", "map_file", "archive", "poses", "preset", "far_view",
+                                         "far_map_file", files=("map_file", "archive", "poses", "far_map_file"))],
     response: Response,
     map_id: Annotated[str, Form(pattern=MAP_ID_PATTERN, description="New map id.")],
     map_file: Annotated[UploadFile | None, File(description="A prebuilt HDF5 map (docs/MAP_FORMAT.md).")] = None,
     archive: Annotated[UploadFile | None, File(description="zip/tar(.gz) of <timestamp_us>.png|.npy scans.")] = None,
     poses: Annotated[UploadFile | None, File(description="Pose file covering the scans' timestamps.")] = None,
     preset: Annotated[str | None, Form(description="Radar preset of the archive's scans.")] = None,
+    far_view: Annotated[bool, Form(description=(
+        "With 'archive': also build the map's far-view companion from the same scans and poses (as `reradar "
+        "build-map --far-view`; the far pass costs about as much again as the map's), served with the map for the answers "
+        "its own view refuses (docs/MODEL.md, 'The far view'). 400 where the service serves no far view."))] = False,
+    far_map_file: Annotated[UploadFile | None, File(description=(
+        "With 'map_file': its far-view companion (the <map>.far.h5 of `reradar build-map --far-view`), checked "
+        "against the map's keyframes (422 and nothing registered when it does not hold them) and served with it. "
+        "400 where the service serves no far view."))] = None,
 ) -> MapInfo:
-    """Register a route database: upload a prebuilt map (201, ready) or a scan archive + poses (202: the map
-    is built in the background; poll ``GET /maps/{id}``). Needs the API key."""
-    entry, building = _register(state, map_id, map_file, archive, poses, preset)
+    """Register a route database: upload a prebuilt map (201, ready; with its far-view companion if sent) or a
+    scan archive + poses (202: the map, and with ``far_view`` its far-view companion, is built in the background;
+    poll ``GET /maps/{id}``). Needs the API key."""
+    entry, building = _register(state, map_id, map_file, archive, poses, preset, far_view, far_map_file)
     if building:
         response.status_code = status.HTTP_202_ACCEPTED
     return map_info(entry, state.registry.build_note(entry))
