@@ -20,7 +20,6 @@ over all revisits, those in open land (``World.is_open_land``) and those whose n
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -73,10 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         rows[f"far smooth {sigma:g} m"] = recall(sim_far @ (weights / weights.sum(axis=1, keepdims=True)).T)
     out = {"suite": a.suite, "model": a.model, "overrides": ov, "revisits": int(revisit.sum()),
            "open": int((revisit & is_open).sum()), "sparse": int((revisit & sparse).sum()), "recall_at_1": rows}
-    print(json.dumps(out), flush=True)
-    if a.json:
-        with open(a.json, "a") as fh:
-            fh.write(json.dumps(out) + "\n")
+    C.emit_row(out, a.json)
     return 0
 
 

@@ -21,7 +21,6 @@ and for both, the answers' success rate (localized within the suite's radius and
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import replace
@@ -108,10 +107,7 @@ def main(argv: list[str] | None = None) -> int:
         if k.endswith(("screened", "top1", "place")):
             row[f"{k}_open"] = round(100 * h[is_open].mean(), 1) if is_open.any() else None
     row["seconds"] = round(time.perf_counter() - t0, 1)
-    print(json.dumps(row), flush=True)
-    if a.json:
-        with open(a.json, "a") as fh:
-            fh.write(json.dumps(row) + "\n")
+    C.emit_row(row, a.json)
     return 0
 
 
