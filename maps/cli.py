@@ -28,7 +28,9 @@ def build_map_command(
                                         "'Sparser maps')."),
     max_keypoints: int | None = typer.Option(None, min=2, help="Cap stored keypoints per keyframe."),
     name: str | None = typer.Option(None, help="Map name stored in the file (default: sequence name)."),
-    overwrite: bool = typer.Option(False, help="Replace an existing map file."),
+    overwrite: bool = typer.Option(False, help="Replace an existing map file, and an existing <out>.far.h5 (rebuilt "
+                                   "with --far-view, else removed: it would describe another map). Without it "
+                                   "either is refused."),
     place_repetition: bool = typer.Option(True, "--place-repetition/--no-place-repetition",
                                           help="Measure where the map repeats itself (each keyframe localized "
                                           "against the map, ~20-40 ms per keyframe and thread) and store it, so no "
@@ -63,8 +65,14 @@ def build_map_command(
         typer.echo(f"error: --out {out.name}: a map's file name must not end in {FAR_VIEW_SUFFIX}, the name of a "
                    f"far-view companion (e.g. --out {out.name[: -len(FAR_VIEW_SUFFIX)]}.h5)", err=True)
         raise typer.Exit(2)
-    if far_view and far_view_path(out).exists() and not overwrite:
-        typer.echo(f"error: {far_view_path(out)} exists; pass --overwrite to replace it", err=True)
+    companion = far_view_path(out)
+    if (companion.exists() or companion.is_symlink()) and not overwrite:
+        if far_view:
+            typer.echo(f"error: {companion} exists; pass --overwrite to replace it", err=True)
+        else:  # an earlier map's companion, found beside this map by the service; removed only when asked
+            typer.echo(f"error: {companion} exists: the far-view companion of an earlier map, which would not "
+                       f"describe this one; pass --overwrite to remove it (or --far-view --overwrite to rebuild it "
+                       "with this map)", err=True)
         raise typer.Exit(2)
     try:
         if time_unit is not None and time_unit.strip().lower() not in TIME_UNITS:

@@ -25,6 +25,7 @@ import hashlib
 import logging
 import mmap
 import os
+import re
 import struct
 import subprocess
 import sys
@@ -163,12 +164,31 @@ class MapMetadata:
         return asdict(self)
 
 
+#: the image-size part of a model id (``-in201``, ``-in257``): compared through the map's image attributes instead
+_IMAGE_SIZE_ID = re.compile(r"-in\d+(?=-|$)")
+
+
 def check_model(metadata: MapMetadata, model_id: str, weights_sha256: str, path: str | Path = "map") -> None:
     """Refuse a map built by another model (its descriptors are not comparable with ours).
 
+    ``model_id`` ("?" or empty: not checked) must equal the map's up to its image size (``-in<px>``, which the
+    service compares with the map's image attributes, ``MapRegistry.check_compatible``, saying which images differ):
+    the same weights describe a scan differently under another option (``ModelConfig.model_id``: the canonical
+    heading's ``-ch``), so a map described without the canonical heading is refused by a model that uses it, and the
+    other way round.
+
     Raises:
-        ModelMismatchError: the map's weights hash differs from ``weights_sha256``.
+        ModelMismatchError: the map's weights hash differs from ``weights_sha256``, or its model id from
+            ``model_id``.
     """
+    if (metadata.weights_sha256 == weights_sha256 and model_id not in ("", "?")
+            and _IMAGE_SIZE_ID.sub("", metadata.model_id) != _IMAGE_SIZE_ID.sub("", model_id)):
+        raise ModelMismatchError(
+            f"{path}: map was described as {metadata.model_id!r} but the running model describes scans as "
+            f"{model_id!r} (the same weights with another option, e.g. the canonical heading of model ids ending "
+            f"in '-ch'); its descriptors are incomparable - rebuild the map with `reradar build-map` using "
+            f"the current model"
+        )
     if metadata.weights_sha256 != weights_sha256:
         raise ModelMismatchError(
             f"{path}: map was built with model {metadata.model_id!r} (weights sha256 "

@@ -1,13 +1,15 @@
 """Global-descriptor cosine under arbitrary yaw rotation, with and without the sensor-disc mask.
 
 For each scan and yaw theta (default 5...355 deg, step 5) the rotated Cartesian image is rendered from the
-polar scan with its azimuths shifted by theta (``yaw_consistency.rotated_image``: exact for any angle up to
+polar scan with its azimuths shifted by theta (``geometry.heading.turn_scan``: exact for any angle up to
 the polar-to-Cartesian interpolation), and the cosine between the global descriptors of the rotated and the
 unrotated scan is reported (min / mean over scans and angles), for each disc-mask variant:
 
 - ``none``: NetVLAD over all F' cells (the behaviour before ``ModelConfig.disc_mask``);
 - ``fmap``: only F' cells inside the inscribed circle (``disc_mask=True``, the default);
-- ``fmap+input``: also the input image zeroed outside the circle (``disc_mask_input=True``).
+- ``fmap+input``: also the input image zeroed outside the circle (``disc_mask_input=True``);
+- ``fmap+ch``: the F' mask and the canonical heading (``canonical_heading=True``, an option, off by default;
+  the other variants switch it off).
 
 With ``--angles`` the yaws are the given ones and a per-angle table is printed, with a reference row: the
 cosine between consecutive scans of the folder (the next frame, same heading; on the real Oxford scans 1.6-2.5 m
@@ -33,18 +35,18 @@ import torch
 
 sys.path[:0] = [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parents[1])]
 
-from yaw_consistency import rotated_image  # noqa: E402
 
-from reradar_core.geometry.cartesian import polar_to_cartesian  # noqa: E402
+from reradar_core.geometry.heading import turn_scan  # noqa: E402
 from reradar_core.io.scan import load_scan  # noqa: E402
 from reradar_core.model import DescriptorExtractor  # noqa: E402
 
-VARIANTS = {"none": (False, False), "fmap": (True, False), "fmap+input": (True, True)}
+VARIANTS = {"none": (False, False, False), "fmap": (True, False, False), "fmap+input": (True, True, False),
+            "fmap+ch": (True, False, True)}
 
 
-def set_disc_mask(ex: DescriptorExtractor, fmap: bool, image: bool) -> None:
-    """Switch the (parameter-free) disc masks of a loaded extractor in place."""
-    cfg = dataclasses.replace(ex.config, disc_mask=fmap, disc_mask_input=image)
+def set_disc_mask(ex: DescriptorExtractor, fmap: bool, image: bool, canonical: bool = True) -> None:
+    """Switch the (parameter-free) disc masks and the canonical heading of a loaded extractor in place."""
+    cfg = dataclasses.replace(ex.config, disc_mask=fmap, disc_mask_input=image, canonical_heading=canonical)
     ex.config = cfg
     ex.net.config = cfg
 
@@ -62,12 +64,13 @@ def _cos(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def rotation_cosines(ex: DescriptorExtractor, scans: list, thetas_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(len(scans), len(thetas)) cosines, rotated vs unrotated: (global descriptor, raw NetVLAD vector)."""
-    g0, v0 = descriptors(ex, np.stack([polar_to_cartesian(s, ex.cartesian) for s in scans]))
+    """(len(scans), len(thetas)) cosines, rotated vs unrotated: (global descriptor, raw NetVLAD vector). The images
+    are the extractor's own (``cartesian_image``: at the canonical heading when the model uses it)."""
+    g0, v0 = descriptors(ex, np.stack([ex.cartesian_image(s) for s in scans]))
     out = np.empty((len(scans), len(thetas_deg)))
     raw = np.empty_like(out)
     for j, th in enumerate(thetas_deg):
-        g, v = descriptors(ex, np.stack([rotated_image(s, ex, np.deg2rad(th)) for s in scans]))
+        g, v = descriptors(ex, np.stack([ex.cartesian_image(turn_scan(s, np.deg2rad(th))) for s in scans]))
         out[:, j], raw[:, j] = _cos(g, g0), _cos(v, v0)
     return out, raw
 
@@ -113,7 +116,7 @@ def main() -> None:
                 for j, th in enumerate(thetas):
                     print(f"| {th:g} | {c[:, j].min():.3f} / {c[:, j].mean():.3f} | {raw[:, j].min():.3f} / "
                           f"{raw[:, j].mean():.3f} |")
-                g, v = descriptors(ex, np.stack([polar_to_cartesian(sc, ex.cartesian) for sc in scans]))
+                g, v = descriptors(ex, np.stack([ex.cartesian_image(sc) for sc in scans]))
                 nxt, nxt_raw = _cos(g[1:], g[:-1]), _cos(v[1:], v[:-1])
                 print(f"| next frame, same heading | {nxt.min():.3f} / {nxt.mean():.3f} | {nxt_raw.min():.3f} / "
                       f"{nxt_raw.mean():.3f} |", flush=True)

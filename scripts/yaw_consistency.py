@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from reradar_core.geometry.cartesian import polar_to_cartesian
+from reradar_core.geometry.heading import turn_scan
 from reradar_core.io.scan import load_scan
 from reradar_core.model import DescriptorExtractor
 from reradar_core.training.data import crop_view
@@ -30,9 +31,7 @@ def rotated_image(scan, ex: DescriptorExtractor, theta: float) -> np.ndarray:
 
     A sensor turned left by theta sees a point at azimuth a (clockwise) at azimuth a + theta.
     """
-    rot = scan.with_power(scan.power)
-    rot.azimuths = np.mod(scan.azimuths + theta, 2 * np.pi)
-    return polar_to_cartesian(rot, ex.cartesian)
+    return polar_to_cartesian(turn_scan(scan, theta), ex.cartesian)
 
 
 def consistency_curve(ex: DescriptorExtractor, scans: list, step_deg: float = 5.0) -> tuple[np.ndarray, np.ndarray]:

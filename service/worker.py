@@ -195,7 +195,7 @@ def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
             raise BuildCancelledError
         # recorded first, so a retry after a stop between the install and ``ready`` knows the file as its own
         queue.update(map_id, installed=identity_text(file_identity(built)))
-        try:  # the companion first: replicas loading the map on the ``built`` event find it beside it
+        try:  # the map is the commit point; its companion is beside it by then (``install_map_files``)
             install_map_files(built, target, far_view_path(built) if far_view else None)
         except FileExistsError:
             raise MapIdTakenError(

@@ -27,6 +27,7 @@ import torch.nn.functional as F
 from reradar_core.errors import ConfigError, ModelMismatchError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.cartesian import CartesianConfig, metric_to_pixel, polar_to_cartesian
+from reradar_core.geometry.heading import canonical_turn, turn_scan
 from reradar_core.io.scan import RadarScan
 from reradar_core.model.config import ModelConfig
 from reradar_core.model.network import DescriptorNet, fuse_batchnorm
@@ -121,6 +122,15 @@ def _onnx_network(weights: Path, sha256: str, runtime: str) -> OnnxNetwork | Non
         return None
 
 
+def _turned_points(xy: np.ndarray, turn: float) -> np.ndarray:
+    """(N, 2) sensor-frame points (metres) in the frame of the sensor yawed counter-clockwise by ``turn`` (rad):
+    ``R(-turn) xy`` (``geometry.heading.turn_scan``'s image of them)."""
+    if not turn:
+        return xy
+    c, s = math.cos(turn), math.sin(turn)
+    return np.asarray(xy, np.float64) @ np.array([[c, -s], [s, c]])
+
+
 def sample_feature_map(fmap: torch.Tensor | np.ndarray, rc_px: np.ndarray, stride: int) -> np.ndarray:
     """Bilinearly sample F' at input-image pixel positions.
 
@@ -152,7 +162,7 @@ class DescriptorExtractor:
 
     Attributes:
         config: the architecture (``ModelConfig``).
-        model_id: architecture id, e.g. "reresnet-c8-w0.5-k32-d256-in201".
+        model_id: architecture id, e.g. "reresnet-c8-w0.5-k32-d256-in201" (``ModelConfig.model_id``; ``-ch`` with the canonical heading).
         weights_sha256: sha256 of the weights file ("" for untrained/in-memory weights); maps store it and
             refuse a mismatched model.
         name: registry name ("our-3-boreas", ...) or "" when built from a network.
@@ -280,8 +290,18 @@ class DescriptorExtractor:
         g, f = self.net(torch.as_tensor(arr)[:, None])
         return g.numpy(), f.numpy()
 
+    def heading_turn(self, scan: RadarScan) -> float:
+        """The counter-clockwise turn (radians) of the sensor at which the network sees the scan: the scan's
+        canonical heading (``geometry.heading.canonical_turn`` over the image's half width) when
+        ``config.canonical_heading``, else 0."""
+        if not self.config.canonical_heading:
+            return 0.0
+        cart = self.cartesian
+        return canonical_turn(scan, cart.centre_px * cart.resolution_m)
+
     def cartesian_image(self, scan: RadarScan) -> np.ndarray:
-        return polar_to_cartesian(scan, self.cartesian)
+        """(W, W) float32 network input: the scan's Cartesian image, seen at ``heading_turn(scan)``."""
+        return polar_to_cartesian(turn_scan(scan, self.heading_turn(scan)), self.cartesian)
 
     @property
     def landmark_range_m(self) -> float:
@@ -291,8 +311,8 @@ class DescriptorExtractor:
         cart = self.cartesian
         return (cart.centre_px + 1.0) * cart.resolution_m * math.sqrt(2.0) + 1.0
 
-    def _keypoints(self, scan: RadarScan, landmarks: Any) -> tuple[np.ndarray, np.ndarray]:
-        """Sensor-frame keypoints (N, 2) inside the image and their strengths (N,)."""
+    def _keypoints(self, scan: RadarScan, landmarks: Any, turn: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor-frame keypoints (N, 2) inside the image seen at ``turn`` (rad) and their strengths (N,)."""
         if landmarks is None:
             from reradar_core.landmarks import detect_landmarks
 
@@ -303,7 +323,7 @@ class DescriptorExtractor:
         else:
             xy = np.asarray(landmarks, np.float64).reshape(-1, 2)
             strength = np.ones(len(xy))
-        rc = metric_to_pixel(xy, self.cartesian)
+        rc = metric_to_pixel(_turned_points(xy, turn), self.cartesian)
         w = self.cartesian.width_px
         inside = np.all((rc >= 0) & (rc <= w - 1), axis=1)
         xy, strength = xy[inside], strength[inside]
@@ -313,8 +333,10 @@ class DescriptorExtractor:
         return xy, strength
 
     def _features(self, scan: RadarScan, g: np.ndarray, fmap: np.ndarray, landmarks: Any) -> ScanFeatures:
-        xy, _ = self._keypoints(scan, landmarks)
-        local = sample_feature_map(fmap, metric_to_pixel(xy, self.cartesian), self.config.stride)
+        turn = self.heading_turn(scan)
+        xy, _ = self._keypoints(scan, landmarks, turn)
+        local = sample_feature_map(fmap, metric_to_pixel(_turned_points(xy, turn), self.cartesian),
+                                   self.config.stride)
         local /= np.maximum(np.linalg.norm(local, axis=1, keepdims=True), 1e-12)
         return ScanFeatures(global_descriptor=g, keypoints_xy_m=xy.astype(np.float32),
                             local_descriptors=local.astype(np.float16), timestamp_us=int(scan.timestamp_us))

@@ -200,6 +200,11 @@ class OnnxNetwork:
         # graphs exported before session 34 fix the trained image size (dims 2, 3 are numbers, not names)
         shape = session.get_inputs()[0].shape
         self.free_size = len(shape) == 4 and not isinstance(shape[2], int) and not isinstance(shape[3], int)
+        #: the image sides (px, smallest and largest) the graph was exported for: ``MIN_IMAGE_PX`` to
+        #: ``MAX_IMAGE_PX`` for a graph with a free size, the trained size for an older one
+        self.image_px = (MIN_IMAGE_PX, MAX_IMAGE_PX)
+        if not self.free_size and len(shape) == 4 and isinstance(shape[3], int):
+            self.image_px = (int(shape[3]), int(shape[3]))
         self._sessions[threads] = session
 
     @staticmethod
@@ -209,6 +214,21 @@ class OnnxNetwork:
         return max(1, torch.get_num_threads())
 
     def __call__(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(B, 1, W, W) float32 images -> ((B, D) descriptors, (B, C, h, h) F').
+
+        Raises:
+            ValueError: the images are not (B, 1, W, W) with W within ``image_px``: the graph was exported for those
+                sides only, and its outputs at others were never checked against torch's.
+        """
+        shape = np.shape(images)
+        low, high = self.image_px
+        if len(shape) != 4 or shape[1] != 1 or shape[2] != shape[3]:
+            raise ValueError(f"{self.path.name} takes (batch, 1, W, W) images, got shape {tuple(shape)}")
+        if not low <= shape[3] <= high:
+            sides = f"{low} px" if low == high else f"{low}-{high} px"
+            raise ValueError(f"{self.path.name} takes images of {sides} a side (the sizes it was exported for), got "
+                             f"{shape[3]} px; use a Cartesian view within that, or run the network in torch "
+                             f"({RUNTIME_ENV}=torch)")
         threads = self._threads()
         session = self._sessions.get(threads)
         if session is None:

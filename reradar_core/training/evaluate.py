@@ -23,18 +23,18 @@ def suite_recall_at_1(extractors: list[DescriptorExtractor], suite: str,
     """Recall@1 of each extractor's global descriptors per query sequence of ``suite`` (all queries in the
     denominator, the suite's radius) plus, per query sequence, the fraction of queries that have a database
     scan within the radius. Cartesian images are rendered once and shared (all models must use the same
-    ``CartesianConfig``)."""
-    from reradar_core.geometry.cartesian import polar_to_cartesian
+    ``CartesianConfig`` and canonical-heading setting: the images are ``cartesian_image``'s)."""
     from reradar_core.sim.suites import build_suite
 
-    cart = extractors[0].cartesian
-    if any(e.cartesian != cart for e in extractors):
-        raise ValueError("all extractors must share one Cartesian configuration")
+    first = extractors[0]
+    if any(e.cartesian != first.cartesian or e.config.canonical_heading != first.config.canonical_heading
+           for e in extractors):
+        raise ValueError("all extractors must share one Cartesian configuration and canonical-heading setting")
     data = build_suite(suite, progress=progress)
 
     def images(path):
-        seq = data.load(path)
-        return np.stack([polar_to_cartesian(seq.load_scan(i), cart) for i in range(len(seq))]), seq.poses.xy
+        seq = data.load(path)  # each extractor's own network image (``cartesian_image``: its heading too)
+        return np.stack([first.cartesian_image(seq.load_scan(i)) for i in range(len(seq))]), seq.poses.xy
 
     db = [images(p) for p in data.database]
     db_img, db_xy = np.concatenate([d[0] for d in db]), np.concatenate([d[1] for d in db])

@@ -158,7 +158,7 @@ def installed_by(rec: dict[str, str], target: Path) -> bool:
 
 def remove_installed_map(rec: dict[str, str], target: Path) -> bool:
     """Remove ``target`` when it is the map file an attempt of the build of ``rec`` installed (``installed_by``:
-    never a map registered otherwise), and its far-view companion (installed before it by the same attempt),
+    never a map registered otherwise), and its far-view companion (installed with it by the same attempt),
     durably; whether it did."""
     if not installed_by(rec, target):
         return False

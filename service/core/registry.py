@@ -13,6 +13,7 @@ starts means the process died mid-build: the map is then reported ``failed`` wit
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import json
 import logging
 import math
@@ -112,33 +113,110 @@ def file_identity(path: Path) -> FileIdentity | None:
 
 
 def install_map_files(built: Path, target: Path, far_built: Path | None = None) -> None:
-    """Install the complete map file ``built`` as ``target`` (``install_file``, never over an existing map:
-    ``exclusive``) and, first, its far-view companion ``far_built`` (when given) as ``far_view_path(target)``: a
-    process that opens the map as soon as it appears (another replica on a shared maps folder) finds its companion
-    beside it. A companion already there without its map (left by a process stopped between the two steps of an
-    install or a delete) describes no served map and is replaced.
+    """Install the complete map file ``built`` as ``target`` and its far-view companion ``far_built`` (None: the map
+    comes without one) as ``far_view_path(target)``.
+
+    The map is the commit point: it is installed exclusively (``install_file(exclusive=True)``: never over an
+    existing map), and only the writer whose map that is then puts its companion under the final name, over
+    whatever lies there. So of two writers of one map id on a shared maps folder at the same moment (no upload
+    claim: Redis down), the one whose map is installed has its own companion beside it, and the other leaves
+    nothing. The steps:
+
+    1. a map file ``target`` exists: ``FileExistsError``, nothing touched;
+    2. the companion is hard-linked under its final name when that name is free (``far_built`` stays): a process
+       that opens the map as soon as it appears (another replica) finds it beside it;
+    3. the map is installed (the commit);
+    4. the companion is moved under its final name, replacing whatever lies there: a companion without its map
+       (left by an install or a delete that was stopped midway; logged) or another writer's from step 2. A map
+       without a companion removes such a file instead (logged): a registration serves only the companion it
+       brings, never one it finds.
+
+    A failed or cancelled install leaves nothing of this call installed, and ``built`` and ``far_built`` in place:
+    before the commit its own companion is taken off the final name (anything else found there is put back),
+    after it (step 4 failed) the map is moved back to ``built`` too.
 
     Raises:
-        FileExistsError: a map file ``target`` exists (or appeared meanwhile): nothing of this call is left
-            installed, ``built`` and ``far_built`` stay in place.
+        FileExistsError: a map file ``target`` exists (or appeared meanwhile).
     """
     far_target = far_view_path(target)
-    far_identity = None
+    if target.exists():
+        raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(target))
+    own: FileIdentity | None = None
+    linked = False
     if far_built is not None:
-        far_identity = file_identity(far_built)  # a hard link or a rename keeps it
-        try:
-            install_file(far_built, far_target, exclusive=True)
-        except FileExistsError:
-            if target.exists():
-                raise
-            install_file(far_built, far_target)  # a companion without its map
+        with open(far_built, "rb+") as fh:  # durable before any name points to it
+            os.fsync(fh.fileno())
+        own = file_identity(far_built)  # a hard link or a rename keeps it
+        linked = _link_if_free(far_built, far_target)
+    map_identity = file_identity(built)
     try:
         install_file(built, target, exclusive=True)
     except BaseException:
-        if far_identity is not None and file_identity(far_target) == far_identity:  # ours only, back in place
-            os.replace(far_target, far_built)  # type: ignore[arg-type]
-            fsync_dir(far_target.parent)
+        if linked:
+            _take_own_back(far_target, own)
         raise
+    try:
+        if far_built is not None:
+            if not linked and (far_target.exists() or far_target.is_symlink()):
+                logger.warning("%s: a far-view companion that lay there without its map (left by an install or a "
+                               "delete stopped midway) is replaced by the one installed with map %s", far_target.name,
+                               target.stem)
+            os.replace(far_built, far_target)  # a no-op where step 2 linked it: the same file
+            far_built.unlink(missing_ok=True)
+        elif far_target.exists() or far_target.is_symlink():
+            logger.warning("%s: a far-view companion that lay there without its map (left by an install or a delete "
+                           "stopped midway) is removed: map %s is installed without one", far_target.name, target.stem)
+            try:
+                far_target.unlink()
+            except FileNotFoundError:
+                pass
+            except OSError as exc:  # a folder under the companion's name: it is not served (``_attach_far``)
+                logger.warning("%s: not removed (%s)", far_target.name, exc.strerror)
+        fsync_dir(target.parent)
+    except BaseException:  # undo the commit: nothing of this call stays installed
+        if file_identity(target) == map_identity:
+            os.replace(target, built)
+        if far_built is not None:
+            if far_built.exists():  # not moved yet: only the link of step 2 (if any) to take back
+                if linked:
+                    _take_own_back(far_target, own)
+            elif file_identity(far_target) == own:
+                os.replace(far_target, far_built)
+        fsync_dir(target.parent)
+        raise
+
+
+def _link_if_free(src: Path, dst: Path) -> bool:
+    """Hard-link ``src`` as ``dst`` when no file has that name (atomic); False when one has, or where the file system
+    has no hard links (the companion is then installed after its map only)."""
+    try:
+        os.link(src, dst)
+    except OSError:
+        return False
+    fsync_dir(dst.parent)
+    return True
+
+
+def _take_own_back(far_target: Path, own: FileIdentity | None) -> None:
+    """Take this install's companion (``FileIdentity`` ``own``) off its final name ``far_target``, never another
+    writer's: whatever lies there is first renamed to a unique name (atomic), then deleted when it is this
+    install's, else put back, unless the name was taken meanwhile (by the writer whose map is installed, installing
+    its own companion)."""
+    aside = far_target.with_name(f".{far_target.name}.{uuid.uuid4().hex}.taken")
+    try:
+        os.rename(far_target, aside)
+    except FileNotFoundError:
+        return
+    if file_identity(aside) != own:
+        try:
+            os.link(aside, far_target)
+        except FileExistsError:
+            pass
+        except OSError:  # no hard links here: a check and a rename
+            if not (far_target.exists() or far_target.is_symlink()):
+                os.replace(aside, far_target)
+    aside.unlink(missing_ok=True)
+    fsync_dir(far_target.parent)
 
 
 #: UTC time format of the registry's and the build records' timestamps (``registered_utc``, ``created_utc``, ...)
@@ -189,13 +267,30 @@ def _far_marker_id(path: Path) -> str:
     return path.name[: -len(".h5")]
 
 
+def _log_far_served(path: Path, db: MapDatabase) -> None:
+    """Log that the far-view companion ``path`` is served with the map of ``db`` (attached: ``db.far``)."""
+    far = db.far
+    logger.info("%s: far view served with map %s (%d keyframes)", path.name, db.map.path.stem,
+                len(far) if far is not None else 0)
+
+
 def last_pass_note(entry: MapEntry) -> str | None:
-    """For a ``building`` entry whose scans are all described (``progress`` 1): what the build does before it is
-    ready, so that a build standing at 100 % is not read as stuck."""
-    if entry.state != "building" or not entry.scans_total or entry.scans_done < entry.scans_total:
+    """What a ``building`` entry does while its progress stands still between its scan descriptions, so that it is
+    not read as stuck: with every scan described (``progress`` 1), measuring where the map repeats itself before the
+    install; a build with its far-view companion (``far_view``: ``scans_total`` 2 N) also at N (``progress``
+    0.5), where the map's own place-repetition pass runs before the far view's descriptions begin. None otherwise."""
+    if entry.state != "building" or not entry.scans_total:
         return None
-    return ("every scan is described; the build is measuring where the map repeats itself (20-40 ms per keyframe "
-            "and thread) and then installs the map")
+    repetition = "the build is measuring where the map repeats itself (20-40 ms per keyframe and thread)"
+    if entry.far_view and entry.scans_total % 2 == 0 and entry.scans_done == entry.scans_total // 2:
+        return (f"every scan is described in the map's own view; {repetition}, then describes every scan again in "
+                "the far view (the second half of the progress)")
+    if entry.scans_done < entry.scans_total:
+        return None
+    if entry.far_view:
+        return ("every scan is described in both views; the build is measuring where the far-view companion "
+                "repeats itself (20-40 ms per keyframe and thread) and then installs the map with it")
+    return f"every scan is described; {repetition} and then installs the map"
 
 
 class MapRegistry:
@@ -484,7 +579,7 @@ class MapRegistry:
             far.close()
             logger.warning("%s: far view not served: %s", path.name, exc)
             return
-        logger.info("%s: far view served with map %s (%d keyframes)", path.name, db.map.path.stem, len(far))
+        _log_far_served(path, db)
 
     def install_demo_map(self) -> None:
         """Copy the shipped demo map to ``<maps_dir>/demo.h5`` unless a map ``demo`` exists already; an
@@ -520,9 +615,11 @@ class MapRegistry:
         for path in sorted(self.maps_dir.glob("*.h5")):
             if path.name.endswith(FAR_VIEW_SUFFIX):  # a map's far-view companion, opened with its map
                 owner = path.with_name(path.name[: -len(FAR_VIEW_SUFFIX)] + ".h5")
-                if not owner.exists():
-                    logger.warning("%s: far-view companion without its map %s: not served (a map file's name "
-                                   "must not end in %s)", path.name, owner.name, FAR_VIEW_SUFFIX)
+                if not owner.exists():  # not removed here: on a shared folder it may be another writer's, mid-install
+                    logger.warning("%s: far-view companion without its map %s: not served. Most likely left by an "
+                                   "install or a delete of map %s that was stopped midway: delete the file, or "
+                                   "register map %s (which replaces or removes it). (A map file's name must not end "
+                                   "in %s.)", path.name, owner.name, owner.stem, owner.stem, FAR_VIEW_SUFFIX)
                 continue
             map_id = path.stem
             if not _ID_RE.match(map_id):
@@ -664,7 +761,9 @@ class MapRegistry:
         this process: the checks before the install and the served database share that open file.
 
         The install never replaces a map file (``install_map_files``): on a shared maps folder another process
-        may have installed a map under this id since the id check.
+        may have installed a map under this id since the id check. The map is served with the uploaded companion
+        only: a ``<map_id>.far.h5`` found in the folder without its map (left by an install or a delete stopped
+        midway) is replaced, or removed when none is uploaded, and never served (``install_map_files``).
 
         Raises:
             ConflictError: the id is taken. BadRequestError: ``far_staged`` where no far view is served
@@ -720,7 +819,8 @@ class MapRegistry:
             # reads through its descriptor, never by name again): their messages name them by their new paths
             kf_map.path = entry.path
             try:  # opening reads every keyframe (shared arrays, preload): their checks refuse it here
-                db = self._database(kf_map, far_view=far_kf is None)  # closes ``kf_map`` when it fails
+                # with the uploaded companion only, never one found on disk (``install_map_files`` removed any)
+                db = self._database(kf_map, far_view=False)  # closes ``kf_map`` when it fails
             except ReRadarError as exc:
                 raise type(exc)(str(exc).replace(str(entry.path), "the uploaded map")) from None
             if far_kf is not None:
@@ -732,6 +832,7 @@ class MapRegistry:
                 except ReRadarError as exc:
                     raise type(exc)(str(exc).replace(str(far_target), "the uploaded far-view map")) from None
                 far_db = None  # closed with ``db`` from now on
+                _log_far_served(far_target, db)
             entry.db = db
             entry.scans_total = entry.scans_done = len(db)
             entry.state = "ready"
@@ -763,7 +864,9 @@ class MapRegistry:
         job ends; the map is written there and then installed (``install_map_files``). ``far_view``: also build
         the map's far-view companion from the same scans and poses (``build_map(far_view=...)``, as ``reradar
         build-map --far-view``; about as long again as the map's own pass), installed beside the map and served with
-        it. Progress is visible through ``get(map_id)``: ``scans_total`` counts the scan descriptions, N or 2 N.
+        it; a build without one removes a companion found without its map, as ``register_file`` does. Progress is
+        visible through ``get(map_id)``: ``scans_total`` counts the scan descriptions, N or 2 N (``last_pass_note``
+        says what a build standing still between them does).
 
         Raises:
             BadRequestError: ``far_view`` where no far view is served (``check_far_view_served``).
@@ -791,7 +894,8 @@ class MapRegistry:
             entry.scans_done = done
 
         def job() -> None:
-            # written in the job's folder and then installed, the far-view companion first: the map appears whole
+            # written in the job's folder and then installed with its far-view companion (the map is the commit
+            # point, ``install_map_files``): the map appears whole
             built = workdir / f"{map_id}.h5"
             try:
                 build_map(built, self.extractor, self.build_scan_loader(scan_paths, preset), poses,
@@ -808,7 +912,8 @@ class MapRegistry:
                     raise ConflictError(self.taken_message(map_id, None)) from None
                 if far_identity is not None:  # written by this process: opened without a probe (``_attach_far``)
                     self._mark_verified(_far_marker_id(far_view_path(entry.path)), far_identity)
-                db = self._open(entry.path)
+                # with the companion it built, never one found on disk (``install_map_files`` removed any)
+                db = self._database(self._open_checked(entry.path), far_view=far_view)
                 with self._lock:
                     entry.file_id = identity
                     entry.db = db

@@ -139,6 +139,33 @@ def test_build_map_refuses_far_view_names_it_would_clash_with(tmp_path: Path) ->
     assert (tmp_path / "y.far.h5").read_bytes() == b"an earlier companion" and not (tmp_path / "y.h5").exists()
 
 
+def test_build_map_without_far_view_removes_an_existing_companion_only_with_overwrite(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Session 34's review: without ``--far-view`` an existing ``<out>.far.h5`` was deleted without ``--overwrite``,
+    while with ``--far-view`` it was refused. Now refused either way, saying what to pass; ``--overwrite`` removes it
+    (it would describe another map) and the map is built."""
+    from typer.testing import CliRunner
+
+    import reradar_core.localization.extractor as extractor_module
+    from reradar_cli import app
+
+    _sequence(tmp_path / "seq")
+    monkeypatch.setattr(extractor_module, "load_default_extractor", lambda model: CountingExtractor())
+    stale = tmp_path / "y.far.h5"
+    stale.write_bytes(b"an earlier companion")
+    args = ["build-map", "--dataset", str(tmp_path / "seq"), "--out", str(tmp_path / "y.h5"), "--preset", "boreas"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2, res.output
+    assert "y.far.h5 exists" in res.output and "pass --overwrite to remove it" in res.output
+    assert "--far-view --overwrite" in res.output
+    assert stale.read_bytes() == b"an earlier companion" and not (tmp_path / "y.h5").exists()
+    res = CliRunner().invoke(app, [*args, "--overwrite"])
+    assert res.exit_code == 0, res.output
+    assert not stale.exists()
+    with open_map(tmp_path / "y.h5", "counting", "c" * 64) as m:
+        assert len(m) == 7
+
+
 class PeriodicStreetExtractor:
     """Fake model over a street that repeats one random 40 m block: scan i (its timestamp) is a sensor at x = 6 i m
     seeing the block's landmarks within 60 m; its global descriptor depends on the position within the period."""

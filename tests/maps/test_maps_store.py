@@ -108,6 +108,21 @@ def test_model_mismatch_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ModelMismatchError, match="rebuild the map"):
         open_map(path, "other-model", "b" * 64)
     check_model(read_metadata(path), "test-model", "a" * 64)  # same hash: accepted
+    check_model(read_metadata(path), "?", "a" * 64)  # same hash, model id not given: accepted
+
+
+def test_a_map_of_the_same_weights_described_another_way_is_refused(tmp_path: Path) -> None:
+    """The same weights with the canonical heading (model id ``...-ch``) describe scans differently: a map described
+    without it is refused, with a message saying why and what to do."""
+    path = write_map(tmp_path / "m.h5", _meta(), _features(np.random.default_rng(3), 2), np.zeros((2, 3)))
+    with pytest.raises(ModelMismatchError, match="test-model-ch.*rebuild the map"):
+        open_map(path, "test-model-ch", "a" * 64)
+    with open_map(path, "test-model", "a" * 64) as kf_map:
+        assert kf_map.metadata.model_id == "test-model"
+    # the image size alone (the far view's -in257) is left to the service's image check, which names the images
+    check_model(read_metadata(path), "test-model-in257", "a" * 64)
+    with pytest.raises(ModelMismatchError, match="canonical heading"):
+        check_model(read_metadata(path), "test-model-in257-ch", "a" * 64)
 
 
 def test_bad_files_raise_map_format_error(tmp_path: Path) -> None:

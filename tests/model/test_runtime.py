@@ -174,6 +174,30 @@ def test_graph_takes_any_image_size_with_torch_outputs(saved):
         np.testing.assert_allclose(f, f0, atol=1e-5 * float(np.abs(f0).max()))
 
 
+def test_the_graph_refuses_image_sizes_it_was_not_exported_for(saved, monkeypatch):
+    """Session 34's review: the graph ran at image sides outside the 33-1025 px it was exported for (whose outputs
+    were never checked against torch's) without a word. Outside that range it is a ValueError saying what to do; the
+    range's ends run, with torch's outputs."""
+    path, _ = saved
+    fast = DescriptorExtractor.from_file(path, runtime="onnx")
+    ref = DescriptorExtractor.from_file(path, runtime="torch")
+    assert fast.onnx_network is not None and fast.onnx_network.image_px == (33, 1025)
+    for side in (32, 1026):
+        with pytest.raises(ValueError, match=rf"33-1025 px a side .*got {side} px.*{RUNTIME_ENV}=torch"):
+            fast.run_images(np.zeros((1, side, side), np.float32))
+    x = np.random.default_rng(33).random((1, 33, 33), dtype=np.float32)
+    g, f = fast.run_images(x)
+    g0, f0 = ref.run_images(x)
+    np.testing.assert_allclose(g, g0, atol=1e-5)
+    np.testing.assert_allclose(f, f0, atol=1e-5 * float(np.abs(f0).max()))
+    with pytest.raises(ValueError, match=r"takes \(batch, 1, W, W\) images, got shape \(1, 1, 40, 41\)"):
+        fast.onnx_network(np.zeros((1, 1, 40, 41), np.float32))
+    # a graph exported before session 34 takes its trained size only
+    monkeypatch.setattr(fast.onnx_network, "image_px", (201, 201))
+    with pytest.raises(ValueError, match="201 px a side .*got 257 px"):
+        fast.run_images(np.zeros((1, 257, 257), np.float32))
+
+
 def test_export_is_byte_identical_on_a_rerun(saved, tmp_path):
     """The same weights export to the same bytes (the exporter's debug records, which name objects by memory
     address, are dropped), so a re-export of unchanged weights changes no shipped file."""

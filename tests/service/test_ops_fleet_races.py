@@ -636,11 +636,11 @@ def test_a_far_view_build_installs_the_companion_first_and_every_replica_serves_
         assert rec["far_view"] == "1" and rec["scans_total"] == str(2 * n)
         fleet.sync(b).reconcile()
         assert b.get("moor").state == "building" and b.get("moor").far_view  # every replica says so
-        installed: list[str] = []
+        installed: list[tuple[str, bool]] = []  # (file installed, its companion beside it already)
         real_install = registry_module.install_file
 
         def install(src: Path, dst: Path, exclusive: bool = False) -> Path:
-            installed.append(Path(dst).name)
+            installed.append((Path(dst).name, (Path(dst).parent / "moor.far.h5").is_file()))
             return real_install(src, dst, exclusive=exclusive)
 
         monkeypatch.setattr(registry_module, "install_file", install)
@@ -654,7 +654,7 @@ def test_a_far_view_build_installs_the_companion_first_and_every_replica_serves_
             monkeypatch.setattr(worker, "install_map_files", install_then_delete)
         ctx = {**fleet.worker_ctx(), "extractor": NearFake(), "registry": MapRegistry(fleet.settings, NearFake())}
         outcome = asyncio.run(worker.build_map_job(ctx, "moor", rec["job_id"]))
-        assert installed == ["moor.far.h5", "moor.h5"]  # a replica that loads the map finds its companion
+        assert installed == [("moor.h5", True)]  # a replica that loads the map finds its companion
         if delete_after_install:  # the cancelled build leaves neither file
             assert outcome == "cancelled"
             assert not (fleet.maps_dir / "moor.h5").exists() and not (fleet.maps_dir / "moor.far.h5").exists()

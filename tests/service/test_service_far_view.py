@@ -473,3 +473,202 @@ def test_what_the_folder_holds_under_a_companions_name_is_logged(far_map: Path, 
         assert {p.name for p in arrays.iterdir() if p.is_file() and not p.name.endswith(".lock")} == used
     finally:
         registry.close()
+
+
+# ---- session 34's review: two writers of one id, companions without their map, notes and logs --------------------
+
+def _writer(root: Path, who: str) -> tuple[Path, Path]:
+    """Writer ``who``'s staged map and companion (their bytes name the writer), in a folder of its own."""
+    staged = root / f"staging-{who}"
+    staged.mkdir()
+    (staged / "m.h5").write_bytes(f"map of {who}".encode())
+    (staged / "m.far.h5").write_bytes(f"companion of {who}".encode())
+    return staged / "m.h5", staged / "m.far.h5"
+
+
+@pytest.mark.parametrize("b_runs", ["inside_a_until_its_commit", "whole_before_a_commits"])
+def test_of_two_writers_of_one_id_the_installed_map_has_its_own_companion(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, b_runs: str) -> None:
+    """Session 34's review: with Redis down two replicas registering one id at the same moment could leave the
+    winner's map without its companion (B replaced A's, A's map won, B took its own back). The interleaving is forced
+    here: A's map commit runs writer B's whole install first, and ``inside_a_until_its_commit`` makes A's commit land
+    just before B's own."""
+    import service.core.registry as registry_module
+
+    maps_dir = tmp_path / "maps"
+    maps_dir.mkdir()
+    target = maps_dir / "m.h5"
+    a_map, a_far = _writer(tmp_path, "A")
+    b_map, b_far = _writer(tmp_path, "B")
+    real_install = registry_module.install_file
+    b_outcome: list[str] = []
+    a_committed: list[bool] = []
+
+    def install(src: Path, dst: Path, exclusive: bool = False) -> Path:
+        if Path(src) == a_map:  # A's commit: B's whole install runs first
+            try:
+                registry_module.install_map_files(b_map, target, b_far)
+                b_outcome.append("installed")
+            except FileExistsError:
+                b_outcome.append("refused")
+            if a_committed:  # inside B's install, just before B's commit
+                return Path(dst)
+        if Path(src) == b_map and b_runs == "inside_a_until_its_commit":
+            real_install(a_map, target, exclusive=True)  # between B's companion and B's map
+            a_committed.append(True)
+        return real_install(src, dst, exclusive=exclusive)
+
+    monkeypatch.setattr(registry_module, "install_file", install)
+    if b_runs == "inside_a_until_its_commit":
+        registry_module.install_map_files(a_map, target, a_far)
+        assert b_outcome == ["refused"]
+        winner, loser = "A", (b_map, b_far)
+    else:
+        with pytest.raises(FileExistsError):
+            registry_module.install_map_files(a_map, target, a_far)
+        assert b_outcome == ["installed"]
+        winner, loser = "B", (a_map, a_far)
+    assert target.read_bytes() == f"map of {winner}".encode()
+    assert far_view_path(target).read_bytes() == f"companion of {winner}".encode()
+    assert sorted(p.name for p in maps_dir.iterdir()) == ["m.far.h5", "m.h5"]  # nothing else left in the folder
+    other = "B" if winner == "A" else "A"
+    assert loser[0].read_bytes() == f"map of {other}".encode()  # the loser's files stay where they were
+    assert loser[1].read_bytes() == f"companion of {other}".encode()
+
+
+def test_an_install_replaces_or_removes_a_companion_without_its_map_and_a_failed_one_leaves_nothing(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    from service.core.registry import install_map_files
+
+    maps_dir = tmp_path / "maps"
+    maps_dir.mkdir()
+    orphan = maps_dir / "m.far.h5"
+    orphan.write_bytes(b"left by a stopped install")
+    a_map, a_far = _writer(tmp_path, "A")
+    with caplog.at_level("WARNING"):
+        install_map_files(a_map, maps_dir / "m.h5", a_far)
+    assert orphan.read_bytes() == b"companion of A" and not a_map.exists() and not a_far.exists()
+    assert any(r.getMessage().startswith("m.far.h5: a far-view companion that lay there without its map")
+               and "is replaced by the one installed with map m" in r.getMessage() for r in caplog.records)
+    # a map without a companion removes one found without its map: never served with one it did not bring
+    (maps_dir / "p.far.h5").write_bytes(b"left by a stopped delete")
+    p_map, _ = _writer(tmp_path, "P")
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        install_map_files(p_map, maps_dir / "p.h5")
+    assert (maps_dir / "p.h5").read_bytes() == b"map of P" and not (maps_dir / "p.far.h5").exists()
+    assert any("is removed: map p is installed without one" in r.getMessage() for r in caplog.records)
+    # a companion that cannot go under its name (a folder there): the map is taken back, nothing stays installed
+    (maps_dir / "q.far.h5").mkdir()
+    q_map, q_far = _writer(tmp_path, "Q")
+    with pytest.raises(IsADirectoryError):
+        install_map_files(q_map, maps_dir / "q.h5", q_far)
+    assert not (maps_dir / "q.h5").exists() and (maps_dir / "q.far.h5").is_dir()
+    assert q_map.read_bytes() == b"map of Q" and q_far.read_bytes() == b"companion of Q"
+    # a map id taken: refused before anything is touched
+    with pytest.raises(FileExistsError):
+        install_map_files(q_map, maps_dir / "m.h5", q_far)
+    assert orphan.read_bytes() == b"companion of A" and q_far.is_file()
+    assert sorted(p.name for p in maps_dir.iterdir()) == ["m.far.h5", "m.h5", "p.h5", "q.far.h5"]
+
+
+def test_a_commit_that_fails_takes_its_companion_back_and_leaves_anothers(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """A cancel or an error at the map's install leaves nothing of this install: its own companion, linked first,
+    is taken back, while a companion it found there (another writer's, mid-install) stays."""
+    import service.core.registry as registry_module
+
+    def cancelled(src: Path, dst: Path, exclusive: bool = False) -> Path:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(registry_module, "install_file", cancelled)
+    maps_dir = tmp_path / "maps"
+    maps_dir.mkdir()
+    a_map, a_far = _writer(tmp_path, "A")
+    with pytest.raises(KeyboardInterrupt):
+        registry_module.install_map_files(a_map, maps_dir / "m.h5", a_far)
+    assert list(maps_dir.iterdir()) == [] and a_map.is_file() and a_far.read_bytes() == b"companion of A"
+    (maps_dir / "m.far.h5").write_bytes(b"another writer's")
+    with pytest.raises(KeyboardInterrupt):
+        registry_module.install_map_files(a_map, maps_dir / "m.h5", a_far)
+    assert [p.name for p in maps_dir.iterdir()] == ["m.far.h5"]
+    assert (maps_dir / "m.far.h5").read_bytes() == b"another writer's" and a_far.is_file()
+
+
+def test_a_registration_serves_only_the_companion_it_brings(far_map: Path, other_far_map: Path, tmp_path: Path,
+                                                            caplog: pytest.LogCaptureFixture) -> None:
+    """Session 34's review: a companion left without its map (a process killed between the install's two steps)
+    was logged at every start as a misnamed map, and a later registration of its id served it when its keyframes
+    matched. At start it is now logged as what it most likely is; a registration removes it (or replaces it by the
+    uploaded one, which it logs as served: that log line was missing for uploads)."""
+    maps_dir = tmp_path / "maps"
+    maps_dir.mkdir()
+    shutil.copy(far_view_path(far_map), maps_dir / "open.far.h5")  # open's own keyframes, but no map open.h5
+    shutil.copy(other_far_map, maps_dir / "moor.far.h5")
+    registry = MapRegistry(Settings(maps_dir=maps_dir, load_demo_map=False), NearFake())
+    try:
+        with caplog.at_level("INFO"):
+            registry.load_all()
+        log = [r.getMessage() for r in caplog.records]
+        assert any(m.startswith("open.far.h5: far-view companion without its map open.h5: not served. Most likely "
+                                "left by an install or a delete of map open that was stopped midway") for m in log)
+        assert (maps_dir / "open.far.h5").is_file()  # not removed at start: it may be another writer's, mid-install
+        staged = registry.staging_dir() / "upload.h5"
+        shutil.copy(far_map, staged)
+        caplog.clear()
+        with caplog.at_level("INFO"):
+            entry = registry.register_file("open", staged)
+        assert entry.state == "ready" and entry.db is not None and entry.db.far is None
+        assert not registry.serves_far_view("open") and not (maps_dir / "open.far.h5").exists()
+        assert not any("far view served" in r.getMessage() for r in caplog.records)
+        # with its far_map_file: the uploaded companion replaces the other map's, and is logged as served
+        staged, far_staged = registry.staging_dir() / "m.h5", registry.staging_dir() / "f.h5"
+        shutil.copy(far_map, staged)
+        shutil.copy(far_view_path(far_map), far_staged)
+        caplog.clear()
+        with caplog.at_level("INFO"):
+            entry = registry.register_file("moor", staged, far_staged)
+        assert entry.db is not None and entry.db.far is not None and registry.serves_far_view("moor")
+        with open_map(maps_dir / "moor.far.h5", "fake-extractor-in257", "f" * 64) as far_kf:
+            np.testing.assert_array_equal(far_kf.timestamps_us, entry.db.map.timestamps_us)  # open's, not other's
+        log = [r.getMessage() for r in caplog.records]
+        assert f"moor.far.h5: far view served with map moor ({N_SCANS} keyframes)" in log
+    finally:
+        registry.close()
+
+
+def test_a_far_view_build_says_what_it_does_at_half_progress(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Session 34's review: a build with ``far_view=true`` stood at progress 0.5, during the map's own
+    place-repetition pass, without a ``note``. The note is read at the moment each place-repetition pass starts."""
+    import maps.build
+    from service.core.registry import MapEntry, last_pass_note
+
+    def entry(done: int, total: int, far_view: bool) -> MapEntry:
+        return MapEntry("m", Path("m.h5"), "building", scans_done=done, scans_total=total, far_view=far_view)
+
+    half = last_pass_note(entry(6, 12, True))
+    assert half is not None and "every scan is described in the map's own view" in half
+    assert "measuring where the map repeats itself" in half and "far view" in half
+    end = last_pass_note(entry(12, 12, True))
+    assert end is not None and "both views" in end and "far-view companion" in end
+    for e in (entry(5, 12, True), entry(7, 12, True), entry(6, 12, False)):
+        assert last_pass_note(e) is None
+    seen: list[tuple[float, str | None]] = []
+    real_measure = maps.build.measure_place_repetition
+    maps_dir = tmp_path / "maps"
+    with far_app(maps_dir) as client:
+        registry = _registry(client)
+
+        def measure(*args: object, **kwargs: object) -> object:
+            building = registry.get("moor")
+            seen.append((building.progress, registry.build_note(building)))
+            return real_measure(*args, **kwargs)  # type: ignore[arg-type]
+
+        monkeypatch.setattr(maps.build, "measure_place_repetition", measure)
+        r = client.post("/maps", data={"map_id": "moor", "preset": "boreas", "far_view": "true"},
+                        files=_far_archive(), headers=AUTH)
+        assert r.status_code == 202, r.text
+        assert _wait_built(client, "moor")["state"] == "ready"
+    assert [p for p, _ in seen] == [0.5, 1.0]  # the map's own pass, then its companion's
+    assert seen[0][1] == last_pass_note(entry(N_SCANS, 2 * N_SCANS, True))
+    assert seen[1][1] == last_pass_note(entry(2 * N_SCANS, 2 * N_SCANS, True))
