@@ -137,10 +137,15 @@ def install_map_files(built: Path, target: Path, far_built: Path | None = None) 
 
     Raises:
         FileExistsError: a map file ``target`` exists (or appeared meanwhile).
+        ConflictError: ``far_built`` is given and a folder lies under the companion's name (put there by hand: no
+            file can replace it); nothing touched.
     """
     far_target = far_view_path(target)
     if target.exists():
         raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(target))
+    if far_built is not None and far_target.is_dir() and not far_target.is_symlink():
+        raise ConflictError(f"a folder named {far_target.name} lies in the maps folder where the far-view companion "
+                            f"of map {target.stem!r} goes; an operator must remove it, then register the map again")
     own: FileIdentity | None = None
     linked = False
     if far_built is not None:

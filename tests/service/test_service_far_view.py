@@ -28,6 +28,7 @@ from reradar_core.geometry.cartesian import CartesianConfig
 from reradar_core.io.scan import RadarScan, encode_navtech_png_bytes
 from reradar_core.localization import FarViewConfig, PosePrior
 from service.core.config import Settings
+from service.core.errors import ConflictError
 from service.core.registry import MapRegistry
 from service.demo import serve_in_thread
 from service.main import create_app
@@ -335,6 +336,22 @@ def test_a_map_file_registers_with_its_far_map_file(far_map: Path, tmp_path: Pat
         assert _left_in(maps_dir, "open") == []
 
 
+def test_a_folder_under_the_companions_name_is_a_409_that_says_what_to_do(far_map: Path, tmp_path: Path) -> None:
+    """A folder named ``<id>.far.h5`` in the maps folder (made by hand) cannot be replaced by the uploaded companion:
+    a 409 naming it, nothing registered, the folder kept (was a 500)."""
+    maps_dir = tmp_path / "maps"
+    with far_app(maps_dir) as client:
+        (maps_dir / "open.far.h5").mkdir()
+        with far_map.open("rb") as fm, far_view_path(far_map).open("rb") as ff:
+            r = client.post("/maps", data={"map_id": "open"}, headers=AUTH,
+                            files={"map_file": ("open.h5", fm), "far_map_file": ("open.far.h5", ff)})
+        assert r.status_code == 409, r.text
+        detail = r.json()["detail"]
+        assert "a folder named open.far.h5" in detail and "remove it" in detail and str(tmp_path) not in detail
+        assert client.get("/maps/open").status_code == 404
+        assert not (maps_dir / "open.h5").exists() and (maps_dir / "open.far.h5").is_dir()
+
+
 @pytest.fixture(scope="module")
 def other_far_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A far-view map of other scans (times 1 us later) over the same poses: the companion of another map."""
@@ -558,11 +575,12 @@ def test_an_install_replaces_or_removes_a_companion_without_its_map_and_a_failed
         install_map_files(p_map, maps_dir / "p.h5")
     assert (maps_dir / "p.h5").read_bytes() == b"map of P" and not (maps_dir / "p.far.h5").exists()
     assert any("is removed: map p is installed without one" in r.getMessage() for r in caplog.records)
-    # a companion that cannot go under its name (a folder there): the map is taken back, nothing stays installed
+    # a companion that cannot go under its name (a folder there): refused before anything is touched, with what to do
     (maps_dir / "q.far.h5").mkdir()
     q_map, q_far = _writer(tmp_path, "Q")
-    with pytest.raises(IsADirectoryError):
+    with pytest.raises(ConflictError, match="a folder named q.far.h5 .* an operator must remove it") as refused:
         install_map_files(q_map, maps_dir / "q.h5", q_far)
+    assert str(tmp_path) not in str(refused.value)
     assert not (maps_dir / "q.h5").exists() and (maps_dir / "q.far.h5").is_dir()
     assert q_map.read_bytes() == b"map of Q" and q_far.read_bytes() == b"companion of Q"
     # a map id taken: refused before anything is touched
