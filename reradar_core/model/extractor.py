@@ -28,6 +28,7 @@ from reradar_core.errors import ConfigError, ModelMismatchError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.cartesian import CartesianConfig, metric_to_pixel, polar_to_cartesian
 from reradar_core.geometry.heading import canonical_turn, turn_scan
+from reradar_core.geometry.se2 import transform_points
 from reradar_core.io.scan import RadarScan
 from reradar_core.model.config import ModelConfig
 from reradar_core.model.network import DescriptorNet, fuse_batchnorm
@@ -127,8 +128,7 @@ def _turned_points(xy: np.ndarray, turn: float) -> np.ndarray:
     ``R(-turn) xy`` (``geometry.heading.turn_scan``'s image of them)."""
     if not turn:
         return xy
-    c, s = math.cos(turn), math.sin(turn)
-    return np.asarray(xy, np.float64) @ np.array([[c, -s], [s, c]])
+    return transform_points(np.array([0.0, 0.0, -turn]), xy)  # T_turned_sensor: the sensor turned back by -turn
 
 
 def sample_feature_map(fmap: torch.Tensor | np.ndarray, rc_px: np.ndarray, stride: int) -> np.ndarray:

@@ -33,7 +33,7 @@ def suite_recall_at_1(extractors: list[DescriptorExtractor], suite: str,
     data = build_suite(suite, progress=progress)
 
     def images(path):
-        seq = data.load(path)  # each extractor's own network image (``cartesian_image``: its heading too)
+        seq = data.load(path)  # the network's input image (``cartesian_image``: at its heading too), shared
         return np.stack([first.cartesian_image(seq.load_scan(i)) for i in range(len(seq))]), seq.poses.xy
 
     db = [images(p) for p in data.database]
