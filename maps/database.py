@@ -9,6 +9,8 @@ worker process.
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import logging
 from collections.abc import Callable
 from pathlib import Path
@@ -48,10 +50,15 @@ def _return_freed_memory() -> None:
         pass
 
 
-def far_view_mismatch(near: KeyframeSource, far: KeyframeSource) -> str | None:
+def far_view_mismatch(near: KeyframeSource, far: KeyframeSource,
+                      presets: tuple[str, str] | None = None) -> str | None:
     """How the keyframes of ``far`` (a far-view companion, ``maps.paths.far_view_path``) differ from those of its
     map ``near``: another count, or another pose (x m, y m, yaw rad, compared exactly) or time (us) of a keyframe,
-    as a companion built from other scans or poses has; None when they are the same keyframes."""
+    as a companion built from other scans or poses has; with ``presets`` (the map's and the companion's
+    ``radar_preset``), another radar preset too (its landmarks were read at another range-bin size); None when they
+    are the same keyframes of the same radar."""
+    if presets is not None and presets[0] != presets[1]:
+        return f"its scans are of radar preset {presets[1]!r}, the map's of {presets[0]!r}"
     if len(far) != len(near):
         return f"it holds {len(far)} keyframes, the map {len(near)}"
     for what, a, b in (("pose", near.poses, far.poses), ("time", near.timestamps_us, far.timestamps_us)):
@@ -129,6 +136,17 @@ class MapDatabase:
     def metadata(self) -> MapMetadata:
         return self.map.metadata
 
+    @functools.cached_property
+    def version(self) -> str:
+        """A fingerprint of this map's keyframes (poses, times) and creation time (16 hex digits): another map
+        registered under the same id has another one, so what is kept per map between requests (tracking
+        sessions: a pose in this map's frame) is kept per version. Stays readable after the map is closed."""
+        digest = hashlib.sha256()
+        digest.update(np.ascontiguousarray(self.map.poses, np.float64).tobytes())
+        digest.update(np.ascontiguousarray(self.map.timestamps_us, np.int64).tobytes())
+        digest.update(self.metadata.created_utc.encode())
+        return digest.hexdigest()[:16]
+
     def __len__(self) -> int:
         return len(self.map)
 
@@ -147,7 +165,8 @@ class MapDatabase:
             MapFormatError: ``far`` does not hold this map's keyframes (another count, poses or times: a companion
                 left from another map); ``far`` is not attached.
         """
-        problem = far_view_mismatch(self.localizer.keyframes, far.localizer.keyframes)
+        problem = far_view_mismatch(self.localizer.keyframes, far.localizer.keyframes,
+                                    (self.metadata.radar_preset, far.metadata.radar_preset))
         if problem is not None:
             raise MapFormatError(f"{far.map.path.name} does not hold the keyframes of {self.map.path.name} ({problem}); "
                                  "rebuild it with `reradar build-map --far-view`")

@@ -127,6 +127,29 @@ def check_redis_credentials_or_exit(settings: Settings, unreachable_exit: int | 
             raise typer.Exit(unreachable_exit) from None
 
 
+def address_free_or_exit(host: str, port: int) -> None:
+    """Exit with one line when ``host``:``port`` cannot be bound (another server on the port, an address this
+    machine does not have), binding as uvicorn does (``SO_REUSEADDR``) and releasing it at once."""
+    import errno
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        typer.echo(f"error: --host {host!r} is no address this machine can bind ({exc.strerror})", err=True)
+        raise typer.Exit(2) from None
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(address)
+        except OSError as exc:
+            why = ("is in use (another server runs there: stop it or pick another --port)"
+                   if exc.errno == errno.EADDRINUSE else f"cannot be bound ({exc.strerror})")
+            typer.echo(f"error: {host}:{port} {why}", err=True)
+            raise typer.Exit(2) from None
+
+
 def serve_command(
     host: str = typer.Option("127.0.0.1", help="Address to bind (0.0.0.0 inside containers)."),
     port: int = typer.Option(8080, min=1, max=65535, help="TCP port."),
@@ -144,6 +167,8 @@ def serve_command(
     import uvicorn
 
     settings = settings_or_exit(**({"maps_dir": maps_dir} if maps_dir is not None else {}))
+    # before the model and maps are loaded: a port in use is one line, not a uvicorn log line a minute later
+    address_free_or_exit(host, port)
     # before the server starts: a bad setting is one line, not a start-up traceback
     extractor = served_model_or_exit(settings) if workers == 1 else None  # served as loaded: one load
     if extractor is None:  # the spawned workers load their own: this process only checks the weights
@@ -233,6 +258,14 @@ def localize_command(
     if time_unit is not None and follow is None:
         typer.echo("error: --time-unit is the unit of a --follow folder's pose times; a single scan carries its "
                    "own time (drop --time-unit, or replay a folder with --follow DIR)", err=True)
+        raise typer.Exit(2)
+    replay_only = {"--odometry": odometry != "ground-truth", "--odometry-noise": odometry_noise != 0.05,
+                   "--every": every != 1, "--limit": limit is not None, "--no-tracking": no_tracking,
+                   "--out": out is not None, "--seed": seed != 0}
+    given = [name for name, set_ in replay_only.items() if set_]
+    if given and follow is None:  # silently ignored, they would suggest a replay that does not happen
+        typer.echo(f"error: {', '.join(given)} apply to a replay with --follow DIR only; a single SCAN is localized "
+                   "once (drop them, or give --follow)", err=True)
         raise typer.Exit(2)
     if odometry not in ("ground-truth", "none"):
         typer.echo("error: --odometry must be `ground-truth` or `none`", err=True)

@@ -98,7 +98,7 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     from reradar_core.errors import ReRadarError
     from reradar_core.evaluation import localization_success, radius_for
     from reradar_core.geometry.se2 import relative_pose
-    from reradar_core.io.datasets import load_sequence
+    from reradar_core.io.datasets import load_sequence, read_sequence_meta
 
     try:
         seq = load_sequence(folder, preset=preset, pose_time_unit=time_unit)
@@ -113,6 +113,10 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     idx = np.arange(0, len(seq), every)
     if limit is not None:
         idx = idx[:limit]
+    if seq.layout == "oxford" and "oxford_T_world_origin" not in read_sequence_meta(folder):
+        # real Oxford odometry starts at the identity: its frame is the map's only for a map built from this drive
+        echo("note: this folder's ground truth is its own odometry (it starts at the identity); the errors below "
+             "mean something only on a map built from this same drive (e.g. `reradar build-map --dataset` of it)")
     gt = seq.mid_sweep_poses()  # the service answers mid-sweep poses (docs/CONVENTIONS.md)
     radius_m = radius_for(seq.preset.name)
     rng = np.random.default_rng(seed)

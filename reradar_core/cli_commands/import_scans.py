@@ -10,7 +10,7 @@ import numpy as np
 import typer
 
 from reradar_core.errors import ReRadarError, ScanFormatError
-from reradar_core.io.scan import has_navtech_metadata
+from reradar_core.io.scan import PNG_SIGNATURE, has_navtech_metadata, png_incomplete
 
 #: File names read as timestamps: 16 digits = microseconds (Boreas, Oxford), 19 digits = nanoseconds (MulRan).
 _TIMESTAMP_DIGITS = {16: 1, 19: 1000}
@@ -84,7 +84,14 @@ def _read_source(src: Path) -> np.ndarray:
             raise ScanFormatError(f"{src.name}: not a readable .npy array ({exc})") from None
     else:
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)  # its warnings would repeat the error below
-        array = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+        data = src.read_bytes()
+        try:  # a truncated PNG is told before libpng reads it (it prints its own "libpng error" line otherwise)
+            truncated = data[:8] == PNG_SIGNATURE and png_incomplete(data)
+        except ScanFormatError as exc:
+            raise ScanFormatError(f"{src.name}: {str(exc).removeprefix('upload is ')}") from None
+        if truncated:
+            raise ScanFormatError(f"{src.name}: not a readable PNG image (corrupt or truncated)")
+        array = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if array is None:
             raise ScanFormatError(f"{src.name}: not a readable image")
         if array.ndim == 3:

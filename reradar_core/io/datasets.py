@@ -68,6 +68,8 @@ __all__ = [
     "load_sequence",
     "check_pose_span",
     "check_pose_time_unit",
+    "check_pose_speed",
+    "MAX_PLAUSIBLE_SPEED_M_S",
     "check_scan_name_times",
     "first_confirmed_problem",
     "warn_names_off_first_azimuth",
@@ -580,6 +582,7 @@ def load_sequence(path: str | Path, layout: str | None = None,
     else:
         unit_used = pose_time_unit or ("us" if layout == "boreas" and meta else "ns" if layout == "mulran" else None)
         check_pose_time_unit(track, stamps, unit_used, str(pose_file))
+        check_pose_speed(track, str(pose_file))
         check_pose_span(track, stamps, [str(p) for p in paths], str(pose_file))
         interp = track.interpolate(stamps, extrapolate_us=POSE_SPAN_SLACK_US)  # scans within the span's slack
         poses = PoseSequence(stamps, interp[:, :2], interp[:, 2])
@@ -670,6 +673,39 @@ def check_pose_time_unit(track: PoseSequence, stamps_us: np.ndarray, unit: str |
             f"{pose_file}: its times read as {read_as} span {pose_span / 1e6:.6g} s and {pose_path:.0f} m of path, "
             f"but the {len(t)} scans' times (from their file names, µs) span {scans_span / 1e6:.6g} s: every scan "
             f"would be placed on {scans_path:.1f} m of the drive; {advice}")
+
+
+#: the fastest mean speed (m/s) of a drive a pose file may describe: beyond it its positions are not metres (a file
+#: in millimetres drives 1000x too fast, one in centimetres 100x) or its times are read in a unit too fine
+#: (``check_pose_speed``). The speed of sound: far above any road vehicle's (~100 m/s), so a pose file of sparse
+#: or jumpy samples is never refused, and below a millimetre file of any drive faster than walking pace.
+MAX_PLAUSIBLE_SPEED_M_S = 340.0
+#: ... judged on pose files with at least this much path, metres
+PLAUSIBLE_SPEED_MIN_PATH_M = 20.0
+
+
+def check_pose_speed(track: PoseSequence, pose_file: str = "the pose file") -> None:
+    """Refuse a pose file whose drive is faster than any road vehicle (mean speed above
+    ``MAX_PLAUSIBLE_SPEED_M_S`` over at least ``PLAUSIBLE_SPEED_MIN_PATH_M`` of path): its positions are in another
+    unit than metres, or its times in a finer one than they are read in. A map built from it would hold
+    keyframes 1000x apart, and a benchmark would find no revisit at all, without a word (QA session 36).
+
+    Args:
+        track: the pose file's poses, sorted, µs and metres. pose_file: for the message.
+
+    Raises:
+        DatasetError: the speed, and what to check.
+    """
+    if len(track) < 2:
+        return
+    span_s = (int(track.timestamps_us[-1]) - int(track.timestamps_us[0])) / 1e6
+    path_m = track.path_length_m()
+    if span_s <= 0 or path_m < PLAUSIBLE_SPEED_MIN_PATH_M or path_m / span_s <= MAX_PLAUSIBLE_SPEED_M_S:
+        return
+    raise DatasetError(f"{pose_file}: its poses drive {path_m:.4g} m in {span_s:.4g} s, a mean speed of "
+                       f"{path_m / span_s:.3g} m/s (faster than sound; a road vehicle drives up to ~100 m/s): "
+                       "positions must be metres (a file in millimetres or centimetres?), and the times in the "
+                       "unit they are read in (--time-unit)")
 
 
 #: how far beyond the first / last pose a scan may lie (pose files sample the trajectory at their own rate), µs

@@ -28,6 +28,11 @@ __all__ = ["ForeignScanLayout", "RANGE_RESOLUTION_BOUNDS_M", "import_polar_scan"
 RANGE_RESOLUTION_BOUNDS_M = (1e-3, 10.0)
 
 
+#: the most negative range of a source's bin 0 accepted, metres (real offsets: Boreas -0.31 m; a few metres
+#: behind the antenna is already no radar's)
+MIN_RANGE_OFFSET_M = -5.0
+
+
 @dataclass(frozen=True)
 class ForeignScanLayout:
     """How a foreign polar array is laid out.
@@ -54,6 +59,11 @@ class ForeignScanLayout:
                                   f"sample {lo:g}-{hi:g} m per bin; Navtech 0.044-0.175 m): check the unit (metres)")
         if not np.isfinite(self.range_offset_m):
             raise ScanFormatError(f"range offset must be a finite number of metres, got {self.range_offset_m}")
+        if self.range_offset_m < MIN_RANGE_OFFSET_M:  # a calibration shift is a fraction of a metre (Boreas -0.31)
+            raise ScanFormatError(f"range offset {self.range_offset_m:g} m would put the source's first range bin "
+                                  f"{-self.range_offset_m:g} m behind the antenna; a radar's offset is a calibration "
+                                  f"shift (Boreas: -0.31 m; accepted down to {MIN_RANGE_OFFSET_M:g} m): check its "
+                                  "sign and unit")
         if not np.isfinite(self.start_azimuth_rad):
             raise ScanFormatError(f"start azimuth must be a finite angle, got {self.start_azimuth_rad}")
         if self.azimuth_axis not in (0, 1):

@@ -234,10 +234,17 @@ def _refuse_repeated_times(t_us: np.ndarray, path: Path) -> None:
                             "pose needs its own time")
 
 
+def _missing_pose_file(path: Path) -> str:
+    """Why ``path`` (not a file) cannot be read as a pose file, in words."""
+    if path.is_dir():
+        return f"{path}: is a folder, not a pose file (give the CSV itself, e.g. applanix/radar_poses.csv)"
+    return f"{path}: no such pose file"
+
+
 def _read_rows(path: Path, min_cols: int, header_first: str | None,
                expected: str = "") -> tuple[list[str] | None, list[tuple[int, list[str]]]]:
     if not path.is_file():
-        raise PoseFileError(f"{path}: no such pose file")
+        raise PoseFileError(_missing_pose_file(path))
     rows: list[tuple[int, list[str]]] = []
     header = None
     with path.open(newline="", encoding="utf-8-sig") as fh:  # a UTF-8 BOM (spreadsheet exports) is no data
@@ -390,7 +397,7 @@ def read_txyyaw_csv(path: str | Path, time_unit: str | None = None) -> PoseSeque
     """
     path = Path(path)
     if not path.is_file():
-        raise PoseFileError(f"{path}: no such pose file")
+        raise PoseFileError(_missing_pose_file(path))
     with path.open(newline="", encoding="utf-8-sig") as fh:
         first = next(csv.reader(fh), [""])
     head = first[0].strip().lower() if first else ""
@@ -532,7 +539,7 @@ def read_poses(path: str | Path, time_unit: str | None = None) -> PoseSequence:
     """
     path = Path(path)
     if not path.is_file():
-        raise PoseFileError(f"{path}: no such pose file")
+        raise PoseFileError(_missing_pose_file(path))
     try:
         with path.open(encoding="utf-8-sig") as fh:
             first = fh.readline().strip()

@@ -378,8 +378,8 @@ def read_npy_header(data: bytes, size: int | None = None) -> ScanHeader:
     ``data`` may be just the file's beginning; ``size`` is then the whole file's length in bytes.
 
     Raises:
-        ScanFormatError: not an .npy file, not a 2-D numeric array, Fortran order, or fewer data bytes than the
-        header declares.
+        ScanFormatError: not an .npy file, not a 2-D numeric array, Fortran order, or more or fewer data bytes
+        than the header declares.
     """
     from numpy.lib import format as npy_format
 
@@ -410,9 +410,14 @@ def read_npy_header(data: bytes, size: int | None = None) -> ScanHeader:
     if fortran:
         raise ScanFormatError("polar array must be C-ordered (np.save of a regular array), not Fortran-ordered")
     rows, cols = int(shape[0]), int(shape[1])
-    if rows * cols * dtype.itemsize > (len(data) if size is None else size) - fp.tell():
+    declared, held = rows * cols * dtype.itemsize, (len(data) if size is None else size) - fp.tell()
+    if declared > held:
         raise ScanFormatError(f"upload is not a readable .npy array (header declares {rows} x {cols} "
                               f"{dtype} but the file is shorter: truncated?)")
+    if declared < held:  # np.save writes nothing after the data: two files joined, or a header that lies
+        raise ScanFormatError(f"upload is not a readable .npy array (header declares {rows} x {cols} {dtype}, "
+                              f"{declared:,} bytes of data, but {held - declared:,} more bytes follow them; send "
+                              "the file np.save wrote, unchanged)")
     return ScanHeader("npy", (rows, cols), int(dtype.itemsize), dtype.str)
 
 
@@ -474,11 +479,18 @@ def _scan_from_raw(raw: np.ndarray, preset: str | RadarPreset | None, source: st
             f"{source}: a Navtech PNG needs >= 2 rows and more than {NAVTECH_META_COLUMNS} columns "
             f"(11 metadata + range bins), got shape {raw.shape}"
         )
+    num_bins = raw.shape[1] - NAVTECH_META_COLUMNS
+    if raw.shape[0] > num_bins and presets_with_bins(raw.shape[0] - NAVTECH_META_COLUMNS):
+        # its rows are a preset's columns: said before anything else ("cannot infer the preset from 389 bins")
+        raise ScanFormatError(
+            f"{source}: image has {raw.shape[0]} rows x {raw.shape[1]} columns: more azimuth rows than range bins, "
+            f"so it looks transposed; a Navtech PNG is (azimuths, {NAVTECH_META_COLUMNS} metadata columns + range "
+            f"bins), e.g. 400 x {3360 + NAVTECH_META_COLUMNS}: save it untransposed (polar data without Navtech "
+            "metadata: `reradar import-scans --transposed`)")
     meta = np.ascontiguousarray(raw[:, :NAVTECH_META_COLUMNS])
     timestamps = meta[:, 0:8].copy().view("<i8").reshape(-1)
     encoder = meta[:, 8:10].copy().view("<u2").reshape(-1)
     valid = meta[:, 10] != 0
-    num_bins = raw.shape[1] - NAVTECH_META_COLUMNS
     if preset is not None:
         p = get_preset(preset)
     else:

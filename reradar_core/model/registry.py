@@ -42,7 +42,8 @@ def resolve_weights(name: str = "default", weights_dir: Path = WEIGHTS_DIR) -> t
     if candidate.suffix == ".pt" and candidate.is_file():
         pt = candidate
     elif candidate.suffix == ".pt" or len(candidate.parts) > 1:  # a path, not a registry name
-        why = "is a folder, not a weights file" if candidate.is_dir() else "no such weights file"
+        why = ("is a folder, not a weights file" if candidate.is_dir() else
+               "is not a weights file (.pt)" if candidate.is_file() else "no such weights file")
         raise ConfigError(f"{candidate}: {why} (a .pt written by `reradar train`)")
     else:
         names = available_models(weights_dir)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -113,9 +114,33 @@ def load_road_xy(path: str | Path, time_unit: str | None = None) -> np.ndarray:
 
 
 def offset_trajectory(traj: PoseSequence, lateral_m: float = 0.0, time_shift_us: int = 0) -> PoseSequence:
-    """The same drive shifted ``lateral_m`` to the vehicle's left (another lane) and in time."""
+    """The same drive shifted ``lateral_m`` to the vehicle's left (another lane) and in time.
+
+    Raises:
+        ConfigError: the offset reaches past the centre of a turn (``lateral_m`` at least the turn's radius, on its
+            inside): the shifted lane would run backwards while its heading still points forwards, a drive no
+            vehicle makes, and its ground truth would be wrong.
+    """
     n = np.stack([-np.sin(traj.yaw), np.cos(traj.yaw)], axis=1)
-    return PoseSequence(traj.timestamps_us + int(time_shift_us), traj.xy + lateral_m * n, traj.yaw)
+    xy = traj.xy + lateral_m * n
+    if lateral_m and len(traj) > 1:
+        mid_yaw = traj.yaw[:-1] + 0.5 * np.angle(np.exp(1j * np.diff(traj.yaw)))
+        heading = np.stack([np.cos(mid_yaw), np.sin(mid_yaw)], axis=1)
+        ahead = np.einsum("ij,ij->i", np.diff(traj.xy, axis=0), heading)  # metres driven forwards per step
+        shifted = np.einsum("ij,ij->i", np.diff(xy, axis=0), heading)
+        # the lane at most a twentieth as fast as its centre line: at or past the turn's centre (steps of a
+        # standing vehicle, whose heading may still wander, are not judged)
+        reversed_ = np.flatnonzero((ahead > 0.05) & (shifted < 0.05 * ahead))
+        if reversed_.size:
+            i = int(reversed_[np.argmin(shifted[reversed_] / ahead[reversed_])])
+            turn = abs(float(np.angle(np.exp(1j * (traj.yaw[i + 1] - traj.yaw[i])))))
+            radius = ahead[i] / turn if turn > 0 else math.inf
+            raise ConfigError(
+                f"a lane {lateral_m:g} m to the {'left' if lateral_m > 0 else 'right'} of the trajectory reaches past "
+                f"the centre of its turn at {(int(traj.timestamps_us[i]) - int(traj.timestamps_us[0])) / 1e6:.2f} s "
+                f"(radius {radius:.1f} m): that lane would run backwards while facing forwards; give an offset "
+                f"smaller than the trajectory's tightest turn radius (a lane is ~3.5 m)")
+    return PoseSequence(traj.timestamps_us + int(time_shift_us), xy, traj.yaw)
 
 
 def drive_route(waypoints: np.ndarray, seed: int, start_time_us: int = 1_600_000_000_000_000,

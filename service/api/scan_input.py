@@ -32,16 +32,24 @@ from reradar_core.io.scan import (
     sniff_scan_format,
     why_format_refused,
 )
-from service.core.errors import BadRequestError, NotFoundError, PayloadTooLargeError, UnsupportedMediaError
+from service.core.errors import (
+    BadRequestError,
+    NotFoundError,
+    PayloadTooLargeError,
+    UnsupportedMediaError,
+    shorten_echo,
+)
 from service.core.state import ServiceState
 
 __all__ = ["ScanInput", "read_scan_input", "scan_request_body", "UnsupportedMediaError", "check_scan_upload",
            "read_scan_upload", "parse_scan_layout", "SCAN_LAYOUTS", "SCAN_LAYOUT_DESCRIPTION", "read_multipart_form",
            "refuse_repeated_fields", "refuse_unknown_fields", "refuse_text_fields_sent_as_files",
-           "validate_json_body", "refuse_duplicate_json_keys", "ClosedFormRoute"]
+           "refuse_files_sent_as_text", "validate_json_body", "refuse_duplicate_json_keys", "ClosedFormRoute"]
 
-_TOP_K_FORM = re.compile(r"^[0-9]{1,6}$")
-_FLOAT_FORM = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d{1,3})?$")
+# ASCII digits only, the whole text (``fullmatch``: ``$`` would let a trailing newline through, ``\d`` other scripts'
+# digits, which ``float`` reads)
+_TOP_K_FORM = re.compile(r"[0-9]{1,6}")
+_FLOAT_FORM = re.compile(r"[+-]?([0-9]+(\.[0-9]*)?|\.[0-9]+)([eE][+-]?[0-9]{1,3})?")
 
 
 #: Bytes of an upload read to find its header (a PNG's IHDR is in the first 33, an .npy header under 10 kB).
@@ -120,7 +128,9 @@ def refuse_unknown_fields(form: FormData, allowed: Iterable[str]) -> None:
     names = list(allowed)
     unknown = sorted(set(form.keys()) - set(names))
     if unknown:
-        raise BadRequestError(f"unexpected form fields {unknown}; allowed: {', '.join(names)}")
+        shown = ", ".join(repr(shorten_echo(k)) for k in unknown[:5]) + (f" (+{len(unknown) - 5} more)"
+                                                                        if len(unknown) > 5 else "")
+        raise BadRequestError(f"unexpected form fields [{shown}]; allowed: {', '.join(names)}")
 
 
 def refuse_text_fields_sent_as_files(form: FormData, files: Iterable[str]) -> None:
@@ -132,6 +142,17 @@ def refuse_text_fields_sent_as_files(form: FormData, files: Iterable[str]) -> No
     if as_files:
         raise BadRequestError(f"form fields {as_files} were sent as files; send them as text fields (curl: "
                               f"-F name=value, not -F name=@file); only {sorted(file_fields)} are files")
+
+
+def refuse_files_sent_as_text(form: FormData, files: Iterable[str]) -> None:
+    """400 naming the file fields that arrived as text (``-F scan=<file.png`` or ``-F map_file=name``: the text
+    of the part, not a file): said plainly instead of a validation error about Python types."""
+    file_fields = set(files)
+    as_text = sorted({k for k, v in form.multi_items() if k in file_fields and isinstance(v, str)})
+    if as_text:
+        raise BadRequestError(f"{', '.join(repr(k) for k in as_text)} arrived as text; send "
+                              f"{'it as a file' if len(as_text) == 1 else 'them as files'} "
+                              f"(curl: -F {as_text[0]}=@path, not -F {as_text[0]}=value or -F {as_text[0]}=<path)")
 
 
 class _DuplicateKeysError(ValueError):
@@ -259,11 +280,16 @@ class ClosedFormRoute(APIRoute):
         if self.body_field is None or not isinstance(self.body_field.field_info, params.Form):
             return handler
 
+        files = tuple(f.alias for f in self.dependant.body_params if isinstance(f.field_info, params.File))
+
         async def parse_closed_form_first(request: Request) -> Any:
             ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
             if ctype == "multipart/form-data":
                 request._form = await read_multipart_form(request, max_files=self.MAX_PARTS,
                                                           max_fields=self.MAX_PARTS)
+                refuse_files_sent_as_text(request._form, files)
+            elif ctype == "application/x-www-form-urlencoded" and files:
+                refuse_files_sent_as_text(await request.form(), files)
             return await handler(request)
 
         return parse_closed_form_first
@@ -331,13 +357,14 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         form = await read_multipart_form(request, max_files=2, max_fields=16)
         refuse_repeated_fields(form)
         refuse_text_fields_sent_as_files(form, ("scan",))
+        refuse_files_sent_as_text(form, ("scan",))
         upload = form.get("scan")
         if not isinstance(upload, UploadFile):
             raise BadRequestError("multipart request needs a file field named 'scan' (a Navtech PNG or .npy)")
         raw_fields: dict[str, Any] = {k: v for k, v in form.items()
                                       if k in form_keys and isinstance(v, str) and v != ""}
         if "top_k" in raw_fields:  # form fields are text: only plain decimal integers ("true", "5.0" are not)
-            if not _TOP_K_FORM.match(raw_fields["top_k"]):
+            if not _TOP_K_FORM.fullmatch(raw_fields["top_k"]):
                 raise RequestValidationError([{"loc": ("body", "top_k"), "msg": "Input should be a decimal integer",
                                                "type": "int_parsing"}])
             raw_fields["top_k"] = int(raw_fields["top_k"])
@@ -345,7 +372,7 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
             info = json_model.model_fields.get(name)
             if info is None or name == "top_k" or float not in getattr(info.annotation, "__args__", (info.annotation,)):
                 continue
-            value = float(text) if _FLOAT_FORM.match(text) else math.nan
+            value = float(text) if _FLOAT_FORM.fullmatch(text) else math.nan
             if not math.isfinite(value):
                 raise RequestValidationError([{"loc": ("body", name), "msg": "Input should be a finite decimal number",
                                                "type": "float_parsing"}])

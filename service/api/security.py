@@ -18,6 +18,7 @@ public     ``GET`` / ``HEAD`` / ``OPTIONS``: health, metrics, maps,     none
 
 from __future__ import annotations
 
+import hashlib
 import secrets
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +28,7 @@ from service.core.config import Settings, is_loopback, resolve_operator_key
 from service.core.errors import ServiceError, UnauthorizedError
 
 __all__ = ["RouteClass", "Principal", "AccessPolicy", "RequestLimits", "Guard", "route_class", "ForbiddenError",
-           "build_guard"]
+           "build_guard", "caller_id"]
 
 RouteClass = Literal["operator", "vehicle", "public"]
 Principal = Literal["operator", "vehicle", "loopback"]
@@ -50,6 +51,14 @@ def route_class(method: str, path: str) -> RouteClass:
     if len(parts) >= 2 and parts[1] == "maps" and not (len(parts) == 4 and parts[3] == "retrieve"):
         return "operator"  # POST /maps, DELETE /maps/{id}, and any other change to maps
     return "vehicle"
+
+
+def caller_id(principal: Principal, key: str | None) -> str:
+    """Who is calling, for what a caller keeps between requests (tracking sessions): each API key its own (a
+    digest, never the key itself), every keyless loopback client one. Two vehicles that share a key share it."""
+    if principal == "loopback" or not key:
+        return "loopback"
+    return "key-" + hashlib.sha256(key.encode("utf-8", "surrogateescape")).hexdigest()[:16]
 
 
 def _matches(key: str, candidates: tuple[str, ...]) -> bool:

@@ -43,10 +43,10 @@ __all__ = ["extract_scan_archive", "check_scan_times", "scan_time_us", "navtech_
            "max_archive_members", "zip_entries_exceed", "SCAN_NAME_PATTERN",
            "MAX_SCAN_TIMESTAMP_US", "ARCHIVE_MEMBER_SLACK", "MAX_TAR_HEADER_BYTES", "TarHeaderTooLargeError"]
 
-SCAN_NAME_PATTERN = re.compile(r"^(\d{1,20})\.(png|npy)$")
+SCAN_NAME_PATTERN = re.compile(r"^(\d{1,20})\.(png|npy)$", re.ASCII)  # ASCII digits: int() reads others too
 #: A scan's name with a sign (``-1000000.png``): meant as a scan (a sequence folder reads it as time -1 s and
 #: refuses it), so refused by name rather than ignored like the other members (see ``extract_scan_archive``).
-_SIGNED_SCAN_NAME = re.compile(r"^[+-]\d{1,20}\.(png|npy)$")
+_SIGNED_SCAN_NAME = re.compile(r"^[+-]\d{1,20}\.(png|npy)$", re.ASCII)
 
 #: Members of other names an archive may hold beyond two per scan (see ``max_archive_members``).
 ARCHIVE_MEMBER_SLACK = 1024
@@ -166,9 +166,9 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
     def accept(name: str) -> tuple[str, int] | None:
         """(file name, timestamp in us) of a scan member, None for any other name."""
         base = name.replace("\\", "/").rsplit("/", 1)[-1]
-        match = SCAN_NAME_PATTERN.match(base)
+        match = SCAN_NAME_PATTERN.fullmatch(base)
         if not match:
-            if _SIGNED_SCAN_NAME.match(base):
+            if _SIGNED_SCAN_NAME.fullmatch(base):
                 raise BadRequestError(f"scan archive member {base!r}: a scan's name must be its timestamp, digits "
                                       f"only (0 to {MAX_SCAN_TIMESTAMP_US} us, no sign); name scan files by their "
                                       f"timestamp in microseconds since the Unix epoch, or remove it from the "
@@ -258,7 +258,7 @@ SWEEP_PRESET = "boreas"
 def scan_time_us(path: Path) -> int | None:
     """The time a scan file of an archive gives its keyframe: a Navtech PNG's own (``navtech_png_scan_time_us``;
     None when that cannot be read cheaply), a polar .npy's file name (an array carries no time)."""
-    match = SCAN_NAME_PATTERN.match(path.name)
+    match = SCAN_NAME_PATTERN.fullmatch(path.name)
     if match is None:
         return None
     if match.group(2) == "npy":
@@ -311,7 +311,7 @@ def check_scan_times(scan_paths: list[Path], preset: str | RadarPreset | None = 
             seen[t] = path.name
             problem = scan_name_time_message(path.name, t, sweep)
             if problem is None:
-                name = SCAN_NAME_PATTERN.match(path.name)
+                name = SCAN_NAME_PATTERN.fullmatch(path.name)
                 if name is not None and name.group(2) == "png":
                     off_us.append(int(name.group(1)) - t)
                 continue
@@ -338,7 +338,7 @@ def scan_name_time_message(name: str, embedded_us: int, preset: str | RadarPrese
     sweep of ``preset`` apart: the library's rule and words for a sequence folder (``scan_name_time_mismatch``),
     said of an archive member. None when they agree within a sweep, and for a polar .npy (timed by its name).
     """
-    match = SCAN_NAME_PATTERN.match(name)
+    match = SCAN_NAME_PATTERN.fullmatch(name)
     if match is None or match.group(2) != "png":
         return None
     sweep = preset if isinstance(preset, RadarPreset) else get_preset(preset or SWEEP_PRESET)

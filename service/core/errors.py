@@ -25,7 +25,7 @@ from typing import Any
 __all__ = ["ServiceError", "NotFoundError", "ConflictError", "PayloadTooLargeError", "BadRequestError",
            "ServiceUnavailableError", "UnauthorizedError", "UnsupportedMediaError", "RequestTimeoutError",
            "OverloadedError", "PROBLEM_MEDIA_TYPE", "problem_body", "problem_type", "scrub_paths",
-           "validation_detail"]
+           "validation_detail", "shorten_echo", "MAX_ECHOED_CHARS"]
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 _TYPE_PREFIX = "urn:reradar:error:"
@@ -120,14 +120,26 @@ def scrub_paths(message: str, roots: Iterable[str | Path] = ()) -> str:
 MAX_REPORTED_ERRORS = 20
 
 
+#: the most characters of a client's own text (a field name) echoed back in an error
+MAX_ECHOED_CHARS = 64
+
+
+def shorten_echo(text: str, limit: int = MAX_ECHOED_CHARS) -> str:
+    """``text`` cut to ``limit`` characters (the cut marked with "..." and the full length), for echoing a client's
+    field names in an error without answering a long name with a longer body."""
+    return text if len(text) <= limit else f"{text[:limit]}...({len(text):,} characters)"
+
+
 def validation_detail(errors: Sequence[dict[str, Any]]) -> tuple[str, list[dict[str, Any]]]:
     """A one-line ``detail`` and JSON-safe ``errors`` items (``loc``, ``msg``, ``type``; the first
     ``MAX_REPORTED_ERRORS``) from pydantic / FastAPI validation errors. The offending ``input`` and ``ctx`` are dropped: they may be bytes that are
     not UTF-8 or floats that JSON cannot hold (NaN, inf), and echoing them back helps nobody."""
     items = []
     for e in errors[:MAX_REPORTED_ERRORS]:
-        loc = [x if isinstance(x, int) else str(x) for x in e.get("loc", ())]
-        items.append({"loc": loc, "msg": str(e.get("msg", "invalid value")), "type": str(e.get("type", "value_error"))})
+        # a field name is the client's text: echoed in full, a 7 MB key made a 14 MB answer
+        loc = [x if isinstance(x, int) else shorten_echo(str(x)) for x in e.get("loc", ())]
+        items.append({"loc": loc, "msg": shorten_echo(str(e.get("msg", "invalid value")), 300),
+                      "type": str(e.get("type", "value_error"))})
     parts = [f"{'.'.join(str(x) for x in i['loc'][1:] or i['loc']) or 'body'}: {i['msg']}" for i in items[:5]]
     more = f" (+{len(errors) - 5} more)" if len(errors) > 5 else ""
     return "invalid request: " + "; ".join(parts) + more, items

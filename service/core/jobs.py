@@ -55,7 +55,15 @@ from maps.store import fsync_dir
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
 from service.core.errors import ConflictError, NotFoundError
-from service.core.registry import FileIdentity, MapEntry, MapRegistry, file_identity, last_pass_note, utc_now
+from service.core.registry import (
+    UPLOAD_CHECK_NOTE,
+    FileIdentity,
+    MapEntry,
+    MapRegistry,
+    file_identity,
+    last_pass_note,
+    utc_now,
+)
 from service.core.shared_state import SharedStateUnavailableError, arq_redis_settings
 
 __all__ = ["BuildQueue", "QueuedMapRegistry", "JOB_FUNCTION", "ARQ_IN_PROGRESS_PREFIX", "ARQ_JOB_PREFIX", "jobs_dir",
@@ -518,6 +526,8 @@ class QueuedMapRegistry(MapRegistry):
         Redis cannot say: the note is a hint, the state stays what the records last said)."""
         if entry.state != "building":
             return None
+        if entry.uploaded:
+            return UPLOAD_CHECK_NOTE
         try:
             rec = self.queue.record(entry.map_id)
             if rec.get("state") not in _ACTIVE:
@@ -590,6 +600,8 @@ class QueuedMapRegistry(MapRegistry):
         looked is deleted like any map (``_settle_finished_build``); a build of the id still active after the
         map was deleted is cancelled too, so it cannot bring the map back."""
         entry = self.get(map_id)
+        if entry.state == "building" and entry.uploaded:  # no job to cancel: the upload settles within seconds
+            raise ConflictError(f"map {map_id!r}: {UPLOAD_CHECK_NOTE}; retry the DELETE then")
         if entry.state == "building":
             try:
                 cancelled, _dropped = self.queue.cancel(map_id, self._remove_job_files)

@@ -71,7 +71,7 @@ from service.core.config import MAP_ID_PATTERN, Settings
 from service.core.errors import BadRequestError, ConflictError, NotFoundError, scrub_paths
 
 __all__ = ["MapEntry", "MapRegistry", "MapState", "DEMO_MAP_ID", "FileIdentity", "build_failure_message",
-           "file_identity", "install_map_files"]
+           "file_identity", "install_map_files", "UPLOAD_CHECK_NOTE"]
 
 logger = logging.getLogger(__name__)
 
@@ -240,7 +240,8 @@ class MapEntry:
     ``file_id``: the ``file_identity`` of the map file this entry opened (None for a build in progress or a
     failed build, which have none): ``MapSync`` reopens the map when the file under its name changes.
     ``far_view``: a build in progress also builds the map's far-view companion (``start_build(far_view=True)``);
-    whether a ready map is served with one is ``db.far``."""
+    whether a ready map is served with one is ``db.far``. ``uploaded``: an uploaded map file being checked and
+    installed (``building`` without a build job)."""
 
     map_id: str
     path: Path
@@ -252,6 +253,9 @@ class MapEntry:
     registered_utc: str = field(default_factory=utc_now)
     file_id: FileIdentity | None = None
     far_view: bool = False
+    #: a prebuilt map file sent with ``POST /maps`` (``register_file``), ``building`` while it is checked and
+    #: installed (seconds; there is no build job to wait for or cancel)
+    uploaded: bool = False
 
     @property
     def progress(self) -> float:
@@ -279,11 +283,18 @@ def _log_far_served(path: Path, db: MapDatabase) -> None:
                 len(far) if far is not None else 0)
 
 
+#: what a map whose uploaded file is being checked is doing (``MapEntry.uploaded``)
+UPLOAD_CHECK_NOTE = ("the uploaded map file is being checked and installed (no build job; it is ready or refused "
+                     "within seconds)")
+
+
 def last_pass_note(entry: MapEntry) -> str | None:
     """What a ``building`` entry does while its progress stands still between its scan descriptions, so that it is
     not read as stuck: with every scan described (``progress`` 1), measuring where the map repeats itself before the
     install; a build with its far-view companion (``far_view``: ``scans_total`` 2 N) also at N (``progress``
     0.5), where the map's own place-repetition pass runs before the far view's descriptions begin. None otherwise."""
+    if entry.state == "building" and entry.uploaded:
+        return UPLOAD_CHECK_NOTE
     if entry.state != "building" or not entry.scans_total:
         return None
     repetition = "the build is measuring where the map repeats itself (20-40 ms per keyframe and thread)"
@@ -341,7 +352,7 @@ class MapRegistry:
 
     # ---- paths and ids -------------------------------------------------------------------------------------
     def validate_id(self, map_id: str) -> str:
-        if not isinstance(map_id, str) or not _ID_RE.match(map_id):
+        if not isinstance(map_id, str) or not _ID_RE.fullmatch(map_id):
             raise BadRequestError(
                 f"invalid map id {map_id!r}: use 1-64 lower-case letters, digits, '_' or '-', "
                 f"starting with a letter or digit"
@@ -394,7 +405,7 @@ class MapRegistry:
                 record = json.loads(path.read_text())
             except (OSError, ValueError):
                 record = {}
-            if not _ID_RE.match(map_id):
+            if not _ID_RE.fullmatch(map_id):
                 continue
             if (self.maps_dir / f"{map_id}.h5").exists():
                 self._drop_job(map_id)  # built and installed; the process stopped before dropping the record
@@ -569,7 +580,8 @@ class MapRegistry:
             self._probe_unverified(_far_marker_id(path), path, file_identity(path))
             kf_map = self._open_far_checked(path)
             # the keyframes first: a companion of another map is refused before its shared arrays are written
-            problem = far_view_mismatch(db.localizer.keyframes, kf_map)
+            problem = far_view_mismatch(db.localizer.keyframes, kf_map,
+                                        (db.metadata.radar_preset, kf_map.metadata.radar_preset))
             if problem is not None:
                 kf_map.close()
                 raise MapFormatError(f"it does not hold the keyframes of {db.map.path.name} ({problem}); rebuild "
@@ -627,7 +639,7 @@ class MapRegistry:
                                    "in %s.)", path.name, owner.name, owner.stem, owner.stem, FAR_VIEW_SUFFIX)
                 continue
             map_id = path.stem
-            if not _ID_RE.match(map_id):
+            if not _ID_RE.fullmatch(map_id):
                 logger.warning("ignoring %s: file name is not a valid map id", path)
                 continue
             entry = self._load_entry(map_id, path)
@@ -672,7 +684,8 @@ class MapRegistry:
     def ready(self, map_id: str) -> MapDatabase:
         entry = self.get(map_id)
         if entry.state != "ready" or entry.db is None:
-            detail = f": {entry.error}" if entry.error else f" ({entry.progress:.0%} built)"
+            detail = (f": {entry.error}" if entry.error else f" ({UPLOAD_CHECK_NOTE}; retry then)" if entry.uploaded
+                      else f" ({entry.progress:.0%} built)")
             raise ConflictError(f"map {map_id!r} is not ready for queries, state {entry.state}{detail}")
         return entry.db
 
@@ -730,6 +743,9 @@ class MapRegistry:
     def taken_message(self, map_id: str, entry: MapEntry | None) -> str:
         """What to tell a client registering ``map_id`` when ``entry`` (None: a file without an entry) holds it:
         for a map being built, to wait for the build (and ``_building_delete_hint``)."""
+        if entry is not None and entry.state == "building" and entry.uploaded:
+            return (f"map {map_id!r} is taken: {UPLOAD_CHECK_NOTE}; pick another id, or DELETE /maps/{map_id} once "
+                    "GET shows it ready to replace it")
         if entry is not None and entry.state == "building":
             hint = self._building_delete_hint.format(map_id=map_id)
             return (f"map {map_id!r} is being built ({entry.progress:.0%}); wait until the build finishes "
@@ -742,11 +758,11 @@ class MapRegistry:
             if map_id in self._entries or self.path_for(map_id).exists():
                 raise ConflictError(self.taken_message(map_id, self._entries.get(map_id)))
 
-    def _reserve(self, map_id: str, scans_total: int = 0, far_view: bool = False) -> MapEntry:
+    def _reserve(self, map_id: str, scans_total: int = 0, far_view: bool = False, uploaded: bool = False) -> MapEntry:
         path = self.path_for(map_id)
         with self._lock:
             self.check_free(map_id)
-            entry = MapEntry(map_id, path, "building", scans_total=scans_total, far_view=far_view)
+            entry = MapEntry(map_id, path, "building", scans_total=scans_total, far_view=far_view, uploaded=uploaded)
             self._entries[map_id] = entry
             return entry
 
@@ -779,7 +795,7 @@ class MapRegistry:
         try:
             if far_staged is not None:
                 self.check_far_view_served("far_map_file")
-            entry = self._reserve(map_id)
+            entry = self._reserve(map_id, uploaded=True)
         except BaseException:
             for path in staged_files:
                 path.unlink(missing_ok=True)
@@ -806,7 +822,7 @@ class MapRegistry:
                 except ReRadarError as exc:
                     raise type(exc)(str(exc).replace(str(far_staged), "the uploaded far-view map ('far_map_file')")
                                     ) from None
-                problem = far_view_mismatch(kf_map, far_kf)
+                problem = far_view_mismatch(kf_map, far_kf, (kf_map.metadata.radar_preset, far_kf.metadata.radar_preset))
                 if problem is not None:
                     raise MapFormatError(
                         f"the uploaded far-view map ('far_map_file') does not hold the keyframes of the uploaded map "
@@ -994,6 +1010,8 @@ class MapRegistry:
         """Unregister ``map_id`` and delete its file (refused while it is being built)."""
         with self._lock:
             entry = self.get(map_id)
+            if entry.state == "building" and entry.uploaded:
+                raise ConflictError(f"map {map_id!r}: {UPLOAD_CHECK_NOTE}; retry the DELETE then")
             if entry.state == "building":
                 raise ConflictError(f"map {map_id!r} is being built; wait for the job to finish")
             del self._entries[map_id]

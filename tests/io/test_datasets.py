@@ -317,3 +317,16 @@ def test_mulran_times_that_read_as_absolute_ms_name_both_readings(tmp_path):
     with pytest.raises(PoseFileError, match=r"--time-unit ms if they are, --time-unit ns if they are a relative clock"):
         load_sequence(root)
     assert len(load_sequence(root, pose_time_unit="ns")) == 8
+
+
+def test_a_pose_file_faster_than_any_vehicle_is_refused():
+    """Positions in millimetres (or times in a unit too fine) make a drive of thousands of m/s: refused by name
+    (QA session 36: build-map stored keyframes 1000x apart and bench found no revisit, without a word)."""
+    from reradar_core.io.datasets import check_pose_speed
+
+    t = np.arange(80, dtype=np.int64) * 250_000
+    xy = np.stack([np.arange(80) * 2.0, np.zeros(80)], axis=1)  # 8 m/s
+    check_pose_speed(PoseSequence(t, xy, np.zeros(80)))
+    check_pose_speed(PoseSequence(t, xy * 0.001, np.zeros(80)))  # under 20 m of path: a vehicle standing, not judged
+    with pytest.raises(DatasetError, match=r"mean speed of 8e\+03 m/s .*millimetres"):
+        check_pose_speed(PoseSequence(t, xy * 1000, np.zeros(80)), "poses.csv")

@@ -147,10 +147,11 @@ def test_cli_refuses_tiny_colour_and_navtech_sources(tmp_path):
 def test_a_source_range_that_misses_the_preset_is_refused_and_angles_wrap():
     """QA (session 20): an offset of 500 m or NaN, or 1e-9 m bins, wrote all-zero scans and said 'wrote 1'."""
     for layout in (dict(range_resolution_m=0.175, range_offset_m=500.0),
-                   dict(range_resolution_m=0.175, range_offset_m=-1000.0),
                    dict(range_resolution_m=0.175, range_offset_m=199.5)):  # an overlap of half a metre
         with pytest.raises(ScanFormatError, match="overlap fewer than 64 range bins"):
             import_polar_scan(_foreign(), ForeignScanLayout(**layout), "boreas")
+    with pytest.raises(ScanFormatError, match="1000 m behind the antenna"):  # refused as a layout (session 36)
+        ForeignScanLayout(range_resolution_m=0.175, range_offset_m=-1000.0)
     with pytest.raises(ScanFormatError, match="finite"):
         ForeignScanLayout(0.175, float("nan"))
     with pytest.raises(ScanFormatError, match="not a radar's"):
@@ -224,3 +225,23 @@ def test_help_says_what_build_map_needs_besides_the_scans():
     assert res.exit_code == 0
     text = " ".join(res.output.split())
     assert "SEQ/radar/<t_us>.png" in text and "radar_poses.csv" in text and "natural" in text
+
+
+def test_cli_refuses_a_truncated_png_in_one_line(tmp_path, capfd):
+    """A truncated greyscale PNG is named as one, before libpng reads it (QA session 36: libpng printed its own
+    "libpng error: Read Error" line first)."""
+    power = (np.random.default_rng(0).random((64, 500)) * 255).astype(np.uint8)
+    ok, png = cv2.imencode(".png", power)
+    assert ok
+    src = tmp_path / "1600000000000000.png"
+    src.write_bytes(png.tobytes()[: len(png) // 2])
+    res = _import(tmp_path, src)
+    assert res.exit_code != 0 and "not a readable PNG image (corrupt or truncated)" in res.output
+    assert "libpng" not in capfd.readouterr().err
+
+
+def test_a_range_offset_far_behind_the_antenna_is_refused():
+    """QA session 36: --range-offset -50 was accepted; a calibration shift (Boreas -0.31 m) still is."""
+    with pytest.raises(ScanFormatError, match="50 m behind the antenna"):
+        ForeignScanLayout(0.175, -50.0)
+    assert ForeignScanLayout(0.0596, -0.31).range_offset_m == -0.31

@@ -347,3 +347,27 @@ def test_a_navtech_image_sent_as_polar_gets_a_hint():
     with pytest.raises(ScanFormatError) as exc:
         infer_preset(3000, "q.npy")
     assert "navtech" not in str(exc.value)
+
+
+def test_npy_with_bytes_after_its_data_is_refused():
+    """An .npy whose file holds more than its header declares (two files joined, a header that lies) is refused,
+    as one holding less is (QA session 36: 1 MB appended to a scan was localized)."""
+    data = _npy_bytes(np.zeros((400, 3360), np.uint8))
+    with pytest.raises(ScanFormatError, match="1,048,576 more bytes follow"):
+        read_npy_header(data + b"\xff" * (1 << 20))
+    with pytest.raises(ScanFormatError, match="more bytes follow"):  # the upload path: header bytes plus the size
+        scan_header(data[:200], size=len(data) + 1)
+    assert read_npy_header(data).shape == (400, 3360)
+
+
+def test_transposed_navtech_png_is_said_to_be_transposed():
+    """A Navtech PNG saved transposed (3,371 rows x 400 columns) is named as transposed, not "cannot infer the
+    radar preset from 389 range bins" (QA session 36); with a preset given the layout check says so too."""
+    scan = np.zeros((400, 3360 + NAVTECH_META_COLUMNS), np.uint8)
+    scan[:, :8] = np.frombuffer(np.arange(400, dtype="<i8").tobytes(), np.uint8).reshape(400, 8)
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(scan.T))
+    assert ok
+    with pytest.raises(ScanFormatError, match="3371 rows x 400 columns.*looks transposed"):
+        load_scan_bytes(png.tobytes(), "scan.png")
+    with pytest.raises(ScanFormatError, match="transposed"):
+        load_scan_bytes(png.tobytes(), "scan.png", "boreas")

@@ -339,3 +339,36 @@ def test_fit_confidence_warns_when_too_few_wrong_answers_to_fit_a_bar(caplog):
     with caplog.at_level(logging.WARNING, logger="reradar_core.localization.confidence_fit"):
         _, report = fit_from_data(data(2000, 0.2), floors=(0.3,))  # hundreds of wrong answers: no warning
     assert "warnings" not in report and "too few" not in caplog.text and MIN_WRONG_FOR_BAR <= 400
+
+
+def test_serve_on_a_port_in_use_says_so_before_loading_anything(tmp_path, monkeypatch):
+    """A second server on a busy port is one line before the model and maps load (QA session 36: a uvicorn log line
+    after the whole start-up), and the first server is untouched."""
+    import socket
+
+    monkeypatch.setattr("service.cli.served_model_or_exit", lambda *a, **k: pytest.fail("loaded the model"))
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        res = _run(["serve", "--port", str(port), "--maps-dir", str(tmp_path / "maps")])
+        assert res.exit_code == 2 and f"127.0.0.1:{port} is in use" in res.output and "--port" in res.output
+
+
+def test_a_folder_or_another_file_named_as_a_pose_or_weights_file_is_said_to_be_one(tmp_path):
+    folder = tmp_path / "adir"
+    folder.mkdir()
+    res = _run(["sim", "--trajectory", str(folder), "--time-unit", "s", "--out", str(tmp_path / "o")])
+    assert res.exit_code != 0 and "is a folder, not a pose file" in res.output
+    text = tmp_path / "traj.csv"
+    text.write_text("t,x,y,yaw\n")
+    res = _run(["export-onnx", str(text)])
+    assert res.exit_code != 0 and "is not a weights file (.pt)" in res.output and "no such" not in res.output
+
+
+def test_replay_options_without_follow_are_refused(tmp_path):
+    """QA session 36: `localize --every 2 SCAN` ignored --every without a word."""
+    scan = tmp_path / "1600000000000000.png"
+    scan.write_bytes(b"\x89PNG\r\n\x1a\n")
+    res = _run(["localize", str(scan), "--every", "2", "--no-tracking"])
+    assert res.exit_code == 2 and "--every, --no-tracking apply to a replay with --follow" in res.output

@@ -168,3 +168,32 @@ def test_sim_refuses_a_drive_whose_time_unit_makes_it_crawl_or_fly(tmp_path):
     stand = tmp_path / "stand.csv"
     stand.write_text("t_s,x,y,yaw\n0,0,0,0\n600,0,0,0\n" + "".join(f"{600 + i},{8.0 * i},0,0\n" for i in range(1, 6)))
     check_render_trajectory(read_poses(stand), stand)
+
+
+def test_an_offset_past_the_centre_of_a_turn_is_refused():
+    """A lane farther to the inside of a turn than the turn's radius would run backwards while its heading faces
+    forwards (QA session 36: `sim --lateral 30` on a 25 m turn gave such ground truth, `--lateral 1e6` hung):
+    refused, naming the radius; the outside of the turn and a lane inside the radius are driven."""
+    import math
+
+    import pytest
+
+    from reradar_core.errors import ConfigError
+    from reradar_core.io.poses import PoseSequence
+    from reradar_core.sim.trajectories import offset_trajectory
+
+    xy, yaw, x, y, h = [], [], 0.0, 0.0, 0.0
+    for i in range(161):  # 8 m/s, a 90 deg left turn of radius 2 m / (pi / 40) = 25.5 m
+        xy.append((x, y))
+        yaw.append(h)
+        if 60 <= i < 80:
+            h += (math.pi / 2) / 20
+        x, y = x + 2 * math.cos(h), y + 2 * math.sin(h)
+    traj = PoseSequence(np.arange(161, dtype=np.int64) * 250_000, np.array(xy), np.array(yaw))
+    for lateral in (30.0, 1e6):
+        with pytest.raises(ConfigError, match=r"past the centre of its turn .*radius 25\.\d m"):
+            offset_trajectory(traj, lateral)
+    for lateral in (-30.0, 20.0, 3.5):  # the outside of the turn, and lanes inside its radius
+        lane = offset_trajectory(traj, lateral)
+        step = np.diff(lane.xy, axis=0)
+        assert np.all(step[:, 0] * np.cos(lane.yaw[:-1]) + step[:, 1] * np.sin(lane.yaw[:-1]) > 0)

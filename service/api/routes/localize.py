@@ -107,8 +107,12 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         # the scan's time turns the session's odometry into the vehicle's motion (the motion compensation's prior;
         # a scan without a time reads 0, so two of them are no time apart and give none)
         stamp = int(inp.features.timestamp_us)
-        moved = (await run_in_threadpool(state.sessions.prior_for, session_id, map_id, odometry, stamp, config.motion)
-                 if session_id else None)
+        # a session is the caller's (its API key: another key's vehicle cannot move it) on this version of the map
+        # (a map deleted and registered again under the id has another frame: its sessions start afresh)
+        session_key = f"{request.scope.get('state', {}).get('caller', 'loopback')}:{session_id}" if session_id else None
+        map_key = f"{map_id}@{db.version}"
+        moved = (await run_in_threadpool(state.sessions.prior_for, session_key, map_key, odometry, stamp, config.motion)
+                 if session_key else None)
         if explicit is not None:  # the scan's time, and the vehicle's own motion whichever pose it starts from
             explicit = replace(explicit, timestamp_us=stamp, twist=None if moved is None else moved.twist)
         prior = explicit or moved
@@ -119,8 +123,8 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         else:
             answer = await run_in_threadpool(db.localize_views, inp.features, inp.far_features, config)
         result, view = answer.result, answer.view
-    if session_id:
-        await run_in_threadpool(state.sessions.update, session_id, map_id, result.T_map_query, prior, stamp)
+    if session_key:
+        await run_in_threadpool(state.sessions.update, session_key, map_key, result.T_map_query, prior, stamp)
     timings = {**inp.timings_ms, **result.timings_ms}
     state.metrics.observe_stages(timings)
     state.metrics.inc("reradar_localizations_total", status=result.status)

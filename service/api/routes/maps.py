@@ -14,7 +14,12 @@ from starlette.concurrency import run_in_threadpool
 
 from maps.paths import far_view_path
 from reradar_core.errors import DatasetError, PoseFileError, TimeUnitError
-from reradar_core.io.datasets import check_pose_span, check_pose_time_unit, mid_sweep_poses_in
+from reradar_core.io.datasets import (
+    check_pose_span,
+    check_pose_speed,
+    check_pose_time_unit,
+    mid_sweep_poses_in,
+)
 from reradar_core.io.poses import TXYYAW_TIME_HEADERS, read_poses
 from reradar_core.io.presets import PRESETS, get_preset
 from service.api.deps import ApiKeyDep, FormDep, MapIdPath, StateDep, form_fields
@@ -168,8 +173,10 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         try:
             check_pose_time_unit(track, stamps, _declared_time_unit(pose_path), "the uploaded poses file",
                                  how="name the time column t_{unit} in the header line")
+            check_pose_speed(track, "the uploaded poses file")
         except DatasetError as exc:
-            raise PoseFileError(str(exc)) from None
+            raise PoseFileError(str(exc).replace("(--time-unit)", "(named by the time column's header: t_s, t_ms, "
+                                                 "t_us or t_ns)")) from None
         try:
             check_pose_span(track, stamps, [f"scan {p.name}" for p in scan_paths], "the uploaded poses file")
         except DatasetError as exc:

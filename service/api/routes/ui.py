@@ -17,6 +17,7 @@ from fastapi.responses import FileResponse, HTMLResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 
+from reradar_core.geometry.se2 import wrap_angle
 from service.api.deps import MapIdPath, StateDep, VehicleDep
 
 __all__ = ["install_ui", "router", "UI_DIR", "MAX_TRAJECTORY_POINTS"]
@@ -81,12 +82,12 @@ def map_trajectory(state: StateDep, _auth: VehicleDep, map_id: MapIdPath) -> dic
     p = poses[keep]
     return {"map_id": map_id, "num_keyframes": int(poses.shape[0]), "keyframe_ids": keep.tolist(),
             "x_m": np.round(p[:, 0], 3).tolist(), "y_m": np.round(p[:, 1], 3).tolist(),
-            "yaw_deg": _wrapped_deg(np.round(np.degrees(p[:, 2]), 2)).tolist()}
+            "yaw_deg": _wrapped_deg(np.round(np.degrees(wrap_angle(p[:, 2])), 2)).tolist()}
 
 
 def _wrapped_deg(deg: np.ndarray) -> np.ndarray:
     """Headings in degrees wrapped to (-180, 180] (the API's range), e.g. after rounding -179.9999 to -180.0."""
-    out = np.asarray(deg, np.float64)  # stored headings lie in [-180, 180]: only the ends move, values stay exact
+    out = np.asarray(deg, np.float64)  # wrapped in radians before rounding: only the ends move, values stay exact
     return np.where(out <= -180.0, out + 360.0, np.where(out > 180.0, out - 360.0, out))
 
 
