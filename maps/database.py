@@ -57,7 +57,7 @@ def far_view_mismatch(near: KeyframeSource, far: KeyframeSource,
     as a companion built from other scans or poses has; with ``presets`` (the map's and the companion's
     ``radar_preset``), another radar preset too (its landmarks were read at another range-bin size); None when they
     are the same keyframes of the same radar."""
-    if presets is not None and presets[0] != presets[1]:
+    if presets is not None and presets[0].lower() != presets[1].lower():  # map files may spell a preset in capitals
         return f"its scans are of radar preset {presets[1]!r}, the map's of {presets[0]!r}"
     if len(far) != len(near):
         return f"it holds {len(far)} keyframes, the map {len(near)}"

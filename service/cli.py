@@ -128,26 +128,24 @@ def check_redis_credentials_or_exit(settings: Settings, unreachable_exit: int | 
 
 
 def address_free_or_exit(host: str, port: int) -> None:
-    """Exit with one line when ``host``:``port`` cannot be bound (another server on the port, an address this
-    machine does not have), binding as uvicorn does (``SO_REUSEADDR``) and releasing it at once."""
+    """Exit with one line when ``host``:``port`` is in use (another server on the port), binding as uvicorn does
+    (IPv6 for a host with ":" and only IPv6, else IPv4; ``SO_REUSEADDR``) and releasing it at once. Any other
+    bind problem is left to uvicorn, which names it."""
     import errno
     import socket
 
-    try:
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
-    except socket.gaierror as exc:
-        typer.echo(f"error: --host {host!r} is no address this machine can bind ({exc.strerror})", err=True)
-        raise typer.Exit(2) from None
-    family, kind, proto, _, address = infos[0]
-    with socket.socket(family, kind, proto) as sock:
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as sock:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        if family == socket.AF_INET6:
+            sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
         try:
-            sock.bind(address)
+            sock.bind((host, port))
         except OSError as exc:
-            why = ("is in use (another server runs there: stop it or pick another --port)"
-                   if exc.errno == errno.EADDRINUSE else f"cannot be bound ({exc.strerror})")
-            typer.echo(f"error: {host}:{port} {why}", err=True)
-            raise typer.Exit(2) from None
+            if exc.errno == errno.EADDRINUSE:
+                typer.echo(f"error: {host}:{port} is in use (another server runs there: stop it or pick another "
+                           "--port)", err=True)
+                raise typer.Exit(2) from None
 
 
 def serve_command(

@@ -113,6 +113,39 @@ def load_road_xy(path: str | Path, time_unit: str | None = None) -> np.ndarray:
         return load_trajectory(path, time_unit).xy
 
 
+#: the centre line's path between the poses ``offset_trajectory`` compares (metres): a turn is judged over this much
+#: arc, so the heading jitter of a vehicle creeping along (0.5 deg between 10 Hz poses 8 cm apart) is no turn
+LANE_CHECK_ARC_M = 1.0
+
+
+def _refuse_lane_past_turn_centre(traj: PoseSequence, lane_xy: np.ndarray, lateral_m: float) -> None:
+    """Raise ``ConfigError`` where the lane ``lane_xy`` (the centre line ``traj`` shifted ``lateral_m`` to the left)
+    moves at most a twentieth as far forwards as the centre line over ``LANE_CHECK_ARC_M`` of its arc: at or past
+    the centre of a turn, it runs backwards while its heading faces forwards."""
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(traj.xy, axis=0), axis=1))])
+    if arc[-1] < LANE_CHECK_ARC_M:
+        return
+    # one pose per LANE_CHECK_ARC_M of arc (the first at or after each mark)
+    i = np.unique(np.searchsorted(arc, np.arange(0.0, arc[-1], LANE_CHECK_ARC_M)))
+    i = i[i < len(traj)]
+    yaw = traj.yaw[i]
+    mid_yaw = yaw[:-1] + 0.5 * np.angle(np.exp(1j * np.diff(yaw)))
+    heading = np.stack([np.cos(mid_yaw), np.sin(mid_yaw)], axis=1)
+    ahead = np.einsum("ij,ij->i", np.diff(traj.xy[i], axis=0), heading)  # metres driven forwards
+    shifted = np.einsum("ij,ij->i", np.diff(lane_xy[i], axis=0), heading)
+    bad = np.flatnonzero((ahead > 0.5 * LANE_CHECK_ARC_M) & (shifted < 0.05 * ahead))
+    if bad.size == 0:
+        return
+    k = int(bad[np.argmin(shifted[bad] / ahead[bad])])
+    turn = abs(float(np.angle(np.exp(1j * (yaw[k + 1] - yaw[k])))))
+    radius = ahead[k] / turn if turn > 0 else math.inf
+    t_s = (int(traj.timestamps_us[i[k]]) - int(traj.timestamps_us[0])) / 1e6
+    raise ConfigError(
+        f"a lane {abs(lateral_m):g} m to the {'left' if lateral_m > 0 else 'right'} of the trajectory reaches past the "
+        f"centre of its turn at {t_s:.2f} s (radius {radius:.1f} m): that lane would run backwards while facing "
+        "forwards; give an offset smaller than the trajectory's tightest turn radius (a lane is ~3.5 m)")
+
+
 def offset_trajectory(traj: PoseSequence, lateral_m: float = 0.0, time_shift_us: int = 0) -> PoseSequence:
     """The same drive shifted ``lateral_m`` to the vehicle's left (another lane) and in time.
 
@@ -124,22 +157,7 @@ def offset_trajectory(traj: PoseSequence, lateral_m: float = 0.0, time_shift_us:
     n = np.stack([-np.sin(traj.yaw), np.cos(traj.yaw)], axis=1)
     xy = traj.xy + lateral_m * n
     if lateral_m and len(traj) > 1:
-        mid_yaw = traj.yaw[:-1] + 0.5 * np.angle(np.exp(1j * np.diff(traj.yaw)))
-        heading = np.stack([np.cos(mid_yaw), np.sin(mid_yaw)], axis=1)
-        ahead = np.einsum("ij,ij->i", np.diff(traj.xy, axis=0), heading)  # metres driven forwards per step
-        shifted = np.einsum("ij,ij->i", np.diff(xy, axis=0), heading)
-        # the lane at most a twentieth as fast as its centre line: at or past the turn's centre (steps of a
-        # standing vehicle, whose heading may still wander, are not judged)
-        reversed_ = np.flatnonzero((ahead > 0.05) & (shifted < 0.05 * ahead))
-        if reversed_.size:
-            i = int(reversed_[np.argmin(shifted[reversed_] / ahead[reversed_])])
-            turn = abs(float(np.angle(np.exp(1j * (traj.yaw[i + 1] - traj.yaw[i])))))
-            radius = ahead[i] / turn if turn > 0 else math.inf
-            raise ConfigError(
-                f"a lane {lateral_m:g} m to the {'left' if lateral_m > 0 else 'right'} of the trajectory reaches past "
-                f"the centre of its turn at {(int(traj.timestamps_us[i]) - int(traj.timestamps_us[0])) / 1e6:.2f} s "
-                f"(radius {radius:.1f} m): that lane would run backwards while facing forwards; give an offset "
-                f"smaller than the trajectory's tightest turn radius (a lane is ~3.5 m)")
+        _refuse_lane_past_turn_centre(traj, xy, lateral_m)
     return PoseSequence(traj.timestamps_us + int(time_shift_us), xy, traj.yaw)
 
 

@@ -14,7 +14,7 @@ from starlette.routing import Match, Mount, Route
 from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.api.security import Guard, RequestLimits, caller_id, route_class
+from service.api.security import Guard, RequestLimits, route_class
 from service.core.errors import (
     PROBLEM_MEDIA_TYPE,
     BadRequestError,
@@ -271,7 +271,7 @@ class RequestGuardMiddleware:
                 return
             scope.setdefault("state", {})["principal"] = principal
             if principal is not None:
-                scope["state"]["caller"] = caller_id(principal, key)
+                scope["state"]["caller"] = guard.policy.caller_id(principal, key)
         limits = guard.limits if guard is not None else self.default_limits()
         is_map_upload = kind == "operator" and method == "POST"
         limit = limits.max_map_body_bytes if is_map_upload else limits.max_body_bytes

@@ -148,7 +148,8 @@ def refuse_files_sent_as_text(form: FormData, files: Iterable[str]) -> None:
     """400 naming the file fields that arrived as text (``-F scan=<file.png`` or ``-F map_file=name``: the text
     of the part, not a file): said plainly instead of a validation error about Python types."""
     file_fields = set(files)
-    as_text = sorted({k for k, v in form.multi_items() if k in file_fields and isinstance(v, str)})
+    # an empty value is "not given" (a script that always sends every field), as FastAPI reads it
+    as_text = sorted({k for k, v in form.multi_items() if k in file_fields and isinstance(v, str) and v != ""})
     if as_text:
         raise BadRequestError(f"{', '.join(repr(k) for k in as_text)} arrived as text; send "
                               f"{'it as a file' if len(as_text) == 1 else 'them as files'} "

@@ -19,6 +19,7 @@ public     ``GET`` / ``HEAD`` / ``OPTIONS``: health, metrics, maps,     none
 from __future__ import annotations
 
 import hashlib
+import hmac
 import secrets
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +29,7 @@ from service.core.config import Settings, is_loopback, resolve_operator_key
 from service.core.errors import ServiceError, UnauthorizedError
 
 __all__ = ["RouteClass", "Principal", "AccessPolicy", "RequestLimits", "Guard", "route_class", "ForbiddenError",
-           "build_guard", "caller_id"]
+           "build_guard"]
 
 RouteClass = Literal["operator", "vehicle", "public"]
 Principal = Literal["operator", "vehicle", "loopback"]
@@ -53,14 +54,6 @@ def route_class(method: str, path: str) -> RouteClass:
     return "vehicle"
 
 
-def caller_id(principal: Principal, key: str | None) -> str:
-    """Who is calling, for what a caller keeps between requests (tracking sessions): each API key its own (a
-    digest, never the key itself), every keyless loopback client one. Two vehicles that share a key share it."""
-    if principal == "loopback" or not key:
-        return "loopback"
-    return "key-" + hashlib.sha256(key.encode("utf-8", "surrogateescape")).hexdigest()[:16]
-
-
 def _matches(key: str, candidates: tuple[str, ...]) -> bool:
     hit = False
     for c in candidates:  # compare with every key: the time taken does not tell which key was close
@@ -75,6 +68,17 @@ class AccessPolicy:
     operator_key: str
     vehicle_keys: tuple[str, ...] = ()
     anonymous_loopback: bool = True
+
+    def caller_id(self, principal: Principal, key: str | None) -> str:
+        """Who is calling, for what a caller keeps between requests (tracking sessions): each API key its own, as
+        an HMAC of the key under the operator key (the same on every replica; without the operator key it tells
+        nothing about the key, so it may appear in Redis keys and logs); every keyless loopback client one. Two
+        vehicles that share a key share it."""
+        if principal == "loopback" or not key:
+            return "loopback"
+        mac = hmac.new(self.operator_key.encode("utf-8", "surrogateescape"), key.encode("utf-8", "surrogateescape"),
+                       hashlib.sha256)
+        return "key-" + mac.hexdigest()[:16]
 
     def authorize(self, kind: RouteClass, key: str | None, client_host: str | None) -> Principal | None:
         """The caller's principal for a route of class ``kind``.

@@ -353,6 +353,21 @@ def test_serve_on_a_port_in_use_says_so_before_loading_anything(tmp_path, monkey
         port = busy.getsockname()[1]
         res = _run(["serve", "--port", str(port), "--maps-dir", str(tmp_path / "maps")])
         assert res.exit_code == 2 and f"127.0.0.1:{port} is in use" in res.output and "--port" in res.output
+    from service.cli import address_free_or_exit
+
+    with socket.socket() as busy:  # uvicorn binds IPv6 only for an IPv6 host: an IPv4 server there is no conflict
+        busy.bind(("0.0.0.0", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        if socket.has_ipv6:
+            try:
+                address_free_or_exit("::1", port)
+            except OSError:  # no IPv6 on this machine's loopback: nothing to check
+                pass
+    with socket.socket() as probe:  # a port the system just handed out and took back: free
+        probe.bind(("127.0.0.1", 0))
+        free = probe.getsockname()[1]
+    address_free_or_exit("", free)  # "" is every interface, as uvicorn reads it, not a refusal
 
 
 def test_a_folder_or_another_file_named_as_a_pose_or_weights_file_is_said_to_be_one(tmp_path):

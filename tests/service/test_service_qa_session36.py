@@ -110,6 +110,31 @@ def test_file_fields_sent_as_text_get_a_plain_400(client: httpx.Client) -> None:
     assert client.get("/maps/x36").status_code == 404  # nothing registered
 
 
+def test_empty_optional_file_fields_are_not_given(client: httpx.Client, fake_map: Path) -> None:
+    """An empty value is "not given" (a script that always sends every field): the map is registered (code review,
+    session 36: refused as 'arrived as text')."""
+    with fake_map.open("rb") as fh:
+        r = client.post("/maps", files={"map_id": (None, "empty36"), "map_file": ("m.h5", fh), "far_map_file": (None, ""),
+                                        "poses": (None, ""), "archive": (None, "")}, headers=AUTH)
+    assert r.status_code == 201, r.text
+    assert client.delete("/maps/empty36", headers=AUTH).status_code in (200, 204)
+
+
+def test_the_callers_namespace_is_a_keyed_digest() -> None:
+    """Sessions are namespaced by an HMAC of the API key under the operator key: stable, one per key, and no plain
+    hash of the key (which a low-entropy key could be found from) appears in Redis keys or logs."""
+    import hashlib
+
+    from service.api.security import AccessPolicy
+
+    policy = AccessPolicy("operator-key-0123456789", (KEY_A, KEY_B))
+    a, b = policy.caller_id("vehicle", KEY_A), policy.caller_id("vehicle", KEY_B)
+    assert a == policy.caller_id("vehicle", KEY_A) and a != b and a.startswith("key-")
+    assert hashlib.sha256(KEY_A.encode()).hexdigest()[:16] not in a
+    assert AccessPolicy("another-operator-key-0123", (KEY_A,)).caller_id("vehicle", KEY_A) != a
+    assert policy.caller_id("loopback", None) == "loopback"
+
+
 def test_a_long_field_name_is_not_echoed_at_length(client: httpx.Client) -> None:
     name = "a" * 200_000
     r = client.post("/localize", content=b'{"' + name.encode() + b'": 1, "map_id": "q36", "scan_id": "x"}',

@@ -197,3 +197,17 @@ def test_an_offset_past_the_centre_of_a_turn_is_refused():
         lane = offset_trajectory(traj, lateral)
         step = np.diff(lane.xy, axis=0)
         assert np.all(step[:, 0] * np.cos(lane.yaw[:-1]) + step[:, 1] * np.sin(lane.yaw[:-1]) > 0)
+
+
+def test_heading_jitter_of_a_creeping_vehicle_is_no_turn():
+    """A turn is judged over a metre of arc: a vehicle creeping at 0.8 m/s with 0.5 deg of heading jitter between
+    10 Hz poses is offset by a lane without refusal (code review, session 36: refused as a 2.1 m turn)."""
+    from reradar_core.io.poses import PoseSequence
+    from reradar_core.sim.trajectories import offset_trajectory
+
+    rng = np.random.default_rng(0)
+    n = 600  # 48 m straight east
+    xy = np.stack([np.arange(n) * 0.08, np.zeros(n)], axis=1)
+    yaw = np.radians(rng.normal(0.0, 0.5, n))
+    lane = offset_trajectory(PoseSequence(np.arange(n, dtype=np.int64) * 100_000, xy, yaw), 3.5)
+    assert np.allclose(lane.xy[:, 1], 3.5, atol=0.1)
