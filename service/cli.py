@@ -262,8 +262,9 @@ def localize_command(
                    "--out": out is not None, "--seed": seed != 0}
     given = [name for name, set_ in replay_only.items() if set_]
     if given and follow is None:  # silently ignored, they would suggest a replay that does not happen
-        typer.echo(f"error: {', '.join(given)} apply to a replay with --follow DIR only; a single SCAN is localized "
-                   "once (drop them, or give --follow)", err=True)
+        verb, them = ("applies", "it") if len(given) == 1 else ("apply", "them")
+        typer.echo(f"error: {', '.join(given)} {verb} to a replay with --follow DIR only; a single SCAN is localized "
+                   f"once (drop {them}, or give --follow)", err=True)
         raise typer.Exit(2)
     if odometry not in ("ground-truth", "none"):
         typer.echo("error: --odometry must be `ground-truth` or `none`", err=True)

@@ -10,7 +10,7 @@ import numpy as np
 import typer
 
 from reradar_core.errors import ReRadarError, ScanFormatError
-from reradar_core.io.scan import PNG_SIGNATURE, has_navtech_metadata, png_incomplete
+from reradar_core.io.scan import PNG_SIGNATURE, has_navtech_metadata, png_crc_mismatch, png_incomplete
 
 #: File names read as timestamps: 16 digits = microseconds (Boreas, Oxford), 19 digits = nanoseconds (MulRan).
 _TIMESTAMP_DIGITS = {16: 1, 19: 1000}
@@ -91,6 +91,10 @@ def _read_source(src: Path) -> np.ndarray:
             raise ScanFormatError(f"{src.name}: {str(exc).removeprefix('upload is ')}") from None
         if truncated:
             raise ScanFormatError(f"{src.name}: not a readable PNG image (corrupt or truncated)")
+        bad_chunk = png_crc_mismatch(data) if data[:8] == PNG_SIGNATURE else None
+        if bad_chunk is not None:
+            raise ScanFormatError(f"{src.name}: not a readable PNG image (corrupt: its {bad_chunk} chunk fails its "
+                                  "checksum)")
         array = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if array is None:
             raise ScanFormatError(f"{src.name}: not a readable image")

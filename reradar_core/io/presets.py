@@ -75,7 +75,8 @@ def get_preset(name: str | RadarPreset) -> RadarPreset:
     try:
         return PRESETS[name.lower()]
     except KeyError:
-        raise ConfigError(f"unknown radar preset {name!r}; choose one of {sorted(PRESETS)}") from None
+        shown = name if len(name) <= 64 else f"{name[:64]}...({len(name):,} characters)"  # a client's text
+        raise ConfigError(f"unknown radar preset {shown!r}; choose one of {sorted(PRESETS)}") from None
 
 
 def mid_sweep_times_us(first_azimuth_us: np.ndarray | int, preset: RadarPreset) -> np.ndarray:

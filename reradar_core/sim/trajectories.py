@@ -120,8 +120,8 @@ LANE_CHECK_ARC_M = 1.0
 
 def _refuse_lane_past_turn_centre(traj: PoseSequence, lane_xy: np.ndarray, lateral_m: float) -> None:
     """Raise ``ConfigError`` where the lane ``lane_xy`` (the centre line ``traj`` shifted ``lateral_m`` to the left)
-    moves at most a twentieth as far forwards as the centre line over ``LANE_CHECK_ARC_M`` of its arc: at or past
-    the centre of a turn, it runs backwards while its heading faces forwards."""
+    does not move forwards over ``LANE_CHECK_ARC_M`` of the centre line's arc: at or past the centre of a turn, it
+    stands or runs backwards while its heading faces forwards."""
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(traj.xy, axis=0), axis=1))])
     if arc[-1] < LANE_CHECK_ARC_M:
         return
@@ -133,7 +133,7 @@ def _refuse_lane_past_turn_centre(traj: PoseSequence, lane_xy: np.ndarray, later
     heading = np.stack([np.cos(mid_yaw), np.sin(mid_yaw)], axis=1)
     ahead = np.einsum("ij,ij->i", np.diff(traj.xy[i], axis=0), heading)  # metres driven forwards
     shifted = np.einsum("ij,ij->i", np.diff(lane_xy[i], axis=0), heading)
-    bad = np.flatnonzero((ahead > 0.5 * LANE_CHECK_ARC_M) & (shifted < 0.05 * ahead))
+    bad = np.flatnonzero((ahead > 0.5 * LANE_CHECK_ARC_M) & (shifted <= 0.0))
     if bad.size == 0:
         return
     k = int(bad[np.argmin(shifted[bad] / ahead[bad])])
@@ -142,7 +142,7 @@ def _refuse_lane_past_turn_centre(traj: PoseSequence, lane_xy: np.ndarray, later
     t_s = (int(traj.timestamps_us[i[k]]) - int(traj.timestamps_us[0])) / 1e6
     raise ConfigError(
         f"a lane {abs(lateral_m):g} m to the {'left' if lateral_m > 0 else 'right'} of the trajectory reaches past the "
-        f"centre of its turn at {t_s:.2f} s (radius {radius:.1f} m): that lane would run backwards while facing "
+        f"centre of its turn at {t_s:.2f} s (radius {radius:.1f} m): that lane would stand or run backwards while facing "
         "forwards; give an offset smaller than the trajectory's tightest turn radius (a lane is ~3.5 m)")
 
 

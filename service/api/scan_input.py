@@ -383,7 +383,7 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         preset = form.get("preset")
         preset = preset if isinstance(preset, str) and preset else None
         if preset is not None and preset.lower() not in PRESETS:
-            raise BadRequestError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+            raise BadRequestError(f"unknown preset {shorten_echo(preset)!r}; choose one of {sorted(PRESETS)}")
         try:
             model = json_model.model_validate({"scan_id": "inline", **raw_fields}, strict=True)
         except ValidationError as exc:

@@ -154,8 +154,8 @@ def problem_body(status: int, code: str, detail: str, instance: str | None = Non
         title = "Error"
     body: dict[str, Any] = {"type": problem_type(code), "title": title, "status": status, "detail": detail,
                             "error": code}
-    if instance is not None:
-        body["instance"] = instance
+    if instance is not None:  # the request's path, the client's text: cut as names are
+        body["instance"] = shorten_echo(instance, 256)
     if errors is not None:
         body["errors"] = errors
     return json.dumps(body, ensure_ascii=False, allow_nan=False).encode("utf-8", "replace")

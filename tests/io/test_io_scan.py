@@ -355,7 +355,7 @@ def test_npy_with_bytes_after_its_data_is_refused():
     data = _npy_bytes(np.zeros((400, 3360), np.uint8))
     with pytest.raises(ScanFormatError, match="1,048,576 more bytes follow"):
         read_npy_header(data + b"\xff" * (1 << 20))
-    with pytest.raises(ScanFormatError, match="more bytes follow"):  # the upload path: header bytes plus the size
+    with pytest.raises(ScanFormatError, match="1 more byte follows"):  # the upload path: header bytes plus the size
         scan_header(data[:200], size=len(data) + 1)
     assert read_npy_header(data).shape == (400, 3360)
 
@@ -371,3 +371,17 @@ def test_transposed_navtech_png_is_said_to_be_transposed():
         load_scan_bytes(png.tobytes(), "scan.png")
     with pytest.raises(ScanFormatError, match="transposed"):
         load_scan_bytes(png.tobytes(), "scan.png", "boreas")
+
+
+def test_png_with_a_corrupt_chunk_is_refused_before_libpng_reads_it(tmp_path, capfd):
+    """A PNG with a flipped byte (a chunk CRC error) is one clean error, without libpng's own "IDAT: CRC error" line
+    (QA session 36)."""
+    path = tmp_path / "1547131046353776.png"
+    write_navtech_png(_quantised_scan(), path)
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(ScanFormatError, match="IDAT chunk fails its checksum"):
+        load_scan(path)
+    assert "libpng" not in capfd.readouterr().err
+

@@ -214,3 +214,12 @@ def test_an_uploaded_map_being_checked_says_so(tmp_path: Path) -> None:
             registry.delete("up")
     finally:
         registry.close()
+
+
+def test_a_long_preset_value_is_not_echoed_at_length(client: httpx.Client) -> None:
+    """QA session 36 re-test: a 200,000-character preset came back in full in the 400."""
+    r = client.post("/scans", data={"preset": "q" * 200_000}, files={"scan": ("q.png", _png(1))})
+    _problem(r, 400)
+    assert len(r.content) < 2_000 and "200,000 characters" in r.text
+    long_path = client.get("/maps/" + "q" * 30_000)
+    assert long_path.status_code in (404, 414, 422) and len(long_path.content) < 2_000

@@ -35,7 +35,7 @@ from service.api.schemas import (
 )
 from service.core.archive import SCAN_NAME_PATTERN, SWEEP_PRESET, check_scan_times, extract_scan_archive
 from service.core.config import MAP_ID_PATTERN
-from service.core.errors import BadRequestError
+from service.core.errors import BadRequestError, shorten_echo
 from service.core.registry import MapEntry
 from service.core.state import ServiceState
 
@@ -139,7 +139,7 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
     if far_view:
         registry.check_far_view_served("far_view")  # before the archive is unpacked
     if preset is not None and preset.lower() not in PRESETS:
-        raise BadRequestError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+        raise BadRequestError(f"unknown preset {shorten_echo(preset)!r}; choose one of {sorted(PRESETS)}")
     # early check so a large archive is not unpacked for a taken id; start_build re-checks atomically
     registry.check_free(map_id)
     work = registry.staging_dir() / f"job-{uuid.uuid4().hex}"

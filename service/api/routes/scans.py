@@ -11,7 +11,7 @@ from service.api.deps import FormDep, StateDep, form_fields
 from service.api.scan_input import SCAN_LAYOUT_DESCRIPTION, ClosedFormRoute, read_scan_upload
 from service.api.schemas import ErrorResponse, ScanInfo
 from service.core.config import MAP_ID_PATTERN
-from service.core.errors import BadRequestError
+from service.core.errors import BadRequestError, shorten_echo
 
 router = APIRouter(prefix="/scans", tags=["scans"], route_class=ClosedFormRoute)
 
@@ -37,7 +37,7 @@ async def upload_scan(
     from reradar_core.io.presets import PRESETS
 
     if preset is not None and preset.lower() not in PRESETS:
-        raise BadRequestError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+        raise BadRequestError(f"unknown preset {shorten_echo(preset)!r}; choose one of {sorted(PRESETS)}")
     if map_id:
         state.registry.ready(map_id)  # 404 / 409 before the upload is read
     data, filename = await read_scan_upload(scan, state.settings.max_scan_pixels, scan_layout)
