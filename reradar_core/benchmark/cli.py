@@ -90,7 +90,7 @@ def bench(
     plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG figures."),
     cache: bool = typer.Option(True, "--cache/--no-cache", help="Use the on-disk feature cache."),
     threads: int = typer.Option(1, "--threads", min=1, help="Torch / BLAS threads (the machine is shared)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the rotation-stress heading offsets."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the rotation-stress heading offsets (0 or more)."),
 ) -> None:
     """Benchmark ReRadar against RingKey, RaPlace, RadVLAD, ResNet18-NetVLAD and ReFeree."""
     import torch
@@ -116,6 +116,9 @@ def bench(
     try:
         if (suite is None) == (database is None):
             raise typer.BadParameter("give either --suite NAME or --database DIR with --query DIR")
+        if methods is not None and not _split(methods):  # `-m "$M"` with M unset: not "every method" silently
+            raise typer.BadParameter("--methods names no method; give e.g. -m ringkey,raplace,our-3-boreas-w05, or "
+                                     "leave it out for every baseline and shipped model")
         if out is not None:  # a file in the way is found now, not after the benchmark ran
             output_dir(out, "--out", create=False)
         if database is not None and split_at is None and any(q.resolve() == database.resolve() for q in query or []):
@@ -123,7 +126,9 @@ def bench(
                                      "(Recall@1 100 %); give another drive, or --split-at to split one drive")
         if suite is not None:
             if query or time_unit:
-                raise typer.BadParameter("--query and --time-unit are for folders; a suite names its own sequences")
+                given = " and ".join(o for o, v in (("--query", query), ("--time-unit", time_unit)) if v)
+                raise typer.BadParameter(f"{given} {'are' if ' and ' in given else 'is'} for folders; a suite names its "
+                                         "own sequences and their times")
             if preset is not None:
                 raise typer.BadParameter("--preset is for folders; a suite is rendered with its own radar preset "
                                          "(drop --preset, or render with `reradar sim --preset` and bench the "
@@ -182,14 +187,20 @@ def bench(
                                    # a run on recorded folders names the database folder, not a suite
                                    database_folder=None if database is None else str(database))
         ours = [m for m in method_objs if m.provides_pose]
+        # after the progress bar: each stage says what it does, so a run that seems done is not read as hung
         if timing and ours:
+            typer.echo(f"stage timings: {_primary(ours).name} on {min(timing_scans, len(pairs[0].query))} query "
+                       f"scans of {pairs[0].name} ...")
             add_timing(results, _primary(ours), pairs[0], cfg, timing_scans, threads)
         if yaw_curve and ours and plots:
+            typer.echo(f"yaw-consistency curve of F' ({', '.join(m.name for m in ours)}) ...")
             add_yaw_consistency(results, ours, pairs[0], out_dir)
         # the run is complete: its per-query arrays replace the earlier run's, then its results are written
         commit_per_query(out_dir)
         staged = None
         jpath, mpath = write_results(results, out_dir)
+        if plots:
+            typer.echo("figures ...")
         figs = make_all_plots(results, out_dir) if plots else []
         # rewrite with the figure list (results.json is the single source for the docs)
         results["figures"] = [str(p.name) for p in figs] + results.get("figures", [])

@@ -42,7 +42,9 @@ def _best(rows: dict[str, dict[str, Any]], key: str) -> set[str]:
         return set()
     higher = ("recall@1", "f1max", "sr", "recall@1_all", "sr_all", "correct_rejection_pct", "recall@1_descriptor")
     target = max(vals.values()) if key in higher else min(vals.values())
-    return {m for m, v in vals.items() if abs(v - target) < 1e-9}
+    best = {m for m, v in vals.items() if abs(v - target) < 1e-9}
+    # every method tied (e.g. 0.00 % for all on a run where no query has a match): no method is best
+    return set() if len(vals) > 1 and len(best) == len(vals) else best
 
 
 def method_labels(settings: dict[str, Any]) -> dict[str, str]:

@@ -25,6 +25,8 @@ from reradar_core.errors import ConfigError, DatasetError
 from reradar_core.io.datasets import (
     SIM_META_FILE,
     Sequence,
+    detect_layout,
+    layout_presets_ambiguous,
     load_sequence,
     range_grid_difference,
     read_sequence_meta,
@@ -156,6 +158,7 @@ def pairs_from_folders(database: Path, queries: list[Path], preset: str | None =
     for q, name in zip(queries, names, strict=True):
         if preset is None:
             _check_recorded_presets_agree(database, db.preset, q)
+            _check_query_names_its_radar(db.preset, q, layout)
         q_full = load_sequence(q, layout, preset or db.preset.name, time_unit)
         check_scan_files(q_full)
         check_shared_map_frame(full, q_full)
@@ -232,6 +235,23 @@ def _check_recorded_presets_agree(database: Path, db_preset: RadarPreset, query:
                       f"{query} with {q_preset.name!r} ({SIM_META_FILE}): read with the database's preset, "
                       f"{range_grid_difference(q_preset, db_preset)}; bench a database and queries of one radar "
                       "(render the query again with `reradar sim --preset " f"{db_preset.name}`)")
+
+
+def _check_query_names_its_radar(db_preset: RadarPreset, query: Path, layout: str | None) -> None:
+    """Without ``--preset``, refuse a query folder that does not record its radar in a layout whose presets differ in
+    range geometry (Boreas: boreas / boreas-2021), as ``load_sequence`` refuses such a database: reading it with the
+    database's preset would be a guess (QA session 36: boreas-2021 scans read as boreas, Recall@1 5 % without a word).
+
+    Raises:
+        ConfigError: naming the folder, the presets it could be, and ``--preset``.
+    """
+    if not Path(query).is_dir() or read_sequence_meta(query).get("preset") is not None:
+        return
+    q_layout = layout or detect_layout(query)
+    if layout_presets_ambiguous(q_layout):
+        raise ConfigError(f"the query {query} does not say which radar recorded it, and {q_layout}-layout radars "
+                          f"differ in range geometry: pass the one it was recorded with (--preset; the database's "
+                          f"is {db_preset.name!r}, e.g. --preset {db_preset.name} if both are from one radar)")
 
 
 def query_pair_names(database: Path, queries: list[Path]) -> list[str]:

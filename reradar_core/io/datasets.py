@@ -83,6 +83,7 @@ __all__ = [
     "write_sequence_scan",
     "write_sequence_meta",
     "read_sequence_meta",
+    "layout_presets_ambiguous",
     "read_oxford_odometry",
     "write_oxford_odometry",
     "SIM_META_FILE",
@@ -491,7 +492,7 @@ def mid_sweep_poses_in(track: PoseSequence, stamps_us: np.ndarray, preset: Radar
     return track.interpolate(mid_sweep_times_us(np.asarray(stamps_us, np.int64), preset), extrapolate_us=reach_us)
 
 
-def _layout_presets_ambiguous(layout: str) -> bool:
+def layout_presets_ambiguous(layout: str) -> bool:
     """True when the radar presets of ``layout`` differ in range geometry (Boreas: boreas / boreas-2021), so a
     folder of that layout must name its preset."""
     from reradar_core.io.scan import same_range_geometry
@@ -527,7 +528,7 @@ def load_sequence(path: str | Path, layout: str | None = None,
     if layout not in LAYOUTS:
         raise DatasetError(f"unknown dataset layout {layout!r}; choose one of {LAYOUTS}")
     meta = read_sequence_meta(root)
-    if preset is None and "preset" not in meta and _layout_presets_ambiguous(layout):
+    if preset is None and "preset" not in meta and layout_presets_ambiguous(layout):
         # a real Boreas folder: the 3,360-bin scans fit boreas and boreas-2021, whose bins differ by 36 %; the layout's
         # default read every range of a 2021 recording 1.36x too long and answered 1.5 m off at confidence 1 (QA)
         fits = [q for q in PRESETS.values() if q.dataset_layout == layout]

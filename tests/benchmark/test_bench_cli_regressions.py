@@ -141,3 +141,43 @@ def test_a_crop_of_a_long_drive_is_not_taken_for_a_unit_error():
     fast = np.arange(50 * 40, dtype=np.int64) * 5_000
     check_pose_time_unit(PoseSequence(fast, np.column_stack([fast / 1e5, 0 * fast]), 0 * fast),
                          fast[::50][:40], "us", "poses.csv")
+
+
+def test_a_query_that_does_not_name_its_radar_is_not_read_with_the_databases(loop_sequences, tmp_path):
+    """QA session 36: a Boreas-layout query folder without its render's record was read with the database's preset
+    (boreas-2021 scans as boreas: Recall@1 5 %, no word); it must name its radar, as such a database must."""
+    from reradar_core.io.datasets import SIM_META_FILE
+
+    _, db, q = loop_sequences
+    shutil.copytree(q.root, tmp_path / "q_bare")
+    (tmp_path / "q_bare" / SIM_META_FILE).unlink(missing_ok=True)
+    shutil.copytree(db.root, tmp_path / "db-run")
+    write_sequence_meta(tmp_path / "db-run", {"preset": "boreas"})
+    with pytest.raises(ConfigError, match=r"q_bare does not say which radar recorded it.*--preset boreas"):
+        pairs_from_folders(tmp_path / "db-run", [tmp_path / "q_bare"])
+    pairs, _ = pairs_from_folders(tmp_path / "db-run", [tmp_path / "q_bare"], preset="boreas")
+    assert len(pairs) == 1 and pairs[0].query.preset.name == "boreas"
+
+
+@pytest.mark.parametrize("args, message", [(["-m", ""], "--methods names no method"),
+                                           (["-m", "ringkey", "--seed", "-1"], "--seed"),
+                                           (["--suite", "smoke", "--time-unit", "s", "-m", "ringkey"],
+                                            "--time-unit is for folders")])
+def test_bench_refuses_empty_methods_a_negative_seed_and_names_what_was_given(args, message, loop_sequences, tmp_path,
+                                                                                cache_env):
+    """QA session 36: `-m ''` ran all 15 methods, `--seed -1` crashed after every feature was computed, and
+    `--suite --time-unit` was told "--query and --time-unit are for folders"."""
+    _, db, q = loop_sequences
+    where = [] if "--suite" in args else ["--database", str(db.root), "--query", str(q.root), "--preset", "boreas"]
+    r = _bench([*where, *args, *FAST, "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2 and message in " ".join(r.output.split()), r.output
+    assert "Traceback" not in r.output
+
+
+def test_no_method_is_bold_when_all_tie():
+    from reradar_core.benchmark.results import _best
+
+    rows = {"a": {"recall@1_all": 0.0}, "b": {"recall@1_all": 0.0}}
+    assert _best(rows, "recall@1_all") == set()
+    assert _best({"a": {"sr": 90.0}, "b": {"sr": 80.0}}, "sr") == {"a"}
+    assert _best({"a": {"sr": 90.0}}, "sr") == {"a"}
