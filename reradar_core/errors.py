@@ -1,6 +1,8 @@
 """Precise exceptions raised by the core; only the service maps them to HTTP status codes."""
 
 __all__ = [
+    "shorten_echo",
+    "MAX_ECHOED_CHARS",
     "ReRadarError",
     "ScanFormatError",
     "ScanTooLargeError",
@@ -52,3 +54,14 @@ class ModelMismatchError(ReRadarError, ValueError):
 
 class DatasetError(ReRadarError, ValueError):
     """A dataset sequence folder is missing, has an unknown layout, or lacks scans or poses."""
+
+
+#: the most characters of a user's own text (a field name, a preset name) echoed back in an error
+MAX_ECHOED_CHARS = 64
+
+
+def shorten_echo(text: str, limit: int = MAX_ECHOED_CHARS) -> str:
+    """``text`` cut to ``limit`` characters (the cut marked with "..." and the full length), for echoing a user's
+    text in an error without answering a long name with a longer message."""
+    return text if len(text) <= limit else f"{text[:limit]}...({len(text):,} characters)"
+

@@ -45,6 +45,12 @@ def _positive(value: float | None) -> float | None:
     return value
 
 
+def _non_negative(value: int) -> int:
+    if value < 0:  # numpy's generators take seeds >= 0: refused here, not after every feature is computed
+        raise typer.BadParameter(f"must be 0 or more, got {value}")
+    return value
+
+
 def bench(
     suite: str | None = typer.Option(None, "--suite", help="Simulated suite: smoke, boreas-sim, loop-sim, "
                                      "loop-sim-hard, offroad-sim, offroad-sim-hard (rendered on first use, cached)."),
@@ -90,7 +96,8 @@ def bench(
     plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG figures."),
     cache: bool = typer.Option(True, "--cache/--no-cache", help="Use the on-disk feature cache."),
     threads: int = typer.Option(1, "--threads", min=1, help="Torch / BLAS threads (the machine is shared)."),
-    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the rotation-stress heading offsets (0 or more)."),
+    seed: int = typer.Option(0, "--seed", callback=_non_negative, help="Seed of the rotation-stress heading offsets "
+                             "(0 or more)."),
 ) -> None:
     """Benchmark ReRadar against RingKey, RaPlace, RadVLAD, ResNet18-NetVLAD and ReFeree."""
     import torch

@@ -10,7 +10,7 @@ import numpy as np
 import typer
 
 from reradar_core.errors import ReRadarError, ScanFormatError
-from reradar_core.io.scan import PNG_SIGNATURE, has_navtech_metadata, png_crc_mismatch, png_incomplete
+from reradar_core.io.scan import PNG_SIGNATURE, check_png_file, has_navtech_metadata
 
 #: File names read as timestamps: 16 digits = microseconds (Boreas, Oxford), 19 digits = nanoseconds (MulRan).
 _TIMESTAMP_DIGITS = {16: 1, 19: 1000}
@@ -85,16 +85,8 @@ def _read_source(src: Path) -> np.ndarray:
     else:
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)  # its warnings would repeat the error below
         data = src.read_bytes()
-        try:  # a truncated PNG is told before libpng reads it (it prints its own "libpng error" line otherwise)
-            truncated = data[:8] == PNG_SIGNATURE and png_incomplete(data)
-        except ScanFormatError as exc:
-            raise ScanFormatError(f"{src.name}: {str(exc).removeprefix('upload is ')}") from None
-        if truncated:
-            raise ScanFormatError(f"{src.name}: not a readable PNG image (corrupt or truncated)")
-        bad_chunk = png_crc_mismatch(data) if data[:8] == PNG_SIGNATURE else None
-        if bad_chunk is not None:
-            raise ScanFormatError(f"{src.name}: not a readable PNG image (corrupt: its {bad_chunk} chunk fails its "
-                                  "checksum)")
+        if data[:8] == PNG_SIGNATURE:  # told before libpng reads it (it prints its own "libpng error" line otherwise)
+            check_png_file(data, src.name)
         array = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if array is None:
             raise ScanFormatError(f"{src.name}: not a readable image")

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from reradar_core.errors import ConfigError
+from reradar_core.errors import ConfigError, shorten_echo
 
 __all__ = ["PRESETS", "RadarPreset", "get_preset", "mid_sweep_times_us", "ENCODER_TICKS_PER_TURN"]
 
@@ -75,8 +75,7 @@ def get_preset(name: str | RadarPreset) -> RadarPreset:
     try:
         return PRESETS[name.lower()]
     except KeyError:
-        shown = name if len(name) <= 64 else f"{name[:64]}...({len(name):,} characters)"  # a client's text
-        raise ConfigError(f"unknown radar preset {shown!r}; choose one of {sorted(PRESETS)}") from None
+        raise ConfigError(f"unknown radar preset {shorten_echo(name)!r}; choose one of {sorted(PRESETS)}") from None
 
 
 def mid_sweep_times_us(first_azimuth_us: np.ndarray | int, preset: RadarPreset) -> np.ndarray:

@@ -685,6 +685,24 @@ def png_incomplete(data: bytes, chunks: list[tuple[bytes, int, int]] | None = No
     return not chunks or chunks[-1][0] != b"IEND" or chunks[-1][2] + 4 > len(data)  # + 4: IEND's CRC
 
 
+def check_png_file(data: bytes, name: str) -> None:
+    """Refuse the PNG file ``data`` (named ``name`` in messages) that libpng would fail on - truncated, or a chunk
+    whose CRC does not match - before it is decoded, so that libpng never prints its own error line on stderr.
+
+    Raises:
+        ScanFormatError: not a PNG, truncated, a corrupt chunk, or more than ``MAX_PNG_CHUNKS`` chunks.
+    """
+    try:
+        chunks = _png_chunks(data) if data[:8] == PNG_SIGNATURE else []
+    except ScanFormatError as exc:  # the chunk walk's bound (MAX_PNG_CHUNKS) speaks of an upload: name the file
+        raise ScanFormatError(f"{name}: {str(exc).removeprefix('upload is ')}") from None
+    if png_incomplete(data, chunks):
+        raise ScanFormatError(f"{name}: not a readable PNG image (corrupt or truncated)")
+    bad_chunk = png_crc_mismatch(data, chunks)
+    if bad_chunk is not None:
+        raise ScanFormatError(f"{name}: not a readable PNG image (corrupt: its {bad_chunk} chunk fails its checksum)")
+
+
 def png_crc_mismatch(data: bytes, chunks: list[tuple[bytes, int, int]] | None = None) -> str | None:
     """The type of the first chunk of ``data`` (a complete PNG file's bytes: ``png_incomplete`` False) whose CRC does
     not match its bytes (a corrupt file), or None. Checked before decoding for the same reason as
@@ -939,15 +957,7 @@ def read_navtech_png(path: str | Path, preset: str | RadarPreset | None = None) 
     if not path.is_file():
         raise ScanFormatError(f"{path}: no such scan file")
     data = path.read_bytes()
-    try:
-        unreadable = data[:8] != PNG_SIGNATURE or png_incomplete(data)
-    except ScanFormatError as exc:  # the chunk walk's bound (MAX_PNG_CHUNKS) speaks of an upload: name the file
-        raise ScanFormatError(f"{path}: {str(exc).removeprefix('upload is ')}") from None
-    if unreadable:
-        raise ScanFormatError(f"{path}: not a readable PNG image (corrupt or truncated)")
-    bad_chunk = png_crc_mismatch(data)
-    if bad_chunk is not None:
-        raise ScanFormatError(f"{path}: not a readable PNG image (corrupt: its {bad_chunk} chunk fails its checksum)")
+    check_png_file(data, str(path))
     raw = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise ScanFormatError(f"{path}: not a readable PNG image")

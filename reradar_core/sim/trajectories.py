@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from reradar_core.errors import ConfigError, PoseFileError
+from reradar_core.geometry.se2 import wrap_angle
 from reradar_core.io.poses import PoseSequence, read_poses
 from reradar_core.sim.world import stable_seed
 
@@ -129,7 +130,7 @@ def _refuse_lane_past_turn_centre(traj: PoseSequence, lane_xy: np.ndarray, later
     i = np.unique(np.searchsorted(arc, np.arange(0.0, arc[-1], LANE_CHECK_ARC_M)))
     i = i[i < len(traj)]
     yaw = traj.yaw[i]
-    mid_yaw = yaw[:-1] + 0.5 * np.angle(np.exp(1j * np.diff(yaw)))
+    mid_yaw = yaw[:-1] + 0.5 * wrap_angle(np.diff(yaw))
     heading = np.stack([np.cos(mid_yaw), np.sin(mid_yaw)], axis=1)
     ahead = np.einsum("ij,ij->i", np.diff(traj.xy[i], axis=0), heading)  # metres driven forwards
     shifted = np.einsum("ij,ij->i", np.diff(lane_xy[i], axis=0), heading)
@@ -137,7 +138,7 @@ def _refuse_lane_past_turn_centre(traj: PoseSequence, lane_xy: np.ndarray, later
     if bad.size == 0:
         return
     k = int(bad[np.argmin(shifted[bad] / ahead[bad])])
-    turn = abs(float(np.angle(np.exp(1j * (yaw[k + 1] - yaw[k])))))
+    turn = abs(float(wrap_angle(yaw[k + 1] - yaw[k])))
     radius = ahead[k] / turn if turn > 0 else math.inf
     t_s = (int(traj.timestamps_us[i[k]]) - int(traj.timestamps_us[0])) / 1e6
     raise ConfigError(

@@ -22,6 +22,8 @@ from http import HTTPStatus
 from pathlib import Path
 from typing import Any
 
+from reradar_core.errors import MAX_ECHOED_CHARS, shorten_echo
+
 __all__ = ["ServiceError", "NotFoundError", "ConflictError", "PayloadTooLargeError", "BadRequestError",
            "ServiceUnavailableError", "UnauthorizedError", "UnsupportedMediaError", "RequestTimeoutError",
            "OverloadedError", "PROBLEM_MEDIA_TYPE", "problem_body", "problem_type", "scrub_paths",
@@ -118,16 +120,6 @@ def scrub_paths(message: str, roots: Iterable[str | Path] = ()) -> str:
 #: Validation errors returned as ``errors`` items (the ``detail`` counts them all): an answer stays small
 #: whatever the request.
 MAX_REPORTED_ERRORS = 20
-
-
-#: the most characters of a client's own text (a field name) echoed back in an error
-MAX_ECHOED_CHARS = 64
-
-
-def shorten_echo(text: str, limit: int = MAX_ECHOED_CHARS) -> str:
-    """``text`` cut to ``limit`` characters (the cut marked with "..." and the full length), for echoing a client's
-    field names in an error without answering a long name with a longer body."""
-    return text if len(text) <= limit else f"{text[:limit]}...({len(text):,} characters)"
 
 
 def validation_detail(errors: Sequence[dict[str, Any]]) -> tuple[str, list[dict[str, Any]]]:
