@@ -72,13 +72,13 @@ def split_models(overrides: str = "", splits: list[str] | None = None) -> dict[s
 
     Args:
         overrides: comma-separated ``SPLIT=MODEL`` pairs (e.g. ``train-target-boreas=our-3-boreas-w05``); a model is
-            a shipped name or a ``.pt`` path, checked when it is loaded.
+            a shipped name or a ``.pt`` path, checked here (``resolve_weights``).
         splits: the splits to return (default: every key of ``SPLIT_MODELS``).
 
     Raises:
         ConfigError: a pair without ``=`` or an empty side, a split that is not a key of ``SPLIT_MODELS`` (in a
-            pair or in ``splits``), a pair for a split outside ``splits``, a split named twice, or an empty
-            ``splits``.
+            pair or in ``splits``), a pair for a split outside ``splits``, a split named twice (in ``splits`` or
+            in two pairs), an unknown model, or an empty ``splits``.
     """
     if splits is not None:
         if not splits:
@@ -89,7 +89,10 @@ def split_models(overrides: str = "", splits: list[str] | None = None) -> dict[s
         unknown = [s for s in splits if s not in SPLIT_MODELS]
         if unknown:
             raise ConfigError(f"unknown training split(s) {', '.join(unknown)}; choose from {', '.join(SPLIT_MODELS)}")
+    from reradar_core.model.registry import resolve_weights
+
     out = dict(SPLIT_MODELS)
+    given: dict[str, str] = {}
     for item in (t.strip() for t in overrides.split(",")):
         if not item:
             continue
@@ -100,6 +103,10 @@ def split_models(overrides: str = "", splits: list[str] | None = None) -> dict[s
             raise ConfigError(f"model override for unknown split {split!r}; choose from {sorted(SPLIT_MODELS)}")
         if splits is not None and split not in splits:
             raise ConfigError(f"model override for {split!r}, which --splits does not fit ({', '.join(splits)})")
+        if split in given:  # the last would win without a word
+            raise ConfigError(f"--models names a model for {split!r} twice ({given[split]}, {model}); name one")
+        given[split] = model
+        resolve_weights(model)  # an unknown name or a missing .pt is said now, not as a cache miss or after a run
         out[split] = model
     return {s: out[s] for s in (splits if splits is not None else out)}
 

@@ -86,8 +86,9 @@ def train_main(name: str, sequences: list[SeqSpec], val_pairs: list[tuple[SeqSpe
     from reradar_core.model.extractor import read_weights_blob
     from reradar_core.model.registry import WEIGHTS_DIR, resolve_weights, save_weights
     from reradar_core.paths import cache_dir
-    from reradar_core.training.trainer import TrainConfig, Trainer, trainable_state
+    from reradar_core.training.trainer import TrainConfig, Trainer, resolve_device, trainable_state
 
+    resolve_device(device)  # an unknown device or no CUDA: said before a run folder is made (it was left empty)
     init_state = None
     if init is not None:
         pt, meta = resolve_weights(init)
@@ -164,7 +165,9 @@ def register(app: typer.Typer) -> None:
     @app.command("train")
     def train_cmd(
         name: str = typer.Option(..., callback=_model_name, help="Model name (letters, digits, -, _, .): writes "
-                                 "<out-dir>/<name>.pt and .json."),
+                                 "<out-dir>/<name>.pt and .json; its checkpoints live in the cache "
+                                 "(<cache>/training/runs/<name>, whatever --out-dir), so a run of the same name "
+                                 "resumes there: give another name (or --no-resume) for an unrelated run."),
         split: str | None = typer.Option(None, help="Simulated training split: train-source, "
                                          "train-target-boreas|loop|loop-open|offroad, smoke (see docs/MODEL.md); "
                                          "several, comma-separated, train on all of them (same recall radius)."),
@@ -174,7 +177,7 @@ def register(app: typer.Typer) -> None:
         backbone: str = typer.Option("reresnet", help="reresnet (C8, e2cnn) or resnet (ablation)."),
         width: float = typer.Option(0.25, help="Width multiplier on ResNet-50 channel counts."),
         clusters: int = typer.Option(32, help="NetVLAD clusters K."),
-        dim: int = typer.Option(256, help="PCA-whitening output dimension D (0 = raw NetVLAD)."),
+        dim: int = typer.Option(256, min=0, help="PCA-whitening output dimension D (0 = raw NetVLAD)."),
         init: str | None = typer.Option(None, help="Adapt from this shipped model (name or .pt path)."),
         lr: float | None = typer.Option(None, callback=_positive_finite,
                                         help="AdamW learning rate (default 1e-4, 1e-5 with --init)."),

@@ -441,10 +441,17 @@ def test_split_models_applies_overrides_and_refuses_bad_ones() -> None:
     from reradar_core.localization.confidence_fit import SPLIT_MODELS, split_models
 
     assert split_models() == SPLIT_MODELS
-    got = split_models("train-target-boreas=our-3-boreas, train-target-loop = x.pt",
+    got = split_models("train-target-boreas=our-3-boreas, train-target-loop = our-3-loop",
                        ["train-target-boreas", "train-target-loop", "train-target-offroad"])
-    assert got == {"train-target-boreas": "our-3-boreas", "train-target-loop": "x.pt",
+    assert got == {"train-target-boreas": "our-3-boreas", "train-target-loop": "our-3-loop",
                    "train-target-offroad": "our-3-offroad-w05"}
+    # QA session 36: an unknown model was reported by --reuse as a cache miss; a split named twice, the last won
+    with pytest.raises(ConfigError, match="unknown model 'nosuch'"):
+        split_models("train-target-boreas=nosuch")
+    with pytest.raises(ConfigError, match="no such weights file"):
+        split_models("train-target-loop=x.pt")
+    with pytest.raises(ConfigError, match="for 'train-target-boreas' twice"):
+        split_models("train-target-boreas=our-3-boreas,train-target-boreas=our-1")
     with pytest.raises(ConfigError, match="not SPLIT=MODEL"):
         split_models("train-target-boreas")
     with pytest.raises(ConfigError, match="unknown split"):

@@ -387,3 +387,14 @@ def test_replay_options_without_follow_are_refused(tmp_path):
     scan.write_bytes(b"\x89PNG\r\n\x1a\n")
     res = _run(["localize", str(scan), "--every", "2", "--no-tracking"])
     assert res.exit_code == 2 and "--every, --no-tracking apply to a replay with --follow" in res.output
+
+
+def test_train_refuses_an_unknown_device_before_making_its_run_folder(tmp_path, monkeypatch):
+    """QA session 36: `--device tpu` was refused clearly but left an empty run folder in the cache."""
+    monkeypatch.setenv("RERADAR_CACHE_DIR", str(tmp_path / "cache"))
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    res = _run(["train", "--name", "e1", "--sequence", str(seq), "--device", "tpu", "--out-dir", str(tmp_path / "o"),
+                "--steps", "1"])
+    assert res.exit_code != 0 and "unknown device 'tpu'" in res.output
+    assert not (tmp_path / "cache" / "training" / "runs" / "e1").exists()
