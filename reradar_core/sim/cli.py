@@ -185,6 +185,12 @@ def register(app: typer.Typer) -> None:
                     written += save_preview(collect_scans(s, 1, preset)[0], Path(f"{prefix}_{name}"))
         except ReRadarError as exc:
             raise _fail(exc) from exc
+        presets = {label: col.get("radar_preset") for label, col in cols.items()}
+        if len({p for p in presets.values() if p}) > 1:  # e.g. Oxford scans beside Boreas-preset renders
+            typer.echo("note: the folders are of different radar presets (" + ", ".join(
+                f"{label}: {p}" for label, p in presets.items()) + "): their range bins differ in size, so the "
+                "per-bin figures (power percentiles, keypoints) compare different grids; render with the real "
+                "scans' preset (`reradar sim --preset`) for a like-for-like table", err=True)
         typer.echo(compare_table(cols))
         for path in written:
             typer.echo(f"wrote {path}", err=True)

@@ -33,8 +33,12 @@ def collect_scans(folder: str | Path, limit: int = 12, preset: str | None = None
 
 
 def folder_statistics(folder: str | Path, limit: int = 12, preset: str | None = None) -> dict:
-    stats: list[ScanStats] = [scan_statistics(s) for s in collect_scans(folder, limit, preset)]
+    """Summary statistics of up to ``limit`` scans of ``folder``; ``radar_preset`` names the preset they were read
+    with (``preset``, or the folder's own), so a comparison of different radars can say so."""
+    scans = collect_scans(folder, limit, preset)
+    stats: list[ScanStats] = [scan_statistics(s) for s in scans]
     out = summarize(stats)
+    out["radar_preset"] = scans[0].preset if scans else None
     out["num_scans"] = len(stats)
     out["keypoints_min"] = float(min(s.keypoints for s in stats))
     out["keypoints_max"] = float(max(s.keypoints for s in stats))
@@ -45,6 +49,7 @@ def compare_table(columns: dict[str, dict]) -> str:
     """A Markdown table of statistics, one column per source (e.g. ``{"real": ..., "sim clear": ...}``)."""
     names = list(columns)
     rows = [
+        ("radar preset", "radar_preset", "{}"),
         ("scans", "num_scans", "{:.0f}"),
         ("mean power", "mean", "{:.4f}"),
         ("median", "p50", "{:.3f}"),
@@ -64,7 +69,7 @@ def compare_table(columns: dict[str, dict]) -> str:
             if key is None:
                 cells.append(f"{c['keypoints_min']:.0f}-{c['keypoints_max']:.0f}")
             else:
-                cells.append(fmt.format(c[key]))
+                cells.append(fmt.format(c.get(key, "–")))
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     for b, (lo, hi) in enumerate(RANGE_BANDS_M):
         lines.append(f"| mean power {lo:.0f}-{hi:.0f} m | " + " | ".join(

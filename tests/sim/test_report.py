@@ -84,3 +84,22 @@ def test_sim_report_keeps_folders_that_share_a_name_and_writes_into_an_images_fo
     twice = CliRunner().invoke(app, ["sim-report", "--real", str(tmp_path / "real" / "seq"), "--sim",
                                      str(tmp_path / "a" / "seq"), "--sim", str(tmp_path / "a" / "seq")])
     assert twice.exit_code == 2 and "same folder twice" in twice.output
+
+
+def test_sim_report_names_each_folders_preset(tmp_path):
+    """QA session 36: Oxford scans beside Boreas-preset renders were compared without a word: each column names the
+    preset its scans were read with (the command adds a note when they differ)."""
+    from reradar_cli import app
+
+    rng = np.random.default_rng(3)
+    for name in ("ox", "ox2"):
+        for k in range(2):
+            power = (rng.random((400, 3768)) * 0.05).astype(np.float32)
+            write_sequence_scan(tmp_path / name, "oxford", _scan(power, 1_600_000_000_000_000 + k * 250_000))
+    assert folder_statistics(tmp_path / "ox" / "radar", limit=2)["radar_preset"] == "oxford"
+    res = CliRunner().invoke(app, ["sim-report", "--real", str(tmp_path / "ox" / "radar"), "--sim",
+                                   str(tmp_path / "ox2" / "radar"), "--limit", "2"])
+    assert res.exit_code == 0, res.output
+    assert "| radar preset | oxford | oxford |" in res.output and "note:" not in res.output
+    table = compare_table({"a": {**folder_statistics(tmp_path / "ox" / "radar", limit=2), "radar_preset": "boreas"}})
+    assert "| radar preset | boreas |" in table
