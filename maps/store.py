@@ -875,6 +875,7 @@ def store_place_repetition(path: str | Path, table: RepetitionTable, out: str | 
     if out is not None and dst.exists() and not overwrite:
         raise FileExistsError(errno.EEXIST, "file exists; pass overwrite to replace it", str(dst))
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    compact = tmp.with_name(tmp.name + ".compact")
 
     def identity(st: os.stat_result) -> tuple[int, int, int, int]:
         return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
@@ -888,6 +889,11 @@ def store_place_repetition(path: str | Path, table: RepetitionTable, out: str | 
             n = len(m)
             if expect_sha256 is not None and m.content_sha256() != expect_sha256:
                 raise MapFormatError(f"{src}: the map changed while its place repetition was measured; run again")
+        with h5py.File(tmp, "r") as f:
+            replacing = "place_repetition" in f
+        if replacing:  # HDF5 keeps a deleted table's space: a compact copy without it, so a re-run does not grow
+            _copy_map_without(tmp, compact, "place_repetition")
+            os.replace(compact, tmp)
         with h5py.File(tmp, "r+") as f:
             _write_place_repetition(f, table, n)
         if identity(os.stat(src)) != before:  # replaced meanwhile (e.g. re-registered): never revert it
@@ -895,8 +901,24 @@ def store_place_repetition(path: str | Path, table: RepetitionTable, out: str | 
         install_file(tmp, dst, exclusive=out is not None and not overwrite)
     except BaseException:
         tmp.unlink(missing_ok=True)
+        compact.unlink(missing_ok=True)
         raise
     return dst
+
+
+def _copy_map_without(src: Path, dst: Path, member: str) -> None:
+    """Copy the HDF5 map ``src`` to a new file ``dst`` without its top-level ``member``: the root attributes and
+    every other object with its attributes and storage settings (``H5Ocopy``), written anew, so the space of the
+    member left out is not carried over."""
+    import shutil
+
+    with h5py.File(src, "r") as fin, h5py.File(dst, "w") as fout:
+        for key, value in fin.attrs.items():
+            fout.attrs[key] = value
+        for name in fin:
+            if name != member:
+                fin.copy(fin[name], fout, name=name)
+    shutil.copymode(src, dst)
 
 
 class MapWriter:

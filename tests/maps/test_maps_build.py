@@ -441,3 +441,20 @@ def test_get_maps_counts_the_keyframes_whose_motion_is_known_under_the_servers_s
             assert map_info(MapEntry("drive", out, "ready", db)).keyframes_motion_known == known
         finally:
             db.close()
+
+
+def test_storing_the_place_repetition_again_does_not_grow_the_map(tmp_path: Path) -> None:
+    """QA session 36: each in-place `map-repetition` added ~6 KB (HDF5 keeps a deleted table's space)."""
+    from maps.build import add_place_repetition
+
+    bare = _street_build(tmp_path, "bare.h5", place_repetition=False)
+    add_place_repetition(bare, workers=1)
+    sizes = []
+    for _ in range(3):
+        add_place_repetition(bare, workers=1)
+        sizes.append(bare.stat().st_size)
+    assert sizes[0] == sizes[1] == sizes[2], sizes
+    with open_map(bare) as m:
+        assert m.place_repetition is not None and len(m.place_repetition) == len(m)
+        assert m.read_keyframe(3).local_descriptors.shape[0] > 0
+    assert not list(tmp_path.glob(".*.tmp*"))
