@@ -685,14 +685,17 @@ MAX_PLAUSIBLE_SPEED_M_S = 340.0
 PLAUSIBLE_SPEED_MIN_PATH_M = 20.0
 
 
-def check_pose_speed(track: PoseSequence, pose_file: str = "the pose file") -> None:
+def check_pose_speed(track: PoseSequence, pose_file: str = "the pose file",
+                     how: str = "--time-unit") -> None:
     """Refuse a pose file whose drive is faster than any road vehicle (mean speed above
     ``MAX_PLAUSIBLE_SPEED_M_S`` over at least ``PLAUSIBLE_SPEED_MIN_PATH_M`` of path): its positions are in another
     unit than metres, or its times in a finer one than they are read in. A map built from it would hold
     keyframes 1000x apart, and a benchmark would find no revisit at all, without a word (QA session 36).
 
     Args:
-        track: the pose file's poses, sorted, µs and metres. pose_file: for the message.
+        track: the pose file's poses, sorted, µs and metres. pose_file: for the message. how: how the time unit
+            is set (the command line's option by default; the service says how to name the column), as
+            ``check_pose_time_unit``'s.
 
     Raises:
         DatasetError: the speed, and what to check.
@@ -706,7 +709,7 @@ def check_pose_speed(track: PoseSequence, pose_file: str = "the pose file") -> N
     raise DatasetError(f"{pose_file}: its poses drive {path_m:.4g} m in {span_s:.4g} s, a mean speed of "
                        f"{path_m / span_s:.3g} m/s (faster than sound; a road vehicle drives up to ~100 m/s): "
                        "positions must be metres (a file in millimetres or centimetres?), and the times in the "
-                       "unit they are read in (--time-unit)")
+                       f"unit they are read in ({how})")
 
 
 #: how far beyond the first / last pose a scan may lie (pose files sample the trajectory at their own rate), µs

@@ -62,6 +62,7 @@ from service.core.registry import (
     MapRegistry,
     file_identity,
     last_pass_note,
+    refuse_delete_of_upload_in_check,
     utc_now,
 )
 from service.core.shared_state import SharedStateUnavailableError, arq_redis_settings
@@ -600,8 +601,7 @@ class QueuedMapRegistry(MapRegistry):
         looked is deleted like any map (``_settle_finished_build``); a build of the id still active after the
         map was deleted is cancelled too, so it cannot bring the map back."""
         entry = self.get(map_id)
-        if entry.state == "building" and entry.uploaded:  # no job to cancel: the upload settles within seconds
-            raise ConflictError(f"map {map_id!r}: {UPLOAD_CHECK_NOTE}; retry the DELETE then")
+        refuse_delete_of_upload_in_check(entry)  # before the queue is asked: an upload has no job to cancel
         if entry.state == "building":
             try:
                 cancelled, _dropped = self.queue.cancel(map_id, self._remove_job_files)

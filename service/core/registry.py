@@ -71,7 +71,7 @@ from service.core.config import MAP_ID_PATTERN, Settings
 from service.core.errors import BadRequestError, ConflictError, NotFoundError, scrub_paths
 
 __all__ = ["MapEntry", "MapRegistry", "MapState", "DEMO_MAP_ID", "FileIdentity", "build_failure_message",
-           "file_identity", "install_map_files", "UPLOAD_CHECK_NOTE"]
+           "file_identity", "install_map_files", "UPLOAD_CHECK_NOTE", "refuse_delete_of_upload_in_check"]
 
 logger = logging.getLogger(__name__)
 
@@ -286,6 +286,13 @@ def _log_far_served(path: Path, db: MapDatabase) -> None:
 #: what a map whose uploaded file is being checked is doing (``MapEntry.uploaded``)
 UPLOAD_CHECK_NOTE = ("the uploaded map file is being checked and installed (no build job; it is ready or refused "
                      "within seconds)")
+
+
+def refuse_delete_of_upload_in_check(entry: MapEntry) -> None:
+    """``ConflictError`` for a DELETE of a map whose uploaded file is still being checked (``MapEntry.uploaded``):
+    there is no build job to cancel, it settles within seconds."""
+    if entry.state == "building" and entry.uploaded:
+        raise ConflictError(f"map {entry.map_id!r}: {UPLOAD_CHECK_NOTE}; retry the DELETE then")
 
 
 def last_pass_note(entry: MapEntry) -> str | None:
@@ -1010,8 +1017,7 @@ class MapRegistry:
         """Unregister ``map_id`` and delete its file (refused while it is being built)."""
         with self._lock:
             entry = self.get(map_id)
-            if entry.state == "building" and entry.uploaded:
-                raise ConflictError(f"map {map_id!r}: {UPLOAD_CHECK_NOTE}; retry the DELETE then")
+            refuse_delete_of_upload_in_check(entry)
             if entry.state == "building":
                 raise ConflictError(f"map {map_id!r} is being built; wait for the job to finish")
             del self._entries[map_id]

@@ -328,5 +328,7 @@ def test_a_pose_file_faster_than_any_vehicle_is_refused():
     xy = np.stack([np.arange(80) * 2.0, np.zeros(80)], axis=1)  # 8 m/s
     check_pose_speed(PoseSequence(t, xy, np.zeros(80)))
     check_pose_speed(PoseSequence(t, xy * 0.001, np.zeros(80)))  # under 20 m of path: a vehicle standing, not judged
-    with pytest.raises(DatasetError, match=r"mean speed of 8e\+03 m/s .*millimetres"):
+    with pytest.raises(DatasetError, match=r"mean speed of 8e\+03 m/s .*millimetres.*\(--time-unit\)"):
         check_pose_speed(PoseSequence(t, xy * 1000, np.zeros(80)), "poses.csv")
+    with pytest.raises(DatasetError, match=r"read in \(name the column t_s\)$"):  # the service's own advice
+        check_pose_speed(PoseSequence(t, xy * 1000, np.zeros(80)), "poses.csv", how="name the column t_s")

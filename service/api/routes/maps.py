@@ -173,10 +173,10 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         try:
             check_pose_time_unit(track, stamps, _declared_time_unit(pose_path), "the uploaded poses file",
                                  how="name the time column t_{unit} in the header line")
-            check_pose_speed(track, "the uploaded poses file")
+            check_pose_speed(track, "the uploaded poses file",
+                             how="named by the time column's header: t_s, t_ms, t_us or t_ns")
         except DatasetError as exc:
-            raise PoseFileError(str(exc).replace("(--time-unit)", "(named by the time column's header: t_s, t_ms, "
-                                                 "t_us or t_ns)")) from None
+            raise PoseFileError(str(exc)) from None
         try:
             check_pose_span(track, stamps, [f"scan {p.name}" for p in scan_paths], "the uploaded poses file")
         except DatasetError as exc:
