@@ -14,7 +14,7 @@
 # training scans; docs/MODEL.md, "Learned whitening"); a run that resumes a finished checkpoint only re-fits it.
 # Defaults of `reradar train` used here (docs/MODEL.md): NetVLAD over the sensor disc only (ModelConfig.disc_mask,
 # on; --no-disc-mask turns it off) and random in-batch negatives (hard negatives from a memory bank,
-# --hard-negatives N, did not win on validation and stay opt-in). A checkpoint resumes only when it records the
+# --hard-negatives N, did not win on validation and stay opt-in; so does --rotation-consistency W, session 37). A checkpoint resumes only when it records the
 # same training settings, --init weights and data (checkpoints written before session 23 record none and are
 # refused): run with FRESH=1 to retrain from scratch.
 # Weights go to reradar_core/model/weights/ unless OUT_DIR is set; runs resume from their checkpoints

@@ -128,6 +128,11 @@ def bench(
                                      "leave it out for every baseline and shipped model")
         if out is not None:  # a file in the way is found now, not after the benchmark ran
             output_dir(out, "--out", create=False)
+            for opt, folder in [("--database", database)] + [("--query", q) for q in query or []]:
+                if folder is not None and out.resolve().is_relative_to(folder.resolve()):
+                    # results.json, plots and per_query/ would land among the scans (and be read with them later)
+                    raise typer.BadParameter(f"--out {out} is inside the {opt} folder {folder}: the results would be "
+                                             "written among its scans; choose a folder outside the scan folders")
         if database is not None and split_at is None and any(q.resolve() == database.resolve() for q in query or []):
             raise typer.BadParameter("a --query folder is the --database folder: every query would find itself "
                                      "(Recall@1 100 %); give another drive, or --split-at to split one drive")

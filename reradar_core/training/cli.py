@@ -198,6 +198,11 @@ def register(app: typer.Typer) -> None:
                                                "the projection by learned whitening from matching pairs of the "
                                                "training scans (other traversals within 10 m, turned copies); "
                                                "docs/MODEL.md, 'Learned whitening'."),
+        rotation_consistency: float = typer.Option(0.0, "--rotation-consistency", min=0.0, help="Weight of a "
+                                                   "rotation-consistency term: each anchor is seen again under "
+                                                   "another heading and 1 - cosine of the two descriptors is "
+                                                   "added to the loss (0 = off; docs/MODEL.md, 'Rotation "
+                                                   "consistency')."),
         no_disc_mask: bool = typer.Option(False, "--no-disc-mask", help="NetVLAD over all F' cells, not only "
                                           "the sensor disc (ModelConfig.disc_mask; the behaviour before it)."),
     ) -> None:
@@ -207,7 +212,7 @@ def register(app: typer.Typer) -> None:
         note = ""
         summary: dict = {}  # --steps 0: the validation
         extra: dict = {"hard_negatives": hard_negatives, "hard_refresh_every": hard_refresh,
-                       "learned_whitening": learned_whitening}
+                       "learned_whitening": learned_whitening, "rotation_consistency": rotation_consistency}
         try:
             from reradar_core.model.registry import WEIGHTS_DIR
             from reradar_core.paths import output_dir

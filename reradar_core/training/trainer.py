@@ -60,6 +60,11 @@ class TrainConfig:
             each scan with a copy turned by a random heading (seeded). ``whitening_shrinkage``: see
             ``learned_whitening``. Off by default (the paper trains the projection end to end); the shipped
             stage-2 models use it (docs/MODEL.md, "Learned whitening").
+        rotation_consistency: weight of a rotation-consistency term (0 = off, the default): each batch also holds
+            a copy of every anchor view turned by another random heading about the sensor (same shift), and the
+            loss adds ``rotation_consistency * mean(1 - cos(g(anchor), g(turned copy)))`` on the global
+            descriptors, pushing the descriptor towards invariance at any angle, not only at the C8 group's
+            exact 90-degree steps (issue 11; docs/MODEL.md, "Rotation consistency").
         num_threads: torch CPU threads. Default 1: on the shared 2-core machine two threads ran 3-6x slower
             per step than one whenever other processes competed for the cores (OpenMP threads waiting on
             each other), while on an idle machine two threads gain only ~1.6x.
@@ -89,6 +94,7 @@ class TrainConfig:
     learned_whitening: bool = False
     whitening_shrinkage: float = 0.1
     whitening_rotation_pairs: bool = True
+    rotation_consistency: float = 0.0
     seed: int = 0
     num_threads: int = 1
     device: str = "auto"
@@ -99,6 +105,8 @@ class TrainConfig:
                               f"(each mined anchor/positive pair gives two negatives), got {self.hard_negatives}")
         if self.hard_refresh_every < 1 or self.hard_pool < 1:
             raise ConfigError("hard_refresh_every and hard_pool must be >= 1")
+        if not (math.isfinite(self.rotation_consistency) and self.rotation_consistency >= 0):
+            raise ConfigError(f"rotation_consistency must be a finite weight >= 0, got {self.rotation_consistency}")
 
     @property
     def batch_pairs(self) -> int:
@@ -128,6 +136,7 @@ RESUME_FREE_SETTINGS = frozenset({"max_steps", "max_minutes", "val_every", "chec
 #: how the resume check names a setting (the ``reradar train`` option where there is one)
 _SETTING_NAMES = {"lr": "--lr", "seed": "--seed", "num_threads": "--threads", "device_type": "--device",
                   "hard_negatives": "--hard-negatives", "hard_refresh_every": "--hard-refresh",
+                  "rotation_consistency": "--rotation-consistency",
                   "init": "--init weights", "data": "training data (--split / --sequence)"}
 
 
@@ -240,23 +249,36 @@ class Trainer:
         # what determines the weights besides the step count: checked when a checkpoint is resumed
         cfg = config.to_dict()
         self.settings: dict[str, Any] = {k: v for k, v in cfg.items() if k not in RESUME_FREE_SETTINGS}
+        if not config.rotation_consistency:
+            # off is what every checkpoint written before the option did: they stay resumable
+            self.settings.pop("rotation_consistency")
         self.settings.update(device_type=self.device.type, data=_data_fingerprint(self.data.sequences),
                              init=None if init_state is None else _tensors_sha256(init_state))
 
     # ------------------------------------------------------------------ batches
-    def _views(self, items: np.ndarray, rng: np.random.Generator, augment: bool = True) -> torch.Tensor:
+    def _view_transforms(self, n: int, rng: np.random.Generator, augment: bool = True) -> np.ndarray:
+        """(n, 3) T_orig_new (x, y metres, yaw radians) of n random views: shift in +-trans_augment_m, any
+        heading (drawn item by item, shift then heading: the order every shipped model was trained with)."""
         c = self.config
-        w = c.model.cartesian_width_px
+        out = np.zeros((n, 3))
+        if not augment:
+            return out
+        for k in range(n):
+            t = rng.uniform(-c.trans_augment_m, c.trans_augment_m, 2) if c.trans_augment_m > 0 else (0, 0)
+            yaw = rng.uniform(0, 2 * math.pi) if c.yaw_augment else 0.0
+            out[k] = (t[0], t[1], yaw)
+        return out
+
+    def _render_views(self, items: np.ndarray, T: np.ndarray) -> torch.Tensor:
+        """(len(items), 1, W, W) float32 views of training scans, item k seen from ``T[k]``."""
+        w = self.config.model.cartesian_width_px
         out = np.empty((len(items), 1, w, w), np.float32)
         for k, it in enumerate(items):
-            if augment:
-                t = rng.uniform(-c.trans_augment_m, c.trans_augment_m, 2) if c.trans_augment_m > 0 else (0, 0)
-                yaw = rng.uniform(0, 2 * math.pi) if c.yaw_augment else 0.0
-                T = np.array([t[0], t[1], yaw])
-            else:
-                T = np.zeros(3)
-            out[k, 0] = self.data.view(int(it), w, T)
+            out[k, 0] = self.data.view(int(it), w, T[k])
         return torch.from_numpy(out).to(self.device)
+
+    def _views(self, items: np.ndarray, rng: np.random.Generator, augment: bool = True) -> torch.Tensor:
+        return self._render_views(items, self._view_transforms(len(items), rng, augment))
 
     @torch.no_grad()
     def initialise_heads(self) -> None:
@@ -458,11 +480,20 @@ class Trainer:
             anchors, positives = self.sampler.sample(rng, self.bank, c.hard_pairs, c.hard_pool)
         else:
             anchors, positives = self.sampler.sample(rng)
-        x = self._views(np.concatenate([anchors, positives]), rng)
+        items = np.concatenate([anchors, positives])
+        T = self._view_transforms(len(items), rng)
+        b = len(anchors)
+        if c.rotation_consistency > 0:
+            # each anchor once more, same shift, another heading (drawn after the batch's own views)
+            turned = T[:b].copy()
+            turned[:, 2] = rng.uniform(0, 2 * math.pi, b)
+            items, T = np.concatenate([items, anchors]), np.concatenate([T, turned])
+        x = self._render_views(items, T)
         self.net.train()
         g, _ = self.net(x)
-        b = len(anchors)
-        loss = info_nce_in_batch(g[:b], g[b:], tau=c.tau)
+        loss = info_nce_in_batch(g[:b], g[b:2 * b], tau=c.tau)
+        if c.rotation_consistency > 0:
+            loss = loss + c.rotation_consistency * (1.0 - (g[:b] * g[2 * b:]).sum(dim=1)).mean()
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()

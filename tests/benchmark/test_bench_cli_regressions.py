@@ -181,3 +181,19 @@ def test_no_method_is_bold_when_all_tie():
     assert _best(rows, "recall@1_all") == set()
     assert _best({"a": {"sr": 90.0}, "b": {"sr": 80.0}}, "sr") == {"a"}
     assert _best({"a": {"sr": 90.0}}, "sr") == {"a"}
+
+
+@pytest.mark.parametrize("inside", ["database", "query"])
+def test_bench_refuses_an_out_folder_inside_a_scan_folder(inside, loop_sequences, tmp_path, cache_env):
+    """QA session 36 (left open there): `--out` inside the database or a query folder was accepted, so results.json,
+    plots and per_query/ were written among the scans. Refused up front, before any feature is computed; nothing is
+    created there."""
+    _, db, q = loop_sequences
+    folder = Path(db.root if inside == "database" else q.root)
+    before = sorted(p.name for p in folder.iterdir())
+    r = _bench(["--database", str(db.root), "--query", str(q.root), "--preset", "boreas", "-m", "ringkey", *FAST,
+                "--out", str(folder / "results")])
+    assert r.exit_code == 2, r.output
+    text = " ".join(r.output.replace("│", " ").split())
+    assert f"is inside the --{inside} folder" in text and "choose a folder outside" in text, r.output
+    assert sorted(p.name for p in folder.iterdir()) == before

@@ -464,3 +464,59 @@ def test_failed_train_leaves_no_empty_out_dir(tmp_path, args):
                                    "--out-dir", str(tmp_path / "out" / "w")])
     assert res.exit_code == 2 and "Traceback" not in res.output
     assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------ rotation consistency (issue 11)
+def test_rotation_consistency_adds_one_minus_cosine_of_turned_anchors(monkeypatch):
+    """With weight w the step's loss is InfoNCE + w * mean(1 - cos(anchor, anchor turned)); the turned copies share
+    the anchors' shift and only their heading differs; the batch itself is drawn exactly as without the term."""
+    from reradar_core.training.loss import info_nce_in_batch
+
+    seqs = _fake_sequences(side=61, n=60)
+    render = Trainer._render_views
+    seen: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def recording(self, items, T):
+        seen.append((np.asarray(items).copy(), np.asarray(T).copy()))
+        return render(self, items, T)
+
+    monkeypatch.setattr(Trainer, "_render_views", recording)
+    batches, losses = {}, {}
+    for w in (0.0, 5.0):
+        tr = Trainer(_tiny_config(rotation_consistency=w), seqs, progress=False)
+        tr.initialise_heads()
+        seen.clear()
+        losses[w] = tr.train_step()
+        batches[w] = seen[-1]
+    b = _tiny_config().batch_pairs
+    (items0, T0), (items, T) = batches[0.0], batches[5.0]
+    assert len(items0) == 2 * b and len(items) == 3 * b
+    np.testing.assert_array_equal(items[:2 * b], items0)  # the InfoNCE batch is unchanged by the option
+    np.testing.assert_array_equal(T[:2 * b], T0)
+    np.testing.assert_array_equal(items[2 * b:], items[:b])  # then the anchors again
+    np.testing.assert_array_equal(T[2 * b:, :2], T[:b, :2])  # same shift
+    assert np.all(np.abs(np.angle(np.exp(1j * (T[2 * b:, 2] - T[:b, 2])))) > 1e-6)  # another heading
+    # the loss by hand, on the same views and the same initial weights
+    tr = Trainer(_tiny_config(rotation_consistency=5.0), seqs, progress=False)
+    tr.initialise_heads()
+    tr.net.train()
+    g, _ = tr.net(render(tr, items, T))
+    term = (1 - (g[:b] * g[2 * b:]).sum(1)).mean()
+    assert 0 < float(term.detach()) < 2
+    assert losses[5.0] == pytest.approx(float(info_nce_in_batch(g[:b], g[b:2 * b], tau=0.1) + 5.0 * term), rel=1e-4)
+
+
+def test_rotation_consistency_weight_is_checked_and_recorded_for_resume(tmp_path):
+    from reradar_core.errors import ConfigError
+
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ConfigError, match="rotation_consistency"):
+            _tiny_config(rotation_consistency=bad)
+    seqs = _fake_sequences(side=61, n=60)
+    run = tmp_path / "run"
+    Trainer(_tiny_config(max_steps=2), seqs, run_dir=run, progress=False).run()
+    # off (the default) is what checkpoints written before the option did: they stay resumable
+    ck = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert "rotation_consistency" not in ck["settings"]
+    with pytest.raises(ConfigError, match=r"--rotation-consistency <not recorded> -> 2\.0"):
+        Trainer(_tiny_config(max_steps=2, rotation_consistency=2.0), seqs, run_dir=run, progress=False).run()

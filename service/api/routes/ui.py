@@ -7,13 +7,15 @@ routes are for people, so they stay out of the OpenAPI schema.
 
 from __future__ import annotations
 
+import functools
+import re
 from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, FastAPI, Query, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagger_ui_oauth2_redirect_html
-from fastapi.responses import FileResponse, HTMLResponse
+from fastapi.responses import FileResponse, HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 
@@ -33,6 +35,32 @@ def _swagger_dir() -> Path:
     import fastapi_offline
 
     return Path(fastapi_offline.__file__).resolve().parent / "static"
+
+
+#: A source-map comment on a line of its own (``/*# sourceMappingURL=... */`` in CSS, ``//# ...`` in JS).
+_SOURCE_MAP_LINE = re.compile(rb"^[ \t]*(?:/\*# sourceMappingURL=[^\n]*\*/|//# sourceMappingURL=[^\n]*)[ \t]*$\n?",
+                              re.MULTILINE)
+
+
+@functools.lru_cache(maxsize=8)
+def _without_source_map(path: str, mtime_ns: int) -> bytes:
+    """The file's bytes without its source-map comment lines (cached per file version)."""
+    return _SOURCE_MAP_LINE.sub(b"", Path(path).read_bytes())
+
+
+class VendorFiles(StaticFiles):
+    """fastapi-offline's Swagger UI / ReDoc assets, served without their ``sourceMappingURL`` comments: the package
+    ships no ``.map`` files, so every browser with its developer tools open asked for one and logged a 404."""
+
+    async def get_response(self, path: str, scope) -> Response:
+        response = await super().get_response(path, scope)
+        if response.status_code != 200 or not isinstance(response, FileResponse) or \
+                not str(response.path).endswith((".css", ".js")):
+            return response
+        stat = Path(response.path).stat()
+        body = _without_source_map(str(response.path), stat.st_mtime_ns)
+        keep = {k: v for k, v in response.headers.items() if k in ("etag", "last-modified")}
+        return Response(body, media_type=response.media_type, headers=keep)
 
 
 @router.get("/", response_class=FileResponse)
@@ -108,4 +136,4 @@ def install_ui(app: FastAPI) -> None:
     redoc_url=None``)."""
     app.include_router(router)
     app.mount("/ui/static", StaticFiles(directory=UI_DIR), name="ui-static")
-    app.mount("/ui/vendor", StaticFiles(directory=_swagger_dir()), name="ui-vendor")
+    app.mount("/ui/vendor", VendorFiles(directory=_swagger_dir()), name="ui-vendor")
