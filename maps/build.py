@@ -15,6 +15,7 @@ from maps.paths import far_view_path
 from maps.store import MapMetadata, MapWriter
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
+from reradar_core.geometry.se2 import check_poses, check_yaw_radians
 from reradar_core.io.scan import RadarScan
 from reradar_core.localization import (
     InMemoryKeyframes,
@@ -211,7 +212,9 @@ def build_map(
     """
     if far_view is not None and not hasattr(extractor, "with_view"):
         raise ConfigError(f"model {extractor.model_id!r} cannot describe a far view (no with_view)")
-    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    arr = np.asarray(poses, dtype=np.float64)
+    poses = check_poses(arr.reshape(1, 3) if arr.shape == (3,) else arr, "keyframe poses")
+    check_yaw_radians(poses, "keyframe poses")
     n = len(poses)
     if n == 0:
         raise ConfigError("cannot build a map from zero scans")

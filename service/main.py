@@ -77,8 +77,8 @@ def _error_code(exc: ReRadarError) -> str:
 
 
 #: Error statuses every operation may answer, by route class (documented in the OpenAPI document).
-_VEHICLE_ERRORS: tuple[int, ...] = (400, 401, 403, 404, 408, 409, 413, 415, 422, 503)
-_OPERATOR_ERRORS: tuple[int, ...] = (400, 401, 403, 404, 408, 409, 413, 415, 422, 503)
+_VEHICLE_ERRORS: tuple[int, ...] = (400, 401, 403, 404, 408, 409, 413, 415, 422, 429, 503)
+_OPERATOR_ERRORS: tuple[int, ...] = (400, 401, 403, 404, 408, 409, 413, 415, 422, 429, 503)
 _PUBLIC_ERRORS: tuple[int, ...] = (503,)
 _HTTP_CODES = {404: "not_found", 405: "method_not_allowed", 400: "bad_request", 413: "payload_too_large"}
 

@@ -17,7 +17,58 @@ __all__ = [
     "inverse",
     "relative_pose",
     "transform_points",
+    "check_poses",
+    "check_yaw_radians",
 ]
+
+
+def check_poses(poses: object, what: str = "poses") -> np.ndarray:
+    """``poses`` as an (N, 3) float64 array of (x metres, y metres, yaw radians), or ``ConfigError`` saying why not:
+    another shape (e.g. (N, 2) positions, which a reshape would interleave into wrong poses), non-finite values, or a
+    position beyond ``MAX_ABS_COORDINATE_M``."""
+    from reradar_core.bounds import MAX_ABS_COORDINATE_M
+    from reradar_core.errors import ConfigError
+
+    try:
+        arr = np.asarray(poses, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{what} must be an (N, 3) array of x, y (metres) and yaw (radians): {exc}") from None
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ConfigError(f"{what} must be an (N, 3) array of x, y (metres) and yaw (radians), got shape {arr.shape}")
+    bad = ~np.isfinite(arr).all(axis=1)
+    if bad.any():
+        raise ConfigError(f"{what}: {int(bad.sum())} pose(s) hold NaN or infinite values (first: row "
+                          f"{int(np.flatnonzero(bad)[0])})")
+    if np.any(np.abs(arr[:, :2]) > MAX_ABS_COORDINATE_M):
+        raise ConfigError(f"{what}: positions must lie within +-{MAX_ABS_COORDINATE_M:.0e} m of the origin")
+    return arr
+
+
+def check_yaw_radians(poses: np.ndarray, what: str = "poses", min_steps: int = 5) -> None:
+    """``ConfigError`` when the headings of a drive's (N, 3) ``poses`` read as degrees and not radians: some |yaw|
+    beyond 2 pi, and the heading keeps a steady angle to the direction of travel (the sensor's mounting) when read as
+    degrees (steadiness above 0.9, 1 = constant) and clearly less so (by 0.1) when read as radians. Unwrapped radian headings (beyond 2 pi after a loop) keep it as radians and pass; drives with
+    fewer than ``min_steps`` moves of 0.5 m or more cannot tell and pass."""
+    from reradar_core.errors import ConfigError
+
+    p = np.asarray(poses, np.float64)
+    if len(p) < 2 or not np.any(np.abs(p[:, 2]) > 2 * np.pi + 1e-6) or np.any(np.abs(p[:, 2]) > 360.0 + 1e-6):
+        return
+    d = np.diff(p[:, :2], axis=0)
+    moving = np.hypot(d[:, 0], d[:, 1]) >= 0.5
+    if int(moving.sum()) < min_steps:
+        return
+    travel = np.arctan2(d[moving, 1], d[moving, 0])
+    yaw = p[:-1, 2][moving]
+
+    def steadiness(heading: np.ndarray) -> float:  # 1: a constant angle between heading and travel
+        return float(np.abs(np.mean(np.exp(1j * (heading - travel)))))
+
+    as_radians, as_degrees = steadiness(yaw), steadiness(np.radians(yaw))
+    if as_degrees > 0.9 and as_degrees > as_radians + 0.1:
+        raise ConfigError(f"{what}: the headings look like degrees (up to {np.max(np.abs(p[:, 2])):.1f}; read as "
+                          f"degrees they follow the direction of travel steadily, {as_degrees:.2f} against "
+                          f"{as_radians:.2f} as radians); give yaw in radians (numpy.radians)")
 
 
 def wrap_angle(angle: np.ndarray | float) -> np.ndarray:

@@ -18,6 +18,7 @@ import numpy as np
 
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
+from reradar_core.geometry.se2 import check_poses
 from reradar_core.localization.screening import ScreenKeyframe, screen_keyframe
 from reradar_core.matching import AlignmentConfig, LandmarkGrid, build_landmark_grid
 
@@ -69,7 +70,8 @@ class InMemoryKeyframes:
 
     def __init__(self, features: Sequence[ScanFeatures] | Callable[[int], ScanFeatures], poses: np.ndarray,
                  timestamps_us: np.ndarray | None = None) -> None:
-        self.poses = np.asarray(poses, np.float64).reshape(-1, 3)
+        arr = np.asarray(poses, np.float64)
+        self.poses = check_poses(arr.reshape(1, 3) if arr.shape == (3,) else arr, "keyframe poses")
         if callable(features):
             self._read = features
         else:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
@@ -68,6 +69,17 @@ def resolve_weights(name: str = "default", weights_dir: Path = WEIGHTS_DIR) -> t
     return pt, meta
 
 
+def _finite_or_none(value: Any) -> Any:
+    """``value`` with every NaN or infinite float (nested in dicts, lists, tuples) replaced by None."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite_or_none(v) for v in value]
+    return value
+
+
 def save_weights(net: DescriptorNet, path: str | Path, metadata: dict[str, Any],
                  train_state_dict: dict[str, torch.Tensor] | None = None, onnx: bool = True) -> Path:
     """Write ``net`` (a plain, exported ``DescriptorNet``) to ``path`` (.pt), its metadata to .json and, with
@@ -90,7 +102,9 @@ def save_weights(net: DescriptorNet, path: str | Path, metadata: dict[str, Any],
     meta = dict(metadata)
     meta.update(name=path.stem, config=net.config.to_dict(), model_id=net.config.model_id,
                 sha256=file_sha256(path))
-    path.with_suffix(".json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
+    # strict JSON: a NaN (e.g. a validation Recall@1 over no query) is written as null, not as a bare NaN
+    path.with_suffix(".json").write_text(json.dumps(_finite_or_none(meta), indent=2, sort_keys=True,
+                                                    allow_nan=False) + "\n")
     if onnx:
         try:
             export_weights_onnx(path, net=net)

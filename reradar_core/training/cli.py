@@ -48,6 +48,42 @@ def _model_name(value: str) -> str:
     return value
 
 
+def _finite_non_negative(value: float) -> float:
+    if not (math.isfinite(value) and value >= 0):
+        raise typer.BadParameter(f"must be a finite number >= 0, got {value}")
+    return value
+
+
+def _place_group(folder: Path, shared_frame: bool) -> str:
+    """Place group of a ``--sequence`` folder: one for all of them with ``--shared-frame``; else the simulated world
+    it was rendered in (the drives of one suite share its world frame: ``suite`` and ``world_seed`` of its
+    ``reradar_sim.json``), else the folder itself (a recorded drive's poses are compared only with its own)."""
+    if shared_frame:
+        return "shared-frame"
+    try:
+        meta = json.loads((folder / "reradar_sim.json").read_text())
+        if isinstance(meta, dict) and meta.get("suite") and meta.get("world_seed") is not None:
+            return f"sim:{meta['suite']}:{meta['world_seed']}"
+    except (OSError, ValueError):
+        pass
+    return f"seq:{folder.resolve()}"
+
+
+def _refuse_options_the_init_model_fixes(init: str, **given: float | None) -> None:
+    """``--width`` / ``--clusters`` / ``--dim`` given with ``--init`` must be the init model's own (its weights fix
+    them; they were silently ignored): a different value is refused, naming it."""
+    from reradar_core.model.registry import resolve_weights
+
+    _, meta = resolve_weights(init)
+    cfg = meta.get("config", {})
+    actual = {"width": cfg.get("width"), "clusters": cfg.get("num_clusters"), "dim": cfg.get("output_dim") or 0}
+    wrong = [f"--{k} {v:g} (the model's: {actual[k]})" for k, v in given.items()
+             if v is not None and actual[k] is not None and float(v) != float(actual[k])]
+    if wrong:
+        raise typer.BadParameter(f"--init {init} fixes the network's shape, so {', '.join(wrong)} cannot apply; "
+                                 "leave these options out (or train from scratch without --init)")
+
+
 def _positive_finite(value: float | None) -> float | None:
     if value is not None and not (math.isfinite(value) and value > 0):
         raise typer.BadParameter(f"must be a positive number, got {value}")
@@ -175,16 +211,20 @@ def register(app: typer.Typer) -> None:
         val_db: Path | None = typer.Option(None, help="Validation database sequence folder."),
         val_query: Path | None = typer.Option(None, help="Validation query sequence folder."),
         backbone: str = typer.Option("reresnet", help="reresnet (C8, e2cnn) or resnet (ablation)."),
-        width: float = typer.Option(0.25, help="Width multiplier on ResNet-50 channel counts."),
-        clusters: int = typer.Option(32, help="NetVLAD clusters K."),
-        dim: int = typer.Option(256, min=0, help="PCA-whitening output dimension D (0 = raw NetVLAD)."),
+        width: float | None = typer.Option(None, help="Width multiplier on ResNet-50 channel counts (default "
+                                           "0.25; with --init, the init model's)."),
+        clusters: int | None = typer.Option(None, help="NetVLAD clusters K (default 32; with --init, the init "
+                                            "model's)."),
+        dim: int | None = typer.Option(None, min=0, help="PCA-whitening output dimension D, 0 = raw NetVLAD "
+                                       "(default 256; with --init, the init model's)."),
         init: str | None = typer.Option(None, help="Adapt from this shipped model (name or .pt path)."),
         lr: float | None = typer.Option(None, callback=_positive_finite,
                                         help="AdamW learning rate (default 1e-4, 1e-5 with --init)."),
         steps: int = typer.Option(1500, min=0, help="Maximum optimisation steps (0: only validate the model, "
                            "write nothing)."),
         minutes: float = typer.Option(60.0, callback=_positive_finite, help="Wall-clock budget in minutes."),
-        seed: int = typer.Option(0, help="Random seed (sampling, augmentation, initialisation)."),
+        seed: int = typer.Option(0, min=0, max=2**63 - 1, help="Random seed (sampling, augmentation, "
+                                 "initialisation)."),
         threads: int = typer.Option(1, min=1, help="torch CPU threads (1 is fastest on a busy shared CPU)."),
         device: str = typer.Option("auto", help="auto (CUDA GPU when available, else CPU), cpu or cuda."),
         out_dir: Path | None = typer.Option(None, help="Where to write the weights (default: the package)."),
@@ -198,16 +238,22 @@ def register(app: typer.Typer) -> None:
                                                "the projection by learned whitening from matching pairs of the "
                                                "training scans (other traversals within 10 m, turned copies); "
                                                "docs/MODEL.md, 'Learned whitening'."),
-        rotation_consistency: float = typer.Option(0.0, "--rotation-consistency", min=0.0, help="Weight of a "
+        rotation_consistency: float = typer.Option(0.0, "--rotation-consistency", callback=_finite_non_negative,
+                                                   help="Weight of a "
                                                    "rotation-consistency term: each anchor is seen again under "
                                                    "another heading and 1 - cosine of the two descriptors is "
                                                    "added to the loss (0 = off; docs/MODEL.md, 'Rotation "
                                                    "consistency')."),
+        shared_frame: bool = typer.Option(False, "--shared-frame", help="The --sequence folders' poses share one "
+                                          "map frame (drives of one route, e.g. GNSS poses): scans of different "
+                                          "folders within 10 m are positives, within 25 m never negatives. Without "
+                                          "it, folders rendered on one simulated route share their world; any "
+                                          "other folder is compared only with itself."),
         no_disc_mask: bool = typer.Option(False, "--no-disc-mask", help="NetVLAD over all F' cells, not only "
                                           "the sensor disc (ModelConfig.disc_mask; the behaviour before it)."),
     ) -> None:
         """Train the descriptor network with InfoNCE (tau 0.1, 14 negatives) and save shipped weights."""
-        seqs = [SeqSpec(p, f"seq:{p.resolve()}") for p in sequence]
+        seqs = [SeqSpec(p, _place_group(p, shared_frame)) for p in sequence]
         vals: list[tuple[SeqSpec, SeqSpec]] = []
         note = ""
         summary: dict = {}  # --steps 0: the validation
@@ -243,8 +289,10 @@ def register(app: typer.Typer) -> None:
                 vals.append((SeqSpec(val_db, "val"), SeqSpec(val_query, "val")))
             if not seqs:
                 raise typer.BadParameter("give --split or at least one --sequence")
-            path = train_main(name, seqs, vals, backbone=backbone, width=width, clusters=clusters,
-                              dim=dim or None, init=init, lr=lr, steps=steps, minutes=minutes, seed=seed,
+            if init is not None:
+                _refuse_options_the_init_model_fixes(init, width=width, clusters=clusters, dim=dim)
+            path = train_main(name, seqs, vals, backbone=backbone, width=0.25 if width is None else width,
+                              clusters=32 if clusters is None else clusters, dim=256 if dim is None else (dim or None), init=init, lr=lr, steps=steps, minutes=minutes, seed=seed,
                               threads=threads, device=device, out_dir=out_dir, run_dir=None, resume=not no_resume,
                               data_note=note, disc_mask=not no_disc_mask, summary_out=summary, **extra)
         except ReRadarError as exc:

@@ -22,16 +22,20 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from reradar_core.errors import ConfigError, ModelMismatchError
+from reradar_core.errors import ConfigError, ModelMismatchError, ReRadarError
 from reradar_core.model.config import ModelConfig
 from reradar_core.model.network import DescriptorNet
 from reradar_core.training.data import CachedSequence, TrainingSet, TupleSampler
 from reradar_core.training.loss import info_nce_in_batch
 
-__all__ = ["TrainConfig", "Trainer", "recall_at_1_from_descriptors", "trainable_state", "load_trainable_state",
-           "RESUME_FREE_SETTINGS"]
+__all__ = ["TrainConfig", "Trainer", "TrainingDivergedError", "recall_at_1_from_descriptors", "trainable_state",
+           "load_trainable_state", "RESUME_FREE_SETTINGS"]
 
 logger = logging.getLogger(__name__)
+
+
+class TrainingDivergedError(ReRadarError):
+    """The loss became NaN or infinite (learning rate or a loss weight too large): no weights are written."""
 
 
 @dataclass(frozen=True)
@@ -133,6 +137,9 @@ RESUME_FREE_SETTINGS = frozenset({"max_steps", "max_minutes", "val_every", "chec
                                   "val_max_database", "val_max_queries", "learned_whitening",
                                   "whitening_shrinkage", "whitening_rotation_pairs", "device", "model"})
 
+#: settings left out of ``Trainer.settings`` at their default (so checkpoints written before them stay resumable)
+_UNRECORDED_DEFAULTS = {"rotation_consistency": 0.0}
+
 #: how the resume check names a setting (the ``reradar train`` option where there is one)
 _SETTING_NAMES = {"lr": "--lr", "seed": "--seed", "num_threads": "--threads", "device_type": "--device",
                   "hard_negatives": "--hard-negatives", "hard_refresh_every": "--hard-refresh",
@@ -229,6 +236,7 @@ class Trainer:
         self.data = TrainingSet(train)
         self.sampler = TupleSampler(self.data, config.pos_radius_m, config.neg_radius_m, config.batch_pairs)
         self.val_pairs = val_pairs or []
+        self._check_validation_overlap()
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.progress = progress
         self.device = resolve_device(config.device)
@@ -254,6 +262,27 @@ class Trainer:
             self.settings.pop("rotation_consistency")
         self.settings.update(device_type=self.device.type, data=_data_fingerprint(self.data.sequences),
                              init=None if init_state is None else _tensors_sha256(init_state))
+
+    def _check_validation_overlap(self) -> None:
+        """Refuse validation data with no query within ``recall_radius_m`` of a database scan (drives that do not
+        overlap, or poses in different frames): its Recall@1 would be NaN over 0 queries. One pair without overlap
+        among others is only logged (a reversed drive's tail can lie away from the map's)."""
+        c = self.config
+        counted = 0
+        for db, q in self.val_pairs:
+            dxy = np.asarray(db.poses, np.float64)[_subsample(len(db), c.val_max_database), :2]
+            qxy = np.asarray(q.poses, np.float64)[_subsample(len(q), c.val_max_queries), :2]
+            near = int((np.hypot(qxy[:, None, 0] - dxy[None, :, 0], qxy[:, None, 1] - dxy[None, :, 1]).min(axis=1)
+                        <= c.recall_radius_m).sum()) if len(dxy) and len(qxy) else 0
+            if near == 0:
+                logger.warning("validation pair %s / %s: no query within %g m of a database scan", db.name, q.name,
+                               c.recall_radius_m)
+            counted += near
+        if self.val_pairs and counted == 0:
+            names = "; ".join(f"{db.name} / {q.name}" for db, q in self.val_pairs)
+            raise ConfigError(f"validation ({names}): no query lies within {c.recall_radius_m:g} m of a database "
+                              "scan, so there is nothing to validate: the drives do not overlap, or their poses are "
+                              "in different frames")
 
     # ------------------------------------------------------------------ batches
     def _view_transforms(self, n: int, rng: np.random.Generator, augment: bool = True) -> np.ndarray:
@@ -457,7 +486,8 @@ class Trainer:
                               f"resuming it cannot be checked to give this command's weights; {advice}")
         diff = []
         for key in sorted(set(saved) | set(self.settings)):
-            old, new = saved.get(key, "<not recorded>"), self.settings.get(key, "<not recorded>")
+            default = _UNRECORDED_DEFAULTS.get(key, "<not recorded>")  # left out when off: see ``__init__``
+            old, new = saved.get(key, default), self.settings.get(key, default)
             if old != new:
                 if key in ("init", "data"):
                     old, new = (v[:12] if isinstance(v, str) else v for v in (old, new))
@@ -494,6 +524,12 @@ class Trainer:
         loss = info_nce_in_batch(g[:b], g[b:2 * b], tau=c.tau)
         if c.rotation_consistency > 0:
             loss = loss + c.rotation_consistency * (1.0 - (g[:b] * g[2 * b:]).sum(dim=1)).mean()
+        if not torch.isfinite(loss):  # a diverged run: its weights would give NaN descriptors, never write them
+            raise TrainingDivergedError(
+                f"training diverged at step {self.step + 1}: the loss is {float(loss.detach())}; nothing was written. "
+                f"Lower --lr (now {c.lr:g})" + (f" or --rotation-consistency (now {c.rotation_consistency:g})"
+                                                if c.rotation_consistency > 0 else "") +
+                ", and pass --no-resume to start over")
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()

@@ -23,6 +23,7 @@ from service.core.errors import (
     RequestTimeoutError,
     ServiceError,
     ServiceUnavailableError,
+    TooManyRequestsError,
     problem_body,
 )
 from service.core.metrics import Metrics
@@ -224,7 +225,8 @@ class RequestGuardMiddleware:
 
     For every HTTP request, in this order: authenticate scan and map requests (``X-API-Key``, see
     ``service.api.security``) from the headers alone; refuse a declared ``Content-Length`` above the limit
-    (413); refuse a scan or map request when ``max_concurrent`` are in progress (503 + ``Retry-After``);
+    (413); refuse a scan or map request when its API key already has ``max_concurrent_per_key`` in progress (429 +
+    ``Retry-After``), or when ``max_concurrent`` are in progress (503 + ``Retry-After``);
     receive the body within the idle and total timeouts (408) and the size limit (413), then hand it to the app.
     ``get_guard()`` is None while the service starts: scan and map requests then get 503 too. Two
     ``X-API-Key`` headers are refused (400: ambiguous credentials); a request the guard would refuse whose
@@ -237,6 +239,7 @@ class RequestGuardMiddleware:
         self.get_guard = get_guard
         self.default_limits = default_limits
         self.in_flight = 0
+        self.in_flight_by_caller: dict[str, int] = {}  # per API key (``AccessPolicy.caller_id``)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -289,7 +292,17 @@ class RequestGuardMiddleware:
                     f"request body larger than the limit of {limit / 2**20:.1f} MB"))
                 return
         heavy = kind != "public" and method in _BODY_METHODS
+        caller = scope.get("state", {}).get("caller")
+        if caller == "loopback":  # keyless local clients: one trusted setup, not limited per key
+            caller = None
         if heavy:
+            per_key = limits.max_concurrent_per_key
+            if caller is not None and per_key is not None and self.in_flight_by_caller.get(caller, 0) >= per_key:
+                await _drain(receive, skip_drain)
+                await _reply(send, path, TooManyRequestsError(
+                    f"this API key already has {per_key} scan / map requests in progress, the most one key may have "
+                    f"at once; retry in {limits.retry_after_s} s", retry_after_s=limits.retry_after_s))
+                return
             if self.in_flight >= limits.max_concurrent:
                 await _drain(receive, skip_drain)
                 await _reply(send, path, OverloadedError(
@@ -297,6 +310,8 @@ class RequestGuardMiddleware:
                     f"{limits.retry_after_s} s", retry_after_s=limits.retry_after_s))
                 return
             self.in_flight += 1
+            if caller is not None:
+                self.in_flight_by_caller[caller] = self.in_flight_by_caller.get(caller, 0) + 1
         try:
             if method not in _BODY_METHODS or no_body:
                 await self.app(scope, receive, send)
@@ -323,6 +338,12 @@ class RequestGuardMiddleware:
         finally:
             if heavy:
                 self.in_flight -= 1
+                if caller is not None:
+                    left = self.in_flight_by_caller[caller] - 1
+                    if left:
+                        self.in_flight_by_caller[caller] = left
+                    else:
+                        del self.in_flight_by_caller[caller]
 
 
 #: Request methods counted under their own name; any other (a client may send any token) counts as ``other``,

@@ -1,7 +1,8 @@
 """ASGI middleware feeding the operator page and the other replicas, without touching the routes.
 
 - ``POST /localize`` answered 200: the outcome (pose, confidence, latency) goes to the recent localizations
-  of its map (``OpsRuntime.recent``: Redis, or memory in one process).
+  of its map (``OpsRuntime.recent``: Redis, or memory in one process), with the map's version, so that an answer
+  finishing after a DELETE is not shown on another map registered under the id.
 - ``POST /maps`` answered 201 and ``DELETE /maps/{id}`` answered 200: a map event is published so every
   replica loads or drops the map (``MapSync``); queued builds publish their own events.
 """
@@ -93,6 +94,7 @@ class OpsMiddleware:
             return
         if is_localize and status["code"] == 200 and body.get("map_id"):
             record = localization_record(body, (time.perf_counter() - t0) * 1e3, ops.origin)
+            record["map_version"] = scope.get("state", {}).get("map_version")  # the localize route's map version
             await run_in_threadpool(ops.recent.add, body["map_id"], record)
         elif is_map_change and body.get("id"):
             if method == "DELETE":

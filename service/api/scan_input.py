@@ -75,7 +75,8 @@ def parse_scan_layout(value: object) -> NpyLayout:
         return "polar"
     if value == "polar" or value == "navtech":
         return value
-    raise BadRequestError(f"unknown scan_layout {value!r}; choose one of {list(SCAN_LAYOUTS)}")
+    shown = shorten_echo(value) if isinstance(value, str) else value  # client text: cut, as preset values are
+    raise BadRequestError(f"unknown scan_layout {shown!r}; choose one of {list(SCAN_LAYOUTS)}")
 
 
 async def read_scan_upload(upload: UploadFile, max_pixels: int,
@@ -345,7 +346,9 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         model = await run_in_threadpool(validate_json_body, raw, json_model)
         fields = model.model_dump()
         scan_id = fields.pop("scan_id")
-        cached = await run_in_threadpool(state.cache.get, scan_id)  # Redis in fleet mode: never on the event loop
+        # the uploader's own scans only (``ScanCache``); Redis in fleet mode: never on the event loop
+        owner = request.scope.get("state", {}).get("caller", "loopback")
+        cached = await run_in_threadpool(state.cache.get, scan_id, owner)
         if cached is None:
             raise NotFoundError(f"unknown or expired scan_id {scan_id!r}; upload the scan again with POST /scans")
         target = map_id or fields.get("map_id")

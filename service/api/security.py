@@ -118,12 +118,13 @@ class RequestLimits:
     retry_after_s: int
     spool_dir: Path | None = None
     body_min_rate_bytes_s: float = 0.0
+    max_concurrent_per_key: int | None = None  # None: no per-key limit
 
     @classmethod
     def from_settings(cls, s: Settings) -> RequestLimits:
         return cls(s.max_upload_bytes, s.max_map_upload_bytes, s.body_idle_timeout_s, s.body_timeout_s,
                    s.map_upload_timeout_s, s.max_concurrent_requests, s.retry_after_s,
-                   body_min_rate_bytes_s=s.body_min_rate_kib_s * 1024)
+                   body_min_rate_bytes_s=s.body_min_rate_kib_s * 1024, max_concurrent_per_key=s.max_concurrent_per_key)
 
 
 @dataclass(frozen=True)

@@ -260,7 +260,11 @@ class Settings(BaseSettings):
     max_concurrent_requests: int = Field(default=4, ge=1, description=(
         "Scan and map requests (POST /scans, /localize, /maps/{id}/retrieve, /maps) in progress at once; "
         "more are answered 503 with Retry-After at once instead of queueing."))
-    retry_after_s: int = Field(default=1, ge=1, description="Retry-After seconds sent with 503 overloaded.")
+    max_concurrent_per_key: int = Field(default=2, ge=1, description=(
+        "Of those, the most one API key may have in progress at once; more are answered 429 with Retry-After: a "
+        "client trickling request bodies (or a leaked key) cannot take every slot and lock the other vehicles "
+        "out. Keyless loopback clients (a local setup without vehicle keys) are not limited."))
+    retry_after_s: int = Field(default=1, ge=1, description="Retry-After seconds sent with 503 overloaded and 429.")
     body_idle_timeout_s: float = Field(default=10.0, gt=0, description=(
         "A request body that sends nothing for this long is refused with 408 (slow-client protection)."))
     body_timeout_s: float = Field(default=30.0, gt=0, description=(

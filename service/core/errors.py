@@ -83,6 +83,16 @@ class UnsupportedMediaError(ServiceError):
     code = "unsupported_media_type"
 
 
+class TooManyRequestsError(ServiceError):
+    """The caller (its API key) already has as many requests in progress as one key may (429 + Retry-After)."""
+
+    status_code = 429
+    code = "too_many_requests"
+
+    def __init__(self, message: str, retry_after_s: int = 1) -> None:
+        super().__init__(message, {"Retry-After": str(retry_after_s)})
+
+
 class ServiceUnavailableError(ServiceError):
     status_code = 503
     code = "not_ready"

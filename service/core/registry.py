@@ -68,7 +68,7 @@ from reradar_core.localization.far_view import FarViewConfig
 from reradar_core.retrieval import IndexConfig
 from service.core.archive import SCAN_NAME_PATTERN, duplicate_scan_time_message, scan_name_time_message
 from service.core.config import MAP_ID_PATTERN, Settings
-from service.core.errors import BadRequestError, ConflictError, NotFoundError, scrub_paths
+from service.core.errors import BadRequestError, ConflictError, NotFoundError, ServiceError, scrub_paths
 
 __all__ = ["MapEntry", "MapRegistry", "MapState", "DEMO_MAP_ID", "FileIdentity", "build_failure_message",
            "file_identity", "install_map_files", "UPLOAD_CHECK_NOTE", "refuse_delete_of_upload_in_check"]
@@ -656,16 +656,22 @@ class MapRegistry:
                 self._entries[map_id] = entry
         self.prune_map_arrays()
 
-    def prune_map_arrays(self) -> None:
+    def prune_map_arrays(self, dropped: MapDatabase | None = None) -> None:
         """Delete shared map arrays files (``maps.arrays``) no loaded map uses and unused for 10 minutes
-        (files of replaced or deleted maps); processes still mapping one keep their pages."""
+        (files of replaced or deleted maps), and at once those of ``dropped`` (a map this registry no longer
+        serves: deleted, forgotten or replaced) unless a loaded map uses the same file; processes still mapping one
+        keep their pages, and one that opens it later rebuilds it."""
         arrays_dir = self.settings.arrays_dir
         if arrays_dir is None:
             return
         with self._lock:
             dbs = [d for e in self._entries.values() if e.db is not None for d in (e.db, e.db.far) if d is not None]
             keep = [d.arrays.path.name for d in dbs if d.arrays]
+        gone = [d.arrays.path for d in (dropped, dropped.far if dropped is not None else None)
+                if d is not None and d.arrays is not None and d.arrays.path.name not in keep]
         try:
+            for path in gone:  # the age rule would keep a map's file for 10 minutes after a quick delete
+                path.unlink(missing_ok=True)
             prune_arrays(arrays_dir, keep)
         except OSError as exc:
             logger.warning("could not prune map arrays in %s: %s", arrays_dir, exc)
@@ -951,7 +957,10 @@ class MapRegistry:
                 logger.info("map %s built: %d keyframes%s", map_id, len(db),
                             ", with its far view" if db.far is not None else "")
             except Exception as exc:  # noqa: BLE001 - a failed job is reported through GET /maps/{id}
-                logger.exception("building map %s failed", map_id)
+                if isinstance(exc, ReRadarError | ServiceError):  # the upload's fault (a bad scan, pose file): no trace
+                    logger.warning("building map %s failed: %s", map_id, scrub_paths(str(exc), [self.maps_dir]))
+                else:
+                    logger.exception("building map %s failed", map_id)
                 entry.error = scrub_paths(build_failure_message(exc), [self.maps_dir])
                 entry.state = "failed"
                 try:
@@ -1031,7 +1040,7 @@ class MapRegistry:
         self._verified_marker(_far_marker_id(far_view_path(entry.path))).unlink(missing_ok=True)
         self._drop_job(map_id)
         fsync_dir(self.maps_dir)
-        self.prune_map_arrays()
+        self.prune_map_arrays(dropped=entry.db)
         return entry
 
     def close(self) -> None:
@@ -1089,6 +1098,7 @@ class MapRegistry:
             self._entries[map_id] = entry
         if current.db is not None:  # requests already using the old map finish on it
             self._retire(current.db)
+            self.prune_map_arrays(dropped=current.db)
         return entry
 
     def forget(self, map_id: str) -> MapEntry | None:
@@ -1099,4 +1109,5 @@ class MapRegistry:
             entry = self._entries.pop(map_id, None)
         if entry is not None and entry.db is not None:
             self._retire(entry.db)
+            self.prune_map_arrays(dropped=entry.db)
         return entry

@@ -166,7 +166,8 @@ class RedisScanStore(ScanCache):
     """Uploaded scans' features in Redis, seen by every replica; each expires ``ttl_s`` after upload.
 
     Redis bounds memory with its own ``maxmemory`` policy (compose: ``volatile-ttl``), so there is no entry
-    bound here. ``len()`` is 0: this process holds no scans.
+    bound here (nor a per-caller one: entries live out their TTL). Keys name the uploader, so another caller's
+    ``scan_id`` is not found. ``len()`` is 0: this process holds no scans.
     """
 
     def __init__(self, client: redis.Redis, keys: Keys, ttl_s: float) -> None:
@@ -175,10 +176,11 @@ class RedisScanStore(ScanCache):
         self._keys = keys
 
     def put(self, features: ScanFeatures, preset: str | None, preset_open: bool = False,
-            far_features: ScanFeatures | None = None) -> CachedScan:
-        entry = CachedScan(new_scan_id(), features, preset, preset_open, far_features)
+            far_features: ScanFeatures | None = None, owner: str = "loopback") -> CachedScan:
+        entry = CachedScan(new_scan_id(), features, preset, preset_open, far_features, owner)
         try:
-            self._redis.set(self._keys.scan(entry.scan_id),
+            # the key names the uploader: another caller's scan_id is not found (``ScanCache``)
+            self._redis.set(self._keys.scan(f"{owner}:{entry.scan_id}"),
                             encode_features(features, preset, preset_open, far_features), px=int(self.ttl_s * 1000))
         except redis.RedisError as exc:
             raise SharedStateUnavailableError(
@@ -186,9 +188,9 @@ class RedisScanStore(ScanCache):
                 "inline (multipart) to POST /localize instead, or retry later") from exc
         return entry
 
-    def get(self, scan_id: str) -> CachedScan | None:
+    def get(self, scan_id: str, owner: str | None = None) -> CachedScan | None:
         try:
-            blob = cast(bytes | None, self._redis.get(self._keys.scan(scan_id)))
+            blob = cast(bytes | None, self._redis.get(self._keys.scan(f"{owner or 'loopback'}:{scan_id}")))
         except redis.RedisError as exc:
             raise SharedStateUnavailableError(
                 "the shared scan store (Redis) is unavailable, so scan_id cannot be resolved; send the scan "
@@ -200,7 +202,7 @@ class RedisScanStore(ScanCache):
         except (ValueError, KeyError, TypeError, OSError, ReRadarError):  # not a value this version wrote
             logger.warning("scan %s: unreadable value in the shared scan store; treated as unknown", scan_id)
             return None
-        return CachedScan(scan_id, features, preset, preset_open, far)
+        return CachedScan(scan_id, features, preset, preset_open, far, owner or "loopback")
 
     def __len__(self) -> int:
         return 0

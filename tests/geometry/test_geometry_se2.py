@@ -81,3 +81,51 @@ def test_transform_points_matches_compose(poses):
     moved = transform_points(a[0], pts)
     np.testing.assert_allclose(np.linalg.norm(moved[1:] - moved[0], axis=1),
                                np.linalg.norm(pts[1:] - pts[0], axis=1), atol=1e-9)
+
+
+# ---- QA session 37: poses a caller gets wrong -------------------------------------------------------------------
+def test_check_poses_refuses_positions_only_non_finite_and_far_poses() -> None:
+    import pytest
+
+    from reradar_core.errors import ConfigError
+    from reradar_core.geometry.se2 import check_poses
+
+    good = np.array([[0.0, 1.0, 0.5], [2.0, 3.0, -0.5]])
+    np.testing.assert_array_equal(check_poses(good), good)
+    assert check_poses(good.astype(np.float32)).dtype == np.float64
+    with pytest.raises(ConfigError, match=r"\(N, 3\).*got shape \(18, 2\)"):
+        check_poses(np.zeros((18, 2)))  # a reshape(-1, 3) made 12 interleaved poses of it
+    bad = good.copy()
+    bad[1, 2] = np.nan
+    with pytest.raises(ConfigError, match="1 pose.*NaN or infinite.*row 1"):
+        check_poses(bad, "keyframe poses")
+    with pytest.raises(ConfigError, match="within"):
+        check_poses(np.array([[2e7, 0.0, 0.0]]))
+
+
+def _loop(turns: float, n: int = 200, radius: float = 50.0, offset_rad: float = 0.0) -> np.ndarray:
+    """A vehicle driving ``turns`` times round a circle, heading along the road (unwrapped radians)."""
+    a = np.linspace(0.0, 2 * np.pi * turns, n)
+    return np.column_stack([radius * np.cos(a), radius * np.sin(a), a + np.pi / 2 + offset_rad])
+
+
+def test_headings_in_degrees_are_refused_and_unwrapped_radians_are_not() -> None:
+    import pytest
+
+    from reradar_core.errors import ConfigError
+    from reradar_core.geometry.se2 import check_yaw_radians, wrap_angle
+
+    loop = _loop(3.0)  # unwrapped radians up to ~20.4 rad, beyond 2 pi
+    check_yaw_radians(loop)
+    check_yaw_radians(_loop(3.0, offset_rad=np.pi))  # a sensor mounted backwards
+    wrapped = loop.copy()
+    wrapped[:, 2] = wrap_angle(loop[:, 2])
+    check_yaw_radians(wrapped)  # within pi: nothing to tell, passes
+    degrees = wrapped.copy()
+    degrees[:, 2] = np.degrees(wrapped[:, 2])
+    with pytest.raises(ConfigError, match="look like degrees.*numpy.radians"):
+        check_yaw_radians(degrees, "keyframe poses")
+    straight = np.column_stack([np.arange(20.0), np.zeros(20), np.full(20, 7.0)])  # unwrapped, on a straight road
+    check_yaw_radians(straight)
+    parked = np.column_stack([np.zeros(20), np.zeros(20), np.linspace(0, 90, 20)])  # no travel: cannot tell
+    check_yaw_radians(parked)

@@ -458,3 +458,35 @@ def test_storing_the_place_repetition_again_does_not_grow_the_map(tmp_path: Path
         assert m.place_repetition is not None and len(m.place_repetition) == len(m)
         assert m.read_keyframe(3).local_descriptors.shape[0] > 0
     assert not list(tmp_path.glob(".*.tmp*"))
+
+
+def test_build_map_refuses_positions_only_non_finite_and_degree_headings(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """QA session 37: (N, 2) positions were reshaped into interleaved (2N/3, 3) poses; NaN poses and headings in
+    degrees built maps that answered `localized` metres and tens of degrees off. Refused before any scan is read."""
+    import numpy as np
+    import pytest
+
+    from maps.build import build_map
+    from reradar_core.errors import ConfigError
+
+    def no_scan(i: int):  # type: ignore[no-untyped-def]
+        raise AssertionError("no scan is read before the poses are checked")
+
+    a = np.linspace(0.0, 2 * np.pi, 40)
+    poses = np.column_stack([50 * np.cos(a), 50 * np.sin(a), np.degrees(np.angle(np.exp(1j * (a + np.pi / 2))))])
+    for bad, match in [(poses[:18, :2], r"\(N, 3\)"), (np.where(np.arange(3) == 2, np.nan, poses[:4]), "NaN"),
+                       (poses, "look like degrees")]:
+        with pytest.raises(ConfigError, match=match):
+            build_map(tmp_path / "m.h5", object(), no_scan, bad, radar_preset="boreas")  # type: ignore[arg-type]
+    assert not (tmp_path / "m.h5").exists()
+
+
+def test_in_memory_keyframes_refuse_non_finite_poses() -> None:
+    import numpy as np
+    import pytest
+
+    from reradar_core.errors import ConfigError
+    from reradar_core.localization import InMemoryKeyframes
+
+    with pytest.raises(ConfigError, match="keyframe poses: 1 pose.*NaN"):
+        InMemoryKeyframes(lambda i: None, np.array([[0.0, 0.0, np.nan], [1.0, 0.0, 0.0]]))  # type: ignore[arg-type,return-value]

@@ -203,8 +203,8 @@ def test_scan_uploaded_on_a_localizes_by_scan_id_on_b(fleet: Fleet) -> None:
     assert body["status"] == "localized" and body["keyframe"]["keyframe_id"] == 2 and body["scan_id"] == scan_id
     hits = fleet.b.post("/maps/city/retrieve", json={"scan_id": scan_id, "top_k": 2}).json()["keyframes"]
     assert hits[0]["keyframe_id"] == 2
-    # the features live under the namespaced, versioned key with the configured TTL
-    ttl = fleet.redis().pttl(f"{NAMESPACE}:v1:scan:{scan_id}")
+    # the features live under the namespaced, versioned key of their uploader (keyless loopback here) with the TTL
+    ttl = fleet.redis().pttl(f"{NAMESPACE}:v1:scan:loopback:{scan_id}")
     assert 0 < ttl <= 600_000
     missing = fleet.b.post("/localize", json={"map_id": "city", "scan_id": "0" * 32})
     assert missing.status_code == 404

@@ -119,7 +119,7 @@ def _feat(i: int) -> ScanFeatures:
 
 def test_scan_cache_is_bounded_lru_with_expiry() -> None:
     now = [0.0]
-    cache = ScanCache(max_entries=2, ttl_s=10.0, clock=lambda: now[0])
+    cache = ScanCache(max_entries=2, ttl_s=10.0, clock=lambda: now[0], per_owner=2)
     a, b = cache.put(_feat(1), "boreas"), cache.put(_feat(2), None)
     assert a.scan_id != b.scan_id and len(a.scan_id) == 32
     assert cache.get(a.scan_id) is not None  # a is now most recently used
@@ -128,6 +128,20 @@ def test_scan_cache_is_bounded_lru_with_expiry() -> None:
     now[0] = 10.5
     assert cache.get(a.scan_id) is None and len(cache) == 0
     assert cache.get("nope") is None
+
+
+def test_scan_cache_keeps_each_callers_scans_to_itself_and_to_its_share() -> None:
+    """QA session 37: key B uploading 260 scans in 8 s evicted key A's scan (told `expires_in_s: 600`), and any
+    key could use another's scan_id. A caller's scans are its own, and one caller holds at most a quarter of the
+    cache: beyond that its own oldest goes."""
+    cache = ScanCache(max_entries=8, ttl_s=600.0)
+    assert cache.per_owner == 2
+    a = cache.put(_feat(0), None, owner="key-a")
+    b = [cache.put(_feat(i), None, owner="key-b") for i in range(1, 40)]
+    assert cache.get(a.scan_id, "key-a") is a  # untouched by B's uploads
+    assert cache.get(a.scan_id, "key-b") is None  # not B's to use
+    assert [cache.get(e.scan_id, "key-b") is not None for e in b[-3:]] == [False, True, True]  # B's newest two
+    assert len(cache) == 3
 
 
 def test_metrics_prometheus_text() -> None:
@@ -254,7 +268,8 @@ def test_unset_keys_from_compose_and_loopback_binding(monkeypatch: pytest.Monkey
 def test_workers_share_map_arrays_across_a_map_update(tmp_path: Path, fake_map: Path) -> None:
     """Two registries on one maps folder (two worker processes' view): one arrays file for the map, shared;
     when the map is replaced (deleted and registered again with other content) the new version gets its own
-    file, the registry still holding the old version keeps answering from its mapping, and unused files go."""
+    file, the registry still holding the old version keeps answering from its mapping, and the old file goes
+    at once."""
     import shutil
 
     from service_test_fakes import FakeExtractor, make_scan
@@ -288,9 +303,12 @@ def test_workers_share_map_arrays_across_a_map_update(tmp_path: Path, fake_map: 
     again = db_b.localize(query)  # b has not reloaded yet: the old version, from its own mapping
     assert (again.status, again.best.keyframe_id if again.best else None) == \
            (before.status, before.best.keyframe_id if before.best else None)
+    # the deleting registry removed the old version's file at once (QA session 37: it stayed until a restart);
+    # b answered above from its own mapping of it, whose pages stay valid
+    assert not db_b.arrays.path.exists()
     b.forget("route")
-    b.prune_map_arrays()  # the old file is younger than 10 minutes: kept for now
-    assert len(list((maps_dir / ".arrays").glob("*.rrarr"))) == 2
+    b.prune_map_arrays()
+    assert list((maps_dir / ".arrays").glob("*.rrarr")) == [new_path]
     a.close()
     b.close()
 

@@ -322,6 +322,10 @@ def test_train_bad_data_is_a_one_line_error(tmp_path, args, message):
     (["--lr", "-1"], "--lr"), (["--lr", "nan"], "--lr"), (["--minutes", "0"], "--minutes"),
     (["--minutes", "nan"], "--minutes"), (["--threads", "0"], "--threads"),
     (["--val-db", "."], "--val-db and --val-query go together"),
+    (["--seed", "-1"], "--seed"), (["--seed", str(2**64)], "--seed"),  # QA session 37: tracebacks after the data
+    (["--rotation-consistency", "inf"], "must be a finite number >= 0"),
+    (["--rotation-consistency", "nan"], "must be a finite number >= 0"),
+    (["--init", "our-3-offroad-w05", "--width", "0.25", "--clusters", "5"], "fixes the network's shape"),
 ])
 def test_train_refuses_bad_options_before_any_work(tmp_path, args, message):
     """QA (session 20): ``--lr -1`` ended in the optimiser's traceback after the data was prepared, ``--minutes -1``
@@ -518,5 +522,65 @@ def test_rotation_consistency_weight_is_checked_and_recorded_for_resume(tmp_path
     # off (the default) is what checkpoints written before the option did: they stay resumable
     ck = torch.load(run / "checkpoint.pt", weights_only=False)
     assert "rotation_consistency" not in ck["settings"]
-    with pytest.raises(ConfigError, match=r"--rotation-consistency <not recorded> -> 2\.0"):
+    with pytest.raises(ConfigError, match=r"--rotation-consistency 0\.0 -> 2\.0"):
         Trainer(_tiny_config(max_steps=2, rotation_consistency=2.0), seqs, run_dir=run, progress=False).run()
+    Trainer(_tiny_config(max_steps=2, rotation_consistency=2.0), seqs, run_dir=run, progress=False).run(resume=False)
+    with pytest.raises(ConfigError, match=r"--rotation-consistency 2\.0 -> 0\.0"):  # and back: named, not "<not ...>"
+        Trainer(_tiny_config(max_steps=2), seqs, run_dir=run, progress=False).run()
+
+
+# ---- QA session 37: a diverged run, drives of one world, validation without overlap --------------------------------
+def test_a_diverged_run_stops_with_one_line_and_writes_no_weights(tmp_path):
+    """QA: `--rotation-consistency 1e300` (or `--lr 1e30`) wrote NaN weights and NaN into the .json, then the ONNX
+    export failed with a traceback."""
+    from reradar_core.training.cli import train_main
+    from reradar_core.training.trainer import TrainingDivergedError
+
+    specs, kw = _tiny_cache_specs(tmp_path)
+    with pytest.raises(TrainingDivergedError, match=r"diverged at step 1: the loss is (nan|inf).*--rotation-consistency"):
+        train_main("nan", specs, [(specs[0], specs[1])], steps=2, run_dir=tmp_path / "run", rotation_consistency=1e300,
+                   **kw)
+    assert not (tmp_path / "w" / "nan.pt").exists() and not (tmp_path / "w" / "nan.json").exists()
+
+
+def test_validation_without_a_single_overlapping_query_is_refused(tmp_path):
+    """QA: a validation pair with no common place gave "val Recall@1 nan (0 queries)" and NaN in the .json."""
+    from reradar_core.errors import ConfigError
+    from reradar_core.training.cli import train_main
+    from reradar_core.training.suites import SeqSpec
+
+    specs, kw = _tiny_cache_specs(tmp_path)
+    far = tmp_path / "far"
+    far.mkdir()
+    np.save(far / "images.npy", np.load(specs[1].path / "images.npy"))
+    np.save(far / "poses.npy", np.load(specs[1].path / "poses.npy") + [5000.0, 0.0, 0.0])
+    with pytest.raises(ConfigError, match="no query lies within 25 m of a database scan"):
+        train_main("v", specs, [(specs[0], SeqSpec(far, "route"))], steps=0, **kw)
+
+
+def test_weights_json_is_strict_json(tmp_path):
+    import json
+
+    from reradar_core.model.registry import _finite_or_none
+
+    meta = {"a": float("nan"), "b": [1.0, float("inf"), {"c": -float("inf")}], "d": (2.0,), "e": "x"}
+    assert json.loads(json.dumps(_finite_or_none(meta), allow_nan=False)) == {"a": None, "b": [1.0, None, {"c": None}],
+                                                                              "d": [2.0], "e": "x"}
+
+
+def test_sequence_folders_of_one_simulated_world_are_one_place_group(tmp_path):
+    """QA: `--sequence A --sequence B` (two drives of one simulated route) made each folder its own place: no
+    positive across the drives and same-place scans used as negatives. Folders rendered in one world share it;
+    recorded folders share a frame only with --shared-frame."""
+    import json
+
+    from reradar_core.training.cli import _place_group
+
+    for name, seed in (("a", 3), ("b", 3), ("c", 4)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "reradar_sim.json").write_text(json.dumps({"suite": "smoke", "world_seed": seed}))
+    (tmp_path / "real").mkdir()
+    groups = {n: _place_group(tmp_path / n, False) for n in ("a", "b", "c", "real")}
+    assert groups["a"] == groups["b"] != groups["c"]
+    assert groups["real"] not in (groups["a"], groups["c"])
+    assert {_place_group(tmp_path / n, True) for n in ("a", "c", "real")} == {"shared-frame"}

@@ -111,6 +111,9 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         # (a map deleted and registered again under the id has another frame: its sessions start afresh)
         session_key = f"{request.scope.get('state', {}).get('caller', 'loopback')}:{session_id}" if session_id else None
         map_key = f"{map_id}@{db.version}"
+        # the operator page's record of this answer names the map version too (OpsMiddleware): an answer that
+        # finishes after its map was deleted is never shown on a new map registered under the id
+        request.scope.setdefault("state", {})["map_version"] = db.version
         moved = (await run_in_threadpool(state.sessions.prior_for, session_key, map_key, odometry, stamp, config.motion)
                  if session_key else None)
         if explicit is not None:  # the scan's time, and the vehicle's own motion whichever pose it starts from

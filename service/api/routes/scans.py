@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, File, Form, UploadFile, status
+from fastapi import APIRouter, File, Form, Request, UploadFile, status
 from starlette.concurrency import run_in_threadpool
 
 from service.api.deps import FormDep, StateDep, form_fields
@@ -21,6 +21,7 @@ _ERRORS: dict[int | str, dict[str, Any]] = {400: {"model": ErrorResponse}, 413: 
 @router.post("", response_model=ScanInfo, status_code=status.HTTP_201_CREATED, operation_id="upload_scan",
              responses=_ERRORS)
 async def upload_scan(
+    request: Request,
     state: StateDep,
     _form: FormDep,
     _fields: Annotated[None, form_fields("scan", "preset", "scan_layout", "map_id", files=("scan",))],
@@ -51,7 +52,8 @@ async def upload_scan(
     if describe_far is not None and state.registry.serves_far_view(map_id or None):
         far = await run_in_threadpool(describe_far)
     state.metrics.observe_stages(timings)
-    entry = await run_in_threadpool(state.cache.put, features, scan_preset, preset_open, far)  # Redis in fleet mode
+    owner = request.scope.get("state", {}).get("caller", "loopback")  # only this caller can use the scan_id
+    entry = await run_in_threadpool(state.cache.put, features, scan_preset, preset_open, far, owner)  # Redis in fleet mode
     # a guess: left open and not the map's (with map_id the open preset is that map's, checked on use all the same)
     assumed = preset_open and scan_preset != state.map_preset(map_id or None)
     return ScanInfo(scan_id=entry.scan_id, timestamp_us=int(features.timestamp_us), preset=scan_preset,

@@ -27,6 +27,8 @@ __all__ = ["install_ui", "router", "UI_DIR", "MAX_TRAJECTORY_POINTS"]
 UI_DIR = Path(__file__).resolve().parents[2] / "ui"
 #: Keyframes drawn at most; longer trajectories are subsampled evenly (the last keyframe is kept).
 MAX_TRAJECTORY_POINTS = 5000
+#: Records read beyond ``limit`` for the latest localizations, in place of those of an earlier map version.
+_STALE_SLACK = 32
 
 router = APIRouter(include_in_schema=False)
 
@@ -125,9 +127,14 @@ async def map_localizations(request: Request, state: StateDep, _auth: VehicleDep
     """The latest localizations on ``map_id``, newest first (map frame, metres, degrees; 503 when they live in
     an unreachable Redis; 404 for an unknown map, as every map route). Access as ``map_trajectory``: these are
     vehicles' positions."""
-    state.registry.get(map_id)
+    entry = state.registry.get(map_id)
     recent = request.app.state.ops.recent
-    data = await run_in_threadpool(recent.latest, map_id, limit)
+    # answers recorded for another version of the map (in flight when it was deleted and registered anew) are
+    # not this map's: a few of them at most, so a little more is read than shown
+    version = entry.db.version if entry.db is not None else None
+    data = await run_in_threadpool(recent.latest, map_id, limit + _STALE_SLACK)
+    data = [{k: v for k, v in r.items() if k != "map_version"} for r in data
+            if version is not None and r.get("map_version") == version][:limit]
     return {"map_id": map_id, "data": data, "count": len(data)}
 
 
