@@ -136,6 +136,9 @@ class Localizer:
             ``LocalizationResult``; ``timings_ms`` gains ``retrieve_ms`` (FAISS search) and ``read_ms``
             (keyframe reads and landmark grids, cached per keyframe).
         """
+        if not isinstance(features, ScanFeatures):
+            raise ConfigError(f"Localizer.localize takes a scan's ScanFeatures (DescriptorExtractor.describe(scan)), "
+                              f"got {type(features).__name__}")
         config = config or self.config
         t0 = time.perf_counter()
         hits = self.retrieve(features.global_descriptor, config.num_to_retrieve)
