@@ -275,7 +275,11 @@ def register(app: typer.Typer) -> None:
             if split is not None:
                 from reradar_core.training.suites import suite_training_data
 
-                plans = [suite_training_data(s.strip()) for s in split.split(",") if s.strip()]
+                names = [s.strip() for s in split.split(",") if s.strip()]
+                repeated = sorted({n for n in names if names.count(n) > 1})
+                if repeated:  # its scans would be trained on twice and its validation counted twice
+                    raise typer.BadParameter(f"--split names {', '.join(repeated)} more than once")
+                plans = [suite_training_data(n) for n in names]
                 if not plans:
                     raise typer.BadParameter(f"--split {split!r} names no split")
                 if len({p.radius_m for p in plans}) > 1:

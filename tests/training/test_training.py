@@ -326,6 +326,7 @@ def test_train_bad_data_is_a_one_line_error(tmp_path, args, message):
     (["--rotation-consistency", "inf"], "must be a finite number >= 0"),
     (["--rotation-consistency", "nan"], "must be a finite number >= 0"),
     (["--init", "our-3-offroad-w05", "--width", "0.25", "--clusters", "5"], "fixes the network's shape"),
+    (["--split", "smoke, smoke"], "--split names smoke more than once"),
 ])
 def test_train_refuses_bad_options_before_any_work(tmp_path, args, message):
     """QA (session 20): ``--lr -1`` ended in the optimiser's traceback after the data was prepared, ``--minutes -1``
