@@ -296,7 +296,9 @@ def register(app: typer.Typer) -> None:
             if init is not None:
                 _refuse_options_the_init_model_fixes(init, width=width, clusters=clusters, dim=dim)
             path = train_main(name, seqs, vals, backbone=backbone, width=0.25 if width is None else width,
-                              clusters=32 if clusters is None else clusters, dim=256 if dim is None else (dim or None), init=init, lr=lr, steps=steps, minutes=minutes, seed=seed,
+                              clusters=32 if clusters is None else clusters,
+                              dim=256 if dim is None else (dim or None),  # --dim 0: raw NetVLAD
+                              init=init, lr=lr, steps=steps, minutes=minutes, seed=seed,
                               threads=threads, device=device, out_dir=out_dir, run_dir=None, resume=not no_resume,
                               data_note=note, disc_mask=not no_disc_mask, summary_out=summary, **extra)
         except ReRadarError as exc:

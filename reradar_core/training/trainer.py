@@ -257,9 +257,9 @@ class Trainer:
         # what determines the weights besides the step count: checked when a checkpoint is resumed
         cfg = config.to_dict()
         self.settings: dict[str, Any] = {k: v for k, v in cfg.items() if k not in RESUME_FREE_SETTINGS}
-        if not config.rotation_consistency:
-            # off is what every checkpoint written before the option did: they stay resumable
-            self.settings.pop("rotation_consistency")
+        for key, default in _UNRECORDED_DEFAULTS.items():
+            if self.settings.get(key) == default:  # what checkpoints written before the option did: still resumable
+                del self.settings[key]
         self.settings.update(device_type=self.device.type, data=_data_fingerprint(self.data.sequences),
                              init=None if init_state is None else _tensors_sha256(init_state))
 
