@@ -212,8 +212,7 @@ def build_map(
     """
     if far_view is not None and not hasattr(extractor, "with_view"):
         raise ConfigError(f"model {extractor.model_id!r} cannot describe a far view (no with_view)")
-    arr = np.asarray(poses, dtype=np.float64)
-    poses = check_poses(arr.reshape(1, 3) if arr.shape == (3,) else arr, "keyframe poses")
+    poses = check_poses(poses, "keyframe poses")
     check_yaw_radians(poses, "keyframe poses")
     n = len(poses)
     if n == 0:

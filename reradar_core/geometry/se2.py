@@ -23,9 +23,9 @@ __all__ = [
 
 
 def check_poses(poses: object, what: str = "poses") -> np.ndarray:
-    """``poses`` as an (N, 3) float64 array of (x metres, y metres, yaw radians), or ``ConfigError`` saying why not:
-    another shape (e.g. (N, 2) positions, which a reshape would interleave into wrong poses), non-finite values, or a
-    position beyond ``MAX_ABS_COORDINATE_M``."""
+    """``poses`` as an (N, 3) float64 array of (x metres, y metres, yaw radians) (one (3,) pose as (1, 3)), or
+    ``ConfigError`` saying why not: another shape (e.g. (N, 2) positions, which a reshape would interleave into wrong
+    poses), non-finite values, or a position beyond ``MAX_ABS_COORDINATE_M``."""
     from reradar_core.bounds import MAX_ABS_COORDINATE_M
     from reradar_core.errors import ConfigError
 
@@ -33,6 +33,8 @@ def check_poses(poses: object, what: str = "poses") -> np.ndarray:
         arr = np.asarray(poses, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{what} must be an (N, 3) array of x, y (metres) and yaw (radians): {exc}") from None
+    if arr.shape == (3,):
+        arr = arr.reshape(1, 3)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ConfigError(f"{what} must be an (N, 3) array of x, y (metres) and yaw (radians), got shape {arr.shape}")
     bad = ~np.isfinite(arr).all(axis=1)
@@ -47,8 +49,9 @@ def check_poses(poses: object, what: str = "poses") -> np.ndarray:
 def check_yaw_radians(poses: np.ndarray, what: str = "poses", min_steps: int = 5) -> None:
     """``ConfigError`` when the headings of a drive's (N, 3) ``poses`` read as degrees and not radians: some |yaw|
     beyond 2 pi, and the heading keeps a steady angle to the direction of travel (the sensor's mounting) when read as
-    degrees (steadiness above 0.9, 1 = constant) and clearly less so (by 0.1) when read as radians. Unwrapped radian headings (beyond 2 pi after a loop) keep it as radians and pass; drives with
-    fewer than ``min_steps`` moves of 0.5 m or more cannot tell and pass."""
+    degrees (steadiness above 0.9, 1 = constant) and clearly less so (by 0.1) when read as radians. Unwrapped radian
+    headings (beyond 2 pi after a loop) keep it as radians and pass; drives with fewer than ``min_steps`` moves of
+    0.5 m or more cannot tell and pass."""
     from reradar_core.errors import ConfigError
 
     p = np.asarray(poses, np.float64)

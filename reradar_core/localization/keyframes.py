@@ -70,8 +70,7 @@ class InMemoryKeyframes:
 
     def __init__(self, features: Sequence[ScanFeatures] | Callable[[int], ScanFeatures], poses: np.ndarray,
                  timestamps_us: np.ndarray | None = None) -> None:
-        arr = np.asarray(poses, np.float64)
-        self.poses = check_poses(arr.reshape(1, 3) if arr.shape == (3,) else arr, "keyframe poses")
+        self.poses = check_poses(poses, "keyframe poses")
         if callable(features):
             self._read = features
         else:

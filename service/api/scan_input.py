@@ -32,6 +32,7 @@ from reradar_core.io.scan import (
     sniff_scan_format,
     why_format_refused,
 )
+from service.api.security import caller_of
 from service.core.errors import (
     BadRequestError,
     NotFoundError,
@@ -347,8 +348,7 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         fields = model.model_dump()
         scan_id = fields.pop("scan_id")
         # the uploader's own scans only (``ScanCache``); Redis in fleet mode: never on the event loop
-        owner = request.scope.get("state", {}).get("caller", "loopback")
-        cached = await run_in_threadpool(state.cache.get, scan_id, owner)
+        cached = await run_in_threadpool(state.cache.get, scan_id, caller_of(request))
         if cached is None:
             raise NotFoundError(f"unknown or expired scan_id {scan_id!r}; upload the scan again with POST /scans")
         target = map_id or fields.get("map_id")

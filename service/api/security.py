@@ -25,11 +25,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from starlette.requests import Request
+
 from service.core.config import Settings, is_loopback, resolve_operator_key
 from service.core.errors import ServiceError, UnauthorizedError
 
 __all__ = ["RouteClass", "Principal", "AccessPolicy", "RequestLimits", "Guard", "route_class", "ForbiddenError",
-           "build_guard"]
+           "build_guard", "caller_of"]
 
 RouteClass = Literal["operator", "vehicle", "public"]
 Principal = Literal["operator", "vehicle", "loopback"]
@@ -103,6 +105,12 @@ class AccessPolicy:
                                     "(RERADAR_API_KEY, or the generated key in the maps folder's .operator-key)")
         raise UnauthorizedError("this endpoint needs a vehicle key in the X-API-Key header (RERADAR_VEHICLE_KEYS); "
                                 "without configured vehicle keys it answers only clients on the loopback interface")
+
+
+def caller_of(request: Request) -> str:
+    """Who is calling (``AccessPolicy.caller_id``, set by the request guard): what a caller keeps between requests
+    (tracking sessions, uploaded scans) is its own. ``loopback`` for keyless local clients."""
+    return str(request.scope.get("state", {}).get("caller", "loopback"))
 
 
 @dataclass(frozen=True)

@@ -77,11 +77,11 @@ class ScanCache:
                 del self._owned[other]
         return entry
 
-    def get(self, scan_id: str, owner: str | None = None) -> CachedScan | None:
-        """The entry for ``scan_id`` or None when unknown, expired, or (``owner`` given) another caller's."""
+    def get(self, scan_id: str, owner: str = "loopback") -> CachedScan | None:
+        """The entry for ``scan_id`` or None when unknown, expired, or another caller's than ``owner``."""
         with self._lock:
             entry = self._items.get(scan_id)
-            if entry is None or (owner is not None and entry.owner != owner):
+            if entry is None or entry.owner != owner:
                 return None
             ids = self._owned.get(entry.owner)
             if ids is not None and scan_id in ids:

@@ -188,9 +188,9 @@ class RedisScanStore(ScanCache):
                 "inline (multipart) to POST /localize instead, or retry later") from exc
         return entry
 
-    def get(self, scan_id: str, owner: str | None = None) -> CachedScan | None:
+    def get(self, scan_id: str, owner: str = "loopback") -> CachedScan | None:
         try:
-            blob = cast(bytes | None, self._redis.get(self._keys.scan(f"{owner or 'loopback'}:{scan_id}")))
+            blob = cast(bytes | None, self._redis.get(self._keys.scan(f"{owner}:{scan_id}")))
         except redis.RedisError as exc:
             raise SharedStateUnavailableError(
                 "the shared scan store (Redis) is unavailable, so scan_id cannot be resolved; send the scan "
@@ -202,7 +202,7 @@ class RedisScanStore(ScanCache):
         except (ValueError, KeyError, TypeError, OSError, ReRadarError):  # not a value this version wrote
             logger.warning("scan %s: unreadable value in the shared scan store; treated as unknown", scan_id)
             return None
-        return CachedScan(scan_id, features, preset, preset_open, far, owner or "loopback")
+        return CachedScan(scan_id, features, preset, preset_open, far, owner)
 
     def __len__(self) -> int:
         return 0

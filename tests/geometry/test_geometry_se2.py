@@ -93,6 +93,7 @@ def test_check_poses_refuses_positions_only_non_finite_and_far_poses() -> None:
     good = np.array([[0.0, 1.0, 0.5], [2.0, 3.0, -0.5]])
     np.testing.assert_array_equal(check_poses(good), good)
     assert check_poses(good.astype(np.float32)).dtype == np.float64
+    np.testing.assert_array_equal(check_poses(good[0]), good[:1])  # one pose
     with pytest.raises(ConfigError, match=r"\(N, 3\).*got shape \(18, 2\)"):
         check_poses(np.zeros((18, 2)))  # a reshape(-1, 3) made 12 interleaved poses of it
     bad = good.copy()

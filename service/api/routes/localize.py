@@ -24,6 +24,7 @@ from service.api.schemas import (
     PoseUncertainty,
     RetrievedKeyframe,
 )
+from service.api.security import caller_of
 from service.core.config import MAP_ID_PATTERN
 from service.core.errors import BadRequestError
 from service.core.ids import SESSION_ID_PATTERN
@@ -109,7 +110,7 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         stamp = int(inp.features.timestamp_us)
         # a session is the caller's (its API key: another key's vehicle cannot move it) on this version of the map
         # (a map deleted and registered again under the id has another frame: its sessions start afresh)
-        session_key = f"{request.scope.get('state', {}).get('caller', 'loopback')}:{session_id}" if session_id else None
+        session_key = f"{caller_of(request)}:{session_id}" if session_id else None
         map_key = f"{map_id}@{db.version}"
         # the operator page's record of this answer names the map version too (OpsMiddleware): an answer that
         # finishes after its map was deleted is never shown on a new map registered under the id

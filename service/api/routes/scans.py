@@ -10,6 +10,7 @@ from starlette.concurrency import run_in_threadpool
 from service.api.deps import FormDep, StateDep, form_fields
 from service.api.scan_input import SCAN_LAYOUT_DESCRIPTION, ClosedFormRoute, read_scan_upload
 from service.api.schemas import ErrorResponse, ScanInfo
+from service.api.security import caller_of
 from service.core.config import MAP_ID_PATTERN
 from service.core.errors import BadRequestError, shorten_echo
 
@@ -52,8 +53,8 @@ async def upload_scan(
     if describe_far is not None and state.registry.serves_far_view(map_id or None):
         far = await run_in_threadpool(describe_far)
     state.metrics.observe_stages(timings)
-    owner = request.scope.get("state", {}).get("caller", "loopback")  # only this caller can use the scan_id
-    entry = await run_in_threadpool(state.cache.put, features, scan_preset, preset_open, far, owner)  # Redis in fleet mode
+    # only this caller can use the scan_id; Redis in fleet mode
+    entry = await run_in_threadpool(state.cache.put, features, scan_preset, preset_open, far, caller_of(request))
     # a guess: left open and not the map's (with map_id the open preset is that map's, checked on use all the same)
     assumed = preset_open and scan_preset != state.map_preset(map_id or None)
     return ScanInfo(scan_id=entry.scan_id, timestamp_us=int(features.timestamp_us), preset=scan_preset,
