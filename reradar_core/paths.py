@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 from reradar_core.errors import ConfigError
@@ -58,6 +59,10 @@ def output_dir(path: str | Path, what: str = "--out", create: bool = True) -> Pa
                               "file)")
         if not os.access(existing, os.W_OK | os.X_OK):
             raise ConfigError(f"{what} {path}: cannot create the folder: {existing} is not writable")
+        try:  # access() says yes to root on /proc, /sys and the like: a folder made and removed at once settles it
+            os.rmdir(tempfile.mkdtemp(prefix=".reradar-probe-", dir=existing))
+        except OSError as exc:
+            raise ConfigError(f"{what} {path}: cannot create the folder: {_why(exc)}") from None
         return path
     try:
         path.mkdir(parents=True, exist_ok=True)

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from reradar_core.errors import ConfigError
-from reradar_core.geometry.se2 import wrap_angle
+from reradar_core.geometry.se2 import check_yaw_radians, wrap_angle
 
 __all__ = [
     "RADIUS_M",
@@ -204,6 +204,10 @@ def localization_errors(T_map_query_est: np.ndarray, T_map_query_gt: np.ndarray)
         T_map_query_est: (Q, 3) estimated poses (x [m], y [m], yaw [rad]); NaN rows = no estimate.
         T_map_query_gt: (Q, 3) ground-truth poses.
 
+    Raises:
+        ValueError: shapes differ or are not (Q, 3); ``ConfigError`` when either set of headings reads as degrees
+            (``geometry.se2.check_yaw_radians``: beyond 2 pi and following the direction of travel as degrees).
+
     Returns:
         e_t_m: (Q,) Euclidean translation error, metres (NaN without an estimate).
         e_r_deg: (Q,) absolute heading error on the circle, degrees in [0, 180] (NaN without an estimate).
@@ -212,6 +216,9 @@ def localization_errors(T_map_query_est: np.ndarray, T_map_query_gt: np.ndarray)
     gt = np.asarray(T_map_query_gt, dtype=np.float64)
     if est.ndim != 2 or est.shape[1] != 3 or est.shape != gt.shape:
         raise ValueError(f"poses must both be (Q, 3) (x, y, yaw), got {est.shape} and {gt.shape}")
+    # headings in degrees would give errors of up to 180 "degrees" that are really radians read wrong
+    check_yaw_radians(gt, "ground-truth poses")
+    check_yaw_radians(est, "estimated poses")
     e_t = np.linalg.norm(est[:, :2] - gt[:, :2], axis=1)
     e_r = np.degrees(np.abs(wrap_angle(est[:, 2] - gt[:, 2])))
     return e_t, e_r

@@ -68,6 +68,8 @@ __all__ = [
     "navtech_png_first_time_us",
 ]
 
+#: How far past [0, 1] a scan's power may reach (float rounding of value / 255).
+_POWER_SLACK = 1e-4
 #: Metadata columns in front of the range bins in a Navtech PNG row.
 NAVTECH_META_COLUMNS = 11
 _RAD_PER_TICK = 2.0 * np.pi / ENCODER_TICKS_PER_TURN
@@ -101,8 +103,15 @@ class RadarScan:
             raise ScanFormatError(
                 f"scan power must be a 2-D (azimuths x range bins) array, got shape {self.power.shape}"
             )
-        if not np.all(np.isfinite(self.power)):
+        # min / max propagate NaN, so one pass each checks finiteness and the [0, 1] scale together
+        lo, hi = float(self.power.min()), float(self.power.max())
+        if not (np.isfinite(lo) and np.isfinite(hi)):
             raise ScanFormatError("scan power contains NaN or infinite values")
+        if lo < -_POWER_SLACK or hi > 1.0 + _POWER_SLACK:
+            hint = (" (8-bit values? divide by 255, or build it with RadarScan.from_power, which scales uint8)"
+                    if hi <= 255.0 + _POWER_SLACK and lo >= -_POWER_SLACK else "")
+            raise ScanFormatError(f"scan power must be in [0, 1] (the Navtech 8-bit value / 255), got values in "
+                                  f"[{lo:.4g}, {hi:.4g}]{hint}")
         n_az = self.power.shape[0]
         self.azimuths = np.asarray(self.azimuths, dtype=np.float64)
         self.timestamps_us = np.asarray(self.timestamps_us, dtype=np.int64)
@@ -115,6 +124,10 @@ class RadarScan:
                 raise ScanFormatError(f"scan {name} must have shape ({n_az},), got {arr.shape}")
         if not np.all(np.isfinite(self.azimuths)):
             raise ScanFormatError("scan azimuths contain NaN or infinite values")
+        az_max = float(np.max(np.abs(self.azimuths)))
+        if az_max > 2.0 * np.pi + 1e-6:
+            hint = "; they look like degrees: pass numpy.radians(azimuths)" if az_max <= 360.0 + 1e-6 else ""
+            raise ScanFormatError(f"scan azimuths must be radians in [0, 2*pi), got values up to {az_max:.4g}{hint}")
         if not (self.range_resolution_m > 0 and np.isfinite(self.range_resolution_m)):
             raise ScanFormatError(f"range resolution must be positive, got {self.range_resolution_m}")
 

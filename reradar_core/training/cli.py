@@ -33,7 +33,8 @@ def _cached(spec: SeqSpec, width_px: int, resolution_m: float, progress: bool):
         seq = CachedSequence(spec.path.name, spec.group, np.load(spec.path / "images.npy", mmap_mode="r"),
                              np.load(spec.path / "poses.npy"), resolution_m)
         return seq.fraction(spec.start, spec.stop)
-    seq = cache_sequence(load_sequence(spec.path), width_px, resolution_m, group=spec.group, progress=progress)
+    seq = cache_sequence(load_sequence(spec.path, preset=spec.preset, pose_time_unit=spec.time_unit), width_px,
+                         resolution_m, group=spec.group, progress=progress)
     return seq.fraction(spec.start, spec.stop)
 
 
@@ -249,11 +250,17 @@ def register(app: typer.Typer) -> None:
                                           "folders within 10 m are positives, within 25 m never negatives. Without "
                                           "it, folders rendered on one simulated route share their world; any "
                                           "other folder is compared only with itself."),
+        preset: str | None = typer.Option(None, "--preset", help="Radar preset of the --sequence / --val-db / "
+                                          "--val-query folders (boreas, boreas-2021, oxford, oord, mulran): a "
+                                          "recorded Boreas folder must name it; simulated folders carry their own."),
+        time_unit: str | None = typer.Option(None, "--time-unit", help="Unit of those folders' pose-file "
+                                             "timestamps (s, ms, us, ns) when they are not absolute UTC times; "
+                                             "never guessed."),
         no_disc_mask: bool = typer.Option(False, "--no-disc-mask", help="NetVLAD over all F' cells, not only "
                                           "the sensor disc (ModelConfig.disc_mask; the behaviour before it)."),
     ) -> None:
         """Train the descriptor network with InfoNCE (tau 0.1, 14 negatives) and save shipped weights."""
-        seqs = [SeqSpec(p, _place_group(p, shared_frame)) for p in sequence]
+        seqs = [SeqSpec(p, _place_group(p, shared_frame), preset=preset, time_unit=time_unit) for p in sequence]
         vals: list[tuple[SeqSpec, SeqSpec]] = []
         note = ""
         summary: dict = {}  # --steps 0: the validation
@@ -269,6 +276,15 @@ def register(app: typer.Typer) -> None:
             if target.exists() and not overwrite:  # before any work: a finished run must not end in a refusal
                 raise typer.BadParameter(f"{target} exists; pass --overwrite to replace it, or choose another "
                                          "--name / --out-dir", param_hint="--name")
+            if (preset or time_unit) and not (sequence or val_db):  # a split's renders carry their own
+                given = [o for o, v in (("--preset", preset), ("--time-unit", time_unit)) if v]
+                raise typer.BadParameter(f"{' and '.join(given)} appl{'y' if len(given) > 1 else 'ies'} to "
+                                         "--sequence / --val-db / --val-query folders; a --split's renders carry "
+                                         "their own")
+            if preset is not None:
+                from reradar_core.io.presets import get_preset
+
+                get_preset(preset)  # an unknown name is refused before any work
             if (val_db is None) != (val_query is None):
                 raise typer.BadParameter("--val-db and --val-query go together (a validation database and its "
                                          "queries)")
@@ -290,7 +306,8 @@ def register(app: typer.Typer) -> None:
                 note = "; ".join(p.note for p in plans)
                 extra["recall_radius_m"] = plans[0].radius_m
             if val_db is not None and val_query is not None:
-                vals.append((SeqSpec(val_db, "val"), SeqSpec(val_query, "val")))
+                vals.append((SeqSpec(val_db, "val", preset=preset, time_unit=time_unit),
+                             SeqSpec(val_query, "val", preset=preset, time_unit=time_unit)))
             if not seqs:
                 raise typer.BadParameter("give --split or at least one --sequence")
             if init is not None:

@@ -85,8 +85,10 @@ def sequence_group(seq) -> str:
 def _cache_key(seq, big: CartesianConfig) -> str:
     first, last = seq.scan_paths[0], seq.scan_paths[-1]
     stat = (first.stat().st_mtime_ns, last.stat().st_size) if first.exists() else (0, 0)
+    # the preset (range bin size) and the poses (a pose file read in another time unit) change what is cached
+    poses = hashlib.sha1(np.ascontiguousarray(seq.poses.poses, dtype=np.float64).tobytes()).hexdigest()
     h = hashlib.sha1(json.dumps([CACHE_VERSION, str(Path(seq.root).resolve()), len(seq), str(first), str(last),
-                                 stat, big.width_px, big.resolution_m]).encode())
+                                 stat, big.width_px, big.resolution_m, seq.preset.name, poses]).encode())
     return h.hexdigest()[:16]
 
 

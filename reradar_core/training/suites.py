@@ -36,12 +36,15 @@ TRAINING_SPLITS = {
 
 @dataclass(frozen=True)
 class SeqSpec:
-    """A sequence folder, its place group and the fraction range [start, stop) of its scans used."""
+    """A sequence folder, its place group and the fraction range [start, stop) of its scans used; ``preset`` and
+    ``time_unit`` as ``reradar_core.io.datasets.load_sequence`` takes them (None: the folder's own)."""
 
     path: Path
     group: str
     start: float = 0.0
     stop: float = 1.0
+    preset: str | None = None
+    time_unit: str | None = None
 
 
 @dataclass

@@ -97,6 +97,20 @@ def test_localization_errors_and_success():
     assert rotation_success_rate([False, True, True, True], e_r, max_rot_deg=16.0) == pytest.approx(2 / 4)
 
 
+def test_localization_errors_refuse_headings_in_degrees():
+    # a drive round a quarter circle whose headings follow the direction of travel in degrees
+    a = np.linspace(0.0, np.pi / 2, 40)
+    gt_rad = np.c_[50 * np.sin(a), 50 * (1 - np.cos(a)), a]
+    gt_deg = gt_rad.copy()
+    gt_deg[:, 2] = np.degrees(a)
+    with pytest.raises(ValueError, match="degrees"):
+        localization_errors(gt_rad, gt_deg)
+    with pytest.raises(ValueError, match="degrees"):
+        localization_errors(gt_deg, gt_rad)
+    e_t, e_r = localization_errors(gt_rad, gt_rad)
+    assert np.all(e_t == 0) and np.all(e_r == 0)
+
+
 def test_summarize_hand_computed():
     gt = np.array([[0, 0, 0], [100, 0, 0], [200, 0, 0], [300, 0, 0]], float)
     db = np.array([[0, 0], [100, 0], [200, 0]], float)  # query 3 has no revisit

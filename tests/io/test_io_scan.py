@@ -182,6 +182,24 @@ def test_nan_power_rejected(tmp_path):
         load_scan(tmp_path / "nan.npy")
 
 
+def test_power_outside_zero_one_is_refused_with_a_hint():
+    az = np.arange(4) * np.pi / 2
+    with pytest.raises(ScanFormatError, match=r"\[0, 1\].*divide by 255"):
+        RadarScan(np.full((4, 10), 200.0), az, np.zeros(4), 0.04)  # 8-bit values given as float
+    with pytest.raises(ScanFormatError, match=r"\[0, 1\]"):
+        RadarScan(np.full((4, 10), -0.5), az, np.zeros(4), 0.04)
+    # the scale's own ends and float rounding of value / 255 pass
+    RadarScan(np.array([[0.0, 1.0], [1.0 + 1e-6, 0.5]]), az[:2], np.zeros(2), 0.04)
+
+
+def test_azimuths_in_degrees_are_refused():
+    deg = np.arange(400) * 0.9  # 0 ... 359.1: degrees, which the Cartesian image would read as 0.9 rad steps
+    with pytest.raises(ScanFormatError, match="degrees"):
+        RadarScan(np.zeros((400, 10)), deg, np.zeros(400), 0.04)
+    # radians in (-pi, pi] (another convention) keep working: the image is located from the first azimuth
+    RadarScan(np.zeros((400, 10)), np.arange(400) * 2 * np.pi / 400 - np.pi, np.zeros(400), 0.04)
+
+
 def test_missing_and_unsupported_files(tmp_path):
     with pytest.raises(ScanFormatError, match="no such scan file"):
         read_navtech_png(tmp_path / "missing.png")

@@ -585,3 +585,55 @@ def test_sequence_folders_of_one_simulated_world_are_one_place_group(tmp_path):
     assert groups["a"] == groups["b"] != groups["c"]
     assert groups["real"] not in (groups["a"], groups["c"])
     assert {_place_group(tmp_path / n, True) for n in ("a", "c", "real")} == {"shared-frame"}
+
+
+def test_train_preset_and_time_unit_reach_the_folders(tmp_path, monkeypatch):
+    """QA session 37: a recorded Boreas folder must name its preset (3,360 bins fit two bin sizes), and ``train``
+    had no ``--preset``; the folders' reader now gets it, and the pose-time unit, for training and validation."""
+    from typer.testing import CliRunner
+
+    import reradar_core.training.cli as tcli
+    from reradar_cli import app
+
+    seen: dict = {}
+
+    def fake_train_main(name, seqs, vals, **kw):
+        seen.update(seqs=seqs, vals=vals)
+        return None
+
+    monkeypatch.setattr(tcli, "train_main", fake_train_main)
+    args = ["train", "--name", "x", "--sequence", str(tmp_path), "--val-db", str(tmp_path), "--val-query",
+            str(tmp_path), "--steps", "0", "--out-dir", str(tmp_path / "o")]
+    res = CliRunner().invoke(app, [*args, "--preset", "boreas-2021", "--time-unit", "ms"])
+    assert res.exit_code == 0, res.output
+    specs = [*seen["seqs"], *seen["vals"][0]]
+    assert [(s.preset, s.time_unit) for s in specs] == [("boreas-2021", "ms")] * 3
+    res = CliRunner().invoke(app, [*args, "--preset", "navtech9"])
+    assert res.exit_code == 2 and "unknown radar preset 'navtech9'" in res.output
+    res = CliRunner().invoke(app, ["train", "--name", "x", "--split", "smoke", "--preset", "boreas"])
+    assert res.exit_code == 2 and "--preset applies to --sequence" in res.output
+
+
+def test_cartesian_cache_tells_presets_and_poses_apart(tmp_path):
+    """The same folder read with another preset (bin size) or pose-time unit is another cache entry."""
+    from types import SimpleNamespace
+
+    from reradar_core.geometry.cartesian import CartesianConfig
+    from reradar_core.io.presets import get_preset
+    from reradar_core.training.data import _cache_key
+
+    scan = tmp_path / "1.png"
+    scan.write_bytes(b"x")
+    poses = SimpleNamespace(poses=np.zeros((1, 3)))
+
+    class Seq(SimpleNamespace):
+        def __len__(self):
+            return 1
+
+    big = CartesianConfig(361, 0.64)
+    a = _cache_key(Seq(scan_paths=[scan], root=tmp_path, preset=get_preset("boreas"), poses=poses), big)
+    b = _cache_key(Seq(scan_paths=[scan], root=tmp_path, preset=get_preset("boreas-2021"), poses=poses), big)
+    c = _cache_key(Seq(scan_paths=[scan], root=tmp_path, preset=get_preset("boreas"),
+                       poses=SimpleNamespace(poses=np.ones((1, 3)))), big)
+    assert len({a, b, c}) == 3
+    assert a == _cache_key(Seq(scan_paths=[scan], root=tmp_path, preset=get_preset("boreas"), poses=poses), big)
