@@ -43,6 +43,11 @@ logger = logging.getLogger(__name__)
 ProgressFn = Callable[[int, int], None]
 
 
+#: Fewest keypoints a keyframe may be capped to: a pose needs at least ``LocalizationConfig.min_inliers`` (default
+#: 12) aligned landmarks, and with fewer stored than that no query can be localized on the keyframe.
+_MIN_MAP_KEYPOINTS = 12
+
+
 def cap_keypoints(features: ScanFeatures, max_keypoints: int | None) -> ScanFeatures:
     """Keep at most ``max_keypoints`` keypoints, evenly spread over the detector's order (deterministic)."""
     n = features.keypoints_xy_m.shape[0]
@@ -219,6 +224,12 @@ def build_map(
         raise ConfigError("cannot build a map from zero scans")
     if batch_size < 1:
         raise ConfigError(f"batch_size must be >= 1, got {batch_size}")
+    if max_keypoints is not None and max_keypoints < 1:  # 0 built a map nothing could localize on; -1 failed in numpy
+        raise ConfigError(f"max_keypoints must be >= 1 (or None: no cap), got {max_keypoints}")
+    if max_keypoints is not None and max_keypoints < _MIN_MAP_KEYPOINTS:
+        logger.warning("max_keypoints %d is below the %d aligned landmarks a localized answer needs by default "
+                       "(LocalizationConfig.min_inliers): no query will be localized on this map with the default "
+                       "settings", max_keypoints, _MIN_MAP_KEYPOINTS)
     total = n if far_view is None else 2 * n  # scan descriptions: the far view describes every scan again
     writer: MapWriter | None = None
     bar = tqdm(total=n, desc=f"build-map {Path(out).name}", unit="scan", disable=not show_progress)

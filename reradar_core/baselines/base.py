@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from reradar_core.io.scan import RadarScan
+from reradar_core.io.scan import RadarScan, require_scan
 from reradar_core.retrieval.index import EuclideanIndex  # the retrieval stage's exact search, re-exported
 
 __all__ = ["Prepared", "PlaceRecognitionMethod", "Retrieval", "params_hash"]
@@ -105,7 +105,7 @@ class PlaceRecognitionMethod(ABC):
 
     def describe(self, scan: RadarScan) -> np.ndarray:
         """Scan -> global descriptor (``prepare`` then ``describe_prepared``)."""
-        return self.describe_prepared(self.prepare(scan))
+        return self.describe_prepared(self.prepare(require_scan(scan, f"{type(self).__name__}.describe")))
 
     def build_index(self, db_descs: Sequence[np.ndarray]) -> Any:
         """Database descriptors -> whatever ``distance`` searches (default: a stacked array)."""

@@ -14,6 +14,7 @@ it), and the answer names ``TwoViewResult.place_id``; ``distance`` stays the nea
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
 from typing import Any
 
@@ -83,7 +84,9 @@ class Ours(PlaceRecognitionMethod):
         self.name = name or ("ours" if self.model_name == "default" else f"ours-{self.model_name}")
         self.localization = localization or LocalizationConfig()
         self._localizer: Any = None  # Localizer of the current database (keyframe grids built once)
-        self._localizer_of: tuple[int, int] | None = None
+        # the database it was built for: the index and scan list themselves (held, so that their ids cannot be
+        # reused by other objects) and a digest of the keyframe poses (new poses for the same scans: a new map)
+        self._localizer_of: tuple[Any, Any, str] | None = None
 
     def params(self) -> dict[str, Any]:
         out = {"model": str(getattr(self.extractor, "model_id", self.model_name)),
@@ -123,8 +126,9 @@ class Ours(PlaceRecognitionMethod):
         every keyframe's screen data read at construction, as the service preloads a map that fits its cache."""
         from reradar_core.localization import InMemoryKeyframes, Localizer
 
-        key = (id(index), id(db_prepared))
-        if self._localizer_of != key:
+        poses_digest = hashlib.sha1(np.ascontiguousarray(db_poses, dtype=np.float64).tobytes()).hexdigest()
+        built = self._localizer_of
+        if built is None or built[0] is not index or built[1] is not db_prepared or built[2] != poses_digest:
             keyframes = InMemoryKeyframes(lambda j: prepared_to_features(db_prepared[j]), db_poses,
                                           np.array([int(np.asarray(p["timestamp_us"])) for p in db_prepared]))
             self._localizer = Localizer(index, keyframes, self.localization, preload=True)
@@ -137,7 +141,7 @@ class Ours(PlaceRecognitionMethod):
                 far_keyframes = InMemoryKeyframes(lambda j: prepared_to_features(far[j]), db_poses,
                                                   keyframes.timestamps_us)
                 self._far_localizer = Localizer(far_index, far_keyframes, self.localization, preload=True)
-            self._localizer_of = key
+            self._localizer_of = (index, db_prepared, poses_digest)
         return self._localizer
 
     def ready_database(self, index: Any, db_prepared: Sequence[Prepared], db_poses: np.ndarray) -> None:

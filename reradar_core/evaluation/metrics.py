@@ -74,7 +74,7 @@ def radius_for(dataset: str) -> float:
 
 def _xy(name: str, a: np.ndarray) -> np.ndarray:
     arr = np.asarray(a, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] < 2:
+    if arr.ndim != 2 or arr.shape[1] not in (2, 3):  # (2, Q) transposed would pass a ">= 2" test with Q >= 2
         raise ValueError(f"{name} must be (Q, 2) positions in metres (or (Q, 3) poses), got shape {arr.shape}")
     return arr[:, :2]
 
@@ -192,7 +192,10 @@ def f1_max(top1_distance: np.ndarray, is_correct: np.ndarray,
 def pose_error(T_map_query_gt: np.ndarray, T_map_query_est: np.ndarray) -> np.ndarray:
     """Signed pose errors, ground truth - estimate: (..., 3) float64 (x m, y m, yaw rad; the frame of the poses; the
     heading difference wrapped to (-pi, pi]), for (..., 3) poses. What a pose covariance describes (``e^T C^-1 e``)."""
-    e = np.asarray(T_map_query_gt, np.float64) - np.asarray(T_map_query_est, np.float64)
+    gt, est = np.asarray(T_map_query_gt, np.float64), np.asarray(T_map_query_est, np.float64)
+    if gt.ndim == 0 or gt.shape[-1] != 3 or est.shape != gt.shape:
+        raise ValueError(f"poses must both be (..., 3) (x, y, yaw) of one shape, got {gt.shape} and {est.shape}")
+    e = gt - est
     e[..., 2] = wrap_angle(e[..., 2])
     return e
 
@@ -230,6 +233,8 @@ def localization_success(e_t_m: np.ndarray | float, e_r_deg: np.ndarray | float,
     failures. The one success rule of the benchmark, the demo and ``localize --follow``."""
     e_t = np.asarray(e_t_m, dtype=np.float64)
     e_r = np.asarray(e_r_deg, dtype=np.float64)
+    if e_t.shape != e_r.shape:  # (Q,) against (Q, 1) or (1,) would broadcast into another count
+        raise ValueError(f"e_t_m and e_r_deg must have one shape, got {e_t.shape} and {e_r.shape}")
     with np.errstate(invalid="ignore"):
         return (e_t < radius_m) & (e_r < max_rot_deg)
 
@@ -245,8 +250,11 @@ def rotation_success(retrieval_ok: np.ndarray, e_r_deg: np.ndarray,
                      max_rot_deg: float = MAX_ROTATION_ERROR_DEG) -> np.ndarray:
     """(Q,) bool success for methods without translation (ReFeree): correct retrieval and e_r < max_rot_deg."""
     e_r = np.asarray(e_r_deg, dtype=np.float64)
+    ok = np.asarray(retrieval_ok, dtype=bool)
+    if ok.shape != e_r.shape:
+        raise ValueError(f"retrieval_ok and e_r_deg must have one shape, got {ok.shape} and {e_r.shape}")
     with np.errstate(invalid="ignore"):
-        return np.asarray(retrieval_ok, dtype=bool) & (e_r < max_rot_deg)
+        return ok & (e_r < max_rot_deg)
 
 
 def rotation_success_rate(retrieval_ok: np.ndarray, e_r_deg: np.ndarray,

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from reradar_core.errors import ConfigError
-from reradar_core.io.scan import RadarScan
+from reradar_core.io.scan import RadarScan, require_scan
 
 __all__ = [
     "CartesianConfig",
@@ -45,10 +45,13 @@ class CartesianConfig:
     resolution_m: float = 0.64
 
     def __post_init__(self) -> None:
+        if isinstance(self.width_px, bool) or not isinstance(self.width_px, (int, np.integer)):
+            raise ConfigError(f"Cartesian width must be a whole number of pixels, got {self.width_px!r}")
         if self.width_px < 8 or self.width_px > 4096:
             raise ConfigError(f"Cartesian width must be in [8, 4096] px, got {self.width_px}")
-        if not (self.resolution_m > 0):
-            raise ConfigError(f"Cartesian resolution must be positive, got {self.resolution_m}")
+        if not (self.resolution_m > 0 and np.isfinite(self.resolution_m)):
+            raise ConfigError(f"Cartesian resolution must be positive and finite (metres per pixel), got "
+                              f"{self.resolution_m}")
 
     @classmethod
     def paper(cls) -> CartesianConfig:
@@ -127,6 +130,7 @@ def polar_to_cartesian(scan: RadarScan, config: CartesianConfig = CartesianConfi
     Returns:
         (W, W) float32 image in [0, 1], W = ``config.width_px``; layout in the module docstring.
     """
+    require_scan(scan, "polar_to_cartesian")
     key = (config.width_px, config.resolution_m, scan.range_resolution_m, scan.range_offset_m,
            scan.num_range_bins)
     _, bin_idx, used = _polar_grid(*key)

@@ -48,15 +48,22 @@ def check_poses(poses: object, what: str = "poses") -> np.ndarray:
 
 def check_yaw_radians(poses: np.ndarray, what: str = "poses", min_steps: int = 5) -> None:
     """``ConfigError`` when the headings of a drive's (N, 3) ``poses`` read as degrees and not radians: some |yaw|
-    beyond 2 pi, and the heading keeps a steady angle to the direction of travel (the sensor's mounting) when read as
-    degrees (steadiness above 0.9, 1 = constant) and clearly less so (by 0.1) when read as radians. Unwrapped radian
-    headings (beyond 2 pi after a loop) keep it as radians and pass; drives with fewer than ``min_steps`` moves of
-    0.5 m or more cannot tell and pass."""
+    beyond 2 pi, and either the headings span less than one full turn (radians beyond 2 pi come only from unwrapping
+    a drive that turned through a circle) or the heading keeps a steady angle to the direction of travel (the
+    sensor's mounting) when read as degrees (steadiness above 0.9, 1 = constant) and clearly less so (by 0.1) when
+    read as radians. Unwrapped radian headings (beyond 2 pi after a loop) keep it as radians and pass; drives with
+    fewer than ``min_steps`` moves of 0.5 m or more cannot tell by the second test and pass it."""
     from reradar_core.errors import ConfigError
 
     p = np.asarray(poses, np.float64)
     if len(p) < 2 or not np.any(np.abs(p[:, 2]) > 2 * np.pi + 1e-6) or np.any(np.abs(p[:, 2]) > 360.0 + 1e-6):
         return
+    if np.ptp(p[:, 2]) < 2 * np.pi:
+        # radians beyond 2 pi come from unwrapping, i.e. from turning through a full circle on the way; headings
+        # there that never span one turn (a straight drive at "90") are degrees, whatever the direction of travel
+        raise ConfigError(f"{what}: headings up to {np.max(np.abs(p[:, 2])):.1f} that span less than one turn "
+                          f"({np.ptp(p[:, 2]):.2f}) cannot be unwrapped radians and look like degrees; give yaw in "
+                          "radians (numpy.radians), wrapped to (-pi, pi] if they are radians")
     d = np.diff(p[:, :2], axis=0)
     moving = np.hypot(d[:, 0], d[:, 1]) >= 0.5
     if int(moving.sum()) < min_steps:
@@ -103,10 +110,18 @@ def matrix_to_se2(m: np.ndarray) -> np.ndarray:
     return np.stack([m[..., 0, 2], m[..., 1, 2], np.arctan2(m[..., 1, 0], m[..., 0, 0])], axis=-1)
 
 
+def _pose_array(T: np.ndarray, name: str) -> np.ndarray:
+    """``T`` as float64 (..., 3) poses, or ``ValueError`` naming it ((N, 2) positions failed as an IndexError)."""
+    a = np.asarray(T, dtype=np.float64)
+    if a.ndim == 0 or a.shape[-1] != 3:
+        raise ValueError(f"{name} must be (..., 3) poses (x m, y m, yaw rad), got shape {a.shape}")
+    return a
+
+
 def compose(T_a_b: np.ndarray, T_b_c: np.ndarray) -> np.ndarray:
     """T_a_c = T_a_b * T_b_c for (..., 3) poses."""
-    a = np.asarray(T_a_b, dtype=np.float64)
-    b = np.asarray(T_b_c, dtype=np.float64)
+    a = _pose_array(T_a_b, "T_a_b")
+    b = _pose_array(T_b_c, "T_b_c")
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
     y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
@@ -115,7 +130,7 @@ def compose(T_a_b: np.ndarray, T_b_c: np.ndarray) -> np.ndarray:
 
 def inverse(T_a_b: np.ndarray) -> np.ndarray:
     """T_b_a from T_a_b for (..., 3) poses."""
-    p = np.asarray(T_a_b, dtype=np.float64)
+    p = _pose_array(T_a_b, "T_a_b")
     c, s = np.cos(p[..., 2]), np.sin(p[..., 2])
     x = -(c * p[..., 0] + s * p[..., 1])
     y = -(-s * p[..., 0] + c * p[..., 1])
@@ -131,6 +146,10 @@ def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
     """Map (N, 2) points from frame b to frame a with a single (3,) pose."""
     p = np.asarray(T_a_b, dtype=np.float64)
     pts = np.asarray(points_b, dtype=np.float64)
+    if p.shape != (3,):
+        raise ValueError(f"T_a_b must be a single (3,) pose (x m, y m, yaw rad), got shape {p.shape}")
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ValueError(f"points_b must be (N, 2) x, y in metres, got shape {pts.shape}")
     c, s = np.cos(p[2]), np.sin(p[2])
     R = np.array([[c, -s], [s, c]])
     return pts @ R.T + p[:2]

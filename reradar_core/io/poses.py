@@ -87,12 +87,23 @@ class PoseSequence:
     yaw: np.ndarray
 
     def __post_init__(self) -> None:
-        self.timestamps_us = np.asarray(self.timestamps_us, dtype=np.int64).reshape(-1)
-        self.xy = np.asarray(self.xy, dtype=np.float64).reshape(-1, 2)
+        t = np.asarray(self.timestamps_us)
+        if t.dtype.kind == "f" and t.size and not (np.isfinite(t).all() and np.all(t == np.round(t))):
+            # int64 would truncate seconds (1.25 -> 1) into repeated, wrong times without a word
+            raise PoseFileError("pose timestamps must be whole microseconds; got fractional values (seconds or "
+                                "milliseconds? multiply to microseconds)")
+        self.timestamps_us = t.astype(np.int64).reshape(-1)
+        xy = np.asarray(self.xy, dtype=np.float64)
+        if xy.shape == (2,):
+            xy = xy.reshape(1, 2)
+        if xy.ndim != 2 or xy.shape[1] != 2:  # a (2, N) array would be interleaved into other positions
+            raise PoseFileError(f"pose positions must be (N, 2) x, y in metres, got shape {xy.shape}")
+        self.xy = xy
         self.yaw = wrap_angle(np.asarray(self.yaw, dtype=np.float64).reshape(-1))
         n = len(self.timestamps_us)
         if self.xy.shape[0] != n or self.yaw.shape[0] != n:
             raise PoseFileError(f"pose arrays disagree in length: {n}, {self.xy.shape[0]}, {self.yaw.shape[0]}")
+        self._in_order = bool(np.all(np.diff(self.timestamps_us) >= 0))
 
     def __len__(self) -> int:
         return int(self.timestamps_us.shape[0])
@@ -121,6 +132,8 @@ class PoseSequence:
         Returns:
             (..., 3) float64 (x, y, yaw) with the shape of ``t_us`` plus a trailing 3.
         """
+        if not self._in_order:  # np.interp reads unsorted times as garbage
+            raise PoseFileError("pose timestamps are not in time order; interpolate the sorted() sequence")
         t = np.asarray(t_us, dtype=np.float64)
         ts = self.timestamps_us.astype(np.float64)
         x = np.interp(t, ts, self.xy[:, 0])

@@ -58,6 +58,7 @@ __all__ = [
     "scan_header",
     "LOSSY_FORMATS",
     "check_navtech_layout",
+    "require_scan",
     "check_header_size",
     "check_polar_shape",
     "check_scan_sides",
@@ -108,7 +109,8 @@ class RadarScan:
         if not (np.isfinite(lo) and np.isfinite(hi)):
             raise ScanFormatError("scan power contains NaN or infinite values")
         if lo < -_POWER_SLACK or hi > 1.0 + _POWER_SLACK:
-            hint = (" (8-bit values? divide by 255, or build it with RadarScan.from_power, which scales uint8)"
+            hint = (" (8-bit values? divide by 255, or build it with RadarScan.from_power, which scales integer "
+                    "0-255 arrays)"
                     if hi <= 255.0 + _POWER_SLACK and lo >= -_POWER_SLACK else "")
             raise ScanFormatError(f"scan power must be in [0, 1] (the Navtech 8-bit value / 255), got values in "
                                   f"[{lo:.4g}, {hi:.4g}]{hint}")
@@ -130,6 +132,8 @@ class RadarScan:
             raise ScanFormatError(f"scan azimuths must be radians in [0, 2*pi), got values up to {az_max:.4g}{hint}")
         if not (self.range_resolution_m > 0 and np.isfinite(self.range_resolution_m)):
             raise ScanFormatError(f"range resolution must be positive, got {self.range_resolution_m}")
+        if not np.isfinite(self.range_offset_m):
+            raise ScanFormatError(f"range offset must be a finite number of metres, got {self.range_offset_m}")
 
     @property
     def num_azimuths(self) -> int:
@@ -160,18 +164,37 @@ class RadarScan:
         preset: str | RadarPreset = "oxford",
         start_time_us: int = 0,
     ) -> RadarScan:
-        """Build a scan from a bare (A, R) power array with uniform azimuths and the preset's geometry."""
+        """Build a scan from a bare (A, R) power array with uniform azimuths and the preset's geometry: floats in
+        [0, 1], or integer 8-bit values (0-255, scaled by 1/255). A (R, A) array of the preset's R is refused as
+        transposed."""
         p = get_preset(preset)
         power = np.asarray(power)
         if power.ndim != 2:
             raise ScanFormatError(f"polar array must be 2-D (azimuths x range bins), got shape {power.shape}")
+        if power.shape[0] > power.shape[1] and power.shape[0] == p.num_range_bins:
+            raise ScanFormatError(f"polar array of shape {power.shape} looks transposed: preset {p.name!r} has "
+                                  f"{p.num_range_bins} range bins, so pass it as (azimuths, range bins) (array.T)")
         n_az = power.shape[0]
-        if power.dtype == np.uint8:
+        if power.dtype.kind in "iu":  # 8-bit values in any integer type
+            if power.size and (int(power.min()) < 0 or int(power.max()) > 255):
+                raise ScanFormatError(f"integer polar values must be 8-bit (0-255), got [{int(power.min())}, "
+                                      f"{int(power.max())}]; give floats in [0, 1] for other scales")
             power = power.astype(np.float32) / 255.0
         azimuths = np.arange(n_az) * (2.0 * np.pi / n_az)
         dt_us = int(round(p.sweep_period_s * 1e6 / n_az))
         timestamps = start_time_us + np.arange(n_az, dtype=np.int64) * dt_us
         return cls(power, azimuths, timestamps, p.range_resolution_m, p.range_offset_m, preset=p.name)
+
+
+def require_scan(scan: object, what: str) -> RadarScan:
+    """``scan`` itself when it is a ``RadarScan``, else ``ConfigError`` naming ``what`` and how to make one (an image
+    array, a path or None would otherwise fail deep inside with an AttributeError)."""
+    if not isinstance(scan, RadarScan):
+        from reradar_core.errors import ConfigError
+
+        raise ConfigError(f"{what} takes a RadarScan (reradar_core.io.scan.load_scan(path, preset), or "
+                          f"RadarScan.from_power(polar_array, preset)), got {type(scan).__name__}")
+    return scan
 
 
 def presets_with_bins(num_range_bins: int) -> list[RadarPreset]:
@@ -200,7 +223,7 @@ def infer_preset(num_range_bins: int, source: str = "scan") -> RadarPreset:
         raise ScanFormatError(
             f"{source}: {num_range_bins} range bins fit several radar presets with different range geometry "
             f"({preset_bin_sizes(fits)}); pass the preset the scan "
-            "was recorded with (--preset)")
+            "was recorded with (--preset; preset= in Python)")
     raise ScanFormatError(
         f"{source}: cannot infer the radar preset from {num_range_bins} range bins{_navtech_hint(num_range_bins)}; "
         "pass the preset explicitly "

@@ -36,7 +36,7 @@ import numpy as np
 from reradar_core.errors import ConfigError
 from reradar_core.geometry.cartesian import polar_to_metric
 from reradar_core.io.presets import get_preset
-from reradar_core.io.scan import RadarScan
+from reradar_core.io.scan import RadarScan, require_scan
 from reradar_core.jit import jit_enabled
 from reradar_core.landmarks.cen2018_kernels import certain_band, detect_rows
 
@@ -308,6 +308,10 @@ def detect_landmarks(scan: RadarScan, config: Cen2018Config | None = None,
         ``Landmarks`` (positions in the scan's sensor frame, metres). Without a cap they are sorted by
         azimuth row then range bin; with ``max_keypoints`` the strongest come first.
     """
+    require_scan(scan, "detect_landmarks")
+    if max_range_m is not None and not (math.isfinite(float(max_range_m)) and max_range_m >= 0):
+        raise ConfigError(f"max_range_m must be a finite range >= 0 in metres (None: the whole scan), got "
+                          f"{max_range_m}")
     config = config or Cen2018Config()
     min_range = config.min_range_bins
     if min_range is None:

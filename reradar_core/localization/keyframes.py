@@ -18,7 +18,7 @@ import numpy as np
 
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
-from reradar_core.geometry.se2 import check_poses
+from reradar_core.geometry.se2 import check_poses, check_yaw_radians
 from reradar_core.localization.screening import ScreenKeyframe, screen_keyframe
 from reradar_core.matching import AlignmentConfig, LandmarkGrid, build_landmark_grid
 
@@ -31,8 +31,11 @@ def select_keyframes(poses: np.ndarray, min_spacing_m: float) -> np.ndarray:
 
     ``reradar build-map --min-spacing-m`` (``maps.build``) and the confidence fit's sparser maps
     (``confidence_fit.split_runs``) both use it."""
-    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-    if min_spacing_m <= 0 or len(poses) == 0:
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.size == 0:
+        return np.arange(0)
+    poses = check_poses(poses, "poses")  # (N, 2) positions reshaped to (N, 3) would interleave into other places
+    if min_spacing_m <= 0:
         return np.arange(len(poses))
     keep = [0]
     for i in range(1, len(poses)):
@@ -71,6 +74,7 @@ class InMemoryKeyframes:
     def __init__(self, features: Sequence[ScanFeatures] | Callable[[int], ScanFeatures], poses: np.ndarray,
                  timestamps_us: np.ndarray | None = None) -> None:
         self.poses = check_poses(poses, "keyframe poses")
+        check_yaw_radians(self.poses, "keyframe poses")
         if callable(features):
             self._read = features
         else:
@@ -82,6 +86,8 @@ class InMemoryKeyframes:
                 timestamps_us = np.array([f.timestamp_us for f in items], np.int64)
         self.timestamps_us = (np.zeros(len(self.poses), np.int64) if timestamps_us is None
                               else np.asarray(timestamps_us, np.int64).reshape(-1))
+        if len(self.timestamps_us) != len(self.poses):
+            raise ConfigError(f"{len(self.timestamps_us)} keyframe timestamps for {len(self.poses)} poses")
 
     def __len__(self) -> int:
         return int(self.poses.shape[0])

@@ -84,7 +84,8 @@ class Localizer:
     Args:
         index: ``GlobalIndex`` over the keyframes' (N, D) unit global descriptors (row i = keyframe i).
         keyframes: the keyframes' poses, timestamps and features (``KeyframeSource``).
-        config: default settings of ``localize`` (a call may pass its own).
+        config: default settings of ``localize`` (a call may pass its own, with the same ``alignment``: the cached
+            screen data are built with this one's).
         cache_size: keyframes whose features and compact screen data stay in memory between queries (LRU,
             ~50 KB each); None = the whole map.
         preload: read every keyframe now when the map fits in the cache, so that no query pays for a cold
@@ -107,6 +108,7 @@ class Localizer:
         self._repetition: dict[tuple, PlaceRepetition] = {}
         self._repetition_tables: dict[tuple, RepetitionTable] = {}
         self._twists: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        self._local_dim: int | None = None  # the keyframes' local descriptor length, read on the first query
         warm_up()  # the compiled kernels (numba) are compiled or loaded now, not in the first query
         if preload:
             self.cache.preload()
@@ -136,10 +138,8 @@ class Localizer:
             ``LocalizationResult``; ``timings_ms`` gains ``retrieve_ms`` (FAISS search) and ``read_ms``
             (keyframe reads and landmark grids, cached per keyframe).
         """
-        if not isinstance(features, ScanFeatures):
-            raise ConfigError(f"Localizer.localize takes a scan's ScanFeatures (DescriptorExtractor.describe(scan)), "
-                              f"got {type(features).__name__}")
-        config = config or self.config
+        self._check_features(features, "Localizer.localize")
+        config = self._call_config(config)
         t0 = time.perf_counter()
         hits = self.retrieve(features.global_descriptor, config.num_to_retrieve)
         t1 = time.perf_counter()
@@ -168,6 +168,32 @@ class Localizer:
                 # the winner's place repeats on the map: the scan fits the other copy as well (``max_place_repetition``)
                 result = replace(result, status="not_localized", reason=REASON_AMBIGUOUS, T_map_query=None)
         return self._final_pose(features, result, config)
+
+    def _check_features(self, features: object, what: str) -> None:
+        """``ConfigError`` unless ``features`` are a ``ScanFeatures`` whose local descriptors have the map's length
+        (another model's, e.g. 16 against 32 channels, failed in the screen as a numpy broadcast error)."""
+        if not isinstance(features, ScanFeatures):
+            raise ConfigError(f"{what} takes a scan's ScanFeatures (DescriptorExtractor.describe(scan)), "
+                              f"got {type(features).__name__}")
+        if self._local_dim is None and len(self):
+            self._local_dim = int(self.cache.get(0).features.local_descriptors.shape[1])
+        got = int(features.local_descriptors.shape[1])
+        if self._local_dim is not None and len(features.keypoints_xy_m) and got != self._local_dim:
+            raise ConfigError(f"query local descriptors have {got} values but the map's have {self._local_dim}: "
+                              "describe the scan with the map's model")
+
+    def _call_config(self, config: LocalizationConfig | None) -> LocalizationConfig:
+        """A call's settings: its own, or the Localizer's. The alignment settings are the Localizer's: its cached
+        screen data (landmark grids, alignment masks) were made with them, so a call with other ones would be
+        judged half by each (or fail in the grid look-up)."""
+        if config is None:
+            return self.config
+        if not isinstance(config, LocalizationConfig):
+            raise ConfigError(f"config must be a LocalizationConfig, got {type(config).__name__}")
+        if config.alignment != self.config.alignment:
+            raise ConfigError("a call's alignment settings differ from the Localizer's, whose cached screen data "
+                              "were built with them: build a Localizer with that LocalizationConfig instead")
+        return config
 
     def keyframe_twists(self, config: MotionConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Every keyframe's motion on the map drive (``matching.motion.keyframe_twists``: (N, 3) vx m/s, vy m/s, yaw
@@ -338,7 +364,8 @@ class Localizer:
             ``mode="tracking"`` when tracking succeeded, else the global answer with ``tracking_lost=True``;
             ``timings_ms["track_ms"]`` is the tracking attempt either way.
         """
-        config = config or self.config
+        self._check_features(features, "Localizer.track")
+        config = self._call_config(config)
         tcfg = config.tracking
         if not tcfg.covers(prior):
             return self.localize(features, config)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Literal, Protocol
 
 import numpy as np
@@ -263,6 +263,11 @@ class LocalizationConfig:
         return default_confidence_model().min_aligned_ratio if self.pose_method == "guided" else 0.0
 
     def __post_init__(self) -> None:
+        for f in fields(self):  # top_k=2.5 failed at localize time as a slice index
+            value = getattr(self, f.name)
+            if f.type in ("int", "int | None") and value is not None and (
+                    isinstance(value, bool) or not isinstance(value, (int, np.integer))):
+                raise ConfigError(f"{f.name} must be a whole number, got {value!r}")
         if self.top_k < 1 or self.verify_k < 1:
             raise ConfigError(f"top_k and verify_k must be >= 1, got {self.top_k} and {self.verify_k}")
         if self.expansion_block is not None and self.expansion_block < 1:

@@ -74,6 +74,10 @@ class PosePrior:
         pose = np.asarray(self.T_map_query, np.float64).reshape(-1)
         if pose.shape != (3,) or not np.all(np.isfinite(pose)):
             raise ConfigError(f"a pose prior needs a finite (x, y, yaw), got {self.T_map_query!r}")
+        for name in ("sigma_xy_m", "sigma_yaw_rad"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+                raise ConfigError(f"prior {name} must be a number, got {value!r}")
         if not (self.sigma_xy_m > 0 and self.sigma_yaw_rad > 0 and math.isfinite(self.sigma_xy_m)
                 and math.isfinite(self.sigma_yaw_rad)):
             raise ConfigError(f"prior sigmas must be positive and finite, got {self.sigma_xy_m}, "

@@ -125,13 +125,20 @@ def fit_rigid_2d(points_src: np.ndarray, points_dst: np.ndarray,
     Returns:
         (3,) float64 T_dst_src = (x, y, yaw).
 
+    Raises:
+        ValueError: the points are not both (N, 2) with N >= 2, or the weights not (N,) non-negative.
+
     Unweighted, every sum is taken left to right (``_sequential_sum``): the compiled refinement
     (``matching.nn_kernels.refine_poses``) does the same operations in the same order, so both give the same
     numbers - a BLAS product's summation order is the library's and the machine's, a loop's is not.
     """
     src = np.asarray(points_src, dtype=np.float64)
     dst = np.asarray(points_dst, dtype=np.float64)
+    if src.ndim != 2 or src.shape[1] != 2 or dst.shape != src.shape:  # a (2, N) pair fits a wrong pose silently
+        raise ValueError(f"points_src and points_dst must both be (N, 2), got {src.shape} and {dst.shape}")
     n = len(src)
+    if n < 2:
+        raise ValueError(f"a rigid fit needs N >= 2 point pairs, got {n}")
     if weights is None:
         # centroids, then yaw = atan2(sum (a x b), sum (a . b)) over the centred points a, b
         ms0, ms1 = _sequential_sum(src[:, 0]) / n, _sequential_sum(src[:, 1]) / n
@@ -142,6 +149,8 @@ def fit_rigid_2d(points_src: np.ndarray, points_dst: np.ndarray,
         c, s = math.cos(yaw), math.sin(yaw)
         return np.array([md0 - (c * ms0 - s * ms1), md1 - (s * ms0 + c * ms1), yaw])
     w = np.asarray(weights, dtype=np.float64)
+    if w.shape != (n,) or not (np.all(w >= 0) and w.sum() > 0):
+        raise ValueError(f"weights must be ({n},) non-negative with a positive sum, got shape {w.shape}")
     w = w / w.sum()
     mu_s = w @ src
     mu_d = w @ dst

@@ -29,7 +29,7 @@ from reradar_core.features import ScanFeatures
 from reradar_core.geometry.cartesian import CartesianConfig, metric_to_pixel, polar_to_cartesian
 from reradar_core.geometry.heading import canonical_turn, turn_scan
 from reradar_core.geometry.se2 import transform_points
-from reradar_core.io.scan import RadarScan
+from reradar_core.io.scan import RadarScan, require_scan
 from reradar_core.model.config import ModelConfig
 from reradar_core.model.network import DescriptorNet, fuse_batchnorm
 from reradar_core.model.runtime import OnnxNetwork, onnx_path_for, resolve_runtime
@@ -123,6 +123,22 @@ def _onnx_network(weights: Path, sha256: str, runtime: str) -> OnnxNetwork | Non
         return None
 
 
+def _landmark_xy(points: Any) -> np.ndarray:
+    """Landmarks as (N, 2) float64 sensor-frame x, y metres; ``ConfigError`` for another shape ((2, N) or (N, 3),
+    which a reshape would interleave into other points) or non-finite values."""
+    try:
+        xy = np.asarray(points, np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"landmarks must be an (N, 2) array of sensor-frame x, y in metres: {exc}") from None
+    if xy.size == 0:
+        return xy.reshape(0, 2)
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise ConfigError(f"landmarks must be an (N, 2) array of sensor-frame x, y in metres, got shape {xy.shape}")
+    if not np.isfinite(xy).all():
+        raise ConfigError("landmarks hold NaN or infinite coordinates")
+    return xy
+
+
 def _turned_points(xy: np.ndarray, turn: float) -> np.ndarray:
     """(N, 2) sensor-frame points (metres) in the frame of the sensor yawed counter-clockwise by ``turn`` (rad):
     ``R(-turn) xy`` (``geometry.heading.turn_scan``'s image of them)."""
@@ -159,9 +175,7 @@ def sample_feature_map(fmap: torch.Tensor | np.ndarray, rc_px: np.ndarray, strid
 
 def _check_scan(scan: object, what: str) -> None:
     """``ConfigError`` unless ``scan`` is a ``RadarScan`` (a path, an image array or None named as such)."""
-    if not isinstance(scan, RadarScan):
-        raise ConfigError(f"{what} takes a RadarScan (reradar_core.io.scan.load_scan(path, preset), or RadarScan(...) "
-                          f"for a polar array), got {type(scan).__name__}")
+    require_scan(scan, what)
 
 
 class DescriptorExtractor:
@@ -288,10 +302,28 @@ class DescriptorExtractor:
     # ---------------------------------------------------------------- inference
     @torch.inference_mode()
     def run_images(self, images: np.ndarray | torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-        """(B, W, W) Cartesian images -> ((B, D) float32 descriptors, (B, C, h, h) float32 F')."""
+        """(B, W, W) Cartesian images -> ((B, D) float32 descriptors, (B, C, h, h) float32 F').
+
+        ``images``: float, values in [0, 1] (``polar_to_cartesian``'s output), square; W is
+        ``cartesian.width_px`` for this extractor's view (the network itself takes any side: the far view's 257 px);
+        one (W, W) image is a batch of one. Raises ``ConfigError`` for images that are not square (e.g. a polar
+        scan) or 8-bit values (0..255), which the network would describe without a word (cosine ~0.1 to the right
+        descriptor).
+        """
+        if isinstance(images, torch.Tensor):
+            images = images.detach().cpu().numpy()
         arr = np.asarray(images, dtype=np.float32)
         if arr.ndim == 2:
             arr = arr[None]
+        if arr.ndim != 3 or arr.shape[1] != arr.shape[2]:
+            w = self.cartesian.width_px
+            raise ConfigError(f"images must be square Cartesian images, (B, {w}, {w}) or ({w}, {w}) "
+                              f"(polar_to_cartesian(scan, extractor.cartesian)), got shape {np.shape(images)}")
+        if arr.size:
+            lo, hi = float(arr.min()), float(arr.max())
+            if not (np.isfinite(lo) and np.isfinite(hi)) or lo < -1e-4 or hi > 1.0 + 1e-4:
+                raise ConfigError(f"image values must be finite and in [0, 1] (polar_to_cartesian's scale), got "
+                                  f"[{lo:.4g}, {hi:.4g}]" + (": 8-bit values? divide by 255" if hi > 1.5 else ""))
         if self.onnx_network is not None:
             return self.onnx_network(arr[:, None])
         g, f = self.net(torch.as_tensor(arr)[:, None])
@@ -325,10 +357,12 @@ class DescriptorExtractor:
 
             landmarks = detect_landmarks(scan, self.landmark_config, max_range_m=self.landmark_range_m)
         if hasattr(landmarks, "xy_m"):
-            xy = np.asarray(landmarks.xy_m, np.float64).reshape(-1, 2)
+            xy = _landmark_xy(landmarks.xy_m)
             strength = np.asarray(getattr(landmarks, "strength", np.ones(len(xy))), np.float64).reshape(-1)
+            if len(strength) != len(xy):
+                raise ConfigError(f"landmarks: {len(strength)} strengths for {len(xy)} points")
         else:
-            xy = np.asarray(landmarks, np.float64).reshape(-1, 2)
+            xy = _landmark_xy(landmarks)
             strength = np.ones(len(xy))
         rc = metric_to_pixel(_turned_points(xy, turn), self.cartesian)
         w = self.cartesian.width_px
@@ -379,6 +413,8 @@ class DescriptorExtractor:
 
     def global_descriptors(self, scans: Sequence[RadarScan], batch_size: int = 16) -> np.ndarray:
         """(N, D) global descriptors only (no landmarks) — for retrieval benchmarks."""
+        for scan in scans:
+            require_scan(scan, "DescriptorExtractor.global_descriptors")
         out = []
         for start in range(0, len(scans), batch_size):
             imgs = np.stack([self.cartesian_image(s) for s in scans[start:start + batch_size]])

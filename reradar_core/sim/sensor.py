@@ -24,6 +24,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from reradar_core.errors import ConfigError
 from reradar_core.io.poses import PoseSequence
 from reradar_core.io.presets import RadarPreset, get_preset
 from reradar_core.io.scan import RadarScan
@@ -259,8 +260,20 @@ def render_scan(traversal: Traversal, trajectory: PoseSequence, t0_us: int, pres
 
     Returns:
         RadarScan with power in [0, 1] quantised to 1/255, per-azimuth timestamps, uniform azimuths.
+
+    Raises:
+        ConfigError: ``scan_seed`` not a non-negative int (None would draw fresh noise on every call), or ``t0_us``
+            outside the trajectory's time span (e.g. seconds or milliseconds), where the pose look-up would hold
+            its end pose and render the sweep somewhere else.
     """
     p = get_preset(preset)
+    if isinstance(scan_seed, bool) or not isinstance(scan_seed, (int, np.integer)) or scan_seed < 0:
+        raise ConfigError(f"scan_seed must be a non-negative int (sim.writer.scan_seed(traversal seed, scan "
+                          f"index)), got {scan_seed!r}")
+    ts = trajectory.timestamps_us
+    if len(ts) and not (int(ts[0]) - p.sweep_period_s * 1e6 <= t0_us <= int(ts[-1])):
+        raise ConfigError(f"t0_us {t0_us} lies outside the trajectory's times [{int(ts[0])}, {int(ts[-1])}] "
+                          "(microseconds): give the sweep's start in the trajectory's time, in microseconds")
     cfg = config
     cond = traversal.condition
     rng = np.random.default_rng(scan_seed)

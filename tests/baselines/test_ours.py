@@ -81,3 +81,30 @@ def test_far_suffix_names_a_separate_row_and_applies_to_recall_methods_only() ->
     m = make_method(model + "+far")
     assert m.name == model + "+far" and m.far_view is not None
     assert m.params()["far_view"] == [257, 1.28] and "far_view" not in make_method(model).params()
+
+
+def test_new_poses_for_the_same_database_are_a_new_map():
+    """QA session 38: the Localizer was kept per (id(index), id(db)), so poses shifted by 1 km answered the old pose."""
+    rng = np.random.default_rng(0)
+    db_poses = np.array([[0.0, 0.0, 0.0], [100.0, 50.0, 1.0], [30.0, -20.0, -2.0]])
+    kfs = [_keyframe(rng) for _ in db_poses]
+    db = [features_to_prepared(ScanFeatures(g, xy, d, 0)) for xy, d, g in kfs]
+    T_kf_q = np.array([3.0, -1.5, 0.4])
+    xy, d, g = kfs[1]
+    q = features_to_prepared(ScanFeatures(g, transform_points(inverse(T_kf_q), xy), d, 0))
+    ours = Ours(_FakeExtractor(), name="ours-test")
+    index = ours.build_index([ours.describe_prepared(r) for r in db])
+    first = ours.localize(q, ours.describe_prepared(q), index, db, db_poses)
+    shifted = db_poses + np.array([1000.0, 0.0, 0.0])
+    again = ours.localize(q, ours.describe_prepared(q), index, db, shifted)
+    assert first.pose is not None and again.pose is not None
+    np.testing.assert_allclose(again.pose[:2], first.pose[:2] + [1000.0, 0.0], atol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["ringkey", "raplace", "radvlad", "referee"])
+def test_describe_names_what_it_takes(method):
+    from reradar_core.baselines import make_method
+    from reradar_core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"describe takes a RadarScan"):
+        make_method(method).describe(np.zeros((400, 3360)))

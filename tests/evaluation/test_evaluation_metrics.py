@@ -189,3 +189,16 @@ def test_proportion_interval_wilson_known_answers():
     lo, hi = proportion_interval(20, 20)
     assert abs(lo - 0.8389) < 5e-4 and hi == 1.0
     assert all(np.isnan(proportion_interval(0, 0)))
+
+
+def test_metrics_refuse_transposed_positions_and_mismatched_error_arrays():
+    """QA session 38: (2, Q) positions passed a ">= 2 columns" test and broadcast errors counted other queries."""
+    q = np.array([[0.0, 0.0], [50.0, 0.0], [100.0, 0.0], [150.0, 0.0]])
+    with pytest.raises(ValueError, match=r"\(Q, 2\)"):
+        has_revisit(q, q.T, 20.0)
+    e_t, e_r = np.array([1.0, 30.0, 1.0, 1.0]), np.array([1.0, 1.0, 20.0, 1.0])
+    assert success_rate(e_t, e_r, 20.0) == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="one shape"):
+        success_rate(e_t, e_r[:, None], 20.0)
+    with pytest.raises(ValueError, match="one shape"):
+        rotation_success_rate([True, True], e_r)

@@ -490,3 +490,17 @@ def test_in_memory_keyframes_refuse_non_finite_poses() -> None:
 
     with pytest.raises(ConfigError, match="keyframe poses: 1 pose.*NaN"):
         InMemoryKeyframes(lambda i: None, np.array([[0.0, 0.0, np.nan], [1.0, 0.0, 0.0]]))  # type: ignore[arg-type,return-value]
+
+
+@pytest.mark.parametrize("cap", [0, -1])
+def test_a_keypoint_cap_below_one_is_refused(tmp_path: Path, cap: int) -> None:
+    """QA session 38: 0 built a map nothing could localize on, -1 failed deep in numpy."""
+    with pytest.raises(ConfigError, match="max_keypoints must be >= 1"):
+        build_map(tmp_path / "m.h5", CountingExtractor(), lambda i: None, np.zeros((2, 3)), radar_preset="boreas",
+                  max_keypoints=cap)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_select_keyframes_refuses_positions_without_headings() -> None:
+    with pytest.raises(ConfigError, match=r"\(N, 3\)"):
+        select_keyframes(np.c_[np.arange(6.0), np.zeros(6)], 1.0)

@@ -498,3 +498,23 @@ def test_with_view_runs_the_same_weights_on_a_wider_coarser_image(extractor):
     assert float(feats.global_descriptor @ far.describe(rolled, landmarks=np.zeros((0, 2))).global_descriptor) >= 0.99
     # the near view is unchanged by the far one (own config, own disc-mask cache)
     np.testing.assert_array_equal(extractor.describe(scan, landmarks=np.zeros((0, 2))).global_descriptor, before)
+
+
+def test_run_images_refuses_8_bit_values_and_polar_arrays(extractor):
+    """QA session 38: a uint8 image (0..255) was described without a word (cosine ~0.1 to the right descriptor), a
+    polar array taken for an image; landmarks given as (2, N) or (N, 3) were interleaved into other points."""
+    from reradar_core.errors import ConfigError
+
+    img = np.random.default_rng(0).random((201, 201), dtype=np.float32)
+    with pytest.raises(ConfigError, match="8-bit values"):
+        extractor.run_images((img * 255).astype(np.uint8))
+    with pytest.raises(ConfigError, match="square Cartesian images"):
+        extractor.run_images(np.zeros((400, 336), np.float32))
+    g, _ = extractor.run_images(img)
+    assert g.shape == (1, 32)
+    xy = np.array([[10.0, 5.0], [-30.0, 20.0], [0.0, -40.0]])
+    for wrong in (xy.T, np.c_[xy, np.ones(3)]):
+        with pytest.raises(ConfigError, match=r"landmarks must be an \(N, 2\) array"):
+            extractor.describe(_scan(), landmarks=wrong)
+    with pytest.raises(ConfigError, match="global_descriptors takes a RadarScan"):
+        extractor.global_descriptors([np.zeros((400, 400))])

@@ -163,3 +163,18 @@ def test_dominant_scatterer_flickers_less_than_fully_developed_speckle(road):
                                      90.0, 30.0, az_win=0, r_win_m=0.1) for k in range(12)])
     assert vals["dominant"].std() < 0.5 * vals["full"].std()
     assert abs(np.median(vals["dominant"]) - np.median(vals["full"])) < 0.05
+
+
+def test_render_scan_refuses_a_start_outside_the_drive_and_an_implicit_seed(road):
+    """QA session 38: a start time in seconds rendered the whole sweep at the drive's first pose; scan_seed=None drew
+    fresh noise on every call."""
+    import pytest
+
+    from reradar_core.errors import ConfigError
+
+    trav, traj = _empty_traversal(road), linear_trajectory()
+    with pytest.raises(ConfigError, match="outside the trajectory's times"):
+        render_scan(trav, traj, T0 // 1_000_000, "oxford", 1, CLEAN)
+    for seed in (None, -1, 1.5):
+        with pytest.raises(ConfigError, match="scan_seed must be a non-negative int"):
+            render_scan(trav, traj, T0, "oxford", seed, CLEAN)  # type: ignore[arg-type]
