@@ -232,6 +232,7 @@ def build_map(
                        "settings", max_keypoints, _MIN_MAP_KEYPOINTS)
     total = n if far_view is None else 2 * n  # scan descriptions: the far view describes every scan again
     writer: MapWriter | None = None
+    sparse: list[int] = []  # keyframes with fewer landmarks than a localized answer needs
     bar = tqdm(total=n, desc=f"build-map {Path(out).name}", unit="scan", disable=not show_progress)
     try:
         for start in range(0, n, batch_size):
@@ -253,11 +254,17 @@ def build_map(
                 writer = MapWriter(out, meta, overwrite=overwrite).__enter__()
             for i, (scan, f) in enumerate(zip(scans, feats, strict=True)):
                 writer.add(f, poses[start + i], timestamp_us=scan.timestamp_us)
+                if len(f.keypoints_xy_m) < _MIN_MAP_KEYPOINTS:
+                    sparse.append(start + i)
             bar.update(stop - start)
             if progress is not None:
                 progress(stop, total)
         bar.close()
         assert writer is not None
+        if sparse and (max_keypoints is None or max_keypoints >= _MIN_MAP_KEYPOINTS):  # a blank sweep (a dropped frame, a covered radome) became a keyframe nothing can match (QA)
+            logger.warning("%s: %d of %d keyframes hold fewer than %d landmarks (scan %s%s): no query can be localized "
+                           "on them (blank or nearly blank sweeps?)", Path(out).name, len(sparse), n,
+                           _MIN_MAP_KEYPOINTS, ", ".join(str(i) for i in sparse[:5]), " ..." if len(sparse) > 5 else "")
         config = localization or LocalizationConfig()
         if place_repetition and config.checks_place_repetition:  # else no query would read it
             last = [time.monotonic()]

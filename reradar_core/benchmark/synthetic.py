@@ -73,10 +73,14 @@ def loop_poses(n: int, radius_m: float = 60.0, offset_m: tuple[float, float] = (
 
 
 def write_synthetic_sequence(root: Path, world: np.ndarray, poses: np.ndarray, preset: str = "boreas",
-                             t0_us: int = 1_600_000_000_000_000, seed: int = 0) -> Sequence:
-    """Render ``poses`` and write them as a Boreas-layout sequence at ``root``; returns it loaded."""
+                             t0_us: int = 1_600_000_000_000_000, seed: int = 0,
+                             stamps_us: np.ndarray | None = None) -> Sequence:
+    """Render ``poses`` and write them as a Boreas-layout sequence at ``root``; returns it loaded. Scan ``i`` is at
+    ``stamps_us[i]`` (increasing µs), by default ``t0_us + i * 0.25 s`` (a jump between far-apart poses then needs
+    its own time: the reader refuses a step faster than sound)."""
     root = Path(root)
-    stamps = t0_us + np.arange(len(poses), dtype=np.int64) * 250_000
+    stamps = (t0_us + np.arange(len(poses), dtype=np.int64) * 250_000 if stamps_us is None
+              else np.asarray(stamps_us, np.int64))
     for i, (pose, t) in enumerate(zip(poses, stamps, strict=True)):
         write_sequence_scan(root, "boreas", render_scan(world, pose, preset, int(t), noise_seed=seed * 100_003 + i))
     write_sequence_poses(root, "boreas", PoseSequence(stamps, poses[:, :2], poses[:, 2]))

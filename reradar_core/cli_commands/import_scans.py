@@ -2,15 +2,20 @@
 
 from __future__ import annotations
 
+import logging
 import math
+import os
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
 import typer
 
 from reradar_core.errors import ReRadarError, ScanFormatError
-from reradar_core.io.scan import PNG_SIGNATURE, check_png_file, has_navtech_metadata
+from reradar_core.io.scan import PNG_SIGNATURE, check_png_file, check_png_sides, has_navtech_metadata
+
+logger = logging.getLogger(__name__)
 
 #: File names read as timestamps: 16 digits = microseconds (Boreas, Oxford), 19 digits = nanoseconds (MulRan).
 _TIMESTAMP_DIGITS = {16: 1, 19: 1000}
@@ -87,6 +92,7 @@ def _read_source(src: Path) -> np.ndarray:
         data = src.read_bytes()
         if data[:8] == PNG_SIGNATURE:  # told before libpng reads it (it prints its own "libpng error" line otherwise)
             check_png_file(data, src.name)
+            check_png_sides(data, src.name)
         array = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if array is None:
             raise ScanFormatError(f"{src.name}: not a readable image")
@@ -94,12 +100,28 @@ def _read_source(src: Path) -> np.ndarray:
             raise ScanFormatError(f"{src.name}: a {array.shape[2]}-channel colour image; import-scans reads "
                                   "single-channel (greyscale) power images: save the radar's power as greyscale")
         if array.dtype == np.uint16:  # full scale of a 16-bit greyscale image
+            top = int(array.max()) if array.size else 0
+            if 0 < top < 4096:
+                # e.g. 12-bit samples in a 16-bit PNG: scaled by 65535 they keep ~1/16 of their levels (QA session 38)
+                logger.warning("%s: a 16-bit PNG whose values reach only %d (12 bits or fewer of 16): read at the "
+                               "16-bit full scale (65535) its power is dark and coarse; if the radar wrote fewer "
+                               "bits, rescale it to floats in [0, 1] and import an .npy", src.name, top)
             array = array.astype(np.float32) / 65535.0
     if has_navtech_metadata(array):
         raise ScanFormatError(f"{src.name}: already a Navtech scan (its first 11 columns are Navtech timestamps, "
                               "encoder values and valid flags); it needs no import: read it directly (reradar info, "
                               "build-map, localize) with the --preset it was recorded with")
     return array
+
+
+def _discard(staging: Path, created_out: Path | None) -> None:
+    """Remove an import's staging folder, and --out itself when the import created it and it is empty again."""
+    shutil.rmtree(staging, ignore_errors=True)
+    if created_out is not None:
+        try:
+            created_out.rmdir()  # only when empty
+        except OSError:
+            pass
 
 
 def register(app: typer.Typer) -> None:
@@ -148,11 +170,18 @@ def register(app: typer.Typer) -> None:
                 other = seen.setdefault(src.resolve(), src)
                 if other is not src:
                     raise ScanFormatError(f"{src} is given twice (also as {other}); give each scan once")
-            kinds = {len(src.stem) if src.stem.isascii() and src.stem.isdigit() else "name" for src in ordered}
-            if len(kinds) > 1:  # e.g. scanA.png (numbered 1 s, 1970) among 2019 timestamps
-                raise ScanFormatError("the sources mix kinds of names (16-digit µs timestamps, 19-digit ns "
-                                      "timestamps, other names); one sequence takes one kind: rename them, or "
-                                      "import them separately")
+            kind_of = {src: len(src.stem) if src.stem.isascii() and src.stem.isdigit() else "name" for src in ordered}
+            by_kind: dict[object, list[Path]] = {}
+            for src in ordered:
+                by_kind.setdefault(kind_of[src], []).append(src)
+            if len(by_kind) > 1:  # e.g. scanA.png (numbered 1 s, 1970) among 2019 timestamps
+                # the fewest (on a tie, the non-timestamp names): most likely the strays
+                odd = min(by_kind.items(), key=lambda kv: (len(kv[1]), kv[0] != "name"))[1]
+                label = {16: "16-digit µs timestamps", 19: "19-digit ns timestamps", "name": "other names"}
+                counts = ", ".join(f"{len(v)} with {label.get(k, f'{k}-digit numbers')}" for k, v in by_kind.items())
+                raise ScanFormatError(f"the sources mix kinds of names ({counts}); one sequence takes one kind: "
+                                      f"rename or leave out {', '.join(str(p) for p in odd[:3])}"
+                                      f"{' ...' if len(odd) > 3 else ''}, or import them separately")
             stamps = [_stamp_us(src, k) for k, src in enumerate(ordered)]
             clashes: dict[int, list[str]] = {}
             for src, stamp in zip(ordered, stamps, strict=True):
@@ -170,6 +199,11 @@ def register(app: typer.Typer) -> None:
                                       "--overwrite to replace them, or choose another --out")
             written = 0
             shapes: set[tuple[int, int]] = set()
+            # every scan is written into a staging folder inside --out and moved in only when all converted, so a
+            # source refused half-way leaves --out as it was (QA session 38: the scans before it stayed, and the
+            # re-run after the fix was refused for them)
+            staging = out / f".reradar-import-{os.getpid()}"
+            created_out = not out.exists()
             for src, stamp in zip(ordered, stamps, strict=True):
                 try:
                     array = _read_source(src)
@@ -184,12 +218,19 @@ def register(app: typer.Typer) -> None:
                     msg = str(exc)
                     msg = msg if msg.startswith((src.name, str(src))) else f"{src}: {msg}"
                     if written:
-                        msg += f" (the {written} scan(s) before it were written to {out})"
+                        msg += f" (nothing was written: {written} scan(s) before it had converted)"
+                    _discard(staging, out if created_out else None)
                     raise ScanFormatError(msg) from None
+                except BaseException:
+                    _discard(staging, out if created_out else None)
+                    raise
                 if not written:
-                    output_dir(out, "--out")
-                write_navtech_png(scan, out / f"{stamp}.png")
+                    output_dir(staging, "--out")
+                write_navtech_png(scan, staging / f"{stamp}.png")
                 written += 1
+            for stamp in stamps:
+                (staging / f"{stamp}.png").replace(out / f"{stamp}.png")
+            staging.rmdir()
         except (ReRadarError, OSError, ValueError) as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from exc

@@ -47,38 +47,47 @@ def check_poses(poses: object, what: str = "poses") -> np.ndarray:
 
 
 def check_yaw_radians(poses: np.ndarray, what: str = "poses", min_steps: int = 5) -> None:
-    """``ConfigError`` when the headings of a drive's (N, 3) ``poses`` read as degrees and not radians: some |yaw|
-    beyond 2 pi, and either the headings span less than one full turn (radians beyond 2 pi come only from unwrapping
-    a drive that turned through a circle) or the heading keeps a steady angle to the direction of travel (the
-    sensor's mounting) when read as degrees (steadiness above 0.9, 1 = constant) and clearly less so (by 0.1) when
-    read as radians. Unwrapped radian headings (beyond 2 pi after a loop) keep it as radians and pass; drives with
-    fewer than ``min_steps`` moves of 0.5 m or more cannot tell by the second test and pass it."""
+    """``ConfigError`` when the headings of a drive's (N, 3) ``poses`` read as degrees and not radians. Only headings
+    with some |yaw| beyond 2 pi are judged, over the moves of 0.5 m or more (fewer than ``min_steps``: no verdict):
+
+    - on a drive that turns, the heading keeps a steady angle to the direction of travel (the sensor's mounting)
+      when read as degrees (steadiness above 0.9, 1 = constant) and clearly less so (by 0.1) when read as radians;
+    - on a drive whose headings span less than one turn (a straight road, where both readings keep a constant
+      angle), read as degrees the heading lies along the direction of travel (within 10 degrees, either way round)
+      and read as radians it does not (more than 20 degrees off): e.g. a drive north at "90".
+
+    Unwrapped radian headings (beyond 2 pi after a loop) follow the travel as radians and pass."""
     from reradar_core.errors import ConfigError
 
     p = np.asarray(poses, np.float64)
     if len(p) < 2 or not np.any(np.abs(p[:, 2]) > 2 * np.pi + 1e-6) or np.any(np.abs(p[:, 2]) > 360.0 + 1e-6):
         return
-    if np.ptp(p[:, 2]) < 2 * np.pi:
-        # radians beyond 2 pi come from unwrapping, i.e. from turning through a full circle on the way; headings
-        # there that never span one turn (a straight drive at "90") are degrees, whatever the direction of travel
-        raise ConfigError(f"{what}: headings up to {np.max(np.abs(p[:, 2])):.1f} that span less than one turn "
-                          f"({np.ptp(p[:, 2]):.2f}) cannot be unwrapped radians and look like degrees; give yaw in "
-                          "radians (numpy.radians), wrapped to (-pi, pi] if they are radians")
     d = np.diff(p[:, :2], axis=0)
     moving = np.hypot(d[:, 0], d[:, 1]) >= 0.5
     if int(moving.sum()) < min_steps:
         return
     travel = np.arctan2(d[moving, 1], d[moving, 0])
     yaw = p[:-1, 2][moving]
+    top = np.max(np.abs(p[:, 2]))
+    if np.ptp(p[:, 2]) < 2 * np.pi:
+        def off_axis_deg(heading: np.ndarray) -> float:  # median angle to the line of travel (a reversal folded)
+            return float(np.degrees(np.median(np.abs(wrap_angle(2.0 * (heading - travel)))) / 2.0))
+
+        as_radians, as_degrees = off_axis_deg(yaw), off_axis_deg(np.radians(yaw))
+        if as_degrees < 10.0 and as_radians > 20.0:
+            raise ConfigError(f"{what}: the headings look like degrees (up to {top:.1f}; read as degrees they lie "
+                              f"{as_degrees:.1f} degrees off the direction of travel, as radians {as_radians:.1f}); "
+                              "give yaw in radians (numpy.radians)")
+        return
 
     def steadiness(heading: np.ndarray) -> float:  # 1: a constant angle between heading and travel
         return float(np.abs(np.mean(np.exp(1j * (heading - travel)))))
 
-    as_radians, as_degrees = steadiness(yaw), steadiness(np.radians(yaw))
-    if as_degrees > 0.9 and as_degrees > as_radians + 0.1:
-        raise ConfigError(f"{what}: the headings look like degrees (up to {np.max(np.abs(p[:, 2])):.1f}; read as "
-                          f"degrees they follow the direction of travel steadily, {as_degrees:.2f} against "
-                          f"{as_radians:.2f} as radians); give yaw in radians (numpy.radians)")
+    as_radians_s, as_degrees_s = steadiness(yaw), steadiness(np.radians(yaw))
+    if as_degrees_s > 0.9 and as_degrees_s > as_radians_s + 0.1:
+        raise ConfigError(f"{what}: the headings look like degrees (up to {top:.1f}; read as "
+                          f"degrees they follow the direction of travel steadily, {as_degrees_s:.2f} against "
+                          f"{as_radians_s:.2f} as radians); give yaw in radians (numpy.radians)")
 
 
 def wrap_angle(angle: np.ndarray | float) -> np.ndarray:

@@ -37,6 +37,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
+import math
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -175,9 +176,17 @@ def detect_layout(path: str | Path) -> str:
         DatasetError: the folder does not exist or matches none of the layouts.
     """
     root = Path(path)
+    if root.is_file():  # e.g. --dataset SEQ/applanix/radar_poses.csv
+        raise DatasetError(f"{root}: is a file; give the sequence folder (the one holding radar/ or sensor_data/)")
     if not root.is_dir():
         raise DatasetError(f"{root}: sequence folder does not exist")
-    if (root / "sensor_data" / "radar" / "polar").is_dir():
+    mulran = (root / "sensor_data" / "radar" / "polar").is_dir()
+    if mulran and (root / "radar").is_dir():
+        # a stray MulRan scan folder beside a Boreas / Oxford one was taken for the sequence: a 1-keyframe map
+        raise DatasetError(f"{root}: holds scans in two layouts (radar/ for Boreas or Oxford, sensor_data/radar/"
+                           "polar/ for MulRan); name the one to read (--layout boreas|oxford|mulran) or move the "
+                           "other out")
+    if mulran:
         return "mulran"
     if (root / "radar").is_dir():
         if (root / "applanix" / "radar_poses.csv").is_file():
@@ -206,9 +215,12 @@ def scan_path(root: str | Path, layout: str, timestamp_us: int) -> Path:
 
 def _list_scans(root: Path, layout: str) -> tuple[list[Path], np.ndarray]:
     folder = _scan_dir(root, layout)
+    if not folder.is_dir():
+        raise DatasetError(f"{folder}: no scan folder (scan PNGs named <timestamp>.png)")
     paths = []
     stamps = []
-    for p in folder.glob("*.png"):
+    # the suffix in any case: a scan renamed to .PNG was left out of the map without a word (QA session 38)
+    for p in (q for q in folder.iterdir() if q.suffix.lower() == ".png"):  # a folder so named is refused later
         try:
             t = int(p.stem)
         except ValueError:
@@ -389,6 +401,10 @@ def _decoded_first_time_us(path: Path, preset: RadarPreset) -> int | None:
         return None
 
 
+#: The largest heading change an Oxford odometry row may hold (between two consecutive scans), radians.
+_MAX_FRAME_TURN_RAD = math.pi / 2
+
+
 def read_oxford_odometry(path: str | Path) -> PoseSequence:
     """Integrate an Oxford ``radar_odometry.csv`` into poses T_first_scan (x, y, yaw) per radar timestamp.
 
@@ -396,7 +412,8 @@ def read_oxford_odometry(path: str | Path) -> PoseSequence:
     project's frame (y left, yaw counter-clockwise). The first destination scan of the chain is the origin.
 
     Raises:
-        PoseFileError: missing file, missing columns, non-numeric values, or a chain with gaps.
+        PoseFileError: missing file, missing columns, non-numeric or non-finite values (naming the line), a row
+            turning more than 90 degrees between two scans (yaw in degrees), or a chain with gaps.
     """
     path = Path(path)
     if not path.is_file():
@@ -419,6 +436,14 @@ def read_oxford_odometry(path: str | Path) -> PoseSequence:
                 rel.append((float(row[idx["x"]]), -float(row[idx["y"]]), -float(row[idx["yaw"]])))
             except (ValueError, IndexError):
                 raise PoseFileError(f"{path}:{lineno}: malformed odometry row {row}") from None
+            if not all(math.isfinite(v) for v in rel[-1]):
+                raise PoseFileError(f"{path}:{lineno}: NaN or infinite value")
+            if abs(rel[-1][2]) > _MAX_FRAME_TURN_RAD:
+                # one radar frame (0.25 s) never turns a vehicle by a right angle: a file in degrees reads its
+                # every corner as several radians (a map 30-40 degrees off at its first corners, QA session 38)
+                raise PoseFileError(f"{path}:{lineno}: yaw {-rel[-1][2]:g} turns more than "
+                                    f"{math.degrees(_MAX_FRAME_TURN_RAD):.0f} degrees between two scans; the "
+                                    "odometry's yaw is radians (degrees? convert the column with numpy.radians)")
     if not src:
         raise PoseFileError(f"{path}: no odometry rows")
     rel_arr = np.asarray(rel, dtype=np.float64)
@@ -523,7 +548,8 @@ def load_sequence(path: str | Path, layout: str | None = None,
     """
     root = Path(path)
     if not root.is_dir():
-        raise DatasetError(f"{root}: sequence folder does not exist")
+        raise DatasetError(f"{root}: is a file; give the sequence folder (the one holding radar/ or sensor_data/)"
+                           if root.is_file() else f"{root}: sequence folder does not exist")
     layout = detect_layout(root) if layout is None else layout.lower()
     if layout not in LAYOUTS:
         raise DatasetError(f"unknown dataset layout {layout!r}; choose one of {LAYOUTS}")
@@ -573,6 +599,7 @@ def load_sequence(path: str | Path, layout: str | None = None,
             origin = np.asarray(meta["oxford_T_world_origin"], dtype=np.float64)
             world = compose(origin[None, :], track.poses)
             track = PoseSequence(track.timestamps_us, world[:, :2], world[:, 2])
+        check_pose_speed(track, str(pose_file), how="Oxford odometry timestamps are microseconds")
     if layout == "oxford":
         known = np.isin(stamps, track.timestamps_us)
         if not np.all(known):
@@ -690,7 +717,9 @@ def check_pose_speed(track: PoseSequence, pose_file: str = "the pose file",
     """Refuse a pose file whose drive is faster than any road vehicle (mean speed above
     ``MAX_PLAUSIBLE_SPEED_M_S`` over at least ``PLAUSIBLE_SPEED_MIN_PATH_M`` of path): its positions are in another
     unit than metres, or its times in a finer one than they are read in. A map built from it would hold
-    keyframes 1000x apart, and a benchmark would find no revisit at all, without a word (QA session 36).
+    keyframes 1000x apart, and a benchmark would find no revisit at all, without a word (QA session 36). Also refused:
+    a single step of more than ``PLAUSIBLE_SPEED_MIN_PATH_M`` between two poses, faster than that (a position
+    glitch of one row; QA session 38).
 
     Args:
         track: the pose file's poses, sorted, µs and metres. pose_file: for the message. how: how the time unit
@@ -704,12 +733,22 @@ def check_pose_speed(track: PoseSequence, pose_file: str = "the pose file",
         return
     span_s = (int(track.timestamps_us[-1]) - int(track.timestamps_us[0])) / 1e6
     path_m = track.path_length_m()
-    if span_s <= 0 or path_m < PLAUSIBLE_SPEED_MIN_PATH_M or path_m / span_s <= MAX_PLAUSIBLE_SPEED_M_S:
-        return
-    raise DatasetError(f"{pose_file}: its poses drive {path_m:.4g} m in {span_s:.4g} s, a mean speed of "
-                       f"{path_m / span_s:.3g} m/s (faster than sound; a road vehicle drives up to ~100 m/s): "
-                       "positions must be metres (a file in millimetres or centimetres?), and the times in the "
-                       f"unit they are read in ({how})")
+    if span_s > 0 and path_m >= PLAUSIBLE_SPEED_MIN_PATH_M and path_m / span_s > MAX_PLAUSIBLE_SPEED_M_S:
+        raise DatasetError(f"{pose_file}: its poses drive {path_m:.4g} m in {span_s:.4g} s, a mean speed of "
+                           f"{path_m / span_s:.3g} m/s (faster than sound; a road vehicle drives up to ~100 m/s): "
+                           "positions must be metres (a file in millimetres or centimetres?), and the times in the "
+                           f"unit they are read in ({how})")
+    # one row off by hundreds of metres (a GNSS glitch) passes the mean, and moved the keyframes around it there
+    # (QA session 38): a step of more than PLAUSIBLE_SPEED_MIN_PATH_M faster than sound is named
+    step = np.linalg.norm(np.diff(track.xy, axis=0), axis=1)
+    dt_s = np.diff(track.timestamps_us).astype(np.float64) / 1e6
+    with np.errstate(divide="ignore", invalid="ignore"):
+        jump = (step > PLAUSIBLE_SPEED_MIN_PATH_M) & (step > MAX_PLAUSIBLE_SPEED_M_S * dt_s)
+    if np.any(jump):
+        i = int(np.argmax(jump))
+        raise DatasetError(f"{pose_file}: the pose at {int(track.timestamps_us[i + 1])} us lies {step[i]:.4g} m from "
+                           f"the one {dt_s[i]:.4g} s before it ({step[i] / max(dt_s[i], 1e-9):.3g} m/s, faster than "
+                           f"sound; {int(jump.sum())} such step(s)): a position glitch? fix or remove that row")
 
 
 #: how far beyond the first / last pose a scan may lie (pose files sample the trajectory at their own rate), µs
@@ -733,7 +772,11 @@ def check_pose_span(track: PoseSequence, stamps_us: np.ndarray, names: list[str]
     lo, hi = int(track.timestamps_us[0]) - POSE_SPAN_SLACK_US, int(track.timestamps_us[-1]) + POSE_SPAN_SLACK_US
     outside = [not lo <= int(v) <= hi for v in t]
     if any(outside):
-        raise DatasetError(f"{names[outside.index(True)]}: scan time lies outside the pose file's time span ({pose_file})")
+        i = outside.index(True)
+        first, last = int(track.timestamps_us[0]), int(track.timestamps_us[-1])
+        raise DatasetError(f"{names[i]}: scan time {int(t[i])} us lies outside the pose file's time span, {first} to "
+                           f"{last} us ({pose_file}; the scans span {int(np.min(t))} to {int(np.max(t))} us"
+                           f"{': relative pose times against absolute scan names?' if last < 1e14 <= int(t[i]) else ''})")
 
 
 def write_sequence_scan(root: str | Path, layout: str, scan: RadarScan) -> Path:

@@ -339,6 +339,9 @@ def read_boreas_radar_poses(path: str | Path, time_unit: str | None = None) -> P
     # the format's heading is radians; degrees within +-2 pi built a map 135 degrees off (QA, session 24)
     _refuse_degrees_in_plain_yaw(path, t_us, vals[:, :2], vals[:, 2], "heading",
                                  fix="a Boreas radar_poses.csv holds its heading in radians: convert the column")
+    _refuse_heading_off_travel(path, t_us, vals[:, :2], vals[:, 2], "heading column",
+                               "a Boreas heading is radians counter-clockwise from east (a compass heading, clockwise "
+                               "from north, is pi/2 - heading)")
     return PoseSequence(t_us, vals[:, :2], vals[:, 2])
 
 
@@ -378,6 +381,9 @@ def read_mulran_global_pose(path: str | Path, time_unit: str | None = None) -> P
     yaw = np.arctan2(m[:, 4], m[:, 0])  # R[1,0], R[0,0]
     t_us = to_microseconds(t_raw, time_unit)
     _refuse_repeated_times(t_us, path)
+    _refuse_heading_off_travel(path, t_us, m[:, [3, 7]], yaw, "rotation",
+                               "each row is a 3x4 [R|t] matrix written row by row (R transposed, i.e. written column "
+                               "by column, turns every heading the other way)")
     return PoseSequence(t_us, m[:, [3, 7]], yaw)
 
 
@@ -455,6 +461,9 @@ def read_txyyaw_csv(path: str | Path, time_unit: str | None = None) -> PoseSeque
     _refuse_repeated_times(t_us, path)
     if yaw_name in (None, "yaw"):
         _refuse_degrees_in_plain_yaw(path, t_us, vals[:, 0:2], yaw, yaw_header or "yaw (no header)")
+    _refuse_heading_off_travel(path, t_us, vals[:, 0:2], yaw, "yaw column",
+                               "yaw is counter-clockwise from +x (a compass heading, clockwise from north, is "
+                               "pi/2 - yaw)")
     return PoseSequence(t_us, vals[:, 0:2], yaw)
 
 
@@ -494,6 +503,16 @@ def travel_yaw_mismatch_deg(xy: np.ndarray, yaw_rad: np.ndarray) -> float | None
         The median (0..180 degrees; a median, so rare reversing stretches do not sway it), or None when fewer
         than ``_MIN_MOVING_STEPS`` stretches move.
     """
+    stretches = _moving_stretches(xy, yaw_rad)
+    if stretches is None:
+        return None
+    heading, travel = stretches
+    return float(np.degrees(np.median(np.abs(wrap_angle(heading - travel)))))
+
+
+def _moving_stretches(xy: np.ndarray, yaw_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(heading, direction of travel), radians, over every stretch of ``_MOVING_STEP_M`` of path that moves (see
+    ``travel_yaw_mismatch_deg``); None when fewer than ``_MIN_MOVING_STEPS`` stretches move."""
     xy = np.asarray(xy, np.float64).reshape(-1, 2)
     yaw = np.asarray(yaw_rad, np.float64).reshape(-1)
     if len(xy) < 2:
@@ -509,8 +528,32 @@ def travel_yaw_mismatch_deg(xy: np.ndarray, yaw_rad: np.ndarray) -> float | None
     travel = np.arctan2(step[moving, 1], step[moving, 0])
     # the heading over a stretch: the circular mean of its end points' yaws
     a, b = yaw[start[moving]], yaw[end[moving]]
-    mid = np.arctan2(np.sin(a) + np.sin(b), np.cos(a) + np.cos(b))
-    return float(np.degrees(np.median(np.abs(wrap_angle(mid - travel)))))
+    return np.arctan2(np.sin(a) + np.sin(b), np.cos(a) + np.cos(b)), travel
+
+
+#: ``_refuse_heading_off_travel``: a sensor's heading keeps one angle to the direction of travel (its mounting; a
+#: reversal folds onto it), so the resultant length of 2 x (heading - travel) stays near 1 (the real Boreas drives:
+#: 0.997-0.999); a compass heading (pi/2 - yaw) or a transposed rotation (-yaw) falls to 0.3-0.5 on a drive that
+#: turns. The check needs the drive to turn (resultant of 2 x travel below ``_TURNING_DRIVE``).
+_STEADY_HEADING = 0.8
+_TURNING_DRIVE = 0.95
+
+
+def _refuse_heading_off_travel(path: Path, t_us: np.ndarray, xy: np.ndarray, yaw: np.ndarray, what: str,
+                               fix: str) -> None:
+    """Refuse headings that do not keep one angle to the direction of travel on a drive that turns: another angle
+    convention (a compass heading, clockwise from north) or a rotation read transposed (QA session 38: both built
+    maps whose every keyframe was turned, without a word)."""
+    order = np.argsort(t_us, kind="stable")
+    stretches = _moving_stretches(xy[order], yaw[order])
+    if stretches is None:
+        return
+    heading, travel = stretches
+    steady = float(np.abs(np.mean(np.exp(2j * (heading - travel)))))
+    turning = float(np.abs(np.mean(np.exp(2j * travel))))
+    if steady < _STEADY_HEADING and turning < _TURNING_DRIVE:
+        raise PoseFileError(f"{path}: the {what} does not follow the direction of travel (steadiness {steady:.2f}, "
+                            f"1 = a fixed mounting angle; a real drive keeps above 0.99): {fix}")
 
 
 def _refuse_degrees_in_plain_yaw(path: Path, t_us: np.ndarray, xy: np.ndarray, yaw: np.ndarray, column: str,

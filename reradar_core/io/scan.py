@@ -58,6 +58,7 @@ __all__ = [
     "scan_header",
     "LOSSY_FORMATS",
     "check_navtech_layout",
+    "check_png_sides",
     "require_scan",
     "check_header_size",
     "check_polar_shape",
@@ -975,6 +976,22 @@ def _plain_png_pixels(data: bytes, png: _PngImageData) -> np.ndarray | None:
     return out
 
 
+def check_png_sides(data: bytes, name: str) -> None:
+    """Refuse a PNG file whose header declares more than ``MAX_SCAN_SIDE`` rows or columns (plus the Navtech metadata
+    columns) before it is decoded: a 74-byte PNG declaring 100,000 x 100,000 pixels ended in OpenCV's traceback
+    (QA session 38). Files that are not PNGs, or lack the header, are left to the decoder's own checks.
+
+    Raises:
+        ScanTooLargeError: naming ``name`` and the declared size.
+    """
+    if len(data) < 24 or data[:8] != PNG_SIGNATURE or data[12:16] != b"IHDR":
+        return
+    cols, rows = struct.unpack(">II", data[16:24])
+    if rows > MAX_SCAN_SIDE or cols > MAX_SCAN_SIDE + NAVTECH_META_COLUMNS:
+        raise ScanTooLargeError(f"{name}: declares {rows} x {cols} pixels; a radar scan has at most {MAX_SCAN_SIDE} "
+                                f"azimuths and {MAX_SCAN_SIDE} range bins (a Navtech sweep is 400 x 3,371-3,779)")
+
+
 def read_navtech_png(path: str | Path, preset: str | RadarPreset | None = None) -> RadarScan:
     """Read a Navtech polar PNG (layout in the module docstring).
 
@@ -994,6 +1011,7 @@ def read_navtech_png(path: str | Path, preset: str | RadarPreset | None = None) 
         raise ScanFormatError(f"{path}: no such scan file")
     data = path.read_bytes()
     check_png_file(data, str(path))
+    check_png_sides(data, str(path))
     raw = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise ScanFormatError(f"{path}: not a readable PNG image")

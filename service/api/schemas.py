@@ -141,7 +141,9 @@ class MapInfo(_Model):
     index_kind: str | None = Field(default=None, description="FAISS index type: flat (exact), hnsw or ivf.")
     created_utc: str | None = None
     registered_utc: str
-    source: str | None = None
+    source: str | None = Field(default=None, description=(
+        "What the map was built from: the dataset layout and the folder's name (`boreas:2021-09-02`; the build "
+        "machine's path stays in the map file), or `upload:<archive name>`."))
     pose_time: Literal["mid_sweep", "first_azimuth"] | None = Field(default=None, description=(
         "Which instant of each keyframe scan the map's poses - and so the poses answered on this map - refer to: "
         "`mid_sweep` (every map written since 2026-11-30; docs/CONVENTIONS.md), or `first_azimuth` for an older map "

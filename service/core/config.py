@@ -207,7 +207,7 @@ class Settings(BaseSettings):
     load_demo_map: bool = Field(default=True, description=(
         "Copy the shipped demo map into maps_dir as map `demo` (not after DELETE /maps/demo: .demo-deleted)."))
     max_upload_mb: float = Field(default=8.0, gt=0, description=(
-        "Largest scan upload / request body, MB: a Navtech PNG is ~1.3 MB, a float32 .npy of the largest "
+        "Largest scan upload / request body, MB: a Navtech PNG is ~0.5 MB (its raw .npy 1.3 MB), a float32 .npy of the largest "
         "accepted scan 6.4 MB. The guard holds a scan request's body in memory, so this bounds what a junk body "
         "costs (measured in docs/SERVICE.md); send float64 arrays as float32 or uint8."))
     max_map_upload_mb: float = Field(default=512.0, gt=0, description="Largest map or scan-archive upload, MB.")
@@ -274,7 +274,7 @@ class Settings(BaseSettings):
         "previous response) is closed (`reradar serve`; slow-client protection before a request exists)."))
     body_min_rate_kib_s: float = Field(default=32.0, ge=0, description=(
         "Slowest average rate of a request body, KiB/s, checked from 5 s after its start (408 below): a client "
-        "trickling a body holds one of the max_concurrent_requests slots (a 1.3 MB scan PNG at 32 KiB/s takes "
+        "trickling a body holds one of the max_concurrent_requests slots (a 1.3 MB raw .npy scan at 32 KiB/s takes "
         "40 s, over body_timeout_s anyway); 0 = no minimum."))
     map_upload_timeout_s: float = Field(default=900.0, gt=0, description=(
         "Longest time to receive a whole POST /maps body, seconds (408 after)."))

@@ -21,12 +21,15 @@ T0 = 1_600_000_000_000_000
 def one_session(tmp_path_factory):
     """One drive: a 12-pose loop driven twice, then 8 poses far away (no database scan within 20 m).
 
-    Split at scan 12: database = lap 1; queries = lap 2 (12 revisits) + the 8 far poses (no match)."""
+    Split at scan 12: database = lap 1; queries = lap 2 (12 revisits) + the 8 far poses (no match), driven to
+    30 s after lap 2 (a 0.25 s step of 550 m is refused as a position glitch)."""
     lap = loop_poses(12)
     far = np.column_stack([np.linspace(400.0, 540.0, 8), np.full(8, 400.0), np.zeros(8)])
     poses = np.vstack([lap, lap, far])
+    stamps = T0 + np.r_[np.arange(24) * 250_000, 36_000_000 + np.arange(8) * 250_000]
     root = tmp_path_factory.mktemp("session")
-    return write_synthetic_sequence(root / "drive", synthetic_world(seed=5), poses, seed=3, t0_us=T0)
+    return write_synthetic_sequence(root / "drive", synthetic_world(seed=5), poses, seed=3, t0_us=T0,
+                                    stamps_us=stamps)
 
 
 def test_parse_split_forms_and_errors():

@@ -26,7 +26,7 @@ def test_pose_helpers_name_a_wrong_shape() -> None:
 
 def test_a_straight_drive_with_headings_in_degrees_is_refused() -> None:
     north_deg = np.c_[np.zeros(40), np.arange(40) * 3.0, np.full(40, 90.0)]
-    with pytest.raises(ConfigError, match="span less than one turn"):
+    with pytest.raises(ConfigError, match="look like degrees"):
         check_yaw_radians(north_deg)
     check_yaw_radians(np.c_[np.zeros(40), np.arange(40) * 3.0, np.full(40, np.pi / 2)])  # radians: fine
     a = np.linspace(0.0, 4 * np.pi, 200)  # two laps of a circle, unwrapped radians: fine

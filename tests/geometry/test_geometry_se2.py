@@ -126,7 +126,11 @@ def test_headings_in_degrees_are_refused_and_unwrapped_radians_are_not() -> None
     degrees[:, 2] = np.degrees(wrapped[:, 2])
     with pytest.raises(ConfigError, match="look like degrees.*numpy.radians"):
         check_yaw_radians(degrees, "keyframe poses")
-    straight = np.column_stack([np.arange(20.0), np.zeros(20), np.full(20, 7.0)])  # unwrapped, on a straight road
+    # unwrapped radians on a straight road east, after a loop: 2 pi + 0.05 follows the road as radians (session 38:
+    # the example used to be 7.0, which lies 41 degrees off the road as radians and 7 as degrees, i.e. degrees)
+    straight = np.column_stack([np.arange(20.0), np.zeros(20), np.full(20, 2 * np.pi + 0.05)])
     check_yaw_radians(straight)
+    with pytest.raises(ConfigError, match="look like degrees"):
+        check_yaw_radians(np.column_stack([np.arange(20.0), np.zeros(20), np.full(20, 7.0)]))
     parked = np.column_stack([np.zeros(20), np.zeros(20), np.linspace(0, 90, 20)])  # no travel: cannot tell
     check_yaw_radians(parked)

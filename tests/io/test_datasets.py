@@ -332,3 +332,67 @@ def test_a_pose_file_faster_than_any_vehicle_is_refused():
         check_pose_speed(PoseSequence(t, xy * 1000, np.zeros(80)), "poses.csv")
     with pytest.raises(DatasetError, match=r"read in \(name the column t_s\)$"):  # the service's own advice
         check_pose_speed(PoseSequence(t, xy * 1000, np.zeros(80)), "poses.csv", how="name the column t_s")
+
+
+_OXFORD_HEADER = ("source_timestamp,destination_timestamp,x,y,z,roll,pitch,yaw,source_radar_timestamp,"
+                  "destination_radar_timestamp\n")
+
+
+def test_oxford_odometry_in_degrees_or_with_nan_is_refused_by_line(tmp_path):
+    """QA session 38: the Oxford reader had none of the Boreas reader's unit checks: yaw in degrees built a map whose
+    headings turned by radians at every corner, and a NaN was reported as 'row 0' of no file."""
+    f = tmp_path / "radar_odometry.csv"
+    f.write_text(_OXFORD_HEADER + "2,1,2.0,0,0,0,0,0.5,20,10\n3,2,2.0,0,0,0,0,4.0,30,20\n")
+    with pytest.raises(PoseFileError, match=r"radar_odometry.csv:3: yaw -?4 turns more than 90 degrees.*radians"):
+        read_oxford_odometry(f)
+    f.write_text(_OXFORD_HEADER + "2,1,2.0,0,0,0,0,0.5,20,10\n3,2,nan,0,0,0,0,0.1,30,20\n")
+    with pytest.raises(PoseFileError, match=r"radar_odometry.csv:3: NaN or infinite value"):
+        read_oxford_odometry(f)
+
+
+def test_oxford_odometry_in_millimetres_is_refused_by_speed(tmp_path):
+    root = tmp_path / "ox"
+    times = [T0 + k * 250_000 for k in range(40)]
+    _write_scans(root, "oxford", times)
+    rows = [f"{t1},{t0},{2500.0},0,0,0,0,0,{t1},{t0}\n" for t0, t1 in zip(times[:-1], times[1:], strict=True)]
+    (root / "gt").mkdir()
+    (root / "gt" / "radar_odometry.csv").write_text(_OXFORD_HEADER + "".join(rows))  # 2.5 m per frame, in mm
+    with pytest.raises(DatasetError, match="faster than sound.*metres"):
+        load_sequence(root)
+
+
+def test_layout_detection_names_a_file_and_two_layouts(tmp_path):
+    """QA session 38: --dataset on the pose file said 'does not exist'; a stray MulRan scan folder beside radar/
+    made a 1-keyframe MulRan map of a 30-scan Boreas drive."""
+    root = tmp_path / "seq"
+    times = [T0 + k * 250_000 for k in range(4)]
+    _write_scans(root, "boreas", times)
+    write_boreas_radar_poses(_track(np.asarray(times)), root / "applanix" / "radar_poses.csv")
+    with pytest.raises(DatasetError, match="is a file; give the sequence folder"):
+        load_sequence(root / "applanix" / "radar_poses.csv")
+    (root / "sensor_data" / "radar" / "polar").mkdir(parents=True)
+    with pytest.raises(DatasetError, match="two layouts.*--layout"):
+        load_sequence(root, preset="boreas")
+    assert len(load_sequence(root, layout="boreas", preset="boreas")) == 4
+
+
+def test_a_scan_with_an_upper_case_suffix_is_read(tmp_path):
+    root = tmp_path / "seq"
+    times = [T0 + k * 250_000 for k in range(4)]
+    _write_scans(root, "boreas", times)
+    write_boreas_radar_poses(_track(np.asarray(times)), root / "applanix" / "radar_poses.csv")
+    (root / "radar" / f"{times[1]}.png").rename(root / "radar" / f"{times[1]}.PNG")
+    seq = load_sequence(root, preset="boreas")
+    assert seq.timestamps_us.tolist() == times and seq.load_scan(1).timestamp_us == times[1]
+
+
+def test_a_single_pose_glitch_is_named(tmp_path):
+    root = tmp_path / "seq"
+    times = [T0 + k * 250_000 for k in range(40)]
+    _write_scans(root, "boreas", times[::8])
+    track = _track(np.asarray(times))
+    xy = track.xy.copy()
+    xy[21, 0] += 500.0  # one GNSS row 500 m off
+    write_boreas_radar_poses(PoseSequence(track.timestamps_us, xy, track.yaw), root / "applanix" / "radar_poses.csv")
+    with pytest.raises(DatasetError, match=rf"pose at {times[21]} us lies .* faster than sound.*2 such step"):
+        load_sequence(root, preset="boreas")

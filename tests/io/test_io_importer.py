@@ -245,3 +245,38 @@ def test_a_range_offset_far_behind_the_antenna_is_refused():
     with pytest.raises(ScanFormatError, match="50 m behind the antenna"):
         ForeignScanLayout(0.175, -50.0)
     assert ForeignScanLayout(0.0596, -0.31).range_offset_m == -0.31
+
+
+def test_cli_writes_nothing_when_a_later_source_is_refused(tmp_path):
+    """QA session 38: the scans before a refused source stayed in --out, and the re-run after the fix was refused for
+    them; the odd names of a mix are named."""
+    cv2.imwrite(str(tmp_path / "1566535872045000.png"), _foreign())
+    cv2.imwrite(str(tmp_path / "1566535872295000.png"), np.dstack([_foreign()] * 3))  # colour: refused
+    res = _import(tmp_path, tmp_path / "1566535872045000.png", tmp_path / "1566535872295000.png")
+    assert res.exit_code == 2 and "3-channel colour image" in res.output and "nothing was written" in res.output
+    assert not (tmp_path / "o").exists()
+    (tmp_path / "o2").mkdir()
+    (tmp_path / "o2" / "keep.txt").write_text("x")
+    res = _import(tmp_path, tmp_path / "1566535872045000.png", tmp_path / "1566535872295000.png", out="o2")
+    assert res.exit_code == 2 and sorted(p.name for p in (tmp_path / "o2").iterdir()) == ["keep.txt"]
+    cv2.imwrite(str(tmp_path / "1566535872545000 (1).png"), _foreign())
+    res = _import(tmp_path, tmp_path / "1566535872045000.png", tmp_path / "1566535872545000 (1).png", out="o3")
+    assert res.exit_code == 2 and "1566535872545000 (1).png" in res.output and "1 with other names" in res.output
+
+
+def test_a_png_declaring_a_huge_image_is_refused_before_decoding(tmp_path):
+    """QA session 38: a 74-byte PNG declaring 100,000 x 100,000 pixels ended in OpenCV's traceback (info,
+    import-scans, build-map)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 100_000, 100_000, 8, 0, 0, 0, 0))
+           + chunk(b"IDAT", zlib.compress(b"\0" * 10)) + chunk(b"IEND", b""))
+    (tmp_path / "1566535872045000.png").write_bytes(png)
+    with pytest.raises(ScanFormatError, match="declares 100000 x 100000 pixels"):
+        load_scan(tmp_path / "1566535872045000.png", "boreas")
+    res = _import(tmp_path, tmp_path / "1566535872045000.png")
+    assert res.exit_code == 2 and "declares 100000 x 100000 pixels" in res.output and "Traceback" not in res.output

@@ -67,7 +67,12 @@ def test_read_poses_dispatches_on_first_line(tmp_path):
 def _random_poses(n: int = 7, seed: int = 0) -> PoseSequence:
     rng = np.random.default_rng(seed)
     t = 1630597331060160 + np.cumsum(rng.integers(200_000, 300_000, n))
-    return PoseSequence(t, rng.uniform(-1e3, 1e3, (n, 2)) + [623000.0, 4848000.0], rng.uniform(-np.pi, np.pi, n))
+    # a drive round a bend of random radius and start, headings along it (plus one mounting angle): the readers
+    # refuse headings that do not follow the travel
+    a = rng.uniform(-np.pi, np.pi) + np.cumsum(rng.uniform(0.05, 0.2, n))
+    radius = rng.uniform(50.0, 200.0)
+    xy = radius * np.c_[np.cos(a), np.sin(a)] + [623000.0, 4848000.0] + rng.uniform(-1e3, 1e3, 2)
+    return PoseSequence(t, xy, a + np.pi / 2 + rng.uniform(-np.pi, np.pi))
 
 
 @pytest.mark.parametrize(
@@ -344,3 +349,26 @@ def test_a_utf8_byte_order_mark_is_no_data(tmp_path):
     boreas = tmp_path / "radar_poses.csv"
     boreas.write_bytes(("\ufeff" + ",".join(BOREAS_COLUMNS) + "\n1600000000000000" + ",0" * 12 + "\n").encode())
     assert len(read_poses(boreas)) == 1
+
+
+def _bend_drive(n: int = 200) -> PoseSequence:
+    """A 90-degree left bend of 60 m radius, headings along the road (counter-clockwise from +x)."""
+    a = np.linspace(-np.pi / 2, 0.0, n)
+    t = 1630597331060160 + np.arange(n, dtype=np.int64) * 50_000
+    return PoseSequence(t, 60.0 * np.c_[np.cos(a), np.sin(a)] + [623000.0, 4848000.0], a + np.pi / 2)
+
+
+def test_headings_of_another_convention_are_refused(tmp_path):
+    """QA session 38: a compass heading (clockwise from north) in a Boreas file, and a MulRan rotation written column
+    by column, built maps whose keyframes all faced the wrong way, without a word."""
+    drive = _bend_drive()
+    compass = PoseSequence(drive.timestamps_us, drive.xy, np.pi / 2 - drive.yaw)
+    with pytest.raises(PoseFileError, match="heading column does not follow the direction of travel.*compass"):
+        read_boreas_radar_poses(write_boreas_radar_poses(compass, tmp_path / "b.csv"))
+    transposed = PoseSequence(drive.timestamps_us, drive.xy, -drive.yaw)  # what R.T gives
+    with pytest.raises(PoseFileError, match="rotation does not follow the direction of travel.*row by row"):
+        read_mulran_global_pose(write_mulran_global_pose(transposed, tmp_path / "m.csv"))
+    # the same drive as recorded, and driven with the sensor mounted backwards, read fine
+    read_boreas_radar_poses(write_boreas_radar_poses(drive, tmp_path / "ok.csv"))
+    backwards = PoseSequence(drive.timestamps_us, drive.xy, drive.yaw + np.pi)
+    read_mulran_global_pose(write_mulran_global_pose(backwards, tmp_path / "ok2.csv"))

@@ -306,12 +306,18 @@ def main() -> None:
                     print(f"UNEXPECTED {a.name}: {resp.status_code} {body}", file=sys.stderr)
             if args.real_model:  # last: its memory would be reused by the attacks after it (the fake extractor
                 # makes every bright pixel of random data a keypoint, so this row means nothing with it)
+                # the most pixels RERADAR_MAX_SCAN_PIXELS (1.6 M) lets through in a preset's range geometry: 424
+                # azimuths x Oxford's 3,768 bins (session 38: a 400 x 4000 array fits no preset and was refused
+                # with 422, which this row recorded without a check)
                 big = io.BytesIO()
-                np.save(big, np.random.default_rng(0).integers(0, 256, (400, 4000), dtype=np.uint8))
+                np.save(big, np.random.default_rng(0).integers(0, 256, (424, 3768), dtype=np.uint8))
                 resp, dt, peak = server.measure(lambda: httpx.post(
-                    f"{server.url}/localize", data={"map_id": map_id}, files={"scan": ("big.npy", big.getvalue())},
-                    timeout=120))
-                rows.append(("largest accepted scan: random .npy 400 x 4000 (1.6 M pixels)", resp.status_code, dt, peak))
+                    f"{server.url}/localize", data={"map_id": map_id, "preset": "oxford"},
+                    files={"scan": ("big.npy", big.getvalue())}, timeout=120))
+                rows.append(("largest accepted scan: random .npy 424 x 3768, preset oxford (1.6 M pixels)",
+                             resp.status_code, dt, peak))
+                if resp.status_code != 200:
+                    print(f"UNEXPECTED largest accepted scan: {resp.status_code} {resp.text[:300]}", file=sys.stderr)
             t0 = time.perf_counter()
             statuses = close_slow_clients(slow_clients(server.url))
             rows.append((f"{len(statuses)} clients declaring 1 MB, sending 6 bytes (all closed)",

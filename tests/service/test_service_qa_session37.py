@@ -233,3 +233,13 @@ def test_a_scan_id_is_its_uploaders(tmp_path: Path, fake_map: Path) -> None:
             assert r.status_code == status, (key[:8], r.text)
         r = c.post("/maps/m/retrieve", json={"scan_id": scan_id}, headers={"X-API-Key": key_b})
         assert r.status_code == 404 and "unknown or expired scan_id" in r.json()["detail"]
+
+
+def test_public_map_source_shows_no_build_path() -> None:
+    """QA session 38: the public GET /maps showed the build machine's absolute path in ``source``."""
+    from service.api.routes.maps import public_source
+
+    assert public_source("boreas:/home/ops/runs/2021-09-02") == "boreas:2021-09-02"
+    assert public_source("mulran:C:\\data\\DCC01") == "mulran:DCC01"
+    assert public_source("upload:archive.zip") == "upload:archive.zip"
+    assert public_source(None) is None

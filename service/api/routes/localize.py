@@ -77,13 +77,21 @@ def _prior(fields: dict[str, Any]) -> PosePrior | None:
 _E = {"model": ErrorResponse}
 
 
+def _form_number(name: str) -> dict:
+    """The OpenAPI schema of a numeric form field: the JSON body's, bounds included (``LocalizeRequest``), so both
+    encodings document the same limits (the multipart ones said only "number")."""
+    prop = LocalizeRequest.model_json_schema()["properties"][name]
+    number = next(b for b in prop.get("anyOf", [prop]) if b.get("type") == "number")
+    return {k: v for k, v in {**number, "description": prop.get("description")}.items() if v is not None}
+
+
 @router.post("/localize", response_model=LocalizeResponse, operation_id="localize",
              responses={400: _E, 404: _E, 409: _E, 413: _E, 415: _E, 422: _E},
              openapi_extra=scan_request_body(LocalizeRequest, {
                  "map_id": {"type": "string", "pattern": MAP_ID_PATTERN, "x-required": True},
                  "top_k": {"type": "integer", "minimum": 1, "maximum": 100},
                  "session_id": {"type": "string", "pattern": SESSION_ID_PATTERN},
-                 **{k: {"type": "number"} for k in (*_ODOM, *_PRIOR, *_PRIOR_SIGMAS)}}))
+                 **{k: _form_number(k) for k in (*_ODOM, *_PRIOR, *_PRIOR_SIGMAS)}}))
 async def localize(request: Request, state: StateDep) -> LocalizeResponse:
     """Localize one scan on a map. JSON ``{map_id, scan_id}`` for a scan uploaded with ``POST /scans``, or
     multipart/form-data with ``map_id`` and a ``scan`` file (Navtech PNG / .npy). ``status`` is

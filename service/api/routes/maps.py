@@ -5,7 +5,7 @@ from __future__ import annotations
 import shutil
 import time
 import uuid
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Annotated
 
 import numpy as np
@@ -44,6 +44,19 @@ router = APIRouter(prefix="/maps", tags=["maps"], route_class=ClosedFormRoute)
 _E = {"model": ErrorResponse}
 
 
+
+def public_source(source: str | None) -> str | None:
+    """A map's ``source`` as the public ``GET /maps`` shows it: the layout and the folder's name, not the build
+    machine's path (``boreas:/data/runs/2021-09-02`` -> ``boreas:2021-09-02``; the map file keeps the whole path)."""
+    if not source or ":" not in source:
+        return source
+    kind, _, where = source.partition(":")
+    path = where.replace("\\", "/")  # a Windows build machine's path too
+    if "/" not in path:
+        return source  # no path in it (e.g. upload:archive.zip)
+    return f"{kind}:{PurePosixPath(path).name or path}"
+
+
 def map_info(entry: MapEntry, note: str | None = None) -> MapInfo:
     info = MapInfo(id=entry.map_id, state=entry.state, progress=entry.progress, error=entry.error, note=note,
                    scans_done=entry.scans_done, scans_total=entry.scans_total,
@@ -56,7 +69,7 @@ def map_info(entry: MapEntry, note: str | None = None) -> MapInfo:
         info.num_keyframes = len(entry.db)
         info.model_id, info.weights_sha256 = m.model_id, m.weights_sha256
         info.radar_preset, info.descriptor_dim = m.radar_preset, m.descriptor_dim
-        info.created_utc, info.source = m.created_utc, m.source
+        info.created_utc, info.source = m.created_utc, public_source(m.source)
         info.index_kind = entry.db.index.kind
         info.pose_time = m.pose_time  # type: ignore[assignment]  # the store checks it is one of the two
         info.place_repetition = ("stored" if entry.db.repetition_adopted
