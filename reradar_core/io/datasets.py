@@ -70,6 +70,7 @@ __all__ = [
     "check_pose_span",
     "check_pose_time_unit",
     "check_pose_speed",
+    "check_pose_steps",
     "MAX_PLAUSIBLE_SPEED_M_S",
     "check_scan_name_times",
     "first_confirmed_problem",
@@ -738,8 +739,19 @@ def check_pose_speed(track: PoseSequence, pose_file: str = "the pose file",
                            f"{path_m / span_s:.3g} m/s (faster than sound; a road vehicle drives up to ~100 m/s): "
                            "positions must be metres (a file in millimetres or centimetres?), and the times in the "
                            f"unit they are read in ({how})")
-    # one row off by hundreds of metres (a GNSS glitch) passes the mean, and moved the keyframes around it there
-    # (QA session 38): a step of more than PLAUSIBLE_SPEED_MIN_PATH_M faster than sound is named
+    check_pose_steps(track, pose_file)
+
+
+def check_pose_steps(track: PoseSequence, pose_file: str = "the pose file") -> None:
+    """Refuse a single step between two poses of more than ``PLAUSIBLE_SPEED_MIN_PATH_M``, faster than
+    ``MAX_PLAUSIBLE_SPEED_M_S``: one row off by hundreds of metres (a GNSS glitch) passes the mean speed, and moved
+    the keyframes around it there (QA session 38).
+
+    Raises:
+        DatasetError: naming the row's time, the step and how many such steps there are.
+    """
+    if len(track) < 2:
+        return
     step = np.linalg.norm(np.diff(track.xy, axis=0), axis=1)
     dt_s = np.diff(track.timestamps_us).astype(np.float64) / 1e6
     with np.errstate(divide="ignore", invalid="ignore"):

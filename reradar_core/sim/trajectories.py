@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from reradar_core.errors import ConfigError, PoseFileError
+from reradar_core.errors import ConfigError, PoseFileError, ReRadarError
 from reradar_core.geometry.se2 import wrap_angle
 from reradar_core.io.poses import PoseSequence, read_poses
 from reradar_core.sim.world import stable_seed
@@ -80,7 +80,8 @@ def check_render_trajectory(traj: PoseSequence, path: str | Path, time_unit: str
         ConfigError: negative times (scan files are named by their time in µs, which ``reradar info`` / ``bench``
             read as non-negative timestamps), fewer than 2 poses, a time span of one sweep
             (``SWEEP_PERIOD_S``) or less, a path of ``MIN_RENDER_PATH_M`` or less, or a drive of at least
-            ``PLAUSIBLE_SPEED_MIN_PATH_M`` at a mean speed outside ``PLAUSIBLE_SPEED_M_S`` (a time unit 1000x off).
+            ``PLAUSIBLE_SPEED_MIN_PATH_M`` at a mean speed outside ``PLAUSIBLE_SPEED_M_S`` (a time unit 1000x off),
+            or one step faster than sound (a position glitch, ``io.datasets.check_pose_steps``).
     """
     n = len(traj)
     if n and int(traj.timestamps_us[0]) < 0:
@@ -94,6 +95,12 @@ def check_render_trajectory(traj: PoseSequence, path: str | Path, time_unit: str
         raise ConfigError(f"{path}: the trajectory drives {length:.1f} m in {span_s:.6g} s, a mean speed of "
                           f"{length / span_s:.3g} m/s (a road vehicle drives {lo:g}-{hi:g} m/s): "
                           f"{_speed_unit_advice(span_s * 1e6, length, time_unit)}")
+    from reradar_core.io.datasets import check_pose_steps
+
+    try:  # after the mean: a whole file in another time unit gets the unit advice, a single glitch this
+        check_pose_steps(traj, str(path))
+    except ReRadarError as exc:
+        raise ConfigError(str(exc)) from None
     if n < 2 or span_s <= SWEEP_PERIOD_S or length <= MIN_RENDER_PATH_M:
         raise ConfigError(f"{path}: the trajectory has {n} pose(s) over {span_s:g} s and {length:g} m; a render "
                           f"needs at least 2 poses spanning more than one radar sweep ({SWEEP_PERIOD_S:g} s) and "
