@@ -26,9 +26,11 @@ logger = logging.getLogger(__name__)
 SCHEMA_VERSION = 1
 
 
-def sequence_key(name: str, root: str | Path) -> str:
-    """Cache-file stem for a sequence: its name plus a hash of its absolute folder."""
-    h = hashlib.sha256(str(Path(root).resolve()).encode()).hexdigest()[:8]
+def sequence_key(name: str, root: str | Path, preset: str | None = None) -> str:
+    """Cache-file stem for a sequence: its name plus a hash of its absolute folder and the radar preset it is read
+    with (the same folder read as boreas or boreas-2021 has other ranges: QA session 38 got the other preset's
+    figures from the cache)."""
+    h = hashlib.sha256(f"{Path(root).resolve()}|{preset or ''}".encode()).hexdigest()[:8]
     return f"{name}-{h}"
 
 

@@ -12,12 +12,15 @@ Ways to name the data:
 
 from __future__ import annotations
 
+import fcntl
 import json
 import logging
 import math
 import os
 from pathlib import Path
+from typing import IO
 
+import numpy as np
 import typer
 
 from reradar_core.errors import ReRadarError
@@ -120,6 +123,7 @@ def bench(
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):  # BLAS libraries loaded later (scipy's) read these
         os.environ.setdefault(var, str(max(1, threads)))
     staged: Path | None = None  # --out while this run's per-query arrays wait in its staging folder
+    lock: IO[str] | None = None  # held on --out while this run writes there
     try:
         if (suite is None) == (database is None):
             raise typer.BadParameter("give either --suite NAME or --database DIR with --query DIR")
@@ -136,6 +140,15 @@ def bench(
         if database is not None and split_at is None and any(q.resolve() == database.resolve() for q in query or []):
             raise typer.BadParameter("a --query folder is the --database folder: every query would find itself "
                                      "(Recall@1 100 %); give another drive, or --split-at to split one drive")
+        # the methods first: an unknown name is refused before a suite is rendered (QA session 38)
+        names, dropped = unique_methods(_split(methods) or default_method_names())
+        if dropped:
+            typer.echo(f"note: --methods names {', '.join(dropped)} more than once; each runs once")
+        method_objs, aliases = unique_method_objects([make_method(n) for n in names], labels=names)
+        if aliases:  # e.g. 'ours' and the default model, 'netvlad' and 'resnet18-netvlad'
+            typer.echo("note: --methods names one method twice: " + ", ".join(f"{a} is {k}" for a, k in aliases)
+                       + " (an alias); it runs once")
+            names = [m.name for m in method_objs]
         if suite is not None:
             if query or time_unit:
                 given = " and ".join(o for o, v in (("--query", query), ("--time-unit", time_unit)) if v)
@@ -159,17 +172,21 @@ def bench(
             pairs, default_radius = pairs_from_folders(database, list(query or []), preset=preset, layout=layout,
                                                        every=every or 1, limit=limit, query_limit=query_limit,
                                                        split_at=split_at, time_unit=time_unit)
+            if split_at is None:
+                for p in pairs:  # a copy (or hard link) of the database passes the path check above
+                    if _same_scans(p.database, p.query):
+                        raise typer.BadParameter(f"query sequence {p.query.name!r} holds the database's scans (same "
+                                                 "names, sizes and times: a copy of it): every query would find "
+                                                 "itself (Recall@1 100 %); give another drive, or --split-at to "
+                                                 "split one drive")
             label = f"{database.name}" + ("" if split_at is None else f"-split-{_safe(split_at)}")
             every_note = (f"every {every or 1} scan(s) of the folders"
                           + (" (default 1: pass --every N to subsample)" if every is None else ""))
-        names, dropped = unique_methods(_split(methods) or default_method_names())
-        if dropped:
-            typer.echo(f"note: --methods names {', '.join(dropped)} more than once; each runs once")
-        method_objs, aliases = unique_method_objects([make_method(n) for n in names])
-        if aliases:  # e.g. 'ours' and the default model, 'netvlad' and 'resnet18-netvlad'
-            typer.echo("note: --methods names the method " + ", ".join(f"{a} (= {k})" for a, k in aliases)
-                       + " twice (as an alias); it runs once")
-            names = [m.name for m in method_objs]
+        if limit is not None or query_limit is not None:  # said where the spacing is (QA session 38: results.md
+            # read "every 1 scan" for a run that kept 10 of 40 database scans)
+            kept = [f"at most {limit} scans per sequence" if limit is not None else "",
+                    f"at most {query_limit} queries per query sequence" if query_limit is not None else ""]
+            every_note += "; then " + " and ".join(k for k in kept if k) + " (evenly spread: --limit / --query-limit)"
         # every BLAS loaded by now (numpy's, scipy's, opencv's) gets --threads: two pools fighting over 2 cores
         # make the screen's descriptor product 20x slower (docs/BENCHMARKS.md, issue 12)
         limit_blas_threads(max(1, threads))
@@ -184,6 +201,7 @@ def bench(
                    if p.split else "")
             typer.echo(f"  {p.name}: database sequence {p.database.name!r} ({len(p.database)} scans), query "
                        f"sequence {p.query.name!r} ({len(p.query)} scans){cut}")
+        lock = _lock_out(out_dir)
         staged = out_dir
         results = run_benchmark(pairs, method_objs, out_dir, cfg, suite=label, commit=False)
         results["settings"].update(threads=threads, every=every if every is not None else (1 if suite is None
@@ -197,7 +215,7 @@ def bench(
                                    method_models={m.name: str(getattr(m.extractor, "name", "") or "")  # type: ignore[attr-defined]
                                                   for m in method_objs if getattr(m, "extractor", None) is not None},
                                    # a run on recorded folders names the database folder, not a suite
-                                   database_folder=None if database is None else str(database))
+                                   database_folder=None if database is None else str(database.resolve()))
         ours = [m for m in method_objs if m.provides_pose]
         # after the progress bar: each stage says what it does, so a run that seems done is not read as hung
         if timing and ours:
@@ -210,6 +228,7 @@ def bench(
         # the run is complete: its per-query arrays replace the earlier run's, then its results are written
         commit_per_query(out_dir)
         staged = None
+        earlier_figures = _figures_of(out_dir / "results.json")  # an earlier run's, read before it is replaced
         jpath, mpath = write_results(results, out_dir)
         if plots:
             typer.echo("figures ...")
@@ -217,15 +236,62 @@ def bench(
         # rewrite with the figure list (results.json is the single source for the docs)
         results["figures"] = [str(p.name) for p in figs] + results.get("figures", [])
         jpath.write_text(json.dumps(results, indent=2) + "\n")
+        _remove_stale_figures(out_dir, earlier_figures, results["figures"])
     except ReRadarError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc
     finally:
         if staged is not None:  # failed or interrupted after the benchmark ran: the earlier arrays stay
             discard_per_query_staging(staged)
+        if lock is not None:
+            lock.close()  # releases the --out lock
     typer.echo(results_markdown(results))
     n_figs = len(results.get("figures", []))  # the yaw-consistency curve included
     typer.echo(f"wrote {jpath}, {mpath}" + (f" and {n_figs} figure{'' if n_figs == 1 else 's'}" if n_figs else ""))
+
+
+def _same_scans(database, query) -> bool:
+    """True when two sequences hold the same scans: the same file names, sizes and scan times."""
+    if len(database) != len(query) or not np.array_equal(database.timestamps_us, query.timestamps_us):
+        return False
+    return all(a.name == b.name and a.stat().st_size == b.stat().st_size
+               for a, b in zip(database.scan_paths, query.scan_paths, strict=True))
+
+
+#: The lock file a run holds in its --out folder while it writes there.
+OUT_LOCK_FILE = ".reradar-bench.lock"
+
+
+def _lock_out(out_dir: Path) -> IO[str]:
+    """Take ``out_dir``'s run lock (created with the folder), or refuse: two runs on one --out deleted each other's
+    per-query arrays and left a results.json without them (QA session 38). The lock goes with the process."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fh = (out_dir / OUT_LOCK_FILE).open("w")
+    try:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        fh.close()
+        raise typer.BadParameter(f"--out {out_dir}: another reradar bench run is writing there; wait for it to "
+                                 "finish, or choose another --out") from None
+    return fh
+
+
+def _figures_of(results_json: Path) -> list[str]:
+    """The figure file names an earlier run's results.json lists ([] without a readable one)."""
+    try:
+        figures = json.loads(results_json.read_text()).get("figures", [])
+    except (OSError, ValueError, AttributeError):
+        return []
+    return [f for f in figures if isinstance(f, str)]
+
+
+def _remove_stale_figures(out_dir: Path, earlier: list[str], now: list[str]) -> None:
+    """Remove the figures of the earlier run in ``out_dir`` that this run did not draw again: they showed that run's
+    queries and methods beside this run's results (QA session 38). Plain ``.png`` names inside the folder only."""
+    for name in set(earlier) - set(now):
+        path = out_dir / name
+        if Path(name).name == name and name.endswith(".png") and path.is_file() and not path.is_symlink():
+            path.unlink()
 
 
 def _every_text(every: int) -> str:
@@ -259,18 +325,19 @@ def method_identity(method: object) -> tuple[str, str]:
     return f"{cls.__module__}.{cls.__qualname__}", json.dumps(params, sort_keys=True, default=str)
 
 
-def unique_method_objects(methods: list) -> tuple[list, list[tuple[str, str]]]:
+def unique_method_objects(methods: list, labels: list[str] | None = None) -> tuple[list, list[tuple[str, str]]]:
     """``methods`` without a second object of the same method (``method_identity``), the first kept in order,
-    and for each dropped one (its name, the kept method's name)."""
+    and for each dropped one (the name it was given as, ``labels[i]`` or its own name; the kept one's, likewise)."""
     kept: list = []
     first: dict[tuple[str, str], str] = {}
     dropped: list[tuple[str, str]] = []
-    for m in methods:
+    for i, m in enumerate(methods):
+        given = labels[i] if labels is not None else m.name
         key = method_identity(m)
         if key in first:
-            dropped.append((m.name, first[key]))
+            dropped.append((given, first[key]))
         else:
-            first[key] = m.name
+            first[key] = given
             kept.append(m)
     return kept, dropped
 

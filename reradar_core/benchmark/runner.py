@@ -129,7 +129,7 @@ def prepare_sequence(methods: Seq[PlaceRecognitionMethod], seq: Sequence, config
         bar: the run's overall progress bar (advanced by one step per scan and method); without it a bar of
             its own is shown when ``config.progress``.
     """
-    skey = sequence_key(seq.name, seq.root)
+    skey = sequence_key(seq.name, seq.root, seq.preset.name)
     caches = {m.name: FeatureCache(m.cache_key, skey, config.cache_root, config.use_cache, source_root=seq.root)
               for m in methods}
     out: dict[str, PreparedSet] = {m.name: PreparedSet([], np.zeros(len(seq))) for m in methods}
@@ -177,10 +177,13 @@ def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: n
         bar: the run's overall progress bar (one step per query); replaces the per-method bar.
         pose_refs: (database (N, 3), query (Q, 3)) poses at the scans' mid-sweep times
             (docs/CONVENTIONS.md): a pose-estimating method localizes against the first and its poses are
-            scored against the second. None: ``db_poses`` / ``query_poses``.
+            scored against the second; a heading-only method's heading is applied to the first and scored against
+            the second. None: ``db_poses`` / ``query_poses``.
     """
     rule = sr_rule(method)
-    refs = pose_refs if rule == "pose" else None
+    # a heading, too, relates two whole sweeps, i.e. their mid-sweep poses: a heading-only method (ReFeree) scored
+    # against the scan-timestamp yaw lost correct answers at corners (QA session 38: 3 of 51 on a U-turn)
+    refs = pose_refs if rule in ("pose", "heading") else None
     kf_poses = refs[0] if refs is not None else db_poses
     gt_poses = refs[1] if refs is not None else None
     if fit:
@@ -215,7 +218,7 @@ def evaluate_method(method: PlaceRecognitionMethod, db: PreparedSet, db_poses: n
                 covariance[i] = r.pose_covariance
         elif r.heading_rad is not None:
             # heading-only: the keyframe's position, the estimated yaw (only the yaw is scored)
-            est[i] = compose(db_poses[r.index], np.array([0.0, 0.0, r.heading_rad]))
+            est[i] = compose(kf_poses[r.index], np.array([0.0, 0.0, r.heading_rad]))
     outcome = make_outcome(retrieved, dist, est, query_poses, db_poses, radius_m, rule, gt_poses)
     if np.isfinite(covariance).any():
         outcome.pose_covariance = covariance
@@ -379,7 +382,7 @@ def _rotation_stress(pair: BenchPair, methods: Seq[PlaceRecognitionMethod], dbp:
 
 
 def _database_key(pair: BenchPair) -> str:
-    return sequence_key(pair.database.name, pair.database.root) + f"-{len(pair.database)}"
+    return sequence_key(pair.database.name, pair.database.root, pair.database.preset.name) + f"-{len(pair.database)}"
 
 
 def total_steps(pairs: Seq[BenchPair], n_methods: int, config: BenchConfig) -> int:
@@ -441,7 +444,7 @@ def _run_pairs(pairs: Seq[BenchPair], methods: Seq[PlaceRecognitionMethod], per_
                      "methods": [m.name for m in methods],
                      "method_params": {m.name: m.params() for m in methods},
                      "pairs": {p.name: {"database": p.database.name, "query": p.query.name,
-                                        "query_folder": str(p.query.root),
+                                        "query_folder": str(Path(p.query.root).resolve()),
                                         "n_database": len(p.database), "n_query": len(p.query),
                                         "split": p.split}
                                for p in pairs},

@@ -237,7 +237,7 @@ def test_ours_and_the_default_model_run_once_and_the_row_names_the_model(loop_se
     r = _bench(["--database", str(db.root), "--query", str(q.root), "--preset", "boreas", "--limit", "3",
                 "--methods", f"ours,{DEFAULT_MODEL}", "--no-timing", "--no-rotation", "--out", str(out)])
     assert r.exit_code == 0, r.output
-    assert f"note: --methods names the method {DEFAULT_MODEL} (= ours) twice (as an alias); it runs once" in r.output
+    assert f"note: --methods names one method twice: {DEFAULT_MODEL} is ours (an alias); it runs once" in r.output
     res = json.loads((out / "results.json").read_text())
     assert res["settings"]["methods"] == ["ours"] and res["settings"]["method_models"] == {"ours": DEFAULT_MODEL}
     md = (out / "results.md").read_text()
