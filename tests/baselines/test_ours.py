@@ -31,18 +31,26 @@ def _keyframe(rng, n=60):
     return xy, desc, g / np.linalg.norm(g)
 
 
-def test_localize_recovers_known_pose_and_reranks_by_inliers():
+_DB_POSES = np.array([[0.0, 0.0, 0.0], [100.0, 50.0, 1.0], [30.0, -20.0, -2.0]])
+_T_KF_Q = np.array([3.0, -1.5, 0.4])
+
+
+def _query_at_keyframe_1(decoy: bool):
+    """Three keyframes at ``_DB_POSES`` and a query at keyframe 1 offset by ``_T_KF_Q``; with ``decoy`` its global
+    descriptor is closest to keyframe 2. Returns (ours, index, db, q)."""
     rng = np.random.default_rng(0)
-    db_poses = np.array([[0.0, 0.0, 0.0], [100.0, 50.0, 1.0], [30.0, -20.0, -2.0]])
-    kfs = [_keyframe(rng) for _ in db_poses]
+    kfs = [_keyframe(rng) for _ in _DB_POSES]
     db = [features_to_prepared(ScanFeatures(g, xy, d, 0)) for xy, d, g in kfs]
-    # the query is at keyframe 1, offset by T_kf_query; its global descriptor is closest to keyframe 2
-    T_kf_q = np.array([3.0, -1.5, 0.4])
-    xy, d, _ = kfs[1]
-    q_xy = transform_points(inverse(T_kf_q), xy)
-    q = features_to_prepared(ScanFeatures(kfs[2][2] * 0.9 + kfs[1][2] * 0.1, q_xy, d, 0))
+    xy, d, g = kfs[1]
+    g_q = kfs[2][2] * 0.9 + g * 0.1 if decoy else g
+    q = features_to_prepared(ScanFeatures(g_q, transform_points(inverse(_T_KF_Q), xy), d, 0))
     ours = Ours(_FakeExtractor(), name="ours-test")
-    index = ours.build_index([ours.describe_prepared(r) for r in db])
+    return ours, ours.build_index([ours.describe_prepared(r) for r in db]), db, q
+
+
+def test_localize_recovers_known_pose_and_reranks_by_inliers():
+    ours, index, db, q = _query_at_keyframe_1(decoy=True)
+    db_poses, T_kf_q = _DB_POSES, _T_KF_Q
     r = ours.localize(q, ours.describe_prepared(q), index, db, db_poses)
     assert r.index == 1  # re-ranked by inliers, not the descriptor's favourite (2)
     assert r.pose is not None
@@ -85,17 +93,9 @@ def test_far_suffix_names_a_separate_row_and_applies_to_recall_methods_only() ->
 
 def test_new_poses_for_the_same_database_are_a_new_map():
     """QA session 38: the Localizer was kept per (id(index), id(db)), so poses shifted by 1 km answered the old pose."""
-    rng = np.random.default_rng(0)
-    db_poses = np.array([[0.0, 0.0, 0.0], [100.0, 50.0, 1.0], [30.0, -20.0, -2.0]])
-    kfs = [_keyframe(rng) for _ in db_poses]
-    db = [features_to_prepared(ScanFeatures(g, xy, d, 0)) for xy, d, g in kfs]
-    T_kf_q = np.array([3.0, -1.5, 0.4])
-    xy, d, g = kfs[1]
-    q = features_to_prepared(ScanFeatures(g, transform_points(inverse(T_kf_q), xy), d, 0))
-    ours = Ours(_FakeExtractor(), name="ours-test")
-    index = ours.build_index([ours.describe_prepared(r) for r in db])
-    first = ours.localize(q, ours.describe_prepared(q), index, db, db_poses)
-    shifted = db_poses + np.array([1000.0, 0.0, 0.0])
+    ours, index, db, q = _query_at_keyframe_1(decoy=False)
+    first = ours.localize(q, ours.describe_prepared(q), index, db, _DB_POSES)
+    shifted = _DB_POSES + np.array([1000.0, 0.0, 0.0])
     again = ours.localize(q, ours.describe_prepared(q), index, db, shifted)
     assert first.pose is not None and again.pose is not None
     np.testing.assert_allclose(again.pose[:2], first.pose[:2] + [1000.0, 0.0], atol=1e-6)
