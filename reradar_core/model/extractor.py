@@ -173,11 +173,6 @@ def sample_feature_map(fmap: torch.Tensor | np.ndarray, rc_px: np.ndarray, strid
     return out[0, :, 0].T.contiguous().numpy()
 
 
-def _check_scan(scan: object, what: str) -> None:
-    """``ConfigError`` unless ``scan`` is a ``RadarScan`` (a path, an image array or None named as such)."""
-    require_scan(scan, what)
-
-
 class DescriptorExtractor:
     """Inference wrapper around the exported descriptor network.
 
@@ -392,7 +387,7 @@ class DescriptorExtractor:
     def describe(self, scan: RadarScan, landmarks: Any = None) -> ScanFeatures:
         """One scan -> ``ScanFeatures`` (landmarks detected with Cen 2018 unless given as ``Landmarks`` or
         an (N, 2) array of sensor-frame metres)."""
-        _check_scan(scan, "describe")
+        require_scan(scan, "describe")
         g, f = self.run_images(self.cartesian_image(scan)[None])
         return self._features(scan, g[0], f[0], landmarks)
 
@@ -400,7 +395,7 @@ class DescriptorExtractor:
                        batch_size: int = 16) -> list[ScanFeatures]:
         """Many scans, network batched ``batch_size`` at a time (map building)."""
         for scan in scans:
-            _check_scan(scan, "describe_batch")
+            require_scan(scan, "describe_batch")
         out: list[ScanFeatures] = []
         for start in range(0, len(scans), batch_size):
             chunk = scans[start:start + batch_size]
