@@ -235,13 +235,15 @@ def localize_command(
         "--follow: trajectory PNG, a .png file in an existing folder (default: <folder>-follow.png beside the "
         "folder); an existing folder gets <folder>-follow.png inside it. Checked before the replay starts.")),
     seed: int = typer.Option(0, help="--follow: seed of the odometry noise."),
+    timeout: float = typer.Option(60.0, "--timeout", min=0.1, help="Seconds to wait for each answer (a server "
+                                  "that accepts the connection but does not answer is reported after it)."),
     time_unit: str | None = typer.Option(None, "--time-unit", callback=_one_of("s", "ms", "us", "ns"), help=(
         "--follow: unit of the folder's pose-file timestamps (s, ms, us, ns) when they are not absolute UTC "
         "times; never guessed (as build-map --time-unit).")),
 ) -> None:
     """Localize one scan with a running service (or replay a drive with --follow); prints the map-frame pose
     (metres, degrees). Exit status: 0 localized, 1 not localized (--follow: a localized answer off the ground
-    truth), 2 an error (bad argument or URL, an error answer, or an answer that is not the ReRadar API's), 3 the
+    truth, a scan answered with an error, or no scan localized at all), 2 an error (bad argument or URL, an error answer, or an answer that is not the ReRadar API's), 3 the
     server cannot be reached."""
     import logging
 
@@ -266,20 +268,27 @@ def localize_command(
         typer.echo(f"error: {', '.join(given)} {verb} to a replay with --follow DIR only; a single SCAN is localized "
                    f"once (drop {them}, or give --follow)", err=True)
         raise typer.Exit(2)
+    single_only = {"--json": as_json, "--scan-layout": scan_layout is not None}
+    given_single = [name for name, set_ in single_only.items() if set_]
+    if given_single and follow is not None:  # they were dropped without a word
+        typer.echo(f"error: {', '.join(given_single)} appl{'ies' if len(given_single) == 1 else 'y'} to a single "
+                   "SCAN; --follow replays a folder's PNG scans and prints a table and a summary", err=True)
+        raise typer.Exit(2)
     if odometry not in ("ground-truth", "none"):
         typer.echo("error: --odometry must be `ground-truth` or `none`", err=True)
         raise typer.Exit(2)
     try:
-        client = ReRadarClient(server, api_key=api_key or None)
-    except ValueError as exc:  # not an http(s) URL with a host: nothing was sent
-        typer.echo(f"error: --server: {exc}", err=True)
+        client = ReRadarClient(server, api_key=api_key or None, timeout=timeout)
+    except ValueError as exc:  # not an http(s) URL with a host, or an unusable key: nothing was sent
+        typer.echo(f"error: {'' if str(exc).startswith('invalid API key') else '--server: '}{exc}", err=True)
         raise typer.Exit(2) from None
     try:
         with client:
             if follow is not None:
                 from service.follow import follow_sequence
 
-                raise typer.Exit(follow_sequence(client, follow, map_id, echo=typer.echo, top_k=top_k,
+                raise typer.Exit(follow_sequence(client, follow, map_id, echo=typer.echo,
+                                                 echo_err=lambda line: typer.echo(line, err=True), top_k=top_k,
                                                  odometry=odometry, odometry_noise=odometry_noise, every=every,
                                                  limit=limit, tracking=not no_tracking, out=out, seed=seed,
                                                  session=session, preset=preset, time_unit=time_unit))
@@ -304,6 +313,9 @@ def localize_command(
         typer.echo(f"error: --server {server!r} is not a usable URL ({exc}); give e.g. http://127.0.0.1:8080",
                    err=True)
         raise typer.Exit(2) from None
+    except httpx.TimeoutException as exc:
+        typer.echo(f"error: {server} did not answer within {timeout:g} s ({exc}; --timeout)", err=True)
+        raise typer.Exit(3) from exc
     except httpx.TransportError as exc:
         typer.echo(f"error: cannot reach {server}: {exc}", err=True)
         raise typer.Exit(3) from exc
@@ -316,7 +328,7 @@ def localize_command(
         typer.echo(f"localized: x={res.pose.x_m:.2f} m y={res.pose.y_m:.2f} m yaw={res.pose.yaw_deg:.2f} deg{sigma} "
                    f"(map {res.map_id}, keyframe {res.keyframe.keyframe_id}, {res.num_inliers} inliers, "
                    f"{res.mode}{', far view' if res.view == 'far' else ''}, "
-                   f"{res.timings_ms.get('total_ms', 0):.0f} ms)")
+                   f"server {res.timings_ms.get('total_ms', 0):.0f} ms)")
     else:
         typer.echo(f"not localized: {res.reason} ({res.num_inliers} inliers, {100 * res.inlier_ratio:.1f} % of "
                    f"the landmarks aligned, confidence {res.confidence:.2f}"
@@ -324,11 +336,18 @@ def localize_command(
     raise typer.Exit(0 if res.status == "localized" else 1)
 
 
-def _polar_npy_preset(scan: Path) -> str:
+def _polar_npy_preset(scan: Path) -> str | None:
     """The preset of a polar .npy scan, from its header's range-bin count (``infer_preset``: refused when
-    ambiguous), checked against its shape; the server would otherwise read it with Oxford geometry."""
+    ambiguous), checked against its shape; the server would otherwise read it with Oxford geometry. None on the
+    vehicle-side install (no scan readers there): the server then reads it with the map's preset, as it says."""
     from reradar_core.errors import ScanFormatError
-    from reradar_core.io.scan import check_polar_shape, infer_preset, read_npy_header
+
+    try:
+        from reradar_core.io.scan import check_polar_shape, infer_preset, read_npy_header
+    except ModuleNotFoundError:  # `pip install .` (the client) has no OpenCV, which the scan readers import
+        typer.echo("note: the polar .npy goes without a preset (this install cannot read scans): the server reads "
+                   "it with the map's radar preset; give --preset to name it", err=True)
+        return None
 
     try:
         with scan.open("rb") as fh:

@@ -154,6 +154,11 @@ class ReRadarClient:
                    "no query string" if url.query else None)
         if problem is not None:
             raise ValueError(f"invalid server URL {base_url!r}: it needs {problem}, e.g. http://127.0.0.1:8080")
+        if api_key and not (api_key.isascii() and api_key.isprintable() and api_key.strip() == api_key
+                            and " " not in api_key):
+            # httpx refuses such a header value only when sending, which read as "cannot reach" the server
+            raise ValueError("invalid API key (--api-key / RERADAR_CLIENT_API_KEY): it holds whitespace, a line "
+                             "break or non-ASCII characters; give the key exactly as issued")
         headers = {"X-API-Key": api_key} if api_key else {}
         # plain-HTTP servers need no TLS context, and loading the CA bundle costs ~0.2 s of a vehicle-side
         # call's start-up; redirects are not followed, so requests never leave this http:// base URL

@@ -79,8 +79,14 @@ def trajectory_path(out: Path | None, folder: Path) -> Path:
     return png
 
 
+#: Tries of one scan the server refused as busy (429 / 503) before the replay records it as an error, and the wait
+#: before each further try (seconds; the server's Retry-After is 1-2 s)
+BUSY_RETRIES = 3
+BUSY_WAIT_S = 1.0
+
+
 def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str], None] = print,
-                    top_k: int | None = None, odometry: str = "ground-truth", odometry_noise: float = 0.05,
+                    echo_err: Callable[[str], None] | None = None, top_k: int | None = None, odometry: str = "ground-truth", odometry_noise: float = 0.05,
                     every: int = 1, limit: int | None = None, tracking: bool = True, out: Path | None = None,
                     seed: int = 0, session: str | None = None, preset: str | None = None,
                     time_unit: str | None = None) -> int:
@@ -91,10 +97,23 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     format's unit, never a guess) is the unit of the folder's pose-file timestamps (``load_sequence``'s
     ``pose_time_unit``, as ``reradar build-map --time-unit``).
 
-    Returns 0 when every ``localized`` answer is within ``POSE_TRANSLATION_M`` and ``POSE_ROTATION_DEG`` of the
-    ground truth, else 1 (2: unreadable folder, or ``out`` refused by ``trajectory_path``, before any scan is
-    sent). The trajectory goes to ``trajectory_path(out, folder)``, printed as ``trajectory: PATH``.
+    A scan the service answers with an error about the scan (``_scan_error``: 400 / 413 / 415 / 422) is an ``error``
+    row and the replay goes on; one it refuses as busy (429 / 503) is tried again ``BUSY_RETRIES`` times,
+    ``BUSY_WAIT_S`` apart and longer each time; any other error answer (key, map, not the ReRadar API) or a lost
+    server ends the replay there. The summary and the trajectory are written either way. Errors go to
+    ``echo_err`` (default ``echo``).
+
+    Returns 0 when at least one scan was localized and every ``localized`` answer is within ``POSE_TRANSLATION_M``
+    and ``POSE_ROTATION_DEG`` of the ground truth and no scan failed; 1 when an answer was off, no scan was
+    localized or a scan failed; 3 when the server was lost mid-replay; 2 for an error answer that ends the replay,
+    an unreadable folder, or ``out`` refused by ``trajectory_path`` before any scan is sent. The trajectory goes to ``trajectory_path(out,
+    folder)``, printed as ``trajectory: PATH``.
     """
+    import httpx
+
+    from service.client import ReRadarAPIError
+
+    say_err = echo_err or echo
     from reradar_core.errors import ReRadarError
     from reradar_core.evaluation import localization_success, radius_for
     from reradar_core.geometry.se2 import relative_pose
@@ -103,12 +122,12 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     try:
         seq = load_sequence(folder, preset=preset, pose_time_unit=time_unit)
     except ReRadarError as exc:
-        echo(f"error: {exc}")
+        say_err(f"error: {exc}")
         return 2
     try:
         png = trajectory_path(out, folder)
     except ValueError as exc:
-        echo(f"error: {exc}")
+        say_err(f"error: {exc}")
         return 2
     idx = np.arange(0, len(seq), every)
     if limit is not None:
@@ -127,24 +146,42 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     echo("-" * len(head))
     rows: list[dict[str, Any]] = []
     prev = None
+    lost = fatal = False
     for n, i in enumerate(idx):
         odo = None
         if tracking and odometry == "ground-truth" and prev is not None:
             T = noisy_odometry(relative_pose(gt[prev], gt[i]), odometry_noise, rng)
             odo = (float(T[0]), float(T[1]), math.degrees(float(T[2])))
+        name = seq.scan_paths[i].name
+        g = gt[i]
+        gts = f"{g[0]:8.2f} {g[1]:8.2f} {math.degrees(g[2]):8.2f}"
         t0 = time.perf_counter()
-        res = client.localize(map_id, scan_path=seq.scan_paths[i], top_k=top_k, session_id=session_id,
-                              odometry=odo, preset=preset)
+        try:
+            res = _localize_patiently(client, map_id, seq.scan_paths[i], top_k, session_id, odo, preset)
+        except ReRadarAPIError as exc:
+            if not _scan_error(exc):  # the server, the key or the map: every next scan would get the same
+                say_err(f"error: scan {name}: {exc}; the replay stops here")
+                fatal = True
+                break
+            # this scan's answer (a corrupt or refused file): the replay goes on, the next scan without odometry
+            rows.append({"i": int(i), "mode": "-", "status": "error", "ms": (time.perf_counter() - t0) * 1e3,
+                         "server_ms": float("nan"), "gt": g, "pose": None, "ok": False, "wrong": False,
+                         "accurate": False, "err": None, "error": True})
+            echo(f"{n:4d} {name:<22} {'-':<11} {'error':<13} {'-':>8} {'-':>8} {'-':>8} | {gts} |  (see stderr)")
+            say_err(f"error: scan {name}: {exc}")
+            prev = None
+            continue
+        except httpx.TransportError as exc:
+            say_err(f"error: scan {name}: the server was lost ({exc}); the replay stops here")
+            lost = True
+            break
         ms = (time.perf_counter() - t0) * 1e3
         prev = i
-        g = gt[i]
         row: dict[str, Any] = {"i": int(i), "mode": res.mode + ("*" if res.tracking_lost else "")
                                + ("+far" if res.view == "far" else ""),
                                "status": res.status, "ms": ms, "server_ms": res.timings_ms.get("total_ms", ms),
                                "gt": g, "pose": None, "ok": False, "wrong": False, "accurate": False,
                                "err": None}
-        name = seq.scan_paths[i].name
-        gts = f"{g[0]:8.2f} {g[1]:8.2f} {math.degrees(g[2]):8.2f}"
         if res.status == "localized" and res.pose is not None:
             et, er = answer_errors(res.pose, g)
             row.update(pose=(res.pose.x_m, res.pose.y_m), ok=bool(localization_success(et, er, radius_m)),
@@ -159,12 +196,46 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
                  f"{'-':>6} {'-':>7} {res.alignment_score:5.2f} {ms:5.0f}  ({res.reason})")
         rows.append(row)
     _summary(rows, echo, radius_m)
-    try:
-        _plot(rows, gt[idx], png, f"{folder.name} on map {map_id}")
-        echo(f"trajectory: {png}")
-    except ModuleNotFoundError:
-        echo("trajectory PNG skipped: matplotlib is not installed (pip install 'reradar[plot]')")
-    return 1 if any(r["pose"] is not None and not r["accurate"] for r in rows) else 0
+    if rows:
+        try:
+            _plot(rows, gt[idx[:len(rows)]], png, f"{folder.name} on map {map_id}")
+            echo(f"trajectory: {png}")
+        except ModuleNotFoundError:
+            echo("trajectory PNG skipped: matplotlib is not installed (pip install 'reradar[plot]')")
+    if lost:
+        return 3
+    if fatal:
+        return 2
+    off = any(r["pose"] is not None and not r["accurate"] for r in rows)
+    failed = any(r.get("error") for r in rows)
+    # a replay that localized nothing is no success, whatever else it printed (QA session 38: exit 0 at 0/12)
+    return 1 if off or failed or not any(r["pose"] is not None for r in rows) else 0
+
+
+def _scan_error(exc: Any) -> bool:
+    """True for an error answer about the scan itself (400 / 413 / 415 / 422: unreadable, too large, another
+    layout), after which a replay goes on; the others (a key refused, an unknown or unready map, an answer that is
+    not the ReRadar API's, a server error) would repeat for every scan and end it."""
+    from service.client import ReRadarResponseError
+
+    return not isinstance(exc, ReRadarResponseError) and exc.status_code in (400, 413, 415, 422)
+
+
+def _localize_patiently(client: Any, map_id: str, scan: Path, top_k: int | None, session_id: str | None,
+                        odometry: Any, preset: str | None) -> Any:
+    """``client.localize`` of one scan, tried again while the server answers busy (429 / 503): ``BUSY_RETRIES``
+    more tries, ``BUSY_WAIT_S`` x 1, 2, 3 apart (a replay is one request at a time, so it never hammers)."""
+    from service.client import ReRadarAPIError
+
+    for attempt in range(BUSY_RETRIES + 1):
+        try:
+            return client.localize(map_id, scan_path=scan, top_k=top_k, session_id=session_id, odometry=odometry,
+                                   preset=preset)
+        except ReRadarAPIError as exc:
+            if exc.status_code not in (429, 503) or attempt == BUSY_RETRIES:
+                raise
+            time.sleep(BUSY_WAIT_S * (attempt + 1))
+    raise AssertionError("unreachable")  # pragma: no cover
 
 
 def _summary(rows: list[dict[str, Any]], echo: Callable[[str], None], radius_m: float) -> None:
@@ -176,11 +247,13 @@ def _summary(rows: list[dict[str, Any]], echo: Callable[[str], None], radius_m: 
         return
     ok = sum(r["ok"] for r in rows)
     wrong = sum(r["wrong"] for r in rows)
+    failed = sum(bool(r.get("error")) for r in rows)
     echo("")
     echo(f"success (< {radius_m:g} m and < {MAX_ROTATION_ERROR_DEG:g} deg): {ok}/{n} ({100 * ok / n:.1f} %); "
-         f"localized at a wrong pose: {wrong}/{n}; not localized: {n - ok - wrong}/{n}")
+         f"localized at a wrong pose: {wrong}/{n}; not localized: {n - ok - wrong - failed}/{n}"
+         + (f"; failed (an error answer, on stderr): {failed}/{n}" if failed else ""))
     echo(_accuracy_line(rows))
-    for mode in sorted({r["mode"] for r in rows}):
+    for mode in sorted({r["mode"] for r in rows if not r.get("error")}):
         sel = [r for r in rows if r["mode"] == mode]
         echo(f"mode {mode:<11} {len(sel):4d} scans: server p50 {np.percentile([r['server_ms'] for r in sel], 50):.0f} ms, "
              f"client p50 {np.percentile([r['ms'] for r in sel], 50):.0f} ms")
@@ -228,6 +301,13 @@ def _plot(rows: list[dict[str, Any]], gt: np.ndarray, path: Path, title: str) ->
     if len(lost):
         ax.scatter(lost[:, 0], lost[:, 1], s=12, facecolors="none", edgecolors="k", lw=0.6,
                    label=f"not localized ({len(lost)}, at ground truth)")
+    # a square window round everything drawn, at least 20 m a side: with equal axes a straight drive collapsed
+    # one axis into overlapping ticks under the legend (QA session 38)
+    drawn = np.vstack([gt[:, :2] - o] + [np.array([r["pose"]]) - o for r in rows if r["pose"] is not None])
+    centre = (drawn.min(axis=0) + drawn.max(axis=0)) / 2
+    half = max(float(np.ptp(drawn, axis=0).max()) / 2, 10.0) * 1.15
+    ax.set_xlim(centre[0] - half, centre[0] + half)
+    ax.set_ylim(centre[1] - half, centre[1] + half)
     ax.set_aspect("equal")
     ax.set_xlabel(f"x - {o[0]:.1f} (m, map frame)")
     ax.set_ylabel(f"y - {o[1]:.1f} (m, map frame)")

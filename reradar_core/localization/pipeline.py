@@ -611,7 +611,7 @@ def _verify_and_decide(query: ScanFeatures, ordered: list[Candidate], scores: di
     model = default_confidence_model()
     cues, confidence = answer_confidence(best, verified, model)
     if not ok:
-        reason = best.reason if best.reason in (REASON_TOO_FEW_MATCHES, REASON_AMBIGUOUS) else REASON_TOO_FEW_INLIERS
+        reason = _refusal_reason(best, config)
         return LocalizationResult("not_localized", reason, best, None, verified, timings, confidence, cues)
     if config.min_place_margin is not None and _place_margin(best, verified, config) < config.min_place_margin:
         # another place screens about as well: which one wins is chance (``min_place_margin``)
@@ -623,6 +623,18 @@ def _verify_and_decide(query: ScanFeatures, ordered: list[Candidate], scores: di
     T_map_query = compose(best.T_map_keyframe, best.T_keyframe_query)
     return LocalizationResult("localized", None, best, np.asarray(T_map_query, np.float64), verified, timings,
                               confidence, cues)
+
+
+def _refusal_reason(best: CandidateVerification, config: LocalizationConfig) -> str:
+    """Why the best candidate, which did not pass, is refused: ``too_few_matches`` when the estimator had too few,
+    else ``too_few_inliers`` below the floor (``min_inliers``, the aligned share) whatever else the estimator saw,
+    and its own ``ambiguous`` (two poses aligning alike) only for an answer at or above the floor. QA session 38:
+    answers with 20-30 % of their landmarks aligned read "ambiguous", which suggests a repeated street rather than
+    an unknown place."""
+    below_floor = best.num_inliers < config.min_inliers or best.inlier_ratio < config.effective_min_inlier_ratio
+    if best.reason == REASON_TOO_FEW_MATCHES or (best.reason == REASON_AMBIGUOUS and not below_floor):
+        return best.reason
+    return REASON_TOO_FEW_INLIERS
 
 
 def _verify_inconsistent_ties(query: ScanFeatures, ties: list[Candidate], scores: dict[int, float],

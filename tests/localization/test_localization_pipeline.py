@@ -328,3 +328,21 @@ def test_a_tie_in_the_screen_whose_pose_disagrees_is_verified_too() -> None:
     assert alone.best.keyframe_id == 0 and abs(alone.T_map_query[0] - 10.0) < 0.5  # before: 10 m off
     with pytest.raises(ConfigError):
         LocalizationConfig(verify_ties=-1)
+
+
+def test_a_refusal_below_the_floor_is_too_few_inliers_not_ambiguous():
+    """QA session 38: answers aligning 20-30 % of their landmarks (below the 45 % floor) read ``ambiguous``."""
+    from types import SimpleNamespace
+
+    from reradar_core.localization.pipeline import LocalizationConfig, _refusal_reason
+
+    cfg = LocalizationConfig()
+    floor = cfg.effective_min_inlier_ratio
+
+    def best(reason, n, ratio):
+        return SimpleNamespace(reason=reason, num_inliers=n, inlier_ratio=ratio)
+
+    assert _refusal_reason(best("ambiguous", 153, 0.299), cfg) == "too_few_inliers"
+    assert _refusal_reason(best("ambiguous", 300, floor + 0.05), cfg) == "ambiguous"
+    assert _refusal_reason(best("too_few_matches", 3, 0.01), cfg) == "too_few_matches"
+    assert _refusal_reason(best(None, 5, 0.9), cfg) == "too_few_inliers"

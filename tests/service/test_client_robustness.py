@@ -391,7 +391,8 @@ def test_follow_out_existing_folder_writes_inside_and_prints_the_path(monkeypatc
     plots.mkdir()
     res = CliRunner().invoke(_app(), ["localize", "--follow", str(seq), "--server", "http://x", "--map", "m",
                                       "--preset", "boreas", "--out", str(plots)])
-    assert res.exit_code == 0, res.output  # not localized is no error answer of the replay
+    # not localized is no error answer of the replay, but a replay that localized nothing exits 1 (QA session 38)
+    assert res.exit_code == 1, res.output
     assert len(seen) == 3
     png = plots / "drive-follow.png"
     assert f"trajectory: {png}\n" in res.output
@@ -424,7 +425,7 @@ def test_follow_reads_relative_pose_times_in_the_given_time_unit(monkeypatch: py
     res = CliRunner().invoke(_app(), [*args, "--time-unit", "ms"])  # 1000x off: refused, naming the likely unit
     assert res.exit_code == 2 and "pass --time-unit us" in _one_error_line(res.output) and seen == []
     res = CliRunner().invoke(_app(), [*args, "--time-unit", "us"])
-    assert res.exit_code == 0, res.output
+    assert res.exit_code == 1, res.output  # read and replayed; nothing localized (the fake answers so): exit 1
     assert len(seen) == 3 and all(b'name="preset"\r\n\r\nboreas' in r.content for r in seen)
     rows = [ln.split() for ln in res.output.splitlines() if ln[:4].strip().isdigit()]
     gt = keyframe_poses()[:3]
@@ -465,3 +466,69 @@ def test_a_newer_servers_not_ready_answer_is_read_as_not_ready() -> None:
     every other answer is), not an error status."""
     with _client(_answer(503, {**NOT_READY, "warming_up": True})) as rc:
         assert rc.ready().status == "not_ready"
+
+
+# ---- QA session 38: a replay that meets errors, busy servers and a lost server ----------------------------
+
+
+def _sequenced(*handlers: Handler) -> Handler:
+    """Answer the n-th request with ``handlers[n]`` (the last one from then on)."""
+    calls = [0]
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        h = handlers[min(calls[0], len(handlers) - 1)]
+        calls[0] += 1
+        return h(request)
+    return answer
+
+
+def test_follow_goes_on_past_a_refused_scan_and_retries_a_busy_server(monkeypatch: pytest.MonkeyPatch,
+                                                                      tmp_path: Path) -> None:
+    """A corrupt scan (422) ended the whole replay without a summary; a 503 ``overloaded`` ended it at once."""
+    import service.follow as follow
+
+    monkeypatch.setattr(follow, "BUSY_WAIT_S", 0.0)
+    bad = _answer(422, {"error": "scan_format", "detail": "upload is not a readable PNG image"},
+                  content_type="application/problem+json")
+    busy = _answer(503, {"error": "overloaded", "detail": "retry in 1 s"}, content_type="application/problem+json")
+    seen = _fake_cli_server(monkeypatch, _sequenced(bad, busy, busy, _answer(200, NOT_LOCALIZED)))
+    seq = _drive(tmp_path)
+    res = CliRunner().invoke(_app(), ["localize", "--follow", str(seq), "--server", "http://x", "--map", "m",
+                                      "--preset", "boreas", "--out", str(tmp_path / "t.png")])
+    assert res.exit_code == 1, res.output  # a failed scan, nothing localized
+    assert "error: scan 1600000010000000.png: HTTP 422 (scan_format)" in res.output
+    assert "failed (an error answer, on stderr): 1/3" in res.output and "not localized: 2/3" in res.output
+    assert len(seen) == 5 and (tmp_path / "t.png").exists()  # scan 1 tried three times, scan 2 once
+
+
+def test_follow_stops_on_an_error_every_scan_would_get_and_on_a_lost_server(monkeypatch: pytest.MonkeyPatch,
+                                                                            tmp_path: Path) -> None:
+    seq = _drive(tmp_path)
+    args = ["localize", "--follow", str(seq), "--server", "http://x", "--map", "m", "--preset", "boreas",
+            "--out", str(tmp_path / "t.png")]
+    unknown = _answer(404, {"error": "not_found", "detail": "no map 'm'"}, content_type="application/problem+json")
+    with pytest.MonkeyPatch.context() as first:  # its own patch: a second one would wrap the first's transport
+        seen = _fake_cli_server(first, unknown)
+        res = CliRunner().invoke(_app(), args)
+    assert res.exit_code == 2 and len(seen) == 1 and "the replay stops here" in _one_error_line(res.output)
+
+    def gone(request: httpx.Request) -> httpx.Response:
+        raise httpx.ConnectError("connection refused")
+
+    _fake_cli_server(monkeypatch, _sequenced(_answer(200, NOT_LOCALIZED), gone))
+    res = CliRunner().invoke(_app(), args)
+    assert res.exit_code == 3 and "the server was lost" in res.output
+    assert "not localized: 1/1" in res.output  # the summary of what was replayed
+
+
+def test_client_refuses_a_key_it_cannot_send_and_localize_says_which_option() -> None:
+    for key in ("vehiclekey-0123456789abcdef ", "vehiclekey\n", "véhicule-0123456789abcdef"):
+        with pytest.raises(ValueError, match="invalid API key"):
+            ReRadarClient("http://127.0.0.1:1", api_key=key)
+    res = CliRunner().invoke(_app(), ["localize", "x.png", "--server", "http://127.0.0.1:1", "--api-key", "a b"])
+    assert res.exit_code == 2 and "invalid API key (--api-key / RERADAR_CLIENT_API_KEY)" in res.output
+
+
+def test_single_scan_options_are_refused_with_follow(tmp_path: Path) -> None:
+    res = CliRunner().invoke(_app(), ["localize", "--follow", str(tmp_path), "--json"])
+    assert res.exit_code == 2 and "--json applies to a single SCAN" in res.output
