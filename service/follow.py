@@ -86,7 +86,8 @@ BUSY_WAIT_S = 1.0
 
 
 def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str], None] = print,
-                    echo_err: Callable[[str], None] | None = None, top_k: int | None = None, odometry: str = "ground-truth", odometry_noise: float = 0.05,
+                    echo_err: Callable[[str], None] | None = None, top_k: int | None = None,
+                    odometry: str = "ground-truth", odometry_noise: float = 0.05,
                     every: int = 1, limit: int | None = None, tracking: bool = True, out: Path | None = None,
                     seed: int = 0, session: str | None = None, preset: str | None = None,
                     time_unit: str | None = None) -> int:
@@ -106,8 +107,8 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     Returns 0 when at least one scan was localized and every ``localized`` answer is within ``POSE_TRANSLATION_M``
     and ``POSE_ROTATION_DEG`` of the ground truth and no scan failed; 1 when an answer was off, no scan was
     localized or a scan failed; 3 when the server was lost mid-replay; 2 for an error answer that ends the replay,
-    an unreadable folder, or ``out`` refused by ``trajectory_path`` before any scan is sent. The trajectory goes to ``trajectory_path(out,
-    folder)``, printed as ``trajectory: PATH``.
+    an unreadable folder, or ``out`` refused by ``trajectory_path`` before any scan is sent. The trajectory goes to
+    ``trajectory_path(out, folder)``, printed as ``trajectory: PATH``.
     """
     import httpx
 
@@ -297,7 +298,7 @@ def _plot(rows: list[dict[str, Any]], gt: np.ndarray, path: Path, title: str) ->
     bad = np.array([r["pose"] for r in rows if r["wrong"]]).reshape(-1, 2) - o
     if len(bad):
         ax.scatter(bad[:, 0], bad[:, 1], s=40, c="tab:red", marker="x", label=f"wrong pose ({len(bad)})")
-    lost = np.array([r["gt"][:2] for r in rows if r["pose"] is None]).reshape(-1, 2) - o
+    lost = np.array([r["gt"][:2] for r in rows if r["pose"] is None and not r.get("error")]).reshape(-1, 2) - o
     if len(lost):
         ax.scatter(lost[:, 0], lost[:, 1], s=12, facecolors="none", edgecolors="k", lw=0.6,
                    label=f"not localized ({len(lost)}, at ground truth)")
