@@ -5,6 +5,8 @@ from __future__ import annotations
 import functools
 import importlib
 import logging
+import os
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -64,6 +66,9 @@ def _guarded(name: str, callback: Callable[..., Any]) -> Callable[..., Any]:
             if (exc.name or "").split(".")[0] not in OPTIONAL_MODULES:
                 raise
             raise _missing_extra(name, exc) from exc
+        except BrokenPipeError:  # the reader of stdout went away (`reradar ... | head`): stop quietly, as cat does
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at the final flush
+            raise typer.Exit(141) from None
         except OSError as exc:  # a file the user named cannot be read or written: one line, not a traceback
             where = f": {exc.filename}" if exc.filename else ""
             typer.echo(f"error: {exc.strerror or exc}{where}", err=True)

@@ -398,3 +398,18 @@ def test_train_refuses_an_unknown_device_before_making_its_run_folder(tmp_path, 
                 "--steps", "1"])
     assert res.exit_code != 0 and "unknown device 'tpu'" in res.output
     assert not (tmp_path / "cache" / "training" / "runs" / "e1").exists()
+
+
+def test_a_closed_stdout_ends_a_command_quietly():
+    """QA session 38: `reradar localize --follow ... | head -3` ended with "error: Broken pipe" (exit 2)."""
+    import subprocess
+    import sys
+
+    script = ("import typer\nfrom reradar_cli.main import _guarded\n"
+              "def long():\n    for i in range(200000):\n        typer.echo(f'row {i}')\n"
+              "app = typer.Typer()\napp.command()(_guarded('x', long))\napp()\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout is not None and proc.stdout.readline() == b"row 0\n"
+    proc.stdout.close()  # the reader goes away, as `head` does
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 141 and b"Broken pipe" not in err and b"Traceback" not in err, err
