@@ -244,7 +244,8 @@ def localize_command(
     """Localize one scan with a running service (or replay a drive with --follow); prints the map-frame pose
     (metres, degrees). Exit status: 0 localized, 1 not localized (--follow: a localized answer off the ground
     truth, a scan answered with an error, or no scan localized at all), 2 an error (bad argument or URL, an error answer, or an answer that is not the ReRadar API's), 3 the
-    server cannot be reached."""
+    server cannot be reached, 130 stopped with Ctrl-C (--follow: after the summary and trajectory of the scans
+    answered so far; a second Ctrl-C skips them)."""
     import logging
 
     import httpx
@@ -300,6 +301,11 @@ def localize_command(
                 preset = _polar_npy_preset(scan)
             res = client.localize(map_id, scan_path=scan, top_k=top_k, session_id=session, preset=preset,
                                   scan_layout=scan_layout)
+    except KeyboardInterrupt:  # Ctrl-C: 130 as the shell's convention, not click's "Aborted!" with 1 (not localized);
+        # a replay stopped by it has printed its partial summary (follow_sequence); this is a second Ctrl-C there,
+        # or one before the replay or during a single scan
+        typer.echo("interrupted (Ctrl-C)", err=True)
+        raise typer.Exit(130) from None
     except ReRadarAPIError as exc:  # an error status, or (ReRadarResponseError) an answer that is no ReRadar one
         # the server's 401 names its own setting; say what this command takes
         hint = "; give the vehicle key with --api-key or RERADAR_CLIENT_API_KEY" if exc.status_code == 401 else ""

@@ -23,7 +23,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["answer_errors", "follow_sequence", "noisy_odometry", "trajectory_path"]
+__all__ = ["INTERRUPTED_EXIT", "answer_errors", "follow_sequence", "interrupted_line", "noisy_odometry",
+           "trajectory_path"]
 
 #: pose accuracy a vehicle needs (metres, degrees); success is the paper's rule (``evaluation.localization_success``:
 #: e_t < R of the radar's dataset, 20 m Boreas / MulRan, 25 m OORD / Oxford, and e_r < 10 degrees)
@@ -79,6 +80,16 @@ def trajectory_path(out: Path | None, folder: Path) -> Path:
     return png
 
 
+#: Exit status of a replay stopped with Ctrl-C (KeyboardInterrupt): 128 + SIGINT (2), the shell's convention
+INTERRUPTED_EXIT = 130
+
+
+def interrupted_line(answered: int, planned: int) -> str:
+    """The line a replay stopped with Ctrl-C prints above its summary: how many of the ``planned`` scans were
+    ``answered`` (a row each; the scan in flight when the key was pressed is not counted)."""
+    return f"interrupted after {answered} of {planned} scans (Ctrl-C): the summary below covers the {answered} answered"
+
+
 #: Tries of one scan the server refused as busy (429 / 503) before the replay records it as an error, and the wait
 #: before each further try (seconds; the server's Retry-After is 1-2 s)
 BUSY_RETRIES = 3
@@ -102,11 +113,14 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     row and the replay goes on; one it refuses as busy (429 / 503) is tried again ``BUSY_RETRIES`` times,
     ``BUSY_WAIT_S`` apart and longer each time; any other error answer (key, map, not the ReRadar API) or a lost
     server ends the replay there. The summary and the trajectory are written either way. Errors go to
-    ``echo_err`` (default ``echo``).
+    ``echo_err`` (default ``echo``). Ctrl-C (KeyboardInterrupt) during the replay stops sending too: the line
+    ``interrupted_line`` prints, then the summary and the trajectory of the scans answered so far; a second
+    Ctrl-C while they are written propagates (the caller, ``reradar localize``, exits 130 at once).
 
     Returns 0 when at least one scan was localized and every ``localized`` answer is within ``POSE_TRANSLATION_M``
     and ``POSE_ROTATION_DEG`` of the ground truth and no scan failed; 1 when an answer was off, no scan was
-    localized or a scan failed; 3 when the server was lost mid-replay; 2 for an error answer that ends the replay,
+    localized or a scan failed; 3 when the server was lost mid-replay; ``INTERRUPTED_EXIT`` (130) when Ctrl-C
+    stopped the replay, whatever the answers so far; 2 for an error answer that ends the replay,
     an unreadable folder, or ``out`` refused by ``trajectory_path`` before any scan is sent. The trajectory goes to
     ``trajectory_path(out, folder)``, printed as ``trajectory: PATH``.
     """
@@ -147,55 +161,60 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     echo("-" * len(head))
     rows: list[dict[str, Any]] = []
     prev = None
-    lost = fatal = False
-    for n, i in enumerate(idx):
-        odo = None
-        if tracking and odometry == "ground-truth" and prev is not None:
-            T = noisy_odometry(relative_pose(gt[prev], gt[i]), odometry_noise, rng)
-            odo = (float(T[0]), float(T[1]), math.degrees(float(T[2])))
-        name = seq.scan_paths[i].name
-        g = gt[i]
-        gts = f"{g[0]:8.2f} {g[1]:8.2f} {math.degrees(g[2]):8.2f}"
-        t0 = time.perf_counter()
-        try:
-            res = _localize_patiently(client, map_id, seq.scan_paths[i], top_k, session_id, odo, preset)
-        except ReRadarAPIError as exc:
-            if not _scan_error(exc):  # the server, the key or the map: every next scan would get the same
-                say_err(f"error: scan {name}: {exc}; the replay stops here")
-                fatal = True
+    lost = fatal = interrupted = False
+    try:
+        for n, i in enumerate(idx):
+            odo = None
+            if tracking and odometry == "ground-truth" and prev is not None:
+                T = noisy_odometry(relative_pose(gt[prev], gt[i]), odometry_noise, rng)
+                odo = (float(T[0]), float(T[1]), math.degrees(float(T[2])))
+            name = seq.scan_paths[i].name
+            g = gt[i]
+            gts = f"{g[0]:8.2f} {g[1]:8.2f} {math.degrees(g[2]):8.2f}"
+            t0 = time.perf_counter()
+            try:
+                res = _localize_patiently(client, map_id, seq.scan_paths[i], top_k, session_id, odo, preset)
+            except ReRadarAPIError as exc:
+                if not _scan_error(exc):  # the server, the key or the map: every next scan would get the same
+                    say_err(f"error: scan {name}: {exc}; the replay stops here")
+                    fatal = True
+                    break
+                # this scan's answer (a corrupt or refused file): the replay goes on, the next scan without odometry
+                rows.append({"i": int(i), "mode": "-", "status": "error", "ms": (time.perf_counter() - t0) * 1e3,
+                             "server_ms": float("nan"), "gt": g, "pose": None, "ok": False, "wrong": False,
+                             "accurate": False, "err": None, "error": True})
+                echo(f"{n:4d} {name:<22} {'-':<11} {'error':<13} {'-':>8} {'-':>8} {'-':>8} | {gts} |  (see stderr)")
+                say_err(f"error: scan {name}: {exc}")
+                prev = None
+                continue
+            except httpx.TransportError as exc:
+                say_err(f"error: scan {name}: the server was lost ({exc}); the replay stops here")
+                lost = True
                 break
-            # this scan's answer (a corrupt or refused file): the replay goes on, the next scan without odometry
-            rows.append({"i": int(i), "mode": "-", "status": "error", "ms": (time.perf_counter() - t0) * 1e3,
-                         "server_ms": float("nan"), "gt": g, "pose": None, "ok": False, "wrong": False,
-                         "accurate": False, "err": None, "error": True})
-            echo(f"{n:4d} {name:<22} {'-':<11} {'error':<13} {'-':>8} {'-':>8} {'-':>8} | {gts} |  (see stderr)")
-            say_err(f"error: scan {name}: {exc}")
-            prev = None
-            continue
-        except httpx.TransportError as exc:
-            say_err(f"error: scan {name}: the server was lost ({exc}); the replay stops here")
-            lost = True
-            break
-        ms = (time.perf_counter() - t0) * 1e3
-        prev = i
-        row: dict[str, Any] = {"i": int(i), "mode": res.mode + ("*" if res.tracking_lost else "")
-                               + ("+far" if res.view == "far" else ""),
-                               "status": res.status, "ms": ms, "server_ms": res.timings_ms.get("total_ms", ms),
-                               "gt": g, "pose": None, "ok": False, "wrong": False, "accurate": False,
-                               "err": None}
-        if res.status == "localized" and res.pose is not None:
-            et, er = answer_errors(res.pose, g)
-            row.update(pose=(res.pose.x_m, res.pose.y_m), ok=bool(localization_success(et, er, radius_m)),
-                       accurate=et <= POSE_TRANSLATION_M and er <= POSE_ROTATION_DEG, err=(et, er))
-            row["wrong"] = not row["ok"]
-            flag = "  WRONG" if row["wrong"] else ("" if row["accurate"] else "  OFF")
-            echo(f"{n:4d} {name:<22} {row['mode']:<11} {res.status:<13} {res.pose.x_m:8.2f} {res.pose.y_m:8.2f} "
-                 f"{res.pose.yaw_deg:8.2f} | {gts} | {et:6.2f} {er:7.2f} {res.alignment_score:5.2f} {ms:5.0f}"
-                 + flag)
-        else:
-            echo(f"{n:4d} {name:<22} {row['mode']:<11} {res.status:<13} {'-':>8} {'-':>8} {'-':>8} | {gts} | "
-                 f"{'-':>6} {'-':>7} {res.alignment_score:5.2f} {ms:5.0f}  ({res.reason})")
-        rows.append(row)
+            ms = (time.perf_counter() - t0) * 1e3
+            prev = i
+            row: dict[str, Any] = {"i": int(i), "mode": res.mode + ("*" if res.tracking_lost else "")
+                                   + ("+far" if res.view == "far" else ""),
+                                   "status": res.status, "ms": ms, "server_ms": res.timings_ms.get("total_ms", ms),
+                                   "gt": g, "pose": None, "ok": False, "wrong": False, "accurate": False,
+                                   "err": None}
+            rows.append(row)  # answered: counted even when Ctrl-C comes before its line is printed
+            if res.status == "localized" and res.pose is not None:
+                et, er = answer_errors(res.pose, g)
+                row.update(pose=(res.pose.x_m, res.pose.y_m), ok=bool(localization_success(et, er, radius_m)),
+                           accurate=et <= POSE_TRANSLATION_M and er <= POSE_ROTATION_DEG, err=(et, er))
+                row["wrong"] = not row["ok"]
+                flag = "  WRONG" if row["wrong"] else ("" if row["accurate"] else "  OFF")
+                echo(f"{n:4d} {name:<22} {row['mode']:<11} {res.status:<13} {res.pose.x_m:8.2f} {res.pose.y_m:8.2f} "
+                     f"{res.pose.yaw_deg:8.2f} | {gts} | {et:6.2f} {er:7.2f} {res.alignment_score:5.2f} {ms:5.0f}"
+                     + flag)
+            else:
+                echo(f"{n:4d} {name:<22} {row['mode']:<11} {res.status:<13} {'-':>8} {'-':>8} {'-':>8} | {gts} | "
+                     f"{'-':>6} {'-':>7} {res.alignment_score:5.2f} {ms:5.0f}  ({res.reason})")
+    except KeyboardInterrupt:  # Ctrl-C: stop sending; the scan in flight, unanswered, is not counted
+        interrupted = True
+        echo("")
+        echo(interrupted_line(len(rows), len(idx)))
     _summary(rows, echo, radius_m)
     if rows:
         try:
@@ -203,6 +222,8 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
             echo(f"trajectory: {png}")
         except ModuleNotFoundError:
             echo("trajectory PNG skipped: matplotlib is not installed (pip install 'reradar[plot]')")
+    if interrupted:
+        return INTERRUPTED_EXIT
     if lost:
         return 3
     if fatal:

@@ -73,9 +73,79 @@ def _mapping_lines(sources: list[Path], stamps: list[int], show_all: int = 10) -
     return pairs[:3] + [f"  ... ({len(pairs) - 5} more)"] + pairs[-2:]
 
 
-def _read_source(src: Path) -> np.ndarray:
+#: Sample depths ``--bit-depth`` accepts, bits: full scale ``2**bits - 1`` (8: 255, 12: 4095, 16: 65535)
+BIT_DEPTH_RANGE = (1, 16)
+
+
+def full_scale(bit_depth: int) -> int:
+    """The largest raw sample of ``bit_depth``-bit data (``2**bit_depth - 1``): the value that is power 1.0."""
+    lo, hi = BIT_DEPTH_RANGE
+    if not lo <= bit_depth <= hi:
+        raise ScanFormatError(f"--bit-depth {bit_depth}: give the radar's sample depth in bits, {lo} to {hi}")
+    return (1 << bit_depth) - 1
+
+
+def _container_bits(dtype: np.dtype) -> int:
+    """Bits of non-negative values an integer ``dtype`` holds: 8 for uint8, 15 for int16, 16 for uint16."""
+    return dtype.itemsize * 8 - (1 if dtype.kind == "i" else 0)
+
+
+def scale_to_unit_power(array: np.ndarray, name: str, bit_depth: int | None = None,
+                        from_png: bool = True) -> np.ndarray:
+    """A source scan's raw samples as power in [0, 1] (fractions of full scale), or the array unchanged when
+    the importer reads it as it is.
+
+    With ``bit_depth`` (``--bit-depth``): integer samples (a PNG's or an integer .npy's) divided by
+    ``full_scale(bit_depth)`` as float32, e.g. 12-bit 4095 -> 1.0 and 1365 -> 1/3. Refused (``ScanFormatError``
+    naming ``name``, the file): floating-point samples (already a fraction, or of no known scale), a depth
+    larger than the array's type holds (12-bit samples in an 8-bit PNG), negative samples, and samples above
+    the full scale (the data holds more bits than declared).
+
+    Without it, as before the option: a 16-bit PNG (uint16, ``from_png``) is read at the 16-bit full scale
+    (65535), with a warning naming ``--bit-depth`` when its values reach only 12 bits or fewer; uint8 (0-255) and
+    floats in [0, 1] are left to ``import_polar_scan``; other integer samples above 1 (an .npy's) are refused,
+    naming ``--bit-depth``.
+    """
+    if bit_depth is None:
+        if from_png and array.dtype == np.uint16:  # full scale of a 16-bit greyscale image
+            top = int(array.max()) if array.size else 0
+            if 0 < top < 4096:
+                # e.g. 12-bit samples in a 16-bit PNG: scaled by 65535 they keep ~1/16 of their levels (QA session 38)
+                logger.warning("%s: a 16-bit PNG whose values reach only %d (12 bits or fewer of 16): read at the "
+                               "16-bit full scale (65535) its power is dark and coarse; if the radar wrote fewer "
+                               "bits, pass its sample depth, e.g. --bit-depth 12 (full scale 4095)", name, top)
+            return array.astype(np.float32) / 65535.0
+        if array.dtype.kind in "iu" and array.dtype != np.uint8 and array.size and int(array.max()) > 1:
+            raise ScanFormatError(f"{name}: integer samples up to {int(array.max())} ({array.dtype}) with no "
+                                  "stated full scale: pass the radar's sample depth, e.g. --bit-depth 12 (full "
+                                  "scale 4095), or save the power as floats in [0, 1]")
+        return array
+    scale = full_scale(bit_depth)
+    if array.dtype.kind not in "iu":
+        raise ScanFormatError(f"{name}: holds {array.dtype} samples; --bit-depth scales integer samples (a PNG's "
+                              "or an integer .npy's): drop --bit-depth for power already in [0, 1], or save the "
+                              "raw samples as integers")
+    held = _container_bits(array.dtype)
+    if bit_depth > held:
+        kind = f"the PNG has {held} bits" if from_png else f"the array ({array.dtype}) holds at most {held} bits"
+        raise ScanFormatError(f"{name}: {kind} per sample, too few for {bit_depth}-bit samples (--bit-depth "
+                              f"{bit_depth}): pass --bit-depth {held} or less (the radar's sample depth), or drop it")
+    if not array.size:
+        return array.astype(np.float32)
+    low, top = int(array.min()), int(array.max())
+    if low < 0:
+        raise ScanFormatError(f"{name}: a sample is {low}; radar power is not negative: check the source")
+    if top > scale:
+        raise ScanFormatError(f"{name}: a sample reaches {top}, above the {bit_depth}-bit full scale {scale} "
+                              f"(--bit-depth {bit_depth}): the samples have more bits; pass the radar's sample depth "
+                              f"(at least --bit-depth {top.bit_length()})")
+    return (array.astype(np.float64) / scale).astype(np.float32)
+
+
+def _read_source(src: Path, bit_depth: int | None = None) -> np.ndarray:
     """A source scan as a 2-D array: an .npy, or a greyscale (8- or 16-bit) PNG; refuses colour images and scans
-    that already are Navtech scans (their 11 metadata columns would be read as range bins)."""
+    that already are Navtech scans (their 11 metadata columns would be read as range bins). Integer samples are
+    scaled to power in [0, 1] by ``scale_to_unit_power`` (``bit_depth``: ``--bit-depth``)."""
     import cv2
 
     if src.is_dir():
@@ -99,19 +169,13 @@ def _read_source(src: Path) -> np.ndarray:
         if array.ndim == 3:
             raise ScanFormatError(f"{src.name}: a {array.shape[2]}-channel colour image; import-scans reads "
                                   "single-channel (greyscale) power images: save the radar's power as greyscale")
-        if array.dtype == np.uint16:  # full scale of a 16-bit greyscale image
-            top = int(array.max()) if array.size else 0
-            if 0 < top < 4096:
-                # e.g. 12-bit samples in a 16-bit PNG: scaled by 65535 they keep ~1/16 of their levels (QA session 38)
-                logger.warning("%s: a 16-bit PNG whose values reach only %d (12 bits or fewer of 16): read at the "
-                               "16-bit full scale (65535) its power is dark and coarse; if the radar wrote fewer "
-                               "bits, rescale it to floats in [0, 1] and import an .npy", src.name, top)
-            array = array.astype(np.float32) / 65535.0
     if has_navtech_metadata(array):
         raise ScanFormatError(f"{src.name}: already a Navtech scan (its first 11 columns are Navtech timestamps, "
                               "encoder values and valid flags); it needs no import: read it directly (reradar info, "
                               "build-map, localize) with the --preset it was recorded with")
-    return array
+    if array.ndim != 2:  # said by import_polar_scan, with the shape
+        return array
+    return scale_to_unit_power(array, src.name, bit_depth, from_png=src.suffix.lower() != ".npy")
 
 
 def _discard(staging: Path, created_out: Path | None) -> None:
@@ -140,6 +204,12 @@ def register(app: typer.Typer) -> None:
                                         help="Source rows are range bins and columns azimuths."),
         start_azimuth_deg: float = typer.Option(0.0, "--start-azimuth-deg",
                                                 help="Azimuth of the first source beam, degrees clockwise."),
+        bit_depth: int | None = typer.Option(
+            None, "--bit-depth", min=BIT_DEPTH_RANGE[0], max=BIT_DEPTH_RANGE[1], help=(
+                "Bits per sample the radar wrote, when its integer samples (a 16-bit PNG's, an integer .npy's) "
+                "do not fill their type: power = value / (2^bits - 1), e.g. 12 for 12-bit data in a 16-bit PNG "
+                "(4095 = full power). A sample above that full scale, or more bits than the file's type holds, is "
+                "refused. Default: 8-bit PNGs / 255, 16-bit PNGs / 65535, .npy floats in [0, 1] as they are.")),
     ) -> None:
         """Resample foreign polar scans onto a preset's range grid and write them as Navtech PNGs.
 
@@ -151,6 +221,10 @@ def register(app: typer.Typer) -> None:
         geometry it assumes for the sources (azimuths, range bins, bin size, maximum range) and which source
         became which output name. Sources that would get the same output name, or the name of a scan already in
         --out (unless --overwrite), are refused.
+
+        Power: an 8-bit source is read as value / 255 and a 16-bit PNG as value / 65535 (a warning names
+        --bit-depth when its values reach 12 bits or fewer); --bit-depth N reads integer samples as value / (2^N - 1)
+        and refuses a sample above that full scale. Nothing is written unless every source converts.
 
         Read the output with `reradar info` or `localize`. It holds scans only: for `build-map --dataset` or
         `bench`, put them in a sequence folder as SEQ/radar/<t_us>.png and add a pose file with one pose per
@@ -197,6 +271,8 @@ def register(app: typer.Typer) -> None:
                 raise ScanFormatError(f"--out {out} already holds {len(existing)} scan(s) of these names "
                                       f"({', '.join(existing[:3])}{' ...' if len(existing) > 3 else ''}); pass "
                                       "--overwrite to replace them, or choose another --out")
+            if bit_depth is not None:
+                typer.echo(f"power read as {bit_depth}-bit samples: value / {full_scale(bit_depth)} (--bit-depth)")
             written = 0
             shapes: set[tuple[int, int]] = set()
             # every scan is written into a staging folder inside --out and moved in only when all converted, so a
@@ -206,7 +282,7 @@ def register(app: typer.Typer) -> None:
             created_out = not out.exists()
             for src, stamp in zip(ordered, stamps, strict=True):
                 try:
-                    array = _read_source(src)
+                    array = _read_source(src, bit_depth)
                     if array.ndim == 2 and array.shape not in shapes:  # say what each new size is taken to be
                         shapes.add(array.shape)
                         typer.echo(f"{src.name}: read as {describe_geometry(array.shape, transposed, range_resolution, range_offset)}")

@@ -280,3 +280,164 @@ def test_a_png_declaring_a_huge_image_is_refused_before_decoding(tmp_path):
         load_scan(tmp_path / "1566535872045000.png", "boreas")
     res = _import(tmp_path, tmp_path / "1566535872045000.png")
     assert res.exit_code == 2 and "declares 100000 x 100000 pixels" in res.output and "Traceback" not in res.output
+
+
+# ---- --bit-depth: integer samples that do not fill their type (12-bit data in a 16-bit PNG) ---------------------
+
+
+def test_full_scale_of_a_bit_depth():
+    from reradar_core.cli_commands.import_scans import full_scale
+
+    assert [full_scale(b) for b in (1, 8, 10, 12, 16)] == [1, 255, 1023, 4095, 65535]
+    for bad in (0, 17):
+        with pytest.raises(ScanFormatError, match="1 to 16"):
+            full_scale(bad)
+
+
+@pytest.mark.parametrize(("raw", "bit_depth", "power"), [
+    # value / (2^bits - 1), by hand
+    (np.array([[0, 1365, 2730, 4095]], np.uint16), 12, [0.0, 1 / 3, 2 / 3, 1.0]),
+    (np.array([[0, 341, 682, 1023]], np.uint16), 10, [0.0, 1 / 3, 2 / 3, 1.0]),
+    (np.array([[0, 51, 255, 128]], np.uint16), 8, [0.0, 0.2, 1.0, 128 / 255]),  # 8-bit data in a 16-bit PNG
+    (np.array([[0, 51, 255, 17]], np.uint8), 8, [0.0, 0.2, 1.0, 1 / 15]),
+    (np.array([[0, 13107, 65535, 1]], np.uint16), 16, [0.0, 0.2, 1.0, 1 / 65535]),
+    (np.array([[0, 1365, 4095, 0]], np.int32), 12, [0.0, 1 / 3, 1.0, 0.0]),  # an integer .npy
+])
+def test_bit_depth_scales_samples_to_unit_power(raw, bit_depth, power):
+    from reradar_core.cli_commands.import_scans import scale_to_unit_power
+
+    out = scale_to_unit_power(raw, "s.png", bit_depth)
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(out, np.array([power], np.float32))
+
+
+@pytest.mark.parametrize(("raw", "bit_depth", "from_png", "message"), [
+    (np.array([[0, 4096]], np.uint16), 12, True,
+     "s.png: a sample reaches 4096, above the 12-bit full scale 4095 (--bit-depth 12): the samples have more bits; "
+     "pass the radar's sample depth (at least --bit-depth 13)"),
+    (np.array([[0, 256]], np.uint16), 8, True, "at least --bit-depth 9"),
+    (np.array([[0, 200]], np.uint8), 12, True,
+     "s.png: the PNG has 8 bits per sample, too few for 12-bit samples (--bit-depth 12): pass --bit-depth 8 "
+     "or less"),
+    (np.array([[0, 200]], np.int16), 16, False, "the array (int16) holds at most 15 bits per sample, too few for 16-bit samples"),
+    (np.array([[0.0, 0.5]], np.float32), 12, False, "holds float32 samples; --bit-depth scales integer samples"),
+    (np.array([[-3, 5]], np.int16), 12, False, "a sample is -3; radar power is not negative"),
+])
+def test_bit_depth_refuses_samples_it_cannot_hold(raw, bit_depth, from_png, message):
+    from reradar_core.cli_commands.import_scans import scale_to_unit_power
+
+    with pytest.raises(ScanFormatError) as exc:
+        scale_to_unit_power(raw, "s.png", bit_depth, from_png=from_png)
+    assert message in str(exc.value)
+
+
+def test_without_bit_depth_samples_are_read_as_before(caplog):
+    """16-bit PNGs at 65535 (a warning that now names --bit-depth when they reach 12 bits or fewer), uint8 and
+    floats left to the importer; an integer .npy above 1 is refused naming --bit-depth (it was refused before,
+    asking to rescale)."""
+    from reradar_core.cli_commands.import_scans import scale_to_unit_power
+
+    full = np.array([[0, 13107, 65535]], np.uint16)
+    np.testing.assert_array_equal(scale_to_unit_power(full, "a.png"), np.array([[0.0, 0.2, 1.0]], np.float32))
+    assert "bit-depth" not in caplog.text
+    twelve = np.array([[0, 4095]], np.uint16)
+    with caplog.at_level("WARNING"):
+        np.testing.assert_array_equal(scale_to_unit_power(twelve, "b.png"),
+                                      np.array([[0.0, 4095 / 65535]], np.float32))
+    assert "b.png: a 16-bit PNG whose values reach only 4095" in caplog.text
+    assert "--bit-depth 12 (full scale 4095)" in caplog.text
+    byte = np.array([[0, 255]], np.uint8)
+    assert scale_to_unit_power(byte, "c.png") is byte
+    floats = np.array([[0.0, 0.5]], np.float32)
+    assert scale_to_unit_power(floats, "d.npy", from_png=False) is floats
+    with pytest.raises(ScanFormatError, match=r"e.npy: integer samples up to 4095 \(uint16\) with no stated full "
+                                              r"scale: pass the radar's sample depth, e.g. --bit-depth 12"):
+        scale_to_unit_power(twelve, "e.npy", from_png=False)
+
+
+def _uniform_16bit(path, value: int, n_az: int = 400, n_bins: int = 576):
+    """A 16-bit greyscale PNG (or uint16 .npy) of ``value`` everywhere: 0.175 m bins reach 100.6 m."""
+    arr = np.full((n_az, n_bins), value, np.uint16)
+    if path.suffix == ".npy":
+        np.save(path, arr)
+    else:
+        assert cv2.imwrite(str(path), arr)
+    return path
+
+
+def _import_with(tmp_path, *sources, bit_depth=None, out="o"):
+    from reradar_cli import app
+
+    extra = [] if bit_depth is None else ["--bit-depth", str(bit_depth)]
+    return CliRunner().invoke(app, ["import-scans", *map(str, sources), "--out", str(tmp_path / out),
+                                    "--range-resolution", "0.175", *extra])
+
+
+def _inside_power(path):
+    """The distinct power levels of an imported Boreas scan within the source's 0..100.6 m."""
+    scan = load_scan(path, "boreas")
+    inside = (scan.ranges_m >= 0.0) & (scan.ranges_m <= 100.5)
+    assert np.all(scan.power[:, scan.ranges_m > 100.8] == 0)  # beyond the source: no return
+    return np.unique(scan.power[:, inside])
+
+
+@pytest.mark.parametrize("suffix", [".png", ".npy"])
+def test_cli_bit_depth_12_reads_12_bit_samples_at_full_scale_4095(tmp_path, suffix):
+    """1365 of 4095 is power 1/3, written as 85 of 255 in the Navtech PNG (at 65535 it was 5 of 255)."""
+    src = _uniform_16bit(tmp_path / f"1600000000000000{suffix}", 1365)
+    res = _import_with(tmp_path, src, bit_depth=12)
+    assert res.exit_code == 0, res.output
+    assert "power read as 12-bit samples: value / 4095 (--bit-depth)" in res.output
+    np.testing.assert_array_equal(_inside_power(tmp_path / "o" / "1600000000000000.png"),
+                                  np.array([85 / 255], np.float32))
+
+
+def test_cli_without_bit_depth_reads_a_16_bit_png_at_65535_and_names_the_option(tmp_path, caplog):
+    src = _uniform_16bit(tmp_path / "1600000000000000.png", 1365)
+    with caplog.at_level("WARNING"):
+        res = _import_with(tmp_path, src)
+    assert res.exit_code == 0, res.output
+    assert "pass its sample depth, e.g. --bit-depth 12" in caplog.text
+    # 1365 / 65535 * 255 = 5.3 -> 5
+    np.testing.assert_array_equal(_inside_power(tmp_path / "o" / "1600000000000000.png"),
+                                  np.array([5 / 255], np.float32))
+
+
+def test_cli_refuses_a_sample_above_the_declared_full_scale_and_writes_nothing(tmp_path):
+    """The first source fits 12 bits, the second reaches 5000: refused in one line naming the file and the depth
+    it needs, and --out is left as it was (not created)."""
+    good = _uniform_16bit(tmp_path / "1600000000000000.png", 1365)
+    bad = np.full((400, 576), 1365, np.uint16)
+    bad[7, 100] = 5000
+    assert cv2.imwrite(str(tmp_path / "1600000000250000.png"), bad)
+    res = _import_with(tmp_path, good, tmp_path / "1600000000250000.png", bit_depth=12)
+    assert res.exit_code == 2, res.output
+    assert ("error: 1600000000250000.png: a sample reaches 5000, above the 12-bit full scale 4095 (--bit-depth 12)"
+            in res.output)
+    assert "at least --bit-depth 13" in res.output and "nothing was written" in res.output
+    assert "Traceback" not in res.output and str(tmp_path / "o" / ".reradar") not in res.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_refuses_impossible_bit_depths(tmp_path):
+    cv2.imwrite(str(tmp_path / "1600000000000000.png"), _foreign())  # an 8-bit PNG
+    res = _import_with(tmp_path, tmp_path / "1600000000000000.png", bit_depth=12)
+    assert res.exit_code == 2 and "the PNG has 8 bits per sample, too few for 12-bit" in res.output
+    assert not (tmp_path / "o").exists()
+    res = _import_with(tmp_path, tmp_path / "1600000000000000.png", bit_depth=8)  # the same as without it
+    assert res.exit_code == 0, res.output
+    np.save(tmp_path / "f.npy", np.full((400, 576), 0.5, np.float32))
+    res = _import_with(tmp_path, tmp_path / "f.npy", bit_depth=12, out="o2")
+    assert res.exit_code == 2 and "drop --bit-depth for power already in [0, 1]" in res.output
+    res = _import_with(tmp_path, tmp_path / "1600000000000000.png", bit_depth=17, out="o3")
+    assert res.exit_code == 2 and "'--bit-depth': Input should be less than or equal to 16" in res.output
+    assert not (tmp_path / "o2").exists() and not (tmp_path / "o3").exists()
+
+
+def test_help_documents_bit_depth():
+    from reradar_cli import app
+
+    res = CliRunner().invoke(app, ["import-scans", "--help"], env={"COLUMNS": "200"})
+    text = " ".join(res.output.split())
+    assert res.exit_code == 0 and "--bit-depth N reads integer samples as value / (2^N - 1)" in text
+    assert "12 for 12-bit data in a 16-bit PNG (4095 = full power)" in text
