@@ -48,6 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--label", default="")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--no-cache", action="store_true", help="neither read nor write the render cache")
+    ap.add_argument("--dense", action="store_true",
+                    help="the far view with its dense registration (method <model>+dense, matching.dense)")
     ap.add_argument("--far-z-q", type=float, default=None,
                     help="the far view's landmark threshold (FarViewConfig.landmark_z_q; default: the near view's)")
     a = ap.parse_args(argv)
@@ -57,10 +59,10 @@ def main(argv: list[str] | None = None) -> int:
     data = C.render_subset(a.suite, (w0, w1), a.queries, None, ov, 1, not a.no_cache, False, a.revisit_m)
     preset, radius = str(data["preset"]), float(data["radius"])  # type: ignore[arg-type]
     db_pose, q_pose = np.asarray(data["db_pose"]), np.asarray(data["q_pose"])
-    method = make_method(a.model + "+far")
+    method = make_method(a.model + ("+dense" if a.dense else "+far"))
     if a.far_z_q is not None:  # the same method with another far-view landmark threshold
         method = Ours(method.extractor, method.localization, name=method.name,
-                      far_view=replace(method.far_view, landmark_z_q=a.far_z_q))
+                      far_view=replace(method.far_view, landmark_z_q=a.far_z_q), dense=a.dense)
     db = [method.prepare(C._scan(s, int(t), preset)) for s, t in zip(data["db_scans"], data["db_t"], strict=True)]  # type: ignore[call-overload]
     qs = [method.prepare(C._scan(s, int(t), preset)) for s, t in zip(data["q_scans"], data["q_t"], strict=True)]  # type: ignore[call-overload]
     index = method.build_index([method.describe_prepared(p) for p in db])
@@ -79,11 +81,13 @@ def main(argv: list[str] | None = None) -> int:
 
     rec: dict[str, list[bool]] = {k: [] for k in ("near_screened", "near_top1", "two_screened", "two_top1",
                                                    "near_sr", "two_sr", "near_wrong", "two_wrong", "far_used",
-                                                   "two_place", "near_sparse")}
+                                                   "two_place", "near_sparse", "dense_used")}
+    dense_kf = (lambda j: np.asarray(db[j]["dense"], np.float32)) if a.dense else None
     for i, qp in enumerate(qs):
+        dense_q = (lambda qp=qp: np.asarray(qp["dense"], np.float32)) if a.dense else None
         out = localize_two_views(near_map, prepared_to_features(qp), far_map,
                                  lambda qp=qp: prepared_to_features(_far_part(qp)), method.localization,
-                                 method.far_view)
+                                 method.far_view, dense_q, dense_kf)
         for tag, r in (("near", out.near_result), ("two", out.result)):
             rec[f"{tag}_screened"].append(place_ok(int(r.best.keyframe_id), i))
             rec[f"{tag}_top1"].append(place_ok(int(r.best.keyframe_id) if r.localized else top1(r), i))
@@ -92,14 +96,16 @@ def main(argv: list[str] | None = None) -> int:
         rec["two_place"].append(place_ok(int(out.place_id), i))  # the shipped rule (TwoViewResult.place_id)
         rec["near_sparse"].append(out.near_sparse)
         rec["far_used"].append(out.view == "far")
+        rec["dense_used"].append(out.registration == "dense")
     world = C.subset_world(a.suite, ov)
     is_open = np.array([world.is_open_land(p) for p in q_pose[:, :2]], dtype=bool)
     row: dict[str, object] = {"label": a.label, "suite": a.suite, "model": a.model, "far_z_q": a.far_z_q,
+                              "dense": a.dense,
                               "window": a.window,
                               "overrides": ov, "queries": len(qs), "database": len(db),
                               "open_pct": round(100 * is_open.mean(), 1)}
     for k, v in rec.items():
-        if k in ("far_used", "near_sparse"):
+        if k in ("far_used", "near_sparse", "dense_used"):
             row[k] = int(np.sum(v))
             continue
         h = np.asarray(v, bool)

@@ -27,6 +27,7 @@ from reradar_core.localization import (
 from reradar_core.localization.extractor import FeatureExtractor
 from reradar_core.localization.far_view import FarViewConfig
 from reradar_core.localization.keyframes import select_keyframes  # re-exported: the map builder's rule
+from reradar_core.matching.dense import DenseConfig, dense_image, dense_image_settings
 from reradar_core.matching.motion import keyframe_twists, time_neighbours
 from reradar_core.retrieval import GlobalIndex
 
@@ -182,6 +183,7 @@ def build_map(
     localization: LocalizationConfig | None = None,
     repetition_workers: int | None = None,
     far_view: FarViewConfig | None = None,
+    dense: DenseConfig | None = None,
 ) -> Path:
     """Describe scans ``load_scan(0..N-1)`` in batches and write an HDF5 map at ``out`` (atomically).
 
@@ -210,7 +212,10 @@ def build_map(
         far_view: also write the far-view companion ``far_view_path(out)`` (the same scans, poses and times
             described by ``extractor.with_view(far_view.cartesian)``; ReRadar's far view, docs/MODEL.md), which a
             served map uses for the answers its own view refuses. None: no companion (and an old one at that path
-            is removed, since it would describe another map).
+            is removed, since it would describe another map). The companion holds every keyframe's dense image
+            (``far_view.dense``) for the far view's dense registration.
+        dense: store every keyframe's dense image (``matching.dense.dense_image`` of its scan in the extractor's
+            geometry, ~90 KB per 257 px keyframe) with these settings; None (default for a map itself): none.
 
     Returns:
         ``out``.
@@ -251,9 +256,11 @@ def build_map(
                     source=source,
                     name=name or Path(out).stem,
                 )
-                writer = MapWriter(out, meta, overwrite=overwrite).__enter__()
+                writer = MapWriter(out, meta, overwrite=overwrite,
+                                   dense_settings=None if dense is None else dense_image_settings(dense)).__enter__()
             for i, (scan, f) in enumerate(zip(scans, feats, strict=True)):
-                writer.add(f, poses[start + i], timestamp_us=scan.timestamp_us)
+                image = None if dense is None else dense_image(scan, extractor.cartesian, dense)
+                writer.add(f, poses[start + i], timestamp_us=scan.timestamp_us, dense_image=image)
                 if len(f.keypoints_xy_m) < _MIN_MAP_KEYPOINTS:
                     sparse.append(start + i)
             bar.update(stop - start)
@@ -306,7 +313,7 @@ def build_map(
                   max_keypoints=max_keypoints, overwrite=True, progress=None if progress is None else far_progress,
                   show_progress=show_progress,
                   place_repetition=place_repetition, localization=localization,
-                  repetition_workers=repetition_workers)
+                  repetition_workers=repetition_workers, dense=far_view.dense)
     return Path(out)
 
 

@@ -30,10 +30,15 @@ from reradar_core.localization import (
     Retrieval,
     TwoViewResult,
 )
-from reradar_core.localization.far_view import far_fallback
+from reradar_core.localization.far_view import FarViewConfig, far_fallback
+from reradar_core.matching.dense import dense_image_settings
 from reradar_core.retrieval import GlobalIndex, IndexConfig
 
-__all__ = ["Retrieval", "MapDatabase", "far_view_mismatch"]
+__all__ = ["Retrieval", "MapDatabase", "far_view_mismatch", "FAR_VIEW"]
+
+#: The far view a served map's companion is read with (geometry, sparse rule, dense registration): the defaults,
+#: as ``reradar build-map --far-view`` writes them and the benchmark's ``+far`` / ``+dense`` rows use them.
+FAR_VIEW = FarViewConfig()
 
 logger = logging.getLogger(__name__)
 
@@ -173,24 +178,44 @@ class MapDatabase:
         self.far = far
 
     def localize_views(self, query: ScanFeatures, far_features: Callable[[], ScanFeatures] | None,
-                       config: LocalizationConfig | None = None) -> TwoViewResult:
+                       config: LocalizationConfig | None = None,
+                       dense_query: Callable[[], np.ndarray] | None = None) -> TwoViewResult:
         """``localize``, and when refused, again in the far view (``far_fallback``, as ``localize_two_views``) if this
-        map has a far companion and ``far_features`` computes the query's far-view features (only called then)."""
+        map has a far companion and ``far_features`` computes the query's far-view features (only called then);
+        when the far view refuses too, its dense registration if the companion holds dense images made as
+        ``FAR_VIEW.dense`` makes them and ``dense_query`` computes the query's (only called then)."""
         return far_fallback(self.localize(query, config), self.localizer, query, self._far_localizer, far_features,
-                            config)
+                            config, FAR_VIEW, *self._dense(dense_query))
 
     def track_views(self, query: ScanFeatures, prior: PosePrior, far_features: Callable[[], ScanFeatures] | None,
-                    config: LocalizationConfig | None = None) -> TwoViewResult:
+                    config: LocalizationConfig | None = None,
+                    dense_query: Callable[[], np.ndarray] | None = None) -> TwoViewResult:
         """``track``, and when that ends in a refused global answer (no consistent pose near the prior, or a prior
         too loose to track from), the far view as in ``localize_views``; a refused tracked answer stands."""
         result = self.track(query, prior, config)
         if result.mode != "global":
             return TwoViewResult(result, "near", result)
-        return far_fallback(result, self.localizer, query, self._far_localizer, far_features, config)
+        return far_fallback(result, self.localizer, query, self._far_localizer, far_features, config, FAR_VIEW,
+                            *self._dense(dense_query))
 
     @property
     def _far_localizer(self) -> Localizer | None:
         return self.far.localizer if self.far is not None else None
+
+    @property
+    def far_dense(self) -> bool:
+        """The far-view companion holds every keyframe's dense image, made with the settings this process makes
+        the query's with (``FAR_VIEW.dense``): its dense registration can run."""
+        return (self.far is not None and self.far.map.dense_settings is not None
+                and self.far.map.dense_settings == dense_image_settings(FAR_VIEW.dense))
+
+    def _dense(self, dense_query: Callable[[], np.ndarray] | None
+               ) -> tuple[Callable[[], np.ndarray] | None, Callable[[int], np.ndarray] | None]:
+        """(``dense_query``, the companion's keyframe image reader) when dense registration can run, else Nones."""
+        if dense_query is None or not self.far_dense:
+            return None, None
+        assert self.far is not None
+        return dense_query, self.far.map.read_dense_image
 
     def track(self, query: ScanFeatures, prior: PosePrior,
               config: LocalizationConfig | None = None) -> LocalizationResult:

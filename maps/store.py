@@ -69,6 +69,7 @@ __all__ = [
     "MAX_REPETITION_SETTINGS_CHARS",
     "PROBE_TIMEOUT_S",
     "probe_map",
+    "DENSE_IMAGES_ATTR",
 ]
 
 logger = logging.getLogger(__name__)
@@ -107,6 +108,9 @@ DESCRIPTOR_NORM_TOLERANCE = 1e-3
 #: Longest accepted ``/place_repetition`` ``settings`` attribute, characters (the shipped settings: ~700).
 MAX_REPETITION_SETTINGS_CHARS = 16_384
 _INT64_MAX = int(np.iinfo(np.int64).max)
+#: Root attribute of a map whose every keyframe stores ``/keyframes/<i>/dense_image`` (a far-view companion built
+#: since 2026-12-04): the settings the images were made with (``matching.dense.dense_image_settings``).
+DENSE_IMAGES_ATTR = "dense_images"
 
 _ATTR_FIELDS = (
     "schema_version",
@@ -527,6 +531,7 @@ class KeyframeMap:
             _check_links(self._file, self.path)
             self.metadata = _read_metadata(self._file, self.path)
             self.timestamps_us, self.poses, self.global_descriptors = self._read_arrays(self._file)
+            self.dense_settings = self._read_dense_settings(self._file)
             try:
                 self.place_repetition = self._read_place_repetition(self._file) if read_place_repetition else None
             except MapFormatError as exc:  # the remedy: measure it again (the keyframes are intact)
@@ -568,6 +573,56 @@ class KeyframeMap:
             g = np.ascontiguousarray(g_ds[()], dtype=np.float32)
         _check_global_descriptors(g, path)
         return ts, poses, g
+
+    def _read_dense_settings(self, f: h5py.File) -> str | None:
+        """The ``dense_images`` root attribute (text), or None for a map without dense images."""
+        if DENSE_IMAGES_ATTR not in f.attrs:
+            return None
+        value = _attr_value(f.attrs, DENSE_IMAGES_ATTR, self.path)
+        if not isinstance(value, (str, bytes)):
+            raise MapFormatError(f"{self.path}: attribute {DENSE_IMAGES_ATTR!r} must be text, found {type(value).__name__}")
+        text = value.decode(errors="replace") if isinstance(value, bytes) else value
+        if len(text) > MAX_REPETITION_SETTINGS_CHARS:
+            raise MapFormatError(f"{self.path}: attribute {DENSE_IMAGES_ATTR!r} holds {len(text)} characters; at most "
+                                 f"{MAX_REPETITION_SETTINGS_CHARS} are accepted")
+        return text
+
+    def read_dense_image(self, index: int) -> np.ndarray:
+        """Keyframe ``index``'s dense image (``matching.dense.dense_image`` of its scan in the map's Cartesian
+        geometry): (W, W) float32, W = ``metadata.cartesian_width_px``.
+
+        Raises:
+            IndexError: ``index`` out of range.
+            MapFormatError: the map has no dense images (``dense_settings`` None), the dataset is missing or
+                damaged, or the map was closed.
+        """
+        if not 0 <= index < len(self):
+            raise IndexError(f"keyframe {index} out of range [0, {len(self)})")
+        if self.dense_settings is None:
+            raise MapFormatError(f"{self.path}: the map holds no dense images (build its far view again with "
+                                 "`reradar build-map --far-view`)")
+        w = self.metadata.cartesian_width_px
+        with self._lock:
+            if self._file is None:
+                raise MapFormatError(f"{self.path}: map is closed")
+            try:
+                name = f"{index:06d}"
+                kgroup = self._file["keyframes"]
+                if not isinstance(kgroup.get(name, getlink=True), h5py.HardLink):
+                    raise MapFormatError(f"{self.path}: keyframe {index} is missing or a link")
+                ds = _dataset(kgroup[name], "dense_image", self.path)
+                _check_layout(ds, (w, w), "f", "float16", self.path, f"cartesian_width_px = {w} squared")
+                _check_stored(ds, self.path)
+                with np.errstate(over="ignore"):
+                    img = np.asarray(ds[()], dtype=np.float32)
+            except MapFormatError:
+                raise
+            except _H5_ERRORS as exc:
+                raise MapFormatError(
+                    f"{self.path}: keyframe {index}'s dense image is damaged ({_h5_reason(exc, self.path)})") from exc
+        if not np.isfinite(img).all():
+            raise MapFormatError(f"{self.path}: keyframe {index}'s dense image contains NaN/inf")
+        return img
 
     def _read_place_repetition(self, f: h5py.File) -> RepetitionTable | None:
         """The optional ``/place_repetition`` group as a ``RepetitionTable`` (headers checked before data)."""
@@ -929,7 +984,11 @@ class MapWriter:
     temporary file is deleted and any existing map at ``path`` is left untouched.
     """
 
-    def __init__(self, path: str | Path, metadata: MapMetadata, overwrite: bool = False) -> None:
+    def __init__(self, path: str | Path, metadata: MapMetadata, overwrite: bool = False,
+                 dense_settings: str | None = None) -> None:
+        """``dense_settings``: every keyframe added carries its dense image (``add(..., dense_image=)``), made with
+        these settings (``matching.dense.dense_image_settings``), stored as the root attribute ``dense_images``."""
+        self.dense_settings = dense_settings
         self.path = Path(path)
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path}: map already exists (pass overwrite=True to replace it)")
@@ -950,10 +1009,20 @@ class MapWriter:
         self._file.create_group("keyframes")
         return self
 
-    def add(self, features: ScanFeatures, pose: np.ndarray, timestamp_us: int | None = None) -> int:
-        """Append one keyframe with its map pose ``T_map_keyframe`` (3,) (x m, y m, yaw rad); returns its id."""
+    def add(self, features: ScanFeatures, pose: np.ndarray, timestamp_us: int | None = None,
+            dense_image: np.ndarray | None = None) -> int:
+        """Append one keyframe with its map pose ``T_map_keyframe`` (3,) (x m, y m, yaw rad); returns its id.
+        ``dense_image``: (W, W) float, W = ``metadata.cartesian_width_px``, required exactly when the writer was
+        made with ``dense_settings`` (stored float16, compressed)."""
         if self._file is None:
             raise RuntimeError("MapWriter.add outside its with-block")
+        if (dense_image is None) != (self.dense_settings is None):
+            raise ValueError("a map with dense images needs one for every keyframe (and one without takes none)")
+        if dense_image is not None:
+            w = self.metadata.cartesian_width_px
+            dense_image = np.asarray(dense_image, dtype=np.float16)
+            if dense_image.shape != (w, w) or not np.isfinite(dense_image).all():
+                raise ValueError(f"dense image must be ({w}, {w}) finite values, got shape {dense_image.shape}")
         pose = np.asarray(pose, dtype=np.float64).reshape(-1)
         if pose.shape != (3,) or not np.all(np.isfinite(pose)):
             raise ValueError(f"keyframe pose must be 3 finite values (x, y, yaw), got {pose}")
@@ -969,6 +1038,9 @@ class MapWriter:
         if local.shape[0] == 0:
             local = np.zeros((0, self.metadata.local_descriptor_dim), np.float16)
         grp.create_dataset("local_descriptors", data=local)
+        if dense_image is not None:  # ~90 KB per 257 px image (float16 speckle compresses ~1.4:1)
+            grp.create_dataset("dense_image", data=dense_image, chunks=dense_image.shape, compression="gzip",
+                               compression_opts=4, shuffle=True)
         self._ts.append(int(features.timestamp_us if timestamp_us is None else timestamp_us))
         self._poses.append(pose)
         self._glob.append(g)
@@ -1029,6 +1101,8 @@ class MapWriter:
             f.attrs[key] = meta[key]
         if self._repetition is not None:
             _write_place_repetition(f, self._repetition, self._n)
+        if self.dense_settings is not None:
+            f.attrs[DENSE_IMAGES_ATTR] = self.dense_settings
         f.flush()
         f.close()
         self._file = None

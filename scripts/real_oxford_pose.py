@@ -20,6 +20,7 @@ Usage:
     python scripts/real_oxford_pose.py ../shared/data/real-oxford --rotate-seed 0 --localizer
     python scripts/real_oxford_pose.py ../shared/data/real-oxford --localizer --far-view only       # the far view alone
     python scripts/real_oxford_pose.py ../shared/data/real-oxford --localizer --far-view fallback   # as '+far'
+    python scripts/real_oxford_pose.py ../shared/data/real-oxford --localizer --far-view dense      # as '+dense'
 """
 
 from __future__ import annotations
@@ -65,11 +66,12 @@ def main() -> None:
     ap.add_argument("--localizer", action="store_true",
                     help="run every pair through the service's Localizer on a one-keyframe map (shipped floor, "
                          "confidence bar and search) and count correct / wrong / refused answers")
-    ap.add_argument("--far-view", choices=("only", "fallback"), default=None,
+    ap.add_argument("--far-view", choices=("only", "fallback", "dense"), default=None,
                     help="ReRadar's far view (257 px at 1.28 m/px, the whole range; reradar_core.localization."
                          "far_view): 'only' describes every scan in it instead of the model's own image (every mode); "
                          "'fallback' (--localizer / --leave-one-out) localizes refused answers again in it, as the "
-                         "'+far' benchmark method does")
+                         "'+far' benchmark method does; 'dense' also registers answers both views refused by "
+                         "whole-image correlation, as '+dense' does (matching.dense)")
     args = ap.parse_args()
 
     seq = load_sequence(args.folder, layout="oxford")
@@ -77,8 +79,8 @@ def main() -> None:
     far_ex = ex.with_view(FarViewConfig().cartesian) if args.far_view else None
     if args.far_view == "only":
         ex, far_ex = far_ex, None
-    elif args.far_view == "fallback" and not (args.localizer or args.leave_one_out):
-        ap.error("--far-view fallback needs --localizer or --leave-one-out")
+    elif args.far_view in ("fallback", "dense") and not (args.localizer or args.leave_one_out):
+        ap.error(f"--far-view {args.far_view} needs --localizer or --leave-one-out")
     scans = [seq.load_scan(i) for i in range(len(seq))]
     feats = [ex.describe(s) for s in scans]  # the landmarks the service detects (the extractor's settings)
     poses = seq.poses.poses
@@ -94,6 +96,15 @@ def main() -> None:
     # the far view's features of every map scan and query (fallback mode), or None
     args.far = None if far_ex is None else ([far_ex.describe(s) for s in scans],
                                             [far_ex.describe(s) for s in (turned if args.rotate_seed is not None
+                                                                          else scans)])
+    # the far view's dense images of every map scan and query (dense mode), or None
+    args.dense = None
+    if args.far_view == "dense":
+        from reradar_core.matching.dense import dense_image
+
+        fv = FarViewConfig()
+        args.dense = ([dense_image(s, fv.cartesian, fv.dense) for s in scans],
+                      [dense_image(s, fv.cartesian, fv.dense) for s in (turned if args.rotate_seed is not None
                                                                           else scans)])
     print(f"pose method {args.pose_method}; model {ex.name} ({ex.model_id}), {len(scans)} scans, "
           f"{np.mean([len(f.keypoints_xy_m) for f in feats]):.0f} keypoints per scan in the image")
@@ -169,7 +180,11 @@ def _localize(feats: list, qfeats: list, keys: list[int], j: int, poses: np.ndar
     if args.far is None:
         return map_of(feats).localize(qfeats[j])
     far_feats, far_qfeats = args.far
-    return localize_two_views(map_of(feats), qfeats[j], map_of(far_feats), lambda: far_qfeats[j]).result
+    dense_q = dense_kf = None
+    if args.dense is not None:  # keyframe k of the map is scan keys[k]
+        dense_q, dense_kf = (lambda: args.dense[1][j]), (lambda k: args.dense[0][keys[k]])
+    return localize_two_views(map_of(feats), qfeats[j], map_of(far_feats), lambda: far_qfeats[j],
+                              dense_query=dense_q, dense_keyframe=dense_kf).result
 
 
 def _localizer_table(feats: list, qfeats: list, poses: np.ndarray, dyaw: np.ndarray, args: argparse.Namespace) -> None:

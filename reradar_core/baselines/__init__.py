@@ -5,7 +5,9 @@
 file and commit), the variants this project ran before (``raplace-nodc``, ``radvlad-half``; never the
 reference rows), and ReRadar itself as ``ours`` / ``ours-<model>`` for every name in
 ``reradar_core.model.available_models()``; any ReRadar name with ``+far`` (``our-3-offroad-w05+far``) adds
-ReRadar's far view for refused queries (``reradar_core.localization.far_view``; ours, not the paper's method).
+ReRadar's far view for refused queries (``reradar_core.localization.far_view``; ours, not the paper's method), and
+``+dense`` (``our-3-offroad-w05+dense``) the far view with its dense registration for queries both views refused
+(``reradar_core.matching.dense``; ours too).
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ def default_method_names() -> list[str]:
 
 #: Suffix of a ReRadar method name that adds the far view (``our-3-offroad-w05+far``).
 FAR_SUFFIX = "+far"
+#: Suffix of a ReRadar method name that adds the far view and its dense registration (``our-3-offroad-w05+dense``).
+DENSE_SUFFIX = "+dense"
 
 
 def make_method(name: str) -> PlaceRecognitionMethod:
@@ -78,14 +82,18 @@ def make_method(name: str) -> PlaceRecognitionMethod:
         from reradar_core.baselines.referee import ReFeree
 
         return ReFeree()
-    if key.endswith(FAR_SUFFIX):  # ReRadar with its far view (``localization.far_view``), a separately named row
+    for suffix in (FAR_SUFFIX, DENSE_SUFFIX):  # ReRadar with its far view (``localization.far_view``) [and dense
+        if not key.endswith(suffix):           # registration]: separately named rows
+            continue
         from reradar_core.baselines.ours import Ours
         from reradar_core.localization.far_view import FarViewConfig
 
-        near = make_method(name.strip()[: -len(FAR_SUFFIX)])
-        if not isinstance(near, Ours):
-            raise ConfigError(f"{FAR_SUFFIX!r} applies to ReRadar models only, not to {near.name!r}")
-        return Ours(near.extractor, near.localization, name=near.name + FAR_SUFFIX, far_view=FarViewConfig())
+        near = make_method(name.strip()[: -len(suffix)])
+        if not isinstance(near, Ours) or near.far_view is not None:
+            what = near.name if not isinstance(near, Ours) else f"{near.name} (it has a far view already)"
+            raise ConfigError(f"{suffix!r} applies to a ReRadar model without a far view, not to {what!r}")
+        return Ours(near.extractor, near.localization, name=near.name + suffix, far_view=FarViewConfig(),
+                    dense=suffix == DENSE_SUFFIX)
     known = ours_model_names()
     if name.strip().endswith(".pt"):  # a weights file (with its .json) outside the registry, e.g. a training run
         from pathlib import Path

@@ -65,7 +65,7 @@ class Ours(PlaceRecognitionMethod):
     provides_heading = True
 
     def __init__(self, model: str | Any = "default", localization: Any = None, name: str | None = None,
-                 far_view: Any = None) -> None:
+                 far_view: Any = None, dense: bool = False) -> None:
         from reradar_core.localization import LocalizationConfig
 
         self.extractor = load_extractor(model) if isinstance(model, str) else model
@@ -79,6 +79,10 @@ class Ours(PlaceRecognitionMethod):
 
             base = getattr(self.extractor, "landmark_config", None) or Cen2018Config()
             self.far_extractor.landmark_config = replace(base, z_q=float(far_view.landmark_z_q))
+        if dense and far_view is None:
+            raise ConfigError("dense registration is a step of the far view: pass a far_view too")
+        # the far view's dense registration (``matching.dense``) for queries both views refused
+        self.dense = bool(dense)
         self._far_localizer: Any = None
         self.model_name = model if isinstance(model, str) else str(getattr(model, "model_id", "custom"))
         self.name = name or ("ours" if self.model_name == "default" else f"ours-{self.model_name}")
@@ -95,6 +99,8 @@ class Ours(PlaceRecognitionMethod):
             out["far_view"] = [int(self.far_view.width_px), float(self.far_view.resolution_m)]
             if self.far_view.landmark_z_q is not None:
                 out["far_view"].append(float(self.far_view.landmark_z_q))
+        if self.dense:
+            out["dense"] = repr(self.far_view.dense)
         return out
 
     def prepare(self, scan: RadarScan) -> Prepared:
@@ -108,6 +114,10 @@ class Ours(PlaceRecognitionMethod):
                                    self.far_extractor.landmark_range_m)
             prepared.update({f"far_{k}": v for k, v in
                              features_to_prepared(self.far_extractor.describe(scan, landmarks=far_lm)).items()})
+        if self.dense:  # the far view's dense image (``matching.dense.dense_image``), stored as a map would
+            from reradar_core.matching.dense import dense_image
+
+            prepared["dense"] = dense_image(scan, self.far_view.cartesian, self.far_view.dense).astype(np.float16)
         return prepared
 
     def describe_prepared(self, prepared: Prepared) -> np.ndarray:
@@ -159,8 +169,15 @@ class Ours(PlaceRecognitionMethod):
 
         localizer = self.localizer(index, db_prepared, db_poses)
         far = None if self._far_localizer is None else (lambda: prepared_to_features(_far_part(q_prepared)))
+        dense_q = dense_kf = None
+        if self.dense and self._far_localizer is not None:
+            def dense_q() -> np.ndarray:
+                return np.asarray(q_prepared["dense"], np.float32)
+
+            def dense_kf(j: int) -> np.ndarray:
+                return np.asarray(db_prepared[j]["dense"], np.float32)
         answer = localize_two_views(localizer, prepared_to_features(q_prepared), self._far_localizer, far,
-                                    self.localization, self.far_view)
+                                    self.localization, self.far_view, dense_q, dense_kf)
         res = answer.result
         if res.best is None:  # nothing retrieved: the database is empty
             raise ConfigError("the database holds no scans: nothing to localize against")

@@ -13,27 +13,46 @@ fully convolutional up to F' and NetVLAD aggregates any number of cells), and a 
 far-view keyframe features (same keyframe ids) retrieves, screens, verifies and decides with the same code and
 settings. Its answer replaces the refused one, localized or not (``TwoViewResult.place_id``: the place a refused
 far answer names). Confident near answers never pay for the second look.
+
+Dense registration (ours too; benchmark rows carry ``+dense``; docs/MODEL.md "Dense registration"): when the far view
+refuses as well and the near view had little in view, and the caller can supply the far view's dense images
+(``matching.dense.dense_image`` of the query and of the map's keyframes), the query is registered onto the far
+answer's ``FarViewConfig.dense_candidates`` best-ranked candidates by whole-image correlation
+(``matching.dense.register_dense_best``). The best alignment is ``localized`` only when its peak stands at least
+``dense_min_heading_margin`` above every peak at another heading and its confidence (a logistic of that margin,
+fitted on calibration routes) reaches the bar the landmark answers must reach; its pose then replaces the refused
+answer (``TwoViewResult.registration`` = ``dense``).
 """
 
 from __future__ import annotations
 
+import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
+import numpy as np
+
 from reradar_core.errors import ConfigError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.cartesian import CartesianConfig
+from reradar_core.geometry.se2 import compose
+from reradar_core.matching.dense import DenseConfig, register_dense_best
 
 if TYPE_CHECKING:
     from reradar_core.localization.localizer import Localizer
     from reradar_core.localization.pipeline import LocalizationConfig, LocalizationResult
 
-__all__ = ["FarViewConfig", "TwoViewResult", "localize_two_views", "far_fallback", "VIEW_NEAR", "VIEW_FAR", "View"]
+__all__ = ["FarViewConfig", "TwoViewResult", "localize_two_views", "far_fallback", "dense_fallback", "VIEW_NEAR",
+           "VIEW_FAR", "View", "Registration", "REGISTRATION_LANDMARKS", "REGISTRATION_DENSE"]
 
 View = Literal["near", "far"]
 VIEW_NEAR: View = "near"
 VIEW_FAR: View = "far"
+Registration = Literal["landmarks", "dense"]
+REGISTRATION_LANDMARKS: Registration = "landmarks"
+REGISTRATION_DENSE: Registration = "dense"
 
 
 @dataclass(frozen=True)
@@ -55,14 +74,40 @@ class FarViewConfig:
             extractor's keypoint cap ``DEFAULT_MAX_KEYPOINTS``: a near view at the cap is full). Only then does a
             refused far answer name the far descriptor's top 1 (``TwoViewResult.place_id``); a full near view's
             refusal is about ambiguity, not emptiness, and its best-screened candidate stands.
+        dense: ``matching.dense.DenseConfig``, the dense registration's image and search settings (used only when
+            the caller supplies dense images: ``far_fallback``'s ``dense_query`` / ``dense_keyframe``).
+        dense_candidates: how many of the refused far answer's best-ranked candidates are registered (default 5).
+        dense_min_heading_margin: a dense answer is localized only when its coarse peak stands this much above the
+            best peak at any other heading (``DenseRegistration.heading_margin``; default 0.05: twice the largest
+            margin of a wrong dense pose, 0.025, on four calibration routes of the ``offroad-sim-hard``
+            definition, world and route seeds 23-26 - 0 of 109 accepted answers wrong there, 109 of 135 right ones
+            accepted; docs/MODEL.md "Dense registration").
+        dense_confidence: (a, b) of the dense answer's confidence, 1 / (1 + exp(-(a + b ln margin))): the
+            probability that the pose is within the success thresholds (25 m, 10 degrees), fitted by logistic
+            regression on the same calibration routes' 187 sparse refused queries (predicted / observed per margin
+            bin: 0.11 / 0.09 below 0.01, 0.47 / 0.50 to 0.02, 0.86 / 0.87 to 0.05, 0.98 / 1.00 to 0.1, 1.00 / 1.00
+            above); 0.95 at the default margin bar.
     """
 
     width_px: int = 257
     resolution_m: float = 1.28
     landmark_z_q: float | None = None
     sparse_landmarks: int = 512
+    dense: DenseConfig = DenseConfig()
+    dense_candidates: int = 5
+    dense_min_heading_margin: float = 0.05
+    dense_confidence: tuple[float, float] = (9.8817, 2.3069)
 
     def __post_init__(self) -> None:
+        if isinstance(self.dense_candidates, bool) or not isinstance(self.dense_candidates, int) \
+                or self.dense_candidates < 1:
+            raise ConfigError(f"far view dense_candidates must be a whole number >= 1, got {self.dense_candidates!r}")
+        if not (math.isfinite(self.dense_min_heading_margin) and self.dense_min_heading_margin > 0):
+            raise ConfigError("far view dense_min_heading_margin must be a positive number, got "
+                              f"{self.dense_min_heading_margin!r}")
+        if len(self.dense_confidence) != 2 or not all(math.isfinite(v) for v in self.dense_confidence) \
+                or self.dense_confidence[1] <= 0:
+            raise ConfigError(f"far view dense_confidence must be (a, b) with b > 0, got {self.dense_confidence!r}")
         if self.sparse_landmarks < 0:
             raise ConfigError(f"far view sparse_landmarks must be >= 0, got {self.sparse_landmarks}")
         if self.landmark_z_q is not None and not self.landmark_z_q > 0:
@@ -81,6 +126,12 @@ class FarViewConfig:
         """Half the image width, metres."""
         return self.width_px * self.resolution_m / 2.0
 
+    def dense_answer_confidence(self, heading_margin: float) -> float:
+        """The calibrated confidence of a dense answer with this heading margin (``dense_confidence``), in [0, 1]."""
+        a, b = self.dense_confidence
+        z = a + b * math.log(max(float(heading_margin), 1e-6))
+        return 1.0 / (1.0 + math.exp(-z)) if z > -700 else 0.0
+
 
 @dataclass(frozen=True)
 class TwoViewResult:
@@ -91,12 +142,19 @@ class TwoViewResult:
             refused and a far view was available).
         view: ``VIEW_NEAR`` or ``VIEW_FAR``.
         near_result: the near view's own result (the same object as ``result`` when ``view`` is near).
+        near_sparse: the near view held fewer landmarks than ``FarViewConfig.sparse_landmarks``.
+        registration: how ``result``'s pose was found: ``landmarks`` (the paper's verification, either view) or
+            ``dense`` (``dense_fallback``: whole-image correlation in the far view).
+        heading_margin: the dense registration's ``DenseRegistration.heading_margin`` when one was tried, else
+            None.
     """
 
     result: LocalizationResult
     view: View
     near_result: LocalizationResult
     near_sparse: bool = False
+    registration: Registration = REGISTRATION_LANDMARKS
+    heading_margin: float | None = None
 
     @property
     def place_id(self) -> int | None:
@@ -123,7 +181,9 @@ class TwoViewResult:
 def localize_two_views(near: Localizer, near_features: ScanFeatures, far: Localizer | None,
                        far_features: Callable[[], ScanFeatures] | None,
                        config: LocalizationConfig | None = None,
-                       far_view: FarViewConfig | None = None) -> TwoViewResult:
+                       far_view: FarViewConfig | None = None,
+                       dense_query: Callable[[], np.ndarray] | None = None,
+                       dense_keyframe: Callable[[int], np.ndarray] | None = None) -> TwoViewResult:
     """Localize in the near view; when refused, again in the far view (module docstring).
 
     Args:
@@ -133,15 +193,22 @@ def localize_two_views(near: Localizer, near_features: ScanFeatures, far: Locali
             answer stands).
         far_features: computes the query's far-view ``ScanFeatures`` (called only when needed), or None.
         config: ``LocalizationConfig`` for both views (None: each localizer's own).
-        far_view: the far view's settings (None: ``FarViewConfig()``); only ``sparse_landmarks`` is read here.
+        far_view: the far view's settings (None: ``FarViewConfig()``); its geometry is the caller's (the far
+            features and dense images are made with it), ``sparse_landmarks`` and the ``dense_*`` settings are
+            read here.
+        dense_query: computes the query's far-view ``matching.dense.dense_image`` (called only when needed), or
+            None: no dense registration.
+        dense_keyframe: a map keyframe's far-view dense image by keyframe id, or None: no dense registration.
     """
     return far_fallback(near.localize(near_features, config), near, near_features, far, far_features, config,
-                        far_view)
+                        far_view, dense_query, dense_keyframe)
 
 
 def far_fallback(result: LocalizationResult, near: Localizer, near_features: ScanFeatures, far: Localizer | None,
                  far_features: Callable[[], ScanFeatures] | None, config: LocalizationConfig | None = None,
-                 far_view: FarViewConfig | None = None) -> TwoViewResult:
+                 far_view: FarViewConfig | None = None,
+                 dense_query: Callable[[], np.ndarray] | None = None,
+                 dense_keyframe: Callable[[int], np.ndarray] | None = None) -> TwoViewResult:
     """The second half of ``localize_two_views``: ``result`` (the near view's global answer for ``near_features``,
     e.g. a tracked request's global fallback) stands when localized or without a far view; else the far view
     localizes the query (arguments as ``localize_two_views``).
@@ -156,9 +223,51 @@ def far_fallback(result: LocalizationResult, near: Localizer, near_features: Sca
     if len(far) != len(near):
         raise ConfigError(f"the far view holds {len(far)} keyframes but the near view {len(near)}: "
                           "they must be the same map")
-    sparse = len(near_features.keypoints_xy_m) < (far_view or FarViewConfig()).sparse_landmarks
+    far_view = far_view or FarViewConfig()
+    sparse = len(near_features.keypoints_xy_m) < far_view.sparse_landmarks
     answer = far.localize(far_features(), config)
     answer.tracking_lost = result.tracking_lost
     answer.timings_ms = {k: result.timings_ms.get(k, 0.0) + answer.timings_ms.get(k, 0.0)
                          for k in {**result.timings_ms, **answer.timings_ms}}
-    return TwoViewResult(answer, VIEW_FAR, result, near_sparse=sparse)
+    if answer.localized or not sparse or dense_query is None or dense_keyframe is None or not answer.candidates:
+        return TwoViewResult(answer, VIEW_FAR, result, near_sparse=sparse)
+    dense, margin = dense_fallback(answer, dense_query, dense_keyframe, far_view,
+                                   (config or far.config).effective_min_confidence)
+    return TwoViewResult(dense, VIEW_FAR, result, near_sparse=sparse,
+                         registration=REGISTRATION_DENSE if dense.localized else REGISTRATION_LANDMARKS,
+                         heading_margin=margin)
+
+
+def dense_fallback(answer: LocalizationResult, dense_query: Callable[[], np.ndarray],
+                   dense_keyframe: Callable[[int], np.ndarray], far_view: FarViewConfig,
+                   min_confidence: float) -> tuple[LocalizationResult, float]:
+    """Register the query onto the refused far answer's best-ranked candidates by dense correlation (module
+    docstring) and return (a ``localized`` answer when the best alignment passes both bars, else ``answer``
+    itself with ``timings_ms["dense_ms"]`` added; the best alignment's heading margin).
+
+    The localized answer: ``best`` is the winning candidate with ``T_keyframe_query`` from the registration (0
+    matches and inliers: no landmarks were paired), ``T_map_query`` = ``T_map_keyframe`` o ``T_keyframe_query``,
+    ``confidence`` = ``far_view.dense_answer_confidence(margin)``, no ``cues`` and no ``pose_covariance`` (the
+    covariance model is the landmarks'), ``candidates`` and ``tracking_lost`` as the far answer's.
+    """
+    from dataclasses import replace
+
+    from reradar_core.localization.pipeline import LocalizationResult
+
+    t0 = time.perf_counter()
+    ranked = sorted(answer.candidates, key=lambda c: c.rank)[:far_view.dense_candidates]
+    win, reg = register_dense_best(dense_query(), [dense_keyframe(int(c.keyframe_id)) for c in ranked],
+                                   far_view.cartesian, far_view.dense)
+    timings = {**answer.timings_ms, "dense_ms": 1e3 * (time.perf_counter() - t0)}
+    confidence = far_view.dense_answer_confidence(reg.heading_margin)
+    if reg.heading_margin < far_view.dense_min_heading_margin or confidence < min_confidence:
+        answer.timings_ms = timings
+        return answer, reg.heading_margin
+    chosen = ranked[win]
+    T_map_keyframe = np.asarray(chosen.T_map_keyframe, np.float64)
+    best = replace(chosen, num_matches=0, num_inliers=0, inlier_ratio=0.0,
+                   T_keyframe_query=np.asarray(reg.T_keyframe_query, np.float64), reason=None, ambiguity=None,
+                   inlier_spread_m=None)
+    return LocalizationResult("localized", None, best, compose(T_map_keyframe, reg.T_keyframe_query),
+                              answer.candidates, timings, confidence, None, mode=answer.mode,
+                              tracking_lost=answer.tracking_lost), reg.heading_margin

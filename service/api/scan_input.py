@@ -11,6 +11,7 @@ from contextlib import aclosing
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 from fastapi import Request, params
 from fastapi.exceptions import RequestValidationError
 from fastapi.routing import APIRoute
@@ -309,6 +310,9 @@ class ScanInput:
     #: the scan's far-view features, computed on first call (inline scans, when the service has a far view; a
     #: cached ``scan_id``'s when they were computed at upload, ``CachedScan.far_features``), or None
     far_features: Callable[[], ScanFeatures] | None = None
+    #: the scan's far-view dense image (``matching.dense.dense_image``), computed on first call: inline scans on a
+    #: service with a far view; None for a cached ``scan_id`` (the scan itself is not kept)
+    dense_image: Callable[[], np.ndarray] | None = None
 
 
 def scan_request_body(json_model: type[BaseModel], form_fields: dict[str, dict[str, Any]]) -> dict[str, Any]:
@@ -397,7 +401,8 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         timings: dict[str, float] = {}
         features, _, _, scan = await run_in_threadpool(state.describe_upload, data, filename, preset, timings,
                                                        scan_layout, map_id or fields.get("map_id"))
-        return ScanInput(features, None, fields, timings, state.far_features_of(scan, timings))
+        return ScanInput(features, None, fields, timings, state.far_features_of(scan, timings),
+                         state.dense_image_of(scan, timings))
     raise UnsupportedMediaError(
         f"unsupported Content-Type {ctype or '(none)'!r}: send application/json with a scan_id or "
         f"multipart/form-data with a 'scan' file"

@@ -325,6 +325,12 @@ class LocalizeResponse(_Model):
         "whole range, from the map's far-view companion written by `reradar build-map --far-view`; global answers "
         "and a tracked request's global fallback, for inline scans and scans uploaded while a map had a "
         "companion); `near`: the map's own view (docs/MODEL.md, 'The far view')."))
+    registration: Literal["landmarks", "dense"] = Field(default="landmarks", description=(
+        "How the pose was found: `landmarks` (the paper's landmark matching, either view), or `dense`: both views "
+        "refused a scan with little in view and the far view's whole-image correlation placed it (inline scans "
+        "on a map whose far-view companion holds dense images, `reradar build-map --far-view` since 2026-12-04; "
+        "`num_matches` and `num_inliers` are then 0, there is no `pose_uncertainty`, and `confidence` is the "
+        "dense registration's own calibrated probability; docs/MODEL.md, 'Dense registration')."))
     session_id: str | None = None
     alignment_score: float = Field(default=0.0, description=(
         "Fraction of the query's landmarks aligned with the keyframe's (0-1); `localized` needs at least the "

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from maps.database import FAR_VIEW
 from reradar_core.errors import ReRadarError, ScanFormatError
 from reradar_core.features import ScanFeatures
 from reradar_core.io.presets import get_preset
@@ -20,6 +21,7 @@ from reradar_core.io.scan import (
 )
 from reradar_core.localization import LocalizationConfig
 from reradar_core.localization.extractor import FeatureExtractor
+from reradar_core.matching.dense import dense_image
 from service.core.config import Settings
 from service.core.errors import ServiceError
 from service.core.metrics import Metrics
@@ -109,6 +111,21 @@ class ServiceState:
                 return far.describe(scan)
             finally:
                 timings_ms["far_extract_ms"] = (time.perf_counter() - t0) * 1e3
+        return compute
+
+    def dense_image_of(self, scan: RadarScan, timings_ms: dict[str, float]) -> Callable[[], np.ndarray] | None:
+        """Computes ``scan``'s far-view dense image when called (``MapDatabase.localize_views`` calls it only when
+        both views refused on a map whose far-view companion holds dense images), adding ``dense_image_ms``; None
+        without a far view. Inline scans only: a cached ``scan_id`` keeps no scan to make it from."""
+        if self.registry.far_extractor is None:
+            return None
+
+        def compute() -> np.ndarray:
+            t0 = time.perf_counter()
+            try:
+                return dense_image(scan, FAR_VIEW.cartesian, FAR_VIEW.dense)
+            finally:
+                timings_ms["dense_image_ms"] = (time.perf_counter() - t0) * 1e3
         return compute
 
     def check_cached_preset(self, scan_id: str, preset: str | None, preset_open: bool, map_id: str) -> None:

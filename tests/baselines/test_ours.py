@@ -83,12 +83,28 @@ def test_far_suffix_names_a_separate_row_and_applies_to_recall_methods_only() ->
     from reradar_core.baselines import make_method, ours_model_names
     from reradar_core.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="ReRadar models only"):
+    with pytest.raises(ConfigError, match="ReRadar model without a far view"):
         make_method("raplace+far")
     model = ours_model_names()[0]
     m = make_method(model + "+far")
     assert m.name == model + "+far" and m.far_view is not None
     assert m.params()["far_view"] == [257, 1.28] and "far_view" not in make_method(model).params()
+
+
+def test_dense_suffix_adds_the_far_view_and_its_dense_registration() -> None:
+    from reradar_core.baselines import make_method, ours_model_names
+    from reradar_core.baselines.ours import Ours
+    from reradar_core.errors import ConfigError
+
+    model = ours_model_names()[0]
+    m = make_method(model + "+dense")
+    assert m.name == model + "+dense" and m.far_view is not None and m.dense
+    assert "dense" in m.params() and "dense" not in make_method(model + "+far").params()
+    for bad in ("raplace+dense", model + "+far+dense", model + "+dense+far"):
+        with pytest.raises(ConfigError, match="without a far view"):
+            make_method(bad)
+    with pytest.raises(ConfigError, match="step of the far view"):
+        Ours(m.extractor, dense=True)
 
 
 def test_new_poses_for_the_same_database_are_a_new_map():

@@ -146,3 +146,81 @@ def test_a_far_answer_to_a_lost_track_stays_marked_lost_and_counts_both_views_ti
     assert out.result.timings_ms["track_ms"] == pytest.approx(near_times["track_ms"])
     assert out.result.timings_ms["verify_ms"] > near_times["verify_ms"] > 0
     assert out.near_result is tracked and tracked.timings_ms == near_times  # the near answer is left as it was
+
+
+def _far_image(seed: int, spots: int) -> np.ndarray:
+    """A far-view dense image (``matching.dense.dense_image``) of a polar scan with ``spots`` bright reflectors."""
+    from reradar_core.io.scan import RadarScan
+    from reradar_core.matching.dense import dense_image
+
+    rng = np.random.default_rng(seed)
+    power = rng.uniform(0.0, 0.08, size=(400, 700)).astype(np.float32)
+    for _ in range(spots):
+        a, r = rng.integers(0, 400), rng.integers(100, 650)
+        power[a:a + 2, r:r + 5] = 0.9
+    scan = RadarScan(power, np.arange(400) * 2 * np.pi / 400, np.arange(400, dtype=np.int64) * 625, 0.25, 0.0)
+    return dense_image(scan, FarViewConfig().cartesian)
+
+
+def _refused_far_query(two_views, seed: int):
+    """A query both views refuse (nothing persists in either), whose far descriptor points at keyframe 2."""
+    _, _, _, far_kfs, _ = two_views
+    rng = np.random.default_rng(seed)
+    near_q = _keyframe(rng, 10**9, 60.0)
+    lost = _keyframe(rng, 10**9, 160.0)
+    return near_q, ScanFeatures(far_kfs[2].global_descriptor, lost.keypoints_xy_m, lost.local_descriptors, 10**9)
+
+
+def test_dense_registration_localizes_what_both_views_refused(two_views) -> None:
+    near_map, far_map, _, _, poses = two_views
+    near_q, far_q = _refused_far_query(two_views, 11)
+    images = {j: _far_image(100 + j, 60) for j in range(6)}
+    calls: list[int] = []
+
+    def keyframe_image(j: int) -> np.ndarray:
+        calls.append(j)
+        return images[j]
+
+    # the query sees exactly what keyframe 2 saw: the dense pose is the keyframe's own
+    out = localize_two_views(near_map, near_q, far_map, lambda: far_q, dense_query=lambda: images[2],
+                             dense_keyframe=keyframe_image)
+    assert out.view == VIEW_FAR and out.registration == "dense" and out.result.localized
+    assert out.result.best.keyframe_id == 2 and out.place_id == 2
+    np.testing.assert_allclose(out.result.T_map_query, poses[2], atol=0.05)
+    assert out.heading_margin >= FarViewConfig().dense_min_heading_margin
+    assert out.result.confidence == pytest.approx(FarViewConfig().dense_answer_confidence(out.heading_margin))
+    assert out.result.best.num_inliers == 0 and out.result.pose_covariance is None
+    assert "dense_ms" in out.result.timings_ms and len(calls) == FarViewConfig().dense_candidates
+
+
+def test_dense_registration_refuses_a_scene_that_aligns_at_every_heading(two_views) -> None:
+    near_map, far_map, _, _, _ = two_views
+    near_q, far_q = _refused_far_query(two_views, 12)
+    empty = {j: _far_image(200 + j, 0) for j in range(6)}  # speckle only
+    out = localize_two_views(near_map, near_q, far_map, lambda: far_q, dense_query=lambda: _far_image(300, 0),
+                             dense_keyframe=lambda j: empty[j])
+    assert out.view == VIEW_FAR and not out.result.localized and out.registration == "landmarks"
+    assert out.heading_margin is not None and out.heading_margin < FarViewConfig().dense_min_heading_margin
+    assert out.place_id == 2 and "dense_ms" in out.result.timings_ms
+
+
+def test_dense_registration_only_for_a_near_view_with_little_in_view(two_views) -> None:
+    near_map, far_map, _, _, _ = two_views
+    near_q, far_q = _refused_far_query(two_views, 13)
+
+    def never(*_: object) -> np.ndarray:
+        raise AssertionError("a dense image was computed for a full near view")
+
+    out = localize_two_views(near_map, near_q, far_map, lambda: far_q, far_view=FarViewConfig(sparse_landmarks=100),
+                             dense_query=never, dense_keyframe=never)
+    assert not out.result.localized and out.registration == "landmarks" and out.heading_margin is None
+
+
+def test_dense_settings_are_validated() -> None:
+    for bad in ({"dense_candidates": 0}, {"dense_candidates": 2.5}, {"dense_min_heading_margin": 0.0},
+                {"dense_confidence": (1.0, -2.0)}, {"dense_confidence": (1.0,)}):
+        with pytest.raises(ConfigError):
+            FarViewConfig(**bad)
+    cfg = FarViewConfig()
+    assert cfg.dense_answer_confidence(0.05) == pytest.approx(0.95, abs=0.01)
+    assert cfg.dense_answer_confidence(0.0) < 1e-6 and cfg.dense_answer_confidence(0.3) > 0.999

@@ -131,9 +131,11 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         # a refused global answer looks again in the far view when the map has one (``MapDatabase.localize_views``;
         # a tracked request's global fallback too, ``track_views``)
         if prior is not None:
-            answer = await run_in_threadpool(db.track_views, inp.features, prior, inp.far_features, config)
+            answer = await run_in_threadpool(db.track_views, inp.features, prior, inp.far_features, config,
+                                             inp.dense_image)
         else:
-            answer = await run_in_threadpool(db.localize_views, inp.features, inp.far_features, config)
+            answer = await run_in_threadpool(db.localize_views, inp.features, inp.far_features, config,
+                                             inp.dense_image)
         result, view = answer.result, answer.view
     if session_key:
         await run_in_threadpool(state.sessions.update, session_key, map_key, result.T_map_query, prior, stamp)
@@ -174,6 +176,7 @@ async def localize(request: Request, state: StateDep) -> LocalizeResponse:
         mode=result.mode,
         tracking_lost=result.tracking_lost,
         view=view,
+        registration=answer.registration,
         session_id=session_id,
         alignment_score=result.alignment_score,
         timings_ms=timings,

@@ -1,0 +1,139 @@
+"""The far view's dense registration as served: the companion stores every keyframe's dense image, and a scan that
+both views refuse is placed by whole-image correlation (``registration: dense``) - for inline scans only."""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+
+import h5py
+import httpx
+import numpy as np
+import pytest
+
+from maps.build import build_map
+from maps.database import FAR_VIEW, MapDatabase
+from maps.paths import far_view_path
+from maps.store import open_map
+from reradar_core.errors import MapFormatError
+from reradar_core.features import ScanFeatures
+from reradar_core.geometry.cartesian import CartesianConfig
+from reradar_core.io.scan import RadarScan, encode_navtech_png_bytes
+from reradar_core.localization import FarViewConfig
+from reradar_core.matching.dense import dense_image, dense_image_settings
+from service.core.config import Settings
+from service.demo import serve_in_thread
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from service_test_fakes import API_KEY, FakeExtractor, keyframe_poses, keyframe_time  # noqa: E402
+from test_service_far_view import NearFake, far_scan  # noqa: E402
+
+
+class LostFarFake(FakeExtractor):
+    """A far view whose landmarks never repeat between two scans (each scan's own random points, drawn from its
+    time), while its global descriptor still names the place: the far view retrieves but never verifies."""
+
+    model_id = "fake-extractor-in257"
+    cartesian = CartesianConfig(257, 1.28)
+
+    def describe(self, scan: RadarScan) -> ScanFeatures:
+        f = super().describe(scan)
+        rng = np.random.default_rng(int(scan.timestamp_us) % 2**32)
+        xy = rng.uniform(-150, 150, size=(40, 2)).astype(np.float32)
+        local = rng.normal(size=(40, f.local_descriptors.shape[1]))
+        local /= np.linalg.norm(local, axis=1, keepdims=True)
+        return ScanFeatures(f.global_descriptor, xy, local.astype(np.float16), f.timestamp_us)
+
+
+class LostNearFake(NearFake):
+    def with_view(self, cartesian: CartesianConfig) -> LostFarFake:
+        assert (cartesian.width_px, cartesian.resolution_m) == (257, 1.28)
+        return LostFarFake()
+
+
+@pytest.fixture(scope="module")
+def lost_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("dense") / "moor.h5"
+    return build_map(out, LostNearFake(), lambda i: far_scan(i, keyframe_time(i)), keyframe_poses(),
+                     radar_preset="boreas", name="moor", batch_size=4, far_view=FarViewConfig())
+
+
+def test_the_companion_stores_every_keyframes_dense_image(lost_map: Path) -> None:
+    with open_map(far_view_path(lost_map), "fake-extractor-in257", "f" * 64) as far, \
+            open_map(lost_map, "fake-extractor", "f" * 64) as near:
+        assert far.dense_settings == dense_image_settings(FAR_VIEW.dense)
+        for i in (0, len(far) - 1):
+            expected = dense_image(far_scan(i, keyframe_time(i)), FAR_VIEW.cartesian, FAR_VIEW.dense)
+            np.testing.assert_allclose(far.read_dense_image(i), expected, atol=1e-3)  # stored float16
+        assert near.dense_settings is None  # the map itself keeps none
+        with pytest.raises(MapFormatError, match="no dense images"):
+            near.read_dense_image(0)
+        with pytest.raises(IndexError):
+            far.read_dense_image(len(far))
+
+
+def test_a_scan_both_views_refuse_is_placed_by_dense_registration(lost_map: Path) -> None:
+    near_db = MapDatabase.open(lost_map, "fake-extractor", "f" * 64)
+    far_db = MapDatabase.open(far_view_path(lost_map), "fake-extractor-in257", "f" * 64)
+    try:
+        near_db.attach_far(far_db)
+        assert near_db.far_dense
+        scan = far_scan(3, keyframe_time(3) + 7)  # keyframe 3's place, seen again
+        near_q = NearFake().describe(scan)
+        without = near_db.localize_views(near_q, lambda: LostFarFake().describe(scan))
+        assert without.view == "far" and not without.result.localized  # no landmark repeats
+        answer = near_db.localize_views(near_q, lambda: LostFarFake().describe(scan),
+                                        dense_query=lambda: dense_image(scan, FAR_VIEW.cartesian, FAR_VIEW.dense))
+        assert answer.registration == "dense" and answer.result.localized and answer.place_id == 3
+        np.testing.assert_allclose(answer.result.T_map_query, keyframe_poses()[3], atol=0.1)
+    finally:
+        near_db.close()
+
+
+def test_a_companion_of_other_dense_settings_is_not_correlated(lost_map: Path, tmp_path: Path) -> None:
+    """Images made with another recipe would correlate wrongly: the far view answers as without them."""
+    out = tmp_path / "moor.h5"
+    shutil.copy(lost_map, out)
+    shutil.copy(far_view_path(lost_map), far_view_path(out))
+    with h5py.File(far_view_path(out), "r+") as f:
+        f.attrs["dense_images"] = '{"blur_px": 2.0, "highpass_px": 4.0, "version": 1}'
+    near_db = MapDatabase.open(out, "fake-extractor", "f" * 64)
+    near_db.attach_far(MapDatabase.open(far_view_path(out), "fake-extractor-in257", "f" * 64))
+    try:
+        assert not near_db.far_dense
+        scan = far_scan(3, keyframe_time(3) + 7)
+
+        def never() -> np.ndarray:
+            raise AssertionError("the query's dense image was made for a companion it cannot be compared with")
+
+        answer = near_db.localize_views(NearFake().describe(scan), lambda: LostFarFake().describe(scan),
+                                        dense_query=never)
+        assert answer.registration == "landmarks" and not answer.result.localized
+    finally:
+        near_db.close()
+
+
+def test_the_service_answers_an_inline_scan_by_dense_registration(lost_map: Path, tmp_path: Path) -> None:
+    maps_dir = tmp_path / "maps"
+    maps_dir.mkdir()
+    shutil.copy(lost_map, maps_dir / "moor.h5")
+    shutil.copy(far_view_path(lost_map), maps_dir / "moor.far.h5")
+    settings = Settings(maps_dir=maps_dir, load_demo_map=False, api_key=API_KEY, torch_threads=1)
+    headers = {"X-API-Key": API_KEY}
+    with serve_in_thread(settings, LostNearFake()) as url, httpx.Client(base_url=url, timeout=60) as client:
+        png = encode_navtech_png_bytes(far_scan(2, keyframe_time(2) + 5))
+        r = client.post("/localize", data={"map_id": "moor"}, files={"scan": ("q.png", png, "image/png")},
+                        headers=headers)
+        assert r.status_code == 200, r.text
+        res = r.json()
+        assert res["status"] == "localized" and res["view"] == "far" and res["registration"] == "dense"
+        assert res["keyframe"]["keyframe_id"] == 2 and res["num_inliers"] == 0 and res["pose_uncertainty"] is None
+        assert abs(res["pose"]["x_m"] - keyframe_poses()[2, 0]) < 0.5 and 0.9 <= res["confidence"] <= 1.0
+        assert "dense_image_ms" in res["timings_ms"] and "dense_ms" in res["timings_ms"]
+        # a cached scan_id keeps no scan to make the dense image from: the far view's refusal stands
+        up = client.post("/scans", files={"scan": ("q.png", png, "image/png")}, headers=headers)
+        assert up.status_code == 201, up.text
+        r = client.post("/localize", json={"map_id": "moor", "scan_id": up.json()["scan_id"]}, headers=headers)
+        assert r.status_code == 200, r.text
+        assert r.json()["status"] == "not_localized" and r.json()["registration"] == "landmarks"
