@@ -106,8 +106,10 @@ def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -
     descriptors and keyframe groups, one per keyframe; the checks of opening a map for localization), and its stored
     place repetition (null when it has none): whether the default settings use it, the keyframes it marks
     (repetition >= LocalizationConfig.max_place_repetition), those it cannot judge (no keyframe of their own place
-    aligns with them) and the largest repetition; and how many keyframes have a known motion on the map drive
-    (``keyframe_motion``: answers on the others are not motion-compensated)."""
+    aligns with them) and the largest repetition; how many keyframes have a known motion on the map drive
+    (``keyframe_motion``: answers on the others are not motion-compensated); and, for a far-view companion, its
+    keyframes' dense images (``dense_images``: null without them; ``default_settings``: this version correlates with
+    them)."""
     from maps.store import open_map
 
     if path.is_dir():
@@ -121,6 +123,7 @@ def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -
         kf_map = open_map(path)
         meta = kf_map.metadata
         table = kf_map.place_repetition
+        dense = kf_map.dense_settings
         poses, stamps = np.asarray(kf_map.poses, np.float64), np.asarray(kf_map.timestamps_us, np.int64)
         kf_map.close()
     except ReRadarError as exc:
@@ -139,6 +142,12 @@ def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -
     # under the default settings, as the rest of this report (a server's own are in its GET /maps)
     info["keyframe_motion"] = {"known": int(known.sum()), "keyframes": len(known),
                                "max_keyframe_gap_s": default.motion.max_keyframe_gap_s}
+    # a far-view companion's dense images (the far view's dense registration): whether this version reads them
+    from maps.database import FAR_VIEW
+    from reradar_core.matching.dense import dense_image_settings
+
+    info["dense_images"] = None if dense is None else {
+        "default_settings": dense == dense_image_settings(FAR_VIEW.dense), "settings": dense}
     typer.echo(json.dumps(info, indent=2))
     if (message := motion_warning(poses, stamps, default, known)) is not None:
         typer.echo(f"warning: {message}", err=True)

@@ -118,6 +118,7 @@ class MapDatabase:
         self.localizer = Localizer(self.index, source, config, cache_size=keyframe_cache_size, preload=preload)
         #: the far-view companion (``attach_far``): the same keyframes in ReRadar's far view, or None
         self.far: MapDatabase | None = None
+        self._dense_warned: set[int] = set()  # keyframes whose unreadable dense image was logged
         # the place repetition measured when the map was built: no query pays for measuring its winner's
         table = kf_map.place_repetition
         self.repetition_stored = table is not None
@@ -215,7 +216,21 @@ class MapDatabase:
         if dense_query is None or not self.far_dense:
             return None, None
         assert self.far is not None
-        return dense_query, self.far.map.read_dense_image
+        far_map = self.far.map
+
+        def keyframe_image(keyframe_id: int) -> np.ndarray:
+            # a damaged image is the served file's fault, not the request's: that candidate aligns with nothing
+            # (an all-zero image correlates 0 at every pose), so the answer is at worst the far view's refusal
+            try:
+                return far_map.read_dense_image(keyframe_id)
+            except MapFormatError as exc:
+                if keyframe_id not in self._dense_warned:  # once per keyframe, not on every request
+                    self._dense_warned.add(keyframe_id)
+                    logger.warning("%s: dense image of keyframe %d unreadable (%s); not registered against",
+                                   far_map.path.name, keyframe_id, str(exc).replace(str(far_map.path), far_map.path.name))
+                w = far_map.metadata.cartesian_width_px
+                return np.zeros((w, w), np.float32)
+        return dense_query, keyframe_image
 
     def track(self, query: ScanFeatures, prior: PosePrior,
               config: LocalizationConfig | None = None) -> LocalizationResult:

@@ -531,7 +531,11 @@ class KeyframeMap:
             _check_links(self._file, self.path)
             self.metadata = _read_metadata(self._file, self.path)
             self.timestamps_us, self.poses, self.global_descriptors = self._read_arrays(self._file)
-            self.dense_settings = self._read_dense_settings(self._file)
+            try:
+                self.dense_settings = self._read_dense_settings(self._file)
+            except MapFormatError as exc:  # the images are an optional extra: the keyframes are served without them
+                logger.warning("%s; its dense images are not used", exc)
+                self.dense_settings = None
             try:
                 self.place_repetition = self._read_place_repetition(self._file) if read_place_repetition else None
             except MapFormatError as exc:  # the remedy: measure it again (the keyframes are intact)

@@ -67,8 +67,9 @@ def bench(
     methods: list[str] | None = typer.Option(None, "--methods", "-m", help="Comma-separated methods "
                                              "(default: all baselines and every shipped ReRadar model; a method "
                                              "named twice runs once). A ReRadar model name with '+far' (e.g. "
-                                             "our-3-offroad-w05+far) adds the far view for refused answers "
-                                             "(ours, docs/MODEL.md)."),
+                                             "our-3-offroad-w05+far) adds the far view for refused answers, "
+                                             "'+dense' the far view and its dense registration for open-land "
+                                             "answers both views refuse (ours, docs/MODEL.md)."),
     out: Path | None = typer.Option(None, "--out", help="Output folder (default: cache/bench/<suite>). "
                                "When the run completes, its per_query/*/*.npz replace an earlier run's there; "
                                "a run that fails or is interrupted leaves them; other files stay."),

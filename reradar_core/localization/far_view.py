@@ -19,9 +19,10 @@ refuses as well and the near view had little in view, and the caller can supply 
 (``matching.dense.dense_image`` of the query and of the map's keyframes), the query is registered onto the far
 answer's ``FarViewConfig.dense_candidates`` best-ranked candidates by whole-image correlation
 (``matching.dense.register_dense_best``). The best alignment is ``localized`` only when its peak stands at least
-``dense_min_heading_margin`` above every peak at another heading and its confidence (a logistic of that margin,
-fitted on calibration routes) reaches the bar the landmark answers must reach; its pose then replaces the refused
-answer (``TwoViewResult.registration`` = ``dense``).
+``dense_min_heading_margin`` above every peak at another heading, its translation is unique
+(``dense_min_shift_margin``, inside the search window) and its confidence (a logistic of the heading margin, fitted
+on calibration routes) reaches the bar the landmark answers must reach; its pose then replaces the refused answer
+(``TwoViewResult.registration`` = ``dense``).
 """
 
 from __future__ import annotations
@@ -82,6 +83,12 @@ class FarViewConfig:
             margin of a wrong dense pose, 0.025, on four calibration routes of the ``offroad-sim-hard``
             definition, world and route seeds 23-26 - 0 of 109 accepted answers wrong there, 109 of 135 right ones
             accepted; docs/MODEL.md "Dense registration").
+        dense_min_shift_margin: ... and only when its translation is unique: the best peak at the answer's
+            heading farther than ``dense.rival_shift_m`` (6 m) from it is at most 1 - this of the answer's
+            (``DenseRegistration.shift_margin``; default 0.25: the right answers on the calibration routes have 0.53
+            or more, scenes that align one step along themselves - synthetic straight banks and rows of posts in open
+            land, where the heading margin passed wrong poses 10-52 m off (QA, session 39) - 0.074 or less); a peak
+            on the border of the +-``dense.max_shift_m`` window (``at_edge``) is refused too.
         dense_confidence: (a, b) of the dense answer's confidence, 1 / (1 + exp(-(a + b ln margin))): the
             probability that the pose is within the success thresholds (25 m, 10 degrees), fitted by logistic
             regression on the same calibration routes' 187 sparse refused queries (predicted / observed per margin
@@ -96,6 +103,7 @@ class FarViewConfig:
     dense: DenseConfig = DenseConfig()
     dense_candidates: int = 5
     dense_min_heading_margin: float = 0.05
+    dense_min_shift_margin: float = 0.25
     dense_confidence: tuple[float, float] = (9.8817, 2.3069)
 
     def __post_init__(self) -> None:
@@ -105,6 +113,9 @@ class FarViewConfig:
         if not (math.isfinite(self.dense_min_heading_margin) and self.dense_min_heading_margin > 0):
             raise ConfigError("far view dense_min_heading_margin must be a positive number, got "
                               f"{self.dense_min_heading_margin!r}")
+        if not (math.isfinite(self.dense_min_shift_margin) and 0 <= self.dense_min_shift_margin < 1):
+            raise ConfigError("far view dense_min_shift_margin must be in [0, 1), got "
+                              f"{self.dense_min_shift_margin!r}")
         if len(self.dense_confidence) != 2 or not all(math.isfinite(v) for v in self.dense_confidence) \
                 or self.dense_confidence[1] <= 0:
             raise ConfigError(f"far view dense_confidence must be (a, b) with b > 0, got {self.dense_confidence!r}")
@@ -248,19 +259,23 @@ def dense_fallback(answer: LocalizationResult, dense_query: Callable[[], np.ndar
     The localized answer: ``best`` is the winning candidate with ``T_keyframe_query`` from the registration (0
     matches and inliers: no landmarks were paired), ``T_map_query`` = ``T_map_keyframe`` o ``T_keyframe_query``,
     ``confidence`` = ``far_view.dense_answer_confidence(margin)``, no ``cues`` and no ``pose_covariance`` (the
-    covariance model is the landmarks'), ``candidates`` and ``tracking_lost`` as the far answer's.
+    covariance model is the landmarks'), ``candidates`` the far answer's with the winner's entry replaced by
+    ``best``, ``tracking_lost`` the far answer's. ``timings_ms["dense_ms"]`` is the registration's time, after
+    ``dense_query`` made the query's image (the caller times that).
     """
     from dataclasses import replace
 
     from reradar_core.localization.pipeline import LocalizationResult
 
+    query = dense_query()  # its own stage (the service times it as ``dense_image_ms``), not part of ``dense_ms``
     t0 = time.perf_counter()
     ranked = sorted(answer.candidates, key=lambda c: c.rank)[:far_view.dense_candidates]
-    win, reg = register_dense_best(dense_query(), [dense_keyframe(int(c.keyframe_id)) for c in ranked],
+    win, reg = register_dense_best(query, [dense_keyframe(int(c.keyframe_id)) for c in ranked],
                                    far_view.cartesian, far_view.dense)
     timings = {**answer.timings_ms, "dense_ms": 1e3 * (time.perf_counter() - t0)}
     confidence = far_view.dense_answer_confidence(reg.heading_margin)
-    if reg.heading_margin < far_view.dense_min_heading_margin or confidence < min_confidence:
+    if (reg.heading_margin < far_view.dense_min_heading_margin or confidence < min_confidence
+            or reg.shift_margin < far_view.dense_min_shift_margin or reg.at_edge):
         answer.timings_ms = timings
         return answer, reg.heading_margin
     chosen = ranked[win]
@@ -268,6 +283,8 @@ def dense_fallback(answer: LocalizationResult, dense_query: Callable[[], np.ndar
     best = replace(chosen, num_matches=0, num_inliers=0, inlier_ratio=0.0,
                    T_keyframe_query=np.asarray(reg.T_keyframe_query, np.float64), reason=None, ambiguity=None,
                    inlier_spread_m=None)
+    # the winner's entry in the candidate list is the dense answer (not the far view's screened-out refusal)
+    candidates = [best if c is chosen else c for c in answer.candidates]
     return LocalizationResult("localized", None, best, compose(T_map_keyframe, reg.T_keyframe_query),
-                              answer.candidates, timings, confidence, None, mode=answer.mode,
+                              candidates, timings, confidence, None, mode=answer.mode,
                               tracking_lost=answer.tracking_lost), reg.heading_margin

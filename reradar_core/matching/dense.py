@@ -61,6 +61,9 @@ class DenseConfig:
             (default 0.5 steps over +-3).
         rival_heading_deg: a rival peak is one at a heading more than this from the best, degrees (default 10,
             the success threshold's heading).
+        rival_shift_m: a rival translation is one more than this from the best at the best heading, metres
+            (default 6: beyond the main peak's own width, ~2-3 px at 1.28 m/px, and within a short period of a
+            regular row of posts or a straight bank, which it exists to catch).
     """
 
     blur_px: float = 1.0
@@ -70,10 +73,11 @@ class DenseConfig:
     fine_step_deg: float = 0.5
     fine_span_deg: float = 3.0
     rival_heading_deg: float = 10.0
+    rival_shift_m: float = 6.0
 
     def __post_init__(self) -> None:
         for name in ("blur_px", "highpass_px", "max_shift_m", "coarse_step_deg", "fine_step_deg",
-                     "rival_heading_deg"):
+                     "rival_heading_deg", "rival_shift_m"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"dense registration {name} must be a positive number, got {v!r}")
@@ -81,6 +85,11 @@ class DenseConfig:
             raise ConfigError(f"dense registration fine_span_deg must be >= 0, got {self.fine_span_deg!r}")
         if self.coarse_step_deg > 30 or self.rival_heading_deg >= 180:
             raise ConfigError("dense registration needs coarse_step_deg <= 30 and rival_heading_deg < 180")
+        # each bounds the work of one search: FFT size grows with the shift, rotations with span / step
+        if self.max_shift_m > 200 or self.fine_span_deg > 30 or self.fine_step_deg < 0.05 \
+                or self.coarse_step_deg < 0.5 or self.blur_px > 50 or self.highpass_px > 50:
+            raise ConfigError("dense registration needs max_shift_m <= 200, fine_span_deg <= 30, fine_step_deg >= "
+                              "0.05, coarse_step_deg >= 0.5 and blur_px, highpass_px <= 50")
 
 
 @dataclass(frozen=True)
@@ -92,12 +101,19 @@ class DenseRegistration:
         score: normalised cross-correlation at the best coarse (half-resolution) peak, in [-1, 1].
         heading_margin: ``score`` minus the best coarse peak at headings more than ``rival_heading_deg`` away.
         fine_score: normalised cross-correlation of the refined full-resolution peak.
+        shift_margin: 1 - (the best full-resolution peak at the same heading farther than ``rival_shift_m`` from
+            the answer's) / ``fine_score``: how uniquely the translation is fixed, relative to the peak (near 0 where
+            the scene aligns as well one step along itself: a straight bank, a regular row of posts; 0.53-0.95 for
+            the right answers on the calibration routes, docs/MODEL.md "Dense registration").
+        at_edge: the peak lies on the border of the +-``max_shift_m`` window: the true shift may lie beyond it.
     """
 
     T_keyframe_query: np.ndarray
     score: float
     heading_margin: float
     fine_score: float
+    shift_margin: float = 0.0
+    at_edge: bool = False
 
 
 def dense_image_settings(config: DenseConfig) -> str:
@@ -253,4 +269,11 @@ def register_dense_best(query: np.ndarray, keyframes: list[np.ndarray], cartesia
     da = (_vertex(peaks[ai - 1], peaks[ai], peaks[ai + 1]) * config.fine_step_deg
           if 0 < ai < len(fine) - 1 else 0.0)
     T = _pose_from_pixels(float(fine[ai] + da), (r - shift + dr, c - shift + dc), cartesian)
-    return win, DenseRegistration(T, score, margin, float(cc[ai, r, c]))
+    surface = cc[ai]
+    rows, cols = np.ogrid[:surface.shape[0], :surface.shape[1]]
+    apart_px = config.rival_shift_m / cartesian.resolution_m
+    rival_shift = surface[(rows - r) ** 2 + (cols - c) ** 2 > apart_px ** 2]
+    peak = float(surface[r, c])
+    shift_margin = 1.0 - float(rival_shift.max()) / peak if rival_shift.size and peak > 0 else 0.0
+    at_edge = bool(r in (0, 2 * shift) or c in (0, 2 * shift))
+    return win, DenseRegistration(T, score, margin, float(cc[ai, r, c]), shift_margin, at_edge)

@@ -279,8 +279,12 @@ def _far_marker_id(path: Path) -> str:
 def _log_far_served(path: Path, db: MapDatabase) -> None:
     """Log that the far-view companion ``path`` is served with the map of ``db`` (attached: ``db.far``)."""
     far = db.far
-    logger.info("%s: far view served with map %s (%d keyframes)", path.name, db.map.path.stem,
-                len(far) if far is not None else 0)
+    dense = ("with dense images" if db.far_dense else
+             "without dense images (rebuild it with `reradar build-map --far-view` for the dense registration)"
+             if far is not None and far.map.dense_settings is None else
+             "with dense images of other settings (not used; rebuild it)")
+    logger.info("%s: far view served with map %s (%d keyframes, %s)", path.name, db.map.path.stem,
+                len(far) if far is not None else 0, dense)
 
 
 #: what a map whose uploaded file is being checked is doing (``MapEntry.uploaded``)

@@ -191,6 +191,37 @@ def test_dense_registration_localizes_what_both_views_refused(two_views) -> None
     assert out.result.confidence == pytest.approx(FarViewConfig().dense_answer_confidence(out.heading_margin))
     assert out.result.best.num_inliers == 0 and out.result.pose_covariance is None
     assert "dense_ms" in out.result.timings_ms and len(calls) == FarViewConfig().dense_candidates
+    # the winner's entry in the candidate list is the dense answer, not the far view's refusal
+    entry = next(c for c in out.result.candidates if c.keyframe_id == 2)
+    assert entry is out.result.best and entry.reason is None and entry.T_keyframe_query is not None
+
+
+@pytest.mark.parametrize(("heading", "shift", "edge", "localized"), [
+    (0.30, 0.60, False, True),
+    (0.04, 0.60, False, False),  # aligns about as well at another heading
+    (0.30, 0.20, False, False),  # aligns about as well one step along itself (a bank, a row of posts)
+    (0.30, 0.60, True, False),   # the peak on the window's border: the shift may lie beyond it
+])
+def test_the_dense_answer_needs_a_unique_heading_and_a_unique_shift_inside_the_window(
+        two_views, monkeypatch: pytest.MonkeyPatch, heading: float, shift: float, edge: bool, localized: bool) -> None:
+    import time
+
+    from reradar_core.localization import far_view as fv
+    from reradar_core.matching.dense import DenseRegistration
+
+    near_map, far_map, _, _, _ = two_views
+    near_q, far_q = _refused_far_query(two_views, 14)
+    reg = DenseRegistration(np.array([1.0, -2.0, 0.1]), 0.4, heading, 0.4, shift, edge)
+    monkeypatch.setattr(fv, "register_dense_best", lambda *a, **k: (0, reg))
+
+    def slow_query_image() -> np.ndarray:
+        time.sleep(0.3)  # the query image is the caller's stage: not in dense_ms
+        return np.zeros((257, 257), np.float32)
+
+    out = localize_two_views(near_map, near_q, far_map, lambda: far_q, dense_query=slow_query_image,
+                             dense_keyframe=lambda j: np.zeros((257, 257), np.float32))
+    assert out.result.localized is localized and out.registration == ("dense" if localized else "landmarks")
+    assert out.heading_margin == heading and out.result.timings_ms["dense_ms"] < 300
 
 
 def test_dense_registration_refuses_a_scene_that_aligns_at_every_heading(two_views) -> None:
@@ -218,6 +249,7 @@ def test_dense_registration_only_for_a_near_view_with_little_in_view(two_views) 
 
 def test_dense_settings_are_validated() -> None:
     for bad in ({"dense_candidates": 0}, {"dense_candidates": 2.5}, {"dense_min_heading_margin": 0.0},
+                {"dense_min_shift_margin": 1.0}, {"dense_min_shift_margin": -0.1},
                 {"dense_confidence": (1.0, -2.0)}, {"dense_confidence": (1.0,)}):
         with pytest.raises(ConfigError):
             FarViewConfig(**bad)

@@ -52,6 +52,25 @@ def test_recovers_a_known_pose_at_any_heading(reflectors, T_kf_query) -> None:
     err = np.rad2deg(np.angle(np.exp(1j * (reg.T_keyframe_query[2] - T[2]))))
     assert abs(err) < 0.5
     assert reg.heading_margin > 0.2 and reg.score > reg.heading_margin
+    assert reg.shift_margin > 0.5 and not reg.at_edge  # scattered reflectors fix the translation uniquely
+
+
+@pytest.mark.parametrize("spacing_m", [3.0, 20.0])
+def test_a_scene_that_repeats_along_itself_leaves_the_translation_open(spacing_m) -> None:
+    """A straight bank (returns every 3 m) or a row of posts (every 20 m) 70 m to the side: it aligns at one heading
+    only, but as well one step along itself (QA session 39: accepted 10-52 m off on the heading margin alone)."""
+    xs = np.arange(-400.0, 400.0, spacing_m)
+    posts = np.column_stack([xs, np.full_like(xs, 70.0)])
+    kf = dense_image(render(posts, np.zeros(3), seed=1), FAR)
+    for k, dx in enumerate((-9.0, 5.0)):
+        reg = register_dense(dense_image(render(posts, np.array([dx, 1.0, 0.05]), seed=2 + k), FAR), kf, FAR)
+        assert reg.shift_margin < 0.25
+
+
+def test_a_shift_beyond_the_search_window_is_flagged(reflectors) -> None:
+    kf = dense_image(render(reflectors, np.zeros(3), seed=1), FAR)
+    q = dense_image(render(reflectors, np.array([0.0, -34.0, np.deg2rad(30.0)]), seed=2), FAR)
+    assert register_dense(q, kf, FAR).at_edge  # the window reaches +-30.72 m
 
 
 def test_an_empty_scene_aligns_about_as_well_at_every_heading(reflectors) -> None:
@@ -95,6 +114,7 @@ def test_bad_inputs_are_refused() -> None:
     with pytest.raises(ValueError, match="RadarScan"):
         dense_image(np.zeros((400, 700)), FAR)  # type: ignore[arg-type]
     for bad_cfg in ({"coarse_step_deg": 0.0}, {"max_shift_m": -1.0}, {"fine_span_deg": -1.0},
-                    {"coarse_step_deg": 45.0}, {"highpass_px": float("nan")}):
+                    {"coarse_step_deg": 45.0}, {"highpass_px": float("nan")}, {"max_shift_m": 1e5},
+                    {"fine_step_deg": 1e-4}, {"fine_span_deg": 360.0}, {"rival_shift_m": 0.0}):
         with pytest.raises(ConfigError):
             DenseConfig(**bad_cfg)

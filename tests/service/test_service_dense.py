@@ -137,3 +137,57 @@ def test_the_service_answers_an_inline_scan_by_dense_registration(lost_map: Path
         r = client.post("/localize", json={"map_id": "moor", "scan_id": up.json()["scan_id"]}, headers=headers)
         assert r.status_code == 200, r.text
         assert r.json()["status"] == "not_localized" and r.json()["registration"] == "landmarks"
+
+
+def test_a_damaged_dense_image_costs_that_candidate_only(lost_map: Path, tmp_path: Path,
+                                                          caplog: pytest.LogCaptureFixture) -> None:
+    """A served file's damage is not the request's fault: no error answer, the candidate aligns with nothing."""
+    out = tmp_path / "moor.h5"
+    shutil.copy(lost_map, out)
+    shutil.copy(far_view_path(lost_map), far_view_path(out))
+    with h5py.File(far_view_path(out), "r+") as f:
+        f["keyframes/000003/dense_image"][0, 0] = np.nan
+    near_db = MapDatabase.open(out, "fake-extractor", "f" * 64)
+    near_db.attach_far(MapDatabase.open(far_view_path(out), "fake-extractor-in257", "f" * 64))
+    try:
+        scan = far_scan(3, keyframe_time(3) + 7)
+        dense_q = lambda: dense_image(scan, FAR_VIEW.cartesian, FAR_VIEW.dense)  # noqa: E731
+        with caplog.at_level("WARNING", logger="maps.database"):
+            answer = near_db.localize_views(NearFake().describe(scan), lambda: LostFarFake().describe(scan),
+                                            dense_query=dense_q)
+        assert not (answer.result.localized and answer.place_id == 3)
+        assert any("dense image of keyframe 3 unreadable" in r.getMessage() for r in caplog.records)
+        # the others are still read: keyframe 2's place is placed as before
+        scan2 = far_scan(2, keyframe_time(2) + 7)
+        answer = near_db.localize_views(NearFake().describe(scan2), lambda: LostFarFake().describe(scan2),
+                                        dense_query=lambda: dense_image(scan2, FAR_VIEW.cartesian, FAR_VIEW.dense))
+        assert answer.registration == "dense" and answer.place_id == 2
+    finally:
+        near_db.close()
+
+
+def test_map_info_says_whether_a_companion_holds_dense_images(lost_map: Path) -> None:
+    import json
+
+    from typer.testing import CliRunner
+
+    from reradar_cli import app
+
+    far = json.loads(CliRunner().invoke(app, ["map-info", str(far_view_path(lost_map))]).stdout)
+    assert far["dense_images"]["default_settings"] is True
+    assert json.loads(far["dense_images"]["settings"]) == json.loads(dense_image_settings(FAR_VIEW.dense))
+    assert json.loads(CliRunner().invoke(app, ["map-info", str(lost_map)]).stdout)["dense_images"] is None
+
+
+@pytest.mark.parametrize("bad", [np.int64(3), "x" * 20_000])
+def test_a_malformed_dense_images_attribute_costs_the_dense_step_only(lost_map: Path, tmp_path: Path, bad: object,
+                                                                      caplog: pytest.LogCaptureFixture) -> None:
+    """The images are an optional extra (QA session 39: such an attribute stopped the whole far view being served)."""
+    far = tmp_path / "moor.far.h5"
+    shutil.copy(far_view_path(lost_map), far)
+    with h5py.File(far, "r+") as f:
+        f.attrs["dense_images"] = bad
+    with caplog.at_level("WARNING", logger="maps.store"), open_map(far, "fake-extractor-in257", "f" * 64) as kf:
+        assert kf.dense_settings is None and len(kf) == len(keyframe_poses())
+        assert kf.read_keyframe(0).keypoints_xy_m.shape[1] == 2
+    assert "its dense images are not used" in caplog.text
