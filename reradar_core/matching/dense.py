@@ -103,7 +103,7 @@ class DenseRegistration:
         fine_score: normalised cross-correlation of the refined full-resolution peak.
         shift_margin: 1 - (the best full-resolution peak at the same heading farther than ``rival_shift_m`` from
             the answer's) / ``fine_score``: how uniquely the translation is fixed, relative to the peak (near 0 where
-            the scene aligns as well one step along itself: a straight bank, a regular row of posts; 0.53-0.95 for
+            the scene aligns as well one step along itself: a straight bank, a regular row of posts; 0.53-0.90 for
             the right answers on the calibration routes, docs/MODEL.md "Dense registration").
         at_edge: the peak lies on the border of the +-``max_shift_m`` window: the true shift may lie beyond it.
     """
