@@ -310,8 +310,8 @@ class ScanInput:
     #: the scan's far-view features, computed on first call (inline scans, when the service has a far view; a
     #: cached ``scan_id``'s when they were computed at upload, ``CachedScan.far_features``), or None
     far_features: Callable[[], ScanFeatures] | None = None
-    #: the scan's far-view dense image (``matching.dense.dense_image``), computed on first call: inline scans on a
-    #: service with a far view; None for a cached ``scan_id`` (the scan itself is not kept)
+    #: the scan's far-view dense image (``matching.dense.dense_image``), computed on first call (inline scans on a
+    #: service with a far view; a cached ``scan_id``'s when it was made at upload, ``CachedScan.dense_image``), or None
     dense_image: Callable[[], np.ndarray] | None = None
 
 
@@ -359,7 +359,9 @@ async def read_scan_input(request: Request, state: ServiceState, json_model: typ
         if target:
             state.check_cached_preset(scan_id, cached.preset, cached.preset_open, target)
         far = cached.far_features  # computed at upload while a map had a far-view companion, else None
-        return ScanInput(cached.features, scan_id, fields, far_features=None if far is None else (lambda: far))
+        dense = cached.dense_image  # ... and its dense image while one held dense images, else None
+        return ScanInput(cached.features, scan_id, fields, far_features=None if far is None else (lambda: far),
+                         dense_image=None if dense is None else (lambda: np.asarray(dense, np.float32)))
     if ctype == "multipart/form-data":
         # two files, so that a repeated `scan` gets the "given more than once" answer below (the body is bounded)
         form = await read_multipart_form(request, max_files=2, max_fields=16)

@@ -327,8 +327,9 @@ class LocalizeResponse(_Model):
         "companion); `near`: the map's own view (docs/MODEL.md, 'The far view')."))
     registration: Literal["landmarks", "dense"] = Field(default="landmarks", description=(
         "How the pose was found: `landmarks` (the paper's landmark matching, either view), or `dense`: both views "
-        "refused a scan with little in view and the far view's whole-image correlation placed it (inline scans "
-        "on a map whose far-view companion holds dense images, `reradar build-map --far-view` since 2026-12-04; "
+        "refused a scan with little in view and the far view's whole-image correlation placed it (inline scans, "
+        "and scans uploaded while such a map was loaded, on a map whose far-view companion holds dense images, "
+        "`reradar build-map --far-view` since 2026-12-04; "
         "`num_matches` and `num_inliers` are then 0, there is no `pose_uncertainty`, and `confidence` is the "
         "dense registration's own calibrated probability; docs/MODEL.md, 'Dense registration')."))
     session_id: str | None = None

@@ -748,6 +748,13 @@ class MapRegistry:
             entries = [self._entries.get(map_id)] if map_id else list(self._entries.values())
         return any(e is not None and e.db is not None and e.db.far is not None for e in entries)
 
+    def serves_dense(self, map_id: str | None = None) -> bool:
+        """Map ``map_id`` (None: any loaded map) has a far-view companion whose dense images this process correlates
+        with (``MapDatabase.far_dense``)."""
+        with self._lock:
+            entries = [self._entries.get(map_id)] if map_id else list(self._entries.values())
+        return any(e is not None and e.db is not None and e.db.far_dense for e in entries)
+
     @property
     def num_ready(self) -> int:
         with self._lock:

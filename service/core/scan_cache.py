@@ -16,6 +16,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
 from cachetools import TTLCache
 
 from reradar_core.features import ScanFeatures
@@ -43,6 +44,9 @@ class CachedScan:
     far_features: ScanFeatures | None = None
     #: who uploaded it (``AccessPolicy.caller_id``); only that caller can use the ``scan_id``
     owner: str = "loopback"
+    #: the scan's far-view dense image (``matching.dense.dense_image``, float16, ~130 KB at 257 px; computed at upload
+    #: while a loaded map's far-view companion holds dense images), or None: no dense registration by this ``scan_id``
+    dense_image: np.ndarray | None = None
 
 
 class ScanCache:
@@ -60,10 +64,13 @@ class ScanCache:
         self._lock = threading.Lock()  # cachetools caches are not thread-safe
 
     def put(self, features: ScanFeatures, preset: str | None, preset_open: bool = False,
-            far_features: ScanFeatures | None = None, owner: str = "loopback") -> CachedScan:
-        """Store ``features`` (and the far view's, when given) under a new random id for ``owner``: beyond its
-        ``per_owner`` scans its own least recently used goes first, beyond ``max_entries`` the least recently used of all."""
-        entry = CachedScan(new_scan_id(), features, preset, preset_open, far_features, owner)
+            far_features: ScanFeatures | None = None, owner: str = "loopback",
+            dense_image: np.ndarray | None = None) -> CachedScan:
+        """Store ``features`` (and the far view's and its dense image, when given) under a new random id for
+        ``owner``: beyond its ``per_owner`` scans its own least recently used goes first, beyond ``max_entries`` the
+        least recently used of all."""
+        entry = CachedScan(new_scan_id(), features, preset, preset_open, far_features, owner,
+                           None if dense_image is None else np.asarray(dense_image, np.float16))
         with self._lock:
             self._items.expire()
             ids = self._owned.setdefault(owner, OrderedDict())

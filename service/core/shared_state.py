@@ -124,23 +124,25 @@ def connect(url: str) -> redis.Redis:
 
 # ---- uploaded scans --------------------------------------------------------------------------------------
 def encode_features(features: ScanFeatures, preset: str | None, preset_open: bool = False,
-                    far_features: ScanFeatures | None = None) -> bytes:
-    """``ScanFeatures`` + preset (and whether the scan left it open: ``CachedScan.preset_open``), and the far view's
-    features when given (``CachedScan.far_features``, keys ``far_*``), as an ``.npz`` blob (no pickle): ~90 KB for
-    1200 keypoints x 32 float16."""
-    far: dict[str, Any] = {} if far_features is None else {
+                    far_features: ScanFeatures | None = None, dense_image: np.ndarray | None = None) -> bytes:
+    """``ScanFeatures`` + preset (and whether the scan left it open: ``CachedScan.preset_open``), the far view's
+    features when given (``CachedScan.far_features``, keys ``far_*``) and its dense image (``CachedScan.dense_image``,
+    float16, ~130 KB at 257 px), as an ``.npz`` blob (no pickle): ~90 KB for 1200 keypoints x 32 float16."""
+    extra: dict[str, Any] = {} if far_features is None else {
         "far_global_descriptor": far_features.global_descriptor, "far_keypoints_xy_m": far_features.keypoints_xy_m,
         "far_local_descriptors": far_features.local_descriptors}
+    if dense_image is not None:
+        extra["dense_image"] = np.asarray(dense_image, np.float16)
     buf = io.BytesIO()
     np.savez(buf, global_descriptor=features.global_descriptor, keypoints_xy_m=features.keypoints_xy_m,
              local_descriptors=features.local_descriptors, timestamp_us=np.int64(features.timestamp_us),
-             preset=np.array(preset or ""), preset_open=np.bool_(preset_open), **far)
+             preset=np.array(preset or ""), preset_open=np.bool_(preset_open), **extra)
     return buf.getvalue()
 
 
-def decode_features(blob: bytes) -> tuple[ScanFeatures, str | None, bool, ScanFeatures | None]:
+def decode_features(blob: bytes) -> tuple[ScanFeatures, str | None, bool, ScanFeatures | None, np.ndarray | None]:
     """Inverse of ``encode_features`` (a blob of an earlier version, without ``preset_open``: False; without far
-    features: None)."""
+    features or a dense image: None). A dense image that is not a finite square 2-D float array is dropped (None)."""
     with np.load(io.BytesIO(blob), allow_pickle=False) as z:
         features = ScanFeatures(z["global_descriptor"], z["keypoints_xy_m"], z["local_descriptors"],
                                 int(z["timestamp_us"]))
@@ -150,7 +152,12 @@ def decode_features(blob: bytes) -> tuple[ScanFeatures, str | None, bool, ScanFe
         if "far_global_descriptor" in z.files:
             far = ScanFeatures(z["far_global_descriptor"], z["far_keypoints_xy_m"], z["far_local_descriptors"],
                                int(z["timestamp_us"]))
-    return features, preset, preset_open, far
+        dense = None
+        if "dense_image" in z.files:
+            d = z["dense_image"]
+            if d.ndim == 2 and d.shape[0] == d.shape[1] and d.dtype.kind == "f" and np.isfinite(d).all():
+                dense = d.astype(np.float16)
+    return features, preset, preset_open, far, dense
 
 
 def _json_record(raw: bytes) -> dict[str, Any] | None:
@@ -176,12 +183,14 @@ class RedisScanStore(ScanCache):
         self._keys = keys
 
     def put(self, features: ScanFeatures, preset: str | None, preset_open: bool = False,
-            far_features: ScanFeatures | None = None, owner: str = "loopback") -> CachedScan:
-        entry = CachedScan(new_scan_id(), features, preset, preset_open, far_features, owner)
+            far_features: ScanFeatures | None = None, owner: str = "loopback",
+            dense_image: np.ndarray | None = None) -> CachedScan:
+        entry = CachedScan(new_scan_id(), features, preset, preset_open, far_features, owner, dense_image)
         try:
             # the key names the uploader: another caller's scan_id is not found (``ScanCache``)
             self._redis.set(self._keys.scan(f"{owner}:{entry.scan_id}"),
-                            encode_features(features, preset, preset_open, far_features), px=int(self.ttl_s * 1000))
+                            encode_features(features, preset, preset_open, far_features, dense_image),
+                            px=int(self.ttl_s * 1000))
         except redis.RedisError as exc:
             raise SharedStateUnavailableError(
                 "the shared scan store (Redis) is unavailable, so the scan was not stored; send the scan "
@@ -198,11 +207,11 @@ class RedisScanStore(ScanCache):
         if blob is None:
             return None
         try:
-            features, preset, preset_open, far = decode_features(blob)
+            features, preset, preset_open, far, dense = decode_features(blob)
         except (ValueError, KeyError, TypeError, OSError, ReRadarError):  # not a value this version wrote
             logger.warning("scan %s: unreadable value in the shared scan store; treated as unknown", scan_id)
             return None
-        return CachedScan(scan_id, features, preset, preset_open, far, owner)
+        return CachedScan(scan_id, features, preset, preset_open, far, owner, dense)
 
     def __len__(self) -> int:
         return 0

@@ -123,7 +123,8 @@ class ServiceState:
         def compute() -> np.ndarray:
             t0 = time.perf_counter()
             try:
-                return dense_image(scan, FAR_VIEW.cartesian, FAR_VIEW.dense)
+                # rounded as a map and the scan cache store images (float16): inline and by scan_id, one answer
+                return dense_image(scan, FAR_VIEW.cartesian, FAR_VIEW.dense).astype(np.float16).astype(np.float32)
             finally:
                 timings_ms["dense_image_ms"] = (time.perf_counter() - t0) * 1e3
         return compute

@@ -100,8 +100,8 @@ def test_features_encoding_round_trip_is_exact_and_pickle_free() -> None:
     f = ScanFeatures(g / np.linalg.norm(g), rng.normal(size=(512, 2)) * 50, rng.normal(size=(512, 16)), 123456789)
     blob = encode_features(f, "boreas")
     assert len(blob) < 24_000  # what docs/OPERATIONS.md sizes Redis with
-    back, preset, assumed, far = decode_features(blob)
-    assert preset == "boreas" and not assumed and back.timestamp_us == 123456789 and far is None
+    back, preset, assumed, far, dense = decode_features(blob)
+    assert preset == "boreas" and not assumed and back.timestamp_us == 123456789 and far is None and dense is None
     for name in ("global_descriptor", "keypoints_xy_m", "local_descriptors"):
         a, b = getattr(f, name), getattr(back, name)
         assert a.dtype == b.dtype and np.array_equal(a, b)
@@ -111,10 +111,20 @@ def test_features_encoding_round_trip_is_exact_and_pickle_free() -> None:
                                 "preset_open"}
     # the far view's features (a scan uploaded while a map has a far-view companion) travel with it
     far_f = ScanFeatures(g / np.linalg.norm(g), rng.normal(size=(300, 2)) * 150, rng.normal(size=(300, 16)), 123456789)
-    back, _, _, far = decode_features(encode_features(f, "boreas", far_features=far_f))
+    back, _, _, far, _ = decode_features(encode_features(f, "boreas", far_features=far_f))
     assert far is not None and np.array_equal(back.keypoints_xy_m, f.keypoints_xy_m)
     for name in ("global_descriptor", "keypoints_xy_m", "local_descriptors"):
         assert np.array_equal(getattr(far, name), getattr(far_f, name))
+    # and its dense image (float16); one that is not a finite square float image is dropped, not trusted
+    img = rng.normal(scale=0.01, size=(257, 257)).astype(np.float16)
+    *_, dense = decode_features(encode_features(f, "boreas", far_features=far_f, dense_image=img))
+    assert dense is not None and dense.dtype == np.float16 and np.array_equal(dense, img)
+    for bad in (img[:, :200], np.full((257, 257), np.nan, np.float16), np.zeros((257, 257), np.int8)):
+        with np.load(io.BytesIO(encode_features(f, "boreas")), allow_pickle=False) as z:
+            fields = {k: z[k] for k in z.files}
+        buf = io.BytesIO()
+        np.savez(buf, **fields, dense_image=bad)  # as another writer might have stored it
+        assert decode_features(buf.getvalue())[4] is None
 
 
 def test_trajectory_subsample_keeps_ends_and_bound() -> None:

@@ -1,5 +1,5 @@
 """The far view's dense registration as served: the companion stores every keyframe's dense image, and a scan that
-both views refuse is placed by whole-image correlation (``registration: dense``) - for inline scans only."""
+both views refuse is placed by whole-image correlation (``registration: dense``), inline or by ``scan_id``."""
 
 from __future__ import annotations
 
@@ -131,12 +131,37 @@ def test_the_service_answers_an_inline_scan_by_dense_registration(lost_map: Path
         assert res["keyframe"]["keyframe_id"] == 2 and res["num_inliers"] == 0 and res["pose_uncertainty"] is None
         assert abs(res["pose"]["x_m"] - keyframe_poses()[2, 0]) < 0.5 and 0.9 <= res["confidence"] <= 1.0
         assert "dense_image_ms" in res["timings_ms"] and "dense_ms" in res["timings_ms"]
-        # a cached scan_id keeps no scan to make the dense image from: the far view's refusal stands
+        # by scan_id: the dense image was made at upload (as this server has a companion with dense images)
         up = client.post("/scans", files={"scan": ("q.png", png, "image/png")}, headers=headers)
         assert up.status_code == 201, up.text
+        assert "dense_image_ms" in up.json()["timings_ms"]
         r = client.post("/localize", json={"map_id": "moor", "scan_id": up.json()["scan_id"]}, headers=headers)
         assert r.status_code == 200, r.text
+        by_id = r.json()
+        assert by_id["status"] == "localized" and by_id["registration"] == "dense"
+        assert by_id["keyframe"]["keyframe_id"] == 2 and by_id["pose"] == res["pose"]  # the same image, inline or cached
+
+
+def test_a_companion_without_dense_images_makes_none_at_upload(lost_map: Path, tmp_path: Path) -> None:
+    """A companion built before dense images (or sent without them): uploads skip the image, answers stay the far
+    view's."""
+    maps_dir = tmp_path / "maps"
+    maps_dir.mkdir()
+    shutil.copy(lost_map, maps_dir / "moor.h5")
+    shutil.copy(far_view_path(lost_map), maps_dir / "moor.far.h5")
+    with h5py.File(maps_dir / "moor.far.h5", "r+") as f:
+        del f.attrs["dense_images"]
+    settings = Settings(maps_dir=maps_dir, load_demo_map=False, api_key=API_KEY, torch_threads=1)
+    headers = {"X-API-Key": API_KEY}
+    with serve_in_thread(settings, LostNearFake()) as url, httpx.Client(base_url=url, timeout=60) as client:
+        png = encode_navtech_png_bytes(far_scan(2, keyframe_time(2) + 5))
+        up = client.post("/scans", files={"scan": ("q.png", png, "image/png")}, headers=headers)
+        assert up.status_code == 201 and "dense_image_ms" not in up.json()["timings_ms"]
+        assert "far_extract_ms" in up.json()["timings_ms"]
+        r = client.post("/localize", data={"map_id": "moor"}, files={"scan": ("q.png", png, "image/png")},
+                        headers=headers)
         assert r.json()["status"] == "not_localized" and r.json()["registration"] == "landmarks"
+        assert "dense_image_ms" not in r.json()["timings_ms"]
 
 
 def test_a_damaged_dense_image_costs_that_candidate_only(lost_map: Path, tmp_path: Path,

@@ -650,7 +650,7 @@ def test_a_registration_serves_only_the_companion_it_brings(far_map: Path, other
         with open_map(maps_dir / "moor.far.h5", "fake-extractor-in257", "f" * 64) as far_kf:
             np.testing.assert_array_equal(far_kf.timestamps_us, entry.db.map.timestamps_us)  # open's, not other's
         log = [r.getMessage() for r in caplog.records]
-        assert f"moor.far.h5: far view served with map moor ({N_SCANS} keyframes)" in log
+        assert f"moor.far.h5: far view served with map moor ({N_SCANS} keyframes, with dense images)" in log
     finally:
         registry.close()
 

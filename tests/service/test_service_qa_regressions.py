@@ -420,11 +420,11 @@ def test_scan_id_with_a_guessed_preset_is_refused_on_a_map_of_another_geometry(
 
     # the fleet's Redis blob carries the flag; one written before it reads as not open
     feats = fake_extractor.describe(make_scan(1, keyframe_time(1)))
-    assert decode_features(encode_features(feats, "boreas", True))[1:] == ("boreas", True, None)
+    assert decode_features(encode_features(feats, "boreas", True))[1:] == ("boreas", True, None, None)
     buf = io.BytesIO()
     np.savez(buf, global_descriptor=feats.global_descriptor, keypoints_xy_m=feats.keypoints_xy_m,
              local_descriptors=feats.local_descriptors, timestamp_us=np.int64(1), preset=np.array("boreas"))
-    assert decode_features(buf.getvalue())[1:] == ("boreas", False, None)
+    assert decode_features(buf.getvalue())[1:] == ("boreas", False, None, None)
 
 
 def test_relative_pose_times_over_http_get_advice_that_works_over_http(client: httpx.Client) -> None:

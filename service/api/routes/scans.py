@@ -52,9 +52,16 @@ async def upload_scan(
     far = None
     if describe_far is not None and state.registry.serves_far_view(map_id or None):
         far = await run_in_threadpool(describe_far)
+    # and its dense image while such a companion holds dense images (the far view's dense registration; the
+    # cache keeps no scan to make it from later, ``dense_image_ms``)
+    make_dense = state.dense_image_of(decoded, timings)
+    dense = None
+    if far is not None and make_dense is not None and state.registry.serves_dense(map_id or None):
+        dense = await run_in_threadpool(make_dense)
     state.metrics.observe_stages(timings)
     # only this caller can use the scan_id; Redis in fleet mode
-    entry = await run_in_threadpool(state.cache.put, features, scan_preset, preset_open, far, caller_of(request))
+    entry = await run_in_threadpool(state.cache.put, features, scan_preset, preset_open, far, caller_of(request),
+                                    dense)
     # a guess: left open and not the map's (with map_id the open preset is that map's, checked on use all the same)
     assumed = preset_open and scan_preset != state.map_preset(map_id or None)
     return ScanInfo(scan_id=entry.scan_id, timestamp_us=int(features.timestamp_us), preset=scan_preset,
