@@ -331,9 +331,11 @@ def localize_command(
         unc = res.pose_uncertainty
         sigma = (f" (1 sigma {unc.sigma_x_m:.2f} m / {unc.sigma_y_m:.2f} m / {unc.sigma_yaw_deg:.2f} deg)"
                  if unc is not None else "")
+        # a dense answer pairs no landmarks: its evidence is the whole-image correlation's confidence
+        how = (f"far view, dense registration, confidence {res.confidence:.2f}" if res.registration == "dense" else
+               f"{res.num_inliers} inliers{', far view' if res.view == 'far' else ''}")
         typer.echo(f"localized: x={res.pose.x_m:.2f} m y={res.pose.y_m:.2f} m yaw={res.pose.yaw_deg:.2f} deg{sigma} "
-                   f"(map {res.map_id}, keyframe {res.keyframe.keyframe_id}, {res.num_inliers} inliers, "
-                   f"{res.mode}{', far view' if res.view == 'far' else ''}, "
+                   f"(map {res.map_id}, keyframe {res.keyframe.keyframe_id}, {how}, {res.mode}, "
                    f"server {res.timings_ms.get('total_ms', 0):.0f} ms)")
     else:
         typer.echo(f"not localized: {res.reason} ({res.num_inliers} inliers, {100 * res.inlier_ratio:.1f} % of "

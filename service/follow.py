@@ -155,7 +155,7 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
     radius_m = radius_for(seq.preset.name)
     rng = np.random.default_rng(seed)
     session_id = (session or f"follow-{uuid.uuid4().hex[:12]}") if tracking else None
-    head = (f"{'#':>4} {'scan':<22} {'mode':<11} {'status':<13} {'x_m':>8} {'y_m':>8} {'yaw_deg':>8} | "
+    head = (f"{'#':>4} {'scan':<22} {'mode':<16} {'status':<13} {'x_m':>8} {'y_m':>8} {'yaw_deg':>8} | "
             f"{'gt_x_m':>8} {'gt_y_m':>8} {'gt_yaw':>8} | {'err_m':>6} {'err_deg':>7} {'score':>5} {'ms':>5}")
     echo(head)
     echo("-" * len(head))
@@ -183,7 +183,7 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
                 rows.append({"i": int(i), "mode": "-", "status": "error", "ms": (time.perf_counter() - t0) * 1e3,
                              "server_ms": float("nan"), "gt": g, "pose": None, "ok": False, "wrong": False,
                              "accurate": False, "err": None, "error": True})
-                echo(f"{n:4d} {name:<22} {'-':<11} {'error':<13} {'-':>8} {'-':>8} {'-':>8} | {gts} |  (see stderr)")
+                echo(f"{n:4d} {name:<22} {'-':<16} {'error':<13} {'-':>8} {'-':>8} {'-':>8} | {gts} |  (see stderr)")
                 say_err(f"error: scan {name}: {exc}")
                 prev = None
                 continue
@@ -194,7 +194,8 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
             ms = (time.perf_counter() - t0) * 1e3
             prev = i
             row: dict[str, Any] = {"i": int(i), "mode": res.mode + ("*" if res.tracking_lost else "")
-                                   + ("+far" if res.view == "far" else ""),
+                                   + ("+far" if res.view == "far" else "")
+                                   + ("+dense" if res.registration == "dense" else ""),
                                    "status": res.status, "ms": ms, "server_ms": res.timings_ms.get("total_ms", ms),
                                    "gt": g, "pose": None, "ok": False, "wrong": False, "accurate": False,
                                    "err": None}
@@ -205,11 +206,11 @@ def follow_sequence(client: Any, folder: Path, map_id: str, echo: Callable[[str]
                            accurate=et <= POSE_TRANSLATION_M and er <= POSE_ROTATION_DEG, err=(et, er))
                 row["wrong"] = not row["ok"]
                 flag = "  WRONG" if row["wrong"] else ("" if row["accurate"] else "  OFF")
-                echo(f"{n:4d} {name:<22} {row['mode']:<11} {res.status:<13} {res.pose.x_m:8.2f} {res.pose.y_m:8.2f} "
+                echo(f"{n:4d} {name:<22} {row['mode']:<16} {res.status:<13} {res.pose.x_m:8.2f} {res.pose.y_m:8.2f} "
                      f"{res.pose.yaw_deg:8.2f} | {gts} | {et:6.2f} {er:7.2f} {res.alignment_score:5.2f} {ms:5.0f}"
                      + flag)
             else:
-                echo(f"{n:4d} {name:<22} {row['mode']:<11} {res.status:<13} {'-':>8} {'-':>8} {'-':>8} | {gts} | "
+                echo(f"{n:4d} {name:<22} {row['mode']:<16} {res.status:<13} {'-':>8} {'-':>8} {'-':>8} | {gts} | "
                      f"{'-':>6} {'-':>7} {res.alignment_score:5.2f} {ms:5.0f}  ({res.reason})")
     except KeyboardInterrupt:  # Ctrl-C: stop sending; the scan in flight, unanswered, is not counted
         interrupted = True
@@ -277,10 +278,10 @@ def _summary(rows: list[dict[str, Any]], echo: Callable[[str], None], radius_m: 
     echo(_accuracy_line(rows))
     for mode in sorted({r["mode"] for r in rows if not r.get("error")}):
         sel = [r for r in rows if r["mode"] == mode]
-        echo(f"mode {mode:<11} {len(sel):4d} scans: server p50 {np.percentile([r['server_ms'] for r in sel], 50):.0f} ms, "
+        echo(f"mode {mode:<16} {len(sel):4d} scans: server p50 {np.percentile([r['server_ms'] for r in sel], 50):.0f} ms, "
              f"client p50 {np.percentile([r['ms'] for r in sel], 50):.0f} ms")
     echo("(mode global* = tracking was lost and the scan was localized globally; +far = answered by the map's far "
-         "view, its own view having refused)")
+         "view, its own view having refused; +dense = placed by the far view's dense registration)")
 
 
 def _accuracy_line(rows: list[dict[str, Any]]) -> str:

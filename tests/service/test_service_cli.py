@@ -101,6 +101,16 @@ def test_localize_command_says_when_the_far_view_answered(app_and_url: tuple[typ
     monkeypatch.setattr(ReRadarClient, "localize", as_far)
     res = CliRunner().invoke(app, ["localize", str(scan), "--server", url, "--map", "cli-map"])
     assert res.exit_code == 0 and res.output.startswith("localized: ") and ", far view," in res.output, res.output
+
+    def as_dense(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+        return real(self, *args, **kwargs).model_copy(update={"view": "far", "registration": "dense",
+                                                               "num_inliers": 0, "confidence": 0.97})
+
+    monkeypatch.setattr(ReRadarClient, "localize", as_dense)  # session 39: no landmark count for a dense answer
+    res = CliRunner().invoke(app, ["localize", str(scan), "--server", url, "--map", "cli-map"])
+    assert res.exit_code == 0 and "far view, dense registration, confidence 0.97" in res.output, res.output
+    assert "inliers" not in res.output
+    monkeypatch.setattr(ReRadarClient, "localize", as_far)
     unknown = tmp_path / "u.png"
     unknown.write_bytes(encode_navtech_png_bytes(make_scan(12345, 0)))
     res = CliRunner().invoke(app, ["localize", str(unknown), "--server", url, "--map", "cli-map"])
