@@ -279,10 +279,16 @@ def _far_marker_id(path: Path) -> str:
 def _log_far_served(path: Path, db: MapDatabase) -> None:
     """Log that the far-view companion ``path`` is served with the map of ``db`` (attached: ``db.far``)."""
     far = db.far
+    from maps.database import FAR_VIEW
+    from reradar_core.matching.dense import dense_image_settings
+
+    stored = far.map.dense_settings if far is not None else None
     dense = ("with dense images" if db.far_dense else
              "without dense images (rebuild it with `reradar build-map --far-view` for the dense registration)"
-             if far is not None and far.map.dense_settings is None else
-             "with dense images of other settings (not used; rebuild it)")
+             if stored is None else
+             "with dense images of other settings (not used; rebuild it)"
+             if stored != dense_image_settings(FAR_VIEW.dense) else
+             "whose dense images are unreadable (not used; rebuild it)")
     logger.info("%s: far view served with map %s (%d keyframes, %s)", path.name, db.map.path.stem,
                 len(far) if far is not None else 0, dense)
 

@@ -34,6 +34,7 @@ from typing import Any, cast
 import numpy as np
 import redis
 
+from maps.database import FAR_VIEW
 from reradar_core.errors import ReRadarError
 from reradar_core.features import ScanFeatures
 from reradar_core.localization import PosePrior
@@ -140,23 +141,47 @@ def encode_features(features: ScanFeatures, preset: str | None, preset_open: boo
     return buf.getvalue()
 
 
+#: Largest element count ``decode_features`` reads from one array of a stored scan (4 Mi: 65,536 keypoints x 64
+#: local descriptor channels; the service stores at most the extractor's keypoint cap, 512 by default, x 32; a dense
+#: image is 257 x 257): an entry declaring more is unreadable.
+MAX_STORED_ARRAY_ELEMENTS = 1 << 22
+
+
+def _stored_array(z: Any, name: str) -> np.ndarray:
+    """Array ``name`` of an ``.npz``, its header checked before its data is read (a small entry declaring a huge
+    array, or compressed 1000:1, must not allocate it): ValueError when it declares more than
+    ``MAX_STORED_ARRAY_ELEMENTS`` or holds objects."""
+    with z.zip.open(f"{name}.npy") as fh:
+        version = np.lib.format.read_magic(fh)
+        shape, _, dtype = (np.lib.format.read_array_header_1_0(fh) if version == (1, 0)
+                           else np.lib.format.read_array_header_2_0(fh))
+    if dtype.hasobject or int(np.prod(shape, dtype=np.float64)) > MAX_STORED_ARRAY_ELEMENTS:
+        raise ValueError(f"stored array {name} declares {shape} {dtype}")
+    return np.asarray(z[name])
+
+
 def decode_features(blob: bytes) -> tuple[ScanFeatures, str | None, bool, ScanFeatures | None, np.ndarray | None]:
     """Inverse of ``encode_features`` (a blob of an earlier version, without ``preset_open``: False; without far
-    features or a dense image: None). A dense image that is not a finite square 2-D float array is dropped (None)."""
+    features or a dense image: None). A dense image that is not a finite (W, W) float image of the far view's
+    width W (257 px) once stored as float16 is dropped (None): another version's would not correlate. Every array's
+    header is checked before its data is read (``_stored_array``): ValueError for one too large."""
     with np.load(io.BytesIO(blob), allow_pickle=False) as z:
-        features = ScanFeatures(z["global_descriptor"], z["keypoints_xy_m"], z["local_descriptors"],
-                                int(z["timestamp_us"]))
+        features = ScanFeatures(_stored_array(z, "global_descriptor"), _stored_array(z, "keypoints_xy_m"),
+                                _stored_array(z, "local_descriptors"), int(_stored_array(z, "timestamp_us")))
         preset = str(z["preset"]) or None
         preset_open = bool(z["preset_open"]) if "preset_open" in z.files else False
         far = None
         if "far_global_descriptor" in z.files:
-            far = ScanFeatures(z["far_global_descriptor"], z["far_keypoints_xy_m"], z["far_local_descriptors"],
-                               int(z["timestamp_us"]))
+            far = ScanFeatures(_stored_array(z, "far_global_descriptor"), _stored_array(z, "far_keypoints_xy_m"),
+                               _stored_array(z, "far_local_descriptors"), int(_stored_array(z, "timestamp_us")))
         dense = None
         if "dense_image" in z.files:
-            d = z["dense_image"]
-            if d.ndim == 2 and d.shape[0] == d.shape[1] and d.dtype.kind == "f" and np.isfinite(d).all():
-                dense = d.astype(np.float16)
+            d = _stored_array(z, "dense_image")
+            w = FAR_VIEW.cartesian.width_px
+            if d.shape == (w, w) and d.dtype.kind == "f":
+                with np.errstate(over="ignore", invalid="ignore"):
+                    d16 = d.astype(np.float16)
+                dense = d16 if np.isfinite(d16).all() else None
     return features, preset, preset_open, far, dense
 
 

@@ -216,3 +216,55 @@ def test_a_malformed_dense_images_attribute_costs_the_dense_step_only(lost_map: 
         assert kf.dense_settings is None and len(kf) == len(keyframe_poses())
         assert kf.read_keyframe(0).keypoints_xy_m.shape[1] == 2
     assert "its dense images are not used" in caplog.text
+
+
+def test_a_companion_that_declares_dense_images_it_does_not_hold_is_served_without_the_step(
+        lost_map: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """QA session 39: such a companion was logged "with dense images" and every refused sparse query correlated
+    against all-zero images (and every upload made an image for nothing)."""
+    out = tmp_path / "moor.h5"
+    shutil.copy(lost_map, out)
+    shutil.copy(far_view_path(lost_map), far_view_path(out))
+    with h5py.File(far_view_path(out), "r+") as f:
+        for name in f["keyframes"]:
+            del f["keyframes"][name]["dense_image"]
+    near_db = MapDatabase.open(out, "fake-extractor", "f" * 64)
+    with caplog.at_level("WARNING", logger="maps.database"):
+        near_db.attach_far(MapDatabase.open(far_view_path(out), "fake-extractor-in257", "f" * 64))
+    try:
+        assert not near_db.far_dense and "declares dense images but keyframe 0's is unreadable" in caplog.text
+    finally:
+        near_db.close()
+
+
+def test_a_stored_scan_entry_is_read_only_within_bounds() -> None:
+    """QA session 39 (fleet mode): a dense image of another width, one that overflows float16, a small entry
+    declaring a huge array: dropped or unreadable, never a 500 or a huge allocation."""
+    import io
+
+    from service.core.shared_state import decode_features, encode_features
+
+    f = FakeExtractor().describe(far_scan(1, keyframe_time(1)))
+    base = encode_features(f, "boreas")
+    with np.load(io.BytesIO(base), allow_pickle=False) as z:
+        fields = {k: z[k] for k in z.files}
+
+    def blob(**extra: np.ndarray) -> bytes:
+        buf = io.BytesIO()
+        np.savez(buf, **{**fields, **extra})
+        return buf.getvalue()
+
+    for bad in (np.zeros((64, 64), np.float32), np.zeros((512, 512), np.float32), np.full((257, 257), 1e6)):
+        assert decode_features(blob(dense_image=bad))[4] is None
+    ok = decode_features(blob(dense_image=np.full((257, 257), 0.01, np.float32)))[4]
+    assert ok is not None and ok.dtype == np.float16
+    # a header declaring 200,000 x 200,000 float32 (160 GB) in a few bytes: refused before anything is read
+    huge = io.BytesIO()
+    with __import__("zipfile").ZipFile(huge, "w") as zf:
+        for k, v in fields.items():
+            with zf.open(f"{k}.npy", "w") as fh:
+                np.lib.format.write_array(fh, v)
+        with zf.open("dense_image.npy", "w") as fh:
+            np.lib.format.write_array_header_1_0(fh, {"descr": "<f4", "fortran_order": False, "shape": (200000, 200000)})
+    with pytest.raises(ValueError, match="declares"):
+        decode_features(huge.getvalue())
