@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import shutil
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import h5py
@@ -12,7 +14,6 @@ import httpx
 import numpy as np
 import pytest
 
-from maps.build import build_map
 from maps.database import FAR_VIEW, MapDatabase
 from maps.paths import far_view_path
 from maps.store import open_map
@@ -20,14 +21,13 @@ from reradar_core.errors import MapFormatError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.cartesian import CartesianConfig
 from reradar_core.io.scan import RadarScan, encode_navtech_png_bytes
-from reradar_core.localization import FarViewConfig
 from reradar_core.matching.dense import dense_image, dense_image_settings
 from service.core.config import Settings
 from service.demo import serve_in_thread
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from service_test_fakes import API_KEY, FakeExtractor, keyframe_poses, keyframe_time  # noqa: E402
-from test_service_far_view import NearFake, far_scan  # noqa: E402
+from test_service_far_view import NearFake, build_open_land_map, far_scan  # noqa: E402
 
 
 class LostFarFake(FakeExtractor):
@@ -54,9 +54,25 @@ class LostNearFake(NearFake):
 
 @pytest.fixture(scope="module")
 def lost_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("dense") / "moor.h5"
-    return build_map(out, LostNearFake(), lambda i: far_scan(i, keyframe_time(i)), keyframe_poses(),
-                     radar_preset="boreas", name="moor", batch_size=4, far_view=FarViewConfig())
+    return build_open_land_map(tmp_path_factory.mktemp("dense") / "moor.h5", LostNearFake())
+
+
+def _pair_in(folder: Path, lost_map: Path) -> Path:
+    """A copy of the map and its companion in ``folder`` (created); returns the map's path."""
+    folder.mkdir(parents=True, exist_ok=True)
+    out = folder / "moor.h5"
+    shutil.copy(lost_map, out)
+    shutil.copy(far_view_path(lost_map), far_view_path(out))
+    return out
+
+
+@contextmanager
+def _served(maps_dir: Path) -> Iterator[httpx.Client]:
+    """The service over ``maps_dir`` with the lost-far-view fake, and a client sending the API key."""
+    settings = Settings(maps_dir=maps_dir, load_demo_map=False, api_key=API_KEY, torch_threads=1)
+    with serve_in_thread(settings, LostNearFake()) as url, \
+            httpx.Client(base_url=url, timeout=60, headers={"X-API-Key": API_KEY}) as client:
+        yield client
 
 
 def test_the_companion_stores_every_keyframes_dense_image(lost_map: Path) -> None:
@@ -93,9 +109,7 @@ def test_a_scan_both_views_refuse_is_placed_by_dense_registration(lost_map: Path
 
 def test_a_companion_of_other_dense_settings_is_not_correlated(lost_map: Path, tmp_path: Path) -> None:
     """Images made with another recipe would correlate wrongly: the far view answers as without them."""
-    out = tmp_path / "moor.h5"
-    shutil.copy(lost_map, out)
-    shutil.copy(far_view_path(lost_map), far_view_path(out))
+    out = _pair_in(tmp_path, lost_map)
     with h5py.File(far_view_path(out), "r+") as f:
         f.attrs["dense_images"] = '{"blur_px": 2.0, "highpass_px": 4.0, "version": 1}'
     near_db = MapDatabase.open(out, "fake-extractor", "f" * 64)
@@ -115,16 +129,9 @@ def test_a_companion_of_other_dense_settings_is_not_correlated(lost_map: Path, t
 
 
 def test_the_service_answers_an_inline_scan_by_dense_registration(lost_map: Path, tmp_path: Path) -> None:
-    maps_dir = tmp_path / "maps"
-    maps_dir.mkdir()
-    shutil.copy(lost_map, maps_dir / "moor.h5")
-    shutil.copy(far_view_path(lost_map), maps_dir / "moor.far.h5")
-    settings = Settings(maps_dir=maps_dir, load_demo_map=False, api_key=API_KEY, torch_threads=1)
-    headers = {"X-API-Key": API_KEY}
-    with serve_in_thread(settings, LostNearFake()) as url, httpx.Client(base_url=url, timeout=60) as client:
+    with _served(_pair_in(tmp_path / "maps", lost_map).parent) as client:
         png = encode_navtech_png_bytes(far_scan(2, keyframe_time(2) + 5))
-        r = client.post("/localize", data={"map_id": "moor"}, files={"scan": ("q.png", png, "image/png")},
-                        headers=headers)
+        r = client.post("/localize", data={"map_id": "moor"}, files={"scan": ("q.png", png, "image/png")})
         assert r.status_code == 200, r.text
         res = r.json()
         assert res["status"] == "localized" and res["view"] == "far" and res["registration"] == "dense"
@@ -132,10 +139,10 @@ def test_the_service_answers_an_inline_scan_by_dense_registration(lost_map: Path
         assert abs(res["pose"]["x_m"] - keyframe_poses()[2, 0]) < 0.5 and 0.9 <= res["confidence"] <= 1.0
         assert "dense_image_ms" in res["timings_ms"] and "dense_ms" in res["timings_ms"]
         # by scan_id: the dense image was made at upload (as this server has a companion with dense images)
-        up = client.post("/scans", files={"scan": ("q.png", png, "image/png")}, headers=headers)
+        up = client.post("/scans", files={"scan": ("q.png", png, "image/png")})
         assert up.status_code == 201, up.text
         assert "dense_image_ms" in up.json()["timings_ms"]
-        r = client.post("/localize", json={"map_id": "moor", "scan_id": up.json()["scan_id"]}, headers=headers)
+        r = client.post("/localize", json={"map_id": "moor", "scan_id": up.json()["scan_id"]})
         assert r.status_code == 200, r.text
         by_id = r.json()
         assert by_id["status"] == "localized" and by_id["registration"] == "dense"
@@ -145,21 +152,15 @@ def test_the_service_answers_an_inline_scan_by_dense_registration(lost_map: Path
 def test_a_companion_without_dense_images_makes_none_at_upload(lost_map: Path, tmp_path: Path) -> None:
     """A companion built before dense images (or sent without them): uploads skip the image, answers stay the far
     view's."""
-    maps_dir = tmp_path / "maps"
-    maps_dir.mkdir()
-    shutil.copy(lost_map, maps_dir / "moor.h5")
-    shutil.copy(far_view_path(lost_map), maps_dir / "moor.far.h5")
-    with h5py.File(maps_dir / "moor.far.h5", "r+") as f:
+    out = _pair_in(tmp_path / "maps", lost_map)
+    with h5py.File(far_view_path(out), "r+") as f:
         del f.attrs["dense_images"]
-    settings = Settings(maps_dir=maps_dir, load_demo_map=False, api_key=API_KEY, torch_threads=1)
-    headers = {"X-API-Key": API_KEY}
-    with serve_in_thread(settings, LostNearFake()) as url, httpx.Client(base_url=url, timeout=60) as client:
+    with _served(out.parent) as client:
         png = encode_navtech_png_bytes(far_scan(2, keyframe_time(2) + 5))
-        up = client.post("/scans", files={"scan": ("q.png", png, "image/png")}, headers=headers)
+        up = client.post("/scans", files={"scan": ("q.png", png, "image/png")})
         assert up.status_code == 201 and "dense_image_ms" not in up.json()["timings_ms"]
         assert "far_extract_ms" in up.json()["timings_ms"]
-        r = client.post("/localize", data={"map_id": "moor"}, files={"scan": ("q.png", png, "image/png")},
-                        headers=headers)
+        r = client.post("/localize", data={"map_id": "moor"}, files={"scan": ("q.png", png, "image/png")})
         assert r.json()["status"] == "not_localized" and r.json()["registration"] == "landmarks"
         assert "dense_image_ms" not in r.json()["timings_ms"]
 
@@ -167,9 +168,7 @@ def test_a_companion_without_dense_images_makes_none_at_upload(lost_map: Path, t
 def test_a_damaged_dense_image_costs_that_candidate_only(lost_map: Path, tmp_path: Path,
                                                           caplog: pytest.LogCaptureFixture) -> None:
     """A served file's damage is not the request's fault: no error answer, the candidate aligns with nothing."""
-    out = tmp_path / "moor.h5"
-    shutil.copy(lost_map, out)
-    shutil.copy(far_view_path(lost_map), far_view_path(out))
+    out = _pair_in(tmp_path, lost_map)
     with h5py.File(far_view_path(out), "r+") as f:
         f["keyframes/000003/dense_image"][0, 0] = np.nan
     near_db = MapDatabase.open(out, "fake-extractor", "f" * 64)
@@ -208,8 +207,7 @@ def test_map_info_says_whether_a_companion_holds_dense_images(lost_map: Path) ->
 def test_a_malformed_dense_images_attribute_costs_the_dense_step_only(lost_map: Path, tmp_path: Path, bad: object,
                                                                       caplog: pytest.LogCaptureFixture) -> None:
     """The images are an optional extra (QA session 39: such an attribute stopped the whole far view being served)."""
-    far = tmp_path / "moor.far.h5"
-    shutil.copy(far_view_path(lost_map), far)
+    far = far_view_path(_pair_in(tmp_path, lost_map))
     with h5py.File(far, "r+") as f:
         f.attrs["dense_images"] = bad
     with caplog.at_level("WARNING", logger="maps.store"), open_map(far, "fake-extractor-in257", "f" * 64) as kf:
@@ -222,9 +220,7 @@ def test_a_companion_that_declares_dense_images_it_does_not_hold_is_served_witho
         lost_map: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """QA session 39: such a companion was logged "with dense images" and every refused sparse query correlated
     against all-zero images (and every upload made an image for nothing)."""
-    out = tmp_path / "moor.h5"
-    shutil.copy(lost_map, out)
-    shutil.copy(far_view_path(lost_map), far_view_path(out))
+    out = _pair_in(tmp_path, lost_map)
     with h5py.File(far_view_path(out), "r+") as f:
         for name in f["keyframes"]:
             del f["keyframes"][name]["dense_image"]

@@ -74,11 +74,15 @@ def far_scan(seed: int, t_us: int) -> RadarScan:
     return RadarScan.from_power(power, "boreas", start_time_us=t_us)
 
 
+def build_open_land_map(out: Path, extractor: NearFake) -> Path:
+    """A map of ``far_scan`` keyframes (open land) at ``out`` with its far-view companion, described by ``extractor``."""
+    return build_map(out, extractor, lambda i: far_scan(i, keyframe_time(i)), keyframe_poses(),
+                     radar_preset="boreas", name=out.stem, batch_size=4, far_view=FarViewConfig())
+
+
 @pytest.fixture(scope="module")
 def far_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("far") / "open.h5"
-    return build_map(out, NearFake(), lambda i: far_scan(i, keyframe_time(i)), keyframe_poses(),
-                     radar_preset="boreas", name="open", batch_size=4, far_view=FarViewConfig())
+    return build_open_land_map(tmp_path_factory.mktemp("far") / "open.h5", NearFake())
 
 
 def test_build_writes_the_companion_under_the_far_views_model(far_map: Path, tmp_path: Path) -> None:
