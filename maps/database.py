@@ -75,6 +75,11 @@ def far_view_mismatch(near: KeyframeSource, far: KeyframeSource,
     return None
 
 
+def _without_folder(exc: Exception, path: Path) -> str:
+    """``exc``'s message with ``path`` named by its file name (the maps folder is the operator's, not the log's)."""
+    return str(exc).replace(str(path), path.name)
+
+
 class MapDatabase:
     """One keyframe map ready for queries.
 
@@ -186,7 +191,7 @@ class MapDatabase:
                 self._dense_readable = False
                 logger.warning("%s declares dense images but keyframe 0's is unreadable (%s); its far view is served "
                                "without the dense registration (rebuild it with `reradar build-map --far-view`)",
-                               far.map.path.name, str(exc).replace(str(far.map.path), far.map.path.name))
+                               far.map.path.name, _without_folder(exc, far.map.path))
 
     def localize_views(self, query: ScanFeatures, far_features: Callable[[], ScanFeatures] | None,
                        config: LocalizationConfig | None = None,
@@ -237,7 +242,7 @@ class MapDatabase:
                 if keyframe_id not in self._dense_warned:  # once per keyframe, not on every request
                     self._dense_warned.add(keyframe_id)
                     logger.warning("%s: dense image of keyframe %d unreadable (%s); not registered against",
-                                   far_map.path.name, keyframe_id, str(exc).replace(str(far_map.path), far_map.path.name))
+                                   far_map.path.name, keyframe_id, _without_folder(exc, far_map.path))
                 w = far_map.metadata.cartesian_width_px
                 return np.zeros((w, w), np.float32)
         return dense_query, keyframe_image

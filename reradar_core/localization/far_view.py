@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -87,7 +87,7 @@ class FarViewConfig:
             heading farther than ``dense.rival_shift_m`` (6 m) from it is at most 1 - this of the answer's
             (``DenseRegistration.shift_margin``; default 0.25: the right answers on the calibration routes have 0.53
             or more, scenes that align one step along themselves - synthetic straight banks and rows of posts in open
-            land, where the heading margin passed wrong poses 10-52 m off (QA, session 39) - 0.074 or less); a peak
+            land, where the heading margin passed wrong poses 10-52 m off (QA, session 39) - 0.08 or less); a peak
             on the border of the +-``dense.max_shift_m`` window (``at_edge``) is refused too.
         dense_confidence: (a, b) of the dense answer's confidence, 1 / (1 + exp(-(a + b ln margin))): the
             probability that the pose is within the success thresholds (25 m, 10 degrees), fitted by logistic
@@ -263,8 +263,6 @@ def dense_fallback(answer: LocalizationResult, dense_query: Callable[[], np.ndar
     ``best``, ``tracking_lost`` the far answer's. ``timings_ms["dense_ms"]`` is the registration's time, after
     ``dense_query`` made the query's image (the caller times that).
     """
-    from dataclasses import replace
-
     from reradar_core.localization.pipeline import LocalizationResult
 
     query = dense_query()  # its own stage (the service times it as ``dense_image_ms``), not part of ``dense_ms``

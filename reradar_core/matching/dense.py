@@ -160,16 +160,29 @@ def _rotated(img: np.ndarray, angles_deg: np.ndarray) -> np.ndarray:
                                     flags=cv2.INTER_LINEAR) for a in angles_deg])
 
 
-def _correlate(keyframe: np.ndarray, queries: np.ndarray, shift_px: int) -> np.ndarray:
+@dataclass(frozen=True)
+class _QuerySpectra:
+    """A stack of query images (e.g. rotated copies) transformed once, to correlate with several keyframes."""
+
+    conj_fft: np.ndarray  # (n, size, size // 2 + 1) complex: conjugated zero-padded spectra
+    norms: np.ndarray  # (n,) L2 norms of the images
+    size: int  # FFT side: image side + largest shift, so no shift wraps round
+    shift_px: int  # largest shift searched, pixels
+
+
+def _query_spectra(queries: np.ndarray, shift_px: int) -> _QuerySpectra:
+    size = sp_fft.next_fast_len(queries.shape[1] + shift_px, real=True)
+    return _QuerySpectra(np.conj(sp_fft.rfft2(queries, s=(size, size), axes=(-2, -1))),
+                         np.linalg.norm(queries.reshape(len(queries), -1), axis=1), size, shift_px)
+
+
+def _correlate(keyframe: np.ndarray, queries: _QuerySpectra) -> np.ndarray:
     """(n, 2S+1, 2S+1) normalised cross-correlation: [k, S+dr, S+dc] compares query k moved by (dr, dc) pixels
-    (rows, cols) with the keyframe image; zero-padded, so no shift wraps round."""
-    n = keyframe.shape[0]
-    size = sp_fft.next_fast_len(n + shift_px, real=True)
-    f_kf = sp_fft.rfft2(keyframe, s=(size, size))
-    f_q = sp_fft.rfft2(queries, s=(size, size), axes=(-2, -1))
-    cc = sp_fft.irfft2(f_kf[None] * np.conj(f_q), s=(size, size), axes=(-2, -1))
-    cc = np.roll(cc, (shift_px, shift_px), axis=(-2, -1))[:, :2 * shift_px + 1, :2 * shift_px + 1]
-    norms = float(np.linalg.norm(keyframe)) * np.linalg.norm(queries.reshape(len(queries), -1), axis=1)
+    (rows, cols) with the keyframe image, S = ``queries.shift_px``."""
+    size, s = queries.size, queries.shift_px
+    cc = sp_fft.irfft2(sp_fft.rfft2(keyframe, s=(size, size))[None] * queries.conj_fft, s=(size, size), axes=(-2, -1))
+    cc = np.roll(cc, (s, s), axis=(-2, -1))[:, :2 * s + 1, :2 * s + 1]
+    norms = float(np.linalg.norm(keyframe)) * queries.norms
     return cc / np.maximum(norms, 1e-12)[:, None, None]
 
 
@@ -241,17 +254,12 @@ def register_dense_best(query: np.ndarray, keyframes: list[np.ndarray], cartesia
     # coarse: every heading at half resolution, the query's rotations transformed once
     angles = np.arange(0.0, 360.0, config.coarse_step_deg)
     shift_half = max(1, int(math.ceil(config.max_shift_m / (2.0 * cartesian.resolution_m))))
-    q_rot = _rotated(cv2.resize(q, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA), angles)
-    size = sp_fft.next_fast_len(q_rot.shape[1] + shift_half, real=True)
-    f_q = np.conj(sp_fft.rfft2(q_rot, s=(size, size), axes=(-2, -1)))
-    q_norms = np.linalg.norm(q_rot.reshape(len(angles), -1), axis=1)
+    rotated = _query_spectra(_rotated(cv2.resize(q, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA), angles),
+                             shift_half)
     coarse: list[tuple[float, float, float]] = []
     for k in kfs:
         k_half = cv2.resize(k, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
-        cc = sp_fft.irfft2(sp_fft.rfft2(k_half, s=(size, size))[None] * f_q, s=(size, size), axes=(-2, -1))
-        cc = np.roll(cc, (shift_half, shift_half), axis=(-2, -1))[:, :2 * shift_half + 1, :2 * shift_half + 1]
-        per_angle = cc.reshape(len(angles), -1).max(axis=1) / np.maximum(
-            float(np.linalg.norm(k_half)) * q_norms, 1e-12)
+        per_angle = _correlate(k_half, rotated).reshape(len(angles), -1).max(axis=1)
         best = int(np.argmax(per_angle))
         apart = np.abs((angles - angles[best] + 180.0) % 360.0 - 180.0) > config.rival_heading_deg
         rival = float(per_angle[apart].max()) if apart.any() else -1.0
@@ -261,7 +269,7 @@ def register_dense_best(query: np.ndarray, keyframes: list[np.ndarray], cartesia
     # fine: full resolution around the winner's coarse heading, sub-pixel and sub-step peaks
     fine = heading + np.arange(-config.fine_span_deg, config.fine_span_deg + 1e-9, config.fine_step_deg)
     shift = max(1, int(math.ceil(config.max_shift_m / cartesian.resolution_m)))
-    cc = _correlate(kfs[win], _rotated(q, fine), shift)
+    cc = _correlate(kfs[win], _query_spectra(_rotated(q, fine), shift))
     ai, r, c = np.unravel_index(int(np.argmax(cc)), cc.shape)
     dr = _vertex(cc[ai, r - 1, c], cc[ai, r, c], cc[ai, r + 1, c]) if 0 < r < 2 * shift else 0.0
     dc = _vertex(cc[ai, r, c - 1], cc[ai, r, c], cc[ai, r, c + 1]) if 0 < c < 2 * shift else 0.0

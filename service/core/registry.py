@@ -33,7 +33,7 @@ import numpy as np
 
 from maps.arrays import prune_arrays
 from maps.build import build_map
-from maps.database import MapDatabase, far_view_mismatch
+from maps.database import FAR_VIEW, MapDatabase, far_view_mismatch
 from maps.paths import DEMO_MAP_PATH, FAR_VIEW_SUFFIX, far_view_path
 from maps.store import (
     KeyframeMap,
@@ -65,6 +65,7 @@ from reradar_core.io.scan import (
 )
 from reradar_core.localization.extractor import FeatureExtractor
 from reradar_core.localization.far_view import FarViewConfig
+from reradar_core.matching.dense import dense_image_settings
 from reradar_core.retrieval import IndexConfig
 from service.core.archive import SCAN_NAME_PATTERN, duplicate_scan_time_message, scan_name_time_message
 from service.core.config import MAP_ID_PATTERN, Settings
@@ -279,9 +280,6 @@ def _far_marker_id(path: Path) -> str:
 def _log_far_served(path: Path, db: MapDatabase) -> None:
     """Log that the far-view companion ``path`` is served with the map of ``db`` (attached: ``db.far``)."""
     far = db.far
-    from maps.database import FAR_VIEW
-    from reradar_core.matching.dense import dense_image_settings
-
     stored = far.map.dense_settings if far is not None else None
     dense = ("with dense images" if db.far_dense else
              "without dense images (rebuild it with `reradar build-map --far-view` for the dense registration)"
