@@ -98,7 +98,7 @@ def build_map_command(
                + ("" if place_repetition else "; no place repetition stored (measured as keyframes first win)"))
     if far_view:
         far = far_view_path(out)
-        typer.echo(f"wrote {far}: the same keyframes in the far view, {far.stat().st_size / 1e6:.1f} MB")
+        typer.echo(f"wrote {far}: the same keyframes in the far view with their dense images, {far.stat().st_size / 1e6:.1f} MB")
 
 
 def map_info_command(path: Path = typer.Argument(..., help="Map file (.h5).")) -> None:
