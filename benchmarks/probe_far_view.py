@@ -53,6 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--far-sparse", type=int, default=None,
                     help="FarViewConfig.sparse_landmarks (default 512): a larger value lets the dense step run after "
                          "full near views too (a probe setting; it also changes which place a refused answer names)")
+    ap.add_argument("--dense-candidates", type=int, default=None,
+                    help="FarViewConfig.dense_candidates (default 5): how many far candidates the dense step registers")
     ap.add_argument("--far-z-q", type=float, default=None,
                     help="the far view's landmark threshold (FarViewConfig.landmark_z_q; default: the near view's)")
     a = ap.parse_args(argv)
@@ -63,9 +65,10 @@ def main(argv: list[str] | None = None) -> int:
     preset, radius = str(data["preset"]), float(data["radius"])  # type: ignore[arg-type]
     db_pose, q_pose = np.asarray(data["db_pose"]), np.asarray(data["q_pose"])
     method = make_method(a.model + ("+dense" if a.dense else "+far"))
-    if a.far_z_q is not None or a.far_sparse is not None:  # the same method with other far-view probe settings
+    if a.far_z_q is not None or a.far_sparse is not None or a.dense_candidates is not None:  # other probe settings
         fv = method.far_view if a.far_z_q is None else replace(method.far_view, landmark_z_q=a.far_z_q)
         fv = fv if a.far_sparse is None else replace(fv, sparse_landmarks=a.far_sparse)
+        fv = fv if a.dense_candidates is None else replace(fv, dense_candidates=a.dense_candidates)
         method = Ours(method.extractor, method.localization, name=method.name, far_view=fv, dense=a.dense)
     db = [method.prepare(C._scan(s, int(t), preset)) for s, t in zip(data["db_scans"], data["db_t"], strict=True)]  # type: ignore[call-overload]
     qs = [method.prepare(C._scan(s, int(t), preset)) for s, t in zip(data["q_scans"], data["q_t"], strict=True)]  # type: ignore[call-overload]
@@ -104,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     world = C.subset_world(a.suite, ov)
     is_open = np.array([world.is_open_land(p) for p in q_pose[:, :2]], dtype=bool)
     row: dict[str, object] = {"label": a.label, "suite": a.suite, "model": a.model, "far_z_q": a.far_z_q,
-                              "dense": a.dense, "far_sparse": a.far_sparse,
+                              "dense": a.dense, "far_sparse": a.far_sparse, "dense_candidates": a.dense_candidates,
                               "window": a.window,
                               "overrides": ov, "queries": len(qs), "database": len(db),
                               "open_pct": round(100 * is_open.mean(), 1)}
