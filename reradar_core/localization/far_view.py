@@ -94,6 +94,15 @@ class FarViewConfig:
             regression on the same calibration routes' 187 sparse refused queries (predicted / observed per margin
             bin: 0.11 / 0.09 below 0.01, 0.47 / 0.50 to 0.02, 0.86 / 0.87 to 0.05, 0.98 / 1.00 to 0.1, 1.00 / 1.00
             above); 0.95 at the default margin bar.
+        dense_pose_sigma: (along m, across m, yaw rad) standard deviations of a dense answer's pose error in the
+            vehicle's frame (x along its heading, y across), its ``pose_covariance`` when the localization config's
+            covariance is on. Default (0.42, 0.42, 0.007): the 109 dense answers on the same calibration routes
+            (mid-sweep ground truth) have a position RMS of 0.42 m per axis and 0.40 deg in heading. Isotropic because
+            the along / across split differs from route to route (across 0.7-3.3x along on three routes, 0.7x on the
+            fourth); a first, anisotropic fit (0.24 / 0.54 m) was over-confident on ``offroad-sim-hard``'s drive,
+            where along-track errors dominate (NEES 8.6): that drive was seen before this choice (docs/MODEL.md
+            "Dense registration"). One covariance for every dense answer: the correlation peak's own shape is not
+            calibrated.
     """
 
     width_px: int = 257
@@ -105,6 +114,7 @@ class FarViewConfig:
     dense_min_heading_margin: float = 0.05
     dense_min_shift_margin: float = 0.25
     dense_confidence: tuple[float, float] = (9.8817, 2.3069)
+    dense_pose_sigma: tuple[float, float, float] = (0.42, 0.42, 0.007)
 
     def __post_init__(self) -> None:
         if isinstance(self.dense_candidates, bool) or not isinstance(self.dense_candidates, int) \
@@ -116,6 +126,8 @@ class FarViewConfig:
         if not (math.isfinite(self.dense_min_shift_margin) and 0 <= self.dense_min_shift_margin < 1):
             raise ConfigError("far view dense_min_shift_margin must be in [0, 1), got "
                               f"{self.dense_min_shift_margin!r}")
+        if len(self.dense_pose_sigma) != 3 or not all(math.isfinite(v) and v > 0 for v in self.dense_pose_sigma):
+            raise ConfigError(f"far view dense_pose_sigma must be three positive numbers, got {self.dense_pose_sigma!r}")
         if len(self.dense_confidence) != 2 or not all(math.isfinite(v) for v in self.dense_confidence) \
                 or self.dense_confidence[1] <= 0:
             raise ConfigError(f"far view dense_confidence must be (a, b) with b > 0, got {self.dense_confidence!r}")
@@ -136,6 +148,17 @@ class FarViewConfig:
     def reach_m(self) -> float:
         """Half the image width, metres."""
         return self.width_px * self.resolution_m / 2.0
+
+    def dense_pose_covariance(self, T_map_query: np.ndarray) -> np.ndarray:
+        """(3, 3) covariance of a dense answer at ``T_map_query`` in the map frame (x m, y m, yaw rad):
+        ``dense_pose_sigma`` along and across the vehicle's heading, rotated into the map."""
+        along, across, yaw = self.dense_pose_sigma
+        c, s = math.cos(float(T_map_query[2])), math.sin(float(T_map_query[2]))
+        R = np.array([[c, -s], [s, c]])
+        cov = np.zeros((3, 3))
+        cov[:2, :2] = R @ np.diag([along ** 2, across ** 2]) @ R.T
+        cov[2, 2] = yaw ** 2
+        return cov
 
     def dense_answer_confidence(self, heading_margin: float) -> float:
         """The calibrated confidence of a dense answer with this heading margin (``dense_confidence``), in [0, 1]."""
@@ -242,8 +265,9 @@ def far_fallback(result: LocalizationResult, near: Localizer, near_features: Sca
                          for k in {**result.timings_ms, **answer.timings_ms}}
     if answer.localized or not sparse or dense_query is None or dense_keyframe is None or not answer.candidates:
         return TwoViewResult(answer, VIEW_FAR, result, near_sparse=sparse)
-    dense, margin = dense_fallback(answer, dense_query, dense_keyframe, far_view,
-                                   (config or far.config).effective_min_confidence)
+    settings = config or far.config
+    dense, margin = dense_fallback(answer, dense_query, dense_keyframe, far_view, settings.effective_min_confidence,
+                                   settings.covariance.enabled)
     return TwoViewResult(dense, VIEW_FAR, result, near_sparse=sparse,
                          registration=REGISTRATION_DENSE if dense.localized else REGISTRATION_LANDMARKS,
                          heading_margin=margin)
@@ -251,15 +275,16 @@ def far_fallback(result: LocalizationResult, near: Localizer, near_features: Sca
 
 def dense_fallback(answer: LocalizationResult, dense_query: Callable[[], np.ndarray],
                    dense_keyframe: Callable[[int], np.ndarray], far_view: FarViewConfig,
-                   min_confidence: float) -> tuple[LocalizationResult, float]:
+                   min_confidence: float, covariance: bool = True) -> tuple[LocalizationResult, float]:
     """Register the query onto the refused far answer's best-ranked candidates by dense correlation (module
     docstring) and return (a ``localized`` answer when the best alignment passes both bars, else ``answer``
     itself with ``timings_ms["dense_ms"]`` added; the best alignment's heading margin).
 
     The localized answer: ``best`` is the winning candidate with ``T_keyframe_query`` from the registration (0
     matches and inliers: no landmarks were paired), ``T_map_query`` = ``T_map_keyframe`` o ``T_keyframe_query``,
-    ``confidence`` = ``far_view.dense_answer_confidence(margin)``, no ``cues`` and no ``pose_covariance`` (the
-    covariance model is the landmarks'), ``candidates`` the far answer's with the winner's entry replaced by
+    ``confidence`` = ``far_view.dense_answer_confidence(margin)``, no ``cues``, ``pose_covariance``
+    ``far_view.dense_pose_covariance`` when ``covariance`` (the localization config's is on), ``candidates`` the far
+    answer's with the winner's entry replaced by
     ``best``, ``tracking_lost`` the far answer's. ``timings_ms["dense_ms"]`` is the registration's time, after
     ``dense_query`` made the query's image (the caller times that).
     """
@@ -283,6 +308,8 @@ def dense_fallback(answer: LocalizationResult, dense_query: Callable[[], np.ndar
                    inlier_spread_m=None)
     # the winner's entry in the candidate list is the dense answer (not the far view's screened-out refusal)
     candidates = [best if c is chosen else c for c in answer.candidates]
-    return LocalizationResult("localized", None, best, compose(T_map_keyframe, reg.T_keyframe_query),
-                              candidates, timings, confidence, None, mode=answer.mode,
-                              tracking_lost=answer.tracking_lost), reg.heading_margin
+    T_map_query = compose(T_map_keyframe, reg.T_keyframe_query)
+    return LocalizationResult("localized", None, best, T_map_query, candidates, timings, confidence, None,
+                              mode=answer.mode, tracking_lost=answer.tracking_lost,
+                              pose_covariance=far_view.dense_pose_covariance(T_map_query) if covariance else None
+                              ), reg.heading_margin

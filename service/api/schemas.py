@@ -330,7 +330,8 @@ class LocalizeResponse(_Model):
         "refused a scan with little in view and the far view's whole-image correlation placed it (inline scans, "
         "and scans uploaded while such a map was loaded, on a map whose far-view companion holds dense images, "
         "`reradar build-map --far-view` since 2026-12-04; "
-        "`num_matches` and `num_inliers` are then 0, there is no `pose_uncertainty`, and `confidence` is the "
+        "`num_matches` and `num_inliers` are then 0, `pose_uncertainty` is the dense answers' calibrated one, "
+        "and `confidence` is the "
         "dense registration's own calibrated probability; docs/MODEL.md, 'Dense registration')."))
     session_id: str | None = None
     alignment_score: float = Field(default=0.0, description=(

@@ -189,7 +189,17 @@ def test_dense_registration_localizes_what_both_views_refused(two_views) -> None
     np.testing.assert_allclose(out.result.T_map_query, poses[2], atol=0.05)
     assert out.heading_margin >= FarViewConfig().dense_min_heading_margin
     assert out.result.confidence == pytest.approx(FarViewConfig().dense_answer_confidence(out.heading_margin))
-    assert out.result.best.num_inliers == 0 and out.result.pose_covariance is None
+    assert out.result.best.num_inliers == 0
+    # the dense answers' calibrated covariance: 0.42 m along the vehicle's heading and across it, 0.4 deg
+    cov = out.result.pose_covariance
+    yaw = out.result.T_map_query[2]
+    along, across = np.array([np.cos(yaw), np.sin(yaw)]), np.array([-np.sin(yaw), np.cos(yaw)])
+    assert along @ cov[:2, :2] @ along == pytest.approx(0.42 ** 2)
+    assert across @ cov[:2, :2] @ across == pytest.approx(0.42 ** 2)
+    assert cov[2, 2] == pytest.approx(0.007 ** 2) and np.allclose(cov, cov.T)
+    # and the rotation into the map frame: an anisotropic setting keeps its axes along / across the heading
+    aniso = FarViewConfig(dense_pose_sigma=(0.1, 1.0, 0.01)).dense_pose_covariance(np.array([0.0, 0.0, np.pi / 2]))
+    np.testing.assert_allclose(aniso[:2, :2], np.diag([1.0, 0.01]), atol=1e-12)  # heading north: along = map y
     assert "dense_ms" in out.result.timings_ms and len(calls) == FarViewConfig().dense_candidates
     # the winner's entry in the candidate list is the dense answer, not the far view's refusal
     entry = next(c for c in out.result.candidates if c.keyframe_id == 2)
@@ -250,6 +260,7 @@ def test_dense_registration_only_for_a_near_view_with_little_in_view(two_views) 
 def test_dense_settings_are_validated() -> None:
     for bad in ({"dense_candidates": 0}, {"dense_candidates": 2.5}, {"dense_min_heading_margin": 0.0},
                 {"dense_min_shift_margin": 1.0}, {"dense_min_shift_margin": -0.1},
+                {"dense_pose_sigma": (0.2, 0.5)}, {"dense_pose_sigma": (0.0, 0.5, 0.01)},
                 {"dense_confidence": (1.0, -2.0)}, {"dense_confidence": (1.0,)}):
         with pytest.raises(ConfigError):
             FarViewConfig(**bad)
