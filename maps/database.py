@@ -124,7 +124,7 @@ class MapDatabase:
         #: the far-view companion (``attach_far``): the same keyframes in ReRadar's far view, or None
         self.far: MapDatabase | None = None
         self._dense_warned: set[int] = set()  # keyframes whose unreadable dense image was logged
-        self._dense_readable = False  # the attached companion's first dense image reads (``attach_far``)
+        self._far_dense = False  # ``far_dense``, decided when the companion is attached (it does not change)
         # the place repetition measured when the map was built: no query pays for measuring its winner's
         table = kf_map.place_repetition
         self.repetition_stored = table is not None
@@ -183,12 +183,12 @@ class MapDatabase:
             raise MapFormatError(f"{far.map.path.name} does not hold the keyframes of {self.map.path.name} ({problem}); "
                                  "rebuild it with `reradar build-map --far-view`")
         self.far = far
-        self._dense_readable = True
-        if far.map.dense_settings is not None and len(far.map):
+        self._far_dense = far.map.dense_settings == dense_image_settings(FAR_VIEW.dense)
+        if self._far_dense and len(far.map):
             try:  # a companion that declares dense images but holds none (or not the first) is served without them
                 far.map.read_dense_image(0)
             except MapFormatError as exc:
-                self._dense_readable = False
+                self._far_dense = False
                 logger.warning("%s declares dense images but keyframe 0's is unreadable (%s); its far view is served "
                                "without the dense registration (rebuild it with `reradar build-map --far-view`)",
                                far.map.path.name, _without_folder(exc, far.map.path))
@@ -222,8 +222,7 @@ class MapDatabase:
     def far_dense(self) -> bool:
         """The far-view companion holds every keyframe's dense image, made with the settings this process makes
         the query's with (``FAR_VIEW.dense``): its dense registration can run."""
-        return (self.far is not None and self._dense_readable and self.far.map.dense_settings is not None
-                and self.far.map.dense_settings == dense_image_settings(FAR_VIEW.dense))
+        return self.far is not None and self._far_dense
 
     def _dense(self, dense_query: Callable[[], np.ndarray] | None
                ) -> tuple[Callable[[], np.ndarray] | None, Callable[[int], np.ndarray] | None]:

@@ -359,6 +359,19 @@ def _attr_value(attrs: h5py.AttributeManager, key: str, path: Path, owner: str =
     return value.reshape(-1)[0] if isinstance(value, np.ndarray) else value
 
 
+def _text_attr(attrs: h5py.AttributeManager, key: str, path: Path, owner: str = "root") -> str:
+    """Attribute ``key`` (of the root, or of the group ``owner``) as text of at most ``MAX_REPETITION_SETTINGS_CHARS``
+    characters (a settings record: ``/place_repetition``'s, ``dense_images``); anything else is a MapFormatError."""
+    value = _attr_value(attrs, key, path, owner)
+    if not isinstance(value, (str, bytes)):
+        raise MapFormatError(f"{path}: {owner} attribute {key!r} must be text, found {type(value).__name__}")
+    text = value.decode(errors="replace") if isinstance(value, bytes) else value
+    if len(text) > MAX_REPETITION_SETTINGS_CHARS:
+        raise MapFormatError(f"{path}: {owner} attribute {key!r} holds {len(text)} characters; at most "
+                             f"{MAX_REPETITION_SETTINGS_CHARS} are accepted")
+    return text
+
+
 def _str_attr(attrs: h5py.AttributeManager, key: str, path: Path) -> str:
     value = _attr_value(attrs, key, path)
     return value.decode(errors="replace") if isinstance(value, bytes) else str(value)
@@ -582,14 +595,7 @@ class KeyframeMap:
         """The ``dense_images`` root attribute (text), or None for a map without dense images."""
         if DENSE_IMAGES_ATTR not in f.attrs:
             return None
-        value = _attr_value(f.attrs, DENSE_IMAGES_ATTR, self.path)
-        if not isinstance(value, (str, bytes)):
-            raise MapFormatError(f"{self.path}: attribute {DENSE_IMAGES_ATTR!r} must be text, found {type(value).__name__}")
-        text = value.decode(errors="replace") if isinstance(value, bytes) else value
-        if len(text) > MAX_REPETITION_SETTINGS_CHARS:
-            raise MapFormatError(f"{self.path}: attribute {DENSE_IMAGES_ATTR!r} holds {len(text)} characters; at most "
-                                 f"{MAX_REPETITION_SETTINGS_CHARS} are accepted")
-        return text
+        return _text_attr(f.attrs, DENSE_IMAGES_ATTR, self.path)
 
     def read_dense_image(self, index: int) -> np.ndarray:
         """Keyframe ``index``'s dense image (``matching.dense.dense_image`` of its scan in the map's Cartesian
@@ -610,11 +616,7 @@ class KeyframeMap:
             if self._file is None:
                 raise MapFormatError(f"{self.path}: map is closed")
             try:
-                name = f"{index:06d}"
-                kgroup = self._file["keyframes"]
-                if not isinstance(kgroup.get(name, getlink=True), h5py.HardLink):
-                    raise MapFormatError(f"{self.path}: keyframe {index} is missing or a link")
-                ds = _dataset(kgroup[name], "dense_image", self.path)
+                ds = _dataset(self._keyframe_group(index), "dense_image", self.path)
                 _check_layout(ds, (w, w), "f", "float16", self.path, f"cartesian_width_px = {w} squared")
                 _check_stored(ds, self.path)
                 with np.errstate(over="ignore"):
@@ -647,14 +649,7 @@ class KeyframeMap:
             arrays[name] = np.asarray(ds[()])
         if "settings" not in grp.attrs:
             raise MapFormatError(f"{path}: '/place_repetition' has no 'settings' attribute")
-        value = _attr_value(grp.attrs, "settings", path, "'/place_repetition'")
-        if not isinstance(value, (str, bytes)):
-            raise MapFormatError(f"{path}: '/place_repetition' attribute 'settings' must be text, found "
-                                 f"{type(value).__name__}")
-        settings = value.decode(errors="replace") if isinstance(value, bytes) else value
-        if len(settings) > MAX_REPETITION_SETTINGS_CHARS:
-            raise MapFormatError(f"{path}: '/place_repetition' settings attribute holds {len(settings)} characters; "
-                                 f"at most {MAX_REPETITION_SETTINGS_CHARS} are accepted")
+        settings = _text_attr(grp.attrs, "settings", path, "'/place_repetition'")
         try:
             return RepetitionTable(settings, arrays["neighbour_score"].astype(np.float64),
                                    arrays["rival_score"].astype(np.float64),
@@ -664,6 +659,19 @@ class KeyframeMap:
 
     def __len__(self) -> int:
         return self.metadata.num_keyframes
+
+    def _keyframe_group(self, index: int) -> h5py.Group:
+        """The group ``/keyframes/<index:06d>`` of the open file (the caller holds the lock): MapFormatError when it is
+        missing, a link or not a group."""
+        assert self._file is not None
+        kgroup = self._file["keyframes"]
+        name = f"{index:06d}"
+        if not isinstance(kgroup.get(name, getlink=True), h5py.HardLink):
+            raise MapFormatError(f"{self.path}: keyframe {index} is missing or a link")
+        grp = kgroup[name]
+        if not isinstance(grp, h5py.Group):
+            raise MapFormatError(f"{self.path}: keyframe {index}: '/keyframes/{name}' is not a group")
+        return grp
 
     def read_keyframe(self, index: int) -> ScanFeatures:
         """Features of keyframe ``index`` (keypoints in its sensor frame, metres; float16 descriptors).
@@ -679,13 +687,7 @@ class KeyframeMap:
             if self._file is None:
                 raise MapFormatError(f"{self.path}: map is closed")
             try:
-                kgroup = self._file["keyframes"]
-                name = f"{index:06d}"
-                if not isinstance(kgroup.get(name, getlink=True), h5py.HardLink):
-                    raise MapFormatError(f"{self.path}: keyframe {index} is missing or a link")
-                grp = kgroup[name]
-                if not isinstance(grp, h5py.Group):
-                    raise MapFormatError(f"{self.path}: keyframe {index}: '/keyframes/{name}' is not a group")
+                grp = self._keyframe_group(index)
                 kps_ds = _dataset(grp, "keypoints_xy_m", self.path)
                 desc_ds = _dataset(grp, "local_descriptors", self.path)
                 _check_keyframe_datasets(kps_ds, desc_ds, local_dim, self.path, index)

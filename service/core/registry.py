@@ -746,18 +746,20 @@ class MapRegistry:
                 return
         db.close()
 
-    def serves_far_view(self, map_id: str | None = None) -> bool:
-        """Map ``map_id`` (None: any loaded map) has a far-view companion attached (``_attach_far``)."""
+    def _any_loaded(self, map_id: str | None, holds: Callable[[MapDatabase], bool]) -> bool:
+        """``holds`` is true of map ``map_id``'s loaded database (None: of any loaded map's)."""
         with self._lock:
             entries = [self._entries.get(map_id)] if map_id else list(self._entries.values())
-        return any(e is not None and e.db is not None and e.db.far is not None for e in entries)
+        return any(e is not None and e.db is not None and holds(e.db) for e in entries)
+
+    def serves_far_view(self, map_id: str | None = None) -> bool:
+        """Map ``map_id`` (None: any loaded map) has a far-view companion attached (``_attach_far``)."""
+        return self._any_loaded(map_id, lambda db: db.far is not None)
 
     def serves_dense(self, map_id: str | None = None) -> bool:
         """Map ``map_id`` (None: any loaded map) has a far-view companion whose dense images this process correlates
         with (``MapDatabase.far_dense``)."""
-        with self._lock:
-            entries = [self._entries.get(map_id)] if map_id else list(self._entries.values())
-        return any(e is not None and e.db is not None and e.db.far_dense for e in entries)
+        return self._any_loaded(map_id, lambda db: db.far_dense)
 
     @property
     def num_ready(self) -> int:
