@@ -11,6 +11,10 @@ counts the place an answer names, localized or not):
     place      the shipped rule, ``TwoViewResult.place_id`` (two views only): the far top 1 only when the near
                view held fewer landmarks than ``FarViewConfig.sparse_landmarks``, else the near best-screened
 
+and the global descriptors alone, before any screen (``*_desc``: each view's nearest map descriptor; ``two_desc``:
+the far view's for a query whose near view held fewer landmarks than ``sparse_landmarks``, else the near view's -
+``baselines.ours.two_view_top1``, the two-view method's descriptor-alone figure),
+
 and for both, the answers' success rate (localized within the suite's radius and 10 degrees) and wrong poses
 (localized outside them). One JSON row per run (``--json`` appends).
 
@@ -32,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import calibrate_sim as C  # noqa: E402
 
 from reradar_core.baselines import make_method  # noqa: E402
-from reradar_core.baselines.ours import Ours, _far_part, prepared_to_features  # noqa: E402
+from reradar_core.baselines.ours import Ours, _far_part, prepared_to_features, two_view_top1  # noqa: E402
 from reradar_core.geometry.se2 import wrap_angle  # noqa: E402
 from reradar_core.localization import localize_two_views  # noqa: E402
 
@@ -88,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
 
     rec: dict[str, list[bool]] = {k: [] for k in ("near_screened", "near_top1", "two_screened", "two_top1",
                                                    "near_sr", "two_sr", "near_wrong", "two_wrong", "far_used",
-                                                   "two_place", "near_sparse", "dense_used")}
+                                                   "two_place", "near_sparse", "dense_used", "near_desc",
+                                                   "far_desc", "two_desc")}
     dense_kf = (lambda j: np.asarray(db[j]["dense"], np.float32)) if a.dense else None
     for i, qp in enumerate(qs):
         dense_q = (lambda qp=qp: np.asarray(qp["dense"], np.float32)) if a.dense else None
@@ -104,6 +109,11 @@ def main(argv: list[str] | None = None) -> int:
         rec["near_sparse"].append(out.near_sparse)
         rec["far_used"].append(out.view == "far")
         rec["dense_used"].append(out.registration == "dense")
+        near_top = int(near_map.index.search(np.asarray(qp["global"], np.float32), 1)[0][0, 0])
+        far_top = int(far_map.index.search(np.asarray(qp["far_global"], np.float32), 1)[0][0, 0])
+        rec["near_desc"].append(place_ok(near_top, i))
+        rec["far_desc"].append(place_ok(far_top, i))
+        rec["two_desc"].append(place_ok(two_view_top1(qp, near_map.index, far_map.index, method.far_view), i))
     world = C.subset_world(a.suite, ov)
     is_open = np.array([world.is_open_land(p) for p in q_pose[:, :2]], dtype=bool)
     row: dict[str, object] = {"label": a.label, "suite": a.suite, "model": a.model, "far_z_q": a.far_z_q,
@@ -117,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         h = np.asarray(v, bool)
         row[k] = round(100 * h.mean(), 2)
-        if k.endswith(("screened", "top1", "place")):
+        if k.endswith(("screened", "top1", "place", "desc")):
             row[f"{k}_open"] = round(100 * h[is_open].mean(), 1) if is_open.any() else None
     row["seconds"] = round(time.perf_counter() - t0, 1)
     C.emit_row(row, a.json)

@@ -9,7 +9,8 @@ Euclidean distance between unit descriptors over the whole database.
 Model names come from ``reradar_core.model.available_models()`` (e.g. ``default``, ``our-1``, ``our-3-...``).
 With ``far_view`` (method names ending in ``+far``), a refused answer is localized again in the far view
 (``reradar_core.localization.far_view``): every scan is described in both views up front (the benchmark does not time
-it), and the answer names ``TwoViewResult.place_id``; ``distance`` stays the near view's.
+it), and the answer names ``TwoViewResult.place_id``; ``distance`` stays the near view's; the descriptor-alone top 1
+(``Retrieval.descriptor_index``) is ``two_view_top1``: the far descriptor's for a query whose near view is sparse.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import relative_pose
 from reradar_core.io.scan import RadarScan
 
-__all__ = ["Ours", "load_extractor", "features_to_prepared", "prepared_to_features"]
+__all__ = ["Ours", "load_extractor", "features_to_prepared", "prepared_to_features", "two_view_top1"]
 
 
 def load_extractor(model: str = "default") -> Any:
@@ -50,6 +51,20 @@ def _far_part(p: Prepared) -> Prepared:
 
 def prepared_to_features(p: Prepared) -> ScanFeatures:
     return ScanFeatures(p["global"], p["keypoints"], p["local"], int(np.asarray(p["timestamp_us"])))
+
+
+def two_view_top1(q_prepared: Prepared, near_index: Any, far_index: Any, far_view: Any) -> int:
+    """The database index the two-view method's global descriptors name alone, before any screen
+    (``localization.far_view.retrieval_view``: the far descriptor's nearest keyframe for a query whose near view is
+    sparse, else the near descriptor's). ``q_prepared`` holds both views' features (``Ours.prepare`` with a far
+    view); ``near_index`` / ``far_index``: the database's ``GlobalIndex`` of each view."""
+    from reradar_core.localization.far_view import VIEW_FAR, retrieval_view
+
+    if retrieval_view(prepared_to_features(q_prepared), far_view) == VIEW_FAR:
+        index, g = far_index, q_prepared["far_global"]
+    else:
+        index, g = near_index, q_prepared["global"]
+    return int(index.search(np.asarray(g, np.float32).reshape(-1), 1)[0][0, 0])
 
 
 class Ours(PlaceRecognitionMethod):
@@ -186,8 +201,12 @@ class Ours(PlaceRecognitionMethod):
         # its no-match queries lie nearer than the near view's true matches, so mixing them costs F1max points)
         near = answer.near_result
         dist = float((near.best or res.best).descriptor_distance)
-        # the (near view's) global descriptor's own top 1 (retrieval rank 0), before the landmark screen re-ranks
-        top = min(near.candidates, key=lambda c: c.rank).keyframe_id if near.candidates else j
+        # the global descriptor's own top 1 (retrieval rank 0), before the landmark screen re-ranks: the near view's,
+        # or with a far view the two-view reading (the far descriptor's for a sparse near view: ``two_view_top1``)
+        if self._far_localizer is not None:
+            top = two_view_top1(q_prepared, index, self._far_localizer.index, self.far_view)
+        else:
+            top = min(near.candidates, key=lambda c: c.rank).keyframe_id if near.candidates else j
         if res.localized and res.T_map_query is not None:
             heading = float(relative_pose(db_poses[j], res.T_map_query)[2])
             return Retrieval(j, dist, heading, np.asarray(res.T_map_query, np.float64), descriptor_index=int(top),

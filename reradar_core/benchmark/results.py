@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["write_results", "results_markdown", "signed_points", "method_labels", "METRIC_COLUMNS", "QUERY_KIND_COLUMNS",
-           "REJECTION_NOTE"]
+           "REJECTION_NOTE", "DESCRIPTOR_NOTE"]
 
 #: (key in results.json, column header, format) of the paper's per-sequence columns (Recall@1 and SR over
 #: revisit queries, the headline).
@@ -28,6 +28,13 @@ REJECTION_NOTE = ("Rejected: ReRadar (methods with a full pose) rejects a query 
                   "always answer: no distance threshold is chosen (one tuned on the query sequence would be a "
                   "defect), so their rejection figures are – (not applicable), and every answer they give to a query "
                   "without a match is a wrong place.")
+
+#: What "global descriptor alone" reads for each kind of ReRadar row (printed under the tables).
+DESCRIPTOR_NOTE = ("Global descriptor alone: the place of the nearest map descriptor, before any landmark screen "
+                   "(ReRadar rows only; the other methods' Recall@1 already is their descriptor's). With the far view "
+                   "(`+far`, `+dense`) it is the two-view reading: the far view's descriptor for a query whose near view "
+                   "holds fewer landmarks than the far view's `sparse_landmarks` (512), else the near view's "
+                   "(docs/MODEL.md, \"The two-view descriptor\").")
 
 
 def _fmt(v: Any, fmt: str) -> str:
@@ -134,6 +141,8 @@ def results_markdown(results: dict[str, Any]) -> str:
               "pose = answered with a pose that misses the SR rule / no-match queries):", ""]
     lines += _table(seqs, methods, QUERY_KIND_COLUMNS, labels)
     lines += ["", REJECTION_NOTE, ""]
+    if any(r.get("recall@1_descriptor") is not None for rows in seqs.values() for r in rows.values()):
+        lines += [DESCRIPTOR_NOTE, ""]
     counted = [m for m in methods if any(rows.get(m, {}).get("n_rejected_no_match") is not None
                                          for rows in seqs.values())]
     if counted:

@@ -45,7 +45,8 @@ if TYPE_CHECKING:
     from reradar_core.localization.localizer import Localizer
     from reradar_core.localization.pipeline import LocalizationConfig, LocalizationResult
 
-__all__ = ["FarViewConfig", "TwoViewResult", "localize_two_views", "far_fallback", "dense_fallback", "VIEW_NEAR",
+__all__ = ["FarViewConfig", "TwoViewResult", "localize_two_views", "far_fallback", "dense_fallback", "near_is_sparse",
+           "retrieval_view", "VIEW_NEAR",
            "VIEW_FAR", "View", "Registration", "REGISTRATION_LANDMARKS", "REGISTRATION_DENSE"]
 
 View = Literal["near", "far"]
@@ -212,6 +213,20 @@ class TwoViewResult:
         return int(near.keyframe_id) if near is not None else int(r.best.keyframe_id)
 
 
+def near_is_sparse(near_features: ScanFeatures, far_view: FarViewConfig | None = None) -> bool:
+    """The near view had little in view: it holds fewer landmarks than ``far_view.sparse_landmarks`` (default
+    ``FarViewConfig()``)."""
+    return len(near_features.keypoints_xy_m) < (far_view or FarViewConfig()).sparse_landmarks
+
+
+def retrieval_view(near_features: ScanFeatures, far_view: FarViewConfig | None = None) -> View:
+    """The view whose global descriptor names the two-view method's place before any screen: the far view for a
+    query whose near view is sparse (``near_is_sparse``), else the near view - the reading ``TwoViewResult.place_id``
+    gives a refused answer, applied to the descriptors alone (the two-view method's "descriptor alone" figure,
+    ``baselines.ours.two_view_top1``; docs/MODEL.md "The two-view descriptor")."""
+    return VIEW_FAR if near_is_sparse(near_features, far_view) else VIEW_NEAR
+
+
 def localize_two_views(near: Localizer, near_features: ScanFeatures, far: Localizer | None,
                        far_features: Callable[[], ScanFeatures] | None,
                        config: LocalizationConfig | None = None,
@@ -258,7 +273,7 @@ def far_fallback(result: LocalizationResult, near: Localizer, near_features: Sca
         raise ConfigError(f"the far view holds {len(far)} keyframes but the near view {len(near)}: "
                           "they must be the same map")
     far_view = far_view or FarViewConfig()
-    sparse = len(near_features.keypoints_xy_m) < far_view.sparse_landmarks
+    sparse = near_is_sparse(near_features, far_view)
     answer = far.localize(far_features(), config)
     answer.tracking_lost = result.tracking_lost
     answer.timings_ms = {k: result.timings_ms.get(k, 0.0) + answer.timings_ms.get(k, 0.0)

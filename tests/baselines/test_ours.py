@@ -124,3 +124,24 @@ def test_describe_names_what_it_takes(method):
 
     with pytest.raises(ConfigError, match=r"describe takes a RadarScan"):
         make_method(method).describe(np.zeros((400, 3360)))
+
+
+def test_two_view_top1_reads_the_far_descriptor_only_for_a_sparse_near_view() -> None:
+    """The two-view method's descriptor-alone place: the far descriptor's nearest keyframe when the near view holds
+    fewer landmarks than ``FarViewConfig.sparse_landmarks``, else the near descriptor's (known answers: the near
+    descriptor points at keyframe 0, the far one at keyframe 2)."""
+    from reradar_core.baselines.ours import two_view_top1
+    from reradar_core.localization import FarViewConfig
+    from reradar_core.retrieval import GlobalIndex
+
+    eye = np.eye(3, dtype=np.float32)
+    near_index, far_index = GlobalIndex(eye), GlobalIndex(eye[::-1].copy())  # far keyframe 2 = near keyframe 0's
+
+    def query(landmarks: int) -> dict:
+        near = features_to_prepared(ScanFeatures(eye[0], np.zeros((landmarks, 2), np.float32),
+                                                 np.zeros((landmarks, 16), np.float16), 0))
+        return {**near, "far_global": eye[0]}
+
+    assert two_view_top1(query(60), near_index, far_index, FarViewConfig()) == 2  # 60 < 512: sparse, far view
+    assert two_view_top1(query(60), near_index, far_index, FarViewConfig(sparse_landmarks=60)) == 0  # full: near
+    assert two_view_top1(query(512), near_index, far_index, FarViewConfig()) == 0

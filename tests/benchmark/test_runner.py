@@ -72,6 +72,9 @@ def test_markdown_marks_best_and_not_applicable():
     assert "| b | 2.0 |" in md
     res["settings"]["network_runtime"] = {"b": "onnx"}
     assert "Descriptor network: b in onnx (`RERADAR_NETWORK_RUNTIME`" in results_markdown(res)
+    assert "Global descriptor alone:" not in md  # no row reads a descriptor alone: nothing to explain
+    res["sequences"]["q"]["b"]["recall@1_descriptor"] = 88.0
+    assert "Global descriptor alone: the place of the nearest map descriptor" in results_markdown(res)
 
 
 def test_cli_bench_on_real_layout_folders(loop_sequences, tmp_path, cache_env):
