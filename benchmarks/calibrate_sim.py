@@ -49,7 +49,7 @@ import json
 import os
 import sys
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -260,6 +260,50 @@ def render_subset(suite_name: str, window: tuple[float, float], n_queries: int, 
         cache.parent.mkdir(parents=True, exist_ok=True)
         np.savez(cache, **{k: np.asarray(v) for k, v in res.items()})
     return res
+
+
+def add_route_arguments(ap: argparse.ArgumentParser, suite: str = "offroad-sim-hard",
+                        model: str = "our-3-offroad-w05") -> None:
+    """The options every ReRadar probe on a calibration route shares (``--suite --model --window --queries
+    --revisit-m --set --label --json``; ``prepare_route`` reads them)."""
+    ap.add_argument("--suite", default=suite)
+    ap.add_argument("--model", default=model)
+    ap.add_argument("--window", default="0:1")
+    ap.add_argument("--queries", type=int, default=2000)
+    ap.add_argument("--revisit-m", type=float, default=25.0)
+    ap.add_argument("--set", dest="overrides", action="append", default=[], help="as calibrate_sim.py --set")
+    ap.add_argument("--label", default="")
+    ap.add_argument("--json", type=Path, default=None)
+
+
+@dataclass
+class PreparedRoute:
+    """A calibration route's render subset, every scan prepared by one method (``prepare_route``).
+
+    Attributes: ``db`` / ``queries``: the method's prepared records; ``db_pose`` (N, 3) / ``q_pose`` (Q, 3):
+    T_map_scan (m, rad); ``radius``: the suite's recall radius, m; ``overrides``: the parsed ``--set`` values."""
+
+    db: list
+    queries: list
+    db_pose: np.ndarray
+    q_pose: np.ndarray
+    radius: float
+    overrides: dict
+
+
+def prepare_route(a: argparse.Namespace, method: object, use_cache: bool = True) -> PreparedRoute:
+    """Render (or read from the render cache) the subset ``add_route_arguments``' options name and prepare every
+    database and query scan with ``method`` (a ``PlaceRecognitionMethod``)."""
+    ov = parse_overrides(a.overrides)
+    w0, w1 = (float(x) for x in a.window.split(":"))
+    data = render_subset(a.suite, (w0, w1), a.queries, None, ov, 1, use_cache, False, a.revisit_m)
+    preset = str(data["preset"])
+
+    def prepared(scans: object, times: object) -> list:
+        return [method.prepare(_scan(s, int(t), preset)) for s, t in zip(scans, times, strict=True)]  # type: ignore[attr-defined, call-overload]
+
+    return PreparedRoute(prepared(data["db_scans"], data["db_t"]), prepared(data["q_scans"], data["q_t"]),
+                         np.asarray(data["db_pose"]), np.asarray(data["q_pose"]), float(data["radius"]), ov)  # type: ignore[arg-type]
 
 
 def _scan(power_u8: np.ndarray, t0: int, preset: str) -> RadarScan:

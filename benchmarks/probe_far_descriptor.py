@@ -33,19 +33,12 @@ from reradar_core.baselines import make_method  # noqa: E402
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--suite", default="offroad-sim-hard")
-    ap.add_argument("--model", default="our-3-offroad-w05")
-    ap.add_argument("--revisit-m", type=float, default=25.0)
-    ap.add_argument("--set", dest="overrides", action="append", default=[], help="as calibrate_sim.py --set")
-    ap.add_argument("--json", type=Path, default=None)
+    C.add_route_arguments(ap)
     a = ap.parse_args(argv)
-    ov = C.parse_overrides(a.overrides)
-    data = C.render_subset(a.suite, (0.0, 1.0), 2000, None, ov, 1, True, False, a.revisit_m)
-    preset, radius = str(data["preset"]), float(data["radius"])  # type: ignore[arg-type]
-    db_pose, q_pose = np.asarray(data["db_pose"]), np.asarray(data["q_pose"])
     method = make_method(a.model + "+far")
-    db = [method.prepare(C._scan(s, int(t), preset)) for s, t in zip(data["db_scans"], data["db_t"], strict=True)]  # type: ignore[call-overload]
-    qs = [method.prepare(C._scan(s, int(t), preset)) for s, t in zip(data["q_scans"], data["q_t"], strict=True)]  # type: ignore[call-overload]
+    route = C.prepare_route(a, method)
+    db, qs, db_pose, q_pose, radius, ov = (route.db, route.queries, route.db_pose, route.q_pose, route.radius,
+                                           route.overrides)
     sim_near = np.stack([p["global"] for p in qs]) @ np.stack([p["global"] for p in db]).T
     sim_far = np.stack([p["far_global"] for p in qs]) @ np.stack([p["far_global"] for p in db]).T
     dist = np.hypot(q_pose[:, None, 0] - db_pose[None, :, 0], q_pose[:, None, 1] - db_pose[None, :, 1])

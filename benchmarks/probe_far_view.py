@@ -43,14 +43,7 @@ from reradar_core.localization import localize_two_views  # noqa: E402
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--suite", default="offroad-sim-hard")
-    ap.add_argument("--model", default="our-3-offroad-w05")
-    ap.add_argument("--window", default="0:1")
-    ap.add_argument("--queries", type=int, default=2000)
-    ap.add_argument("--revisit-m", type=float, default=25.0)
-    ap.add_argument("--set", dest="overrides", action="append", default=[], help="as calibrate_sim.py --set")
-    ap.add_argument("--label", default="")
-    ap.add_argument("--json", type=Path, default=None)
+    C.add_route_arguments(ap)
     ap.add_argument("--no-cache", action="store_true", help="neither read nor write the render cache")
     ap.add_argument("--dense", action="store_true",
                     help="the far view with its dense registration (method <model>+dense, matching.dense)")
@@ -62,20 +55,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--far-z-q", type=float, default=None,
                     help="the far view's landmark threshold (FarViewConfig.landmark_z_q; default: the near view's)")
     a = ap.parse_args(argv)
-    ov = C.parse_overrides(a.overrides)
-    w0, w1 = (float(x) for x in a.window.split(":"))
     t0 = time.perf_counter()
-    data = C.render_subset(a.suite, (w0, w1), a.queries, None, ov, 1, not a.no_cache, False, a.revisit_m)
-    preset, radius = str(data["preset"]), float(data["radius"])  # type: ignore[arg-type]
-    db_pose, q_pose = np.asarray(data["db_pose"]), np.asarray(data["q_pose"])
     method = make_method(a.model + ("+dense" if a.dense else "+far"))
     if a.far_z_q is not None or a.far_sparse is not None or a.dense_candidates is not None:  # other probe settings
         fv = method.far_view if a.far_z_q is None else replace(method.far_view, landmark_z_q=a.far_z_q)
         fv = fv if a.far_sparse is None else replace(fv, sparse_landmarks=a.far_sparse)
         fv = fv if a.dense_candidates is None else replace(fv, dense_candidates=a.dense_candidates)
         method = Ours(method.extractor, method.localization, name=method.name, far_view=fv, dense=a.dense)
-    db = [method.prepare(C._scan(s, int(t), preset)) for s, t in zip(data["db_scans"], data["db_t"], strict=True)]  # type: ignore[call-overload]
-    qs = [method.prepare(C._scan(s, int(t), preset)) for s, t in zip(data["q_scans"], data["q_t"], strict=True)]  # type: ignore[call-overload]
+    route = C.prepare_route(a, method, use_cache=not a.no_cache)
+    db, qs, db_pose, q_pose, radius, ov = (route.db, route.queries, route.db_pose, route.q_pose, route.radius,
+                                           route.overrides)
     index = method.build_index([method.describe_prepared(p) for p in db])
     method.ready_database(index, db, db_pose)
     near_map, far_map = method.localizer(index, db, db_pose), method._far_localizer

@@ -36,25 +36,13 @@ from reradar_core.baselines import make_method  # noqa: E402
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--suite", default="offroad-sim-hard")
-    ap.add_argument("--model", default="our-3-offroad-w05")
-    ap.add_argument("--window", default="0:1")
-    ap.add_argument("--queries", type=int, default=2000)
-    ap.add_argument("--revisit-m", type=float, default=25.0)
-    ap.add_argument("--set", dest="overrides", action="append", default=[], help="as calibrate_sim.py --set")
+    C.add_route_arguments(ap)
     ap.add_argument("--bars", default="128,256,384", help="other landmark bars of the two@N readings")
-    ap.add_argument("--label", default="")
-    ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
-    ov = C.parse_overrides(a.overrides)
-    w0, w1 = (float(x) for x in a.window.split(":"))
     t0 = time.perf_counter()
-    data = C.render_subset(a.suite, (w0, w1), a.queries, None, ov, 1, True, False, a.revisit_m)
-    preset, radius = str(data["preset"]), float(data["radius"])  # type: ignore[arg-type]
-    db_pose, q_pose = np.asarray(data["db_pose"]), np.asarray(data["q_pose"])
     method = make_method(a.model + "+far")
-    db = [method.prepare(C._scan(s, int(t), preset)) for s, t in zip(data["db_scans"], data["db_t"], strict=True)]  # type: ignore[call-overload]
-    qs = [method.prepare(C._scan(s, int(t), preset)) for s, t in zip(data["q_scans"], data["q_t"], strict=True)]  # type: ignore[call-overload]
+    route = C.prepare_route(a, method)
+    db, qs, db_pose, q_pose, radius = route.db, route.queries, route.db_pose, route.q_pose, route.radius
 
     def sims(key: str) -> np.ndarray:  # (Q, N) cosines of unit descriptors
         return np.stack([p[key] for p in qs]).astype(np.float64) @ np.stack([p[key] for p in db]).astype(np.float64).T
@@ -75,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
                 "sum_sparse": np.where(sparse[:, None], s_near + s_far, s_near)}
     readings.update({f"two@{int(b)}": gated(int(b)) for b in a.bars.split(",") if b})
     row: dict[str, object] = {"label": a.label, "suite": a.suite, "model": a.model, "window": a.window,
-                              "overrides": ov, "queries": len(qs), "database": len(db), "sparse": int(sparse.sum()),
+                              "overrides": route.overrides, "queries": len(qs), "database": len(db), "sparse": int(sparse.sum()),
                               "sparse_landmarks": sorted(int(n) for n in landmarks[sparse])}
     for name, s in readings.items():
         row[f"{name}_r1"] = round(100 * float(recall(s, 1).mean()), 2)
