@@ -217,7 +217,10 @@ def localize_command(
                                            help="What an .npy scan holds: polar (A x R power, the default) or "
                                                 "navtech (the Navtech PNG's pixels, metadata columns included)."),
     as_json: bool = typer.Option(False, "--json", help="Print the full JSON response."),
-    session: str | None = typer.Option(None, "--session", help="Tracking session id (the server keeps its pose)."),
+    session: str | None = typer.Option(None, "--session", help=(
+        "Tracking session id (the server keeps its pose). A single-scan call sends no odometry, so it is always "
+        "localized globally and only (re)starts the session; tracking needs odometry between scans: --follow "
+        "replays a drive with it, or send odom_* / prior_* fields to POST /localize (docs/SERVICE.md).")),
     follow: Path | None = typer.Option(None, "--follow", file_okay=False, help=(
         "Replay a drive: localize every scan of this sequence folder (Boreas / Oxford / MulRan layout) in order "
         "through one tracking session, print a per-scan table and write a trajectory PNG against the "

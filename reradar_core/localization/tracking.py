@@ -87,6 +87,11 @@ class PosePrior:
             twist = np.asarray(self.twist, np.float64).reshape(-1)
             if twist.shape != (3,) or not np.all(np.isfinite(twist)):
                 raise ConfigError(f"a prior's motion needs a finite (vx, vy, yaw rate), got {self.twist!r}")
+            if not _drive_twist(twist):  # QA session 40: a library caller's 1e9 m/s was taken
+                limits = MotionConfig()
+                raise ConfigError(f"a prior's motion must be a drive's: at most {limits.max_speed_mps:g} m/s and "
+                                  f"{limits.max_yaw_rate_radps:g} rad/s, got (vx, vy, yaw rate) = {tuple(twist)} "
+                                  "(m/s, m/s, rad/s; a yaw rate in degrees?)")
             object.__setattr__(self, "twist", twist)
         if self.timestamp_us is not None:
             # an int64 of microseconds, as every scan time here (a float only when whole: 1.7 us is no scan time)
@@ -113,9 +118,18 @@ class PosePrior:
         if timestamp_us is not None and self.timestamp_us is not None:
             twist = odometry_twist(motion, (int(timestamp_us) - self.timestamp_us) * 1e-6,
                                    motion_config or MotionConfig())
+            if twist is not None and not _drive_twist(twist):  # a config allowing more than a prior takes
+                twist = None
         return PosePrior(compose(self.T_map_query, motion),
                          max(min_sigma_xy_m, self.sigma_xy_m + sigma_growth * dist),
                          max(min_sigma_yaw_rad, self.sigma_yaw_rad + sigma_growth * turn), timestamp_us, twist)
+
+
+def _drive_twist(twist: np.ndarray) -> bool:
+    """``twist`` (vx m/s, vy m/s, yaw rate rad/s) is a drive's motion by ``MotionConfig``'s default limits (60 m/s,
+    3 rad/s), what ``odometry_twist`` accepts by default."""
+    limits = MotionConfig()
+    return bool(math.hypot(twist[0], twist[1]) <= limits.max_speed_mps and abs(twist[2]) <= limits.max_yaw_rate_radps)
 
 
 @dataclass(frozen=True)

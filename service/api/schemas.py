@@ -314,7 +314,8 @@ class LocalizeResponse(_Model):
         "(aligned-landmark ratio and count, margin over a different place, descriptor distance, landmark "
         "spread, agreement of the top candidates, pose ambiguity), fitted on training data only "
         "(docs/MODEL.md, Confidence). `localized` requires it to reach the configured min_confidence; "
-        "0 when there is no pose."))
+        "0 when there is no pose. The checks after it (a place that fits twice, a tie between places: reason "
+        "`ambiguous`) do not lower it, so read a refused answer's confidence together with its `reason`."))
     candidates: list[CandidateResult] = Field(default_factory=list)
     mode: Literal["global", "tracking"] = Field(default="global", description=(
         "`tracking`: registered from the session's / the request's prior; `global`: retrieval + re-ranking."))

@@ -250,6 +250,14 @@ def test_localizer_answers_the_compensated_pose_and_the_same_decision() -> None:
     assert err_timed < 0.05 and err_untimed > 2 * err_timed, (err_timed, err_untimed)
     with pytest.raises(ConfigError):
         PosePrior(T_w_q, 0.5, 0.1, twist=np.array([1.0, np.inf, 0.0]))
+    # no drive's motion (QA session 40: 1e9 m/s was taken); a yaw rate in degrees per second is named
+    for twist in ([1e9, 0.0, 0.0], [40.0, 50.0, 0.0], [10.0, 0.0, 30.0]):
+        with pytest.raises(ConfigError, match="drive's"):
+            PosePrior(T_w_q, 0.5, 0.1, twist=np.array(twist))
+    assert PosePrior(T_w_q, 0.5, 0.1, twist=np.array([60.0, 0.0, -3.0])).twist is not None  # the limits themselves
+    # a motion config allowing more than a prior takes: the odometry gives no twist rather than a refused prior
+    fast = last.moved(np.array([25.0, 0.0, 0.0]), timestamp_us=10**9, motion_config=MotionConfig(max_speed_mps=500.0))
+    assert fast.twist is None  # 100 m/s
     for stamp in (float("nan"), 1.7, 2**63, "12"):  # a scan time is a whole int64 of microseconds
         with pytest.raises(ConfigError):
             PosePrior(T_w_q, 0.5, 0.1, timestamp_us=stamp)  # type: ignore[arg-type]
