@@ -160,6 +160,8 @@ def _read_source(src: Path, bit_depth: int | None = None) -> np.ndarray:
     else:
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)  # its warnings would repeat the error below
         data = src.read_bytes()
+        if not data:  # cv2.imdecode asserts on an empty buffer (QA session 40: a traceback, the file unnamed)
+            raise ScanFormatError(f"{src.name}: empty file (0 bytes), not a scan")
         if data[:8] == PNG_SIGNATURE:  # told before libpng reads it (it prints its own "libpng error" line otherwise)
             check_png_file(data, src.name)
             check_png_sides(data, src.name)

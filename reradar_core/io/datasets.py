@@ -79,6 +79,7 @@ __all__ = [
     "likely_time_unit",
     "range_grid_difference",
     "POSE_SPAN_SLACK_US",
+    "POSE_GAP_MAX_US",
     "mid_sweep_poses_in",
     "scan_path",
     "write_sequence_poses",
@@ -765,12 +766,17 @@ def check_pose_steps(track: PoseSequence, pose_file: str = "the pose file") -> N
 
 #: how far beyond the first / last pose a scan may lie (pose files sample the trajectory at their own rate), µs
 POSE_SPAN_SLACK_US = 500_000
+#: the longest gap between two pose rows a scan's pose may be interpolated across, µs: twice the 1 s of a 1 Hz GNSS
+#: log; across a longer gap (an outage) the drive between the rows is unknown (QA session 40: a 10 s gap around a
+#: corner put keyframes up to 16 m and 44 degrees off, answered `localized` at confidence 1)
+POSE_GAP_MAX_US = 2_000_000
 
 
 def check_pose_span(track: PoseSequence, stamps_us: np.ndarray, names: list[str], pose_file: str = "the pose file"
                     ) -> None:
-    """Refuse scans whose times lie outside ``track``'s time span (plus ``POSE_SPAN_SLACK_US`` at each end):
-    their poses would be extrapolated, i.e. guessed.
+    """Refuse scans whose times lie outside ``track``'s time span (plus ``POSE_SPAN_SLACK_US`` at each end), or
+    inside a gap of more than ``POSE_GAP_MAX_US`` between two pose rows: their poses would be extrapolated or
+    bridged by a straight line, i.e. guessed.
 
     Args:
         track: the pose file's poses, sorted. stamps_us: (N,) int64 scan times, µs. names: the N scans' names,
@@ -789,6 +795,21 @@ def check_pose_span(track: PoseSequence, stamps_us: np.ndarray, names: list[str]
         raise DatasetError(f"{names[i]}: scan time {int(t[i])} us lies outside the pose file's time span, {first} to "
                            f"{last} us ({pose_file}; the scans span {int(np.min(t))} to {int(np.max(t))} us"
                            f"{': relative pose times against absolute scan names?' if last < 1e14 <= int(t[i]) else ''})")
+    stamps = np.asarray(track.timestamps_us, np.int64)
+    after = np.clip(np.searchsorted(stamps, t, side="left"), 1, len(stamps) - 1) if len(stamps) > 1 else None
+    if after is not None:
+        exact = stamps[after] == t
+        exact |= stamps[after - 1] == t
+        gap = stamps[after] - stamps[after - 1]
+        inside = (t > stamps[0]) & (t < stamps[-1])
+        bridged = inside & ~exact & (gap > POSE_GAP_MAX_US)
+        if bridged.any():
+            i = int(np.flatnonzero(bridged)[0])
+            raise DatasetError(
+                f"{names[i]}: scan time {int(t[i])} us falls in a {gap[i] / 1e6:.3g} s gap between two poses "
+                f"({int(stamps[after[i] - 1])} and {int(stamps[after[i]])} us, {pose_file}; {int(bridged.sum())} "
+                f"scan(s) in such gaps): its pose would be a straight line across the gap; give poses at most "
+                f"{POSE_GAP_MAX_US / 1e6:g} s apart there, or leave those scans out")
 
 
 def write_sequence_scan(root: str | Path, layout: str, scan: RadarScan) -> Path:

@@ -539,11 +539,44 @@ _STEADY_HEADING = 0.8
 _TURNING_DRIVE = 0.95
 
 
+#: ``_turn_sense``: the path is sampled every this many metres; a turn between two chords counts when the direction
+#: of travel changes by ``_TURN_MIN_DEG``-``_TURN_MAX_DEG`` (more: a reversal, where travel flips and heading does
+#: not), and the sense is judged once the counted turns add up to ``_TURN_TOTAL_DEG``.
+_TURN_SAMPLE_M = 5.0
+_TURN_MIN_DEG, _TURN_MAX_DEG, _TURN_TOTAL_DEG = 10.0, 120.0, 60.0
+
+
+def _turn_sense(xy: np.ndarray, yaw: np.ndarray) -> tuple[float, float] | None:
+    """(heading change / travel-direction change, least squares over the drive's turns; the turns' total in degrees)
+    of a trajectory in time order: about +1 when the heading turns with the vehicle, forward or in reverse, whatever
+    its mounting angle; about -1 for a mirrored convention (a compass heading, a negated yaw, a transposed
+    rotation). None when the drive turns less than ``_TURN_TOTAL_DEG``."""
+    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+    if path[-1] < 3 * _TURN_SAMPLE_M:
+        return None
+    idx = np.unique(np.searchsorted(path, np.arange(0.0, path[-1], _TURN_SAMPLE_M)))
+    chord = np.diff(xy[idx], axis=0)
+    ok = np.linalg.norm(chord, axis=1) >= _MOVING_CHORD_SHARE * _TURN_SAMPLE_M
+    travel = np.arctan2(chord[:, 1], chord[:, 0])
+    a, b = yaw[idx[:-1]], yaw[idx[1:]]
+    heading = np.arctan2(np.sin(a) + np.sin(b), np.cos(a) + np.cos(b))
+    pair = ok[:-1] & ok[1:]
+    d_travel = wrap_angle(np.diff(travel))[pair]
+    d_heading = wrap_angle(np.diff(heading))[pair]
+    turn = (np.abs(d_travel) >= np.radians(_TURN_MIN_DEG)) & (np.abs(d_travel) <= np.radians(_TURN_MAX_DEG))
+    total = float(np.degrees(np.abs(d_travel[turn]).sum()))
+    if total < _TURN_TOTAL_DEG:
+        return None
+    return float((d_heading[turn] * d_travel[turn]).sum() / (d_travel[turn] ** 2).sum()), total
+
+
 def _refuse_heading_off_travel(path: Path, t_us: np.ndarray, xy: np.ndarray, yaw: np.ndarray, what: str,
                                fix: str) -> None:
-    """Refuse headings that do not keep one angle to the direction of travel on a drive that turns: another angle
-    convention (a compass heading, clockwise from north) or a rotation read transposed (QA session 38: both built
-    maps whose every keyframe was turned, without a word)."""
+    """Refuse headings that do not keep one angle to the direction of travel on a drive that turns, or that turn
+    against it: another angle convention (a compass heading, clockwise from north) or a rotation read transposed
+    (QA session 38: both built maps whose every keyframe was turned, without a word; QA session 40: on a route of
+    right-angle streets both keep a steady angle modulo 180 degrees - the heading turns the other way at every
+    corner, which ``_turn_sense`` reads)."""
     order = np.argsort(t_us, kind="stable")
     stretches = _moving_stretches(xy[order], yaw[order])
     if stretches is None:
@@ -554,6 +587,11 @@ def _refuse_heading_off_travel(path: Path, t_us: np.ndarray, xy: np.ndarray, yaw
     if steady < _STEADY_HEADING and turning < _TURNING_DRIVE:
         raise PoseFileError(f"{path}: the {what} does not follow the direction of travel (steadiness {steady:.2f}, "
                             f"1 = a fixed mounting angle; a real drive keeps above 0.99): {fix}")
+    sense = _turn_sense(np.asarray(xy, np.float64)[order], np.asarray(yaw, np.float64)[order])
+    if sense is not None and sense[0] < 0.0:
+        raise PoseFileError(f"{path}: the {what} turns against the direction of travel (heading change / travel "
+                            f"change {sense[0]:.2f} over {sense[1]:.0f} deg of turns; a real drive's is about +1): "
+                            f"{fix}")
 
 
 def _refuse_degrees_in_plain_yaw(path: Path, t_us: np.ndarray, xy: np.ndarray, yaw: np.ndarray, column: str,

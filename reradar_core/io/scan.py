@@ -34,6 +34,7 @@ from reradar_core.errors import ScanFormatError, ScanTooLargeError
 from reradar_core.io.presets import ENCODER_TICKS_PER_TURN, PRESETS, RadarPreset, get_preset
 
 __all__ = [
+    "max_scan_file_bytes",
     "RadarScan",
     "NAVTECH_META_COLUMNS",
     "read_navtech_png",
@@ -457,6 +458,14 @@ def read_npy_header(data: bytes, size: int | None = None) -> ScanHeader:
                               f"{'bytes follow' if held - declared > 1 else 'byte follows'} them; send "
                               "the file np.save wrote, unchanged)")
     return ScanHeader("npy", (rows, cols), int(dtype.itemsize), dtype.str)
+
+
+def max_scan_file_bytes(max_pixels: int) -> int:
+    """The largest file a scan within ``max_pixels`` can be: a float64 .npy of that many pixels plus the Navtech
+    metadata columns of ``MAX_SCAN_SIDE`` azimuths and 64 KiB of header (an 8-bit PNG, even incompressible, is
+    smaller). A larger file holds something besides the scan (QA session 40: a PNG with 1.5 GB after its end
+    marker was read whole into memory by a map build)."""
+    return 8 * (int(max_pixels) + NAVTECH_META_COLUMNS * MAX_SCAN_SIDE) + 65536
 
 
 def check_header_size(header: ScanHeader, max_pixels: int, scan_layout: str = "polar") -> tuple[int, int]:
@@ -1010,6 +1019,8 @@ def read_navtech_png(path: str | Path, preset: str | RadarPreset | None = None) 
     if not path.is_file():
         raise ScanFormatError(f"{path}: no such scan file")
     data = path.read_bytes()
+    if not data:  # cv2.imdecode asserts on an empty buffer (QA session 40: a traceback, the file unnamed)
+        raise ScanFormatError(f"{path}: empty file (0 bytes), not a scan")
     check_png_file(data, str(path))
     check_png_sides(data, str(path))
     raw = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)

@@ -33,7 +33,7 @@ from reradar_core.io.datasets import (
     warn_names_off_first_azimuth,
 )
 from reradar_core.io.presets import RadarPreset, get_preset
-from reradar_core.io.scan import MAX_SCAN_TIMESTAMP_US, navtech_png_first_time_us
+from reradar_core.io.scan import MAX_SCAN_TIMESTAMP_US, max_scan_file_bytes, navtech_png_first_time_us
 from service.core.errors import BadRequestError, PayloadTooLargeError
 
 logger = logging.getLogger(__name__)
@@ -44,6 +44,9 @@ __all__ = ["extract_scan_archive", "check_scan_times", "scan_time_us", "navtech_
            "MAX_SCAN_TIMESTAMP_US", "ARCHIVE_MEMBER_SLACK", "MAX_TAR_HEADER_BYTES", "TarHeaderTooLargeError"]
 
 SCAN_NAME_PATTERN = re.compile(r"^(\d{1,20})\.(png|npy)$", re.ASCII)  # ASCII digits: int() reads others too
+#: a scan member's name in an archive: its extension in any case (``.PNG``, as a camera or Windows tool writes it; QA
+#: session 40: such scans were left out without a word), extracted under ``SCAN_NAME_PATTERN``'s lower-case name
+_ARCHIVE_SCAN_NAME = re.compile(r"^(\d{1,20})\.(png|npy)$", re.ASCII | re.IGNORECASE)
 #: A scan's name with a sign (``-1000000.png``): meant as a scan (a sequence folder reads it as time -1 s and
 #: refuses it), so refused by name rather than ignored like the other members (see ``extract_scan_archive``).
 _SIGNED_SCAN_NAME = re.compile(r"^[+-]\d{1,20}\.(png|npy)$", re.ASCII)
@@ -130,16 +133,30 @@ def zip_entries_exceed(archive: Path, bound: int) -> bool:
     return False
 
 
-def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_bytes: int) -> list[Path]:
+def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_bytes: int,
+                         max_scan_pixels: int | None = None) -> list[Path]:
     """Extract the scans of ``archive`` into ``dest``; returns the scan paths sorted by timestamp.
+
+    ``max_scan_pixels``: a scan member larger than any scan of that many pixels can be (``max_scan_file_bytes``) is
+    refused before it is extracted (None: no such bound).
 
     Raises:
         BadRequestError: not a zip/tar archive, no scans, two files of one timestamp (compared as numbers:
             ``0160.png``, ``160.png`` and ``160.npy`` are one timestamp), a timestamp (microseconds) above
             ``MAX_SCAN_TIMESTAMP_US`` or with a sign (``-1000000.png``).
         PayloadTooLargeError: more than ``max_files`` scans, more than ``max_archive_members(max_files)``
-            members of any name, or members (of any name) that expand to more than ``max_total_bytes``.
+            members of any name, members (of any name) that expand to more than ``max_total_bytes``, or a scan
+            member larger than a scan can be.
+        BadRequestError: also a scan-named member that is a link (tar): the build would leave it out.
     """
+    max_scan_bytes = None if max_scan_pixels is None else max_scan_file_bytes(max_scan_pixels)
+
+    def check_scan_size(name: str, size: int) -> None:
+        if max_scan_bytes is not None and size > max_scan_bytes:
+            raise PayloadTooLargeError(
+                f"scan archive member {name.replace(chr(92), '/').rsplit('/', 1)[-1]!r} is {size:,} bytes, more than "
+                f"a scan of at most {max_scan_pixels:,} pixels can be ({max_scan_bytes:,} bytes): it holds something "
+                "besides the scan; pack the scan files themselves")
     dest.mkdir(parents=True, exist_ok=True)
     written: dict[int, Path] = {}
     packed: dict[int, str] = {}  # each scan's member name in the archive, for messages
@@ -166,7 +183,7 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
     def accept(name: str) -> tuple[str, int] | None:
         """(file name, timestamp in us) of a scan member, None for any other name."""
         base = name.replace("\\", "/").rsplit("/", 1)[-1]
-        match = SCAN_NAME_PATTERN.fullmatch(base)
+        match = _ARCHIVE_SCAN_NAME.fullmatch(base)
         if not match:
             if _SIGNED_SCAN_NAME.fullmatch(base):
                 raise BadRequestError(f"scan archive member {base!r}: a scan's name must be its timestamp, digits "
@@ -186,7 +203,7 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
         if len(written) + 1 > max_files:
             raise PayloadTooLargeError(f"scan archive holds more than {max_files} scans")
         packed[stamp] = name
-        return base, stamp
+        return f"{match.group(1)}.{match.group(2).lower()}", stamp
 
     if zipfile.is_zipfile(archive):
         if zip_entries_exceed(archive, max_members):
@@ -201,6 +218,7 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
                     if scan is None:
                         continue
                     base, stamp = scan
+                    check_scan_size(info.filename, info.file_size)
                     target = dest / base
                     with zf.open(info) as src, open(target, "wb") as dst:
                         shutil.copyfileobj(src, dst, length=1 << 20)
@@ -222,10 +240,16 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
                     tf.members.clear()  # type: ignore[attr-defined]  # typeshed does not declare it
                     count(member.size)
                     if not member.isfile():
-                        continue  # links, devices, folders
+                        if (member.issym() or member.islnk()) and _ARCHIVE_SCAN_NAME.fullmatch(
+                                member.name.replace("\\", "/").rsplit("/", 1)[-1]):
+                            raise BadRequestError(  # a link would be left out without a word (QA session 40)
+                                f"scan archive member {member.name.rsplit('/', 1)[-1]!r} is a link, not a scan file; "
+                                "pack the scan files themselves (tar without links, e.g. tar --dereference)")
+                        continue  # devices, folders, links of other names
                     scan = accept(member.name)
                     if scan is None:
                         continue
+                    check_scan_size(member.name, member.size)
                     fobj = tf.extractfile(member)
                     if fobj is None:
                         continue

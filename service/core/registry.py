@@ -58,6 +58,7 @@ from reradar_core.io.scan import (
     RadarScan,
     check_header_size,
     load_scan_bytes,
+    max_scan_file_bytes,
     preset_bin_sizes,
     presets_with_bins,
     range_bins_ambiguous,
@@ -994,6 +995,11 @@ class MapRegistry:
         """One archive scan, sized from its header before decoding (the same budget as uploaded scans). A polar
         .npy carries no time: its azimuths are timed from its file name ``<timestamp_us>.npy``."""
         try:
+            limit = max_scan_file_bytes(self.settings.max_scan_pixels)
+            if path.stat().st_size > limit:  # never read a file no scan can fill (QA session 40)
+                raise ScanFormatError(f"{path.stat().st_size:,} bytes, more than a scan of at most "
+                                      f"{self.settings.max_scan_pixels:,} pixels can be ({limit:,} bytes; "
+                                      "RERADAR_MAX_SCAN_PIXELS)")
             data = path.read_bytes()
             header = scan_header(data)
             try:  # the uploads' rule

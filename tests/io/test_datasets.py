@@ -120,6 +120,25 @@ def test_detect_layout_and_errors(tmp_path):
         load_sequence(no_poses, preset="boreas")
 
 
+def test_a_scan_in_a_long_gap_between_poses_is_refused(tmp_path):
+    """QA session 40: a 10 s gap in the poses (a GNSS outage) was bridged by a straight line without a word; a scan
+    inside a gap of more than POSE_GAP_MAX_US is refused, one at a pose row or in a short gap is not."""
+    from reradar_core.io.datasets import POSE_GAP_MAX_US, check_pose_span
+
+    root = tmp_path / "gap"
+    scans = [T0, T0 + 5_000_000, T0 + 12_000_000]
+    _write_scans(root, "boreas", scans)
+    write_boreas_radar_poses(_track(np.asarray([T0, T0 + 1_000_000, T0 + 11_000_000, T0 + 12_000_000])),
+                             root / "applanix" / "radar_poses.csv")
+    with pytest.raises(DatasetError, match=r"falls in a 10 s gap between two poses.*1 scan\(s\) in such gaps"):
+        load_sequence(root, preset="boreas")
+    track = _track(np.asarray([T0, T0 + 1_000_000, T0 + 11_000_000, T0 + 12_000_000]))
+    names = ["a", "b", "c"]
+    check_pose_span(track, np.asarray([T0, T0 + 500_000, T0 + 11_000_000]), names)  # rows and a short gap
+    short = _track(np.asarray([T0, T0 + POSE_GAP_MAX_US, T0 + 2 * POSE_GAP_MAX_US]))
+    check_pose_span(short, np.asarray([T0 + 1_000, T0 + POSE_GAP_MAX_US + 1_000]), names[:2])  # 1 Hz-like rows
+
+
 def test_broken_oxford_chain_is_reported(tmp_path):
     f = tmp_path / "radar_odometry.csv"
     f.write_text(

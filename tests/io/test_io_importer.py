@@ -142,6 +142,9 @@ def test_cli_refuses_tiny_colour_and_navtech_sources(tmp_path):
     res = _import(tmp_path, navtech)
     assert res.exit_code == 2 and "already a Navtech scan" in res.output and "needs no import" in res.output
     assert not (tmp_path / "o").exists()
+    (tmp_path / "empty.png").write_bytes(b"")  # QA session 40: an OpenCV assertion in a traceback, exit 1
+    res = _import(tmp_path, tmp_path / "empty.png")
+    assert res.exit_code == 2 and "empty.png: empty file (0 bytes)" in res.output and "Traceback" not in res.output
 
 
 def test_a_source_range_that_misses_the_preset_is_refused_and_angles_wrap():

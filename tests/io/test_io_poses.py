@@ -372,3 +372,43 @@ def test_headings_of_another_convention_are_refused(tmp_path):
     read_boreas_radar_poses(write_boreas_radar_poses(drive, tmp_path / "ok.csv"))
     backwards = PoseSequence(drive.timestamps_us, drive.xy, drive.yaw + np.pi)
     read_mulran_global_pose(write_mulran_global_pose(backwards, tmp_path / "ok2.csv"))
+
+
+def _grid_drive() -> PoseSequence:
+    """A 200 m square block driven anticlockwise with right-angle corners of 8 m radius, then reversed 20 m along
+    its last street (headings counter-clockwise from +x, along the road; the reversing stretch faces forward)."""
+    pts, yaws = [], []
+    for k in range(4):  # four straights of 184 m, each followed by a quarter turn
+        h = k * np.pi / 2
+        start = np.array([0.0, 0.0]) if k == 0 else pts[-1]
+        d = np.array([np.cos(h), np.sin(h)])
+        for s in np.arange(1.0, 185.0, 1.0):
+            pts.append(start + s * d)
+            yaws.append(h)
+        centre = pts[-1] + 8.0 * np.array([-np.sin(h), np.cos(h)])
+        for a in np.linspace(0.0, np.pi / 2, 14)[1:]:
+            pts.append(centre + 8.0 * np.array([np.sin(h + a), -np.cos(h + a)]))
+            yaws.append(h + a)
+    back = pts[-1]
+    for s in np.arange(1.0, 21.0, 1.0):  # reversing: travel opposite to the heading
+        pts.append(back - s * np.array([np.cos(yaws[-1]), np.sin(yaws[-1])]))
+        yaws.append(yaws[-1])
+    t = 1630597331060160 + np.arange(len(pts), dtype=np.int64) * 100_000
+    return PoseSequence(t, np.asarray(pts) + [623000.0, 4848000.0], np.asarray(yaws))
+
+
+def test_mirrored_headings_on_right_angle_streets_are_refused(tmp_path):
+    """QA session 40: on a route of right-angle streets a compass heading or a negated yaw keeps a steady angle to
+    the travel modulo 180 degrees, so the steadiness check let both through (every keyframe turned, answers
+    90-180 degrees off at confidence 1); the heading turning against the travel at each corner gives them away."""
+    drive = _grid_drive()
+    compass = PoseSequence(drive.timestamps_us, drive.xy, np.pi / 2 - drive.yaw)
+    with pytest.raises(PoseFileError, match="heading column turns against the direction of travel.*compass"):
+        read_boreas_radar_poses(write_boreas_radar_poses(compass, tmp_path / "b.csv"))
+    transposed = PoseSequence(drive.timestamps_us, drive.xy, -drive.yaw)
+    with pytest.raises(PoseFileError, match="rotation turns against the direction of travel.*row by row"):
+        read_mulran_global_pose(write_mulran_global_pose(transposed, tmp_path / "m.csv"))
+    # as driven (with its reversing stretch), and with the sensor mounted backwards, they read fine
+    read_boreas_radar_poses(write_boreas_radar_poses(drive, tmp_path / "ok.csv"))
+    backwards = PoseSequence(drive.timestamps_us, drive.xy, drive.yaw + np.pi)
+    read_mulran_global_pose(write_mulran_global_pose(backwards, tmp_path / "ok2.csv"))

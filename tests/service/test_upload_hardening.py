@@ -450,3 +450,36 @@ def test_validation_answers_list_at_most_20_errors() -> None:
     detail, items = validation_detail(errors)
     assert len(items) == MAX_REPORTED_ERRORS == 20 and items[0]["loc"] == ["body", "f0"]
     assert detail.endswith("(+95 more)") and detail.count("bad") == 5
+
+
+def test_archive_scans_larger_than_any_scan_uppercase_names_and_links(tmp_path: Path) -> None:
+    """QA session 40: a scan member with 1.5 GB after its PNG end marker was extracted and read whole (+1.5 GB);
+    scans named `.PNG` and tar links to scans were left out of the build without a word."""
+    from reradar_core.io.scan import max_scan_file_bytes
+
+    limit = max_scan_file_bytes(4096)
+    big = tmp_path / "big.zip"
+    with zipfile.ZipFile(big, "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("1000000.png", b"\x89PNG" + bytes(limit))  # compresses to ~1 KB
+    with pytest.raises(PayloadTooLargeError, match=r"'1000000.png' is [\d,]+ bytes, more than a scan of at most 4,096"):
+        extract_scan_archive(big, tmp_path / "out", 10, 1 << 30, max_scan_pixels=4096)
+    assert not (tmp_path / "out" / "1000000.png").exists()  # refused before it was extracted
+    extract_scan_archive(big, tmp_path / "out2", 10, 1 << 30)  # no bound given: as before
+
+    upper = tmp_path / "upper.zip"
+    with zipfile.ZipFile(upper, "w") as zf:
+        zf.writestr("d/1000000.PNG", b"a")
+        zf.writestr("2000000.Npy", b"b")
+    paths = extract_scan_archive(upper, tmp_path / "out3", 10, 1 << 30, max_scan_pixels=4096)
+    assert [p.name for p in paths] == ["1000000.png", "2000000.npy"]
+
+    linked = tmp_path / "links.tar"
+    with tarfile.open(linked, "w") as tf:
+        data = tarfile.TarInfo("1000000.png")
+        data.size = 1
+        tf.addfile(data, io.BytesIO(b"a"))
+        link = tarfile.TarInfo("x/2000000.png")
+        link.type, link.linkname = tarfile.SYMTYPE, "../1000000.png"
+        tf.addfile(link)
+    with pytest.raises(BadRequestError, match=r"'2000000.png' is a link, not a scan file"):
+        extract_scan_archive(linked, tmp_path / "out4", 10, 1 << 30)

@@ -161,7 +161,7 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         arch = work / "archive.bin"
         _save_upload(archive, arch)  # type: ignore[arg-type]
         scan_paths = extract_scan_archive(arch, work / "scans", state.settings.max_archive_scans,
-                                          state.settings.max_map_upload_bytes * 4)
+                                          state.settings.max_map_upload_bytes * 4, state.settings.max_scan_pixels)
         arch.unlink()
         # a copy of a PNG under another name carries the original's time, by which the map keys its keyframes, and
         # a PNG whose name (at which its pose is taken below) and embedded time are two instants would get the pose
@@ -192,8 +192,9 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
             raise PoseFileError(str(exc)) from None
         try:
             check_pose_span(track, stamps, [f"scan {p.name}" for p in scan_paths], "the uploaded poses file")
-        except DatasetError as exc:
-            raise BadRequestError(f"{exc}; scan files must be named by their timestamp in microseconds") from None
+        except DatasetError as exc:  # outside the span: often a scan name in another unit; a gap is the poses'
+            hint = "; scan files must be named by their timestamp in microseconds" if "outside" in str(exc) else ""
+            raise BadRequestError(f"{exc}{hint}") from None
         # keyframe poses at mid-sweep (docs/CONVENTIONS.md); every preset sweeps 400 azimuths at 4 Hz
         pose_arr = mid_sweep_poses_in(track, stamps, get_preset(preset or SWEEP_PRESET))
         entry = state.registry.start_build(map_id, scan_paths, pose_arr, preset, work,
