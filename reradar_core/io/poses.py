@@ -645,6 +645,11 @@ def read_poses(path: str | Path, time_unit: str | None = None) -> PoseSequence:
         if len(first.split(",")) >= 13:
             return read_mulran_global_pose(path, time_unit)
     except UnicodeDecodeError:
+        with path.open("rb") as fh:
+            bom = fh.read(2)
+        if bom in (b"\xff\xfe", b"\xfe\xff"):  # QA session 40: Windows PowerShell 5 writes UTF-16 by default
+            raise PoseFileError(f"{path}: UTF-16 text; save the pose file as UTF-8 (e.g. PowerShell: Out-File "
+                                "-Encoding utf8)") from None
         raise PoseFileError(f"{path}: not a text pose file (binary data); expected a Boreas, MulRan or "
                             "t,x,y,yaw CSV") from None
     raise PoseFileError(f"{path}:1: unrecognised pose file format (expected Boreas, MulRan or t,x,y,yaw CSV)")

@@ -412,3 +412,11 @@ def test_mirrored_headings_on_right_angle_streets_are_refused(tmp_path):
     read_boreas_radar_poses(write_boreas_radar_poses(drive, tmp_path / "ok.csv"))
     backwards = PoseSequence(drive.timestamps_us, drive.xy, drive.yaw + np.pi)
     read_mulran_global_pose(write_mulran_global_pose(backwards, tmp_path / "ok2.csv"))
+
+
+def test_a_utf16_pose_file_is_told_to_be_saved_as_utf8(tmp_path):
+    """QA session 40: Windows PowerShell 5's default output was called binary data."""
+    path = tmp_path / "p.csv"
+    path.write_bytes("t_s,x,y,yaw\n0,0,0,0\n0.25,2,0,0\n".encode("utf-16"))
+    with pytest.raises(PoseFileError, match="UTF-16 text; save the pose file as UTF-8"):
+        read_poses(path)

@@ -137,6 +137,11 @@ def test_a_name_within_one_sweep_of_the_embedded_time_builds(tmp_path: Path) -> 
         assert r.status_code == 202, r.text
         info = _wait_built(client, "near")
         assert info["state"] == "ready" and info["num_keyframes"] == N, info
+        # the preset's name in any case is stored as the preset's own (QA session 40: "BOREAS" was stored so)
+        r = client.post("/maps", data={"map_id": "upper", "preset": "BOREAS"}, files=_files(_members()), headers=AUTH)
+        assert r.status_code == 202, r.text
+        info = _wait_built(client, "upper")
+        assert info["state"] == "ready" and info["radar_preset"] == "boreas", info
 
 
 def test_a_service_build_stores_the_place_repetition_under_the_services_settings(tmp_path: Path) -> None:

@@ -474,11 +474,13 @@ def test_what_the_folder_holds_under_a_companions_name_is_logged(far_map: Path, 
                       radar_preset="boreas")
     shutil.copy(far_map, maps_dir / "third.h5")
     shutil.copy(other, maps_dir / "third.far.h5")  # another map's companion: other scan times
+    shutil.copy(far_map, maps_dir / "route.hdf5")  # QA session 40: skipped without a word
     registry = MapRegistry(Settings(maps_dir=maps_dir, load_demo_map=False), NearFake())
     try:
         with caplog.at_level("INFO"):
             registry.load_all()
         log = [r.getMessage() for r in caplog.records]
+        assert "ignoring route.hdf5: the service serves <map_id>.h5 files; rename it to route.h5 to serve it" in log
         assert registry.ready("open").far is not None
         assert any(m.startswith("open.far.h5: far view served with map open") for m in log)
         assert any(m.startswith("lone.far.h5: far-view companion without its map lone.h5") for m in log)

@@ -153,6 +153,7 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         registry.check_far_view_served("far_view")  # before the archive is unpacked
     if preset is not None and preset.lower() not in PRESETS:
         raise BadRequestError(f"unknown preset {shorten_echo(preset)!r}; choose one of {sorted(PRESETS)}")
+    preset = None if preset is None else preset.lower()  # the map records the preset's name (QA session 40: "BOREAS")
     # early check so a large archive is not unpacked for a taken id; start_build re-checks atomically
     registry.check_free(map_id)
     work = registry.staging_dir() / f"job-{uuid.uuid4().hex}"
