@@ -291,7 +291,8 @@ def scan_time_us(path: Path) -> int | None:
 
 
 def check_scan_times(scan_paths: list[Path], preset: str | RadarPreset | None = None,
-                     decoded_time_us: Callable[[Path], int | None] | None = None) -> None:
+                     decoded_time_us: Callable[[Path], int | None] | None = None,
+                     refusal: Callable[[Path], str | None] | None = None) -> None:
     """Refuse, before the build, two scans of one scan time (``scan_time_us``) and a PNG whose file name and
     embedded time lie more than one sweep of ``preset`` apart (``scan_name_time_message``).
 
@@ -308,7 +309,9 @@ def check_scan_times(scan_paths: list[Path], preset: str | RadarPreset | None = 
             ``SWEEP_PRESET``); its sweep period is the tolerance. decoded_time_us: the time a scan carries as the
             build decodes it, None when the build refuses it: confirms the first disagreement, since the first
             pixels of an image that is no Navtech scan are no time (the build then says what the file is), and
-            times the PNGs the first-row read cannot.
+            times the PNGs the first-row read cannot. refusal: why the build refuses a scan (its message, naming
+            the file), None when it reads it: a PNG the first-row read cannot time and the decoder refuses is
+            refused here, before the build (QA session 40: a zero-byte last scan failed the build at 90 %).
 
     Raises:
         BadRequestError: naming both archive members and the time; or the first member whose name and time
@@ -328,6 +331,8 @@ def check_scan_times(scan_paths: list[Path], preset: str | RadarPreset | None = 
                 # decoded here; one the decoder refuses is left to the build, which says why)
                 t = decoded_time_us(path)
                 confirmed = True
+                if t is None and refusal is not None and (why := refusal(path)) is not None:
+                    raise BadRequestError(f"scan archive member {why}")
             if t is None:
                 continue
             if t in seen:  # a copy is said to be one (before a name that disagrees with its time, which a copy's does)

@@ -1025,6 +1025,15 @@ class MapRegistry:
         except ReRadarError:
             return None
 
+    def scan_refusal(self, path: Path, preset: str | None) -> str | None:
+        """Why the build refuses archive scan ``path`` (``_load_scan``'s message, naming the file), None when it
+        reads it."""
+        try:
+            self._load_scan(path, preset)
+        except ReRadarError as exc:
+            return str(exc)
+        return None
+
     def build_scan_loader(self, scan_paths: list[Path], preset: str | None) -> Callable[[int], RadarScan]:
         """``build_map``'s ``load_scan`` over an archive's scans (``_load_scan``), refusing at the first scan whose
         time (``RadarScan.timestamp_us``, by which the map keys its keyframes) an earlier scan had, or a PNG whose

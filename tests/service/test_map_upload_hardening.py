@@ -24,7 +24,7 @@ import pytest
 
 from maps.store import read_metadata
 from reradar_core.errors import MapFormatError, ScanFormatError
-from reradar_core.io.scan import encode_navtech_png_bytes
+from reradar_core.io.scan import RadarScan, encode_navtech_png_bytes
 from service.core.config import Settings
 from service.core.errors import PROBLEM_MEDIA_TYPE
 from service.core.registry import MapRegistry, build_failure_message
@@ -217,11 +217,11 @@ def test_build_failure_message_is_the_message_of_input_errors() -> None:
     assert build_failure_message(RuntimeError()) == "RuntimeError"
 
 
-def _archive(corrupt: int, n: int = 4) -> bytes:
+def _archive(corrupt: int, n: int = 4, bad: bytes = b"not a png at all") -> bytes:
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as zf:
         for i in range(n):
-            data = b"not a png at all" if i == corrupt else encode_navtech_png_bytes(make_scan(i, keyframe_time(i)))
+            data = bad if i == corrupt else encode_navtech_png_bytes(make_scan(i, keyframe_time(i)))
             zf.writestr(f"{keyframe_time(i)}.png", data)
     return buf.getvalue()
 
@@ -235,7 +235,17 @@ def _poses_csv(n: int = 4) -> bytes:
 def test_failed_build_reports_the_message_without_the_class(live: tuple[httpx.Client, Path]) -> None:
     """QA L2: GET /maps/{id} of a failed build showed ``ScanFormatError: 1600000018000000.png: ...``."""
     client, _ = live
+    # a file no decoder reads is refused at upload (QA session 40: it failed the build when the build reached it)
     files = {"archive": ("a.zip", _archive(corrupt=2)), "poses": ("p.csv", _poses_csv())}
+    r = client.post("/maps", data={"map_id": "broken", "preset": "boreas"}, files=files, headers=AUTH)
+    assert r.status_code == 400, r.text
+    detail = r.json()["detail"]
+    assert detail.startswith(f"scan archive member {keyframe_time(2)}.png: "), detail
+    assert "Error:" not in detail and "/tmp" not in detail
+    # a scan the upload can time but the build refuses (another radar's bin count) fails the build, which says why
+    other = encode_navtech_png_bytes(RadarScan.from_power(np.zeros((400, 3768), np.float32), "oxford",
+                                                          start_time_us=keyframe_time(2)))
+    files = {"archive": ("a.zip", _archive(corrupt=2, bad=other)), "poses": ("p.csv", _poses_csv())}
     r = client.post("/maps", data={"map_id": "broken", "preset": "boreas"}, files=files, headers=AUTH)
     assert r.status_code == 202, r.text
     for _ in range(600):

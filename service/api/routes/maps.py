@@ -169,7 +169,8 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         # of one and the time of the other: refused here (400) rather than after the whole build (each PNG's first
         # row only: ~0.03 ms a scan; a disagreement is confirmed by decoding that one scan as the build would)
         check_scan_times(scan_paths, get_preset(preset or SWEEP_PRESET),
-                         lambda path: registry.decoded_scan_time_us(path, preset))
+                         lambda path: registry.decoded_scan_time_us(path, preset),
+                         lambda path: registry.scan_refusal(path, preset))
         pose_path = work / "poses.csv"
         _save_upload(poses, pose_path)
         try:
