@@ -34,6 +34,7 @@ from reradar_core.io.datasets import (
 )
 from reradar_core.io.presets import RadarPreset, get_preset
 from reradar_core.io.scan import MAX_SCAN_TIMESTAMP_US, max_scan_file_bytes, navtech_png_first_time_us
+from reradar_core.errors import ScanFormatError
 from service.core.errors import BadRequestError, PayloadTooLargeError
 
 logger = logging.getLogger(__name__)
@@ -332,7 +333,7 @@ def check_scan_times(scan_paths: list[Path], preset: str | RadarPreset | None = 
                 t = decoded_time_us(path)
                 confirmed = True
                 if t is None and refusal is not None and (why := refusal(path)) is not None:
-                    raise BadRequestError(f"scan archive member {why}")
+                    raise ScanFormatError(f"scan archive member {why}")  # 422, as the build's first scan
             if t is None:
                 continue
             if t in seen:  # a copy is said to be one (before a name that disagrees with its time, which a copy's does)

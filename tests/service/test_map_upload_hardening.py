@@ -238,7 +238,7 @@ def test_failed_build_reports_the_message_without_the_class(live: tuple[httpx.Cl
     # a file no decoder reads is refused at upload (QA session 40: it failed the build when the build reached it)
     files = {"archive": ("a.zip", _archive(corrupt=2)), "poses": ("p.csv", _poses_csv())}
     r = client.post("/maps", data={"map_id": "broken", "preset": "boreas"}, files=files, headers=AUTH)
-    assert r.status_code == 400, r.text
+    assert r.status_code == 422, r.text
     detail = r.json()["detail"]
     assert detail.startswith(f"scan archive member {keyframe_time(2)}.png: "), detail
     assert "Error:" not in detail and "/tmp" not in detail

@@ -179,12 +179,18 @@ def test_archive_extraction_is_flat_and_bounded(tmp_path: Path) -> None:
             info = tarfile.TarInfo(name)
             info.size = len(data)
             tf.addfile(info, io.BytesIO(data))
+    arch = tmp_path / "a.tgz"
+    arch.write_bytes(buf.getvalue())
+    linked = io.BytesIO()
+    with tarfile.open(fileobj=linked, mode="w:gz") as tf:
         link = tarfile.TarInfo("4000.png")
         link.type = tarfile.SYMTYPE
         link.linkname = "/etc/passwd"
         tf.addfile(link)
-    arch = tmp_path / "a.tgz"
-    arch.write_bytes(buf.getvalue())
+    (tmp_path / "link.tgz").write_bytes(linked.getvalue())
+    with pytest.raises(BadRequestError, match="'4000.png' is a link"):  # never followed; said, not skipped
+        extract_scan_archive(tmp_path / "link.tgz", tmp_path / "ol", max_files=10, max_total_bytes=1000)
+    assert not any((tmp_path / "ol").iterdir())
     out = extract_scan_archive(arch, tmp_path / "out", max_files=10, max_total_bytes=1000)
     assert [p.name for p in out] == ["1000.png", "2000.npy"]
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["1000.png", "2000.npy"]
