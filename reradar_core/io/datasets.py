@@ -772,15 +772,16 @@ POSE_SPAN_SLACK_US = 500_000
 POSE_GAP_MAX_US = 2_000_000
 
 
-def check_pose_span(track: PoseSequence, stamps_us: np.ndarray, names: list[str], pose_file: str = "the pose file"
-                    ) -> None:
+def check_pose_span(track: PoseSequence, stamps_us: np.ndarray, names: list[str], pose_file: str = "the pose file",
+                    outside_hint: str = "") -> None:
     """Refuse scans whose times lie outside ``track``'s time span (plus ``POSE_SPAN_SLACK_US`` at each end), or
     inside a gap of more than ``POSE_GAP_MAX_US`` between two pose rows: their poses would be extrapolated or
     bridged by a straight line, i.e. guessed.
 
     Args:
         track: the pose file's poses, sorted. stamps_us: (N,) int64 scan times, µs. names: the N scans' names,
-            for the message. pose_file: the pose file's name, for the message.
+            for the message. pose_file: the pose file's name, for the message. outside_hint: appended to the
+            message of a scan outside the span (e.g. how the caller's scans are named).
 
     Raises:
         DatasetError: naming the first scan outside and the pose file.
@@ -794,7 +795,8 @@ def check_pose_span(track: PoseSequence, stamps_us: np.ndarray, names: list[str]
         first, last = int(track.timestamps_us[0]), int(track.timestamps_us[-1])
         raise DatasetError(f"{names[i]}: scan time {int(t[i])} us lies outside the pose file's time span, {first} to "
                            f"{last} us ({pose_file}; the scans span {int(np.min(t))} to {int(np.max(t))} us"
-                           f"{': relative pose times against absolute scan names?' if last < 1e14 <= int(t[i]) else ''})")
+                           f"{': relative pose times against absolute scan names?' if last < 1e14 <= int(t[i]) else ''})"
+                           f"{outside_hint}")
     stamps = np.asarray(track.timestamps_us, np.int64)
     after = np.clip(np.searchsorted(stamps, t, side="left"), 1, len(stamps) - 1) if len(stamps) > 1 else None
     if after is not None:

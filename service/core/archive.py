@@ -27,6 +27,7 @@ import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+from reradar_core.errors import ScanFormatError
 from reradar_core.io.datasets import (
     first_confirmed_problem,
     scan_name_time_mismatch,
@@ -34,7 +35,6 @@ from reradar_core.io.datasets import (
 )
 from reradar_core.io.presets import RadarPreset, get_preset
 from reradar_core.io.scan import MAX_SCAN_TIMESTAMP_US, max_scan_file_bytes, navtech_png_first_time_us
-from reradar_core.errors import ScanFormatError
 from service.core.errors import BadRequestError, PayloadTooLargeError
 
 logger = logging.getLogger(__name__)

@@ -998,9 +998,9 @@ class MapRegistry:
         """One archive scan, sized from its header before decoding (the same budget as uploaded scans). A polar
         .npy carries no time: its azimuths are timed from its file name ``<timestamp_us>.npy``."""
         try:
-            limit = max_scan_file_bytes(self.settings.max_scan_pixels)
-            if path.stat().st_size > limit:  # never read a file no scan can fill (QA session 40)
-                raise ScanFormatError(f"{path.stat().st_size:,} bytes, more than a scan of at most "
+            limit, size = max_scan_file_bytes(self.settings.max_scan_pixels), path.stat().st_size
+            if size > limit:  # never read a file no scan can fill (QA session 40)
+                raise ScanFormatError(f"{size:,} bytes, more than a scan of at most "
                                       f"{self.settings.max_scan_pixels:,} pixels can be ({limit:,} bytes; "
                                       "RERADAR_MAX_SCAN_PIXELS)")
             data = path.read_bytes()

@@ -193,10 +193,10 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         except DatasetError as exc:
             raise PoseFileError(str(exc)) from None
         try:
-            check_pose_span(track, stamps, [f"scan {p.name}" for p in scan_paths], "the uploaded poses file")
-        except DatasetError as exc:  # outside the span: often a scan name in another unit; a gap is the poses'
-            hint = "; scan files must be named by their timestamp in microseconds" if "outside" in str(exc) else ""
-            raise BadRequestError(f"{exc}{hint}") from None
+            check_pose_span(track, stamps, [f"scan {p.name}" for p in scan_paths], "the uploaded poses file",
+                            "; scan files must be named by their timestamp in microseconds")
+        except DatasetError as exc:
+            raise BadRequestError(str(exc)) from None
         # keyframe poses at mid-sweep (docs/CONVENTIONS.md); every preset sweeps 400 azimuths at 4 Hz
         pose_arr = mid_sweep_poses_in(track, stamps, get_preset(preset or SWEEP_PRESET))
         entry = state.registry.start_build(map_id, scan_paths, pose_arr, preset, work,
