@@ -652,4 +652,6 @@ def read_poses(path: str | Path, time_unit: str | None = None) -> PoseSequence:
                                 "-Encoding utf8)") from None
         raise PoseFileError(f"{path}: not a text pose file (binary data); expected a Boreas, MulRan or "
                             "t,x,y,yaw CSV") from None
+    if path.stat().st_size == 0:  # QA session 40: "unrecognised format" for an empty file
+        raise PoseFileError(f"{path}: empty file (0 bytes); expected a Boreas, MulRan or t,x,y,yaw CSV")
     raise PoseFileError(f"{path}:1: unrecognised pose file format (expected Boreas, MulRan or t,x,y,yaw CSV)")

@@ -206,6 +206,13 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
         packed[stamp] = name
         return f"{match.group(1)}.{match.group(2).lower()}", stamp
 
+    with archive.open("rb") as fh:
+        head = fh.read(4)
+    if not head:
+        raise BadRequestError("scan archive is empty (0 bytes); send a .zip, .tar or .tar.gz of the scans")
+    if head == b"PK\x03\x04" and not zipfile.is_zipfile(archive):  # QA session 40: "not a .zip" for a cut-off one
+        raise BadRequestError("scan archive is a zip that ends early (its central directory is missing: a partial "
+                              "download or copy?); send the whole file")
     if zipfile.is_zipfile(archive):
         if zip_entries_exceed(archive, max_members):
             raise too_many_members()

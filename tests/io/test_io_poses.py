@@ -420,3 +420,11 @@ def test_a_utf16_pose_file_is_told_to_be_saved_as_utf8(tmp_path):
     path.write_bytes("t_s,x,y,yaw\n0,0,0,0\n0.25,2,0,0\n".encode("utf-16"))
     with pytest.raises(PoseFileError, match="UTF-16 text; save the pose file as UTF-8"):
         read_poses(path)
+
+
+def test_an_empty_pose_file_says_so(tmp_path):
+    """QA session 40: an empty pose file was an "unrecognised pose file format"."""
+    path = tmp_path / "p.csv"
+    path.write_bytes(b"")
+    with pytest.raises(PoseFileError, match=r"empty file \(0 bytes\)"):
+        read_poses(path)

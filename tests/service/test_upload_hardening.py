@@ -483,3 +483,17 @@ def test_archive_scans_larger_than_any_scan_uppercase_names_and_links(tmp_path: 
         tf.addfile(link)
     with pytest.raises(BadRequestError, match=r"'2000000.png' is a link, not a scan file"):
         extract_scan_archive(linked, tmp_path / "out4", 10, 1 << 30)
+
+
+def test_an_empty_or_cut_off_archive_says_so(tmp_path: Path) -> None:
+    """QA session 40: a truncated zip (a partial download) was "not a .zip, .tar or .tar.gz archive"."""
+    whole = tmp_path / "whole.zip"
+    with zipfile.ZipFile(whole, "w") as zf:
+        zf.writestr("1000000.png", b"x" * 1000)
+    cut = tmp_path / "cut.zip"
+    cut.write_bytes(whole.read_bytes()[:600])
+    with pytest.raises(BadRequestError, match="a zip that ends early.*send the whole file"):
+        extract_scan_archive(cut, tmp_path / "o1", 10, 1 << 30)
+    (tmp_path / "empty.zip").write_bytes(b"")
+    with pytest.raises(BadRequestError, match=r"scan archive is empty \(0 bytes\)"):
+        extract_scan_archive(tmp_path / "empty.zip", tmp_path / "o2", 10, 1 << 30)
