@@ -517,18 +517,29 @@ def _moving_stretches(xy: np.ndarray, yaw_rad: np.ndarray) -> tuple[np.ndarray, 
     yaw = np.asarray(yaw_rad, np.float64).reshape(-1)
     if len(xy) < 2:
         return None
-    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+    path = _path_m(xy)
     end = np.searchsorted(path, path + _MOVING_STEP_M, side="left")
     start = np.flatnonzero(end < len(xy))
-    end = end[start]
-    step = xy[end] - xy[start]
-    moving = np.linalg.norm(step, axis=1) >= _MOVING_CHORD_SHARE * _MOVING_STEP_M
+    moving, travel, heading = _chords(xy, yaw, start, end[start], _MOVING_STEP_M)
     if int(moving.sum()) < _MIN_MOVING_STEPS:
         return None
-    travel = np.arctan2(step[moving, 1], step[moving, 0])
-    # the heading over a stretch: the circular mean of its end points' yaws
-    a, b = yaw[start[moving]], yaw[end[moving]]
-    return np.arctan2(np.sin(a) + np.sin(b), np.cos(a) + np.cos(b)), travel
+    return heading[moving], travel[moving]
+
+
+def _path_m(xy: np.ndarray) -> np.ndarray:
+    """(N,) path length driven up to each of the (N, 2) positions, metres (0 at the first)."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+
+
+def _chords(xy: np.ndarray, yaw: np.ndarray, start: np.ndarray, end: np.ndarray, path_m: float
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each chord from pose ``start[i]`` to pose ``end[i]`` over ``path_m`` of path: (it moves, i.e. spans at
+    least ``_MOVING_CHORD_SHARE`` of that path; its direction of travel; its heading, the circular mean of its end
+    points' yaws), radians."""
+    step = xy[end] - xy[start]
+    moves = np.linalg.norm(step, axis=1) >= _MOVING_CHORD_SHARE * path_m
+    a, b = yaw[start], yaw[end]
+    return moves, np.arctan2(step[:, 1], step[:, 0]), np.arctan2(np.sin(a) + np.sin(b), np.cos(a) + np.cos(b))
 
 
 #: ``_refuse_heading_off_travel``: a sensor's heading keeps one angle to the direction of travel (its mounting; a
@@ -551,15 +562,11 @@ def _turn_sense(xy: np.ndarray, yaw: np.ndarray) -> tuple[float, float] | None:
     of a trajectory in time order: about +1 when the heading turns with the vehicle, forward or in reverse, whatever
     its mounting angle; about -1 for a mirrored convention (a compass heading, a negated yaw, a transposed
     rotation). None when the drive turns less than ``_TURN_TOTAL_DEG``."""
-    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+    path = _path_m(xy)
     if path[-1] < 3 * _TURN_SAMPLE_M:
         return None
     idx = np.unique(np.searchsorted(path, np.arange(0.0, path[-1], _TURN_SAMPLE_M)))
-    chord = np.diff(xy[idx], axis=0)
-    ok = np.linalg.norm(chord, axis=1) >= _MOVING_CHORD_SHARE * _TURN_SAMPLE_M
-    travel = np.arctan2(chord[:, 1], chord[:, 0])
-    a, b = yaw[idx[:-1]], yaw[idx[1:]]
-    heading = np.arctan2(np.sin(a) + np.sin(b), np.cos(a) + np.cos(b))
+    ok, travel, heading = _chords(xy, yaw, idx[:-1], idx[1:], _TURN_SAMPLE_M)
     pair = ok[:-1] & ok[1:]
     d_travel = wrap_angle(np.diff(travel))[pair]
     d_heading = wrap_angle(np.diff(heading))[pair]

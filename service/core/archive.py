@@ -134,6 +134,11 @@ def zip_entries_exceed(archive: Path, bound: int) -> bool:
     return False
 
 
+def _member_base(name: str) -> str:
+    """An archive member's file name without its folders (``/`` or ``\\`` separated): what it is extracted as."""
+    return name.replace("\\", "/").rsplit("/", 1)[-1]
+
+
 def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_bytes: int,
                          max_scan_pixels: int | None = None) -> list[Path]:
     """Extract the scans of ``archive`` into ``dest``; returns the scan paths sorted by timestamp.
@@ -155,7 +160,7 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
     def check_scan_size(name: str, size: int) -> None:
         if max_scan_bytes is not None and size > max_scan_bytes:
             raise PayloadTooLargeError(
-                f"scan archive member {name.replace(chr(92), '/').rsplit('/', 1)[-1]!r} is {size:,} bytes, more than "
+                f"scan archive member {_member_base(name)!r} is {size:,} bytes, more than "
                 f"a scan of at most {max_scan_pixels:,} pixels can be ({max_scan_bytes:,} bytes): it holds something "
                 "besides the scan; pack the scan files themselves")
     dest.mkdir(parents=True, exist_ok=True)
@@ -183,7 +188,7 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
 
     def accept(name: str) -> tuple[str, int] | None:
         """(file name, timestamp in us) of a scan member, None for any other name."""
-        base = name.replace("\\", "/").rsplit("/", 1)[-1]
+        base = _member_base(name)
         match = _ARCHIVE_SCAN_NAME.fullmatch(base)
         if not match:
             if _SIGNED_SCAN_NAME.fullmatch(base):
@@ -249,9 +254,9 @@ def extract_scan_archive(archive: Path, dest: Path, max_files: int, max_total_by
                     count(member.size)
                     if not member.isfile():
                         if (member.issym() or member.islnk()) and _ARCHIVE_SCAN_NAME.fullmatch(
-                                member.name.replace("\\", "/").rsplit("/", 1)[-1]):
+                                _member_base(member.name)):
                             raise BadRequestError(  # a link would be left out without a word (QA session 40)
-                                f"scan archive member {member.name.rsplit('/', 1)[-1]!r} is a link, not a scan file; "
+                                f"scan archive member {_member_base(member.name)!r} is a link, not a scan file; "
                                 "pack the scan files themselves (tar without links, e.g. tar --dereference)")
                         continue  # devices, folders, links of other names
                     scan = accept(member.name)
