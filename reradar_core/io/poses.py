@@ -24,6 +24,9 @@ Positions beyond ``MAX_ABS_COORDINATE_M`` from the origin are refused in every f
 from __future__ import annotations
 
 import csv
+import math
+from array import array
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -254,12 +257,40 @@ def _missing_pose_file(path: Path) -> str:
     return f"{path}: no such pose file"
 
 
-def _read_rows(path: Path, min_cols: int, header_first: str | None,
-               expected: str = "") -> tuple[list[str] | None, list[tuple[int, list[str]]]]:
+@dataclass(frozen=True)
+class _PoseTable:
+    """The columns a reader needs, parsed while the file is read (one row's strings at a time: a 24 MB Boreas
+    file's rows kept as lists of strings took +320 MB, QA session 40; these arrays take ~40 bytes a row).
+
+    Attributes:
+        header: the header line's cells (stripped), or None.
+        linenos: (N,) int64, each row's 1-based line number (for messages).
+        times: (N,) the time column exactly: int64 when every value is an integer (ns stamps need all 64 bits),
+            else float64. No unit applied.
+        values: (N, K) float64, the value columns in the order asked for.
+    """
+
+    header: list[str] | None
+    linenos: np.ndarray
+    times: np.ndarray
+    values: np.ndarray
+
+
+def _read_table(path: Path, min_cols: int, header_first: str | None, expected: str,
+                columns: Callable[[list[str] | None], tuple[int, list[int]]]) -> _PoseTable:
+    """Read a pose CSV row by row into ``_PoseTable``: blank lines skipped, an optional header line (first cell
+    ``header_first``, any case), every other row needs ``min_cols`` cells. ``columns(header)`` names the time
+    column and the value columns (it may raise ``PoseFileError`` for a header that lacks one). The first bad row
+    (too few cells, a non-numeric or non-finite value) is refused naming its line."""
     if not path.is_file():
         raise PoseFileError(_missing_pose_file(path))
-    rows: list[tuple[int, list[str]]] = []
-    header = None
+    header: list[str] | None = None
+    time_col: int | None = None
+    value_cols: list[int] = []
+    linenos = array("q")
+    int_times: array | None = array("q")  # until a time is not an integer; then float_times holds every time
+    float_times = array("d")
+    values = array("d")
     with path.open(newline="", encoding="utf-8-sig") as fh:  # a UTF-8 BOM (spreadsheet exports) is no data
         for lineno, row in enumerate(csv.reader(fh), start=1):
             if not row or all(not c.strip() for c in row):
@@ -267,55 +298,54 @@ def _read_rows(path: Path, min_cols: int, header_first: str | None,
             if lineno == 1 and header_first is not None and row[0].strip().lower() == header_first.lower():
                 header = [c.strip() for c in row]
                 continue
+            if time_col is None:
+                time_col, value_cols = columns(header)
+                min_cols = max(min_cols, time_col + 1, *(c + 1 for c in value_cols))
             if len(row) < min_cols:
                 raise PoseFileError(f"{path}:{lineno}: expected at least {min_cols} columns"
                                     f"{f' ({expected})' if expected else ''}, got {len(row)}")
-            rows.append((lineno, row))
-    if not rows:
+            text = row[time_col].strip()
+            if int_times is not None:
+                try:
+                    int_times.append(int(text))
+                except ValueError:
+                    float_times = array("d", (float(v) for v in int_times))
+                    int_times = None
+                except OverflowError:  # beyond int64: read as a float, as a non-integer would be
+                    float_times = array("d", (float(v) for v in int_times))
+                    int_times = None
+            if int_times is None:
+                try:
+                    t = float(text)
+                except ValueError:
+                    raise PoseFileError(f"{path}:{lineno}: timestamp {text!r} is not a number") from None
+                if not math.isfinite(t):
+                    raise PoseFileError(f"{path}:{lineno}: timestamp {text!r} is not finite")
+                float_times.append(t)
+            try:
+                vals = [float(row[c]) for c in value_cols]
+            except (ValueError, IndexError):
+                raise PoseFileError(f"{path}:{lineno}: non-numeric value in {row[:max(value_cols) + 1]}") from None
+            if not all(math.isfinite(v) for v in vals):
+                raise PoseFileError(f"{path}:{lineno}: NaN or infinite value")
+            values.extend(vals)
+            linenos.append(lineno)
+    if not linenos:
         raise PoseFileError(f"{path}: no pose rows")
-    return header, rows
+    times = (np.frombuffer(int_times, dtype=np.int64) if int_times is not None
+             else np.frombuffer(float_times, dtype=np.float64))
+    return _PoseTable(header, np.frombuffer(linenos, dtype=np.int64),
+                      times.copy(), np.frombuffer(values, dtype=np.float64).reshape(len(linenos), len(value_cols)).copy())
 
 
-def _parse_floats(path: Path, rows: list[tuple[int, list[str]]], cols: list[int]) -> np.ndarray:
-    out = np.empty((len(rows), len(cols)), dtype=np.float64)
-    for i, (lineno, row) in enumerate(rows):
-        try:
-            vals = [float(row[c]) for c in cols]
-        except (ValueError, IndexError):
-            raise PoseFileError(f"{path}:{lineno}: non-numeric value in {row[:max(cols) + 1]}") from None
-        if not np.all(np.isfinite(vals)):
-            raise PoseFileError(f"{path}:{lineno}: NaN or infinite value")
-        out[i] = vals
-    return out
-
-
-def _check_coordinates(path: Path, rows: list[tuple[int, list[str]]], xy: np.ndarray) -> None:
+def _check_coordinates(path: Path, linenos: np.ndarray, xy: np.ndarray) -> None:
     """Refuse positions ``xy`` (N, 2) metres beyond ``MAX_ABS_COORDINATE_M`` (naming the first such line)."""
     far = np.any(np.abs(xy) > MAX_ABS_COORDINATE_M, axis=1)
     if np.any(far):
-        lineno = rows[int(np.argmax(far))][0]
+        lineno = int(linenos[int(np.argmax(far))])
         raise PoseFileError(f"{path}:{lineno}: position {xy[int(np.argmax(far))].tolist()} is more than "
                             f"{MAX_ABS_COORDINATE_M:.0e} m from the origin; positions must be metres in a map or "
                             f"UTM frame")
-
-
-def _parse_time_column(path: Path, rows: list[tuple[int, list[str]]], col: int) -> np.ndarray:
-    """The time column, exactly: int64 when every value is an integer (ns stamps need all 64 bits), else
-    float64. No unit is applied here."""
-    texts = [(lineno, row[col].strip()) for lineno, row in rows]
-    try:
-        return np.asarray([int(t) for _, t in texts], dtype=np.int64)
-    except ValueError:
-        pass
-    out = np.empty(len(texts), dtype=np.float64)
-    for i, (lineno, txt) in enumerate(texts):
-        try:
-            out[i] = float(txt)
-        except ValueError:
-            raise PoseFileError(f"{path}:{lineno}: timestamp {txt!r} is not a number") from None
-        if not np.isfinite(out[i]):
-            raise PoseFileError(f"{path}:{lineno}: timestamp {txt!r} is not finite")
-    return out
 
 
 def read_boreas_radar_poses(path: str | Path, time_unit: str | None = None) -> PoseSequence:
@@ -326,15 +356,17 @@ def read_boreas_radar_poses(path: str | Path, time_unit: str | None = None) -> P
             times in ns or µs, told apart by magnitude; relative times are refused (``gps_time_to_us``).
     """
     path = Path(path)
-    header, rows = _read_rows(path, 10, "GPSTime", f"a Boreas radar_poses.csv: {','.join(BOREAS_COLUMNS)}")
-    idx = {name: i for i, name in enumerate(header or BOREAS_COLUMNS)}
-    for need in ("GPSTime", "easting", "northing", "heading"):
-        if need not in idx:
-            raise PoseFileError(f"{path}:1: header lacks column {need!r}")
-    t_raw = _parse_time_column(path, rows, idx["GPSTime"])
+    def columns(header: list[str] | None) -> tuple[int, list[int]]:
+        idx = {name: i for i, name in enumerate(header or BOREAS_COLUMNS)}
+        for need in ("GPSTime", "easting", "northing", "heading"):
+            if need not in idx:
+                raise PoseFileError(f"{path}:1: header lacks column {need!r}")
+        return idx["GPSTime"], [idx["easting"], idx["northing"], idx["heading"]]
+
+    table = _read_table(path, 10, "GPSTime", f"a Boreas radar_poses.csv: {','.join(BOREAS_COLUMNS)}", columns)
+    t_raw, vals = table.times, table.values
     t_us = gps_time_to_us(t_raw, time_unit, f"{path}: GPSTime")
-    vals = _parse_floats(path, rows, [idx["easting"], idx["northing"], idx["heading"]])
-    _check_coordinates(path, rows, vals[:, :2])
+    _check_coordinates(path, table.linenos, vals[:, :2])
     _refuse_repeated_times(t_us, path)
     # the format's heading is radians; degrees within +-2 pi built a map 135 degrees off (QA, session 24)
     _refuse_degrees_in_plain_yaw(path, t_us, vals[:, :2], vals[:, 2], "heading",
@@ -366,8 +398,9 @@ def read_mulran_global_pose(path: str | Path, time_unit: str | None = None) -> P
             are absolute UTC times in another unit (e.g. µs) is refused rather than read 1000x off.
     """
     path = Path(path)
-    _, rows = _read_rows(path, 13, None, "a MulRan global_pose.csv: timestamp, then a 3x4 [R|t] matrix row by row")
-    t_raw = _parse_time_column(path, rows, 0)
+    table = _read_table(path, 13, None, "a MulRan global_pose.csv: timestamp, then a 3x4 [R|t] matrix row by row",
+                        lambda _: (0, list(range(1, 13))))
+    t_raw, m = table.times, table.values
     if time_unit is None:
         found = absolute_time_unit(t_raw)
         if found is not None and found != "ns":
@@ -376,8 +409,7 @@ def read_mulran_global_pose(path: str | Path, time_unit: str | None = None) -> P
                                 f"{found}; give the unit explicitly: --time-unit {found} if they are, --time-unit ns "
                                 "if they are a relative clock in the format's nanoseconds")
         time_unit = "ns"
-    m = _parse_floats(path, rows, list(range(1, 13)))
-    _check_coordinates(path, rows, m[:, [3, 7]])
+    _check_coordinates(path, table.linenos, m[:, [3, 7]])
     yaw = np.arctan2(m[:, 4], m[:, 0])  # R[1,0], R[0,0]
     t_us = to_microseconds(t_raw, time_unit)
     _refuse_repeated_times(t_us, path)
@@ -426,7 +458,9 @@ def read_txyyaw_csv(path: str | Path, time_unit: str | None = None) -> PoseSeque
                             f"name this reader knows; name it t_s, t_ms, t_us or t_ns by the unit of its values (or t "
                             "for absolute UTC times), then x, y (metres) and yaw, yaw_rad or yaw_deg, e.g. the "
                             "header line t_s,x,y,yaw")
-    header, rows = _read_rows(path, 4, first[0].strip() if head in TXYYAW_TIME_HEADERS else None, "t,x,y,yaw")
+    table = _read_table(path, 4, first[0].strip() if head in TXYYAW_TIME_HEADERS else None, "t,x,y,yaw",
+                        lambda _: (0, [1, 2, 3]))
+    header = table.header
     if time_unit is not None and header_unit is not None and _check_unit(time_unit) != header_unit:
         raise PoseFileError(f"{path}:1: the header names the time column {first[0].strip()!r} ({header_unit}), but "
                             f"the time unit given is {time_unit!r}: drop --time-unit, or rename the column "
@@ -436,9 +470,8 @@ def read_txyyaw_csv(path: str | Path, time_unit: str | None = None) -> PoseSeque
     if yaw_name is not None and yaw_name not in TXYYAW_YAW_HEADERS:
         raise PoseFileError(f"{path}:1: the 4th column is named {yaw_header!r}; name it yaw_deg (degrees), "
                             f"yaw_rad or yaw (radians)")
-    t_raw = _parse_time_column(path, rows, 0)
-    vals = _parse_floats(path, rows, [1, 2, 3])
-    _check_coordinates(path, rows, vals[:, 0:2])
+    t_raw, vals = table.times, table.values
+    _check_coordinates(path, table.linenos, vals[:, 0:2])
     yaw = vals[:, 2]
     if yaw_name == "yaw_deg":
         yaw = np.radians(yaw)
@@ -447,7 +480,7 @@ def read_txyyaw_csv(path: str | Path, time_unit: str | None = None) -> PoseSeque
         if np.any(beyond):
             i = int(np.argmax(beyond))
             raise PoseFileError(
-                f"{path}:{rows[i][0]}: yaw {yaw[i]:g} is beyond 2 pi, but a plain yaw column (or one without a "
+                f"{path}:{int(table.linenos[i])}: yaw {yaw[i]:g} is beyond 2 pi, but a plain yaw column (or one without a "
                 f"header) is read as radians; these look like degrees: name the column yaw_deg in a header line "
                 f"(e.g. t_us,x,y,yaw_deg), or yaw_rad if they really are radians")
     t_name = first[0].strip() if header is not None else "t"

@@ -428,3 +428,30 @@ def test_an_empty_pose_file_says_so(tmp_path):
     path.write_bytes(b"")
     with pytest.raises(PoseFileError, match=r"empty file \(0 bytes\)"):
         read_poses(path)
+
+
+def test_reader_keeps_only_the_columns_it_needs_and_mixed_integer_times_stay_exact(tmp_path):
+    """Rows are parsed as they are read (QA session 40: a 24 MB Boreas file's rows kept as strings took +320 MB):
+    the same values as before, integer times exact in int64 until one is not an integer, then every time float."""
+    p = tmp_path / "poses.csv"
+    p.write_text("t_us,x,y,yaw\n1606417230000001,1.5,2.5,0.1\n1606417230250001,2.5,2.5,0.1\n")
+    seq = read_poses(p)
+    assert seq.timestamps_us.tolist() == [1606417230000001, 1606417230250001]  # not rounded through float64
+    np.testing.assert_allclose(seq.xy, [[1.5, 2.5], [2.5, 2.5]])
+    p.write_text("t_s,x,y,yaw\n10,0,0,0\n10.25,1,0,0\n10.5,2,0,0\n")
+    seq = read_poses(p)
+    assert seq.timestamps_us.tolist() == [10_000_000, 10_250_000, 10_500_000]
+
+
+def test_a_time_beyond_int64_or_a_header_column_past_the_row_is_a_pose_file_error(tmp_path):
+    """Both were other errors before: an OverflowError (a 5xx through the service's upload), and 'non-numeric
+    value' for a row that is merely shorter than the header's column order needs."""
+    p = tmp_path / "poses.csv"
+    p.write_text("t_us,x,y,yaw\n1606417230000000,0,0,0\n99999999999999999999999,1,0,0\n")
+    with pytest.raises(PoseFileError, match="overflow"):
+        read_poses(p)
+    b = tmp_path / "radar_poses.csv"
+    b.write_text("GPSTime,easting,northing,altitude,vel_east,vel_north,vel_up,roll,pitch,angvel_z,angvel_y,angvel_x,"
+                 "heading\n1606417230000000,0,0,0,0,0,0,0,0,0\n")
+    with pytest.raises(PoseFileError, match=r"radar_poses.csv:2: expected at least 13 columns"):
+        read_poses(b)
