@@ -1011,7 +1011,17 @@ class MapWriter:
         self._read_lock = threading.Lock()
 
     def __enter__(self) -> MapWriter:
-        self._file = h5py.File(self._tmp, "w")
+        try:  # the OS's reason in words, not HDF5's "unable to synchronously create file" naming the temporary file
+            with open(self._tmp, "xb"):
+                pass
+        except OSError as exc:
+            raise OSError(exc.errno, f"cannot create the map file {self.path.name} there: "
+                                     f"{exc.strerror or exc}") from None
+        try:
+            self._file = h5py.File(self._tmp, "w")
+        except BaseException:
+            self._tmp.unlink(missing_ok=True)
+            raise
         self._file.create_group("keyframes")
         return self
 

@@ -34,12 +34,18 @@ from reradar_core.io.datasets import (
     warn_names_off_first_azimuth,
 )
 from reradar_core.io.presets import RadarPreset, get_preset
-from reradar_core.io.scan import MAX_SCAN_TIMESTAMP_US, max_scan_file_bytes, navtech_png_first_time_us
+from reradar_core.io.scan import (
+    MAX_SCAN_TIMESTAMP_US,
+    NAVTECH_META_COLUMNS,
+    max_scan_file_bytes,
+    navtech_png_first_time_us,
+    scan_header,
+)
 from service.core.errors import BadRequestError, PayloadTooLargeError
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["extract_scan_archive", "check_scan_times", "scan_time_us", "navtech_png_scan_time_us",
+__all__ = ["extract_scan_archive", "check_scan_times", "check_scan_layouts", "scan_time_us", "navtech_png_scan_time_us",
            "duplicate_scan_time_message", "scan_name_time_message", "SWEEP_PRESET",
            "max_archive_members", "zip_entries_exceed", "SCAN_NAME_PATTERN",
            "MAX_SCAN_TIMESTAMP_US", "ARCHIVE_MEMBER_SLACK", "MAX_TAR_HEADER_BYTES", "TarHeaderTooLargeError"]
@@ -372,6 +378,47 @@ def check_scan_times(scan_paths: list[Path], preset: str | RadarPreset | None = 
         raise BadRequestError(first + more)
     # as a sequence folder's (load_sequence): a convention, not another instant, but worth a word
     warn_names_off_first_azimuth(off_us, len(scan_paths), sweep, logger, "uploaded scans")
+
+
+def _scan_layout(path: Path) -> tuple[int, int]:
+    """(azimuths, range bins) an archive scan's header declares (a Navtech PNG's columns less its 11 metadata
+    columns, an .npy's columns), read from its first 64 kB.
+
+    Raises:
+        ScanFormatError: no scan header there (naming the member)."""
+    with path.open("rb") as fh:
+        head = fh.read(65536)
+    try:
+        header = scan_header(head, path.stat().st_size)
+    except ScanFormatError as exc:
+        raise ScanFormatError(f"scan archive member {path.name}: {exc}") from None
+    rows, cols = header.shape
+    return rows, (cols - NAVTECH_META_COLUMNS if header.format == "png" else cols)
+
+
+def check_scan_layouts(scan_paths: list[Path], refusal: Callable[[Path], str | None] | None = None) -> None:
+    """Refuse, before the build, an archive whose scans are not all of one radar layout, and one whose layout the
+    build's decoder refuses (QA session 40: a scan of another radar's range-bin count failed the build only when
+    the build reached it, after minutes).
+
+    Reads each scan's header (its first 64 kB: the azimuth and range-bin counts it declares) and decodes one scan
+    of the layout as the build will (``refusal``), so the build's own rule and words decide what a layout must be.
+
+    Raises:
+        ScanFormatError (422): a member without a scan header; scans of two layouts (naming one of each and how
+        many there are of each); the build's reason to refuse the layout's first scan.
+    """
+    layouts: dict[tuple[int, int], list[str]] = {}
+    for path in scan_paths:
+        layouts.setdefault(_scan_layout(path), []).append(path.name)
+    if len(layouts) > 1:
+        (a, a_names), (b, b_names) = sorted(layouts.items(), key=lambda kv: -len(kv[1]))[:2]
+        raise ScanFormatError(
+            f"the archive holds scans of {len(layouts)} radar layouts: {len(a_names)} of {a[0]} azimuths x {a[1]} "
+            f"range bins (e.g. {a_names[0]}) and {len(b_names)} of {b[0]} x {b[1]} (e.g. {b_names[0]}); one map is "
+            "built from one radar's scans: send them in separate maps, or convert them (`reradar import-scans`)")
+    if refusal is not None and scan_paths and (why := refusal(scan_paths[0])) is not None:
+        raise ScanFormatError(f"scan archive member {why}")
 
 
 def scan_name_time_message(name: str, embedded_us: int, preset: str | RadarPreset | None = None) -> str | None:

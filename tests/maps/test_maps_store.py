@@ -344,3 +344,13 @@ def test_a_stored_place_repetition_round_trips_and_a_damaged_one_is_refused(tmp_
 
     with pytest.raises(MapFormatError, match="must be a group"):
         open_map(_map_with(tmp_path, "rep-dataset", not_a_group))
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc, where no file can be created")
+def test_a_map_that_cannot_be_created_says_why_in_words_without_the_temporary_name(tmp_path: Path) -> None:
+    """QA session 40: `build-map --out /proc/x.h5` ended in HDF5's "unable to synchronously create file" naming the
+    writer's hidden temporary file."""
+    with pytest.raises(OSError) as info, MapWriter(Path("/proc/x.h5"), _meta()):
+        pass
+    assert info.value.strerror == "cannot create the map file x.h5 there: No such file or directory"
+    assert ".tmp" not in str(info.value)

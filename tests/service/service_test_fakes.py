@@ -63,6 +63,17 @@ def make_scan(seed: int, t_us: int, n_targets: int = 40, preset: str = "boreas")
     return RadarScan.from_power(power, preset, start_time_us=t_us)
 
 
+def damaged_png(scan: RadarScan) -> bytes:
+    """``scan`` as a Navtech PNG whose compressed data is damaged past its first rows: the upload reads its header
+    and its time, only the build's full decode refuses it (a scan the service cannot refuse before the build)."""
+    from reradar_core.io.scan import encode_navtech_png_bytes
+
+    data = bytearray(encode_navtech_png_bytes(scan))
+    mid = len(data) * 3 // 4
+    data[mid:mid + 64] = bytes(b ^ 0xFF for b in data[mid:mid + 64])
+    return bytes(data)
+
+
 def keyframe_poses() -> np.ndarray:
     return np.column_stack([np.arange(N_KEYFRAMES) * 40.0, np.arange(N_KEYFRAMES) * -3.0,
                             np.linspace(0.0, 1.0, N_KEYFRAMES)])

@@ -34,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from service_test_fakes import (  # noqa: E402
     API_KEY,
     FakeExtractor,
+    damaged_png,
     keyframe_poses,
     keyframe_time,
     make_scan,
@@ -242,10 +243,20 @@ def test_failed_build_reports_the_message_without_the_class(live: tuple[httpx.Cl
     detail = r.json()["detail"]
     assert detail.startswith(f"scan archive member {keyframe_time(2)}.png: "), detail
     assert "Error:" not in detail and "/tmp" not in detail
-    # a scan the upload can time but the build refuses (another radar's bin count) fails the build, which says why
+    # another radar's scan among them (its time reads at upload) is refused at upload too, naming both layouts
+    # (QA session 40: it failed the build when the build reached it)
     other = encode_navtech_png_bytes(RadarScan.from_power(np.zeros((400, 3768), np.float32), "oxford",
                                                           start_time_us=keyframe_time(2)))
     files = {"archive": ("a.zip", _archive(corrupt=2, bad=other)), "poses": ("p.csv", _poses_csv())}
+    r = client.post("/maps", data={"map_id": "broken", "preset": "boreas"}, files=files, headers=AUTH)
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"] == (
+        "the archive holds scans of 2 radar layouts: 3 of 400 azimuths x 3360 range bins (e.g. "
+        f"{keyframe_time(0)}.png) and 1 of 400 x 3768 (e.g. {keyframe_time(2)}.png); one map is built from one "
+        "radar's scans: send them in separate maps, or convert them (`reradar import-scans`)")
+    # a scan whose data is damaged past its first rows (header and time read at upload) fails the build, which says why
+    files = {"archive": ("a.zip", _archive(corrupt=2, bad=damaged_png(make_scan(2, keyframe_time(2))))),
+             "poses": ("p.csv", _poses_csv())}
     r = client.post("/maps", data={"map_id": "broken", "preset": "boreas"}, files=files, headers=AUTH)
     assert r.status_code == 202, r.text
     for _ in range(600):

@@ -25,10 +25,10 @@ import numpy as np
 import pytest
 
 from reradar_core.io.poses import PoseSequence, write_txyyaw_csv
-from reradar_core.io.scan import RadarScan, encode_navtech_png_bytes
+from reradar_core.io.scan import encode_navtech_png_bytes
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from service_test_fakes import API_KEY, keyframe_time, make_scan, register_map_file  # noqa: E402
+from service_test_fakes import API_KEY, damaged_png, keyframe_time, make_scan, register_map_file  # noqa: E402
 
 AUTH = {"X-API-Key": API_KEY}
 HERE = Path(__file__).resolve().parent
@@ -158,14 +158,12 @@ def _poses(n: int) -> np.ndarray:
 
 
 def _archive(n: int, seed0: int = 100, corrupt: int | None = None) -> dict[str, tuple[str, bytes]]:
-    """``corrupt``: that scan is another radar's (3,768 bins: its time reads at upload, the build refuses it)."""
+    """``corrupt``: that scan's data is damaged past its first rows (its time reads at upload, the build refuses it)."""
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as zf:
         for i in range(n):
             scan = make_scan(seed0 + i, keyframe_time(i))
-            if i == corrupt:
-                scan = RadarScan.from_power(np.zeros((400, 3768), np.float32), "oxford", start_time_us=keyframe_time(i))
-            data = encode_navtech_png_bytes(scan)
+            data = damaged_png(scan) if i == corrupt else encode_navtech_png_bytes(scan)
             zf.writestr(f"{keyframe_time(i)}.png", data)
     poses = _poses(n)
     csv = io.StringIO()

@@ -373,3 +373,33 @@ def test_pose_uncertainty_turns_the_heading_into_degrees() -> None:
     assert u.covariance[0][1] == pytest.approx(0.1) and u.covariance[1][1] == pytest.approx(2.0)
     assert (u.sigma_x_m, u.sigma_y_m) == (pytest.approx(1.0), pytest.approx(math.sqrt(2.0)))
     assert u.sigma_yaw_deg == pytest.approx(0.01 * d)  # 0.573 deg
+
+
+def test_scan_layouts_are_checked_from_the_headers_before_the_build(tmp_path: Path) -> None:
+    """QA session 40: a scan of another radar's layout failed the build only when the build reached it. One
+    layout across PNG and .npy passes (a PNG's 11 metadata columns are not range bins); two layouts, or a
+    member with no scan header, are refused naming them; the layout's first scan is decoded as the build will."""
+    from service_test_fakes import make_scan
+
+    from reradar_core.errors import ScanFormatError
+    from reradar_core.io.scan import encode_navtech_png_bytes
+    from service.core.archive import check_scan_layouts
+
+    png = tmp_path / "1000.png"
+    png.write_bytes(encode_navtech_png_bytes(make_scan(1, 1000)))
+    npy = tmp_path / "2000.npy"
+    np.save(npy, np.zeros((400, 3360), np.float32))
+    other = tmp_path / "3000.npy"
+    np.save(other, np.zeros((400, 3768), np.float32))
+    broken = tmp_path / "4000.npy"
+    broken.write_bytes(b"\x93NUMPY garbage")
+    decoded: list[str] = []
+    check_scan_layouts([png, npy], lambda p: decoded.append(p.name))  # type: ignore[func-returns-value]
+    assert decoded == ["1000.png"]
+    with pytest.raises(ScanFormatError, match=r"^the archive holds scans of 2 radar layouts: 2 of 400 azimuths x 3360 "
+                                              r"range bins \(e\.g\. 1000\.png\) and 1 of 400 x 3768 \(e\.g\. 3000\.npy\)"):
+        check_scan_layouts([png, npy, other])
+    with pytest.raises(ScanFormatError, match=r"^scan archive member 4000\.npy: "):
+        check_scan_layouts([png, broken])
+    with pytest.raises(ScanFormatError, match=r"^scan archive member 1000\.png: unreadable$"):
+        check_scan_layouts([png], lambda p: f"{p.name}: unreadable")

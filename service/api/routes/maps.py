@@ -33,7 +33,13 @@ from service.api.schemas import (
     RetrieveRequest,
     RetrieveResponse,
 )
-from service.core.archive import SCAN_NAME_PATTERN, SWEEP_PRESET, check_scan_times, extract_scan_archive
+from service.core.archive import (
+    SCAN_NAME_PATTERN,
+    SWEEP_PRESET,
+    check_scan_layouts,
+    check_scan_times,
+    extract_scan_archive,
+)
 from service.core.config import MAP_ID_PATTERN
 from service.core.errors import BadRequestError, shorten_echo
 from service.core.registry import MapEntry
@@ -171,6 +177,8 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         check_scan_times(scan_paths, get_preset(preset or SWEEP_PRESET),
                          lambda path: registry.decoded_scan_time_us(path, preset),
                          lambda path: registry.scan_refusal(path, preset))
+        # one radar layout, one the build reads (each header's first bytes, one scan decoded), before minutes of build
+        check_scan_layouts(scan_paths, lambda path: registry.scan_refusal(path, preset))
         pose_path = work / "poses.csv"
         _save_upload(poses, pose_path)
         try:
