@@ -290,7 +290,9 @@ class Settings(BaseSettings):
         "Prefix of every Redis key (`<namespace>:v1:...`), so several deployments can share one Redis."))
     map_sync_interval_s: float = Field(default=5.0, gt=0, description=(
         "With Redis, every replica re-checks the shared maps folder this often in case a registry event "
-        "was missed (events themselves apply within a second)."))
+        "was missed (events themselves apply within a second); in one process without Redis, the maps folder is "
+        "re-read this often, so a map file copied in, removed or rebuilt in place by hand is served, dropped or "
+        "reopened within this time."))
     recent_localizations: int = Field(default=200, ge=1, le=10_000, description=(
         "Latest localizations per map kept for the operator page."))
     build_job_timeout_s: float = Field(default=3600.0, gt=0, description=(

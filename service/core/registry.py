@@ -1065,11 +1065,12 @@ class MapRegistry:
             if entry.state == "building":
                 raise ConflictError(f"map {map_id!r} is being built; wait for the job to finish")
             del self._entries[map_id]
-        if entry.db is not None:  # requests already using it finish on the open file (unlinked below)
+            if map_id == DEMO_MAP_ID:  # before the file goes: a crash in between leaves neither to reinstall
+                (self.maps_dir / DEMO_DELETED_MARKER).touch()
+            # with the entry, under the lock: a folder pass (``adopt``) in between would load the file again
+            entry.path.unlink(missing_ok=True)
+        if entry.db is not None:  # requests already using it finish on the open file
             self._retire(entry.db)
-        if map_id == DEMO_MAP_ID:  # before the file goes: a crash in between leaves neither to reinstall
-            (self.maps_dir / DEMO_DELETED_MARKER).touch()
-        entry.path.unlink(missing_ok=True)
         far_view_path(entry.path).unlink(missing_ok=True)
         self._verified_marker(map_id).unlink(missing_ok=True)
         self._verified_marker(_far_marker_id(far_view_path(entry.path))).unlink(missing_ok=True)

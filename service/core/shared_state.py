@@ -354,6 +354,59 @@ class RecentLocalizations:
             self._local.pop(map_id, None)
 
 
+def reconcile_with_folder(registry: MapRegistry, extra: Callable[[], None] | None = None) -> None:
+    """One pass of bringing ``registry`` in step with its maps folder: a map file without a registry entry is
+    loaded (``MapRegistry.adopt``), a ready entry (or one that failed to open its file) whose file is gone is
+    dropped (``MapRegistry.forget``), and one whose file is another file than the one it opened is reopened
+    (``MapRegistry.reopen_if_replaced``). ``extra`` (the build jobs' view) runs after it."""
+    on_disk = {p.stem for p in registry.maps_dir.glob("*.h5") if _valid_id(registry, p.stem)}
+    known = {e.map_id: e for e in registry.entries()}
+    for map_id in sorted(on_disk - known.keys()):
+        entry = registry.adopt(map_id)
+        if entry is not None:
+            logger.info("map %s loaded from the maps folder (%s)", map_id, entry.state, extra={"map_id": map_id})
+    for map_id, entry in known.items():
+        # a loaded map whose file is gone was deleted elsewhere; a failed build never had a file (its entry
+        # follows its build record: ``reconcile_builds``)
+        from_file = entry.state == "ready" or (entry.state == "failed" and entry.file_id is not None)
+        if from_file and map_id not in on_disk and not entry.path.exists():
+            registry.forget(map_id)
+            logger.info("map %s dropped: its file was deleted by another process", map_id, extra={"map_id": map_id})
+        elif from_file and (new := registry.reopen_if_replaced(map_id)) is not None:
+            logger.info("map %s reopened: its file was replaced by another process (%s)", map_id, new.state,
+                        extra={"map_id": map_id})
+    if extra is not None:
+        extra()
+
+
+class FolderSync:
+    """One process without Redis: re-reads the maps folder every ``interval_s`` (``reconcile_with_folder``), so a
+    map copied in, deleted or rebuilt in place by hand (``reradar build-map --out <maps>/<id>.h5 --overwrite``)
+    is served, dropped or reopened within that time instead of at the next start (QA session 40)."""
+
+    def __init__(self, registry: MapRegistry, interval_s: float) -> None:
+        self._registry = registry
+        self._interval_s = interval_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="map-folder-sync", daemon=True)
+        self.passes = 0
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._interval_s):
+            try:
+                reconcile_with_folder(self._registry)
+                self.passes += 1
+            except Exception:  # noqa: BLE001 - never let the sync thread die
+                logger.exception("maps folder pass failed")
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+
 # ---- map registry events -------------------------------------------------------------------------------------
 class MapSync:
     """Keeps this replica's registry in step with the shared maps folder, driven by Redis events.
@@ -388,26 +441,7 @@ class MapSync:
                            op, map_id, exc, self._interval_s)
 
     def reconcile(self) -> None:
-        registry = self._registry
-        on_disk = {p.stem for p in registry.maps_dir.glob("*.h5") if _valid_id(registry, p.stem)}
-        known = {e.map_id: e for e in registry.entries()}
-        for map_id in sorted(on_disk - known.keys()):
-            entry = registry.adopt(map_id)
-            if entry is not None:
-                logger.info("map %s loaded from the shared maps folder (%s)", map_id, entry.state,
-                            extra={"map_id": map_id})
-        for map_id, entry in known.items():
-            # a loaded map whose file is gone was deleted elsewhere; a failed build never had a file (its entry
-            # follows its build record: ``reconcile_builds``)
-            from_file = entry.state == "ready" or (entry.state == "failed" and entry.file_id is not None)
-            if from_file and map_id not in on_disk and not entry.path.exists():
-                registry.forget(map_id)
-                logger.info("map %s dropped: deleted by another replica", map_id, extra={"map_id": map_id})
-            elif from_file and (new := registry.reopen_if_replaced(map_id)) is not None:
-                logger.info("map %s reopened: its file was replaced by another replica (%s)", map_id, new.state,
-                            extra={"map_id": map_id})
-        if self._extra is not None:
-            self._extra()
+        reconcile_with_folder(self._registry, self._extra)
         self.passes += 1
 
     def _run(self) -> None:
@@ -486,6 +520,7 @@ class OpsRuntime:
         self.redis: redis.Redis | None = connect(settings.redis_url) if settings.redis_url else None
         self.recent = RecentLocalizations(settings.recent_localizations, self.redis, self.keys)
         self.sync: MapSync | None = None
+        self.folder_sync: FolderSync | None = None
         self.jobs: Any = None  # service.core.jobs.BuildQueue with Redis
 
     def scan_store(self) -> ScanCache:
@@ -516,8 +551,10 @@ class OpsRuntime:
             self.sync.publish(op, map_id)
 
     def start(self, registry: MapRegistry) -> None:
-        """Start following other replicas' map changes (Redis only)."""
+        """Start following other replicas' map changes (with Redis), or the maps folder's (one process)."""
         if self.redis is None:
+            self.folder_sync = FolderSync(registry, self.settings.map_sync_interval_s)
+            self.folder_sync.start()
             return
         extra = None
         if self.jobs is not None and hasattr(registry, "reconcile_builds"):
@@ -527,6 +564,8 @@ class OpsRuntime:
         self.sync.start()
 
     def close(self) -> None:
+        if self.folder_sync is not None:
+            self.folder_sync.stop()
         if self.sync is not None:
             self.sync.stop()
         if self.redis is not None:
