@@ -200,6 +200,9 @@ def test_dense_registration_localizes_what_both_views_refused(two_views) -> None
     # and the rotation into the map frame: an anisotropic setting keeps its axes along / across the heading
     aniso = FarViewConfig(dense_pose_sigma=(0.1, 1.0, 0.01)).dense_pose_covariance(np.array([0.0, 0.0, np.pi / 2]))
     np.testing.assert_allclose(aniso[:2, :2], np.diag([1.0, 0.01]), atol=1e-12)  # heading north: along = map y
+    for yaw in np.linspace(-3.1, 3.1, 37):  # exactly symmetric at any heading (QA session 41: 1e-18 apart)
+        cov = FarViewConfig(dense_pose_sigma=(0.3, 0.7, 0.01)).dense_pose_covariance(np.array([5.0, -2.0, yaw]))
+        assert np.array_equal(cov, cov.T)
     assert "dense_ms" in out.result.timings_ms and len(calls) == FarViewConfig().dense_candidates
     # the winner's entry in the candidate list is the dense answer, not the far view's refusal
     entry = next(c for c in out.result.candidates if c.keyframe_id == 2)
