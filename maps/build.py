@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ from tqdm import tqdm
 
 from maps.paths import far_view_path
 from maps.store import MapMetadata, MapWriter
-from reradar_core.errors import ConfigError
+from reradar_core.errors import ConfigError, PoseFileError
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import check_poses, check_yaw_radians
 from reradar_core.io.scan import RadarScan
@@ -27,6 +28,12 @@ from reradar_core.localization import (
 from reradar_core.localization.extractor import FeatureExtractor
 from reradar_core.localization.far_view import FarViewConfig
 from reradar_core.localization.keyframes import select_keyframes  # re-exported: the map builder's rule
+from reradar_core.localization.pose_clock import (
+    PoseClockConfig,
+    consecutive_registrations,
+    pose_clock_message,
+    pose_clock_offset,
+)
 from reradar_core.matching.dense import DenseConfig, dense_image, dense_image_settings
 from reradar_core.matching.motion import keyframe_twists, time_neighbours
 from reradar_core.retrieval import GlobalIndex
@@ -184,6 +191,8 @@ def build_map(
     repetition_workers: int | None = None,
     far_view: FarViewConfig | None = None,
     dense: DenseConfig | None = None,
+    pose_clock: PoseClockConfig | None = PoseClockConfig(),
+    pose_at: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Path:
     """Describe scans ``load_scan(0..N-1)`` in batches and write an HDF5 map at ``out`` (atomically).
 
@@ -216,9 +225,19 @@ def build_map(
             (``far_view.dense``) for the far view's dense registration.
         dense: store every keyframe's dense image (``matching.dense.dense_image`` of its scan in the extractor's
             geometry, ~90 KB per 257 px keyframe) with these settings; None (default for a map itself): none.
+        pose_clock: check that the poses run on the scans' clock (``localization.pose_clock``: every keyframe
+            registered against the one before, 5-25 ms a pair, and the turns compared with the poses'); a pose file
+            off by more than a sweep is refused (``PoseFileError``, saying by how much and what to add). None: no
+            check (the far-view companion's build: the map's own checked the same poses).
+        pose_at: the pose file's pose (3,) at any scan time (µs (M,) -> (M, 3), at its mid-sweep time as ``poses``),
+            which the check reads at shifted times; None: ``poses`` interpolated between keyframes (enough for scans
+            a sweep or two apart; keyframes seconds apart cut corners).
 
     Returns:
         ``out``.
+
+    Raises:
+        PoseFileError: the poses are off the scans' clock (``pose_clock``); nothing is written.
     """
     if far_view is not None and not hasattr(extractor, "with_view"):
         raise ConfigError(f"model {extractor.model_id!r} cannot describe a far view (no with_view)")
@@ -273,6 +292,19 @@ def build_map(
                            "on them (blank or nearly blank sweeps?)", Path(out).name, len(sparse), n,
                            _MIN_MAP_KEYPOINTS, ", ".join(str(i) for i in sparse[:5]), " ..." if len(sparse) > 5 else "")
         config = localization or LocalizationConfig()
+        if pose_clock is not None and n >= 2:  # before the map is measured and installed: poses of other instants
+            clock_last = [time.monotonic()]
+
+            def clock_beat(_i: int) -> None:
+                if progress is not None and time.monotonic() - clock_last[0] >= 1.0:
+                    clock_last[0] = time.monotonic()
+                    progress(n, total)
+
+            align = replace(config.alignment, min_inliers=config.min_inliers)  # the pose estimator's (verify_candidate)
+            T_prev_next, ratio = consecutive_registrations(writer.read_keyframe, n, align, clock_beat)
+            clock = pose_clock_offset(T_prev_next, ratio, writer.timestamps_us, writer.poses, pose_clock, pose_at)
+            if clock.offset_detected:
+                raise PoseFileError(pose_clock_message(clock, "the keyframe poses"))
         if place_repetition and config.checks_place_repetition:  # else no query would read it
             last = [time.monotonic()]
 
@@ -313,7 +345,8 @@ def build_map(
                   max_keypoints=max_keypoints, overwrite=True, progress=None if progress is None else far_progress,
                   show_progress=show_progress,
                   place_repetition=place_repetition, localization=localization,
-                  repetition_workers=repetition_workers, dense=far_view.dense)
+                  repetition_workers=repetition_workers, dense=far_view.dense,
+                  pose_clock=None)  # the map's own build checked the same poses
     return Path(out)
 
 
@@ -324,12 +357,14 @@ def build_map_from_sequence(sequence_dir: str | Path, out: str | Path, extractor
 
     ``time_unit`` is the unit of the pose file's timestamps (``s``, ``ms``, ``us``, ``ns``) where they are not
     absolute UTC times (``load_sequence``'s ``pose_time_unit``); None: never guessed."""
-    from reradar_core.io.datasets import load_sequence
+    from reradar_core.io.datasets import load_sequence, mid_sweep_poses_in
 
     seq = load_sequence(sequence_dir, layout=layout, preset=preset, pose_time_unit=time_unit)
     keep = select_keyframes(seq.poses.poses, min_spacing_m)
     seq = seq.subset(keep)
     kwargs.setdefault("source", f"{seq.layout}:{Path(sequence_dir).resolve()}")
+    track = seq.track if seq.track is not None and len(seq.track) else seq.poses
+    kwargs.setdefault("pose_at", lambda t_us: mid_sweep_poses_in(track, t_us, seq.preset))  # as the keyframe poses
     kwargs.setdefault("name", seq.name)
     # keyframe poses at mid-sweep: what a registration against the keyframe's whole sweep aligns
     # (docs/CONVENTIONS.md)

@@ -35,6 +35,11 @@ def build_map_command(
                                           help="Measure where the map repeats itself (each keyframe localized "
                                           "against the map, ~20-40 ms per keyframe and thread) and store it, so no "
                                           "query pays for it (docs/MODEL.md, 'Repeated places')."),
+    pose_clock_check: bool = typer.Option(True, "--pose-clock-check/--no-pose-clock-check",
+                                          help="Check that the pose file runs on the scans' clock: every keyframe "
+                                          "registered against the one before (5-25 ms a pair) and its turn compared "
+                                          "with the poses'; a pose file more than a sweep off (GPS against UTC time: "
+                                          "18 s) is refused, saying by how much (docs/MODEL.md, 'The pose clock')."),
     threads: int = typer.Option(1, min=1, help="torch CPU threads."),
     model: str = typer.Option("default", help="Descriptor model: registry name or .pt weights path."),
     far_view: bool = typer.Option(False, "--far-view/--no-far-view",
@@ -83,6 +88,8 @@ def build_map_command(
                                          overwrite=overwrite, show_progress=True, place_repetition=place_repetition)
         if name:
             kwargs["name"] = name
+        if not pose_clock_check:
+            kwargs["pose_clock"] = None
         if far_view:
             from reradar_core.localization import FarViewConfig
 

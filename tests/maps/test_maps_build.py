@@ -504,3 +504,68 @@ def test_a_keypoint_cap_below_one_is_refused(tmp_path: Path, cap: int) -> None:
 def test_select_keyframes_refuses_positions_without_headings() -> None:
     with pytest.raises(ConfigError, match=r"\(N, 3\)"):
         select_keyframes(np.c_[np.arange(6.0), np.zeros(6)], 1.0)
+
+
+class WorldExtractor:
+    """Fake model that sees a fixed world: each scan's landmarks are the world's points within 60 m of where the
+    drive was at the scan's time (``truth``: time -> T_world_sensor), in the sensor frame, each with its own local
+    descriptor, so that consecutive keyframes register (the real ``estimate_pose_guided``) as real scans would."""
+
+    model_id = "world"
+    weights_sha256 = "w" * 64
+    descriptor_dim = 8
+    cartesian = CartesianConfig()
+
+    def __init__(self, truth: dict[int, np.ndarray], seed: int = 0) -> None:
+        rng = np.random.default_rng(seed)
+        self.truth = truth
+        self.points = rng.uniform(-250.0, 250.0, (3000, 2))
+        desc = rng.normal(size=(3000, 16))
+        self.desc = (desc / np.linalg.norm(desc, axis=1, keepdims=True)).astype(np.float32)
+
+    def describe_batch(self, scans: list[RadarScan]) -> list[ScanFeatures]:
+        out = []
+        for scan in scans:
+            x, y, yaw = self.truth[scan.timestamp_us]
+            c, s = np.cos(yaw), np.sin(yaw)
+            local = (self.points - [x, y]) @ np.array([[c, -s], [s, c]])  # R(yaw)^T (p - t)
+            near = np.hypot(local[:, 0], local[:, 1]) < 60.0
+            g = np.ones(self.descriptor_dim) / np.sqrt(self.descriptor_dim)
+            out.append(ScanFeatures(g, local[near], self.desc[near], scan.timestamp_us))
+        return out
+
+
+def _turning_drive(n: int = 160) -> tuple[np.ndarray, np.ndarray]:
+    """Times (µs, 4 Hz) and true poses (N, 3) of a 10 m/s drive with three turns at irregular times."""
+    t = np.arange(n) * 0.25
+    yaw = sum(np.radians(a) * np.clip((t - t0) / d, 0.0, 1.0) for t0, a, d in [(8.0, 90.0, 3.0), (19.0, -60.0, 4.0),
+                                                                               (31.0, 120.0, 5.0)])
+    x = np.cumsum(10.0 * np.cos(yaw)) * 0.25
+    y = np.cumsum(10.0 * np.sin(yaw)) * 0.25
+    return 1_600_000_000_000_000 + (t * 1e6).astype(np.int64), np.column_stack([x, y, yaw])
+
+
+def test_a_build_refuses_poses_off_the_scans_clock_and_says_by_how_much(tmp_path: Path) -> None:
+    """QA session 40: a pose file 1 s off the scans' clock (GPS against UTC time: 18 s) built a map whose keyframes
+    sat 7 m along the track and 37 degrees off at a corner, without a word."""
+    from reradar_core.errors import PoseFileError
+
+    stamps, truth = _turning_drive()
+    ext = WorldExtractor({int(t): p for t, p in zip(stamps, truth, strict=True)})
+    blank = np.zeros((400, 3360), np.float32)
+
+    def scan(i: int) -> RadarScan:
+        return RadarScan.from_power(blank, "boreas", start_time_us=int(stamps[i]))
+
+    def at(shift_s: float) -> np.ndarray:  # the poses a pose file shift_s behind the scans' clock gives
+        t = (stamps - stamps[0]) / 1e6 + shift_s
+        return np.column_stack([np.interp(t, (stamps - stamps[0]) / 1e6, truth[:, k]) for k in range(3)])
+
+    out = build_map(tmp_path / "ok.h5", ext, scan, truth, radar_preset="boreas", place_repetition=False)
+    assert out.is_file()  # on the scans' clock: built
+    with pytest.raises(PoseFileError, match=r"^the keyframe poses are 1\.00 s behind the scans' clock: .* add \+1\.00 s "
+                                            r"to its times$"):
+        build_map(tmp_path / "off.h5", ext, scan, at(1.0), radar_preset="boreas", place_repetition=False)
+    assert not (tmp_path / "off.h5").exists() and not list(tmp_path.glob(".off.h5*"))  # nothing written
+    build_map(tmp_path / "unchecked.h5", ext, scan, at(1.0), radar_preset="boreas", place_repetition=False,
+              pose_clock=None)  # the check can be left out (the far-view companion's build)
