@@ -793,10 +793,18 @@ def check_pose_span(track: PoseSequence, stamps_us: np.ndarray, names: list[str]
     if any(outside):
         i = outside.index(True)
         first, last = int(track.timestamps_us[0]), int(track.timestamps_us[-1])
+        start_off, end_off = int(np.min(t)) - first, int(np.max(t)) - last
+        clock = ""
+        if abs(start_off - end_off) <= 1_000_000 and abs(start_off + end_off) / 2 >= POSE_SPAN_SLACK_US:
+            # both ends shifted alike: one recording, two clocks (the pose-clock check cannot run on it)
+            shift_s = (start_off + end_off) / 2e6
+            clock = (f"; both ends of the scans' span lie {shift_s:+.2f} s from the pose file's: a pose file on another "
+                     f"clock{' (GPS time runs 18 s ahead of UTC)' if 17 <= abs(shift_s) <= 19 else ''}? Add "
+                     f"{shift_s:+.2f} s to its times")
         raise DatasetError(f"{names[i]}: scan time {int(t[i])} us lies outside the pose file's time span, {first} to "
                            f"{last} us ({pose_file}; the scans span {int(np.min(t))} to {int(np.max(t))} us"
                            f"{': relative pose times against absolute scan names?' if last < 1e14 <= int(t[i]) else ''})"
-                           f"{outside_hint}")
+                           f"{clock}{outside_hint}")
     stamps = np.asarray(track.timestamps_us, np.int64)
     after = np.clip(np.searchsorted(stamps, t, side="left"), 1, len(stamps) - 1) if len(stamps) > 1 else None
     if after is not None:

@@ -415,3 +415,24 @@ def test_a_single_pose_glitch_is_named(tmp_path):
     write_boreas_radar_poses(PoseSequence(track.timestamps_us, xy, track.yaw), root / "applanix" / "radar_poses.csv")
     with pytest.raises(DatasetError, match=rf"pose at {times[21]} us lies .* faster than sound.*2 such step"):
         load_sequence(root, preset="boreas")
+
+
+def test_scans_outside_a_pose_file_on_another_clock_are_told_the_shift():
+    """QA session 41: a GPS-time pose file (18 s ahead of UTC) recorded beside the radar leaves the scans outside its
+    span, and the span check fired before the build's pose-clock check could say so: the message now does when both
+    ends of the two spans are shifted alike."""
+    from reradar_core.io.datasets import check_pose_span
+
+    scans = T0 + np.arange(40) * 250_000
+    names = [f"{t}.png" for t in scans]
+    with pytest.raises(DatasetError, match=r"both ends of the scans' span lie -18\.00 s from the pose file's: a pose "
+                                           r"file on another clock \(GPS time runs 18 s ahead of UTC\)\? Add -18\.00 s "
+                                           r"to its times$"):
+        check_pose_span(_track(scans + 18_000_000), scans, names)
+    with pytest.raises(DatasetError, match=r"lie \+1\.00 s from the pose file's: a pose file on another clock\? Add "
+                                           r"\+1\.00 s to its times$"):
+        check_pose_span(_track(scans - 1_000_000), scans, names)
+    with pytest.raises(DatasetError) as short:  # a pose file that merely stops early: no clock advice
+        check_pose_span(_track(scans[:20]), scans, names)
+    assert "another clock" not in str(short.value)
+    check_pose_span(_track(scans - 200_000), scans, names)  # within the slack: accepted
