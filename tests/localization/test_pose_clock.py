@@ -12,7 +12,8 @@ from reradar_core.localization.pose_clock import PoseClockConfig, pose_clock_mes
 
 def _drive(kind: str, hz: float = 4.0, seconds: float = 120.0) -> tuple[np.ndarray, callable]:
     """Keyframe times (µs) and the drive's true pose at any time (µs -> (3,)): 10 m/s with six turns of 45-135
-    degrees at irregular times (``corners``), or straight at 10 m/s (``straight``)."""
+    degrees at irregular times (``corners``), straight at 10 m/s (``straight``) or a slalom of +-15 degrees with a
+    12 s period (``slalom``)."""
     t_us = (1_600_000_000_000_000 + np.arange(0, seconds, 1 / hz) * 1e6).astype(np.int64)
     t0 = t_us[0]
 
@@ -22,6 +23,8 @@ def _drive(kind: str, hz: float = 4.0, seconds: float = 120.0) -> tuple[np.ndarr
     def yaw_at(s: np.ndarray) -> np.ndarray:
         if kind == "straight":
             return np.zeros_like(s)
+        if kind == "slalom":  # the same turns every 12 s
+            return np.radians(15.0) * np.sin(2 * np.pi * s / 12.0)
         return sum(np.radians(a) * np.clip((s - t) / d, 0.0, 1.0) for t, a, d in turns)
 
     def pose_at(t: np.ndarray) -> np.ndarray:
@@ -97,3 +100,45 @@ def test_config_is_checked() -> None:
         PoseClockConfig(min_inlier_ratio=0.0)
     with pytest.raises(ValueError, match="max_offset_s"):
         PoseClockConfig(max_offset_s=-1.0)
+
+
+def test_a_drive_that_repeats_its_turns_is_read_at_the_smallest_agreeing_shift() -> None:
+    """A slalom agrees with itself a period (12 s) away: the check found a pose file 1 s off at 11 s before ties
+    were broken toward the smallest shift (session 41); an offset beyond half a period is still refused, by its
+    alias (-6 s for 18 s), which is the most a drive that repeats itself can tell."""
+    t_us, pose_at = _drive("slalom", seconds=90.0)
+    meas = _measured(t_us, pose_at, noise_deg=0.05)
+    for offset_s, found in ((1.0, -1.0), (-2.0, 2.0), (18.0, -6.0)):
+        check = pose_clock_offset(meas, np.ones(len(meas)), t_us, pose_at(t_us + int(offset_s * 1e6)))
+        assert check.offset_detected and check.offset_s == pytest.approx(found, abs=0.05), (offset_s, check)
+    with pytest.raises(ValueError, match="tie_deg"):
+        PoseClockConfig(tie_deg=0.0)
+
+
+def test_a_shift_is_judged_on_every_pair_not_only_those_it_keeps_inside_the_drive() -> None:
+    """QA session 41: a 46 s drive with two right-angle turns 29 s apart and one badly registered pair. Scored on the
+    pairs a shift keeps inside the drive, 29 s dropped the bad pair and looked better than 0: a pose file on the
+    scans' clock was refused as 29.2 s off, and one 1 s off was read as 28.25 s. A pair the shift takes beyond the
+    drive now counts as given."""
+    t_us = (1_600_000_000_000_000 + np.arange(0, 46, 0.75) * 1e6).astype(np.int64)
+    t0 = t_us[0]
+
+    def pose_at(t: np.ndarray) -> np.ndarray:
+        s = (np.asarray(t, np.float64) - t0) / 1e6
+        fine = np.linspace(-40.0, 90.0, 26_001)
+        yaw = sum(np.radians(90.0) * np.clip((fine - c) / 4.0, 0.0, 1.0) for c in (8.0, 37.0))
+        dx, dy = (np.cumsum(10.0 * f(yaw)) * (fine[1] - fine[0]) for f in (np.cos, np.sin))
+        return np.stack([np.interp(s, fine, dx), np.interp(s, fine, dy), np.interp(s, fine, yaw)], axis=-1)
+
+    meas = _measured(t_us, pose_at, noise_deg=0.3)
+    late = int(np.flatnonzero(np.degrees(np.abs(meas[:, 2])) >= 1.0)[-2])  # a pair of the second turn
+    meas[late, 2] += np.radians(8.0)  # registered wrong
+    ones = np.ones(len(meas))
+    check = pose_clock_offset(meas, ones, t_us, pose_at(t_us), pose_at=pose_at)
+    assert not check.offset_detected, check
+    for offset_s in (1.0, -1.0):
+        def shifted(t: np.ndarray, d: int = int(offset_s * 1e6)) -> np.ndarray:
+            return pose_at(np.asarray(t) + d)
+
+        check = pose_clock_offset(meas, ones, t_us, shifted(t_us), pose_at=shifted)
+        assert check.offset_detected and check.offset_s == pytest.approx(-offset_s, abs=0.051), (offset_s, check)

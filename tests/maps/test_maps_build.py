@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,9 @@ from reradar_core.geometry.cartesian import CartesianConfig
 from reradar_core.io.datasets import write_sequence_poses, write_sequence_scan
 from reradar_core.io.poses import PoseSequence
 from reradar_core.io.scan import RadarScan
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from world_fakes import WorldExtractor, turning_drive  # noqa: E402
 
 
 class CountingExtractor:
@@ -506,51 +510,12 @@ def test_select_keyframes_refuses_positions_without_headings() -> None:
         select_keyframes(np.c_[np.arange(6.0), np.zeros(6)], 1.0)
 
 
-class WorldExtractor:
-    """Fake model that sees a fixed world: each scan's landmarks are the world's points within 60 m of where the
-    drive was at the scan's time (``truth``: time -> T_world_sensor), in the sensor frame, each with its own local
-    descriptor, so that consecutive keyframes register (the real ``estimate_pose_guided``) as real scans would."""
-
-    model_id = "world"
-    weights_sha256 = "w" * 64
-    descriptor_dim = 8
-    cartesian = CartesianConfig()
-
-    def __init__(self, truth: dict[int, np.ndarray], seed: int = 0) -> None:
-        rng = np.random.default_rng(seed)
-        self.truth = truth
-        self.points = rng.uniform(-250.0, 250.0, (3000, 2))
-        desc = rng.normal(size=(3000, 16))
-        self.desc = (desc / np.linalg.norm(desc, axis=1, keepdims=True)).astype(np.float32)
-
-    def describe_batch(self, scans: list[RadarScan]) -> list[ScanFeatures]:
-        out = []
-        for scan in scans:
-            x, y, yaw = self.truth[scan.timestamp_us]
-            c, s = np.cos(yaw), np.sin(yaw)
-            local = (self.points - [x, y]) @ np.array([[c, -s], [s, c]])  # R(yaw)^T (p - t)
-            near = np.hypot(local[:, 0], local[:, 1]) < 60.0
-            g = np.ones(self.descriptor_dim) / np.sqrt(self.descriptor_dim)
-            out.append(ScanFeatures(g, local[near], self.desc[near], scan.timestamp_us))
-        return out
-
-
-def _turning_drive(n: int = 160) -> tuple[np.ndarray, np.ndarray]:
-    """Times (µs, 4 Hz) and true poses (N, 3) of a 10 m/s drive with three turns at irregular times."""
-    t = np.arange(n) * 0.25
-    yaw = sum(np.radians(a) * np.clip((t - t0) / d, 0.0, 1.0) for t0, a, d in [(8.0, 90.0, 3.0), (19.0, -60.0, 4.0),
-                                                                               (31.0, 120.0, 5.0)])
-    x = np.cumsum(10.0 * np.cos(yaw)) * 0.25
-    y = np.cumsum(10.0 * np.sin(yaw)) * 0.25
-    return 1_600_000_000_000_000 + (t * 1e6).astype(np.int64), np.column_stack([x, y, yaw])
-
-
 def test_a_build_refuses_poses_off_the_scans_clock_and_says_by_how_much(tmp_path: Path) -> None:
     """QA session 40: a pose file 1 s off the scans' clock (GPS against UTC time: 18 s) built a map whose keyframes
     sat 7 m along the track and 37 degrees off at a corner, without a word."""
     from reradar_core.errors import PoseFileError
 
-    stamps, truth = _turning_drive()
+    stamps, truth = turning_drive()
     ext = WorldExtractor({int(t): p for t, p in zip(stamps, truth, strict=True)})
     blank = np.zeros((400, 3360), np.float32)
 
@@ -569,3 +534,28 @@ def test_a_build_refuses_poses_off_the_scans_clock_and_says_by_how_much(tmp_path
     assert not (tmp_path / "off.h5").exists() and not list(tmp_path.glob(".off.h5*"))  # nothing written
     build_map(tmp_path / "unchecked.h5", ext, scan, at(1.0), radar_preset="boreas", place_repetition=False,
               pose_clock=None)  # the check can be left out (the far-view companion's build)
+
+
+def test_a_build_whose_pose_clock_cannot_be_checked_says_so(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """QA session 41: a straight drive's map (no turns: no verdict) was built without a word that its pose file's
+    clock went unchecked."""
+    stamps = 1_600_000_000_000_000 + np.arange(40, dtype=np.int64) * 250_000
+    truth = np.column_stack([np.arange(40) * 2.5 - 50.0, np.zeros(40), np.zeros(40)])
+    ext = WorldExtractor({int(t): p for t, p in zip(stamps, truth, strict=True)})
+    blank = np.zeros((400, 3360), np.float32)
+
+    def scan(i: int) -> RadarScan:
+        return RadarScan.from_power(blank, "boreas", start_time_us=int(stamps[i]))
+
+    with caplog.at_level("WARNING", logger="maps.build"):
+        build_map(tmp_path / "straight.h5", ext, scan, truth, radar_preset="boreas", place_repetition=False)
+    assert "straight.h5: the pose file's clock could not be checked against the scans': fewer than 10 consecutive " \
+           "keyframes turn by 1 degrees or more" in caplog.text
+    caplog.clear()
+    stamps_t, truth_t = turning_drive()
+    ext_t = WorldExtractor({int(t): p for t, p in zip(stamps_t, truth_t, strict=True)})
+    with caplog.at_level("WARNING", logger="maps.build"):
+        build_map(tmp_path / "turning.h5", ext_t,
+                  lambda i: RadarScan.from_power(blank, "boreas", start_time_us=int(stamps_t[i])), truth_t,
+                  radar_preset="boreas", place_repetition=False)
+    assert "could not be checked" not in caplog.text
