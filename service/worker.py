@@ -27,14 +27,17 @@ import redis
 
 from maps.paths import far_view_path
 from reradar_core.errors import ReRadarError
+from reradar_core.io.poses import PoseSequence
 from reradar_core.localization.extractor import FeatureExtractor
 from reradar_core.localization.far_view import FarViewConfig
+from service.core.archive import pose_file_reader
 from service.core.config import Settings
 from service.core.errors import scrub_paths
 from service.core.jobs import (
     ARQ_IN_PROGRESS_PREFIX,
     ARQ_JOB_PREFIX,
     JOB_FUNCTION,
+    POSE_TRACK_FILE,
     BuildQueue,
     identity_text,
     installed_by,
@@ -144,6 +147,11 @@ def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
         return _finish(ctx, map_id, job_id, int(rec.get("scans_total") or 0))
     spec = json.loads((job_dir / "spec.json").read_text())
     poses = np.load(job_dir / "poses.npy")
+    pose_at = None
+    if (job_dir / POSE_TRACK_FILE).is_file():
+        with np.load(job_dir / POSE_TRACK_FILE) as saved:
+            track = PoseSequence(saved["timestamps_us"], saved["xy"], saved["yaw"])
+        pose_at = pose_file_reader(track, spec["preset"])
     scans = [job_dir / "work" / rel for rel in spec["scans"]]
     attempts = int(queue.redis.hincrby(queue.keys.build(map_id), "attempts", 1))  # type: ignore[arg-type]
     if attempts > settings.build_max_tries:
@@ -190,7 +198,7 @@ def _build(ctx: dict[str, Any], map_id: str, job_id: str) -> str:
                   radar_preset=spec["preset_name"], name=map_id, source=spec["source"],
                   batch_size=settings.build_batch_size, progress=progress, overwrite=True,
                   localization=settings.localization,  # the place repetition under the settings that serve it
-                  far_view=FarViewConfig() if far_view else None)
+                  far_view=FarViewConfig() if far_view else None, pose_at=pose_at)
         if queue.record(map_id).get("cancel") == "1":  # a DELETE during the last batch: nothing to install
             raise BuildCancelledError
         # recorded first, so a retry after a stop between the install and ``ready`` knows the file as its own

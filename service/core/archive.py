@@ -27,12 +27,16 @@ import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import numpy as np
+
 from reradar_core.errors import ScanFormatError
 from reradar_core.io.datasets import (
     first_confirmed_problem,
+    mid_sweep_poses_in,
     scan_name_time_mismatch,
     warn_names_off_first_azimuth,
 )
+from reradar_core.io.poses import PoseSequence
 from reradar_core.io.presets import RadarPreset, get_preset
 from reradar_core.io.scan import (
     MAX_SCAN_TIMESTAMP_US,
@@ -296,6 +300,15 @@ navtech_png_scan_time_us = navtech_png_first_time_us
 #: Radar preset whose sweep period bounds how far a PNG's file name and embedded time may lie apart when the upload
 #: names none (the route takes mid-sweep poses with it too; every preset sweeps at 4 Hz).
 SWEEP_PRESET = "boreas"
+
+
+def pose_file_reader(track: PoseSequence, preset: str | None) -> Callable[[np.ndarray], np.ndarray]:
+    """The uploaded pose file's pose at any scan time ((M,) int64 µs -> (M, 3) float64 x m, y m, yaw rad, at mid-sweep
+    as the keyframe poses are taken): what a build's pose-clock check reads at shifted times
+    (``maps.build.build_map(pose_at=...)``), at the pose file's own rate rather than between keyframes (scans 2 s apart
+    cut a corner's turn short enough to hide a 1 s offset)."""
+    sweep = get_preset(preset or SWEEP_PRESET)
+    return lambda t_us: mid_sweep_poses_in(track, t_us, sweep)
 
 
 def scan_time_us(path: Path) -> int | None:

@@ -212,6 +212,9 @@ class Settings(BaseSettings):
         "costs (measured in docs/SERVICE.md); send float64 arrays as float32 or uint8."))
     max_map_upload_mb: float = Field(default=512.0, gt=0, description="Largest map or scan-archive upload, MB.")
     max_archive_scans: int = Field(default=20_000, gt=0, description="Most scans accepted in one scan archive.")
+    max_pose_file_mb: float = Field(default=128.0, gt=0, description=(
+        "Largest pose file sent with a scan archive, MB (a Boreas radar_poses.csv is ~0.15 MB per hour of driving, "
+        "a 100 Hz pose log ~70 MB; reading one keeps ~3 times its size at the peak, docs/SERVICE.md)."))
     scan_cache_size: int = Field(default=256, gt=0, description="Uploaded scans whose features are kept.")
     scan_cache_ttl_s: float = Field(default=600.0, gt=0, description="Seconds an uploaded scan's features are kept.")
     localization: LocalizationConfig = Field(default_factory=LocalizationConfig, description=(
@@ -408,6 +411,10 @@ class Settings(BaseSettings):
     @property
     def max_map_upload_bytes(self) -> int:
         return int(self.max_map_upload_mb * 1024 * 1024)
+
+    @property
+    def max_pose_file_bytes(self) -> int:
+        return int(self.max_pose_file_mb * 1024 * 1024)
 
 
 def resolve_operator_key(settings: Settings) -> str:

@@ -52,6 +52,7 @@ import redis
 
 from maps.paths import far_view_path
 from maps.store import fsync_dir
+from reradar_core.io.poses import PoseSequence
 from reradar_core.localization.extractor import FeatureExtractor
 from service.core.config import Settings
 from service.core.errors import ConflictError, NotFoundError
@@ -74,6 +75,9 @@ logger = logging.getLogger(__name__)
 
 #: Name of the arq function that builds a map (``service.worker``).
 JOB_FUNCTION = "build_map"
+#: A build job's copy of the uploaded pose file (timestamps_us, xy, yaw), which the worker's pose-clock check reads
+#: (jobs queued before session 41 have none: their check reads the keyframe poses).
+POSE_TRACK_FILE = "pose_track.npz"
 #: arq's own key prefix for the lock a worker holds on a running job (``arq.constants``).
 ARQ_IN_PROGRESS_PREFIX = "arq:in-progress:"
 #: arq's key of a queued job's data (``arq.constants.job_key_prefix``)
@@ -539,16 +543,18 @@ class QueuedMapRegistry(MapRegistry):
             return None
 
     def start_build(self, map_id: str, scan_paths: list[Path], poses: np.ndarray, preset: str | None,
-                    workdir: Path, source: str, far_view: bool = False) -> MapEntry:
+                    workdir: Path, source: str, far_view: bool = False,
+                    pose_track: PoseSequence | None = None) -> MapEntry:
         """Reserve ``map_id``, move ``workdir`` to the shared jobs folder and enqueue its build (``far_view``:
         with its far-view companion, built by the worker as ``MapRegistry.start_build`` builds it)."""
         if far_view:
             self.check_far_view_served("far_view")
         with self._in_flight(map_id):
-            return self._queue_build(map_id, scan_paths, poses, preset, workdir, source, far_view)
+            return self._queue_build(map_id, scan_paths, poses, preset, workdir, source, far_view, pose_track)
 
     def _queue_build(self, map_id: str, scan_paths: list[Path], poses: np.ndarray, preset: str | None,
-                     workdir: Path, source: str, far_view: bool = False) -> MapEntry:
+                     workdir: Path, source: str, far_view: bool = False,
+                     pose_track: PoseSequence | None = None) -> MapEntry:
         first = self._load_scan(scan_paths[0], preset)  # fail fast, synchronously, on unreadable scans
         preset_name = preset or first.preset or "unknown"
         scans_total = len(scan_paths) * (2 if far_view else 1)  # scan descriptions: the far view's follow
@@ -559,6 +565,9 @@ class QueuedMapRegistry(MapRegistry):
             job_dir.mkdir(parents=True)
             os.replace(workdir, job_dir / "work")
             np.save(job_dir / "poses.npy", np.asarray(poses, dtype=np.float64))
+            if pose_track is not None:  # the worker's pose-clock check reads the pose file itself (pose_file_reader)
+                np.savez(job_dir / POSE_TRACK_FILE, timestamps_us=pose_track.timestamps_us, xy=pose_track.xy,
+                         yaw=pose_track.yaw)
             spec = {"map_id": map_id, "job_id": job_id, "preset": preset, "preset_name": preset_name,
                     "source": source, "scans": [str(p.relative_to(workdir)) for p in scan_paths],
                     "far_view": far_view}

@@ -54,6 +54,7 @@ from reradar_core.errors import (
     ScanTooLargeError,
 )
 from reradar_core.geometry.cartesian import CartesianConfig
+from reradar_core.io.poses import PoseSequence
 from reradar_core.io.scan import (
     RadarScan,
     check_header_size,
@@ -68,7 +69,12 @@ from reradar_core.localization.extractor import FeatureExtractor
 from reradar_core.localization.far_view import FarViewConfig
 from reradar_core.matching.dense import dense_image_settings
 from reradar_core.retrieval import IndexConfig
-from service.core.archive import SCAN_NAME_PATTERN, duplicate_scan_time_message, scan_name_time_message
+from service.core.archive import (
+    SCAN_NAME_PATTERN,
+    duplicate_scan_time_message,
+    pose_file_reader,
+    scan_name_time_message,
+)
 from service.core.config import MAP_ID_PATTERN, Settings
 from service.core.errors import BadRequestError, ConflictError, NotFoundError, ServiceError, scrub_paths
 
@@ -91,11 +97,11 @@ _VERIFIED = ".verified"
 
 def build_failure_message(exc: BaseException) -> str:
     """What a failed build reports (``GET /maps/{id}``): the message alone for an input error (``ReRadarError``,
-    ``ValueError``, ``OSError``: it says what is wrong, e.g. ``1600000018000000.png: ...``); the class name before
+    ``ServiceError``, ``ValueError``, ``OSError``: it says what is wrong, e.g. ``1600000018000000.png: ...``); the class name before
     the message of anything else (a bug, whose message alone may be ``'key'``)."""
     text = str(exc)
-    if isinstance(exc, ReRadarError | ValueError | OSError) and text:
-        return text
+    if isinstance(exc, ReRadarError | ServiceError | ValueError | OSError) and text:  # ServiceError: e.g. the id
+        return text  # taken meanwhile (QA session 41: "ConflictError: map 'cc' already exists; ...")
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
@@ -376,10 +382,14 @@ class MapRegistry:
         return map_id
 
     def path_for(self, map_id: str) -> Path:
+        """``<maps_dir>/<map_id>.h5``, the name itself: a symbolic link there is the map's file as the link (as at
+        start-up), never resolved to its target, so that a DELETE removes the link and not another map's file it
+        points to, and a link out of the folder is served rather than refused (QA session 41: the folder pass
+        stopped on one; DELETE of a link to another map deleted that map's file)."""
         self.validate_id(map_id)
-        path = (self.maps_dir / f"{map_id}.h5").resolve()
-        if not path.is_relative_to(self.maps_dir):  # defence in depth; the regex already forbids this
-            raise BadRequestError(f"map id {map_id!r} resolves outside the maps directory")
+        path = self.maps_dir / f"{map_id}.h5"
+        if path.parent != self.maps_dir:  # defence in depth; the id's pattern already forbids this
+            raise BadRequestError(f"map id {map_id!r} names a file outside the maps directory")
         return path
 
     def staging_dir(self) -> Path:
@@ -912,7 +922,8 @@ class MapRegistry:
             raise
 
     def start_build(self, map_id: str, scan_paths: list[Path], poses: np.ndarray, preset: str | None,
-                    workdir: Path, source: str, far_view: bool = False) -> MapEntry:
+                    workdir: Path, source: str, far_view: bool = False,
+                    pose_track: PoseSequence | None = None) -> MapEntry:
         """Reserve ``map_id`` and build its map from ``scan_paths`` in the background.
 
         ``poses`` (N, 3) float64 ``T_map_sensor`` per scan. ``workdir`` (extracted scans) is removed when the
@@ -957,7 +968,8 @@ class MapRegistry:
                           radar_preset=preset_name, name=map_id, source=source,
                           batch_size=self.settings.build_batch_size, progress=progress,
                           localization=self.settings.localization,  # the place repetition under the serving settings
-                          far_view=FarViewConfig() if far_view else None)
+                          far_view=FarViewConfig() if far_view else None,
+                          pose_at=None if pose_track is None else pose_file_reader(pose_track, preset))
                 far_built = far_view_path(built) if far_view else None
                 identity = file_identity(built)
                 far_identity = file_identity(far_built) if far_built is not None else None

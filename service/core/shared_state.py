@@ -27,7 +27,8 @@ import socket
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, cast
 
@@ -362,21 +363,45 @@ def reconcile_with_folder(registry: MapRegistry, extra: Callable[[], None] | Non
     on_disk = {p.stem for p in registry.maps_dir.glob("*.h5") if _valid_id(registry, p.stem)}
     known = {e.map_id: e for e in registry.entries()}
     for map_id in sorted(on_disk - known.keys()):
-        entry = registry.adopt(map_id)
-        if entry is not None:
-            logger.info("map %s loaded from the maps folder (%s)", map_id, entry.state, extra={"map_id": map_id})
+        with _one_map(map_id, "load"):
+            entry = registry.adopt(map_id)
+            if entry is not None:
+                logger.info("map %s loaded from the maps folder (%s)", map_id, entry.state, extra={"map_id": map_id})
     for map_id, entry in known.items():
         # a loaded map whose file is gone was deleted elsewhere; a failed build never had a file (its entry
         # follows its build record: ``reconcile_builds``)
         from_file = entry.state == "ready" or (entry.state == "failed" and entry.file_id is not None)
-        if from_file and map_id not in on_disk and not entry.path.exists():
-            registry.forget(map_id)
-            logger.info("map %s dropped: its file was deleted by another process", map_id, extra={"map_id": map_id})
-        elif from_file and (new := registry.reopen_if_replaced(map_id)) is not None:
-            logger.info("map %s reopened: its file was replaced by another process (%s)", map_id, new.state,
-                        extra={"map_id": map_id})
+        with _one_map(map_id, "re-check"):
+            if from_file and map_id not in on_disk and not entry.path.exists():
+                registry.forget(map_id)
+                logger.info("map %s dropped: its file was deleted by another process", map_id,
+                            extra={"map_id": map_id})
+            elif from_file and (new := registry.reopen_if_replaced(map_id)) is not None:
+                logger.info("map %s reopened: its file was replaced by another process (%s)", map_id, new.state,
+                            extra={"map_id": map_id})
     if extra is not None:
         extra()
+
+
+@contextmanager
+def _one_map(map_id: str, what: str) -> Iterator[None]:
+    """One map's step of a folder pass: its failure is logged and the pass goes on with the other maps (QA session
+    41: one file the registry refused stopped every pass, so maps copied in later were never loaded and removed
+    ones kept being served)."""
+    try:
+        yield
+    except Exception as exc:  # noqa: BLE001 - one file must not stop the folder's other maps
+        said = f"could not {what} map {map_id}: {exc}"
+        # once per problem, not every pass (debug after that)
+        level = logging.DEBUG if _FOLDER_PASS_PROBLEMS.get(map_id) == said else logging.WARNING
+        _FOLDER_PASS_PROBLEMS[map_id] = said
+        logger.log(level, "maps folder pass: %s", said, extra={"map_id": map_id})
+    else:
+        _FOLDER_PASS_PROBLEMS.pop(map_id, None)
+
+
+#: the last problem a folder pass logged per map id (``_one_map``)
+_FOLDER_PASS_PROBLEMS: dict[str, str] = {}
 
 
 class FolderSync:

@@ -26,7 +26,7 @@ from maps.store import read_metadata
 from reradar_core.errors import MapFormatError, ScanFormatError
 from reradar_core.io.scan import RadarScan, encode_navtech_png_bytes
 from service.core.config import Settings
-from service.core.errors import PROBLEM_MEDIA_TYPE
+from service.core.errors import PROBLEM_MEDIA_TYPE, ConflictError
 from service.core.registry import MapRegistry, build_failure_message
 from service.demo import serve_in_thread
 
@@ -39,6 +39,7 @@ from service_test_fakes import (  # noqa: E402
     keyframe_time,
     make_scan,
     register_map_file,
+    started_app,
 )
 
 AUTH = {"X-API-Key": API_KEY}
@@ -216,6 +217,8 @@ def test_build_failure_message_is_the_message_of_input_errors() -> None:
     assert build_failure_message(ValueError("bad value")) == "bad value"
     assert build_failure_message(KeyError("x")) == "KeyError: 'x'"  # a bug: its class says what happened
     assert build_failure_message(RuntimeError()) == "RuntimeError"
+    # the service's own refusals say what is wrong (QA session 41: "ConflictError: map 'cc' already exists; ...")
+    assert build_failure_message(ConflictError("map 'cc' already exists")) == "map 'cc' already exists"
 
 
 def _archive(corrupt: int, n: int = 4, bad: bytes = b"not a png at all") -> bytes:
@@ -303,3 +306,21 @@ def test_worker_failed_build_reports_the_message_without_the_class(
            "sync_redis": SimpleNamespace(publish=lambda channel, message: 0), "origin": "test"}
     assert asyncio.run(worker.build_map_job(ctx, "m", "job")) == "failed"
     assert queue.updates[-1] == {"state": "failed", "error": error}
+
+
+def test_a_pose_file_over_its_own_limit_is_a_413_and_leaves_nothing(tmp_path: Path) -> None:
+    """QA session 41: a pose file was bounded only by the 512 MB body limit; reading one keeps ~3x its size."""
+    maps_dir = tmp_path / "maps"
+    with started_app(maps_dir, max_pose_file_mb=0.001) as client:  # 1,048 bytes
+        big = _poses_csv(4) + b"".join(b"# padding line of a pose file that is far too long\n" for _ in range(40))
+        files = {"archive": ("a.zip", _archive(corrupt=-1)), "poses": ("p.csv", big)}
+        r = client.post("/maps", data={"map_id": "big", "preset": "boreas"}, files=files, headers=AUTH)
+        assert r.status_code == 413, r.text
+        assert r.json()["detail"] == (
+            "the 'poses' file is larger than RERADAR_MAX_POSE_FILE_MB (0.001 MB): send the poses at the scans' rate "
+            "or near it (a Boreas applanix/radar_poses.csv, ~0.15 MB per hour), not a high-rate log")
+        assert client.get("/maps/big", headers=AUTH).status_code == 404
+        assert not list((maps_dir / ".staging").glob("*"))  # the upload's files are removed
+        files = {"archive": ("a.zip", _archive(corrupt=-1)), "poses": ("p.csv", _poses_csv(4))}
+        r = client.post("/maps", data={"map_id": "big", "preset": "boreas"}, files=files, headers=AUTH)
+        assert r.status_code == 202, r.text  # within the limit: built

@@ -36,6 +36,9 @@ import service.core.jobs as jobs_module
 import service.core.registry as registry_module
 from maps.build import build_map
 from maps.store import install_file
+from reradar_core.io.datasets import mid_sweep_poses_in
+from reradar_core.io.poses import PoseSequence
+from reradar_core.io.presets import get_preset
 from reradar_core.io.scan import RadarScan, encode_navtech_png_bytes
 from service.core.config import Settings
 from service.core.errors import ConflictError
@@ -117,8 +120,10 @@ class Fleet:
         shutil.copyfile(source, staged)
         return staged
 
-    def queue_build(self, registry: QueuedMapRegistry, map_id: str, n: int = 3) -> str:
-        """``POST /maps`` with an archive of ``n`` scans through ``registry``; returns the job id."""
+    def queue_build(self, registry: QueuedMapRegistry, map_id: str, n: int = 3,
+                    pose_track: PoseSequence | None = None) -> str:
+        """``POST /maps`` with an archive of ``n`` scans (and the pose file's poses ``pose_track``) through
+        ``registry``; returns the job id."""
         work = registry.staging_dir() / f"job-{uuid.uuid4().hex}"
         (work / "scans").mkdir(parents=True)
         paths = []
@@ -127,7 +132,7 @@ class Fleet:
             path.write_bytes(encode_navtech_png_bytes(make_scan(100 + i, keyframe_time(i))))
             paths.append(path)
         poses = np.column_stack([np.arange(n) * 25.0, np.zeros(n), np.zeros(n)])
-        registry.start_build(map_id, paths, poses, None, work, source="upload:test.zip")
+        registry.start_build(map_id, paths, poses, None, work, source="upload:test.zip", pose_track=pose_track)
         return self.record(map_id)["job_id"]
 
     def record(self, map_id: str) -> dict[str, str]:
@@ -411,6 +416,30 @@ def test_build_of_an_id_taken_meanwhile_fails_and_every_replica_serves_the_file(
         assert _keyframes(reg, "mx") == 6
     fleet.a.delete("mx")  # and DELETE frees the id (file and record)
     assert not (fleet.maps_dir / "mx.h5").exists() and not fleet.client.exists(fleet.keys.build("mx"))
+
+
+def test_a_queued_build_checks_the_pose_clock_on_the_uploaded_pose_file(
+        fleet: Fleet, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The worker's pose-clock check reads the pose file the upload sent (kept with the job), not the keyframe poses
+    alone: between scans seconds apart those cut a corner's turn (test_service_pose_clock)."""
+    import maps.build
+
+    t = keyframe_time(0) + np.arange(-4, 40) * 250_000
+    track = PoseSequence(t, np.column_stack([np.arange(44) * 2.5, np.sin(np.arange(44) / 5.0)]),
+                         np.linspace(-1.0, 1.0, 44))
+    job_id = fleet.queue_build(fleet.a, "clocked", pose_track=track)
+    seen: list[Any] = []
+    real = maps.build.build_map
+
+    def build(*args: Any, **kwargs: Any) -> Path:
+        seen.append(kwargs.get("pose_at"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(maps.build, "build_map", build)
+    assert fleet.run_job("clocked", job_id) == "ready"
+    assert seen[0] is not None
+    at = keyframe_time(0) + np.array([0, 300_000, 1_700_000, 6_000_000])  # between and beyond the scans
+    np.testing.assert_array_equal(seen[0](at), mid_sweep_poses_in(track, at, get_preset("boreas")))
 
 
 # ---- 3. DELETE at the end of a build --------------------------------------------------------------------------

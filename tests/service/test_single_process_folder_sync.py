@@ -57,3 +57,30 @@ def test_a_delete_through_the_api_is_not_undone_by_the_folder_pass(fake_map: Pat
             for _ in range(20):  # over several folder passes, from the moment the DELETE answered
                 assert client.get(f"/maps/m{cycle}", headers=AUTH).status_code == 404
             assert not (maps_dir / f"m{cycle}.h5").exists()
+
+
+def test_symbolic_links_in_the_maps_folder_neither_stop_the_pass_nor_lose_another_map(
+        fake_map: Path, tmp_path: Path) -> None:
+    """QA session 41: a link out of the maps folder (or a dangling one) stopped every folder pass (maps copied in
+    later were never served), and DELETE of a link to another map deleted that map's file. A link is now the map's
+    file as the link, as at start-up."""
+    maps_dir = tmp_path / "maps"
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    shutil.copy(fake_map, elsewhere / "shared.h5")
+    with started_app(maps_dir, map_sync_interval_s=0.2) as client:
+        (maps_dir / "dangling.h5").symlink_to(tmp_path / "nowhere" / "z.h5")
+        (maps_dir / "outside.h5").symlink_to(elsewhere / "shared.h5")
+        assert _wait(client, "outside", lambda r: r.status_code == 200).json()["state"] == "ready"
+        shutil.copy(fake_map, maps_dir / "target.h5")  # the pass goes on after the links
+        _wait(client, "target", lambda r: r.status_code == 200 and r.json()["state"] == "ready")
+        (maps_dir / "alias.h5").symlink_to("target.h5")
+        _wait(client, "alias", lambda r: r.status_code == 200 and r.json()["state"] == "ready")
+        assert client.delete("/maps/alias", headers=AUTH).status_code == 200
+        assert not (maps_dir / "alias.h5").is_symlink() and (maps_dir / "target.h5").is_file()
+        assert client.delete("/maps/outside", headers=AUTH).status_code == 200
+        assert (elsewhere / "shared.h5").is_file()  # the link went, not the file it pointed to
+        time.sleep(0.6)  # passes over the remaining maps
+        assert client.get("/maps/target", headers=AUTH).json()["state"] == "ready"
+        assert client.get("/maps/alias", headers=AUTH).status_code == 404
+        assert client.get("/maps/dangling", headers=AUTH).status_code == 404

@@ -41,7 +41,7 @@ from service.core.archive import (
     extract_scan_archive,
 )
 from service.core.config import MAP_ID_PATTERN
-from service.core.errors import BadRequestError, shorten_echo
+from service.core.errors import BadRequestError, PayloadTooLargeError, shorten_echo
 from service.core.registry import MapEntry
 from service.core.state import ServiceState
 
@@ -99,13 +99,17 @@ def get_map(state: StateDep, map_id: MapIdPath) -> MapInfo:
     return map_info(entry, state.registry.build_note(entry))
 
 
-def _save_upload(upload: UploadFile, target: Path) -> int:
+def _save_upload(upload: UploadFile, target: Path, limit: tuple[int, str] | None = None) -> int:
+    """Copy ``upload`` to ``target``; its size in bytes. ``limit``: (most bytes, what to say) beyond which it is a
+    ``PayloadTooLargeError`` with that message."""
     size = 0
     upload.file.seek(0)
     with open(target, "wb") as out:
         while chunk := upload.file.read(1 << 20):
-            out.write(chunk)
             size += len(chunk)
+            if limit is not None and size > limit[0]:
+                raise PayloadTooLargeError(limit[1])
+            out.write(chunk)
     return size
 
 
@@ -180,7 +184,10 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         # one radar layout, one the build reads (each header's first bytes, one scan decoded), before minutes of build
         check_scan_layouts(scan_paths, lambda path: registry.scan_refusal(path, preset))
         pose_path = work / "poses.csv"
-        _save_upload(poses, pose_path)
+        most = state.settings.max_pose_file_bytes
+        _save_upload(poses, pose_path, (most, (
+            f"the 'poses' file is larger than RERADAR_MAX_POSE_FILE_MB ({state.settings.max_pose_file_mb:g} MB): send the poses at the "
+            "scans' rate or near it (a Boreas applanix/radar_poses.csv, ~0.15 MB per hour), not a high-rate log")))
         try:
             track = read_poses(pose_path).sorted()  # a binary file is a PoseFileError there
         except TimeUnitError as exc:  # the library's advice names command-line options: say what works here
@@ -209,7 +216,7 @@ def _register(state: ServiceState, map_id: str, map_file: UploadFile | None, arc
         pose_arr = mid_sweep_poses_in(track, stamps, get_preset(preset or SWEEP_PRESET))
         entry = state.registry.start_build(map_id, scan_paths, pose_arr, preset, work,
                                            source=f"upload:{archive.filename or 'archive'}",  # type: ignore[union-attr]
-                                           far_view=far_view)
+                                           far_view=far_view, pose_track=track)
         return entry, True
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
