@@ -15,6 +15,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -22,9 +23,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from reradar_core.io.datasets import load_sequence  # noqa: E402
-from reradar_core.io.poses import PoseSequence  # noqa: E402
-from reradar_core.io.presets import RadarPreset, mid_sweep_times_us  # noqa: E402
+from reradar_core.io.datasets import load_sequence, pose_file_reader  # noqa: E402
+from reradar_core.io.presets import mid_sweep_times_us  # noqa: E402
 from reradar_core.localization import LocalizationConfig  # noqa: E402
 from reradar_core.localization.extractor import load_default_extractor  # noqa: E402
 from reradar_core.localization.pose_clock import (  # noqa: E402
@@ -61,15 +61,16 @@ def main() -> None:
         t2 = time.perf_counter()
         track = seq.track if seq.track is not None and len(seq.track) else seq.poses
         mid = mid_sweep_times_us(seq.timestamps_us, seq.preset)
+        reader = pose_file_reader(track, seq.preset)  # as maps.build_map_from_sequence reads it: NaN beyond the file
         cells = []
         pairs = 0
         for s in shifts:
             shift_us = int(round(s * 1e6))
             poses = track.interpolate(mid + shift_us)
 
-            def pose_at(t_us: np.ndarray, shift_us: int = shift_us, track: PoseSequence = track,
-                        preset: RadarPreset = seq.preset) -> np.ndarray:  # as maps.build_map_from_sequence reads it
-                return track.interpolate(mid_sweep_times_us(t_us, preset) + shift_us)
+            def pose_at(t_us: np.ndarray, shift_us: int = shift_us,
+                        read: Callable[[np.ndarray], np.ndarray] = reader) -> np.ndarray:
+                return read(np.asarray(t_us, np.int64) + shift_us)  # a pose file shift_us behind the scans' clock
 
             out = pose_clock_offset(T_prev_next, ratio, seq.timestamps_us, poses, check,
                                     None if args.keyframes_only else pose_at)

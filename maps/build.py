@@ -229,9 +229,10 @@ def build_map(
             registered against the one before, 5-25 ms a pair, and the turns compared with the poses'); a pose file
             off by more than a sweep is refused (``PoseFileError``, saying by how much and what to add). None: no
             check (the far-view companion's build: the map's own checked the same poses).
-        pose_at: the pose file's pose (3,) at any scan time (µs (M,) -> (M, 3), at its mid-sweep time as ``poses``),
-            which the check reads at shifted times; None: ``poses`` interpolated between keyframes (enough for scans
-            a sweep or two apart; keyframes seconds apart cut corners).
+        pose_at: the pose file's pose (3,) at any scan time (µs (M,) -> (M, 3), at its mid-sweep time as ``poses``;
+            NaN rows beyond the file: ``io.datasets.pose_file_reader``), which the check reads at shifted times;
+            None: ``poses`` interpolated between keyframes (enough for scans a sweep or two apart; keyframes seconds
+            apart cut corners, and a shift is judged only on the pairs it keeps inside the keyframes' span).
 
     Returns:
         ``out``.
@@ -362,14 +363,14 @@ def build_map_from_sequence(sequence_dir: str | Path, out: str | Path, extractor
 
     ``time_unit`` is the unit of the pose file's timestamps (``s``, ``ms``, ``us``, ``ns``) where they are not
     absolute UTC times (``load_sequence``'s ``pose_time_unit``); None: never guessed."""
-    from reradar_core.io.datasets import load_sequence, mid_sweep_poses_in
+    from reradar_core.io.datasets import load_sequence, pose_file_reader
 
     seq = load_sequence(sequence_dir, layout=layout, preset=preset, pose_time_unit=time_unit)
     keep = select_keyframes(seq.poses.poses, min_spacing_m)
     seq = seq.subset(keep)
     kwargs.setdefault("source", f"{seq.layout}:{Path(sequence_dir).resolve()}")
     track = seq.track if seq.track is not None and len(seq.track) else seq.poses
-    kwargs.setdefault("pose_at", lambda t_us: mid_sweep_poses_in(track, t_us, seq.preset))  # as the keyframe poses
+    kwargs.setdefault("pose_at", pose_file_reader(track, seq.preset))  # as the keyframe poses, NaN beyond the file
     kwargs.setdefault("name", seq.name)
     # keyframe poses at mid-sweep: what a registration against the keyframe's whole sweep aligns
     # (docs/CONVENTIONS.md)

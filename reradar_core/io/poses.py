@@ -314,8 +314,9 @@ def _read_table(path: Path, min_cols: int, header_first: str | None, expected: s
                     int_times = None
                 except OverflowError:  # beyond int64 (year 2262 in ns): a corrupt row; read as a float it took
                     # every other ns time with it onto the float grid, 1 us off (QA session 41)
+                    when = "before the year 1678" if text.startswith("-") else "after the year 2262"
                     raise PoseFileError(f"{path}:{lineno}: timestamp {shorten_echo(text)} is beyond a 64-bit integer "
-                                        "(after the year 2262 even in nanoseconds): a corrupt row?") from None
+                                        f"({when} even in nanoseconds): a corrupt row?") from None
             if int_times is None:
                 try:
                     t = float(text)

@@ -158,8 +158,10 @@ def pose_clock_offset(T_prev_next: np.ndarray, inlier_ratio: np.ndarray, times_u
         poses: (N, 3) float64 ``T_map_keyframe`` from the pose file at those times.
         config: settings.
         pose_at: the pose file's pose at any keyframe time (µs (M,) -> (M, 3); e.g. at its mid-sweep time, as
-            ``poses`` were taken), to read it at shifted times; None: ``poses`` interpolated between keyframes (coarse
-            where they lie seconds apart: a corner between two keyframes is cut).
+            ``poses`` were taken; NaN rows where the file holds none: ``io.datasets.pose_file_reader``), to read it
+            at shifted times; a pair counts as read wherever both its shifted times give a pose. None: ``poses``
+            interpolated between keyframes (coarse where they lie seconds apart: a corner between two keyframes is
+            cut), a pair counting where both shifted times stay inside the keyframes' span.
 
     Returns:
         ``PoseClockCheck``; ``offset_detected`` False (and ``offset_s`` 0) without enough registered pairs.
@@ -183,11 +185,27 @@ def pose_clock_offset(T_prev_next: np.ndarray, inlier_ratio: np.ndarray, times_u
     def read(at_us: np.ndarray) -> np.ndarray:
         return _interpolate(t, P, at_us) if pose_at is None else np.asarray(pose_at(at_us), np.float64)
 
-    def pair_errors(offset_us: int, inside: np.ndarray) -> np.ndarray:
-        rel = relative_pose(read(a[inside] + offset_us), read(b[inside] + offset_us))
-        return np.minimum(np.degrees(np.abs(wrap_angle(rel[:, 2] - turn_meas[inside]))), config.clip_error_deg)
+    def pair_errors(offset_us: int) -> tuple[np.ndarray, np.ndarray]:
+        """Each pair's disagreement with the poses read ``offset_us`` later, and where they can be read there:
+        within the pose file (``pose_at``'s finite rows), or without ``pose_at`` within the keyframes' span."""
+        if pose_at is None:
+            inside = (a + offset_us >= t[0]) & (b + offset_us <= t[-1])
+            pa, pb = read(a[inside] + offset_us), read(b[inside] + offset_us)
+        else:
+            pa, pb = read(a + offset_us), read(b + offset_us)
+            inside = np.isfinite(pa).all(axis=1) & np.isfinite(pb).all(axis=1)
+            pa, pb = pa[inside], pb[inside]
+        rel = relative_pose(pa, pb)
+        err = np.full(len(a), np.nan)
+        err[inside] = np.minimum(np.degrees(np.abs(wrap_angle(rel[:, 2] - turn_meas[inside]))), config.clip_error_deg)
+        return err, inside
 
-    at_zero_each = pair_errors(0, np.ones(len(a), bool))
+    at_zero_each, readable = pair_errors(0)
+    if not readable.all():  # pairs the pose reader holds no pose for as given (a reader narrower than the drive)
+        a, b, turn_meas = a[readable], b[readable], turn_meas[readable]
+        if len(a) < config.min_pairs:
+            return none
+        at_zero_each, _ = pair_errors(0)
     at_zero = float(at_zero_each.mean())
 
     def error(offset_s: float) -> float:
@@ -195,13 +213,10 @@ def pose_clock_offset(T_prev_next: np.ndarray, inlier_ratio: np.ndarray, times_u
         as given where not: every shift judged on the same pairs, so that one which drops a badly registered pair
         off the drive's end does not look better for it (QA session 41: two turns 29 s apart, a pose file on the
         scans' clock refused as 29.2 s off; another 1 s off read as 28.25 s)."""
-        d = int(round(offset_s * 1e6))
-        inside = (a + d >= t[0]) & (b + d <= t[-1])
+        shifted, inside = pair_errors(int(round(offset_s * 1e6)))
         if inside.mean() < config.min_coverage:
             return float("inf")
-        each = at_zero_each.copy()
-        each[inside] = pair_errors(d, inside)
-        return float(each.mean())
+        return float(np.where(inside, shifted, at_zero_each).mean())
 
     coarse = np.arange(-config.max_offset_s, config.max_offset_s + 1e-9, config.coarse_step_s)
     errs = np.array([error(float(s)) for s in coarse])
@@ -212,8 +227,7 @@ def pose_clock_offset(T_prev_next: np.ndarray, inlier_ratio: np.ndarray, times_u
     best, at_best = float(np.round(fine[int(np.argmin(fine_errs))], 6)), float(fine_errs.min())
     detected = bool(abs(best) >= config.min_offset_s and at_zero >= config.min_error_deg
                     and at_best <= config.max_error_ratio * at_zero)
-    return PoseClockCheck(int(use.sum()), at_zero, best if detected else 0.0, at_best if detected else at_zero,
-                          detected)
+    return PoseClockCheck(len(a), at_zero, best if detected else 0.0, at_best if detected else at_zero, detected)
 
 
 def pose_clock_message(check: PoseClockCheck, what: str = "the poses") -> str:

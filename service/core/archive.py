@@ -32,10 +32,10 @@ import numpy as np
 from reradar_core.errors import ScanFormatError
 from reradar_core.io.datasets import (
     first_confirmed_problem,
-    mid_sweep_poses_in,
     scan_name_time_mismatch,
     warn_names_off_first_azimuth,
 )
+from reradar_core.io.datasets import pose_file_reader as datasets_pose_file_reader
 from reradar_core.io.poses import PoseSequence
 from reradar_core.io.presets import RadarPreset, get_preset
 from reradar_core.io.scan import (
@@ -303,12 +303,10 @@ SWEEP_PRESET = "boreas"
 
 
 def pose_file_reader(track: PoseSequence, preset: str | None) -> Callable[[np.ndarray], np.ndarray]:
-    """The uploaded pose file's pose at any scan time ((M,) int64 µs -> (M, 3) float64 x m, y m, yaw rad, at mid-sweep
-    as the keyframe poses are taken): what a build's pose-clock check reads at shifted times
-    (``maps.build.build_map(pose_at=...)``), at the pose file's own rate rather than between keyframes (scans 2 s apart
-    cut a corner's turn short enough to hide a 1 s offset)."""
-    sweep = get_preset(preset or SWEEP_PRESET)
-    return lambda t_us: mid_sweep_poses_in(track, t_us, sweep)
+    """The uploaded pose file's pose at any scan time, for a build's pose-clock check (``datasets.pose_file_reader``
+    with the upload's preset, or ``SWEEP_PRESET``: every preset sweeps at 4 Hz): read at the pose file's own rate
+    rather than between keyframes (scans 2 s apart cut a corner's turn short enough to hide a 1 s offset)."""
+    return datasets_pose_file_reader(track, get_preset(preset or SWEEP_PRESET))
 
 
 def scan_time_us(path: Path) -> int | None:

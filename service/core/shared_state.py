@@ -360,7 +360,8 @@ def reconcile_with_folder(registry: MapRegistry, extra: Callable[[], None] | Non
     loaded (``MapRegistry.adopt``), a ready entry (or one that failed to open its file) whose file is gone is
     dropped (``MapRegistry.forget``), and one whose file is another file than the one it opened is reopened
     (``MapRegistry.reopen_if_replaced``). ``extra`` (the build jobs' view) runs after it."""
-    on_disk = {p.stem for p in registry.maps_dir.glob("*.h5") if _valid_id(registry, p.stem)}
+    # is_file follows a link: one whose target is gone is no map on disk (QA session 41: still served)
+    on_disk = {p.stem for p in registry.maps_dir.glob("*.h5") if _valid_id(registry, p.stem) and p.is_file()}
     known = {e.map_id: e for e in registry.entries()}
     for map_id in sorted(on_disk - known.keys()):
         with _one_map(map_id, "load"):

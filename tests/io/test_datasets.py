@@ -436,3 +436,9 @@ def test_scans_outside_a_pose_file_on_another_clock_are_told_the_shift():
         check_pose_span(_track(scans[:20]), scans, names)
     assert "another clock" not in str(short.value)
     check_pose_span(_track(scans - 200_000), scans, names)  # within the slack: accepted
+    # a log that runs beyond the scans, on another clock: long enough to cover them, off at one end
+    wider = np.concatenate([scans[0] - np.arange(8, 0, -1) * 250_000, scans, scans[-1] + np.arange(1, 9) * 250_000])
+    with pytest.raises(DatasetError, match=r"the pose file is long enough to cover the scans but starts 16\.00 s after "
+                                           r"them and ends 20\.00 s after them: a pose file on another clock \(GPS "
+                                           r"time runs 18 s ahead of UTC\) or of another drive\?$"):
+        check_pose_span(_track(wider + 18_000_000), scans, names)

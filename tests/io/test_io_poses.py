@@ -457,6 +457,9 @@ def test_a_time_beyond_int64_or_a_header_column_past_the_row_is_a_pose_file_erro
     m.write_text("\n".join(rows[:3] + ["99999999999999999999," + rows[3].split(",", 1)[1]] + rows[4:]) + "\n")
     with pytest.raises(PoseFileError, match=r"global_pose.csv:4: timestamp 99999999999999999999 is beyond"):
         read_poses(m)
+    p.write_text("t_us,x,y,yaw\n-99999999999999999999999,0,0,0\n")
+    with pytest.raises(PoseFileError, match=r"poses.csv:2: .* \(before the year 1678 even in nanoseconds\)"):
+        read_poses(p)
     m.write_text("\n".join(rows) + "\n")
     assert read_poses(m).timestamps_us.tolist() == [(1_566_535_940_000_000_123 + 250_000_001 * i) // 1000
                                                     for i in range(6)]

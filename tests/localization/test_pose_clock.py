@@ -136,9 +136,30 @@ def test_a_shift_is_judged_on_every_pair_not_only_those_it_keeps_inside_the_driv
     ones = np.ones(len(meas))
     check = pose_clock_offset(meas, ones, t_us, pose_at(t_us), pose_at=pose_at)
     assert not check.offset_detected, check
-    for offset_s in (1.0, -1.0):
+    # +-18 s (GPS against UTC time): read where the pose file covers, not only inside the 46 s of scans (QA s41)
+    for offset_s in (1.0, -1.0, 18.0, -18.0):
         def shifted(t: np.ndarray, d: int = int(offset_s * 1e6)) -> np.ndarray:
             return pose_at(np.asarray(t) + d)
 
         check = pose_clock_offset(meas, ones, t_us, shifted(t_us), pose_at=shifted)
         assert check.offset_detected and check.offset_s == pytest.approx(-offset_s, abs=0.051), (offset_s, check)
+
+
+def test_a_pose_reader_gives_no_pose_beyond_its_file_and_those_shifts_are_not_scored() -> None:
+    """``io.datasets.pose_file_reader``: NaN beyond the pose file (past its slack), so a shift that reads there counts
+    those pairs as given; a file that covers the shifted times is read there."""
+    from reradar_core.io.datasets import pose_file_reader
+    from reradar_core.io.poses import PoseSequence
+    from reradar_core.io.presets import get_preset
+
+    t_us, pose_at = _drive("corners")
+    rows = t_us[::2]
+    track = PoseSequence(rows, pose_at(rows)[:, :2], pose_at(rows)[:, 2])
+    read = pose_file_reader(track, get_preset("boreas"))
+    inside = read(t_us[:3])
+    assert np.isfinite(inside).all()
+    beyond = read(np.array([t_us[0] - 2_000_000, t_us[-1] + 2_000_000]))  # 2 s: past the 0.5 s slack + a sweep
+    assert np.isnan(beyond).all()
+    meas = _measured(t_us, pose_at)
+    check = pose_clock_offset(meas, np.ones(len(meas)), t_us, read(t_us), pose_at=read)
+    assert not check.offset_detected  # on the scans' clock

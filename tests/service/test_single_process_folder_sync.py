@@ -84,3 +84,9 @@ def test_symbolic_links_in_the_maps_folder_neither_stop_the_pass_nor_lose_anothe
         assert client.get("/maps/target", headers=AUTH).json()["state"] == "ready"
         assert client.get("/maps/alias", headers=AUTH).status_code == 404
         assert client.get("/maps/dangling", headers=AUTH).status_code == 404
+        # a link whose target is removed is a map removed (it was still served)
+        shutil.copy(fake_map, elsewhere / "gone.h5")
+        (maps_dir / "gone.h5").symlink_to(elsewhere / "gone.h5")
+        _wait(client, "gone", lambda r: r.status_code == 200 and r.json()["state"] == "ready")
+        (elsewhere / "gone.h5").unlink()
+        _wait(client, "gone", lambda r: r.status_code == 404)
