@@ -308,7 +308,8 @@ def build_map(
                 raise PoseFileError(pose_clock_message(clock, "the keyframe poses"))
             if clock.pairs == 0:  # said, so that a straight drive's map is not taken as checked (QA session 41)
                 logger.warning("%s: the pose file's clock could not be checked against the scans': fewer than %d "
-                               "consecutive keyframes turn by %g degrees or more and register (a straight drive?); "
+                               "consecutive keyframes turn by %g degrees or more and register (a straight drive? keyframes "
+                               "out of time order?); "
                                "make sure the pose file's times are the scans' (docs/MODEL.md 'The pose clock')",
                                Path(out).name, pose_clock.min_pairs, pose_clock.min_turn_deg)
         if place_repetition and config.checks_place_repetition:  # else no query would read it

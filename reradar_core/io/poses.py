@@ -467,7 +467,7 @@ def read_txyyaw_csv(path: str | Path, time_unit: str | None = None) -> PoseSeque
     if not path.is_file():
         raise PoseFileError(_missing_pose_file(path))
     with path.open(newline="", encoding="utf-8-sig") as fh:
-        first = next(csv.reader(fh), [""])
+        first = next(_csv_rows(path, fh), [""])
     head = first[0].strip().lower() if first else ""
     header_unit = TXYYAW_TIME_HEADERS.get(head)
     if head not in TXYYAW_TIME_HEADERS and not _is_number(head):

@@ -149,7 +149,7 @@ def install_map_files(built: Path, target: Path, far_built: Path | None = None) 
             file can replace it); nothing touched.
     """
     far_target = far_view_path(target)
-    if target.exists():
+    if target.exists() or target.is_symlink():  # a dangling link is a name taken too (os.link would fail on it)
         raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(target))
     if far_built is not None and far_target.is_dir() and not far_target.is_symlink():
         raise ConflictError(f"a folder named {far_target.name} lies in the maps folder where the far-view companion "
@@ -346,6 +346,7 @@ class MapRegistry:
         #: replaced) while some were: closed when the last of them finishes (``_let_go``)
         self._holders: dict[MapDatabase, int] = {}
         self._retired: set[MapDatabase] = set()
+        self._closed = False  # close() ran: a folder pass finishing late must not add an open map
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="map-build")
         # ReRadar's far view (the same weights on the radar's whole range) for maps with a far-view companion
         self.far_extractor: FeatureExtractor | None = None
@@ -799,7 +800,11 @@ class MapRegistry:
     def check_free(self, map_id: str) -> None:
         """Raise ``ConflictError`` (``taken_message``) when ``map_id`` is registered or its file exists."""
         with self._lock:
-            if map_id in self._entries or self.path_for(map_id).exists():
+            path = self.path_for(map_id)
+            if map_id not in self._entries and path.is_symlink() and not path.exists():
+                raise ConflictError(f"a broken symbolic link {path.name} (its target is gone) lies in the maps folder "
+                                    "under this id: an operator must remove or repoint it, or pick another id")
+            if map_id in self._entries or path.exists():
                 raise ConflictError(self.taken_message(map_id, self._entries.get(map_id)))
 
     def _reserve(self, map_id: str, scans_total: int = 0, far_view: bool = False, uploaded: bool = False) -> MapEntry:
@@ -1095,6 +1100,7 @@ class MapRegistry:
         """Stop the build jobs and close every loaded map (files, memory maps, keyframe caches)."""
         self._executor.shutdown(wait=True, cancel_futures=True)
         with self._lock:
+            self._closed = True
             for entry in self._entries.values():
                 if entry.db is not None:
                     entry.db.close()
@@ -1115,7 +1121,7 @@ class MapRegistry:
                 return None
         entry = self._load_entry(map_id, path)
         with self._lock:
-            if map_id in self._entries:  # registered here meanwhile
+            if map_id in self._entries or self._closed:  # registered here meanwhile, or shut down
                 if entry.db is not None:
                     entry.db.close()
                 return None
@@ -1139,7 +1145,7 @@ class MapRegistry:
             return None
         entry = self._load_entry(map_id, current.path)
         with self._lock:
-            if self._entries.get(map_id) is not current:  # deleted or registered again here meanwhile
+            if self._entries.get(map_id) is not current or self._closed:  # deleted or registered again meanwhile
                 if entry.db is not None:
                     entry.db.close()
                 return None
@@ -1149,11 +1155,15 @@ class MapRegistry:
             self.prune_map_arrays(dropped=current.db)
         return entry
 
-    def forget(self, map_id: str) -> MapEntry | None:
-        """Drop ``map_id`` from this registry without touching its file (another process deleted it).
+    def forget(self, map_id: str, expected: MapEntry | None = None) -> MapEntry | None:
+        """Drop ``map_id`` from this registry without touching its file (another process deleted it); with
+        ``expected``, only while that entry is still the one registered (a folder pass must not drop a build
+        registered under the id since it looked).
 
         Its database is closed once no request is using it (``_retire``)."""
         with self._lock:
+            if expected is not None and self._entries.get(map_id) is not expected:
+                return None
             entry = self._entries.pop(map_id, None)
         if entry is not None and entry.db is not None:
             self._retire(entry.db)

@@ -374,7 +374,8 @@ def reconcile_with_folder(registry: MapRegistry, extra: Callable[[], None] | Non
         from_file = entry.state == "ready" or (entry.state == "failed" and entry.file_id is not None)
         with _one_map(map_id, "re-check"):
             if from_file and map_id not in on_disk and not entry.path.exists():
-                registry.forget(map_id)
+                if registry.forget(map_id, entry) is None:
+                    continue  # registered again since the pass looked
                 logger.info("map %s dropped: its file was deleted by another process", map_id,
                             extra={"map_id": map_id})
             elif from_file and (new := registry.reopen_if_replaced(map_id)) is not None:

@@ -476,3 +476,6 @@ def test_a_line_beyond_the_csv_field_limit_is_a_pose_file_error(tmp_path):
     p.write_text("t_us,x,y,yaw\n1606417230000000,0,0,0\n" + "1" * 200_000 + "\n")
     with pytest.raises(PoseFileError, match=r"poses.csv:3: not a pose file row \(field larger than field limit"):
         read_poses(p)
+    p.write_text("t_s,x,y," + "a" * 200_000 + "\n1,0,0,0\n")  # the header line too (review: a 500)
+    with pytest.raises(PoseFileError, match=r"poses.csv:1: not a pose file row \(field larger than field limit"):
+        read_poses(p)

@@ -13,7 +13,15 @@ from typing import Any
 from maps.build import build_map
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from service_test_fakes import API_KEY, FakeExtractor, keyframe_poses, keyframe_time, make_scan, started_app  # noqa: E402
+from service_test_fakes import (  # noqa: E402
+    API_KEY,
+    FakeExtractor,
+    keyframe_poses,
+    keyframe_time,
+    make_scan,
+    started_app,
+    upload_map_file,
+)
 
 AUTH = {"X-API-Key": API_KEY}
 
@@ -84,9 +92,34 @@ def test_symbolic_links_in_the_maps_folder_neither_stop_the_pass_nor_lose_anothe
         assert client.get("/maps/target", headers=AUTH).json()["state"] == "ready"
         assert client.get("/maps/alias", headers=AUTH).status_code == 404
         assert client.get("/maps/dangling", headers=AUTH).status_code == 404
+        # the dangling link's name is taken all the same: a 409 that says why, not a build failing at its install
+        r = upload_map_file(client, fake_map, "dangling")
+        assert r.status_code == 409 and r.json()["detail"] == (
+            "a broken symbolic link dangling.h5 (its target is gone) lies in the maps folder under this id: an "
+            "operator must remove or repoint it, or pick another id"), r.text
         # a link whose target is removed is a map removed (it was still served)
         shutil.copy(fake_map, elsewhere / "gone.h5")
         (maps_dir / "gone.h5").symlink_to(elsewhere / "gone.h5")
         _wait(client, "gone", lambda r: r.status_code == 200 and r.json()["state"] == "ready")
         (elsewhere / "gone.h5").unlink()
         _wait(client, "gone", lambda r: r.status_code == 404)
+
+
+def test_a_folder_pass_drops_only_the_entry_it_looked_at(fake_map: Path, tmp_path: Path) -> None:
+    """Review (session 41): a pass that saw a map's file gone dropped whatever entry held the id by then, e.g. a build
+    registered under it meanwhile."""
+    from service.core.config import Settings
+    from service.core.registry import MapRegistry
+
+    reg = MapRegistry(Settings(maps_dir=tmp_path, load_demo_map=False), FakeExtractor())
+    try:
+        staged = reg.staging_dir() / "x.h5"
+        shutil.copyfile(fake_map, staged)
+        looked_at = reg.register_file("solo", staged)
+        other = reg.get("solo")
+        assert reg.forget("solo", expected=object()) is None  # type: ignore[arg-type]  # another entry: kept
+        assert reg.get("solo") is other
+        assert reg.forget("solo", expected=looked_at) is looked_at
+        assert "solo" not in {e.map_id for e in reg.entries()}
+    finally:
+        reg.close()
