@@ -183,35 +183,35 @@ def pose_clock_offset(T_prev_next: np.ndarray, inlier_ratio: np.ndarray, times_u
     turn_meas = meas[use, 2]
 
     def read(at_us: np.ndarray) -> np.ndarray:
-        return _interpolate(t, P, at_us) if pose_at is None else np.asarray(pose_at(at_us), np.float64)
+        """Poses at ``at_us``; NaN rows where none can be read: beyond the pose file (``pose_at``'s own NaN rows),
+        or without ``pose_at`` beyond the keyframes' span."""
+        if pose_at is not None:
+            return np.asarray(pose_at(at_us), np.float64)
+        out = _interpolate(t, P, at_us)
+        out[(at_us < t[0]) | (at_us > t[-1])] = np.nan
+        return out
 
     def pair_errors(offset_us: int) -> tuple[np.ndarray, np.ndarray]:
-        """Each pair's disagreement with the poses read ``offset_us`` later, and where they can be read there:
-        within the pose file (``pose_at``'s finite rows), or without ``pose_at`` within the keyframes' span."""
-        if pose_at is None:
-            inside = (a + offset_us >= t[0]) & (b + offset_us <= t[-1])
-            pa, pb = read(a[inside] + offset_us), read(b[inside] + offset_us)
-        else:
-            pa, pb = read(a + offset_us), read(b + offset_us)
-            inside = np.isfinite(pa).all(axis=1) & np.isfinite(pb).all(axis=1)
-            pa, pb = pa[inside], pb[inside]
-        rel = relative_pose(pa, pb)
+        """Each pair's disagreement (NaN where unread) with the poses read ``offset_us`` later, and where both its
+        times could be read there."""
+        pa, pb = read(a + offset_us), read(b + offset_us)
+        inside = np.isfinite(pa).all(axis=1) & np.isfinite(pb).all(axis=1)
+        rel = relative_pose(pa[inside], pb[inside])
         err = np.full(len(a), np.nan)
         err[inside] = np.minimum(np.degrees(np.abs(wrap_angle(rel[:, 2] - turn_meas[inside]))), config.clip_error_deg)
         return err, inside
 
     at_zero_each, readable = pair_errors(0)
     if not readable.all():  # pairs the pose reader holds no pose for as given (a reader narrower than the drive)
-        a, b, turn_meas = a[readable], b[readable], turn_meas[readable]
+        a, b, turn_meas, at_zero_each = a[readable], b[readable], turn_meas[readable], at_zero_each[readable]
         if len(a) < config.min_pairs:
             return none
-        at_zero_each, _ = pair_errors(0)
     at_zero = float(at_zero_each.mean())
 
     def error(offset_s: float) -> float:
-        """Mean disagreement over every pair, each read at the shift where the shift keeps it inside the drive and
-        as given where not: every shift judged on the same pairs, so that one which drops a badly registered pair
-        off the drive's end does not look better for it (QA session 41: two turns 29 s apart, a pose file on the
+        """Mean disagreement over every pair, each read at the shift where its shifted times can be read and as
+        given where not: every shift judged on the same pairs, so that one which drops a badly registered pair off
+        the drive's end does not look better for it (QA session 41: two turns 29 s apart, a pose file on the
         scans' clock refused as 29.2 s off; another 1 s off read as 28.25 s)."""
         shifted, inside = pair_errors(int(round(offset_s * 1e6)))
         if inside.mean() < config.min_coverage:
