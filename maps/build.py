@@ -172,6 +172,19 @@ def add_place_repetition(path: str | Path, out: str | Path | None = None, locali
     return table
 
 
+def _heartbeat(progress: ProgressFn | None, done: int, total: int) -> Callable[..., None]:
+    """``beat(force=False)``: ``progress(done, total)`` at most about once a second (at once with ``force``), for a
+    build's passes after its scans are described (a job's heartbeat and cancel check keep running)."""
+    last = [time.monotonic()]
+
+    def beat(force: bool = False) -> None:
+        if progress is not None and (force or time.monotonic() - last[0] >= 1.0):
+            last[0] = time.monotonic()
+            progress(done, total)
+
+    return beat
+
+
 def build_map(
     out: str | Path,
     extractor: FeatureExtractor,
@@ -206,8 +219,8 @@ def build_map(
         batch_size: scans per network batch.
         max_keypoints: optional cap on stored keypoints per keyframe (map size).
         progress: called with (done, total) after each batch (background jobs report through it), and again with
-            the last (done, total) about once a second while the place repetition is measured (a job's heartbeat
-            and cancel check keep running). ``total`` counts scan descriptions: N, or 2 N with ``far_view``, whose
+            the last (done, total) about once a second while the pose clock is checked and the place repetition is
+            measured (a job's heartbeat and cancel check keep running). ``total`` counts scan descriptions: N, or 2 N with ``far_view``, whose
             pass over the scans (done N + 1 ... 2 N; about as long again as the map's: docs/BENCHMARKS.md, "Session 34") follows the map's.
         show_progress: show a tqdm bar.
         place_repetition: measure every keyframe's place repetition (``Localizer.place_repetitions``, ~20-40 ms
@@ -294,15 +307,9 @@ def build_map(
                            _MIN_MAP_KEYPOINTS, ", ".join(str(i) for i in sparse[:5]), " ..." if len(sparse) > 5 else "")
         config = localization or LocalizationConfig()
         if pose_clock is not None and n >= 2:  # before the map is measured and installed: poses of other instants
-            clock_last = [time.monotonic()]
-
-            def clock_beat(_i: int) -> None:
-                if progress is not None and time.monotonic() - clock_last[0] >= 1.0:
-                    clock_last[0] = time.monotonic()
-                    progress(n, total)
-
+            clock_beat = _heartbeat(progress, n, total)
             align = replace(config.alignment, min_inliers=config.min_inliers)  # the pose estimator's (verify_candidate)
-            T_prev_next, ratio = consecutive_registrations(writer.read_keyframe, n, align, clock_beat)
+            T_prev_next, ratio = consecutive_registrations(writer.read_keyframe, n, align, lambda _i: clock_beat())
             clock = pose_clock_offset(T_prev_next, ratio, writer.timestamps_us, writer.poses, pose_clock, pose_at)
             if clock.offset_detected:
                 raise PoseFileError(pose_clock_message(clock, "the keyframe poses"))
@@ -313,16 +320,10 @@ def build_map(
                                "make sure the pose file's times are the scans' (docs/MODEL.md 'The pose clock')",
                                Path(out).name, pose_clock.min_pairs, pose_clock.min_turn_deg)
         if place_repetition and config.checks_place_repetition:  # else no query would read it
-            last = [time.monotonic()]
-
-            def beat(done: int, total: int) -> None:
-                if progress is not None and (done == total or time.monotonic() - last[0] >= 1.0):
-                    last[0] = time.monotonic()
-                    progress(n, total)
-
+            repetition_beat = _heartbeat(progress, n, total)
             stored = InMemoryKeyframes(writer.read_keyframe, writer.poses, writer.timestamps_us)
-            table = measure_place_repetition(stored, writer.global_descriptors, config, repetition_workers, beat,
-                                             show_progress)
+            table = measure_place_repetition(stored, writer.global_descriptors, config, repetition_workers,
+                                             lambda done, measured: repetition_beat(done == measured), show_progress)
             writer.set_place_repetition(table)
             if (message := unjudged_warning(table, n)) is not None:
                 logger.warning("%s: %s", Path(out).name, message)
