@@ -48,6 +48,7 @@ from reradar_core.errors import DatasetError, PoseFileError, ScanFormatError
 from reradar_core.geometry.se2 import compose, inverse
 from reradar_core.io.poses import (
     PoseSequence,
+    gps_offset_hint,
     read_boreas_radar_poses,
     read_mulran_global_pose,
     write_boreas_radar_poses,
@@ -818,7 +819,7 @@ def check_pose_span(track: PoseSequence, stamps_us: np.ndarray, names: list[str]
             # both ends shifted alike: one recording, two clocks (the pose-clock check cannot run on it)
             shift_s = (start_off + end_off) / 2e6
             clock = (f"; both ends of the scans' span lie {shift_s:+.2f} s from the pose file's: a pose file on another "
-                     f"clock{' (GPS time runs 18 s ahead of UTC)' if 17 <= abs(shift_s) <= 19 else ''}? Add "
+                     f"clock{gps_offset_hint(shift_s)}? Add "
                      f"{shift_s:+.2f} s to its times")
         elif last - first >= int(np.max(t)) - int(np.min(t)) and (start_off < 0) != (end_off > 0):
             # long enough to cover the scans but off at one end only: a wider log on another clock, or another

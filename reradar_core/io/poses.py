@@ -47,6 +47,7 @@ __all__ = [
     "write_txyyaw_csv",
     "read_poses",
     "gps_time_to_us",
+    "gps_offset_hint",
     "TIME_UNITS",
     "absolute_time_unit",
     "to_microseconds",
@@ -158,6 +159,12 @@ class PoseSequence:
 
     def path_length_m(self) -> float:
         return float(np.sum(np.linalg.norm(np.diff(self.xy, axis=0), axis=1)))
+
+
+def gps_offset_hint(offset_s: float) -> str:
+    """" (GPS time runs 18 s ahead of UTC)" for a clock offset of 17-19 s (either way), else "": what a message about
+    a pose file on another clock than its scans' adds when the offset looks like GPS time against UTC."""
+    return " (GPS time runs 18 s ahead of UTC)" if 17 <= abs(offset_s) <= 19 else ""
 
 
 def _check_unit(unit: str) -> str:

@@ -28,6 +28,7 @@ import numpy as np
 
 from reradar_core.features import ScanFeatures
 from reradar_core.geometry.se2 import relative_pose, wrap_angle
+from reradar_core.io.poses import gps_offset_hint
 from reradar_core.matching import AlignmentConfig, estimate_pose_guided
 
 __all__ = ["PoseClockConfig", "PoseClockCheck", "consecutive_registrations", "pose_clock_offset",
@@ -237,5 +238,5 @@ def pose_clock_message(check: PoseClockCheck, what: str = "the poses") -> str:
             f"show between consecutive keyframes ({check.pairs} pairs) agree with the poses read {abs(off):.2f} s "
             f"{'earlier' if off < 0 else 'later'} (mean {check.error_at_offset_deg:.2f} deg) and not as given (mean "
             f"{check.error_at_zero_deg:.2f} deg), so every keyframe would carry another instant's pose. Put the pose "
-            f"file on the scans' time base{' (GPS time runs 18 s ahead of UTC)' if 17 <= abs(off) <= 19 else ''}: add "
+            f"file on the scans' time base{gps_offset_hint(off)}: add "
             f"{-off:+.2f} s to its times")

@@ -63,6 +63,7 @@ from service.core.registry import (
     MapRegistry,
     file_identity,
     last_pass_note,
+    map_name_taken,
     refuse_delete_of_upload_in_check,
     utc_now,
 )
@@ -75,11 +76,6 @@ logger = logging.getLogger(__name__)
 
 #: Name of the arq function that builds a map (``service.worker``).
 JOB_FUNCTION = "build_map"
-def _name_taken(path: Path) -> bool:
-    """A file, or a link (a dangling one too: no map can be installed under its name), is at ``path``."""
-    return path.exists() or path.is_symlink()
-
-
 #: A build job's copy of the uploaded pose file (timestamps_us, xy, yaw), which the worker's pose-clock check reads
 #: (jobs queued before session 41 have none: their check reads the keyframe poses).
 POSE_TRACK_FILE = "pose_track.npz"
@@ -578,7 +574,7 @@ class QueuedMapRegistry(MapRegistry):
                     "far_view": far_view}
             (job_dir / "spec.json").write_text(json.dumps(spec))
             try:
-                self.queue.enqueue(map_id, job_id, scans_total, source, taken=lambda: _name_taken(self.path_for(map_id)),
+                self.queue.enqueue(map_id, job_id, scans_total, source, taken=lambda: map_name_taken(self.path_for(map_id)),
                                    far_view=far_view)
             except redis.RedisError as exc:
                 full = isinstance(exc, redis.exceptions.OutOfMemoryError) or "OOM" in str(exc)

@@ -79,7 +79,7 @@ from service.core.config import MAP_ID_PATTERN, Settings
 from service.core.errors import BadRequestError, ConflictError, NotFoundError, ServiceError, scrub_paths
 
 __all__ = ["MapEntry", "MapRegistry", "MapState", "DEMO_MAP_ID", "FileIdentity", "build_failure_message",
-           "file_identity", "install_map_files", "UPLOAD_CHECK_NOTE", "refuse_delete_of_upload_in_check"]
+           "file_identity", "install_map_files", "map_name_taken", "UPLOAD_CHECK_NOTE", "refuse_delete_of_upload_in_check"]
 
 logger = logging.getLogger(__name__)
 
@@ -120,6 +120,12 @@ def file_identity(path: Path) -> FileIdentity | None:
     return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
 
 
+def map_name_taken(path: Path) -> bool:
+    """A file, or a link (a dangling one too: ``os.link`` fails on its name, so no map can be installed there), is
+    at ``path``."""
+    return path.exists() or path.is_symlink()
+
+
 def install_map_files(built: Path, target: Path, far_built: Path | None = None) -> None:
     """Install the complete map file ``built`` as ``target`` and its far-view companion ``far_built`` (None: the map
     comes without one) as ``far_view_path(target)``.
@@ -149,7 +155,7 @@ def install_map_files(built: Path, target: Path, far_built: Path | None = None) 
             file can replace it); nothing touched.
     """
     far_target = far_view_path(target)
-    if target.exists() or target.is_symlink():  # a dangling link is a name taken too (os.link would fail on it)
+    if map_name_taken(target):
         raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(target))
     if far_built is not None and far_target.is_dir() and not far_target.is_symlink():
         raise ConflictError(f"a folder named {far_target.name} lies in the maps folder where the far-view companion "
@@ -804,7 +810,7 @@ class MapRegistry:
             if map_id not in self._entries and path.is_symlink() and not path.exists():
                 raise ConflictError(f"a broken symbolic link {path.name} (its target is gone) lies in the maps folder "
                                     "under this id: an operator must remove or repoint it, or pick another id")
-            if map_id in self._entries or path.exists():
+            if map_id in self._entries or map_name_taken(path):
                 raise ConflictError(self.taken_message(map_id, self._entries.get(map_id)))
 
     def _reserve(self, map_id: str, scans_total: int = 0, far_view: bool = False, uploaded: bool = False) -> MapEntry:
